@@ -1,0 +1,300 @@
+//! Transports: what carries a link's bytes, so that no protocol code knows.
+//!
+//! Every link driver talks to a [`Transport`]: an `AsyncRead + AsyncWrite` byte stream plus the
+//! modem lines the FANUC protocols use (§3.2, §3.3 of the remote-buffer manual): the host sets
+//! ER (DTR) and RS (RTS) and reads DR (DSR), CS (CTS) and CD. Three carriers exist:
+//!
+//! - [`serial`]: a real serial port (tokio-serial);
+//! - [`tcp`]: a raw TCP connection to a serial device server, reconnecting with backoff and
+//!   writing through a bounded in-flight window;
+//! - [`sim`]: an in-memory line to a simulated board, paced at the configured baud rate.
+//!
+//! Line errors that a UART reports (parity, framing, overrun) and a cut line surface as
+//! [`LineError`]s through [`Transport::take_line_error`], never as panics.
+
+pub mod serial;
+pub mod sim;
+pub mod tcp;
+
+use std::fmt;
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+use tokio::io::{AsyncRead, AsyncWrite};
+
+/// Data bits per character (FANUC §3.1, Fuji §4-3 item 5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub enum DataBits {
+    #[serde(rename = "7")]
+    Seven,
+    #[serde(rename = "8")]
+    #[default]
+    Eight,
+}
+
+/// Parity bit (FANUC §3.1: even when present; Fuji §4-3 item 6: none, odd or even).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Parity {
+    #[default]
+    None,
+    Odd,
+    Even,
+}
+
+/// Stop bits (Fuji §4-3 item 7 allows 1.5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub enum StopBits {
+    #[serde(rename = "1")]
+    One,
+    #[serde(rename = "1.5")]
+    OnePointFive,
+    #[serde(rename = "2")]
+    #[default]
+    Two,
+}
+
+/// Hardware flow control on the serial port itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum FlowControl {
+    /// The protocol does its own flow control (DC1/DC3, RS/CS read by the driver).
+    #[default]
+    None,
+    /// RTS/CTS handled by the UART.
+    RtsCts,
+}
+
+/// How characters are framed on the line: the settings both ends must agree on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LineSettings {
+    pub baud: u32,
+    pub data_bits: DataBits,
+    pub parity: Parity,
+    pub stop_bits: StopBits,
+    pub flow_control: FlowControl,
+}
+
+impl Default for LineSettings {
+    /// 9600 baud, 8 data bits, no parity, 2 stop bits: 11 bit times a character, the framing
+    /// the FANUC manual counts with (§9.2 "11 bits/byte").
+    fn default() -> Self {
+        LineSettings {
+            baud: 9600,
+            data_bits: DataBits::Eight,
+            parity: Parity::None,
+            stop_bits: StopBits::Two,
+            flow_control: FlowControl::None,
+        }
+    }
+}
+
+impl LineSettings {
+    pub fn with_baud(baud: u32) -> Self {
+        LineSettings {
+            baud,
+            ..Self::default()
+        }
+    }
+
+    /// Bit times one character occupies on the line, doubled so that 1.5 stop bits stay
+    /// integral: start bit + data bits + parity bit + stop bits.
+    pub fn half_bits_per_char(&self) -> u32 {
+        let data = match self.data_bits {
+            DataBits::Seven => 7,
+            DataBits::Eight => 8,
+        };
+        let parity = u32::from(self.parity != Parity::None);
+        let stop2 = match self.stop_bits {
+            StopBits::One => 2,
+            StopBits::OnePointFive => 3,
+            StopBits::Two => 4,
+        };
+        2 * (1 + data + parity) + stop2
+    }
+
+    /// Bit times per character (10 for 8N1, 11 for 8N2 or 8E1).
+    pub fn bits_per_char(&self) -> f64 {
+        f64::from(self.half_bits_per_char()) / 2.0
+    }
+
+    /// Characters per second the line carries at most.
+    pub fn chars_per_sec(&self) -> f64 {
+        f64::from(self.baud) / self.bits_per_char()
+    }
+
+    /// Time on the line of `n` characters sent back to back, rounded up to the nanosecond.
+    /// Computed from the character count (not by adding per-character durations) so that
+    /// long transfers do not accumulate rounding drift.
+    pub fn time_for_chars(&self, n: u64) -> Duration {
+        let baud = u128::from(self.baud.max(1));
+        let half_bits = u128::from(n) * u128::from(self.half_bits_per_char());
+        let nanos = (half_bits * 1_000_000_000).div_ceil(2 * baud);
+        Duration::from_nanos(u64::try_from(nanos).unwrap_or(u64::MAX))
+    }
+
+    /// Time on the line of one character.
+    pub fn char_time(&self) -> Duration {
+        self.time_for_chars(1)
+    }
+
+    /// The mask a receiver applies to a character: 7-bit framing drops bit 7.
+    pub fn data_mask(&self) -> u8 {
+        match self.data_bits {
+            DataBits::Seven => 0x7F,
+            DataBits::Eight => 0xFF,
+        }
+    }
+}
+
+impl fmt::Display for LineSettings {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let d = match self.data_bits {
+            DataBits::Seven => '7',
+            DataBits::Eight => '8',
+        };
+        let p = match self.parity {
+            Parity::None => 'N',
+            Parity::Odd => 'O',
+            Parity::Even => 'E',
+        };
+        let s = match self.stop_bits {
+            StopBits::One => "1",
+            StopBits::OnePointFive => "1.5",
+            StopBits::Two => "2",
+        };
+        write!(f, "{} {d}{p}{s}", self.baud)
+    }
+}
+
+/// The input modem lines as the host sees them (§3.2 signal table).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct ModemIn {
+    /// DR / DSR (RS-422: RR): the peer is ready. Off during transmission is an alarm (SR0855).
+    pub dr: bool,
+    /// CS / CTS: the peer can receive now.
+    pub cs: bool,
+    /// CD: carrier detect (RS-232-C only; wired to ER on the board side).
+    pub cd: bool,
+}
+
+impl ModemIn {
+    /// All lines on: the manual's wiring for lines that are not used.
+    pub const ALL_ON: ModemIn = ModemIn {
+        dr: true,
+        cs: true,
+        cd: true,
+    };
+}
+
+/// The output modem lines the host drives.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct ModemOut {
+    /// ER / DTR (RS-422: TR): the host is ready.
+    pub er: bool,
+    /// RS / RTS: the host can receive now.
+    pub rs: bool,
+}
+
+impl ModemOut {
+    pub const ALL_ON: ModemOut = ModemOut { er: true, rs: true };
+}
+
+/// An error the receiving UART reports about the characters on the line (§4.6 line errors).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error, Serialize)]
+#[non_exhaustive]
+pub enum LineError {
+    #[error("parity error in a received character")]
+    Parity,
+    #[error("framing error in a received character")]
+    Framing,
+    #[error("receiver overrun: characters were lost")]
+    Overrun,
+}
+
+/// Errors of the carriers themselves, kept apart from protocol and device errors.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum TransportError {
+    #[error("serial port {path}: {source}")]
+    Serial {
+        path: String,
+        #[source]
+        source: tokio_serial::Error,
+    },
+    #[error("serial port {path}: baud rate {baud} is not supported by this port")]
+    UnsupportedBaud { path: String, baud: u32 },
+    #[error("device server {addr}: {source}")]
+    Tcp {
+        addr: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// A byte stream with modem lines: what every link driver runs over.
+///
+/// Implementations never block the executor and never panic on line input. A line that the
+/// carrier cannot report (a pseudo-terminal, a TCP device server, many USB adapters) reads as on,
+/// which is the manual's own wiring for unused lines; the carrier logs that once.
+pub trait Transport: AsyncRead + AsyncWrite + Send + Unpin {
+    /// Drive the host's output lines ER (DTR) and RS (RTS).
+    fn set_modem(&mut self, out: ModemOut) -> std::io::Result<()>;
+
+    /// Read the input lines DR (DSR), CS (CTS) and CD.
+    fn modem(&mut self) -> std::io::Result<ModemIn>;
+
+    /// Take the oldest line error the receiver reported since the last call, if any.
+    /// Bytes that arrived with an error are not delivered by `poll_read`.
+    fn take_line_error(&mut self) -> Option<LineError> {
+        None
+    }
+
+    /// A short human description for logs and status ("serial /dev/ttyS0 19200 8N2").
+    fn describe(&self) -> String;
+}
+
+impl<T: Transport + ?Sized> Transport for Box<T> {
+    fn set_modem(&mut self, out: ModemOut) -> std::io::Result<()> {
+        (**self).set_modem(out)
+    }
+    fn modem(&mut self) -> std::io::Result<ModemIn> {
+        (**self).modem()
+    }
+    fn take_line_error(&mut self) -> Option<LineError> {
+        (**self).take_line_error()
+    }
+    fn describe(&self) -> String {
+        (**self).describe()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn framing_bit_counts() {
+        let mut s = LineSettings::with_baud(9600);
+        assert_eq!(s.bits_per_char(), 11.0); // 8N2
+        s.stop_bits = StopBits::One;
+        assert_eq!(s.bits_per_char(), 10.0); // 8N1
+        s.parity = Parity::Even;
+        assert_eq!(s.bits_per_char(), 11.0); // 8E1
+        s.data_bits = DataBits::Seven;
+        s.stop_bits = StopBits::OnePointFive;
+        assert_eq!(s.bits_per_char(), 10.5); // 7E1.5
+    }
+
+    #[test]
+    fn time_for_chars_does_not_drift() {
+        let s = LineSettings::with_baud(86_400);
+        // 86400 baud at 11 bits: 7854.54.. chars/s; one million chars take 127.3148.. s.
+        let t = s.time_for_chars(1_000_000);
+        assert_eq!(t.as_nanos(), 127_314_814_815);
+        assert_eq!(s.char_time().as_nanos(), 127_315);
+    }
+}
