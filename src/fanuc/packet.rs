@@ -31,10 +31,10 @@ pub fn packet_len(n: u8) -> usize {
 
 /// The packet number after `no` (39h wraps to 30h).
 pub fn next_packet_no(no: u8) -> u8 {
-    if no >= LAST_CYCLING_PACKET || no < FIRST_PACKET {
-        FIRST_PACKET
-    } else {
+    if (FIRST_PACKET..LAST_CYCLING_PACKET).contains(&no) {
         no + 1
+    } else {
+        FIRST_PACKET
     }
 }
 
