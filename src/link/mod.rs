@@ -7,6 +7,8 @@
 //! of the gateway (bus routes, job manager) talks to a link only through [`LinkCommand`] and
 //! [`LinkEvent`]: that is the seam the bus bridge uses, and the one tests drive in virtual time.
 
+pub mod pump;
+
 use std::time::Instant;
 
 use bytes::Bytes;
@@ -71,34 +73,46 @@ pub enum EngineEvent {
     CncAlarm,
     /// `bytes` more program bytes went onto the line as NC data (in DAT or data packets;
     /// retransmissions are not counted again).
-    DataSent { bytes: u64 },
+    DataSent {
+        bytes: u64,
+    },
     /// The whole current program was delivered and the board was told (EOD / end packet).
     ProgramDone,
     /// The current program was abandoned: by `Cancel` (`cancelled`), by the CNC (reset or
     /// alarm), or by a link failure.
-    ProgramAborted { reason: String, cancelled: bool },
+    ProgramAborted {
+        reason: String,
+        cancelled: bool,
+    },
     /// A link alarm, with the CNC alarm number the board raises for it where one applies.
     Alarm {
         alarm: Option<CncAlarm>,
         error: String,
     },
     /// A protocol error that the engine recovered from (retry, resync). For logs and counters.
-    ProtocolError { error: String, retried: bool },
+    ProtocolError {
+        error: String,
+        retried: bool,
+    },
 }
 
-/// A sans-IO host-side protocol engine (Protocol A family or Protocol B family).
+/// A sans-IO protocol engine: the host side of a link, or the device side of a simulated board.
 ///
 /// Every method is synchronous and cheap; `now` is the only clock. Inputs may arrive in any
-/// split; garbage never panics the engine.
-pub trait HostEngine: Send {
+/// split; garbage never panics the engine. One async pump ([`pump`]) runs any engine over any
+/// transport.
+pub trait Engine: Send {
+    type Command: Send;
+    type Event: Send;
+
     /// Bytes received from the line.
     fn handle_input(&mut self, now: Instant, bytes: &[u8]);
     /// A character error the transport reported (parity, framing, overrun): §4.6 line errors.
     fn handle_line_error(&mut self, now: Instant, error: LineError);
     /// The input modem lines, whenever the driver reads them (after every change at least).
     fn handle_modem(&mut self, now: Instant, modem: ModemIn);
-    /// A command from the gateway.
-    fn handle_command(&mut self, now: Instant, command: EngineCommand);
+    /// A command from the owner of the engine.
+    fn handle_command(&mut self, now: Instant, command: Self::Command);
     /// Time passed: act on any deadline at or before `now`.
     fn handle_timeout(&mut self, now: Instant);
     /// The next bytes to write. The driver writes them completely before asking again, so an
@@ -107,18 +121,22 @@ pub trait HostEngine: Send {
     fn poll_transmit(&mut self, now: Instant) -> Option<Vec<u8>>;
     /// The next event, if any.
     #[must_use]
-    fn poll_event(&mut self) -> Option<EngineEvent>;
+    fn poll_event(&mut self) -> Option<Self::Event>;
     /// The earliest deadline the engine wants to be woken at.
     #[must_use]
     fn poll_timeout(&self) -> Option<Instant>;
-    /// How many more program bytes the engine will take now (bounded buffer).
-    #[must_use]
-    fn data_wanted(&self) -> usize;
     /// The modem output lines (ER, RS) the engine wants driven.
     #[must_use]
     fn modem_out(&self) -> ModemOut {
         ModemOut::ALL_ON
     }
+}
+
+/// A host-side engine (Protocol A family or Protocol B family).
+pub trait HostEngine: Engine<Command = EngineCommand, Event = EngineEvent> {
+    /// How many more program bytes the engine will take now (bounded buffer).
+    #[must_use]
+    fn data_wanted(&self) -> usize;
 }
 
 /// Identifies a program job on one link.
