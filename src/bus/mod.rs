@@ -1,4 +1,4 @@
-//! The Zenoh side of the gateway: session settings, and (in later rooms) the cell's key
+//! The Zenoh side of the gateway: session settings, and (in the rooms below) the cell's key
 //! expressions, routes and admin space.
 
 use serde::{Deserialize, Serialize};
