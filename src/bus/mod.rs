@@ -1,6 +1,10 @@
 //! The Zenoh side of the gateway: session settings, and (in the rooms below) the cell's key
 //! expressions, routes and admin space.
 
+pub mod session;
+
+pub use session::{BusError, open};
+
 use serde::{Deserialize, Serialize};
 
 /// Zenoh session mode.
