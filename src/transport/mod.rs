@@ -7,10 +7,16 @@
 //! - [`serial`]: a real serial port (tokio-serial);
 //! - [`tcp`]: a raw TCP connection to a serial device server, reconnecting with backoff and
 //!   writing through a bounded in-flight window;
-//! - [`sim`]: an in-memory line to a simulated board, paced at the configured baud rate.
+//! - [`sim`]: an in-memory line to a simulated board, paced at the configured baud rate, with
+//!   fault injection.
 //!
-//! Line errors that a UART reports (parity, framing, overrun) and a cut line surface as
-//! [`LineError`]s through [`Transport::take_line_error`], never as panics.
+//! All three bound how far a writer can run ahead of the line with a [`Pacer`], so that a stop
+//! code (DC3) from the peer takes effect within a few characters (§6.3), not after whatever a
+//! UART FIFO, the kernel or a device server has already swallowed.
+//!
+//! Line errors that a UART reports (parity, framing, overrun) surface as [`LineError`]s through
+//! [`Transport::take_line_error`]; a cut line or a lost device server shows as DR (and CD) off in
+//! [`Transport::modem`] (alarm SR0855). Neither is an I/O error, and nothing panics on line input.
 
 pub mod pacer;
 pub mod serial;

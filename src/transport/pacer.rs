@@ -3,7 +3,7 @@
 //! A [`Pacer`] models the serial transmitter at the far end of whatever buffers sit between the
 //! host and the line: characters written to it leave at the line's character rate, back to back,
 //! and the writer may keep at most `window` characters written but not yet fully sent. That bound
-//! is what makes a stop code (DC3, §4.6 of the remote-buffer manual) take effect within a few
+//! is what makes a stop code (DC3, §6.3 of the remote-buffer manual) take effect within a few
 //! characters instead of after everything the OS, a device server or a UART FIFO has swallowed:
 //! Protocol B allows the sender to overrun a DC3 by at most 512 characters.
 //!

@@ -43,7 +43,7 @@ use super::{
 
 /// Characters written and not yet sent, at most, by default: at 86400 baud about 16 ms of line
 /// time, enough to ride over scheduling delays, and far inside Protocol B's 512-character
-/// overrun allowance after a DC3.
+/// overrun allowance after a DC3 (§6.3).
 pub const DEFAULT_WINDOW: usize = 128;
 
 /// Things logged once per port.

@@ -1,6 +1,6 @@
 //! An in-memory serial line between the host and a simulated board, paced at the baud rate.
 //!
-//! [`line`] returns the two ends of a null-modem cable, both [`Transport`]s, and a [`SimLine`]
+//! [`line()`] returns the two ends of a null-modem cable, both [`Transport`]s, and a [`SimLine`]
 //! handle that injects faults and observes traffic. Everything runs on `tokio::time`, so a test
 //! under paused time (`#[tokio::test(start_paused = true)]`) sees the line's real timing while
 //! running far faster than the wall clock.
@@ -13,7 +13,7 @@
 //! transfers keep the nominal rate exactly. A write accepts bytes only while the FIFO has room
 //! (the character being shifted out plus `fifo` waiting) and otherwise waits until the front has
 //! left, so the writer cannot race ahead of the line and a DC3 from the peer stops it within a
-//! FIFO's worth of characters (§4.6). A reader is given every character that has arrived by now;
+//! FIFO's worth of characters (§6.3). A reader is given every character that has arrived by now;
 //! with none yet, it sleeps until the next arrival. Wakeups are per batch, not per character.
 //!
 //! # Modem lines

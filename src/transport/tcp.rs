@@ -12,7 +12,7 @@
 //! overrun by everything already buffered. The transport estimates the characters written but
 //! not yet sent on the serial side (they drain at the line's character rate) and accepts writes
 //! only while that estimate is below [`TcpOptions::window`], well inside Protocol B's 512-character
-//! overrun allowance (§4.6).
+//! overrun allowance (§6.3; 1280 for Expansion B, §7).
 //!
 //! A raw TCP device server carries no modem lines: [`Transport::set_modem`] does nothing and
 //! [`Transport::modem`] reads all lines on while connected.
@@ -167,11 +167,12 @@ fn check_addr(addr: &str) -> Result<(), TransportError> {
 impl TcpTransport {
     /// Connect to the device server at `addr` (`host:port`) carrying a line framed as `line`.
     ///
-    /// Makes one connection attempt before returning. If it fails, the transport is returned
-    /// anyway, disconnected, and keeps trying with backoff as it is used: a device server that
-    /// is switched on after cellgate is picked up without a restart. Only an address that is not
-    /// `host:port` is an error ([`TransportError::BadAddress`]); an unresolvable host name is
-    /// retried like a refused connection.
+    /// Makes one connection attempt (up to [`TcpOptions::connect_timeout`]) before returning.
+    /// If it fails, the transport is returned anyway, disconnected, and keeps trying with
+    /// backoff while it is read or written: a device server switched on after cellgate is picked
+    /// up without a restart. Only an address that is not `host:port` is an error
+    /// ([`TransportError::BadAddress`]); an unresolvable host name is retried like a refused
+    /// connection.
     pub async fn connect(
         addr: impl Into<String>,
         line: LineSettings,
