@@ -31,8 +31,9 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 use tokio::io::{AsyncRead, AsyncWrite};
 
-/// Data bits per character (FANUC §3.1, Fuji §4-3 item 5).
+/// Data bits per character (FANUC §3.1, Fuji §4-3 item 5). Written `8` or `"8"`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(try_from = "NumberOrText")]
 pub enum DataBits {
     #[serde(rename = "7")]
     Seven,
@@ -51,8 +52,9 @@ pub enum Parity {
     Even,
 }
 
-/// Stop bits (Fuji §4-3 item 7 allows 1.5).
+/// Stop bits (Fuji §4-3 item 7 allows 1.5). Written `2`, `1.5` or `"2"`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(try_from = "NumberOrText")]
 pub enum StopBits {
     #[serde(rename = "1")]
     One,
@@ -61,6 +63,48 @@ pub enum StopBits {
     #[serde(rename = "2")]
     #[default]
     Two,
+}
+
+/// A setting people write either as a number or as text (`data_bits = 8`, `stop_bits = "1.5"`).
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum NumberOrText {
+    Int(i64),
+    Float(f64),
+    Text(String),
+}
+
+impl NumberOrText {
+    fn text(self) -> String {
+        match self {
+            NumberOrText::Int(i) => i.to_string(),
+            NumberOrText::Float(f) => f.to_string(),
+            NumberOrText::Text(t) => t,
+        }
+    }
+}
+
+impl TryFrom<NumberOrText> for DataBits {
+    type Error = String;
+    fn try_from(v: NumberOrText) -> Result<Self, String> {
+        match v.text().as_str() {
+            "7" => Ok(DataBits::Seven),
+            "8" => Ok(DataBits::Eight),
+            other => Err(format!("data bits {other}: must be 7 or 8")),
+        }
+    }
+}
+
+impl TryFrom<NumberOrText> for StopBits {
+    type Error = String;
+    fn try_from(v: NumberOrText) -> Result<Self, String> {
+        match v.text().as_str() {
+            "1" => Ok(StopBits::One),
+            "1.5" => Ok(StopBits::OnePointFive),
+            "2" => Ok(StopBits::Two),
+            other => Err(format!("stop bits {other}: must be 1, 1.5 or 2")),
+        }
+    }
 }
 
 /// Hardware flow control on the serial port itself.
@@ -313,6 +357,26 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn data_and_stop_bits_read_as_numbers_or_text() {
+        #[derive(Deserialize)]
+        struct W {
+            line: LineSettings,
+        }
+        let w: W = toml::from_str("line = { data_bits = 7, stop_bits = 1.5 }").unwrap();
+        assert_eq!(w.line.data_bits, DataBits::Seven);
+        assert_eq!(w.line.stop_bits, StopBits::OnePointFive);
+        let w: W = toml::from_str("line = { data_bits = \"8\", stop_bits = \"2\" }").unwrap();
+        assert_eq!(
+            (w.line.data_bits, w.line.stop_bits),
+            (DataBits::Eight, StopBits::Two)
+        );
+        let e = toml::from_str::<W>("line = { data_bits = 9 }")
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("data bits 9: must be 7 or 8"), "{e}");
+    }
 
     #[test]
     fn framing_bit_counts() {
