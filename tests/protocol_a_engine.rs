@@ -760,6 +760,55 @@ fn rst_gets_ars_and_aborts_the_program() {
     assert_eq!(b.dat(), b"%\nO7;\n%");
 }
 
+/// A reset after the DAT carrying EOR (e.g. M30 resets the CNC before the board asks again):
+/// the program was delivered; the EOD is no longer owed.
+#[test]
+fn rst_after_the_last_dat_completes_the_program() {
+    let mut b = Bench::ready(ProtocolAConfig::default());
+    b.command(EngineCommand::StartProgram { total: None });
+    b.data(b"%\nO1;\nM30;\n%");
+    b.board(Command::Gtd);
+    b.dat();
+    b.board(Command::Rst);
+    b.expect(Command::Ars);
+    let ev = b.take_events();
+    assert!(ev.contains(&EngineEvent::ProgramDone));
+    assert!(aborted(&ev).is_empty());
+    b.board(Command::Gtd);
+    b.advance(SEC);
+    b.expect(Command::Wat);
+    // A line failure at the same point is not a delivery.
+    b.command(EngineCommand::StartProgram { total: None });
+    b.data(b"%\nO2;\n%");
+    b.board(Command::Gtd);
+    b.dat();
+    b.host.handle_line_error(b.now, LineError::Overrun);
+    let ev = b.take_events();
+    assert!(!ev.contains(&EngineEvent::ProgramDone));
+    assert_eq!(aborted(&ev).len(), 1);
+}
+
+/// CAN after the end packet went out: delivered (§5.3 1: the end packet need not be sent again).
+#[test]
+fn expansion_stop_request_after_the_end_packet() {
+    let mut b = expansion(1);
+    start(&mut b, &program_of(600), true);
+    b.board(Command::Gtd);
+    assert_eq!(numbers(&b.packets(1)), [0x30, 0x31, 0xFF]);
+    b.monitor(Monitor::Stop);
+    assert!(b.next_packet(1).is_none());
+    b.board(Command::Rst);
+    b.expect(Command::Ars);
+    let ev = b.take_events();
+    assert_eq!(
+        ev.iter()
+            .filter(|e| **e == EngineEvent::ProgramDone)
+            .count(),
+        1
+    );
+    assert!(aborted(&ev).is_empty());
+}
+
 #[test]
 fn sat_alarm_causes_map_to_alarm_numbers() {
     for (cause, alarm) in [

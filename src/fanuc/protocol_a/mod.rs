@@ -28,7 +28,10 @@
 //!   SDI and completes the exchange (the board talks next; a GTD answered by SDO is asked
 //!   again) (protocol notes 6).
 //! - RST → ARS, ALM → AAL; a program the board has data of is aborted (§8.2: the CNC discards
-//!   buffered data on reset). A program not started yet stays queued.
+//!   buffered data on reset). A program not started yet stays queued. A program whose bytes,
+//!   EOR included, have all gone out is delivered: the board's valid RST, ALM, CAN or alarm
+//!   SAT after it shows that it arrived (a CNC ending with M30 may reset before the EOD). A
+//!   line failure at that point still aborts it.
 //! - RTY (protocol notes 7): a message with a checksum error is answered with RTY reason '1';
 //!   an RTY received makes the host send its last message again. RTYs received plus RTYs sent
 //!   in a row above Ne is a line error: SR0945 and re-initialisation. RTY answered by RTY is
@@ -304,6 +307,20 @@ pub enum AbortReason {
     UnknownPacket { no: u8 },
     #[error("replaced by a new program before it was finished")]
     Replaced,
+}
+
+impl AbortReason {
+    /// A notice the board sends with a valid message, which proves that everything the host
+    /// sent before it arrived: a program whose last byte had gone out is delivered, not lost.
+    fn confirms_delivery(&self) -> bool {
+        matches!(
+            self,
+            AbortReason::CncReset
+                | AbortReason::CncAlarm
+                | AbortReason::CncStop
+                | AbortReason::BoardAlarm(_)
+        )
+    }
 }
 
 /// How much the engine holds, for metrics and for tests that check it stays bounded.
@@ -621,11 +638,25 @@ impl ProtocolAHost {
                 .run
                 .as_ref()
                 .is_some_and(|r| r.outcome == RunOutcome::Sending);
-        let finishing = self.eod_owed == Some(EodFor::Done)
+        let mut finishing = self.eod_owed == Some(EodFor::Done)
             || self
                 .run
                 .as_ref()
                 .is_some_and(|r| r.outcome == RunOutcome::Delivered);
+        if finishing && reason.confirms_delivery() {
+            // Every byte, EOR included, went out, and the board answered with a valid message
+            // rather than RTY: the program was delivered (a CNC that ends with M30 may reset
+            // before the EOD). The EOD is no longer owed to a reset board.
+            tracing::info!(%reason, "program delivered before the board's notice");
+            if self.eod_owed == Some(EodFor::Done) {
+                self.eod_owed = None;
+            }
+            if let Some(run) = self.run.as_mut() {
+                run.outcome = RunOutcome::Stopped;
+            }
+            self.emit(EngineEvent::ProgramDone);
+            finishing = false;
+        }
         let started = sending || finishing;
         if (self.program.is_none() && !finishing) || (only_started && !started) {
             return;
@@ -949,7 +980,7 @@ impl ProtocolAHost {
         match run.on_monitor(monitor) {
             Ok(()) => {
                 if monitor == Monitor::Stop {
-                    self.abort_program(AbortReason::CncStop, false, false, false);
+                    self.abort_program(AbortReason::CncStop, false, false, true);
                 }
             }
             Err(unknown) => {
