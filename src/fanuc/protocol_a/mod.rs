@@ -623,9 +623,9 @@ impl ProtocolAHost {
         self.update_state();
     }
 
-    /// Abandons the current program (and one whose end is still to be confirmed).
-    /// `only_started`: a program the board has no data of stays queued. `cleanup`: when the
-    /// board has data of it, the next GTD gets EOD and the next SAT gets CLB.
+    /// Abandons the current program, and one whose bytes have all gone out but whose end is
+    /// not confirmed yet. `only_started`: a program the board has no data of stays queued.
+    /// `cleanup`: when the board has data of it, the next GTD gets EOD and the next SAT CLB.
     fn abort_program(
         &mut self,
         reason: AbortReason,
@@ -633,52 +633,60 @@ impl ProtocolAHost {
         cleanup: bool,
         only_started: bool,
     ) {
-        let sending = self.program.as_ref().is_some_and(|p| p.sent > 0)
-            || self
-                .run
-                .as_ref()
-                .is_some_and(|r| r.outcome == RunOutcome::Sending);
-        let mut finishing = self.eod_owed == Some(EodFor::Done)
+        // A program whose every byte, EOR included, went out (EOD or the board's return to
+        // Protocol A still to come).
+        let finishing = self.eod_owed == Some(EodFor::Done)
             || self
                 .run
                 .as_ref()
                 .is_some_and(|r| r.outcome == RunOutcome::Delivered);
-        if finishing && reason.confirms_delivery() {
-            // Every byte, EOR included, went out, and the board answered with a valid message
-            // rather than RTY: the program was delivered (a CNC that ends with M30 may reset
-            // before the EOD). The EOD is no longer owed to a reset board.
-            tracing::info!(%reason, "program delivered before the board's notice");
+        if finishing {
             if self.eod_owed == Some(EodFor::Done) {
                 self.eod_owed = None;
             }
             if let Some(run) = self.run.as_mut() {
                 run.outcome = RunOutcome::Stopped;
             }
-            self.emit(EngineEvent::ProgramDone);
-            finishing = false;
+            if reason.confirms_delivery() {
+                // The board answered with a valid message rather than RTY: the program was
+                // delivered (a CNC that ends with M30 may reset before the EOD). The EOD is no
+                // longer owed to a reset board.
+                tracing::info!(%reason, "program delivered before the board's notice");
+                self.emit(EngineEvent::ProgramDone);
+            } else {
+                self.program_aborted(&reason, cancelled, cleanup);
+            }
         }
-        let started = sending || finishing;
-        if (self.program.is_none() && !finishing) || (only_started && !started) {
+        let Some(program) = &self.program else {
+            return;
+        };
+        let started = program.sent > 0
+            || self
+                .run
+                .as_ref()
+                .is_some_and(|r| r.outcome == RunOutcome::Sending);
+        if only_started && !started {
             return;
         }
         if let Some(run) = self.run.as_mut()
-            && run.outcome != RunOutcome::Stopped
+            && run.outcome == RunOutcome::Sending
         {
             run.outcome = RunOutcome::Stopped;
             if !run.end_sent {
                 run.stop = true;
             }
         }
-        if self.eod_owed == Some(EodFor::Done) {
-            self.eod_owed = None;
-        }
         self.program = None;
+        self.program_aborted(&reason, cancelled, cleanup && started);
+    }
+
+    fn program_aborted(&mut self, reason: &AbortReason, cancelled: bool, cleanup: bool) {
         tracing::info!(%reason, cancelled, "program aborted");
         self.emit(EngineEvent::ProgramAborted {
             reason: reason.to_string(),
             cancelled,
         });
-        if started && cleanup {
+        if cleanup {
             self.eod_owed = Some(EodFor::Cleanup);
             self.clb_owed = true;
         }
