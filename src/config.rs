@@ -2150,7 +2150,10 @@ transport = { kind = "sim" }
         assert!(e[0].starts_with("machines.m.di_poll_ms = 10: must be within 100..=3600000"));
         let e = errors_of(&file("b", "di_poll_ms = 500"));
         assert_eq!(e.len(), 1);
-        assert!(e[0].starts_with("machines.m.di_poll_ms: Protocol B has no RDI/SDI"), "{e:?}");
+        assert!(
+            e[0].starts_with("machines.m.di_poll_ms: Protocol B has no RDI/SDI"),
+            "{e:?}"
+        );
         let c = CellConfig::from_toml_str(&file("a", "di_poll_ms = 500"), "t").unwrap();
         assert_eq!(c.machines[0].di_poll_ms, Some(500));
         let back = CellConfig::from_toml_str(&c.to_toml_string().unwrap(), "t").unwrap();

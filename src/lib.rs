@@ -23,6 +23,7 @@ pub mod bus;
 pub mod config;
 pub mod fanuc;
 pub mod gateway;
+pub mod jobs;
 pub mod link;
 pub mod sim;
 pub mod telemetry;
