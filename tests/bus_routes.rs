@@ -1016,6 +1016,20 @@ async fn status_is_published_on_change_and_answered_on_get() {
         .collect();
     names.sort();
     assert_eq!(names, [LATHE, MILL]);
+    // Browsing the whole cell answers without errors: two statuses and two queues.
+    let browse = get(&cell.client, &format!("{}/**", cell.keys.root()), None).await;
+    assert!(browse.iter().all(Result::is_ok), "{browse:?}");
+    let mut kinds: Vec<String> = browse.into_iter().map(|r| r.unwrap().2).collect();
+    kinds.sort();
+    assert_eq!(
+        kinds,
+        [
+            "application/protobuf;cellgate.v1.JobQueue",
+            "application/protobuf;cellgate.v1.JobQueue",
+            "application/protobuf;cellgate.v1.MachineStatus",
+            "application/protobuf;cellgate.v1.MachineStatus"
+        ]
+    );
     let e = get_err(
         &cell.client,
         &cell.keys.leaf("nosuch", MachineLeaf::Status),

@@ -253,6 +253,7 @@ pub(crate) async fn run(
             t
         });
     let mut poll = poll;
+    let mut jobs_running = true;
     publish_status(&machine, &publishers.status, &mut published).await;
     loop {
         tokio::select! {
@@ -289,10 +290,13 @@ pub(crate) async fn run(
                 }
                 Err(broadcast::error::RecvError::Closed) => break,
             },
-            changed = snapshot.changed() => {
+            changed = snapshot.changed(), if jobs_running => {
                 if changed.is_ok() {
                     let s = snapshot.borrow_and_update().clone();
                     machine.on_jobs_snapshot(&s);
+                } else {
+                    // The job manager has stopped; its last snapshot is folded in below.
+                    jobs_running = false;
                 }
             }
             () = tick(&mut poll) => {

@@ -646,6 +646,9 @@ impl Routes {
         let m = match self.target(q.key_expr()) {
             Target::One(m) => m.clone(),
             Target::Unknown(_) => return self.unmatched(q).await,
+            // A wildcard get without payload (e.g. on `P/C/**`) browses; `do` has nothing
+            // to show.
+            Target::Wild if q.payload().is_none() => return,
             Target::Wild => {
                 let msg = format!(
                     "a DoCommand goes to one machine's key, {}",
