@@ -154,7 +154,7 @@ impl Machine {
             LinkEvent::CncAlarm => {
                 view.status.link_state = pb::LinkState::Alarm as i32;
                 let how = if self.config.protocol.is_a_family() {
-                    "the CNC raised an alarm (SAT alarm status; §4.4.2)"
+                    "the CNC raised an alarm (ALM; §4.4.1)"
                 } else {
                     "the CNC raised an alarm (NAK; §6.4)"
                 };
@@ -164,7 +164,7 @@ impl Machine {
             }
             LinkEvent::CncReset => {
                 let how = if self.config.protocol.is_a_family() {
-                    "the CNC was reset (§4.4.2)"
+                    "the CNC was reset (RST; §4.4.1)"
                 } else {
                     "the CNC was reset (SYN; §6.4)"
                 };
