@@ -425,6 +425,10 @@ pub struct MachineConfig {
     pub tx: Option<u16>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tw: Option<u16>,
+    /// Protocol A family: read the DI image (RDI, §4.4.1) every this many ms and publish it.
+    /// `None`: DI is read only when asked.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub di_poll_ms: Option<u32>,
     pub transport: TransportConfig,
     /// Board simulation settings; only with `transport.kind = "sim"`.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -1088,6 +1092,7 @@ struct RawMachine {
     ti: Option<u16>,
     tx: Option<u16>,
     tw: Option<u16>,
+    di_poll_ms: Option<u32>,
     transport: Option<RawTransport>,
     sim: Option<BoardSimConfig>,
 }
@@ -1162,6 +1167,7 @@ impl From<CellConfig> for RawCell {
                     ti: m.ti,
                     tx: m.tx,
                     tw: m.tw,
+                    di_poll_ms: m.di_poll_ms,
                     transport: Some(RawTransport::from(&m.transport)),
                     sim: m.sim,
                 })
@@ -1232,6 +1238,7 @@ impl RawCell {
                 ti: m.ti,
                 tx: m.tx,
                 tw: m.tw,
+                di_poll_ms: m.di_poll_ms,
                 transport: built_transport(m.transport.as_ref(), &label)?,
                 sim: m.sim,
             });
@@ -1666,6 +1673,29 @@ fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
             "§5.2",
         ),
         _ => {}
+    }
+
+    // DI is read with RDI, a Protocol A command (§4.4.1); Protocol B has no DI/DO.
+    if let Some(ms) = m.di_poll_ms {
+        if protocol.is_a_family() {
+            c.range(
+                || format!("{label}.di_poll_ms"),
+                ms,
+                100,
+                3_600_000,
+                " ms",
+                "§4.4.1",
+            );
+        } else {
+            c.not_applicable(
+                format!("{label}.di_poll_ms"),
+                format!(
+                    "{title} has no RDI/SDI commands: DI can be read only over Protocol A and \
+                     Expansion Protocol A; remove the key"
+                ),
+                "§4.4.1",
+            );
+        }
     }
 
     check_params(c, label, m);
@@ -2104,6 +2134,30 @@ transport = { kind = "sim" }
         assert!(e[0].starts_with("machines.m.packet_n = 2: Protocol A sends NC data"));
         let e = errors_of(&file("expansion-b", "packet_n = 1"));
         assert!(e[0].starts_with("machines.m.packet_n: Expansion Protocol B has no data packets"));
+    }
+
+    #[test]
+    fn di_poll_rules() {
+        let file = |protocol: &str, key: &str| {
+            format!(
+                "cell = \"c\"\n[[machines]]\nname = \"m\"\nprotocol = \"{protocol}\"\n{key}\n\
+                 transport = {{ kind = \"sim\", line = {{ baud = 19200 }} }}\n"
+            )
+        };
+        assert!(errors_of(&file("a", "di_poll_ms = 500")).is_empty());
+        let e = errors_of(&file("a", "di_poll_ms = 10"));
+        assert_eq!(e.len(), 1);
+        assert!(e[0].starts_with("machines.m.di_poll_ms = 10: must be within 100..=3600000"));
+        let e = errors_of(&file("b", "di_poll_ms = 500"));
+        assert_eq!(e.len(), 1);
+        assert!(
+            e[0].starts_with("machines.m.di_poll_ms: Protocol B has no RDI/SDI"),
+            "{e:?}"
+        );
+        let c = CellConfig::from_toml_str(&file("a", "di_poll_ms = 500"), "t").unwrap();
+        assert_eq!(c.machines[0].di_poll_ms, Some(500));
+        let back = CellConfig::from_toml_str(&c.to_toml_string().unwrap(), "t").unwrap();
+        assert_eq!(back, c);
     }
 
     #[test]

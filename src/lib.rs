@@ -13,7 +13,9 @@
 //! - [`sim`]: simulated devices (a remote-buffer board with a CNC behind it) that speak the
 //!   device side of the same protocols, for tests, CI and laptops.
 //! - [`config`]: the cell file: serde types, defaults, and validation that reports every error.
-//! - [`bus`]: the Zenoh session and the cell's key expressions.
+//! - [`jobs`]: per-machine job queues, program sources and checks, the program library.
+//! - [`bus`]: the Zenoh session, the cell's key expressions, and the routes that serve each
+//!   machine's link, its jobs and the program library on the bus ([`bus::serve`]).
 //! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves its admin
 //!   key, and stops cleanly when the shutdown future completes.
 //! - [`telemetry`]: tracing subscriber and the optional OpenTelemetry export.
@@ -23,6 +25,7 @@ pub mod bus;
 pub mod config;
 pub mod fanuc;
 pub mod gateway;
+pub mod jobs;
 pub mod link;
 pub mod sim;
 pub mod telemetry;

@@ -39,6 +39,24 @@ pub enum BusError {
         #[source]
         source: zenoh::Error,
     },
+    /// `bus.prefix` and `cell` do not make a key prefix.
+    #[error(transparent)]
+    Keys(#[from] super::keys::KeyError),
+    /// Zenoh refused to declare a route's queryable, subscriber or publisher.
+    #[error("cannot declare the {what} on {key:?}: {source}")]
+    Declare {
+        what: &'static str,
+        key: String,
+        #[source]
+        source: zenoh::Error,
+    },
+    /// The program library's directory (`programs.dir`) cannot be created.
+    #[error("program library {}: cannot create the directory: {source}", dir.display())]
+    ProgramDir {
+        dir: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
 }
 
 impl BusMode {

@@ -140,6 +140,21 @@ pub struct LinkHandle {
 }
 
 impl LinkHandle {
+    /// A handle on a link served by something other than [`spawn`]: a test double, or a
+    /// bridge to a link running elsewhere. Whatever reads `commands` must emit the
+    /// [`LinkEvent`]s a link task would on `events`.
+    pub fn from_channels(
+        machine: impl Into<String>,
+        commands: mpsc::Sender<LinkCommand>,
+        events: broadcast::Sender<LinkEvent>,
+    ) -> Self {
+        LinkHandle {
+            machine: machine.into(),
+            commands,
+            events,
+        }
+    }
+
     pub fn machine(&self) -> &str {
         &self.machine
     }

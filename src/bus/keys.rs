@@ -1,0 +1,257 @@
+//! The cell's key expressions, built and parsed in one place.
+//!
+//! With `P` = `bus.prefix`, `C` = the cell, `M` = a machine, `ID` = a job id:
+//!
+//! | key | |
+//! |---|---|
+//! | `P/C/machine/M` | liveliness token while the machine's link is up |
+//! | `P/C/machine/M/status` | `MachineStatus` |
+//! | `P/C/machine/M/job` | job requests (`JobRequest` → `JobAccepted`), the queue |
+//! | `P/C/machine/M/job/ID` | `JobEvent`s of one job; a delete cancels it |
+//! | `P/C/machine/M/di` | `DiImage` |
+//! | `P/C/machine/M/do` | `DoCommand` |
+//! | `P/C/machine/M/alarm` | `AlarmEvent` |
+//! | `P/C/program/NAME` | the program library |
+//!
+//! zenoh's `kedefine!`/`keformat!` macros would declare these formats at compile time, but
+//! in zenoh 1.10 they live in `zenoh::key_expr::format`, which exists only with zenoh's
+//! `unstable` feature (the macro expands to paths under that module, so depending on
+//! `zenoh-keyexpr` alone does not help). Turning `unstable` on would opt the whole gateway
+//! into APIs zenoh may change in any release, for seven fixed formats. [`CellKeys`] does the
+//! same job in plain code: every key is built here and nowhere else, every variable chunk is
+//! checked to be one non-wild chunk, and [`CellKeys::parse`] reads a key back into a
+//! [`CellKey`].
+
+use zenoh::key_expr::{KeyExpr, keyexpr};
+
+/// The leaf keys under `P/C/machine/M/`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum MachineLeaf {
+    Status,
+    Job,
+    Di,
+    Do,
+    Alarm,
+}
+
+impl MachineLeaf {
+    pub const ALL: [MachineLeaf; 5] = [
+        MachineLeaf::Status,
+        MachineLeaf::Job,
+        MachineLeaf::Di,
+        MachineLeaf::Do,
+        MachineLeaf::Alarm,
+    ];
+
+    pub fn chunk(self) -> &'static str {
+        match self {
+            MachineLeaf::Status => "status",
+            MachineLeaf::Job => "job",
+            MachineLeaf::Di => "di",
+            MachineLeaf::Do => "do",
+            MachineLeaf::Alarm => "alarm",
+        }
+    }
+
+    fn from_chunk(chunk: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|l| l.chunk() == chunk)
+    }
+}
+
+/// A key of the cell, read back. Chunks are as they appear in the key: in a query's key they
+/// may be wildcards.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CellKey<'a> {
+    /// `P/C/machine/M`
+    Machine { machine: &'a str },
+    /// `P/C/machine/M/<leaf>`
+    Leaf { machine: &'a str, leaf: MachineLeaf },
+    /// `P/C/machine/M/job/ID`
+    JobEvents { machine: &'a str, job: &'a str },
+    /// `P/C/program/NAME`
+    Program { name: &'a str },
+}
+
+/// A prefix or cell that cannot start a key.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("key prefix {root:?} (bus.prefix / cell) is not a valid key without wildcards: {reason}")]
+pub struct KeyError {
+    pub root: String,
+    pub reason: String,
+}
+
+/// Builds the keys of one cell.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CellKeys {
+    /// `P/C`
+    root: String,
+}
+
+/// Whether `chunk` is one key chunk without wildcards (machine names, job ids and library
+/// names are all checked to be, before they get here).
+pub fn is_plain_chunk(chunk: &str) -> bool {
+    !chunk.contains('/') && keyexpr::new(chunk).is_ok_and(|k| !k.is_wild())
+}
+
+impl CellKeys {
+    pub fn new(prefix: &str, cell: &str) -> Result<Self, KeyError> {
+        let root = format!("{prefix}/{cell}");
+        match keyexpr::new(root.as_str()) {
+            Ok(k) if !k.is_wild() && is_plain_chunk(cell) => Ok(CellKeys { root }),
+            Ok(_) => Err(KeyError {
+                root,
+                reason: "it contains a wildcard or the cell is more than one chunk".to_string(),
+            }),
+            Err(e) => Err(KeyError {
+                root,
+                reason: e.to_string(),
+            }),
+        }
+    }
+
+    /// `P/C`
+    pub fn root(&self) -> &str {
+        &self.root
+    }
+
+    /// `P/C/machine/M`: the machine's liveliness token.
+    pub fn machine(&self, machine: &str) -> String {
+        format!("{}/machine/{machine}", self.root)
+    }
+
+    /// `P/C/machine/M/<leaf>`
+    pub fn leaf(&self, machine: &str, leaf: MachineLeaf) -> String {
+        format!("{}/machine/{machine}/{}", self.root, leaf.chunk())
+    }
+
+    /// `P/C/machine/M/job/ID`
+    pub fn job_events(&self, machine: &str, job: &str) -> String {
+        format!("{}/machine/{machine}/job/{job}", self.root)
+    }
+
+    /// `P/C/program/NAME`
+    pub fn program(&self, name: &str) -> String {
+        format!("{}/program/{name}", self.root)
+    }
+
+    /// `P/C/machine/*/<leaf>`: every machine's leaf.
+    pub fn any_leaf(&self, leaf: MachineLeaf) -> String {
+        self.leaf("*", leaf)
+    }
+
+    /// `P/C/machine/*/job/*`
+    pub fn any_job_events(&self) -> String {
+        self.job_events("*", "*")
+    }
+
+    /// `P/C/program/*`
+    pub fn any_program(&self) -> String {
+        self.program("*")
+    }
+
+    /// Reads a key of this cell back; `None` for a key that is not one.
+    pub fn parse<'k>(&self, key: &'k str) -> Option<CellKey<'k>> {
+        let rest = key.strip_prefix(self.root.as_str())?.strip_prefix('/')?;
+        let chunks: Vec<&'k str> = rest.split('/').collect();
+        match chunks.as_slice() {
+            ["machine", m] => Some(CellKey::Machine { machine: m }),
+            ["machine", m, leaf] => Some(CellKey::Leaf {
+                machine: m,
+                leaf: MachineLeaf::from_chunk(leaf)?,
+            }),
+            ["machine", m, "job", id] => Some(CellKey::JobEvents {
+                machine: m,
+                job: id,
+            }),
+            ["program", name] => Some(CellKey::Program { name }),
+            _ => None,
+        }
+    }
+}
+
+/// Whether a query's key expression `query` takes in the concrete key `key`.
+pub fn intersects(query: &KeyExpr<'_>, key: &str) -> bool {
+    keyexpr::new(key).is_ok_and(|k| query.intersects(k))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_are_built_and_read_back() {
+        let k = CellKeys::new("cellgate", "line-3").unwrap();
+        assert_eq!(k.machine("mill-1"), "cellgate/line-3/machine/mill-1");
+        assert_eq!(
+            k.leaf("mill-1", MachineLeaf::Status),
+            "cellgate/line-3/machine/mill-1/status"
+        );
+        assert_eq!(
+            k.job_events("mill-1", "mill-1-t0-7"),
+            "cellgate/line-3/machine/mill-1/job/mill-1-t0-7"
+        );
+        assert_eq!(k.program("O1234"), "cellgate/line-3/program/O1234");
+        assert_eq!(k.any_leaf(MachineLeaf::Do), "cellgate/line-3/machine/*/do");
+        for leaf in MachineLeaf::ALL {
+            let key = k.leaf("m", leaf);
+            assert_eq!(k.parse(&key), Some(CellKey::Leaf { machine: "m", leaf }));
+        }
+        assert_eq!(
+            k.parse(&k.job_events("m", "j")),
+            Some(CellKey::JobEvents {
+                machine: "m",
+                job: "j"
+            })
+        );
+        assert_eq!(
+            k.parse(&k.program("p")),
+            Some(CellKey::Program { name: "p" })
+        );
+        assert_eq!(
+            k.parse(&k.machine("m")),
+            Some(CellKey::Machine { machine: "m" })
+        );
+        assert_eq!(k.parse("cellgate/line-3/machine/m/nope"), None);
+        assert_eq!(k.parse("cellgate/line-30/program/p"), None);
+        assert_eq!(k.parse("other/line-3/program/p"), None);
+    }
+
+    #[test]
+    fn every_built_key_is_a_valid_key_expression() {
+        let k = CellKeys::new("factory/a", "c1").unwrap();
+        let keys = [
+            k.machine("m"),
+            k.leaf("m", MachineLeaf::Alarm),
+            k.job_events("m", "m-x-1"),
+            k.program("O1.nc"),
+            k.any_leaf(MachineLeaf::Status),
+            k.any_job_events(),
+            k.any_program(),
+        ];
+        for key in keys {
+            assert!(keyexpr::new(key.as_str()).is_ok(), "{key}");
+        }
+    }
+
+    #[test]
+    fn wild_or_malformed_roots_are_refused() {
+        assert!(CellKeys::new("cellgate", "*").is_err());
+        assert!(CellKeys::new("a/**", "c").is_err());
+        assert!(CellKeys::new("a//b", "c").is_err());
+        assert!(CellKeys::new("a", "b/c").is_err());
+        assert!(is_plain_chunk("mill-1"));
+        assert!(!is_plain_chunk("a/b"));
+        assert!(!is_plain_chunk("*"));
+        assert!(!is_plain_chunk(""));
+    }
+
+    #[test]
+    fn wildcard_queries_take_in_matching_keys() {
+        let k = CellKeys::new("cellgate", "c").unwrap();
+        let q = KeyExpr::new("cellgate/c/machine/*/status").unwrap();
+        assert!(intersects(&q, &k.leaf("m1", MachineLeaf::Status)));
+        assert!(!intersects(&q, &k.leaf("m1", MachineLeaf::Di)));
+        let all = KeyExpr::new("cellgate/c/**").unwrap();
+        assert!(intersects(&all, &k.program("p")));
+    }
+}

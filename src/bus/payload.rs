@@ -1,0 +1,161 @@
+//! Payloads on the bus: protobuf messages of `cellgate.v1`, tagged with their encoding
+//! `application/protobuf` and the message's full name as schema, and the conversions from
+//! the link's typed events to those messages.
+
+use zenoh::bytes::Encoding;
+
+use crate::fanuc::Protocol;
+use crate::fanuc::sat::{AlarmCause, BufferStatus, StatusData};
+use crate::link::LinkState;
+use crate::pb;
+
+/// A message of the bus contract, with the full name that goes in its encoding's schema.
+pub trait BusMessage: prost::Message + Default {
+    const SCHEMA: &'static str;
+}
+
+macro_rules! bus_messages {
+    ($($t:ident),* $(,)?) => {
+        $(impl BusMessage for pb::$t {
+            const SCHEMA: &'static str = concat!("cellgate.v1.", stringify!($t));
+        })*
+    };
+}
+
+bus_messages!(
+    JobRequest,
+    JobAccepted,
+    JobEvent,
+    JobQueue,
+    MachineStatus,
+    DiImage,
+    DoCommand,
+    AlarmEvent,
+    ErrorReply,
+    ProgramInfo,
+    PunchedProgram,
+);
+
+/// `application/protobuf;<schema>` for `M`.
+pub fn encoding<M: BusMessage>() -> Encoding {
+    Encoding::APPLICATION_PROTOBUF.with_schema(M::SCHEMA)
+}
+
+/// The schema an encoding names, if any (`application/protobuf;cellgate.v1.JobEvent` →
+/// `cellgate.v1.JobEvent`). zenoh keeps the schema accessor internal; the text form is
+/// `<mime>;<schema>`.
+pub fn schema_of(encoding: &Encoding) -> Option<String> {
+    encoding
+        .to_string()
+        .split_once(';')
+        .map(|(_, schema)| schema.to_string())
+}
+
+/// An `ErrorReply`.
+pub fn error_reply(code: pb::ErrorCode, message: impl Into<String>) -> pb::ErrorReply {
+    pb::ErrorReply {
+        code: code as i32,
+        message: message.into(),
+    }
+}
+
+pub fn protocol(p: Protocol) -> pb::Protocol {
+    match p {
+        Protocol::A => pb::Protocol::A,
+        Protocol::ExpansionA => pb::Protocol::ExpansionA,
+        Protocol::B => pb::Protocol::B,
+        Protocol::ExpansionB => pb::Protocol::ExpansionB,
+    }
+}
+
+pub fn link_state(s: LinkState) -> pb::LinkState {
+    match s {
+        LinkState::Initialising => pb::LinkState::Connecting,
+        LinkState::Ready => pb::LinkState::Idle,
+        LinkState::Sending => pb::LinkState::Sending,
+        LinkState::Receiving => pb::LinkState::Receiving,
+        LinkState::LineDown => pb::LinkState::Down,
+    }
+}
+
+/// Whether the link is initialised: the machine's liveliness token stands while it is.
+pub fn link_up(s: LinkState) -> bool {
+    matches!(
+        s,
+        LinkState::Ready | LinkState::Sending | LinkState::Receiving
+    )
+}
+
+/// The decoded SAT (§4.4.2) as the contract carries it.
+pub fn sat(s: &StatusData) -> pb::Sat {
+    pb::Sat {
+        remote: s.remote,
+        buffer_status: s.status.map_or(pb::BufferStatus::Unknown, |b| match b {
+            BufferStatus::NotReady => pb::BufferStatus::NotReady,
+            BufferStatus::Reset => pb::BufferStatus::Reset,
+            BufferStatus::Operating => pb::BufferStatus::Operating,
+            BufferStatus::Alarm => pb::BufferStatus::Alarm,
+            BufferStatus::OpenLine => pb::BufferStatus::OpenLine,
+            BufferStatus::Other(_) => pb::BufferStatus::Other,
+        }) as i32,
+        buffer_status_digit: s.status.map(|b| u32::from(b.digit())),
+        alarm_cause: s.alarm_cause.map_or(pb::AlarmCause::Unknown, |c| match c {
+            AlarmCause::NcAlarm => pb::AlarmCause::NcAlarm,
+            AlarmCause::ChecksumRetryOver => pb::AlarmCause::ChecksumRetryOver,
+            AlarmCause::CommandError => pb::AlarmCause::CommandError,
+            AlarmCause::OverrunRetryOver => pb::AlarmCause::OverrunRetryOver,
+            AlarmCause::Other(_) => pb::AlarmCause::Other,
+        }) as i32,
+        alarm_cause_digit: s.alarm_cause.map(|c| u32::from(c.digit())),
+        bytes_buffered: s.buffered.map(u32::from),
+        params: s.params.map(|p| pb::RemoteBufferParams {
+            nb: u32::from(p.nb),
+            no: u32::from(p.no),
+            ne: u32::from(p.ne),
+            tp: u32::from(p.tp),
+            to: u32::from(p.to),
+            ti: u32::from(p.ti),
+            tx: u32::from(p.tx),
+            tw: u32::from(p.tw),
+        }),
+        packet_n: s.packet_n.map(u32::from),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fanuc::sat::Params;
+
+    #[test]
+    fn encodings_name_the_message() {
+        let e = encoding::<pb::JobEvent>();
+        assert_eq!(e.to_string(), "application/protobuf;cellgate.v1.JobEvent");
+        assert_eq!(schema_of(&e).as_deref(), Some("cellgate.v1.JobEvent"));
+    }
+
+    #[test]
+    fn sat_fields_carry_over() {
+        let s = StatusData {
+            remote: Some(true),
+            status: Some(BufferStatus::Alarm),
+            alarm_cause: Some(AlarmCause::OverrunRetryOver),
+            buffered: Some(1234),
+            params: Some(Params::POWER_ON),
+            packet_n: Some(2),
+            ..StatusData::default()
+        };
+        let p = sat(&s);
+        assert_eq!(p.remote, Some(true));
+        assert_eq!(p.buffer_status(), pb::BufferStatus::Alarm);
+        assert_eq!(p.buffer_status_digit, Some(3));
+        assert_eq!(p.alarm_cause(), pb::AlarmCause::OverrunRetryOver);
+        assert_eq!(p.alarm_cause_digit, Some(0xA));
+        assert_eq!(p.bytes_buffered, Some(1234));
+        assert_eq!(p.params.unwrap().to, 20);
+        assert_eq!(p.packet_n, Some(2));
+        let empty = sat(&StatusData::default());
+        assert_eq!(empty.buffer_status(), pb::BufferStatus::Unknown);
+        assert_eq!(empty.params, None);
+    }
+}

@@ -1,0 +1,541 @@
+//! The job manager against a stand-in link, in paused tokio time.
+
+use std::sync::{Arc, Mutex};
+
+use bytes::Bytes;
+use tokio::io::AsyncReadExt;
+use tokio::sync::Semaphore;
+
+use super::*;
+use crate::config::CellConfig;
+use crate::fanuc::Protocol;
+
+/// What the stand-in link was told, in order.
+type Log = Arc<Mutex<Vec<String>>>;
+
+/// A link that takes each job once the test releases it, then "sends" it `chunk` bytes every
+/// `pace`, reporting progress per chunk; `Cancel` is honoured between chunks.
+struct StandIn {
+    commands: mpsc::Receiver<LinkCommand>,
+    events: broadcast::Sender<LinkEvent>,
+    log: Log,
+    release: Arc<Semaphore>,
+    chunk: usize,
+    pace: Duration,
+    /// Jobs queued while another one was being sent.
+    pending: std::collections::VecDeque<ProgramJob>,
+}
+
+impl StandIn {
+    fn emit(&self, e: LinkEvent) {
+        let _ = self.events.send(e);
+    }
+
+    fn other(&mut self, cmd: LinkCommand) {
+        match cmd {
+            LinkCommand::Queue(job) => self.pending.push_back(job),
+            other => self.log.lock().unwrap().push(format!("{other:?}")),
+        }
+    }
+
+    async fn run(mut self) {
+        loop {
+            if let Some(job) = self.pending.pop_front() {
+                self.job(job).await;
+                continue;
+            }
+            match self.commands.recv().await {
+                Some(LinkCommand::Queue(job)) => self.job(job).await,
+                Some(other) => self.other(other),
+                None => return,
+            }
+        }
+    }
+
+    async fn job(&mut self, mut job: ProgramJob) {
+        self.log
+            .lock()
+            .unwrap()
+            .push(format!("queue {} {}", job.id, job.name));
+        self.emit(LinkEvent::JobQueued {
+            job: job.id,
+            position: 0,
+        });
+        let release = self.release.clone();
+        loop {
+            tokio::select! {
+                permit = release.acquire() => {
+                    permit.unwrap().forget();
+                    break;
+                }
+                cmd = self.commands.recv() => match cmd {
+                    Some(LinkCommand::Cancel(id)) if id == job.id => {
+                        self.emit(LinkEvent::JobCancelled { job: id, offset: 0 });
+                        return;
+                    }
+                    Some(other) => self.other(other),
+                    None => return,
+                },
+            }
+        }
+        self.emit(LinkEvent::JobStarted { job: job.id });
+        let mut sent = 0u64;
+        let mut data = Vec::new();
+        let mut buf = vec![0u8; self.chunk];
+        loop {
+            let n = job.source.read(&mut buf).await.unwrap();
+            if n == 0 {
+                break;
+            }
+            sent += n as u64;
+            data.extend_from_slice(&buf[..n]);
+            self.emit(LinkEvent::Progress {
+                job: job.id,
+                sent,
+                total: job.size,
+            });
+            tokio::select! {
+                () = tokio::time::sleep(self.pace) => {}
+                cmd = self.commands.recv() => match cmd {
+                    Some(LinkCommand::Cancel(id)) if id == job.id => {
+                        self.log.lock().unwrap().push(format!("cancel {id} at {sent}"));
+                        self.emit(LinkEvent::JobCancelled { job: id, offset: sent });
+                        return;
+                    }
+                    Some(other) => self.other(other),
+                    None => return,
+                },
+            }
+        }
+        self.log.lock().unwrap().push(format!(
+            "done {} {}",
+            job.id,
+            String::from_utf8_lossy(&data)
+        ));
+        self.emit(LinkEvent::JobDone {
+            job: job.id,
+            bytes: sent,
+        });
+    }
+}
+
+struct Rig {
+    jobs: JobsHandle,
+    events: broadcast::Receiver<pb::JobEvent>,
+    link_events: broadcast::Sender<LinkEvent>,
+    log: Log,
+    release: Arc<Semaphore>,
+    library: ProgramLibrary,
+    _dir: tempfile::TempDir,
+    shutdown: CancellationToken,
+}
+
+fn rig(protocol: Protocol, chunk: usize, pace: Duration) -> Rig {
+    let mut machine = CellConfig::embedded_default().machines[0].clone();
+    machine.name = "m1".to_string();
+    machine.protocol = protocol;
+    machine.packet_n = None;
+    let (cmd_tx, cmd_rx) = mpsc::channel(64);
+    let (ev_tx, _) = broadcast::channel(1024);
+    let log = Log::default();
+    let release = Arc::new(Semaphore::new(0));
+    tokio::spawn(
+        StandIn {
+            commands: cmd_rx,
+            events: ev_tx.clone(),
+            log: log.clone(),
+            release: release.clone(),
+            chunk,
+            pace,
+            pending: Default::default(),
+        }
+        .run(),
+    );
+    let link = LinkHandle::from_channels("m1", cmd_tx, ev_tx.clone());
+    let dir = tempfile::tempdir().unwrap();
+    let library = ProgramLibrary::new(dir.path(), 1 << 20);
+    let shutdown = CancellationToken::new();
+    let (jobs, _task) = spawn(&machine, library.clone(), link, shutdown.clone());
+    let events = jobs.subscribe();
+    Rig {
+        jobs,
+        events,
+        link_events: ev_tx,
+        log,
+        release,
+        library,
+        _dir: dir,
+        shutdown,
+    }
+}
+
+fn inline(program: &'static [u8], priority: i32) -> JobSubmission {
+    JobSubmission {
+        input: ProgramInput::Inline(Bytes::from_static(program)),
+        name: String::new(),
+        priority,
+        append_eor: false,
+    }
+}
+
+/// The next event, within a (virtual) minute.
+async fn next(rx: &mut broadcast::Receiver<pb::JobEvent>) -> pb::JobEvent {
+    tokio::time::timeout(Duration::from_secs(60), rx.recv())
+        .await
+        .expect("no job event")
+        .unwrap()
+}
+
+/// Events until the job `id` ends, inclusive.
+async fn until_end(rx: &mut broadcast::Receiver<pb::JobEvent>, id: &str) -> Vec<pb::JobEvent> {
+    let mut seen = Vec::new();
+    loop {
+        let e = next(rx).await;
+        let end = e.job_id == id
+            && matches!(
+                e.kind,
+                Some(Kind::Completed(_) | Kind::Failed(_) | Kind::Cancelled(_))
+            );
+        seen.push(e);
+        if end {
+            return seen;
+        }
+    }
+}
+
+fn kind_name(e: &pb::JobEvent) -> &'static str {
+    match e.kind {
+        Some(Kind::Queued(_)) => "queued",
+        Some(Kind::Started(_)) => "started",
+        Some(Kind::Progress(_)) => "progress",
+        Some(Kind::Completed(_)) => "completed",
+        Some(Kind::Failed(_)) => "failed",
+        Some(Kind::Cancelled(_)) => "cancelled",
+        None => "none",
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_job_runs_through_queued_started_completed() {
+    let mut r = rig(Protocol::A, 4, Duration::from_millis(1));
+    let accepted = r.jobs.submit(inline(b"%\nO12\nG00X0\n%", 0)).await.unwrap();
+    assert_eq!(accepted.queue_position, 0);
+    assert!(accepted.job_id.starts_with("m1-"), "{}", accepted.job_id);
+    assert!(accepted.job_id.ends_with("-1"), "{}", accepted.job_id);
+    r.release.add_permits(1);
+    let events = until_end(&mut r.events, &accepted.job_id).await;
+    let kinds: Vec<_> = events.iter().map(kind_name).collect();
+    assert_eq!(kinds.first(), Some(&"queued"));
+    assert_eq!(kinds.get(1), Some(&"started"));
+    assert_eq!(kinds.last(), Some(&"completed"));
+    match &events.last().unwrap().kind {
+        Some(Kind::Completed(c)) => assert_eq!(c.bytes_sent, 13),
+        other => panic!("{other:?}"),
+    }
+    assert!(events.iter().all(|e| e.machine == "m1"));
+    let log = r.log.lock().unwrap().clone();
+    assert_eq!(
+        log,
+        [
+            "queue 1 O12".to_string(),
+            "done 1 %\nO12\nG00X0\n%".to_string()
+        ]
+    );
+    let snap = r.jobs.snapshot().borrow().clone();
+    assert_eq!(snap.active, None);
+    assert_eq!(snap.jobs_completed, 1);
+    assert_eq!(snap.nc_bytes_sent, 13);
+}
+
+#[tokio::test(start_paused = true)]
+async fn jobs_run_by_priority_then_arrival_one_at_a_time() {
+    let mut r = rig(Protocol::A, 64, Duration::from_millis(1));
+    let a = r.jobs.submit(inline(b"%\nO1\n%", 0)).await.unwrap();
+    let b = r.jobs.submit(inline(b"%\nO2\n%", 0)).await.unwrap();
+    let c = r.jobs.submit(inline(b"%\nO3\n%", 5)).await.unwrap();
+    let d = r.jobs.submit(inline(b"%\nO4\n%", 0)).await.unwrap();
+    // a is on the link already; c jumps ahead of b and d.
+    assert_eq!(
+        [b.queue_position, c.queue_position, d.queue_position],
+        [0, 0, 2]
+    );
+    let q = r.jobs.queue().await.unwrap();
+    assert_eq!(q.active.unwrap().job_id, a.job_id);
+    let waiting: Vec<_> = q.waiting.iter().map(|j| j.name.as_str()).collect();
+    assert_eq!(waiting, ["O3", "O2", "O4"]);
+    // Only one job is ever on the link.
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    assert_eq!(r.log.lock().unwrap().len(), 1);
+    r.release.add_permits(4);
+    until_end(&mut r.events, &d.job_id).await;
+    let queued: Vec<String> = r
+        .log
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|l| l.starts_with("queue"))
+        .cloned()
+        .collect();
+    assert_eq!(
+        queued,
+        ["queue 1 O1", "queue 3 O3", "queue 2 O2", "queue 4 O4"]
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn cancelling_a_waiting_job_drops_it_and_an_active_one_asks_the_link() {
+    let mut r = rig(Protocol::A, 2, Duration::from_millis(100));
+    let a = r.jobs.submit(inline(b"%\nO1\nG01X1\n%", 0)).await.unwrap();
+    let b = r.jobs.submit(inline(b"%\nO2\n%", 0)).await.unwrap();
+    assert_eq!(
+        r.jobs.cancel(&b.job_id).await.unwrap(),
+        CancelOutcome::Dropped
+    );
+    r.release.add_permits(1);
+    // Let a start and send a little.
+    loop {
+        let e = next(&mut r.events).await;
+        if e.job_id == a.job_id && kind_name(&e) == "started" {
+            break;
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(150)).await;
+    assert_eq!(
+        r.jobs.cancel(&a.job_id).await.unwrap(),
+        CancelOutcome::Cancelling
+    );
+    let events = until_end(&mut r.events, &a.job_id).await;
+    match &events.last().unwrap().kind {
+        Some(Kind::Cancelled(c)) => {
+            assert_eq!(c.by, "request");
+            assert!(c.byte_offset > 0 && c.byte_offset < 14, "{}", c.byte_offset);
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(matches!(
+        r.jobs.cancel(&a.job_id).await,
+        Err(JobError::UnknownJob { .. })
+    ));
+    let log = r.log.lock().unwrap().clone();
+    assert!(
+        !log.iter().any(|l| l.contains("O2")),
+        "b reached the link: {log:?}"
+    );
+    assert!(log.iter().any(|l| l.starts_with("cancel 1 at")), "{log:?}");
+}
+
+#[tokio::test(start_paused = true)]
+async fn progress_is_at_most_every_250_ms_and_at_whole_percents() {
+    // 10 000 bytes, 10 bytes every 5 ms: the link reports every 0.1 %, for 5 s.
+    let mut r = rig(Protocol::A, 10, Duration::from_millis(5));
+    let mut program = b"%\nO1\n".to_vec();
+    while program.len() < 9_999 {
+        program.push(b'G');
+    }
+    program.push(b'%');
+    let program: &'static [u8] = Box::leak(program.into_boxed_slice());
+    let a = r.jobs.submit(inline(program, 0)).await.unwrap();
+    r.release.add_permits(1);
+    let events = until_end(&mut r.events, &a.job_id).await;
+    let mut last: Option<(u64, tokio::time::Instant)> = None;
+    let mut count = 0;
+    let started = tokio::time::Instant::now();
+    for e in &events {
+        if let Some(Kind::Progress(p)) = &e.kind {
+            count += 1;
+            assert_eq!(p.bytes_total, Some(10_000));
+            assert!(p.rate_bps > 0);
+            if let Some((sent, _)) = last {
+                assert!(
+                    p.bytes_sent * 100 / 10_000 > sent * 100 / 10_000,
+                    "{} after {sent}: not a further whole percent",
+                    p.bytes_sent
+                );
+            }
+            last = Some((p.bytes_sent, started));
+        }
+    }
+    // 5 s of sending at one event per 250 ms at most.
+    assert!((10..=21).contains(&count), "{count} progress events");
+    // The rate is the stand-in's 2000 bytes/s.
+    let rates: Vec<u64> = events
+        .iter()
+        .filter_map(|e| match &e.kind {
+            Some(Kind::Progress(p)) => Some(p.rate_bps),
+            _ => None,
+        })
+        .collect();
+    assert!(
+        rates.iter().skip(1).all(|&r| (1500..=2500).contains(&r)),
+        "{rates:?}"
+    );
+}
+
+#[test]
+fn the_shaper_keeps_both_rules() {
+    let t0 = tokio::time::Instant::now();
+    let ms = |n| t0 + Duration::from_millis(n);
+    let mut s = ProgressShaper::new(t0, Some(1000));
+    assert_eq!(s.offer(ms(100), 500), None, "too soon");
+    assert_eq!(s.offer(ms(250), 505), Some(2020));
+    assert_eq!(s.offer(ms(600), 509), None, "same whole percent");
+    assert_eq!(s.offer(ms(600), 515), Some(28));
+    assert_eq!(s.offer(ms(700), 900), None, "too soon");
+    let mut unknown = ProgressShaper::new(t0, None);
+    assert_eq!(unknown.offer(ms(300), 1), Some(3));
+    assert_eq!(unknown.offer(ms(600), 1), None, "no further byte");
+}
+
+#[tokio::test(start_paused = true)]
+async fn bad_programs_are_refused_and_nothing_reaches_the_link() {
+    let r = rig(Protocol::B, 64, Duration::from_millis(1));
+    let cases: [(&'static [u8], bool, pb::ErrorCode, &str); 4] = [
+        (b"", false, pb::ErrorCode::InvalidRequest, "empty"),
+        (b"%\nO1\n", false, pb::ErrorCode::InvalidRequest, "EOR"),
+        (
+            b"%\nO1\x13\n%",
+            false,
+            pb::ErrorCode::InvalidRequest,
+            "DC3 (13h)",
+        ),
+        (
+            b"%\nO1\xC1\n%",
+            true,
+            pb::ErrorCode::InvalidRequest,
+            "bit 7",
+        ),
+    ];
+    for (program, append, code, words) in cases {
+        let mut s = inline(program, 0);
+        s.append_eor = append;
+        let e = r.jobs.submit(s).await.unwrap_err();
+        assert_eq!(e.code(), code, "{e}");
+        assert!(e.to_string().contains(words), "{e}");
+        assert!(e.to_string().contains("machine m1"), "{e}");
+    }
+    let missing = JobSubmission {
+        input: ProgramInput::Library("nope".to_string()),
+        name: String::new(),
+        priority: 0,
+        append_eor: false,
+    };
+    let e = r.jobs.submit(missing).await.unwrap_err();
+    assert_eq!(e.code(), pb::ErrorCode::NotFound);
+    tokio::time::sleep(Duration::from_millis(10)).await;
+    assert!(r.log.lock().unwrap().is_empty());
+    assert!(r.jobs.queue().await.unwrap().waiting.is_empty());
+    // The library source works once the program is there.
+    r.library.store("ok", b"%\nO5\n%").await.unwrap();
+    let ok = JobSubmission {
+        input: ProgramInput::Library("ok".to_string()),
+        name: "from library".to_string(),
+        priority: 0,
+        append_eor: false,
+    };
+    r.jobs.submit(ok).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(10)).await;
+    assert_eq!(r.log.lock().unwrap().as_slice(), ["queue 1 from library"]);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_full_queue_refuses_more() {
+    let r = rig(Protocol::A, 64, Duration::from_millis(1));
+    // The first job goes to the link, MAX_WAITING wait.
+    for _ in 0..=MAX_WAITING {
+        r.jobs.submit(inline(b"%\nO1\n%", 0)).await.unwrap();
+    }
+    let e = r.jobs.submit(inline(b"%\nO1\n%", 0)).await.unwrap_err();
+    assert_eq!(e.code(), pb::ErrorCode::QueueFull);
+    assert_eq!(r.jobs.snapshot().borrow().waiting, MAX_WAITING);
+}
+
+#[tokio::test(start_paused = true)]
+async fn link_alarms_and_resets_end_the_active_job_with_their_reason() {
+    let mut r = rig(Protocol::A, 2, Duration::from_millis(100));
+    let a = r.jobs.submit(inline(b"%\nO1\nG01X1\n%", 0)).await.unwrap();
+    r.release.add_permits(1);
+    loop {
+        if kind_name(&next(&mut r.events).await) == "started" {
+            break;
+        }
+    }
+    let _ = r.link_events.send(LinkEvent::Alarm {
+        alarm: Some(CncAlarm::Sr0945RetryOver),
+        error: "retry over".to_string(),
+    });
+    let _ = r.link_events.send(LinkEvent::JobFailed {
+        job: 1,
+        offset: 4,
+        reason: "retry count exceeded".to_string(),
+    });
+    let events = until_end(&mut r.events, &a.job_id).await;
+    match &events.last().unwrap().kind {
+        Some(Kind::Failed(f)) => {
+            assert_eq!(f.alarm_number, "SR0945");
+            assert_eq!(f.byte_offset, 4);
+            assert_eq!(f.code(), pb::ErrorCode::LinkFailed);
+            assert_eq!(f.reason, "retry count exceeded");
+        }
+        other => panic!("{other:?}"),
+    }
+
+    let b = r.jobs.submit(inline(b"%\nO2\nG01X1\n%", 0)).await.unwrap();
+    r.release.add_permits(1);
+    loop {
+        let e = next(&mut r.events).await;
+        if e.job_id == b.job_id && kind_name(&e) == "started" {
+            break;
+        }
+    }
+    let _ = r.link_events.send(LinkEvent::CncReset);
+    let _ = r.link_events.send(LinkEvent::JobFailed {
+        job: 2,
+        offset: 2,
+        reason: "CNC reset".to_string(),
+    });
+    let events = until_end(&mut r.events, &b.job_id).await;
+    match &events.last().unwrap().kind {
+        Some(Kind::Cancelled(c)) => assert_eq!(c.by, "cnc reset"),
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(r.jobs.snapshot().borrow().jobs_failed, 1);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_stopped_link_fails_its_jobs_and_refuses_new_ones() {
+    let mut r = rig(Protocol::A, 2, Duration::from_millis(100));
+    let a = r.jobs.submit(inline(b"%\nO1\n%", 0)).await.unwrap();
+    let b = r.jobs.submit(inline(b"%\nO2\n%", 0)).await.unwrap();
+    let _ = r.link_events.send(LinkEvent::Stopped {
+        error: Some("port closed".to_string()),
+    });
+    let events = until_end(&mut r.events, &b.job_id).await;
+    let failed: Vec<_> = events
+        .iter()
+        .filter(|e| kind_name(e) == "failed")
+        .map(|e| e.job_id.clone())
+        .collect();
+    assert_eq!(failed, [a.job_id, b.job_id]);
+    let e = r.jobs.submit(inline(b"%\nO3\n%", 0)).await.unwrap_err();
+    assert_eq!(e.code(), pb::ErrorCode::Unavailable);
+}
+
+#[tokio::test(start_paused = true)]
+async fn shutdown_reports_every_job_ended() {
+    let mut r = rig(Protocol::A, 2, Duration::from_millis(100));
+    let a = r.jobs.submit(inline(b"%\nO1\n%", 0)).await.unwrap();
+    let b = r.jobs.submit(inline(b"%\nO2\n%", 0)).await.unwrap();
+    r.shutdown.cancel();
+    let mut ends = Vec::new();
+    while ends.len() < 2 {
+        let e = next(&mut r.events).await;
+        if matches!(kind_name(&e), "failed" | "cancelled") {
+            ends.push((e.job_id.clone(), kind_name(&e)));
+        }
+    }
+    assert_eq!(ends, [(a.job_id, "failed"), (b.job_id, "cancelled")]);
+    assert!(matches!(
+        r.jobs.submit(inline(b"%\nO3\n%", 0)).await,
+        Err(JobError::Stopped { .. })
+    ));
+}
