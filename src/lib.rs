@@ -14,16 +14,71 @@
 //!   device side of the same protocols, for tests, CI and laptops.
 //! - [`config`]: the cell file: serde types, defaults, and validation that reports every error.
 //! - [`bus`]: the Zenoh session and the cell's key expressions.
+//! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves its admin
+//!   key, and stops cleanly when the shutdown future completes.
 //! - [`telemetry`]: tracing subscriber and the optional OpenTelemetry export.
 //! - [`pb`]: the protobuf messages of `proto/cellgate/v1`, the bus's public contract.
 
 pub mod bus;
 pub mod config;
 pub mod fanuc;
+pub mod gateway;
 pub mod link;
 pub mod sim;
 pub mod telemetry;
 pub mod transport;
 
-/// Protobuf messages generated from `proto/cellgate/v1/*.proto`.
-pub mod pb {}
+/// Protobuf messages generated from `proto/cellgate/v1/*.proto` (package `cellgate.v1`).
+/// The .proto files document every field; they are the contract clients build against.
+#[allow(clippy::all, clippy::pedantic, missing_docs)]
+pub mod pb {
+    include!(concat!(env!("OUT_DIR"), "/cellgate.v1.rs"));
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+        use prost::Message;
+
+        #[test]
+        fn job_request_round_trips_through_the_wire_format() {
+            let request = JobRequest {
+                program: Some(job_request::Program::Inline(b"%\nO0001\nG00X0\n%".to_vec())),
+                name: "O0001".to_string(),
+                priority: -3,
+                append_eor: true,
+            };
+            let bytes = request.encode_to_vec();
+            let decoded = JobRequest::decode(bytes.as_slice()).unwrap();
+            assert_eq!(decoded, request);
+        }
+
+        #[test]
+        fn job_event_oneof_survives_decoding() {
+            let event = JobEvent {
+                job_id: "j1".to_string(),
+                machine: "lathe1".to_string(),
+                unix_ms: 1_700_000_000_000,
+                kind: Some(job_event::Kind::Failed(job_event::Failed {
+                    reason: "retry over".to_string(),
+                    byte_offset: 512,
+                    alarm_number: "SR0945".to_string(),
+                    code: ErrorCode::LinkFailed as i32,
+                })),
+            };
+            let decoded = JobEvent::decode(event.encode_to_vec().as_slice()).unwrap();
+            match decoded.kind {
+                Some(job_event::Kind::Failed(f)) => {
+                    assert_eq!(f.byte_offset, 512);
+                    assert_eq!(f.alarm_number, "SR0945");
+                    assert_eq!(f.code(), ErrorCode::LinkFailed);
+                }
+                other => panic!("decoded kind {other:?}"),
+            }
+        }
+
+        #[test]
+        fn garbage_is_a_decode_error_not_a_panic() {
+            assert!(MachineStatus::decode(&[0xFF, 0xFF, 0xFF][..]).is_err());
+        }
+    }
+}

@@ -1,1 +1,251 @@
-fn main() {}
+//! The `cellgate` command: runs one cell's gateway, or checks a cell file.
+//!
+//! Exit codes: 0 success, 1 runtime failure, 2 bad configuration or usage.
+
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Duration;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+
+use cellgate::bus::BusMode;
+use cellgate::config::{CellConfig, ConfigErrors};
+use cellgate::telemetry::{self, LogFormat, TelemetryError};
+
+const EXIT_RUNTIME: u8 = 1;
+const EXIT_CONFIG: u8 = 2;
+
+/// One gateway per manufacturing cell: FANUC remote-buffer and Fuji MICREX-F links on the
+/// Zenoh bus.
+#[derive(Debug, Parser)]
+#[command(name = "cellgate", version, about, propagate_version = true)]
+struct Cli {
+    /// More log output: -v debug for cellgate, -vv debug for everything, -vvv trace.
+    /// RUST_LOG, when set, takes precedence.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    /// Log line format (overrides telemetry.log_format of the cell file).
+    #[arg(long, value_enum, global = true)]
+    log_format: Option<LogFormatArg>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run the gateway until SIGINT or SIGTERM. Without --config, runs the embedded
+    /// default cell (simulated, no hardware, no external router).
+    Run(RunArgs),
+    /// Check a cell file: print its validated summary, or every error (exit code 2).
+    CheckConfig {
+        /// The cell file (TOML).
+        file: PathBuf,
+    },
+}
+
+#[derive(Debug, Args)]
+struct RunArgs {
+    /// The cell file (TOML). Default: the embedded simulated cell.
+    #[arg(short, long, value_name = "FILE", env = "CELLGATE_CONFIG")]
+    config: Option<PathBuf>,
+    /// Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447. Repeatable; replaces
+    /// bus.listen of the cell file.
+    #[arg(short, long = "listen", value_name = "ENDPOINT")]
+    listen: Vec<String>,
+    /// Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447. Repeatable; replaces
+    /// bus.connect of the cell file.
+    #[arg(short = 'e', long = "connect", value_name = "ENDPOINT")]
+    connect: Vec<String>,
+    /// Disable zenoh multicast scouting (already off unless the cell file turns it on).
+    #[arg(long)]
+    no_multicast_scouting: bool,
+    /// Zenoh session mode (overrides bus.mode).
+    #[arg(long, value_enum)]
+    mode: Option<ModeArg>,
+    /// Key prefix of every key the gateway serves (overrides bus.prefix).
+    #[arg(long)]
+    prefix: Option<String>,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum LogFormatArg {
+    Human,
+    Json,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum ModeArg {
+    Peer,
+    Client,
+    Router,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::CheckConfig { ref file } => check_config(file),
+        Command::Run(ref args) => run(&cli, args),
+    }
+}
+
+/// `cellgate check-config FILE`.
+fn check_config(file: &Path) -> ExitCode {
+    match load(file) {
+        Ok(config) => {
+            println!("{}", config.summary());
+            ExitCode::SUCCESS
+        }
+        Err(errors) => {
+            print_errors(&file.display().to_string(), &errors);
+            ExitCode::from(EXIT_CONFIG)
+        }
+    }
+}
+
+fn load(file: &Path) -> Result<CellConfig, ConfigErrors> {
+    let config = CellConfig::load(file)?;
+    config.validate()?;
+    Ok(config)
+}
+
+/// Every error on its own line of stderr, each prefixed with where the configuration
+/// came from (unless the message already starts with it).
+fn print_errors(origin: &str, errors: &ConfigErrors) {
+    for error in &errors.0 {
+        let line = error.to_string();
+        if line.starts_with(origin) {
+            eprintln!("{line}");
+        } else {
+            eprintln!("{origin}: {line}");
+        }
+    }
+}
+
+/// `cellgate run`.
+fn run(cli: &Cli, args: &RunArgs) -> ExitCode {
+    let (mut config, origin) = match &args.config {
+        Some(file) => match load(file) {
+            Ok(config) => (config, file.display().to_string()),
+            Err(errors) => {
+                print_errors(&file.display().to_string(), &errors);
+                return ExitCode::from(EXIT_CONFIG);
+            }
+        },
+        None => (
+            CellConfig::embedded_default(),
+            "embedded default".to_string(),
+        ),
+    };
+    let overridden = apply_overrides(&mut config, cli, args);
+    if overridden {
+        if let Err(errors) = config.validate() {
+            print_errors(&format!("{origin} (with command-line options)"), &errors);
+            return ExitCode::from(EXIT_CONFIG);
+        }
+    }
+
+    // Zenoh needs the multi-thread runtime.
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("cellgate")
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
+            return ExitCode::from(EXIT_RUNTIME);
+        }
+    };
+    let code = runtime.block_on(run_async(config, origin));
+    // Everything that matters was closed above; do not wait on stray blocking tasks.
+    runtime.shutdown_timeout(Duration::from_secs(2));
+    code
+}
+
+/// Writes the command-line options over the configuration; true if any was given.
+fn apply_overrides(config: &mut CellConfig, cli: &Cli, args: &RunArgs) -> bool {
+    let mut any = false;
+    if !args.listen.is_empty() {
+        config.bus.listen = args.listen.clone();
+        any = true;
+    }
+    if !args.connect.is_empty() {
+        config.bus.connect = args.connect.clone();
+        any = true;
+    }
+    if args.no_multicast_scouting {
+        config.bus.multicast_scouting = false;
+    }
+    if let Some(mode) = args.mode {
+        config.bus.mode = match mode {
+            ModeArg::Peer => BusMode::Peer,
+            ModeArg::Client => BusMode::Client,
+            ModeArg::Router => BusMode::Router,
+        };
+        any = true;
+    }
+    if let Some(prefix) = &args.prefix {
+        config.bus.prefix = prefix.clone();
+        any = true;
+    }
+    if let Some(format) = cli.log_format {
+        config.telemetry.log_format = match format {
+            LogFormatArg::Human => LogFormat::Human,
+            LogFormatArg::Json => LogFormat::Json,
+        };
+    }
+    match cli.verbose {
+        0 => {}
+        1 => config.telemetry.log_filter = "info,cellgate=debug".to_string(),
+        2 => config.telemetry.log_filter = "debug".to_string(),
+        _ => config.telemetry.log_filter = "trace".to_string(),
+    }
+    any
+}
+
+async fn run_async(config: CellConfig, origin: String) -> ExitCode {
+    let mut guard = match telemetry::init(&config.telemetry) {
+        Ok(guard) => guard,
+        Err(e) => {
+            eprintln!("cellgate: {e}");
+            return ExitCode::from(match e {
+                TelemetryError::Filter { .. } | TelemetryError::Exporter { .. } => EXIT_CONFIG,
+                _ => EXIT_RUNTIME,
+            });
+        }
+    };
+    tracing::info!(version = cellgate::gateway::VERSION, config = %origin, "starting cellgate");
+
+    let code = match shutdown_signal() {
+        Ok(shutdown) => match cellgate::gateway::run(config, shutdown).await {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                tracing::error!("cellgate failed: {e}");
+                ExitCode::from(EXIT_RUNTIME)
+            }
+        },
+        Err(e) => {
+            tracing::error!("cannot install the SIGINT/SIGTERM handlers: {e}");
+            ExitCode::from(EXIT_RUNTIME)
+        }
+    };
+    if let Err(e) = guard.shutdown() {
+        eprintln!("cellgate: {e}");
+    }
+    code
+}
+
+/// Completes on the first SIGINT or SIGTERM. The handlers are installed before it is
+/// returned, so a signal that arrives while the gateway is starting is not lost.
+fn shutdown_signal() -> std::io::Result<impl Future<Output = ()>> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut terminate = signal(SignalKind::terminate())?;
+    let mut interrupt = signal(SignalKind::interrupt())?;
+    Ok(async move {
+        tokio::select! {
+            _ = terminate.recv() => tracing::info!("SIGTERM received"),
+            _ = interrupt.recv() => tracing::info!("SIGINT received"),
+        }
+    })
+}

@@ -1,5 +1,9 @@
-//! The Zenoh side of the gateway: session settings, and (in later rooms) the cell's key
+//! The Zenoh side of the gateway: session settings, and (in the rooms below) the cell's key
 //! expressions, routes and admin space.
+
+pub mod session;
+
+pub use session::{BusError, open};
 
 use serde::{Deserialize, Serialize};
 

@@ -7,6 +7,7 @@
 //! of the gateway (bus routes, job manager) talks to a link only through [`LinkCommand`] and
 //! [`LinkEvent`]: that is the seam the bus bridge uses, and the one tests drive in virtual time.
 
+pub mod driver;
 pub mod pump;
 
 use std::time::Instant;

@@ -7,14 +7,23 @@
 //! - [`serial`]: a real serial port (tokio-serial);
 //! - [`tcp`]: a raw TCP connection to a serial device server, reconnecting with backoff and
 //!   writing through a bounded in-flight window;
-//! - [`sim`]: an in-memory line to a simulated board, paced at the configured baud rate.
+//! - [`sim`]: an in-memory line to a simulated board, paced at the configured baud rate, with
+//!   fault injection.
 //!
-//! Line errors that a UART reports (parity, framing, overrun) and a cut line surface as
-//! [`LineError`]s through [`Transport::take_line_error`], never as panics.
+//! All three bound how far a writer can run ahead of the line with a [`Pacer`], so that a stop
+//! code (DC3) from the peer takes effect within a few characters (§6.3), not after whatever a
+//! UART FIFO, the kernel or a device server has already swallowed.
+//!
+//! Line errors that a UART reports (parity, framing, overrun) surface as [`LineError`]s through
+//! [`Transport::take_line_error`]; a cut line or a lost device server shows as DR (and CD) off in
+//! [`Transport::modem`] (alarm SR0855). Neither is an I/O error, and nothing panics on line input.
 
+pub mod pacer;
 pub mod serial;
 pub mod sim;
 pub mod tcp;
+
+pub use pacer::Pacer;
 
 use std::fmt;
 use std::time::Duration;
@@ -22,8 +31,9 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 use tokio::io::{AsyncRead, AsyncWrite};
 
-/// Data bits per character (FANUC §3.1, Fuji §4-3 item 5).
+/// Data bits per character (FANUC §3.1, Fuji §4-3 item 5). Written `8` or `"8"`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(try_from = "NumberOrText")]
 pub enum DataBits {
     #[serde(rename = "7")]
     Seven,
@@ -42,8 +52,9 @@ pub enum Parity {
     Even,
 }
 
-/// Stop bits (Fuji §4-3 item 7 allows 1.5).
+/// Stop bits (Fuji §4-3 item 7 allows 1.5). Written `2`, `1.5` or `"2"`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(try_from = "NumberOrText")]
 pub enum StopBits {
     #[serde(rename = "1")]
     One,
@@ -52,6 +63,48 @@ pub enum StopBits {
     #[serde(rename = "2")]
     #[default]
     Two,
+}
+
+/// A setting people write either as a number or as text (`data_bits = 8`, `stop_bits = "1.5"`).
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum NumberOrText {
+    Int(i64),
+    Float(f64),
+    Text(String),
+}
+
+impl NumberOrText {
+    fn text(self) -> String {
+        match self {
+            NumberOrText::Int(i) => i.to_string(),
+            NumberOrText::Float(f) => f.to_string(),
+            NumberOrText::Text(t) => t,
+        }
+    }
+}
+
+impl TryFrom<NumberOrText> for DataBits {
+    type Error = String;
+    fn try_from(v: NumberOrText) -> Result<Self, String> {
+        match v.text().as_str() {
+            "7" => Ok(DataBits::Seven),
+            "8" => Ok(DataBits::Eight),
+            other => Err(format!("data bits {other}: must be 7 or 8")),
+        }
+    }
+}
+
+impl TryFrom<NumberOrText> for StopBits {
+    type Error = String;
+    fn try_from(v: NumberOrText) -> Result<Self, String> {
+        match v.text().as_str() {
+            "1" => Ok(StopBits::One),
+            "1.5" => Ok(StopBits::OnePointFive),
+            "2" => Ok(StopBits::Two),
+            other => Err(format!("stop bits {other}: must be 1, 1.5 or 2")),
+        }
+    }
 }
 
 /// Hardware flow control on the serial port itself.
@@ -128,10 +181,35 @@ impl LineSettings {
     /// Computed from the character count (not by adding per-character durations) so that
     /// long transfers do not accumulate rounding drift.
     pub fn time_for_chars(&self, n: u64) -> Duration {
-        let baud = u128::from(self.baud.max(1));
-        let half_bits = u128::from(n) * u128::from(self.half_bits_per_char());
-        let nanos = (half_bits * 1_000_000_000).div_ceil(2 * baud);
+        let half_bits_per_char = u64::from(self.half_bits_per_char());
+        let twice_baud = 2 * u64::from(self.baud.max(1));
+        // The simulated line calls this per character: stay in u64 while it cannot overflow
+        // (runs of up to ~10^8 characters), u128 beyond.
+        if let Some(scaled) = n
+            .checked_mul(half_bits_per_char)
+            .and_then(|hb| hb.checked_mul(1_000_000_000))
+        {
+            return Duration::from_nanos(scaled.div_ceil(twice_baud));
+        }
+        let scaled = u128::from(n) * u128::from(half_bits_per_char) * 1_000_000_000;
+        let nanos = scaled.div_ceil(u128::from(twice_baud));
         Duration::from_nanos(u64::try_from(nanos).unwrap_or(u64::MAX))
+    }
+
+    /// Characters sent back to back that are fully on the line within `elapsed` of the first
+    /// one's start bit: the largest `n` with `time_for_chars(n) <= elapsed`.
+    pub fn chars_in(&self, elapsed: Duration) -> u64 {
+        // time_for_chars(n) = ceil(n * hb * 1e9 / (2 * baud)) <= e  <=>  n <= e * 2 * baud / (hb * 1e9)
+        let half_bits_per_char = u64::from(self.half_bits_per_char().max(1));
+        let twice_baud = 2 * u64::from(self.baud.max(1));
+        let divisor = half_bits_per_char * 1_000_000_000;
+        if let Ok(nanos) = u64::try_from(elapsed.as_nanos())
+            && let Some(scaled) = nanos.checked_mul(twice_baud)
+        {
+            return scaled / divisor;
+        }
+        let n = elapsed.as_nanos() * u128::from(twice_baud) / u128::from(divisor);
+        u64::try_from(n).unwrap_or(u64::MAX)
     }
 
     /// Time on the line of one character.
@@ -225,6 +303,10 @@ pub enum TransportError {
     },
     #[error("serial port {path}: baud rate {baud} is not supported by this port")]
     UnsupportedBaud { path: String, baud: u32 },
+    #[error(
+        "device server address {addr:?}: {reason} (expected host:port, e.g. 192.168.0.10:4001)"
+    )]
+    BadAddress { addr: String, reason: &'static str },
     #[error("device server {addr}: {source}")]
     Tcp {
         addr: String,
@@ -277,6 +359,26 @@ mod tests {
     use super::*;
 
     #[test]
+    fn data_and_stop_bits_read_as_numbers_or_text() {
+        #[derive(Deserialize)]
+        struct W {
+            line: LineSettings,
+        }
+        let w: W = toml::from_str("line = { data_bits = 7, stop_bits = 1.5 }").unwrap();
+        assert_eq!(w.line.data_bits, DataBits::Seven);
+        assert_eq!(w.line.stop_bits, StopBits::OnePointFive);
+        let w: W = toml::from_str("line = { data_bits = \"8\", stop_bits = \"2\" }").unwrap();
+        assert_eq!(
+            (w.line.data_bits, w.line.stop_bits),
+            (DataBits::Eight, StopBits::Two)
+        );
+        let e = toml::from_str::<W>("line = { data_bits = 9 }")
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("data bits 9: must be 7 or 8"), "{e}");
+    }
+
+    #[test]
     fn framing_bit_counts() {
         let mut s = LineSettings::with_baud(9600);
         assert_eq!(s.bits_per_char(), 11.0); // 8N2
@@ -296,5 +398,9 @@ mod tests {
         let t = s.time_for_chars(1_000_000);
         assert_eq!(t.as_nanos(), 127_314_814_815);
         assert_eq!(s.char_time().as_nanos(), 127_315);
+        // Past the u64 fast path the result is the same formula.
+        let huge = 10_000_000_000_u64;
+        let expect = (u128::from(huge) * 22 * 1_000_000_000).div_ceil(2 * 86_400);
+        assert_eq!(s.time_for_chars(huge).as_nanos(), expect);
     }
 }

@@ -1,1 +1,536 @@
-//! (to be written)
+//! Raw TCP to a serial device server (one TCP port per serial port, no Telnet/RFC 2217).
+//!
+//! The link must survive the device server going away: [`TcpTransport`] never fails after
+//! construction. It reconnects with bounded exponential backoff after a failed connect, an EOF or
+//! an I/O error, and while disconnected it behaves like an open (cut) line: reads wait, writes are
+//! accepted at line pace and discarded (counted in [`TcpStats::discarded`]), and the modem lines
+//! read off. A protocol engine sees exactly what it would see on a broken cable and raises its
+//! own timeouts and alarms.
+//!
+//! Writes go through a bounded in-flight window (a [`Pacer`]): the device server buffers about a
+//! kilobyte per port and the sockets more, so without a bound a DC3 from the CNC would be
+//! overrun by everything already buffered. The transport estimates the characters written but
+//! not yet sent on the serial side (they drain at the line's character rate) and accepts writes
+//! only while that estimate is below [`TcpOptions::window`], well inside Protocol B's 512-character
+//! overrun allowance (§6.3; 1280 for Expansion B, §7).
+//!
+//! A raw TCP device server carries no modem lines: [`Transport::set_modem`] does nothing and
+//! [`Transport::modem`] reads all lines on while connected.
+
+use std::fmt;
+use std::future::Future;
+use std::io;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex};
+use std::task::{Context, Poll, Wake, Waker};
+use std::time::Duration;
+
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::net::TcpStream;
+use tokio::time::{Instant, Sleep};
+use tracing::{debug, info, warn};
+
+use super::{LineSettings, ModemIn, ModemOut, Pacer, Transport, TransportError};
+
+/// Connection and pacing options of a [`TcpTransport`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TcpOptions {
+    /// Characters written and not yet sent on the serial side, at most. Bounds how far a DC3
+    /// can be overrun; keep it well under the protocol's allowance (512 for Protocol B).
+    pub window: usize,
+    /// First wait before reconnecting; doubled after each failure.
+    pub backoff_min: Duration,
+    /// Longest wait between reconnection attempts.
+    pub backoff_max: Duration,
+    /// Give up one connection attempt after this long.
+    pub connect_timeout: Duration,
+}
+
+impl Default for TcpOptions {
+    fn default() -> Self {
+        TcpOptions {
+            window: 256,
+            backoff_min: Duration::from_millis(100),
+            backoff_max: Duration::from_secs(5),
+            connect_timeout: Duration::from_secs(5),
+        }
+    }
+}
+
+/// Connection history of a [`TcpTransport`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct TcpStats {
+    /// Successful connections, the first one included.
+    pub connects: u64,
+    /// Connections lost (EOF or I/O error).
+    pub disconnects: u64,
+    /// Failed connection attempts.
+    pub connect_failures: u64,
+    /// Bytes accepted while disconnected (or lost in a failed write) and thrown away.
+    pub discarded: u64,
+}
+
+type ConnectFuture = Pin<Box<dyn Future<Output = io::Result<TcpStream>> + Send>>;
+
+enum State {
+    Connected(TcpStream),
+    Connecting(ConnectFuture),
+    /// Waiting before the next connection attempt.
+    Backoff(Pin<Box<Sleep>>),
+    /// Shut down by the owner: no more reconnecting.
+    Closed,
+}
+
+/// The wakers of the reading and the writing task. Either one may drive reconnection (poll the
+/// connect future or the backoff timer); whichever does, both are woken on progress, so that a
+/// reader is not left asleep because a writer happened to poll last.
+#[derive(Default)]
+struct Wakers {
+    read: Mutex<Option<Waker>>,
+    write: Mutex<Option<Waker>>,
+}
+
+impl Wakers {
+    fn set(slot: &Mutex<Option<Waker>>, w: &Waker) {
+        let mut g = slot.lock().unwrap_or_else(|e| e.into_inner());
+        match &*g {
+            Some(old) if old.will_wake(w) => {}
+            _ => *g = Some(w.clone()),
+        }
+    }
+}
+
+impl Wake for Wakers {
+    fn wake(self: Arc<Self>) {
+        self.wake_by_ref();
+    }
+
+    fn wake_by_ref(self: &Arc<Self>) {
+        for slot in [&self.read, &self.write] {
+            let w = slot.lock().unwrap_or_else(|e| e.into_inner()).take();
+            if let Some(w) = w {
+                w.wake();
+            }
+        }
+    }
+}
+
+/// A serial line reached through a TCP device server. See the [module docs](self).
+pub struct TcpTransport {
+    addr: String,
+    line: LineSettings,
+    opts: TcpOptions,
+    state: State,
+    /// Wait before the next attempt after a failure.
+    backoff: Duration,
+    connected_at: Option<Instant>,
+    /// Failed attempts since the last connection, for quieter logs.
+    failures_in_a_row: u64,
+    pacer: Pacer,
+    write_sleep: Option<Pin<Box<Sleep>>>,
+    wakers: Arc<Wakers>,
+    stats: TcpStats,
+    modem_note_logged: bool,
+}
+
+impl fmt::Debug for TcpTransport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("TcpTransport")
+            .field("addr", &self.addr)
+            .field("line", &self.line)
+            .field("connected", &self.is_connected())
+            .field("stats", &self.stats)
+            .finish()
+    }
+}
+
+/// Check that `addr` has the form `host:port` (IPv6 hosts in brackets).
+fn check_addr(addr: &str) -> Result<(), TransportError> {
+    let bad = |reason| TransportError::BadAddress {
+        addr: addr.to_string(),
+        reason,
+    };
+    let (host, port) = addr.rsplit_once(':').ok_or_else(|| bad("no port"))?;
+    if host.is_empty() {
+        return Err(bad("no host"));
+    }
+    if host.contains(':') && !(host.starts_with('[') && host.ends_with(']')) {
+        return Err(bad("an IPv6 host must be written in brackets"));
+    }
+    match port.parse::<u16>() {
+        Ok(0) => Err(bad("port 0")),
+        Ok(_) => Ok(()),
+        Err(_) => Err(bad("the port is not a number from 1 to 65535")),
+    }
+}
+
+impl TcpTransport {
+    /// Connect to the device server at `addr` (`host:port`) carrying a line framed as `line`.
+    ///
+    /// Makes one connection attempt (up to [`TcpOptions::connect_timeout`]) before returning.
+    /// If it fails, the transport is returned anyway, disconnected, and keeps trying with
+    /// backoff while it is read or written: a device server switched on after cellgate is picked
+    /// up without a restart. Only an address that is not `host:port` is an error
+    /// ([`TransportError::BadAddress`]); an unresolvable host name is retried like a refused
+    /// connection.
+    pub async fn connect(
+        addr: impl Into<String>,
+        line: LineSettings,
+        opts: TcpOptions,
+    ) -> Result<TcpTransport, TransportError> {
+        let addr = addr.into();
+        check_addr(&addr)?;
+        let mut t = TcpTransport {
+            state: State::Connecting(connect_future(addr.clone(), opts.connect_timeout)),
+            addr,
+            line,
+            backoff: opts.backoff_min,
+            connected_at: None,
+            failures_in_a_row: 0,
+            pacer: Pacer::new(line, opts.window),
+            write_sleep: None,
+            wakers: Arc::new(Wakers::default()),
+            stats: TcpStats::default(),
+            modem_note_logged: false,
+            opts,
+        };
+        if let State::Connecting(f) = &mut t.state {
+            let result = f.as_mut().await;
+            t.connect_done(result);
+        }
+        Ok(t)
+    }
+
+    /// The device server's address as configured.
+    pub fn addr(&self) -> &str {
+        &self.addr
+    }
+
+    /// Whether a connection to the device server is up (as of the last read or write).
+    pub fn is_connected(&self) -> bool {
+        matches!(self.state, State::Connected(_))
+    }
+
+    /// Connection history and discarded bytes.
+    pub fn stats(&self) -> TcpStats {
+        self.stats
+    }
+
+    /// Estimated characters written and not yet sent on the serial side: never above
+    /// [`TcpOptions::window`] except by the last write's remainder.
+    pub fn unsent_estimate(&self) -> u64 {
+        self.pacer.unsent(Instant::now().into_std())
+    }
+
+    fn connect_done(&mut self, result: io::Result<TcpStream>) {
+        match result {
+            Ok(stream) => {
+                // Small writes (a DC3, an ACK) must leave at once.
+                if let Err(e) = stream.set_nodelay(true) {
+                    debug!(addr = %self.addr, error = %e, "could not set TCP_NODELAY");
+                }
+                self.stats.connects += 1;
+                info!(
+                    addr = %self.addr,
+                    attempts = self.failures_in_a_row + 1,
+                    "connected to the device server"
+                );
+                self.failures_in_a_row = 0;
+                self.connected_at = Some(Instant::now());
+                // The device server's buffer starts empty.
+                self.pacer.reset();
+                self.state = State::Connected(stream);
+            }
+            Err(e) => {
+                self.stats.connect_failures += 1;
+                self.failures_in_a_row += 1;
+                if self.failures_in_a_row == 1 {
+                    warn!(
+                        addr = %self.addr,
+                        error = %e,
+                        retry_in = ?self.backoff,
+                        "cannot connect to the device server; the line reads as open until it answers"
+                    );
+                } else {
+                    debug!(
+                        addr = %self.addr,
+                        error = %e,
+                        attempt = self.failures_in_a_row,
+                        retry_in = ?self.backoff,
+                        "device server still unreachable"
+                    );
+                }
+                self.wait_backoff();
+            }
+        }
+    }
+
+    fn wait_backoff(&mut self) {
+        let wait = self.backoff;
+        self.backoff = (self.backoff * 2).min(self.opts.backoff_max);
+        self.state = State::Backoff(Box::pin(tokio::time::sleep(wait)));
+    }
+
+    fn disconnected(&mut self, why: &dyn fmt::Display) {
+        self.stats.disconnects += 1;
+        // A connection that lasted resets the backoff; one dropped at once (a device server
+        // that accepts and closes) keeps it growing.
+        let lasted = self
+            .connected_at
+            .is_some_and(|t| t.elapsed() >= self.opts.backoff_max);
+        if lasted {
+            self.backoff = self.opts.backoff_min;
+        }
+        self.connected_at = None;
+        warn!(
+            addr = %self.addr,
+            reason = %why,
+            retry_in = ?self.backoff,
+            "device server connection lost; the line reads as open until it is back"
+        );
+        self.wait_backoff();
+        self.wakers.wake_by_ref();
+    }
+
+    /// Drive reconnection as far as it goes without waiting. Returns whether connected.
+    fn poll_connection(&mut self) -> bool {
+        let waker = Waker::from(self.wakers.clone());
+        let mut cx = Context::from_waker(&waker);
+        loop {
+            match &mut self.state {
+                State::Connected(_) => return true,
+                State::Closed => return false,
+                State::Connecting(f) => match f.as_mut().poll(&mut cx) {
+                    Poll::Ready(result) => {
+                        self.connect_done(result);
+                        if self.is_connected() {
+                            self.wakers.wake_by_ref();
+                        }
+                    }
+                    Poll::Pending => return false,
+                },
+                State::Backoff(sleep) => match sleep.as_mut().poll(&mut cx) {
+                    Poll::Ready(()) => {
+                        self.state = State::Connecting(connect_future(
+                            self.addr.clone(),
+                            self.opts.connect_timeout,
+                        ));
+                    }
+                    Poll::Pending => return false,
+                },
+            }
+        }
+    }
+
+    /// Accept `n` bytes into the void at line pace (disconnected, or lost in a failed write).
+    fn discard(&mut self, n: usize, now: Instant) -> usize {
+        self.pacer.wrote(n, now.into_std());
+        self.stats.discarded += n as u64;
+        n
+    }
+}
+
+fn connect_future(addr: String, timeout: Duration) -> ConnectFuture {
+    Box::pin(async move {
+        match tokio::time::timeout(timeout, TcpStream::connect(addr.as_str())).await {
+            Ok(r) => r,
+            Err(_) => Err(io::Error::new(
+                io::ErrorKind::TimedOut,
+                format!("no answer within {timeout:?}"),
+            )),
+        }
+    })
+}
+
+impl AsyncRead for TcpTransport {
+    /// Bytes from the device server. Never returns EOF or an error while the transport is in
+    /// use: a lost connection is reported in the log and by the modem lines, and the read waits
+    /// for the reconnection. EOF only after [`AsyncWriteExt::shutdown`](tokio::io::AsyncWriteExt).
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        let this = &mut *self;
+        Wakers::set(&this.wakers.read, cx.waker());
+        loop {
+            if !this.poll_connection() {
+                if matches!(this.state, State::Closed) {
+                    return Poll::Ready(Ok(()));
+                }
+                return Poll::Pending;
+            }
+            let State::Connected(stream) = &mut this.state else {
+                continue;
+            };
+            let before = buf.filled().len();
+            match Pin::new(stream).poll_read(cx, buf) {
+                Poll::Pending => return Poll::Pending,
+                Poll::Ready(Ok(())) if buf.filled().len() > before || buf.remaining() == 0 => {
+                    return Poll::Ready(Ok(()));
+                }
+                Poll::Ready(Ok(())) => this.disconnected(&"closed by the device server"),
+                Poll::Ready(Err(e)) => this.disconnected(&e),
+            }
+        }
+    }
+}
+
+impl AsyncWrite for TcpTransport {
+    /// Writes at most the room left in the in-flight window; waits (a timer, not a busy loop)
+    /// while the window is full. Disconnected, the bytes are accepted and discarded.
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        let this = &mut *self;
+        if matches!(this.state, State::Closed) {
+            return Poll::Ready(Err(io::Error::new(
+                io::ErrorKind::BrokenPipe,
+                format!("device server {}: write after shutdown", this.addr),
+            )));
+        }
+        if buf.is_empty() {
+            return Poll::Ready(Ok(0));
+        }
+        Wakers::set(&this.wakers.write, cx.waker());
+        loop {
+            let now = Instant::now();
+            let room = this.pacer.writable(now.into_std());
+            if room == 0 {
+                let at = Instant::from_std(this.pacer.next_writable_at(now.into_std()));
+                let sleep = match &mut this.write_sleep {
+                    Some(s) => {
+                        s.as_mut().reset(at);
+                        s
+                    }
+                    None => this
+                        .write_sleep
+                        .insert(Box::pin(tokio::time::sleep_until(at))),
+                };
+                match sleep.as_mut().poll(cx) {
+                    Poll::Ready(()) => continue,
+                    Poll::Pending => return Poll::Pending,
+                }
+            }
+            let n = room.min(buf.len());
+            let chunk = buf.get(..n).unwrap_or(buf);
+            if !this.poll_connection() {
+                return Poll::Ready(Ok(this.discard(n, now)));
+            }
+            let State::Connected(stream) = &mut this.state else {
+                continue;
+            };
+            return match Pin::new(stream).poll_write(cx, chunk) {
+                Poll::Pending => Poll::Pending,
+                Poll::Ready(Ok(0)) => {
+                    this.disconnected(&"the connection accepts no more bytes");
+                    Poll::Ready(Ok(this.discard(n, now)))
+                }
+                Poll::Ready(Ok(k)) => {
+                    this.pacer.wrote(k, now.into_std());
+                    Poll::Ready(Ok(k))
+                }
+                Poll::Ready(Err(e)) => {
+                    this.disconnected(&e);
+                    Poll::Ready(Ok(this.discard(n, now)))
+                }
+            };
+        }
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        let this = &mut *self;
+        if let State::Connected(stream) = &mut this.state
+            && let Poll::Ready(Err(e)) = Pin::new(stream).poll_flush(cx)
+        {
+            this.disconnected(&e);
+        }
+        Poll::Ready(Ok(()))
+    }
+
+    /// Close the connection for good: no more reconnecting; reads return EOF.
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        let this = &mut *self;
+        if let State::Connected(stream) = &mut this.state
+            && Pin::new(stream).poll_shutdown(cx).is_pending()
+        {
+            return Poll::Pending;
+        }
+        if !matches!(this.state, State::Closed) {
+            info!(addr = %this.addr, "device server connection closed");
+        }
+        this.state = State::Closed;
+        this.wakers.wake_by_ref();
+        Poll::Ready(Ok(()))
+    }
+}
+
+impl Transport for TcpTransport {
+    /// A raw TCP device server carries no modem lines: nothing to drive.
+    fn set_modem(&mut self, out: ModemOut) -> io::Result<()> {
+        if !self.modem_note_logged {
+            self.modem_note_logged = true;
+            debug!(
+                addr = %self.addr,
+                ?out,
+                "the device server carries no modem lines; ER and RS are not sent"
+            );
+        }
+        Ok(())
+    }
+
+    /// All lines on while connected (the manual's wiring for unused lines); all off while the
+    /// device server is unreachable, like an open line.
+    fn modem(&mut self) -> io::Result<ModemIn> {
+        Ok(if self.is_connected() {
+            ModemIn::ALL_ON
+        } else {
+            ModemIn {
+                dr: false,
+                cs: false,
+                cd: false,
+            }
+        })
+    }
+
+    fn describe(&self) -> String {
+        format!("tcp {} (line {})", self.addr, self.line)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn addresses() {
+        for good in [
+            "127.0.0.1:4001",
+            "moxa-cell3:950",
+            "[::1]:4001",
+            "localhost:1",
+        ] {
+            assert!(check_addr(good).is_ok(), "{good}");
+        }
+        for bad in [
+            "127.0.0.1",
+            ":4001",
+            "host:",
+            "host:0",
+            "host:70000",
+            "::1:4001",
+        ] {
+            assert!(
+                matches!(check_addr(bad), Err(TransportError::BadAddress { .. })),
+                "{bad}"
+            );
+        }
+    }
+
+    #[test]
+    fn default_window_is_inside_protocol_b_allowance() {
+        assert!(TcpOptions::default().window < 512);
+    }
+}

@@ -1,0 +1,216 @@
+//! Opening the gateway's Zenoh session from `[bus]` of the cell file.
+//!
+//! The session starts from zenoh's defaults, or from the json5 file `bus.zenoh_config`,
+//! and the keys of [`BusConfig`] are then written over it. That keeps the gateway on the
+//! endpoints the cell file names: a zenoh peer with no explicit listen endpoint would
+//! listen on every interface, and one with multicast scouting on would announce itself
+//! to the whole network.
+
+use std::path::PathBuf;
+
+use super::{BusConfig, BusMode};
+
+/// Why the Zenoh session could not be opened.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum BusError {
+    /// The json5 file named by `bus.zenoh_config` could not be read or parsed.
+    #[error("zenoh configuration file {}: {source}", path.display())]
+    ConfigFile {
+        path: PathBuf,
+        #[source]
+        source: zenoh::Error,
+    },
+    /// Zenoh refused a value the cell file supplies (e.g. a malformed endpoint).
+    #[error("bus.{field} = {value}: zenoh refuses it: {source}")]
+    ConfigValue {
+        /// The `[bus]` key the value came from.
+        field: &'static str,
+        value: String,
+        #[source]
+        source: zenoh::Error,
+    },
+    /// The session did not open: typically an endpoint already in use, or unreachable in
+    /// client mode.
+    #[error("cannot open the zenoh session (listen {listen:?}, connect {connect:?}): {source}")]
+    Open {
+        listen: Vec<String>,
+        connect: Vec<String>,
+        #[source]
+        source: zenoh::Error,
+    },
+}
+
+impl BusMode {
+    /// The name zenoh uses for this mode in its configuration.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            BusMode::Peer => "peer",
+            BusMode::Client => "client",
+            BusMode::Router => "router",
+        }
+    }
+}
+
+/// The zenoh configuration the gateway opens its session with: the json5 file (if any),
+/// then every key of `cfg` on top.
+pub fn zenoh_config(cfg: &BusConfig) -> Result<zenoh::Config, BusError> {
+    let mut config = match &cfg.zenoh_config {
+        Some(path) => zenoh::Config::from_file(path).map_err(|source| BusError::ConfigFile {
+            path: path.clone(),
+            source,
+        })?,
+        None => zenoh::Config::default(),
+    };
+    let settings: [(&'static str, &'static str, String); 4] = [
+        ("mode", "mode", json(cfg.mode.as_str())),
+        (
+            "multicast_scouting",
+            "scouting/multicast/enabled",
+            json(&cfg.multicast_scouting),
+        ),
+        ("listen", "listen/endpoints", json(&cfg.listen)),
+        ("connect", "connect/endpoints", json(&cfg.connect)),
+    ];
+    for (field, key, value) in settings {
+        config
+            .insert_json5(key, &value)
+            .map_err(|source| BusError::ConfigValue {
+                field,
+                value,
+                source,
+            })?;
+    }
+    Ok(config)
+}
+
+/// Opens the gateway's Zenoh session. Must run on a multi-thread Tokio runtime (zenoh
+/// panics on a current-thread one). Close it with `session.close().await` before the
+/// runtime ends.
+pub async fn open(cfg: &BusConfig) -> Result<zenoh::Session, BusError> {
+    let config = zenoh_config(cfg)?;
+    zenoh::open(config).await.map_err(|source| BusError::Open {
+        listen: cfg.listen.clone(),
+        connect: cfg.connect.clone(),
+        source,
+    })
+}
+
+/// A value as json5 text for `insert_json5` (JSON is valid json5).
+fn json<T: serde::Serialize + ?Sized>(value: &T) -> String {
+    // Serialising a &str, a bool or a Vec<String> cannot fail.
+    serde_json::to_string(value).unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn free_port() -> u16 {
+        std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port()
+    }
+
+    #[test]
+    fn cell_settings_override_zenoh_defaults() {
+        let cfg = BusConfig {
+            mode: BusMode::Client,
+            listen: vec!["tcp/127.0.0.1:17447".to_string()],
+            connect: vec!["tcp/127.0.0.1:7447".to_string()],
+            ..BusConfig::default()
+        };
+        let z = zenoh_config(&cfg).unwrap();
+        assert_eq!(z.get_json("mode").unwrap(), "\"client\"");
+        assert_eq!(z.get_json("scouting/multicast/enabled").unwrap(), "false");
+        assert!(
+            z.get_json("listen/endpoints")
+                .unwrap()
+                .contains("tcp/127.0.0.1:17447")
+        );
+        assert!(
+            z.get_json("connect/endpoints")
+                .unwrap()
+                .contains("tcp/127.0.0.1:7447")
+        );
+    }
+
+    #[test]
+    fn a_malformed_endpoint_names_the_field() {
+        let cfg = BusConfig {
+            listen: vec!["not an endpoint".to_string()],
+            ..BusConfig::default()
+        };
+        match zenoh_config(&cfg) {
+            Err(BusError::ConfigValue { field, .. }) => assert_eq!(field, "listen"),
+            other => panic!("expected ConfigValue, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn the_json5_file_is_read_then_overridden() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("zenoh.json5");
+        std::fs::write(
+            &path,
+            r#"{ mode: "router", scouting: { multicast: { enabled: true } } }"#,
+        )
+        .unwrap();
+        let cfg = BusConfig {
+            zenoh_config: Some(path),
+            ..BusConfig::default()
+        };
+        let z = zenoh_config(&cfg).unwrap();
+        assert_eq!(z.get_json("mode").unwrap(), "\"peer\"");
+        assert_eq!(z.get_json("scouting/multicast/enabled").unwrap(), "false");
+    }
+
+    #[test]
+    fn a_missing_json5_file_is_a_config_file_error() {
+        let cfg = BusConfig {
+            zenoh_config: Some("/nonexistent/zenoh.json5".into()),
+            ..BusConfig::default()
+        };
+        assert!(matches!(
+            zenoh_config(&cfg),
+            Err(BusError::ConfigFile { .. })
+        ));
+    }
+
+    #[test]
+    fn the_deploy_examples_load() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/zenoh");
+        let mut seen = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "json5") {
+                zenoh::Config::from_file(&path)
+                    .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                seen += 1;
+            }
+        }
+        assert!(
+            seen >= 2,
+            "expected the zenoh examples in {}",
+            dir.display()
+        );
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn opens_on_loopback_and_closes() {
+        let port = free_port();
+        let cfg = BusConfig {
+            listen: vec![format!("tcp/127.0.0.1:{port}")],
+            ..BusConfig::default()
+        };
+        let session = open(&cfg).await.unwrap();
+        // The listen endpoint is bound on loopback.
+        tokio::net::TcpStream::connect(("127.0.0.1", port))
+            .await
+            .expect("nothing listens on the configured endpoint");
+        session.close().await.unwrap();
+        assert!(session.is_closed());
+    }
+}

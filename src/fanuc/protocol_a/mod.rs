@@ -1,0 +1,1489 @@
+//! The host computer's side of Protocol A and Expansion Protocol A (§4, §5), sans-IO.
+//!
+//! [`ProtocolAHost`] is fed received bytes, line errors, modem lines, commands and the time; it
+//! hands out bytes to transmit, events, and its next deadline. It never holds a whole program:
+//! program bytes stream through a bounded buffer ([`ProtocolAConfig::max_buffer`]).
+//!
+//! # The exchange (§4.3, §4.4.1, §4.7)
+//!
+//! The board speaks first; the host answers every message once, at once (within To), except
+//! that a GTD may wait up to [`ProtocolAConfig::wat_grace`] for late program data.
+//!
+//! - Initialisation: board SYN → host SYN; board RDY → host RDY. Until then every other
+//!   message from the board is answered with SYN, the host's "initialization command" that
+//!   makes the board initialise again (§4.4.1 SYN, H).
+//! - SAT (every Tp) → SET, or CLB (pending `ClearBuffer` or clean-up after a cancel), RDI
+//!   (pending `ReadDi`), SDO (pending `SetDo`). The SET carries the configured parameters, code
+//!   conversion and packet length n the first time after initialisation and whenever the SAT's
+//!   current values differ; otherwise its data part is empty, which changes nothing (protocol
+//!   notes 5). Byte 1 (remote/tape switching) and bytes 41–44 echo the SAT, so a SET never
+//!   switches the operation mode. n changes only between programs.
+//! - GTD → DAT with the next piece of the program, at most min(4096, Nb − No) bytes (§4.4.2 3,
+//!   §4.5 note 1), Nb and No being the board's current values; EOD once the DAT carrying EOR
+//!   has gone (then `ProgramDone`); WAT when not enough data came within the grace (a partial
+//!   DAT goes instead when some data is there), and also when no program is queued at all: the
+//!   CNC is waiting for a job, and WAT makes the board ask again after Tw. RDI or SDO may
+//!   answer a GTD too.
+//! - RDI → SDI → the answer still owed to the SAT or GTD before it; SDO may answer SAT, GTD or
+//!   SDI and completes the exchange (the board talks next; a GTD answered by SDO is asked
+//!   again) (protocol notes 6).
+//! - RST → ARS, ALM → AAL; a program the board has data of is aborted (§8.2: the CNC discards
+//!   buffered data on reset). A program not started yet stays queued. A program whose bytes,
+//!   EOR included, have all gone out is delivered: the board's valid RST, ALM, CAN or alarm
+//!   SAT after it shows that it arrived (a CNC ending with M30 may reset before the EOD). A
+//!   line failure at that point still aborts it.
+//! - RTY (protocol notes 7): a message with a checksum error is answered with RTY reason '1';
+//!   an RTY received makes the host send its last message again. RTYs received plus RTYs sent
+//!   in a row above Ne is a line error: SR0945 and re-initialisation. RTY answered by RTY is
+//!   counted the same way, so it cannot loop.
+//!
+//! # Expansion Protocol A (§5)
+//!
+//! Once a SET carrying n ∈ {1, 2, 4} has gone to the board (and as long as its SATs report n),
+//! a GTD is answered with data packets of 256·n bytes, one packet per [`Engine::poll_transmit`]
+//! so that DC3 takes effect after the current packet. Monitor packets are split off the
+//! received stream by their first byte (CAN, NAK, DC3, DC1 with or without parity), which no
+//! Protocol A message can start with (its first byte is a hex digit). The last packet is padded
+//! with [`PAD`]. While data is late the host sends an invalid packet (20h) every
+//! [`ProtocolAConfig::dummy_interval`], which keeps the board's To supervision from expiring
+//! (§5.4 7). After the end packet, the first Protocol A message from the board ends the
+//! transmission and the program is reported done.
+//!
+//! # Supervision (host side, §4.3 (3), (4))
+//!
+//! The board answers or polls within Tp + Tx after each host message, and asks again within
+//! Tw ≤ Tp after WAT. The host therefore declares a time-out (SR0944, re-initialisation) when
+//! nothing at all arrives for max(2·Tp, To) after its last message went out (plus the message's
+//! line time, [`ProtocolAConfig::char_time`]); using To as well avoids calling a time-out
+//! before the board itself would. There is no supervision while the host owes an answer, while
+//! waiting for the first SYN, or during a packet transmission, when a board paused by DC3 may
+//! stay silent as long as its CNC does not read.
+//!
+//! # Errors (§4.6)
+//!
+//! Line errors (parity, framing, overrun, a parity error inside a message, DR off, time-out,
+//! retry over) re-initialise the link and wait for SYN, with an `Alarm` event. Reception errors
+//! (undefined or unexpected command, too long a data part, garbage) are ignored with a
+//! `ProtocolError` event: the board polls again with SAT.
+
+mod expansion;
+mod program;
+
+pub use expansion::PAD;
+pub use program::ProgramError;
+
+use std::collections::VecDeque;
+use std::fmt;
+use std::time::{Duration, Instant};
+
+use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::message::{
+    Command, Decoder, FrameError, Framing, MAX_DAT_DATA, Message, RTY_CHECKSUM, hex2,
+};
+use crate::fanuc::packet::{MONITOR_LEN, Monitor, PacketError, data_len};
+use crate::fanuc::sat::{
+    AlarmCause, BufferStatus, ParamRangeError, Params, StatusData, StatusDataError,
+    effective_packet_n,
+};
+use crate::link::{Engine, EngineCommand, EngineEvent, HostEngine, LinkState};
+use crate::transport::{LineError, ModemIn};
+
+use expansion::{PacketRun, RunOutcome};
+use program::Program;
+
+/// Settings of a Protocol A / Expansion Protocol A host link.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ProtocolAConfig {
+    /// Code (ISO/ASCII, parameter 5000#2) and end code (CR/ETX, 5000#3) of the messages.
+    pub framing: Framing,
+    /// The remote-buffer parameters the host sets with SET (§4.5).
+    pub params: Params,
+    /// Expansion Protocol A packet length n: 0 = plain Protocol A; 1, 2, 4 = packets of
+    /// 256·n bytes, selected with SET (§5.2 1; protocol notes 5).
+    pub packet_n: u8,
+    /// Code conversion the board applies to NC data, (from, to) (SET bytes 45–48, §4.4.2).
+    /// `None` sets no conversion (00, 00).
+    pub conversion: Option<(u8, u8)>,
+    /// How long a GTD may wait for late program data before the host answers WAT (or, in
+    /// Protocol A, a shorter DAT with what it has). Must be well below To.
+    pub wat_grace: Duration,
+    /// Expansion A: while data is late, an invalid (dummy) packet goes out this long after the
+    /// last packet (§5.2 2 c). Must be well below To.
+    pub dummy_interval: Duration,
+    /// Most program bytes held at once; [`HostEngine::data_wanted`] is the free space.
+    pub max_buffer: usize,
+    /// Line time of one character (the transport's `LineSettings::char_time`), so that time-out
+    /// supervision starts after a long DAT has left the line. Zero when unknown.
+    pub char_time: Duration,
+}
+
+impl Default for ProtocolAConfig {
+    fn default() -> Self {
+        ProtocolAConfig {
+            framing: Framing::default(),
+            params: Params::POWER_ON,
+            packet_n: 0,
+            conversion: None,
+            wat_grace: Duration::from_secs(1),
+            dummy_interval: Duration::from_secs(5),
+            max_buffer: 64 * 1024,
+            char_time: Duration::ZERO,
+        }
+    }
+}
+
+/// One problem with a [`ProtocolAConfig`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConfigProblem {
+    #[error("parameter {0}")]
+    Param(#[from] ParamRangeError),
+    #[error(
+        "packet_n = {n}: Expansion Protocol A takes n = 1, 2 or 4, and 0 selects Protocol A (§5.2 1)"
+    )]
+    PacketN { n: u8 },
+    #[error(
+        "wat_grace = {grace:?} must be below half the time-out To = {to} s, so that WAT goes out before the board gives up (§4.3 (3))"
+    )]
+    WatGrace { grace: Duration, to: u16 },
+    #[error(
+        "dummy_interval = {interval:?} must be above zero and below half the time-out To = {to} s (§5.4 7)"
+    )]
+    DummyInterval { interval: Duration, to: u16 },
+    #[error("max_buffer = {len} must hold at least one full DAT data part ({min} bytes)")]
+    MaxBuffer { len: usize, min: usize },
+}
+
+/// A [`ProtocolAConfig`] that cannot run, with every problem found.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("invalid Protocol A settings: {}", join(.problems))]
+pub struct InvalidConfig {
+    pub problems: Vec<ConfigProblem>,
+}
+
+fn join(problems: &[ConfigProblem]) -> String {
+    problems
+        .iter()
+        .map(ToString::to_string)
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+impl ProtocolAConfig {
+    /// Every problem of these settings.
+    pub fn validate(&self) -> Vec<ConfigProblem> {
+        let mut problems: Vec<ConfigProblem> = self
+            .params
+            .validate()
+            .into_iter()
+            .map(ConfigProblem::Param)
+            .collect();
+        if effective_packet_n(self.packet_n) != self.packet_n {
+            problems.push(ConfigProblem::PacketN { n: self.packet_n });
+        }
+        let half_to = Duration::from_secs(u64::from(self.params.to)) / 2;
+        if self.wat_grace >= half_to {
+            problems.push(ConfigProblem::WatGrace {
+                grace: self.wat_grace,
+                to: self.params.to,
+            });
+        }
+        if self.dummy_interval.is_zero() || self.dummy_interval >= half_to {
+            problems.push(ConfigProblem::DummyInterval {
+                interval: self.dummy_interval,
+                to: self.params.to,
+            });
+        }
+        if self.max_buffer < MAX_DAT_DATA {
+            problems.push(ConfigProblem::MaxBuffer {
+                len: self.max_buffer,
+                min: MAX_DAT_DATA,
+            });
+        }
+        problems
+    }
+}
+
+/// A protocol error the engine recovered from; the text of `EngineEvent::ProtocolError`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ProtocolAError {
+    /// A received frame that is not a valid message (ignored, §4.6 2).
+    #[error("received message refused: {error}{}", frame_hint(.error))]
+    Frame { error: FrameError },
+    /// A received frame with a checksum error; RTY was sent.
+    #[error(
+        "checksum error in a received message, RTY '1' sent (retry {count}, Ne = {ne}): {error}"
+    )]
+    ChecksumRetry {
+        error: FrameError,
+        count: u16,
+        ne: u16,
+    },
+    /// The board asked for the last message again (RTY).
+    #[error(
+        "the board sent RTY (reason {reason:?}): last message sent again (retry {count}, Ne = {ne})"
+    )]
+    RtyReceived { reason: String, count: u16, ne: u16 },
+    #[error("the board sent RTY before the host had sent any message; ignored")]
+    RtyNothingSent,
+    /// A command that does not fit the state (§4.6 2 (2)).
+    #[error(
+        "unexpected {command} {context}; ignored (§4.6 2 (2); a remote buffer reports this as SR0947)"
+    )]
+    Unexpected {
+        command: Command,
+        context: &'static str,
+    },
+    #[error("SAT data part unreadable, no Status reported: {0}")]
+    Status(StatusDataError),
+    #[error("SDI data part {data:?} does not start with two hex digits (§4.4.2 4)")]
+    SdiData { data: String },
+    #[error("monitor packet refused: {0}")]
+    Monitor(PacketError),
+    #[error("monitor packet {monitor:?} outside an Expansion A transmission; ignored (§5.3)")]
+    StrayMonitor { monitor: Monitor },
+    #[error("no RDY within {waited:?} of the host's SYN; waiting for SYN again (§4.7)")]
+    NoRdy { waited: Duration },
+}
+
+fn frame_hint(error: &FrameError) -> &'static str {
+    match error {
+        FrameError::UnknownCommand { .. } => {
+            " (a remote buffer reports an undefined command as SR0948)"
+        }
+        FrameError::DataTooLong { .. } => " (reception error, §4.6 2)",
+        _ => "",
+    }
+}
+
+/// A link alarm; the text of `EngineEvent::Alarm`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum LinkAlarm {
+    #[error("line error: {0}; link re-initialised, waiting for SYN (§4.6 1)")]
+    Line(LineError),
+    #[error("{error}; link re-initialised, waiting for SYN (§4.6 1 (3))")]
+    FrameParity { error: FrameError },
+    #[error(
+        "data set ready (DR) or carrier detect (CD) off; waiting for the line, then for SYN (§4.6 1 (4))"
+    )]
+    DataSetReadyOff,
+    #[error(
+        "retry count exceeded: {count} retries > Ne = {ne} (§4.6 1 (7)); link re-initialised, waiting for SYN"
+    )]
+    RetryOver { count: u16, ne: u16 },
+    #[error(
+        "no message from the board for {waited:?} after the host's last message (§4.3 (3), (4); §4.6 1 (6)); link re-initialised, waiting for SYN"
+    )]
+    TimeOut { waited: Duration },
+    #[error("remote buffer in alarm status: {cause} (SAT byte 3 = {digit:X}, §4.4.2 1)")]
+    BoardAlarm { cause: &'static str, digit: u8 },
+}
+
+/// Why a program was abandoned; the text of `EngineEvent::ProgramAborted`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum AbortReason {
+    #[error("cancelled")]
+    Cancelled,
+    #[error("CNC reset (RST, §4.4.1): the CNC discards the data it had (§8.2)")]
+    CncReset,
+    #[error("CNC alarm (ALM, §4.4.1)")]
+    CncAlarm,
+    #[error("CNC reset or alarm: the board sent CAN during the packet transmission (§5.3 1)")]
+    CncStop,
+    #[error("{0}")]
+    Program(#[from] ProgramError),
+    #[error("link lost: {0}")]
+    Link(String),
+    #[error("the board re-initialised the link (SYN, §4.7)")]
+    BoardReinit,
+    #[error("the remote buffer went to alarm status: {0}")]
+    BoardAlarm(&'static str),
+    #[error(
+        "the board asked to resend packet {no:02X}h, which is not among the last packets kept (§5.3 2)"
+    )]
+    UnknownPacket { no: u8 },
+    #[error("replaced by a new program before it was finished")]
+    Replaced,
+}
+
+impl AbortReason {
+    /// A notice the board sends with a valid message, which proves that everything the host
+    /// sent before it arrived: a program whose last byte had gone out is delivered, not lost.
+    fn confirms_delivery(&self) -> bool {
+        matches!(
+            self,
+            AbortReason::CncReset
+                | AbortReason::CncAlarm
+                | AbortReason::CncStop
+                | AbortReason::BoardAlarm(_)
+        )
+    }
+}
+
+/// How much the engine holds, for metrics and for tests that check it stays bounded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct BufferUsage {
+    /// Received bytes not yet part of a complete message or monitor packet.
+    pub rx: usize,
+    /// Bytes queued for transmission.
+    pub tx: usize,
+    /// Program bytes held.
+    pub program: usize,
+    /// Expansion A packets kept for retransmission.
+    pub packets: usize,
+    /// Events not yet taken.
+    pub events: usize,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Phase {
+    /// Waiting for SYN (§4.6 1: "SYN wait status").
+    SynWait,
+    /// SYN answered; waiting for RDY.
+    RdyWait,
+    Ready,
+}
+
+/// A board message the host still has to answer.
+#[derive(Debug, Clone, PartialEq)]
+enum Request {
+    Sat {
+        data: Option<StatusData>,
+        after_sdi: bool,
+    },
+    Gtd {
+        at: Instant,
+        after_sdi: bool,
+    },
+}
+
+impl Request {
+    fn resumed(self, now: Instant) -> Request {
+        match self {
+            Request::Sat { data, .. } => Request::Sat {
+                data,
+                after_sdi: true,
+            },
+            Request::Gtd { .. } => Request::Gtd {
+                at: now,
+                after_sdi: true,
+            },
+        }
+    }
+}
+
+/// Why an EOD is owed to the next GTD.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum EodFor {
+    /// The program's last DAT (with EOR) went: EOD completes it.
+    Done,
+    /// Clean-up after an abandoned program (§4.4.1 EOD).
+    Cleanup,
+}
+
+#[derive(Debug)]
+struct Outgoing {
+    bytes: Vec<u8>,
+    pos: usize,
+    program_bytes: u64,
+    do_sent: Option<u8>,
+}
+
+/// SetDo requests kept while the link cannot send them; older ones are dropped past this.
+const MAX_PENDING_DO: usize = 16;
+
+/// Protocol A messages queued for transmission at most.
+const MAX_QUEUED: usize = 4;
+
+/// The host side of a Protocol A / Expansion Protocol A link. See the [module](self) docs.
+pub struct ProtocolAHost {
+    cfg: ProtocolAConfig,
+    phase: Phase,
+    /// DR and CD on.
+    line_up: bool,
+    /// CS on: the board can receive.
+    cs: bool,
+    decoder: Decoder,
+    monitor_buf: Vec<u8>,
+    tx: VecDeque<Outgoing>,
+    /// The last Protocol A message sent, as transmitted, for RTY.
+    last_sent: Option<Vec<u8>>,
+    /// RTYs received plus RTYs sent since the last good exchange.
+    retries: u16,
+    owed: Option<Request>,
+    /// The SAT or GTD answered with RDI: answered after the SDI.
+    rdi_for: Option<Request>,
+    /// The last readable SAT.
+    sat: Option<StatusData>,
+    /// The packet length n the board uses (0: Protocol A).
+    board_n: u8,
+    board_in_alarm: bool,
+    /// The next SET carries the parameters whatever the SAT says (first after initialisation).
+    set_needed: bool,
+    read_di: bool,
+    set_do: VecDeque<u8>,
+    clb_owed: bool,
+    eod_owed: Option<EodFor>,
+    program: Option<Program>,
+    run: Option<PacketRun>,
+    /// Last message received or sent (sent: plus its line time).
+    last_activity: Instant,
+    events: VecDeque<EngineEvent>,
+    state: LinkState,
+}
+
+impl fmt::Debug for ProtocolAHost {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("ProtocolAHost")
+            .field("phase", &self.phase)
+            .field("state", &self.state)
+            .field("board_n", &self.board_n)
+            .field("owed", &self.owed)
+            .field("buffers", &self.buffer_usage())
+            .finish_non_exhaustive()
+    }
+}
+
+impl ProtocolAHost {
+    /// A host engine waiting for the board's SYN.
+    pub fn new(config: ProtocolAConfig, now: Instant) -> Result<Self, InvalidConfig> {
+        let problems = config.validate();
+        if !problems.is_empty() {
+            return Err(InvalidConfig { problems });
+        }
+        Ok(ProtocolAHost {
+            decoder: Decoder::new(config.framing),
+            cfg: config,
+            phase: Phase::SynWait,
+            line_up: true,
+            cs: true,
+            monitor_buf: Vec::with_capacity(MONITOR_LEN),
+            tx: VecDeque::new(),
+            last_sent: None,
+            retries: 0,
+            owed: None,
+            rdi_for: None,
+            sat: None,
+            board_n: 0,
+            board_in_alarm: false,
+            set_needed: true,
+            read_di: false,
+            set_do: VecDeque::new(),
+            clb_owed: false,
+            eod_owed: None,
+            program: None,
+            run: None,
+            last_activity: now,
+            events: VecDeque::from([EngineEvent::State(LinkState::Initialising)]),
+            state: LinkState::Initialising,
+        })
+    }
+
+    pub fn config(&self) -> &ProtocolAConfig {
+        &self.cfg
+    }
+
+    /// The packet length n the board is taken to use (0: Protocol A).
+    pub fn board_packet_n(&self) -> u8 {
+        self.board_n
+    }
+
+    /// The last readable SAT data part.
+    pub fn last_status(&self) -> Option<&StatusData> {
+        self.sat.as_ref()
+    }
+
+    pub fn buffer_usage(&self) -> BufferUsage {
+        BufferUsage {
+            rx: self.decoder.buffered() + self.monitor_buf.len(),
+            tx: self
+                .tx
+                .iter()
+                .map(|o| o.bytes.len().saturating_sub(o.pos))
+                .sum(),
+            program: self.program.as_ref().map_or(0, Program::buffered),
+            packets: self.run.as_ref().map_or(0, PacketRun::held_bytes),
+            events: self.events.len(),
+        }
+    }
+
+    /// The board's current parameters: from its last SAT, else the ones the host sets.
+    fn board_params(&self) -> Params {
+        self.sat.and_then(|s| s.params).unwrap_or(self.cfg.params)
+    }
+
+    fn ne(&self) -> u16 {
+        self.board_params().ne
+    }
+
+    /// Longest DAT data part: min(4096, Nb − No) (§4.4.2 3, §4.5 note 1).
+    fn dat_len(&self) -> usize {
+        let p = self.board_params();
+        usize::from(p.nb.saturating_sub(p.no)).clamp(1, MAX_DAT_DATA)
+    }
+
+    fn supervision_interval(&self) -> Duration {
+        let p = self.board_params();
+        let secs = (2 * u64::from(p.tp)).max(u64::from(p.to)).max(1);
+        Duration::from_secs(secs)
+    }
+
+    /// Pieces of Protocol A messages handed to the driver: at most the board's overrun
+    /// allowance No, so that CS off stops the host within No bytes (§4.3 (5)).
+    fn tx_chunk(&self) -> usize {
+        usize::from(self.board_params().no).max(16)
+    }
+
+    fn emit(&mut self, event: EngineEvent) {
+        self.events.push_back(event);
+    }
+
+    fn protocol_error(&mut self, error: ProtocolAError, retried: bool) {
+        tracing::debug!(%error, retried, "Protocol A error");
+        self.emit(EngineEvent::ProtocolError {
+            error: error.to_string(),
+            retried,
+        });
+    }
+
+    fn alarm(&mut self, alarm: Option<CncAlarm>, error: LinkAlarm) {
+        tracing::warn!(alarm = alarm.map(CncAlarm::number), %error, "Protocol A link alarm");
+        self.emit(EngineEvent::Alarm {
+            alarm,
+            error: error.to_string(),
+        });
+    }
+
+    fn queue(&mut self, bytes: Vec<u8>, program_bytes: u64, do_sent: Option<u8>) {
+        // The board talks only after the host's answer left; a queue this long means the line
+        // is blocked (CS off) while something keeps talking: keep the newest answers.
+        if self.tx.len() >= MAX_QUEUED {
+            tracing::warn!(
+                queued = self.tx.len(),
+                "transmit queue full: oldest message dropped"
+            );
+            self.tx.pop_front();
+        }
+        self.tx.push_back(Outgoing {
+            bytes,
+            pos: 0,
+            program_bytes,
+            do_sent,
+        });
+    }
+
+    fn send_with(&mut self, msg: &Message, program_bytes: u64, do_sent: Option<u8>) {
+        match self.cfg.framing.encode_to_vec(msg) {
+            Ok(bytes) => {
+                tracing::trace!(?msg, "Protocol A message out");
+                self.last_sent = Some(bytes.clone());
+                self.queue(bytes, program_bytes, do_sent);
+            }
+            // Only a DAT could fail, and its data part is checked before.
+            Err(error) => tracing::error!(%error, ?msg, "message not sent"),
+        }
+    }
+
+    fn send(&mut self, command: Command) {
+        self.send_with(&Message::new(command), 0, None);
+    }
+
+    fn send_sdo(&mut self, v: u8) {
+        self.send_with(&Message::with_data(Command::Sdo, hex2(v)), 0, Some(v));
+    }
+
+    /// Whether the board has (or had) data of the current program.
+    fn program_started(&self) -> bool {
+        self.program.as_ref().is_some_and(|p| p.sent > 0)
+            || self.run.is_some()
+            || self.eod_owed == Some(EodFor::Done)
+    }
+
+    fn update_state(&mut self) {
+        let state = if !self.line_up {
+            LinkState::LineDown
+        } else if self.phase != Phase::Ready {
+            LinkState::Initialising
+        } else if self.program_started() {
+            LinkState::Sending
+        } else {
+            LinkState::Ready
+        };
+        if state != self.state {
+            self.state = state;
+            self.emit(EngineEvent::State(state));
+        }
+    }
+
+    fn after_step(&mut self, now: Instant) {
+        self.try_answer(now);
+        self.update_state();
+    }
+
+    /// Abandons the current program, and one whose bytes have all gone out but whose end is
+    /// not confirmed yet. `only_started`: a program the board has no data of stays queued.
+    /// `cleanup`: when the board has data of it, the next GTD gets EOD and the next SAT CLB.
+    fn abort_program(
+        &mut self,
+        reason: AbortReason,
+        cancelled: bool,
+        cleanup: bool,
+        only_started: bool,
+    ) {
+        // A program whose every byte, EOR included, went out (EOD or the board's return to
+        // Protocol A still to come).
+        let finishing = self.eod_owed == Some(EodFor::Done)
+            || self
+                .run
+                .as_ref()
+                .is_some_and(|r| r.outcome == RunOutcome::Delivered);
+        if finishing {
+            if self.eod_owed == Some(EodFor::Done) {
+                self.eod_owed = None;
+            }
+            if let Some(run) = self.run.as_mut() {
+                run.outcome = RunOutcome::Stopped;
+            }
+            if reason.confirms_delivery() {
+                // The board answered with a valid message rather than RTY: the program was
+                // delivered (a CNC that ends with M30 may reset before the EOD). The EOD is no
+                // longer owed to a reset board.
+                tracing::info!(%reason, "program delivered before the board's notice");
+                self.emit(EngineEvent::ProgramDone);
+            } else {
+                self.program_aborted(&reason, cancelled, cleanup);
+            }
+        }
+        let Some(program) = &self.program else {
+            return;
+        };
+        let started = program.sent > 0
+            || self
+                .run
+                .as_ref()
+                .is_some_and(|r| r.outcome == RunOutcome::Sending);
+        if only_started && !started {
+            return;
+        }
+        if let Some(run) = self.run.as_mut()
+            && run.outcome == RunOutcome::Sending
+        {
+            run.outcome = RunOutcome::Stopped;
+            if !run.end_sent {
+                run.stop = true;
+            }
+        }
+        self.program = None;
+        self.program_aborted(&reason, cancelled, cleanup && started);
+    }
+
+    fn program_aborted(&mut self, reason: &AbortReason, cancelled: bool, cleanup: bool) {
+        tracing::info!(%reason, cancelled, "program aborted");
+        self.emit(EngineEvent::ProgramAborted {
+            reason: reason.to_string(),
+            cancelled,
+        });
+        if cleanup {
+            self.eod_owed = Some(EodFor::Cleanup);
+            self.clb_owed = true;
+        }
+    }
+
+    /// Back to SYN wait (§4.6 1): whatever was in progress is dropped.
+    fn reinit(&mut self, now: Instant, reason: AbortReason) {
+        self.abort_program(reason, false, false, true);
+        self.run = None;
+        self.phase = Phase::SynWait;
+        self.decoder.clear();
+        self.monitor_buf.clear();
+        self.tx.clear();
+        self.last_sent = None;
+        self.retries = 0;
+        self.owed = None;
+        if self.rdi_for.take().is_some() {
+            self.read_di = true;
+        }
+        self.set_needed = true;
+        self.last_activity = now;
+    }
+
+    fn line_failure(&mut self, now: Instant, alarm: Option<CncAlarm>, error: LinkAlarm) {
+        let text = error.to_string();
+        self.alarm(alarm, error);
+        self.reinit(now, AbortReason::Link(text));
+    }
+
+    fn retry_over(&mut self, now: Instant) {
+        let error = LinkAlarm::RetryOver {
+            count: self.retries,
+            ne: self.ne(),
+        };
+        self.line_failure(now, Some(CncAlarm::Sr0945RetryOver), error);
+    }
+
+    // ---- reception ----
+
+    fn on_frame(&mut self, now: Instant, frame: Result<Message, FrameError>) {
+        match frame {
+            Ok(msg) => self.on_message(now, msg),
+            Err(error) if error.is_line_error() => {
+                self.line_failure(now, None, LinkAlarm::FrameParity { error });
+            }
+            Err(error) if error.is_checksum_error() => {
+                if self.run.as_ref().is_some_and(|r| !r.end_sent) {
+                    self.protocol_error(ProtocolAError::Frame { error }, false);
+                    return;
+                }
+                self.last_activity = now;
+                self.retries = self.retries.saturating_add(1);
+                let ne = self.ne();
+                if self.retries > ne {
+                    self.retry_over(now);
+                    return;
+                }
+                self.protocol_error(
+                    ProtocolAError::ChecksumRetry {
+                        error,
+                        count: self.retries,
+                        ne,
+                    },
+                    true,
+                );
+                self.send_with(&Message::with_data(Command::Rty, [RTY_CHECKSUM]), 0, None);
+            }
+            // Reception errors: ignore the data and wait for the next SAT (§4.6 2).
+            Err(error) => self.protocol_error(ProtocolAError::Frame { error }, false),
+        }
+    }
+
+    fn on_message(&mut self, now: Instant, msg: Message) {
+        tracing::trace!(?msg, "Protocol A message in");
+        self.last_activity = now;
+        let command = msg.command;
+        if command != Command::Rty {
+            self.retries = 0;
+        }
+        if let Some(run) = &self.run {
+            if run.end_sent {
+                // The board is back in Protocol A (§5.2 2 b).
+                self.finish_run();
+            } else if matches!(command, Command::Syn | Command::Rst | Command::Alm) {
+                // The board left the transmission without CAN; its handler aborts the program.
+                tracing::debug!(%command, "packet transmission ended by a Protocol A message");
+                self.run = None;
+            } else {
+                self.protocol_error(
+                    ProtocolAError::Unexpected {
+                        command,
+                        context: "during an Expansion A packet transmission (§5.1)",
+                    },
+                    false,
+                );
+                return;
+            }
+        }
+        if command != Command::Rty {
+            if let Some(req) = self.owed.take() {
+                tracing::debug!(?req, %command, "the board spoke again before the host answered");
+            }
+            if command != Command::Sdi && self.rdi_for.take().is_some() {
+                // The RDI went unanswered: ask again at the next chance.
+                self.read_di = true;
+            }
+        }
+        match self.phase {
+            Phase::SynWait => match command {
+                Command::Syn => {
+                    self.send(Command::Syn);
+                    self.phase = Phase::RdyWait;
+                }
+                Command::Rty => self.on_rty(now, &msg),
+                // Not initialised: SYN asks the board to initialise (§4.4.1 SYN, H).
+                _ => self.send(Command::Syn),
+            },
+            Phase::RdyWait => match command {
+                Command::Rdy => {
+                    self.send(Command::Rdy);
+                    self.phase = Phase::Ready;
+                    self.set_needed = true;
+                    tracing::info!("Protocol A link initialised");
+                }
+                Command::Rty => self.on_rty(now, &msg),
+                _ => self.send(Command::Syn),
+            },
+            Phase::Ready => self.on_message_ready(now, msg),
+        }
+    }
+
+    fn on_message_ready(&mut self, now: Instant, msg: Message) {
+        match msg.command {
+            Command::Syn => {
+                // The board initialises again (after an error it detected).
+                self.reinit(now, AbortReason::BoardReinit);
+                self.send(Command::Syn);
+                self.phase = Phase::RdyWait;
+            }
+            Command::Rdy => self.send(Command::Rdy),
+            Command::Rst => {
+                self.send(Command::Ars);
+                self.emit(EngineEvent::CncReset);
+                self.abort_program(AbortReason::CncReset, false, false, true);
+                self.run = None;
+            }
+            Command::Alm => {
+                self.send(Command::Aal);
+                self.emit(EngineEvent::CncAlarm);
+                self.abort_program(AbortReason::CncAlarm, false, false, true);
+                self.run = None;
+            }
+            Command::Sat => {
+                let data = self.on_sat(&msg.data);
+                self.owed = Some(Request::Sat {
+                    data,
+                    after_sdi: false,
+                });
+            }
+            Command::Gtd => {
+                self.owed = Some(Request::Gtd {
+                    at: now,
+                    after_sdi: false,
+                });
+            }
+            Command::Sdi => match self.rdi_for.take() {
+                Some(req) => {
+                    match parse_di(&msg.data) {
+                        Some(v) => self.emit(EngineEvent::Di(v)),
+                        None => self.protocol_error(
+                            ProtocolAError::SdiData {
+                                data: String::from_utf8_lossy(&msg.data).into_owned(),
+                            },
+                            false,
+                        ),
+                    }
+                    match self.set_do.pop_front() {
+                        // SDO answers the SDI and completes the exchange (protocol notes 6).
+                        Some(v) => self.send_sdo(v),
+                        None => self.owed = Some(req.resumed(now)),
+                    }
+                }
+                None => self.protocol_error(
+                    ProtocolAError::Unexpected {
+                        command: Command::Sdi,
+                        context: "without an RDI before it",
+                    },
+                    false,
+                ),
+            },
+            Command::Rty => self.on_rty(now, &msg),
+            command => self.protocol_error(
+                ProtocolAError::Unexpected {
+                    command,
+                    context: "from the remote buffer (a host command, §4.4.1)",
+                },
+                false,
+            ),
+        }
+    }
+
+    /// Decodes a SAT: Status event, the board's n, alarm status transitions.
+    fn on_sat(&mut self, data: &[u8]) -> Option<StatusData> {
+        let sd = match StatusData::decode(data) {
+            Ok(sd) => sd,
+            Err(e) => {
+                self.protocol_error(ProtocolAError::Status(e), false);
+                return None;
+            }
+        };
+        self.emit(EngineEvent::Status(sd));
+        if sd.params.is_some() {
+            self.sat = Some(sd);
+        } else {
+            // Keep the last known parameters when a short SAT does not carry them.
+            let params = self.sat.and_then(|s| s.params);
+            self.sat = Some(StatusData { params, ..sd });
+        }
+        if let Some(n) = sd.packet_n {
+            self.board_n = effective_packet_n(n);
+        }
+        if let Some(status) = sd.status {
+            let alarm = status == BufferStatus::Alarm;
+            if alarm && !self.board_in_alarm {
+                let cause = sd.alarm_cause.unwrap_or(AlarmCause::NcAlarm);
+                let (sr, text) = match cause {
+                    AlarmCause::NcAlarm => (None, "NC alarm"),
+                    AlarmCause::ChecksumRetryOver => (
+                        Some(CncAlarm::Sr0945RetryOver),
+                        "checksum error, retry over (SR0945)",
+                    ),
+                    AlarmCause::OverrunRetryOver => (
+                        Some(CncAlarm::Sr0945RetryOver),
+                        "overrun error, retry over (SR0945)",
+                    ),
+                    AlarmCause::CommandError => (
+                        Some(CncAlarm::Sr0947InvalidResponse),
+                        "unexpected response received, command error (SR0947/SR0948)",
+                    ),
+                    AlarmCause::Other(_) => (None, "unknown cause"),
+                };
+                self.alarm(
+                    sr,
+                    LinkAlarm::BoardAlarm {
+                        cause: text,
+                        digit: cause.digit(),
+                    },
+                );
+                self.abort_program(AbortReason::BoardAlarm(text), false, false, true);
+            }
+            self.board_in_alarm = alarm;
+        }
+        Some(sd)
+    }
+
+    fn on_rty(&mut self, now: Instant, msg: &Message) {
+        self.retries = self.retries.saturating_add(1);
+        let ne = self.ne();
+        if self.retries > ne {
+            self.retry_over(now);
+            return;
+        }
+        let Some(bytes) = self.last_sent.clone() else {
+            self.protocol_error(ProtocolAError::RtyNothingSent, false);
+            return;
+        };
+        let reason = match msg.data.first() {
+            Some(b'1') => "1: checksum error".to_string(),
+            Some(b'3') => "3: overrun error".to_string(),
+            Some(&b) => String::from_utf8_lossy(&[b]).into_owned(),
+            None => "none given".to_string(),
+        };
+        self.protocol_error(
+            ProtocolAError::RtyReceived {
+                reason,
+                count: self.retries,
+                ne,
+            },
+            true,
+        );
+        // A retransmission counts no program bytes and no DO again.
+        self.queue(bytes, 0, None);
+    }
+
+    fn on_monitor(&mut self, now: Instant, packet: [u8; MONITOR_LEN]) {
+        let monitor = match Monitor::decode(&packet) {
+            Ok(m) => m,
+            Err(e) => {
+                self.protocol_error(ProtocolAError::Monitor(e), false);
+                return;
+            }
+        };
+        let Some(run) = self.run.as_mut() else {
+            self.protocol_error(ProtocolAError::StrayMonitor { monitor }, false);
+            return;
+        };
+        tracing::debug!(?monitor, "monitor packet");
+        self.last_activity = now;
+        match run.on_monitor(monitor) {
+            Ok(()) => {
+                if monitor == Monitor::Stop {
+                    self.abort_program(AbortReason::CncStop, false, false, true);
+                }
+            }
+            Err(unknown) => {
+                // The board lost a packet the host no longer has: end the transmission, the
+                // program is broken (its data on the board is cleared afterwards).
+                self.abort_program(
+                    AbortReason::UnknownPacket { no: unknown.0 },
+                    false,
+                    true,
+                    false,
+                );
+            }
+        }
+    }
+
+    /// The transmission is over: the board spoke Protocol A after the end packet.
+    fn finish_run(&mut self) {
+        if let Some(run) = self.run.take() {
+            tracing::debug!(packets = run.packets_sent, "Expansion A transmission ended");
+            if run.outcome == RunOutcome::Delivered {
+                tracing::info!("program delivered (end packet)");
+                self.emit(EngineEvent::ProgramDone);
+            }
+        }
+    }
+
+    // ---- answers ----
+
+    fn try_answer(&mut self, now: Instant) {
+        if self.phase != Phase::Ready || !self.line_up {
+            return;
+        }
+        let Some(req) = self.owed.take() else {
+            return;
+        };
+        match req {
+            Request::Sat { data, after_sdi } => {
+                if self.read_di && !after_sdi {
+                    self.read_di = false;
+                    self.rdi_for = Some(Request::Sat { data, after_sdi });
+                    self.send(Command::Rdi);
+                } else if let Some(v) = self.set_do.pop_front() {
+                    self.send_sdo(v);
+                } else if self.clb_owed {
+                    self.clb_owed = false;
+                    self.send(Command::Clb);
+                } else {
+                    let msg = self.set_message(data.as_ref());
+                    self.send_with(&msg, 0, None);
+                }
+            }
+            Request::Gtd { at, after_sdi } => {
+                if self.read_di && !after_sdi {
+                    self.read_di = false;
+                    self.rdi_for = Some(req);
+                    self.send(Command::Rdi);
+                } else if let Some(v) = self.set_do.pop_front() {
+                    self.send_sdo(v);
+                } else if !self.answer_gtd(now, at) {
+                    self.owed = Some(req);
+                }
+            }
+        }
+    }
+
+    /// SET: full when the board's values must change, else with an empty data part.
+    fn set_message(&mut self, sat: Option<&StatusData>) -> Message {
+        let conversion = self.cfg.conversion.unwrap_or((0, 0));
+        // n changes only between programs (protocol notes 5).
+        let want_n = if self.program_started() {
+            self.board_n
+        } else {
+            effective_packet_n(self.cfg.packet_n)
+        };
+        // Byte 1 is echoed; without it, a full SET could switch the CNC to tape operation.
+        let Some((sat, remote)) = sat.and_then(|s| s.remote.map(|r| (s, r))) else {
+            return Message::new(Command::Set);
+        };
+        let differs = self.set_needed
+            || sat.params.is_some_and(|p| p != self.cfg.params)
+            || sat.conversion.is_some_and(|c| c != conversion)
+            || sat
+                .packet_n
+                .is_some_and(|n| effective_packet_n(n) != want_n);
+        if !differs {
+            return Message::new(Command::Set);
+        }
+        self.set_needed = false;
+        self.board_n = want_n;
+        let data = StatusData {
+            remote: Some(remote),
+            status: None,
+            alarm_cause: None,
+            buffered: None,
+            params: Some(self.cfg.params),
+            boring_unit: sat.boring_unit,
+            conversion: Some(conversion),
+            packet_n: Some(want_n),
+        };
+        tracing::debug!(params = %self.cfg.params, n = want_n, ?conversion, "SET with parameters");
+        Message::with_data(Command::Set, data.to_bytes())
+    }
+
+    /// The data answer to a GTD; false when it should wait for data a little longer.
+    fn answer_gtd(&mut self, now: Instant, at: Instant) -> bool {
+        let grace_over = now >= at + self.cfg.wat_grace;
+        if self.eod_owed.is_none() && !self.clb_owed && self.board_n == 0 {
+            // A DAT must not carry the end code (§4.1): refuse the program here too, for
+            // programs that were meant for packets.
+            let len = self.dat_len();
+            let end = self.cfg.framing.end_byte();
+            if let Some(offset) = self.program.as_ref().and_then(|p| p.find_in_next(len, end)) {
+                let e = ProgramError::EndCodeInData { offset, end };
+                self.abort_program(AbortReason::Program(e), false, true, false);
+            }
+        }
+        if let Some(kind) = self.eod_owed.take() {
+            self.send(Command::Eod);
+            if kind == EodFor::Done {
+                tracing::info!("program delivered (EOD)");
+                self.emit(EngineEvent::ProgramDone);
+            }
+            return true;
+        }
+        if self.clb_owed {
+            // New data waits until the board's buffer has been cleared (CLB at the next SAT).
+            self.send(Command::Wat);
+            return true;
+        }
+        let n = self.board_n;
+        if n != 0 {
+            let ready = self
+                .program
+                .as_ref()
+                .is_some_and(|p| p.buffered() >= data_len(n) || p.complete());
+            if ready {
+                tracing::debug!(n, "Expansion A transmission starts");
+                self.run = Some(PacketRun::new(n, now));
+                return true;
+            }
+        } else {
+            let len = self.dat_len();
+            if let Some(p) = self.program.as_mut()
+                && (p.can_fill(len) || (grace_over && p.buffered() > 0))
+            {
+                let data = p.take(len);
+                let done = p.all_sent();
+                let count = data.len() as u64;
+                self.send_with(&Message::with_data(Command::Dat, data), count, None);
+                if done {
+                    self.program = None;
+                    self.eod_owed = Some(EodFor::Done);
+                }
+                return true;
+            }
+        }
+        if grace_over {
+            self.send(Command::Wat);
+            return true;
+        }
+        false
+    }
+
+    fn supervision_deadline(&self) -> Option<Instant> {
+        if !self.line_up || self.phase == Phase::SynWait || self.owed.is_some() {
+            return None;
+        }
+        if self.run.as_ref().is_some_and(|r| !r.end_sent) {
+            return None;
+        }
+        Some(self.last_activity + self.supervision_interval())
+    }
+
+    fn line_time(&self, len: usize) -> Duration {
+        self.cfg
+            .char_time
+            .saturating_mul(u32::try_from(len).unwrap_or(u32::MAX))
+    }
+
+    fn sent_at(&mut self, now: Instant, len: usize) {
+        let t = now + self.line_time(len);
+        self.last_activity = self.last_activity.max(t);
+    }
+}
+
+/// The DI image of an SDI: two hex digits (either case).
+fn parse_di(data: &[u8]) -> Option<u8> {
+    let digit = |c: u8| char::from(c).to_digit(16);
+    match data {
+        [h, l, ..] => u8::try_from(digit(*h)? * 16 + digit(*l)?).ok(),
+        _ => None,
+    }
+}
+
+impl Engine for ProtocolAHost {
+    type Command = EngineCommand;
+    type Event = EngineEvent;
+
+    fn handle_input(&mut self, now: Instant, bytes: &[u8]) {
+        if !self.line_up {
+            // DR off: nothing on the line is trusted.
+            return;
+        }
+        let end = self.cfg.framing.end_byte();
+        let mut rest = bytes;
+        while let Some(&first) = rest.first() {
+            if !self.monitor_buf.is_empty()
+                || (self.decoder.buffered() == 0 && Monitor::is_code(first))
+            {
+                let take = (MONITOR_LEN - self.monitor_buf.len()).min(rest.len());
+                let (head, tail) = rest.split_at(take);
+                self.monitor_buf.extend_from_slice(head);
+                rest = tail;
+                if let Ok(packet) = <[u8; MONITOR_LEN]>::try_from(self.monitor_buf.as_slice()) {
+                    self.monitor_buf.clear();
+                    self.on_monitor(now, packet);
+                    self.try_answer(now);
+                }
+                continue;
+            }
+            let cut = rest
+                .iter()
+                .position(|&b| b == end)
+                .map_or(rest.len(), |i| i + 1);
+            let (head, tail) = rest.split_at(cut);
+            self.decoder.push(head);
+            rest = tail;
+            while let Some(frame) = self.decoder.next_message() {
+                self.on_frame(now, frame);
+                // Answer before the next message: a GTD may start packets that a monitor
+                // packet right behind it acts on.
+                self.try_answer(now);
+            }
+        }
+        self.after_step(now);
+    }
+
+    fn handle_line_error(&mut self, now: Instant, error: LineError) {
+        if !self.line_up {
+            return;
+        }
+        let alarm = match error {
+            LineError::Framing | LineError::Overrun => Some(CncAlarm::Sr0946FramingOverrun),
+            _ => None,
+        };
+        self.line_failure(now, alarm, LinkAlarm::Line(error));
+        self.after_step(now);
+    }
+
+    fn handle_modem(&mut self, now: Instant, modem: ModemIn) {
+        self.cs = modem.cs;
+        let up = modem.dr && modem.cd;
+        if !up && self.line_up {
+            self.line_up = false;
+            self.alarm(
+                Some(CncAlarm::Sr0855DataSetReadyDown),
+                LinkAlarm::DataSetReadyOff,
+            );
+            self.reinit(
+                now,
+                AbortReason::Link(LinkAlarm::DataSetReadyOff.to_string()),
+            );
+        } else if up && !self.line_up {
+            tracing::info!("line up again: waiting for SYN");
+            self.line_up = true;
+            self.last_activity = now;
+        }
+        self.after_step(now);
+    }
+
+    fn handle_command(&mut self, now: Instant, command: EngineCommand) {
+        match command {
+            EngineCommand::StartProgram { total } => {
+                if self.program.is_some() {
+                    self.abort_program(AbortReason::Replaced, false, true, false);
+                }
+                tracing::debug!(?total, "program queued");
+                self.program = Some(Program::new());
+            }
+            EngineCommand::ProgramData(data) => {
+                // In Protocol A the program travels in DATs, which cannot carry the end code.
+                let forbidden = (effective_packet_n(self.cfg.packet_n) == 0)
+                    .then(|| self.cfg.framing.end_byte());
+                match self.program.as_mut() {
+                    Some(p) => {
+                        if let Err(e) = p.push(&data, forbidden) {
+                            self.abort_program(AbortReason::Program(e), false, true, false);
+                        }
+                    }
+                    None => tracing::trace!(len = data.len(), "program data without a program"),
+                }
+            }
+            EngineCommand::ProgramEnd => {
+                if let Some(Err(e)) = self.program.as_mut().map(Program::end) {
+                    self.abort_program(AbortReason::Program(e), false, true, false);
+                }
+            }
+            EngineCommand::Cancel => {
+                self.abort_program(AbortReason::Cancelled, true, true, false);
+            }
+            EngineCommand::SetDo(v) => {
+                if self.set_do.len() >= MAX_PENDING_DO {
+                    self.set_do.pop_front();
+                }
+                self.set_do.push_back(v);
+            }
+            EngineCommand::ReadDi => self.read_di = true,
+            EngineCommand::ClearBuffer => self.clb_owed = true,
+        }
+        self.after_step(now);
+    }
+
+    fn handle_timeout(&mut self, now: Instant) {
+        if let Some(deadline) = self.supervision_deadline()
+            && now >= deadline
+        {
+            let waited = self.supervision_interval();
+            if self.phase == Phase::RdyWait {
+                self.protocol_error(ProtocolAError::NoRdy { waited }, false);
+                self.phase = Phase::SynWait;
+            } else {
+                self.line_failure(
+                    now,
+                    Some(CncAlarm::Sr0944TimeOut),
+                    LinkAlarm::TimeOut { waited },
+                );
+            }
+        }
+        let interval = self.cfg.dummy_interval;
+        if let Some(run) = self.run.as_mut()
+            && run.waiting_for_data(self.program.as_ref())
+            && now >= run.dummy_deadline(interval)
+        {
+            run.dummy_due = true;
+        }
+        self.after_step(now);
+    }
+
+    fn poll_transmit(&mut self, now: Instant) -> Option<Vec<u8>> {
+        if !self.line_up || !self.cs {
+            return None;
+        }
+        let chunk = self.tx_chunk();
+        if let Some(out) = self.tx.front_mut() {
+            let end = out.pos.saturating_add(chunk).min(out.bytes.len());
+            let piece = out.bytes.get(out.pos..end).map(<[u8]>::to_vec);
+            out.pos = end;
+            if out.pos >= out.bytes.len()
+                && let Some(done) = self.tx.pop_front()
+            {
+                self.sent_at(now, done.bytes.len());
+                if done.program_bytes > 0 {
+                    self.emit(EngineEvent::DataSent {
+                        bytes: done.program_bytes,
+                    });
+                }
+                if let Some(v) = done.do_sent {
+                    self.emit(EngineEvent::DoSent(v));
+                }
+            }
+            return piece;
+        }
+        let run = self.run.as_mut()?;
+        let out = run.next(now, self.program.as_mut(), self.cfg.dummy_interval)?;
+        let delivered = run.outcome == RunOutcome::Delivered;
+        tracing::trace!(no = out.no, "data packet out");
+        if delivered && self.program.as_ref().is_some_and(Program::all_sent) {
+            self.program = None;
+        }
+        self.sent_at(now, out.bytes.len());
+        if out.program_bytes > 0 {
+            self.emit(EngineEvent::DataSent {
+                bytes: out.program_bytes as u64,
+            });
+        }
+        self.update_state();
+        Some(out.bytes)
+    }
+
+    fn poll_event(&mut self) -> Option<EngineEvent> {
+        self.events.pop_front()
+    }
+
+    fn poll_timeout(&self) -> Option<Instant> {
+        if !self.line_up {
+            return None;
+        }
+        let mut deadline: Option<Instant> = None;
+        let mut consider = |t: Instant| {
+            deadline = Some(deadline.map_or(t, |d| d.min(t)));
+        };
+        if self.phase == Phase::Ready
+            && let Some(Request::Gtd { at, .. }) = &self.owed
+        {
+            consider(*at + self.cfg.wat_grace);
+        }
+        if self.cs
+            && let Some(run) = &self.run
+            && !run.dummy_due
+            && run.waiting_for_data(self.program.as_ref())
+        {
+            consider(run.dummy_deadline(self.cfg.dummy_interval));
+        }
+        if let Some(t) = self.supervision_deadline() {
+            consider(t);
+        }
+        deadline
+    }
+}
+
+impl HostEngine for ProtocolAHost {
+    fn data_wanted(&self) -> usize {
+        self.program
+            .as_ref()
+            .map_or(0, |p| p.wanted(self.cfg.max_buffer))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_settings_are_valid() {
+        assert!(ProtocolAConfig::default().validate().is_empty());
+        for n in [1, 2, 4] {
+            let cfg = ProtocolAConfig {
+                packet_n: n,
+                ..Default::default()
+            };
+            assert!(cfg.validate().is_empty());
+        }
+    }
+
+    #[test]
+    fn dummy_interval_must_stay_below_to() {
+        let cfg = ProtocolAConfig {
+            dummy_interval: Duration::from_secs(10),
+            ..Default::default()
+        };
+        assert_eq!(
+            cfg.validate(),
+            [ConfigProblem::DummyInterval {
+                interval: Duration::from_secs(10),
+                to: 20
+            }]
+        );
+    }
+
+    #[test]
+    fn di_image_parsing() {
+        assert_eq!(parse_di(b"5A"), Some(0x5A));
+        assert_eq!(parse_di(b"ff000"), Some(0xFF));
+        assert_eq!(parse_di(b"5"), None);
+        assert_eq!(parse_di(b"G0"), None);
+    }
+
+    #[test]
+    fn dat_length_is_nb_minus_no_within_4096() {
+        let now = Instant::now();
+        let mut host = ProtocolAHost::new(ProtocolAConfig::default(), now).unwrap();
+        assert_eq!(host.dat_len(), 1950);
+        host.sat = Some(StatusData {
+            params: Some(Params {
+                nb: 4000,
+                no: 2,
+                ..Params::POWER_ON
+            }),
+            ..Default::default()
+        });
+        assert_eq!(host.dat_len(), 3998);
+        host.sat = Some(StatusData {
+            params: Some(Params {
+                nb: 10,
+                no: 50,
+                ..Params::POWER_ON
+            }),
+            ..Default::default()
+        });
+        assert_eq!(host.dat_len(), 1);
+    }
+
+    #[test]
+    fn supervision_is_max_of_two_tp_and_to() {
+        let now = Instant::now();
+        let mut host = ProtocolAHost::new(ProtocolAConfig::default(), now).unwrap();
+        assert_eq!(host.supervision_interval(), Duration::from_secs(20));
+        host.sat = Some(StatusData {
+            params: Some(Params {
+                tp: 30,
+                to: 20,
+                ..Params::POWER_ON
+            }),
+            ..Default::default()
+        });
+        assert_eq!(host.supervision_interval(), Duration::from_secs(60));
+    }
+}

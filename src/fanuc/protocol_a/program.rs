@@ -1,0 +1,245 @@
+//! The program being sent: a bounded window of its bytes, and where it ends (§4.4.2 3, §8.2;
+//! protocol notes 8).
+//!
+//! A program streams through: the engine holds at most its buffer limit of it at a time. The
+//! program ends at EOR (`%`): the first `%` before any significant character is the tape-start
+//! mark, the next one ends the program, and whatever follows is dropped (the CNC ignores it,
+//! §8.2). A program whose source ends without EOR gets one appended (§4.4.2 3: "always add the
+//! EOR code to the end of NC program").
+
+use std::collections::VecDeque;
+
+use crate::fanuc::code::EOR;
+
+/// Why a program cannot be sent as it is.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ProgramError {
+    /// A byte of the program equals the end code of Protocol A messages; a DAT cannot carry it.
+    #[error(
+        "program byte at offset {offset} is the message end code {end:#04x}; a DAT data part cannot carry it (§4.1) — convert the program's line ends or change the end code (parameter 5000#3)"
+    )]
+    EndCodeInData { offset: u64, end: u8 },
+    /// The source ended before any significant character.
+    #[error("the program has no data before its source ended (§8.2)")]
+    Empty,
+}
+
+/// Where the EOR scan stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Scan {
+    /// Only leader (feed, blanks, line ends) so far: a `%` here is the tape-start mark.
+    Leader,
+    /// In the program: the next `%` is EOR.
+    Body,
+    /// EOR has been taken in; nothing more belongs to the program.
+    Ended,
+}
+
+/// Characters that may precede the tape-start mark without being "significant": feed (NUL),
+/// delete, blank, tab and line ends, with or without the ISO parity bit.
+fn is_leader(b: u8) -> bool {
+    matches!(b & 0x7F, 0x00 | 0x7F | b' ' | b'\t' | b'\n' | b'\r')
+}
+
+fn is_eor(b: u8) -> bool {
+    b & 0x7F == EOR
+}
+
+#[derive(Debug)]
+pub(crate) struct Program {
+    buf: VecDeque<u8>,
+    scan: Scan,
+    /// The EOR byte as the program writes it (25h, or A5h with ISO parity), from its tape-start.
+    eor: u8,
+    /// Bytes taken from the source so far (offsets in errors).
+    accepted: u64,
+    /// Bytes after EOR that were dropped.
+    ignored: u64,
+    /// Program bytes handed out for transmission (first transmission only).
+    pub(crate) sent: u64,
+    /// EOR was appended because the source had none.
+    pub(crate) eor_appended: bool,
+}
+
+impl Program {
+    pub(crate) fn new() -> Self {
+        Program {
+            buf: VecDeque::new(),
+            scan: Scan::Leader,
+            eor: EOR,
+            accepted: 0,
+            ignored: 0,
+            sent: 0,
+            eor_appended: false,
+        }
+    }
+
+    /// Takes the next bytes from the source. `forbidden` is a byte the program may not contain
+    /// (the end code, when the program travels in DATs). Bytes after EOR are dropped.
+    pub(crate) fn push(&mut self, data: &[u8], forbidden: Option<u8>) -> Result<(), ProgramError> {
+        for &b in data {
+            if self.scan == Scan::Ended {
+                self.ignored += 1;
+                continue;
+            }
+            if forbidden == Some(b) {
+                return Err(ProgramError::EndCodeInData {
+                    offset: self.accepted,
+                    end: b,
+                });
+            }
+            self.accepted += 1;
+            self.buf.push_back(b);
+            match self.scan {
+                Scan::Leader if is_eor(b) => {
+                    self.eor = b;
+                    self.scan = Scan::Body;
+                }
+                Scan::Leader if !is_leader(b) => self.scan = Scan::Body,
+                Scan::Body if is_eor(b) => self.scan = Scan::Ended,
+                _ => {}
+            }
+        }
+        if self.ignored > 0 {
+            tracing::trace!(ignored = self.ignored, "bytes after EOR dropped (§8.2)");
+        }
+        Ok(())
+    }
+
+    /// The source has no more bytes: appends EOR if the program has none.
+    pub(crate) fn end(&mut self) -> Result<(), ProgramError> {
+        match self.scan {
+            Scan::Leader => Err(ProgramError::Empty),
+            Scan::Body => {
+                tracing::info!("program source ended without EOR: '%' appended (§4.4.2 3)");
+                self.buf.push_back(self.eor);
+                self.accepted += 1;
+                self.scan = Scan::Ended;
+                self.eor_appended = true;
+                Ok(())
+            }
+            Scan::Ended => Ok(()),
+        }
+    }
+
+    /// Every byte of the program up to and including EOR is in the buffer or already sent.
+    pub(crate) fn complete(&self) -> bool {
+        self.scan == Scan::Ended
+    }
+
+    /// Complete, and nothing of it is left to send.
+    pub(crate) fn all_sent(&self) -> bool {
+        self.complete() && self.buf.is_empty()
+    }
+
+    pub(crate) fn buffered(&self) -> usize {
+        self.buf.len()
+    }
+
+    /// Whether a data part of `len` bytes can be filled now, or the rest of the program is
+    /// shorter and complete.
+    pub(crate) fn can_fill(&self, len: usize) -> bool {
+        self.buf.len() >= len || (self.complete() && !self.buf.is_empty())
+    }
+
+    /// The rest of the program fits in `len` bytes (the next piece is its last).
+    pub(crate) fn ends_within(&self, len: usize) -> bool {
+        self.complete() && self.buf.len() <= len
+    }
+
+    /// Whether the next `len` bytes contain `b` (the end code check of a DAT).
+    pub(crate) fn find_in_next(&self, len: usize, b: u8) -> Option<u64> {
+        self.buf
+            .iter()
+            .take(len)
+            .position(|&x| x == b)
+            .map(|i| self.sent + i as u64)
+    }
+
+    /// Takes up to `len` bytes for transmission.
+    pub(crate) fn take(&mut self, len: usize) -> Vec<u8> {
+        let n = len.min(self.buf.len());
+        let out: Vec<u8> = self.buf.drain(..n).collect();
+        self.sent += n as u64;
+        out
+    }
+
+    /// How many more bytes the program takes now, within `limit` bytes of buffer. None after
+    /// EOR: what follows it would only be dropped.
+    pub(crate) fn wanted(&self, limit: usize) -> usize {
+        if self.complete() {
+            0
+        } else {
+            limit.saturating_sub(self.buf.len())
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn all(p: &mut Program) -> Vec<u8> {
+        p.take(usize::MAX)
+    }
+
+    #[test]
+    fn tape_start_mark_and_eor() {
+        let mut p = Program::new();
+        p.push(b"\0\0 \n%\nO0001\nG01X1;\n%\nM30 after EOR\n", None)
+            .unwrap();
+        assert!(p.complete());
+        assert_eq!(all(&mut p), b"\0\0 \n%\nO0001\nG01X1;\n%");
+        assert!(p.all_sent());
+        assert_eq!(p.wanted(100), 0);
+    }
+
+    #[test]
+    fn program_without_tape_start_ends_at_first_percent() {
+        let mut p = Program::new();
+        p.push(b"O1\nX1%junk", None).unwrap();
+        assert_eq!(all(&mut p), b"O1\nX1%");
+    }
+
+    #[test]
+    fn eor_appended_when_missing_with_the_tape_start_code() {
+        let mut p = Program::new();
+        p.push(&[0xA5, b'\n', b'O', b'1'], None).unwrap();
+        assert!(!p.complete());
+        p.end().unwrap();
+        assert!(p.eor_appended);
+        assert_eq!(all(&mut p), [0xA5, b'\n', b'O', b'1', 0xA5]);
+        let mut empty = Program::new();
+        empty.push(b"\n\n", None).unwrap();
+        assert_eq!(empty.end(), Err(ProgramError::Empty));
+    }
+
+    #[test]
+    fn end_code_is_refused_with_its_offset() {
+        let mut p = Program::new();
+        assert_eq!(
+            p.push(b"%\nO1\r\n", Some(0x0D)),
+            Err(ProgramError::EndCodeInData {
+                offset: 4,
+                end: 0x0D
+            })
+        );
+    }
+
+    #[test]
+    fn split_input_and_bounded_wants() {
+        let mut p = Program::new();
+        p.push(b"%\nG0", None).unwrap();
+        p.push(b"1\n", None).unwrap();
+        assert_eq!(p.wanted(8), 2);
+        assert!(p.can_fill(6));
+        assert!(!p.can_fill(7));
+        assert_eq!(p.take(3), b"%\nG");
+        assert_eq!(p.sent, 3);
+        p.push(b"%", None).unwrap();
+        assert!(p.ends_within(4));
+        assert!(p.can_fill(100));
+        assert_eq!(p.find_in_next(10, b'%'), Some(6));
+    }
+}

@@ -1,0 +1,458 @@
+//! The host link task: one per machine. It runs a [`HostEngine`] over a transport with a
+//! [`Pump`], keeps the machine's program queue, streams the active program from its source into
+//! the engine in bounded pieces (a 500 MB program is never held whole), and turns engine events
+//! into [`LinkEvent`]s with job ids and byte offsets.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use serde::Serialize;
+use tokio::io::{AsyncRead, AsyncReadExt};
+use tokio::sync::{broadcast, mpsc};
+use tokio_util::sync::CancellationToken;
+
+use super::pump::{Pump, PumpError, now};
+use super::{EngineCommand, EngineEvent, HostEngine, JobId, LinkState};
+use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::sat::StatusData;
+use crate::transport::Transport;
+
+/// Where a program's bytes come from: a file, a bus download, a test vector.
+pub type ProgramSource = Box<dyn AsyncRead + Send + Unpin>;
+
+/// A program to send to the machine.
+pub struct ProgramJob {
+    pub id: JobId,
+    /// Display name (library name, file name).
+    pub name: String,
+    /// Size in bytes when known, for progress.
+    pub size: Option<u64>,
+    pub source: ProgramSource,
+}
+
+impl std::fmt::Debug for ProgramJob {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ProgramJob")
+            .field("id", &self.id)
+            .field("name", &self.name)
+            .field("size", &self.size)
+            .finish_non_exhaustive()
+    }
+}
+
+/// What the gateway asks of a link.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum LinkCommand {
+    /// Queue a program; it is sent when the ones before it are done.
+    Queue(ProgramJob),
+    /// Cancel a queued or active job.
+    Cancel(JobId),
+    /// Set the DO bits selected by `mask` to `value` (SDO, §4.4.1).
+    SetDo { value: u8, mask: u8 },
+    /// Read the DI image (RDI → SDI, §4.4.1).
+    ReadDi,
+    /// Clear the board's buffer (CLB, §4.4.1).
+    ClearBuffer,
+}
+
+/// What a link reports.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "event", rename_all = "kebab-case")]
+#[non_exhaustive]
+pub enum LinkEvent {
+    State {
+        state: LinkState,
+    },
+    Status {
+        status: StatusData,
+    },
+    Di {
+        value: u8,
+    },
+    Do {
+        value: u8,
+    },
+    CncReset,
+    CncAlarm,
+    /// A link alarm, with the CNC alarm number where one applies.
+    Alarm {
+        alarm: Option<CncAlarm>,
+        error: String,
+    },
+    ProtocolError {
+        error: String,
+        retried: bool,
+    },
+    JobQueued {
+        job: JobId,
+        position: usize,
+    },
+    JobStarted {
+        job: JobId,
+    },
+    Progress {
+        job: JobId,
+        sent: u64,
+        total: Option<u64>,
+    },
+    JobDone {
+        job: JobId,
+        bytes: u64,
+    },
+    JobFailed {
+        job: JobId,
+        offset: u64,
+        reason: String,
+    },
+    JobCancelled {
+        job: JobId,
+        offset: u64,
+    },
+    /// The link task ended (shutdown, or the line closed for good).
+    Stopped {
+        error: Option<String>,
+    },
+}
+
+/// Why a command could not be given to a link.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum LinkError {
+    #[error("link {machine} is not running")]
+    NotRunning { machine: String },
+}
+
+/// Progress events come at least at every whole percent and at most every this often
+/// otherwise (for programs of unknown size).
+pub const PROGRESS_INTERVAL: Duration = Duration::from_millis(250);
+
+/// The largest piece read from a program source at once.
+const SOURCE_CHUNK: usize = 16 * 1024;
+
+/// Talks to a running link task. Cheap to clone.
+#[derive(Clone, Debug)]
+pub struct LinkHandle {
+    machine: String,
+    commands: mpsc::Sender<LinkCommand>,
+    events: broadcast::Sender<LinkEvent>,
+}
+
+impl LinkHandle {
+    pub fn machine(&self) -> &str {
+        &self.machine
+    }
+
+    pub async fn send(&self, command: LinkCommand) -> Result<(), LinkError> {
+        self.commands
+            .send(command)
+            .await
+            .map_err(|_| LinkError::NotRunning {
+                machine: self.machine.clone(),
+            })
+    }
+
+    /// Events from now on. A receiver that falls more than the channel's capacity behind
+    /// loses the oldest events (and is told so by `RecvError::Lagged`).
+    pub fn subscribe(&self) -> broadcast::Receiver<LinkEvent> {
+        self.events.subscribe()
+    }
+}
+
+/// Starts the link task for `machine`. It ends when `shutdown` is cancelled, when every
+/// handle is dropped, or when the transport closes for good.
+pub fn spawn<E, T>(
+    machine: impl Into<String>,
+    engine: E,
+    transport: T,
+    shutdown: CancellationToken,
+) -> (LinkHandle, tokio::task::JoinHandle<Result<(), PumpError>>)
+where
+    E: HostEngine + 'static,
+    T: Transport + 'static,
+{
+    let machine = machine.into();
+    let (cmd_tx, cmd_rx) = mpsc::channel(64);
+    let (ev_tx, _) = broadcast::channel(1024);
+    let handle = LinkHandle {
+        machine: machine.clone(),
+        commands: cmd_tx,
+        events: ev_tx.clone(),
+    };
+    let span = tracing::info_span!("link", machine = %machine, line = %transport.describe());
+    let driver = Driver {
+        pump: Pump::new(engine, transport),
+        commands: cmd_rx,
+        events: ev_tx,
+        queue: VecDeque::new(),
+        active: None,
+        do_image: 0,
+        buf: vec![0; SOURCE_CHUNK].into_boxed_slice(),
+    };
+    let task = tokio::spawn(tracing::Instrument::instrument(driver.run(shutdown), span));
+    (handle, task)
+}
+
+struct ActiveJob {
+    id: JobId,
+    size: Option<u64>,
+    /// `None` once the source reached its end (or failed).
+    source: Option<ProgramSource>,
+    sent: u64,
+    last_progress: Option<(Instant, u64)>,
+    cancelling: bool,
+}
+
+struct Driver<E, T> {
+    pump: Pump<E, T>,
+    commands: mpsc::Receiver<LinkCommand>,
+    events: broadcast::Sender<LinkEvent>,
+    queue: VecDeque<ProgramJob>,
+    active: Option<ActiveJob>,
+    do_image: u8,
+    buf: Box<[u8]>,
+}
+
+enum Wake {
+    Shutdown,
+    Command(Option<LinkCommand>),
+    Source(std::io::Result<usize>),
+    Pump(Result<(), PumpError>),
+}
+
+impl<E: HostEngine, T: Transport> Driver<E, T> {
+    async fn run(mut self, shutdown: CancellationToken) -> Result<(), PumpError> {
+        let result = loop {
+            self.drain_engine_events();
+            self.start_next_job();
+            let want = match &self.active {
+                Some(ActiveJob {
+                    source: Some(_),
+                    cancelling: false,
+                    ..
+                }) => self.pump.engine().data_wanted().min(SOURCE_CHUNK),
+                _ => 0,
+            };
+            let wake = {
+                let source = self.active.as_mut().and_then(|a| a.source.as_mut());
+                let buf = &mut self.buf[..want];
+                tokio::select! {
+                    biased;
+                    () = shutdown.cancelled() => Wake::Shutdown,
+                    cmd = self.commands.recv() => Wake::Command(cmd),
+                    r = read_some(source, buf), if want > 0 => Wake::Source(r),
+                    r = self.pump.step() => Wake::Pump(r),
+                }
+            };
+            match wake {
+                Wake::Shutdown | Wake::Command(None) => break Ok(()),
+                Wake::Command(Some(cmd)) => self.handle_command(cmd),
+                Wake::Source(r) => self.handle_source(r, want),
+                Wake::Pump(Ok(())) => {}
+                Wake::Pump(Err(e)) => break Err(e),
+            }
+        };
+        self.drain_engine_events();
+        let error = result.as_ref().err().map(ToString::to_string);
+        if let Some(active) = self.active.take() {
+            let reason = error
+                .clone()
+                .unwrap_or_else(|| "gateway shutting down".to_string());
+            self.emit(LinkEvent::JobFailed {
+                job: active.id,
+                offset: active.sent,
+                reason,
+            });
+        }
+        for job in std::mem::take(&mut self.queue) {
+            self.emit(LinkEvent::JobCancelled {
+                job: job.id,
+                offset: 0,
+            });
+        }
+        self.emit(LinkEvent::Stopped { error });
+        result
+    }
+
+    fn emit(&self, event: LinkEvent) {
+        // No subscriber is not an error: nobody is watching this link right now.
+        let _ = self.events.send(event);
+    }
+
+    fn engine_command(&mut self, command: EngineCommand) {
+        self.pump.engine_mut().handle_command(now(), command);
+    }
+
+    fn handle_command(&mut self, command: LinkCommand) {
+        match command {
+            LinkCommand::Queue(job) => {
+                let position = self.queue.len() + usize::from(self.active.is_some());
+                tracing::info!(job = job.id, name = %job.name, size = ?job.size, position, "program queued");
+                self.emit(LinkEvent::JobQueued {
+                    job: job.id,
+                    position,
+                });
+                self.queue.push_back(job);
+            }
+            LinkCommand::Cancel(id) => {
+                if let Some(i) = self.queue.iter().position(|j| j.id == id) {
+                    self.queue.remove(i);
+                    self.emit(LinkEvent::JobCancelled { job: id, offset: 0 });
+                } else if let Some(active) = self.active.as_mut().filter(|a| a.id == id) {
+                    if !active.cancelling {
+                        active.cancelling = true;
+                        active.source = None;
+                        self.engine_command(EngineCommand::Cancel);
+                    }
+                }
+            }
+            LinkCommand::SetDo { value, mask } => {
+                let image = (self.do_image & !mask) | (value & mask);
+                self.engine_command(EngineCommand::SetDo(image));
+            }
+            LinkCommand::ReadDi => self.engine_command(EngineCommand::ReadDi),
+            LinkCommand::ClearBuffer => self.engine_command(EngineCommand::ClearBuffer),
+        }
+    }
+
+    fn handle_source(&mut self, read: std::io::Result<usize>, want: usize) {
+        match read {
+            Ok(0) if want > 0 => {
+                if let Some(active) = self.active.as_mut() {
+                    active.source = None;
+                }
+                self.engine_command(EngineCommand::ProgramEnd);
+            }
+            Ok(n) => {
+                let data = Bytes::copy_from_slice(&self.buf[..n]);
+                self.engine_command(EngineCommand::ProgramData(data));
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "program source failed");
+                if let Some(active) = self.active.as_mut() {
+                    active.source = None;
+                    active.cancelling = true;
+                }
+                self.engine_command(EngineCommand::Cancel);
+                if let Some(active) = self.active.take() {
+                    self.emit(LinkEvent::JobFailed {
+                        job: active.id,
+                        offset: active.sent,
+                        reason: format!("program source failed: {e}"),
+                    });
+                }
+            }
+        }
+    }
+
+    fn start_next_job(&mut self) {
+        if self.active.is_some() {
+            return;
+        }
+        let Some(job) = self.queue.pop_front() else {
+            return;
+        };
+        tracing::info!(job = job.id, name = %job.name, "program started");
+        self.engine_command(EngineCommand::StartProgram { total: job.size });
+        self.emit(LinkEvent::JobStarted { job: job.id });
+        self.active = Some(ActiveJob {
+            id: job.id,
+            size: job.size,
+            source: Some(job.source),
+            sent: 0,
+            last_progress: None,
+            cancelling: false,
+        });
+    }
+
+    fn drain_engine_events(&mut self) {
+        while let Some(event) = self.pump.engine_mut().poll_event() {
+            self.on_engine_event(event);
+        }
+    }
+
+    fn on_engine_event(&mut self, event: EngineEvent) {
+        let event = match event {
+            EngineEvent::State(state) => LinkEvent::State { state },
+            EngineEvent::Status(status) => LinkEvent::Status { status },
+            EngineEvent::Di(value) => LinkEvent::Di { value },
+            EngineEvent::DoSent(value) => {
+                self.do_image = value;
+                LinkEvent::Do { value }
+            }
+            EngineEvent::CncReset => LinkEvent::CncReset,
+            EngineEvent::CncAlarm => LinkEvent::CncAlarm,
+            EngineEvent::Alarm { alarm, error } => {
+                tracing::warn!(alarm = alarm.map(CncAlarm::number), %error, "link alarm");
+                LinkEvent::Alarm { alarm, error }
+            }
+            EngineEvent::ProtocolError { error, retried } => {
+                tracing::debug!(%error, retried, "protocol error");
+                LinkEvent::ProtocolError { error, retried }
+            }
+            EngineEvent::DataSent { bytes } => match self.progress(bytes) {
+                Some(event) => event,
+                None => return,
+            },
+            EngineEvent::ProgramDone => match self.active.take() {
+                Some(active) => {
+                    tracing::info!(job = active.id, bytes = active.sent, "program delivered");
+                    LinkEvent::JobDone {
+                        job: active.id,
+                        bytes: active.sent,
+                    }
+                }
+                None => return,
+            },
+            EngineEvent::ProgramAborted { reason, cancelled } => match self.active.take() {
+                Some(active) if cancelled || active.cancelling => LinkEvent::JobCancelled {
+                    job: active.id,
+                    offset: active.sent,
+                },
+                Some(active) => {
+                    tracing::warn!(job = active.id, offset = active.sent, %reason, "program failed");
+                    LinkEvent::JobFailed {
+                        job: active.id,
+                        offset: active.sent,
+                        reason,
+                    }
+                }
+                None => return,
+            },
+        };
+        self.emit(event);
+    }
+
+    /// Counts sent bytes; returns a progress event when a whole percent was crossed or, for
+    /// programs of unknown size, when [`PROGRESS_INTERVAL`] has passed.
+    fn progress(&mut self, bytes: u64) -> Option<LinkEvent> {
+        let active = self.active.as_mut()?;
+        active.sent += bytes;
+        let t = now();
+        let due = match (active.last_progress, active.size) {
+            (None, _) => true,
+            (Some((_, last)), Some(total)) if total > 0 => {
+                active.sent * 100 / total > last * 100 / total
+            }
+            (Some((at, _)), _) => t.duration_since(at) >= PROGRESS_INTERVAL,
+        };
+        if !due {
+            return None;
+        }
+        active.last_progress = Some((t, active.sent));
+        Some(LinkEvent::Progress {
+            job: active.id,
+            sent: active.sent,
+            total: active.size,
+        })
+    }
+}
+
+/// Reads into `buf` from `source` (which is present whenever `buf` is not empty).
+async fn read_some(source: Option<&mut ProgramSource>, buf: &mut [u8]) -> std::io::Result<usize> {
+    match source {
+        Some(s) => s.read(buf).await,
+        None => std::future::pending().await,
+    }
+}

@@ -1,0 +1,260 @@
+//! Line-rate pacing of a writer, sans-IO.
+//!
+//! A [`Pacer`] models the serial transmitter at the far end of whatever buffers sit between the
+//! host and the line: characters written to it leave at the line's character rate, back to back,
+//! and the writer may keep at most `window` characters written but not yet fully sent. That bound
+//! is what makes a stop code (DC3, §6.3 of the remote-buffer manual) take effect within a few
+//! characters instead of after everything the OS, a device server or a UART FIFO has swallowed:
+//! Protocol B allows the sender to overrun a DC3 by at most 512 characters.
+//!
+//! Times are computed from character counts within a run (`run_start + time_for_chars(k)`), never
+//! by adding per-character durations, so a long transfer does not drift from the nominal rate.
+//! A run ends when the line falls idle; the next write starts a new run at its own time.
+//!
+//! Used by the simulated line (the UART's transmit FIFO), the TCP device-server transport (the
+//! device server's buffer) and the serial transport (the kernel's output queue).
+
+use std::time::Instant;
+
+use super::LineSettings;
+
+/// Tracks characters written and not yet drained onto the line. See the [module docs](self).
+#[derive(Debug, Clone)]
+pub struct Pacer {
+    line: LineSettings,
+    window: u64,
+    /// Start of the current back-to-back run, if any character was ever written.
+    run_start: Option<Instant>,
+    /// Characters written in the current run.
+    run_len: u64,
+}
+
+/// Where a batch of characters accepted by [`Pacer::wrote`] sits on the line.
+#[derive(Debug, Clone, Copy)]
+pub struct Placement {
+    line: LineSettings,
+    run_start: Instant,
+    first: u64,
+}
+
+impl Placement {
+    /// Start of the run the batch belongs to.
+    pub fn run_start(&self) -> Instant {
+        self.run_start
+    }
+
+    /// Index within the run of the batch's first character.
+    pub fn first(&self) -> u64 {
+        self.first
+    }
+
+    /// The moment the `i`-th character of the batch (0-based) has fully left the transmitter:
+    /// its stop bits are on the line.
+    pub fn done_at(&self, i: u64) -> Instant {
+        self.run_start + self.line.time_for_chars(self.first + i + 1)
+    }
+}
+
+impl Pacer {
+    /// A pacer for `line` that lets at most `window` characters be in flight (at least 1).
+    pub fn new(line: LineSettings, window: usize) -> Self {
+        Pacer {
+            line,
+            window: u64::try_from(window.max(1)).unwrap_or(u64::MAX),
+            run_start: None,
+            run_len: 0,
+        }
+    }
+
+    /// The line settings the pacer drains at.
+    pub fn line(&self) -> LineSettings {
+        self.line
+    }
+
+    /// The in-flight bound.
+    pub fn window(&self) -> usize {
+        usize::try_from(self.window).unwrap_or(usize::MAX)
+    }
+
+    /// Characters of the current run fully on the line by `now`.
+    fn drained(&self, now: Instant) -> u64 {
+        let Some(start) = self.run_start else {
+            return 0;
+        };
+        let elapsed = now.saturating_duration_since(start);
+        self.line.chars_in(elapsed).min(self.run_len)
+    }
+
+    /// Characters written and not yet fully sent at `now` (the one being shifted out included).
+    pub fn unsent(&self, now: Instant) -> u64 {
+        self.run_len - self.drained(now)
+    }
+
+    /// How many characters may be written at `now` without exceeding the window.
+    pub fn writable(&self, now: Instant) -> usize {
+        usize::try_from(self.window.saturating_sub(self.unsent(now))).unwrap_or(usize::MAX)
+    }
+
+    /// Record that `n` characters were written at `now`. Starts a new run if the line was idle.
+    /// Writing more than [`writable`](Self::writable) is allowed; it only delays later writes.
+    pub fn wrote(&mut self, n: usize, now: Instant) -> Placement {
+        if self.run_start.is_none() || self.unsent(now) == 0 {
+            self.run_start = Some(now);
+            self.run_len = 0;
+        }
+        let first = self.run_len;
+        self.run_len = self
+            .run_len
+            .saturating_add(u64::try_from(n).unwrap_or(u64::MAX));
+        Placement {
+            line: self.line,
+            run_start: self.run_start.unwrap_or(now),
+            first,
+        }
+    }
+
+    /// The earliest time at which at least one character may be written: `now` if that is
+    /// already the case, else the moment the front of the window has left the line.
+    pub fn next_writable_at(&self, now: Instant) -> Instant {
+        if self.writable(now) > 0 {
+            return now;
+        }
+        let Some(start) = self.run_start else {
+            return now;
+        };
+        // unsent < window  <=>  drained >= run_len - window + 1
+        let needed = self.run_len - self.window + 1;
+        start + self.line.time_for_chars(needed)
+    }
+
+    /// The moment the last written character has fully left the line (`None` if never written).
+    pub fn idle_at(&self) -> Option<Instant> {
+        self.run_start
+            .map(|s| s + self.line.time_for_chars(self.run_len))
+    }
+
+    /// Forget everything in flight (the buffers downstream were lost, e.g. on reconnection).
+    pub fn reset(&mut self) {
+        self.run_start = None;
+        self.run_len = 0;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::transport::StopBits;
+    use std::time::Duration;
+
+    fn line_8n1(baud: u32) -> LineSettings {
+        LineSettings {
+            stop_bits: StopBits::One,
+            ..LineSettings::with_baud(baud)
+        }
+    }
+
+    #[test]
+    fn chars_in_inverts_time_for_chars() {
+        for line in [
+            LineSettings::with_baud(86_400),
+            line_8n1(19_200),
+            LineSettings::with_baud(50),
+        ] {
+            for n in [0u64, 1, 2, 7, 1000, 123_457] {
+                let t = line.time_for_chars(n);
+                assert_eq!(line.chars_in(t), n, "{line} n={n}");
+                if n > 0 {
+                    let just_before = t - Duration::from_nanos(1);
+                    assert_eq!(line.chars_in(just_before), n - 1, "{line} n={n}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fresh_pacer_allows_a_full_window() {
+        let p = Pacer::new(LineSettings::with_baud(9600), 16);
+        let now = Instant::now();
+        assert_eq!(p.writable(now), 16);
+        assert_eq!(p.unsent(now), 0);
+        assert_eq!(p.next_writable_at(now), now);
+        assert_eq!(p.idle_at(), None);
+    }
+
+    #[test]
+    fn window_fills_and_drains_at_line_rate() {
+        let line = LineSettings::with_baud(9600); // 11 bits: 1145.83 us a character
+        let mut p = Pacer::new(line, 4);
+        let t0 = Instant::now();
+        let pl = p.wrote(4, t0);
+        assert_eq!(p.writable(t0), 0);
+        assert_eq!(p.unsent(t0), 4);
+        assert_eq!(pl.done_at(0), t0 + line.time_for_chars(1));
+        assert_eq!(pl.done_at(3), t0 + line.time_for_chars(4));
+        // The front leaves after one character time, and not a nanosecond earlier.
+        let front = p.next_writable_at(t0);
+        assert_eq!(front, t0 + line.char_time());
+        assert_eq!(p.writable(front - Duration::from_nanos(1)), 0);
+        assert_eq!(p.writable(front), 1);
+        // Continuing the run keeps the characters back to back.
+        let pl2 = p.wrote(1, front);
+        assert_eq!(pl2.done_at(0), t0 + line.time_for_chars(5));
+        assert_eq!(p.idle_at(), Some(t0 + line.time_for_chars(5)));
+        // Everything gone: a full window again.
+        let later = t0 + line.time_for_chars(5);
+        assert_eq!(p.unsent(later), 0);
+        assert_eq!(p.writable(later), 4);
+    }
+
+    #[test]
+    fn idle_line_starts_a_new_run() {
+        let line = line_8n1(19_200);
+        let mut p = Pacer::new(line, 8);
+        let t0 = Instant::now();
+        p.wrote(2, t0);
+        let t1 = t0 + Duration::from_secs(1);
+        let pl = p.wrote(3, t1);
+        assert_eq!(pl.done_at(0), t1 + line.time_for_chars(1));
+        assert_eq!(pl.done_at(2), t1 + line.time_for_chars(3));
+    }
+
+    #[test]
+    fn long_runs_keep_the_nominal_rate() {
+        // Write in window-sized bursts, each as soon as allowed, for 100k characters.
+        for line in [LineSettings::with_baud(86_400), line_8n1(19_200)] {
+            let mut p = Pacer::new(line, 16);
+            let t0 = Instant::now();
+            let mut now = t0;
+            let mut written = 0u64;
+            let mut last = t0;
+            while written < 100_000 {
+                now = p.next_writable_at(now);
+                let n = p
+                    .writable(now)
+                    .min(usize::try_from(100_000 - written).unwrap());
+                let pl = p.wrote(n, now);
+                last = pl.done_at(n as u64 - 1);
+                written += n as u64;
+            }
+            assert_eq!(last, t0 + line.time_for_chars(100_000), "{line}");
+        }
+    }
+
+    #[test]
+    fn overfilling_only_delays() {
+        let line = LineSettings::with_baud(9600);
+        let mut p = Pacer::new(line, 2);
+        let t0 = Instant::now();
+        p.wrote(10, t0);
+        assert_eq!(p.writable(t0), 0);
+        assert_eq!(p.next_writable_at(t0), t0 + line.time_for_chars(9));
+        p.reset();
+        assert_eq!(p.writable(t0), 2);
+    }
+
+    #[test]
+    fn zero_window_is_one() {
+        let p = Pacer::new(LineSettings::with_baud(9600), 0);
+        assert_eq!(p.window(), 1);
+    }
+}
