@@ -196,6 +196,51 @@ pub struct Cnc {
     tape: Tape,
     finished: VecDeque<ReceivedProgram>,
     read_total: u64,
+    scan: EndScan,
+}
+
+/// Where the `%` ending the current program sits in the buffer, found incrementally as data
+/// arrives (so that deadlines cost nothing per call).
+#[derive(Debug, Clone, Copy, Default)]
+struct EndScan {
+    /// Buffer bytes looked at.
+    scanned: usize,
+    /// The tape reader's state after those bytes.
+    in_program: bool,
+    /// Index of the ending `%`, once seen.
+    found: Option<usize>,
+}
+
+impl EndScan {
+    fn restart(in_program: bool) -> Self {
+        EndScan {
+            scanned: 0,
+            in_program,
+            found: None,
+        }
+    }
+
+    fn extend(&mut self, buffer: &VecDeque<u8>) {
+        if self.found.is_some() {
+            return;
+        }
+        for (i, &b) in buffer.iter().enumerate().skip(self.scanned) {
+            if !self.in_program {
+                self.in_program = !insignificant(b);
+            } else if is_eor(b) {
+                self.found = Some(i);
+                self.scanned = i + 1;
+                return;
+            }
+        }
+        self.scanned = buffer.len();
+    }
+
+    /// `k` bytes left the front of the buffer (without completing a program).
+    fn consumed(&mut self, k: usize) {
+        self.scanned = self.scanned.saturating_sub(k);
+        self.found = self.found.and_then(|i| i.checked_sub(k));
+    }
 }
 
 impl Cnc {
@@ -213,6 +258,7 @@ impl Cnc {
             tape: Tape::new(keep_program_bytes),
             finished: VecDeque::new(),
             read_total: 0,
+            scan: EndScan::default(),
         }
     }
 
@@ -277,11 +323,13 @@ impl Cnc {
             return;
         }
         let mut budget = self.allowed(now).saturating_sub(self.anchor_consumed);
+        let mut taken = 0;
         while budget > 0 {
             let Some(b) = self.buffer.pop_front() else {
                 break;
             };
             budget -= 1;
+            taken += 1;
             self.anchor_consumed += 1;
             self.read_total += 1;
             if let Some(program) = self.tape.feed(b) {
@@ -289,9 +337,12 @@ impl Cnc {
                 self.finished.push_back(program);
                 self.reading = false;
                 self.buffer.clear();
+                self.scan = EndScan::restart(self.tape.in_program);
+                taken = 0;
                 break;
             }
         }
+        self.scan.consumed(taken);
         if self.buffer.is_empty() || !self.reading {
             self.reanchor(now);
         }
@@ -343,6 +394,7 @@ impl Cnc {
             self.reanchor(now);
         }
         self.buffer.extend(data.iter().copied());
+        self.scan.extend(&self.buffer);
         Push::Stored(data.len())
     }
 
@@ -350,6 +402,7 @@ impl Cnc {
     pub fn clear_buffer(&mut self, now: Instant) {
         self.advance(now);
         self.buffer.clear();
+        self.scan = EndScan::restart(self.tape.in_program);
         self.reanchor(now);
     }
 
@@ -361,6 +414,7 @@ impl Cnc {
         self.reading = false;
         self.alarm = None;
         self.tape.reset();
+        self.scan = EndScan::restart(false);
         self.reanchor(now);
     }
 
@@ -391,25 +445,12 @@ impl Cnc {
         Some(self.anchor + Duration::from_nanos(u64::try_from(nanos).ok()?))
     }
 
-    /// Index in the buffer of the `%` that will end the current program, if buffered.
-    fn program_end_index(&self) -> Option<usize> {
-        let mut in_program = self.tape.in_program;
-        for (i, &b) in self.buffer.iter().enumerate() {
-            if !in_program {
-                in_program = !insignificant(b);
-            } else if is_eor(b) {
-                return Some(i);
-            }
-        }
-        None
-    }
-
     /// When the CNC will read the EOR now in its buffer.
     pub fn when_program_ends(&self) -> Option<Instant> {
         if !self.reading {
             return None;
         }
-        self.when_consumed(self.program_end_index()? + 1)
+        self.when_consumed(self.scan.found? + 1)
     }
 
     /// When free space will reach `free` bytes, if it is below that now and the CNC reads.
@@ -470,6 +511,34 @@ mod tests {
         assert!(!cnc.reading());
         assert_eq!(cnc.buffered(), 0, "data after EOR is ignored");
         assert_eq!(cnc.push_data(end, b"more"), Push::Ignored(4));
+    }
+
+    #[test]
+    fn program_end_found_across_pieces_and_consumption() {
+        let t0 = Instant::now();
+        let mut cnc = Cnc::new(8192, 10, 1 << 20, t0);
+        cnc.start_reading(t0);
+        cnc.push_data(t0, b"\n%\nO9\n");
+        assert_eq!(
+            cnc.when_program_ends(),
+            None,
+            "the first % is the tape start"
+        );
+        cnc.advance(t0 + secs(0.5));
+        assert_eq!(cnc.buffered(), 1);
+        cnc.push_data(t0 + secs(0.5), b"M30\n%\n");
+        // 5 bytes read by 0.5 s, then 1 + 5 more through the ending %: at 1.1 s.
+        assert_eq!(cnc.when_program_ends(), Some(t0 + secs(1.1)));
+        cnc.advance(t0 + secs(1.1));
+        assert_eq!(&cnc.take_finished().unwrap().data[..], b"%\nO9\nM30\n%");
+        // CLB keeps the tape reader's state: inside a program, the next % ends it.
+        cnc.start_reading(t0 + secs(2.0));
+        cnc.push_data(t0 + secs(2.0), b"%O1\nG1\n");
+        cnc.clear_buffer(t0 + secs(2.5));
+        cnc.push_data(t0 + secs(2.5), b"G0%");
+        assert_eq!(cnc.when_program_ends(), Some(t0 + secs(2.8)));
+        cnc.advance(t0 + secs(2.8));
+        assert_eq!(&cnc.take_finished().unwrap().data[..], b"%O1\nGG0%");
     }
 
     #[test]

@@ -59,9 +59,10 @@ pub struct BoardConfig {
     /// Parameter 5000#1 ECH: echo SET byte 1 (remote/tape switching) in SAT byte 1; off, the
     /// board always sends 0 there.
     pub echo_remote: bool,
-    /// The operator presses cycle start by himself: whenever the link is initialised and the
-    /// CNC is neither reading nor in alarm, it starts reading; a CNC in alarm resets itself
-    /// after the next SAT exchange has shown the alarm to the host.
+    /// The operator presses cycle start by himself: whenever the link is initialised (and
+    /// one SAT exchange has completed since, so that the host can select n with SET first,
+    /// protocol notes 5) and the CNC is neither reading nor in alarm, it starts reading; a CNC
+    /// in alarm resets itself after the next SAT exchange has shown the alarm to the host.
     pub autostart: bool,
     /// Bytes of each received program kept in [`ReceivedProgram::data`].
     pub keep_program_bytes: usize,

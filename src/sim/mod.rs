@@ -16,7 +16,6 @@ pub mod server;
 use std::future::Future;
 use std::pin::Pin;
 use std::task::Poll;
-use std::time::Duration;
 
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::sync::{broadcast, mpsc, watch};
@@ -25,6 +24,7 @@ use tokio::task::JoinHandle;
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::sat::{Params, StatusData};
 use crate::link::Engine;
+use crate::link::pump::{Pump, PumpError};
 use crate::transport::{ModemIn, Transport};
 
 pub use cnc::ReceivedProgram;
@@ -241,140 +241,44 @@ impl BoardHandle {
     }
 }
 
-/// What woke the run loop.
-enum Wake {
-    Wrote,
-    Read(usize),
-    Eof,
-    Command(Option<BoardCommand>),
-    Timer,
-    Tick,
-    Shutdown,
-    Error(std::io::Error),
-}
-
-/// How often the loop reads the modem lines and line errors (the [`Transport`] has no
-/// change notification).
-const MODEM_POLL: Duration = Duration::from_millis(50);
-
-fn now_std() -> std::time::Instant {
-    tokio::time::Instant::now().into_std()
-}
-
-/// Runs a board over a transport until the commands channel closes, `shutdown` completes, or
-/// the line ends (EOF: `Ok`) or fails. `report` gets the board and the events of each step.
-///
-/// A minimal stand-in for the link pump: one task, full duplex (a write in progress never
-/// blocks reading), engine deadlines through `tokio::time` (so paused-time tests work).
+/// Runs a board over a transport with the link [`Pump`] until the commands channel closes,
+/// `shutdown` completes, or the line ends (end of stream: `Ok`) or fails. `report` gets the
+/// board and the events of each step.
 pub(crate) async fn run_board<T: Transport>(
-    mut board: FanucBoard,
-    mut line: T,
+    board: FanucBoard,
+    line: T,
     mut commands: mpsc::UnboundedReceiver<BoardCommand>,
     mut report: impl FnMut(&FanucBoard, &mut Vec<BoardEvent>),
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), SimError> {
     let describe = line.describe();
-    let io_err = |source| SimError::Line {
-        line: describe.clone(),
-        source,
-    };
+    let mut pump = Pump::new(board, line);
     let mut shutdown = std::pin::pin!(shutdown);
-    let mut read_buf = vec![0u8; 4096];
-    let mut writing: Option<(Vec<u8>, usize)> = None;
     let mut events = Vec::new();
-    let mut tick = tokio::time::interval(MODEM_POLL);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let sleep = tokio::time::sleep(Duration::ZERO);
-    let mut sleep = std::pin::pin!(sleep);
-    let mut last_modem: Option<ModemIn> = None;
-    let mut modem_out = None;
-
-    loop {
-        let now = now_std();
-        // Modem lines and line errors, both ways.
-        let modem = line.modem().unwrap_or(ModemIn::ALL_ON);
-        if last_modem != Some(modem) {
-            last_modem = Some(modem);
-            board.handle_modem(now, modem);
-        }
-        while let Some(error) = line.take_line_error() {
-            board.handle_line_error(now, error);
-        }
-        let out = board.modem_out();
-        if modem_out != Some(out) {
-            modem_out = Some(out);
-            line.set_modem(out).map_err(io_err)?;
-        }
-        while let Some(e) = board.poll_event() {
+    let result = loop {
+        while let Some(e) = pump.engine_mut().poll_event() {
             events.push(e);
         }
-        report(&board, &mut events);
+        report(pump.engine(), &mut events);
         events.clear();
-        if writing.is_none() {
-            writing = board.poll_transmit(now).map(|b| (b, 0));
+        tokio::select! {
+            stepped = pump.step() => match stepped {
+                Ok(()) => {}
+                Err(PumpError::Closed) => break Ok(()),
+                Err(PumpError::Io(source)) => break Err(SimError::Line { line: describe, source }),
+            },
+            command = commands.recv() => match command {
+                Some(c) => pump.command(c),
+                None => break Ok(()),
+            },
+            () = &mut shutdown => break Ok(()),
         }
-        let deadline = board
-            .poll_timeout()
-            .map(tokio::time::Instant::from_std)
-            .unwrap_or_else(|| tokio::time::Instant::now() + Duration::from_secs(3600));
-        sleep.as_mut().reset(deadline);
-
-        let wake = std::future::poll_fn(|cx| {
-            if let Some((buf, off)) = &mut writing {
-                match Pin::new(&mut line).poll_write(cx, &buf[*off..]) {
-                    Poll::Ready(Ok(0)) => {
-                        return Poll::Ready(Wake::Error(std::io::ErrorKind::WriteZero.into()));
-                    }
-                    Poll::Ready(Ok(n)) => {
-                        *off += n;
-                        if *off >= buf.len() {
-                            return Poll::Ready(Wake::Wrote);
-                        }
-                        cx.waker().wake_by_ref();
-                    }
-                    Poll::Ready(Err(e)) => return Poll::Ready(Wake::Error(e)),
-                    Poll::Pending => {}
-                }
-            }
-            let mut rb = ReadBuf::new(&mut read_buf);
-            match Pin::new(&mut line).poll_read(cx, &mut rb) {
-                Poll::Ready(Ok(())) if rb.filled().is_empty() => return Poll::Ready(Wake::Eof),
-                Poll::Ready(Ok(())) => return Poll::Ready(Wake::Read(rb.filled().len())),
-                Poll::Ready(Err(e)) => return Poll::Ready(Wake::Error(e)),
-                Poll::Pending => {}
-            }
-            if let Poll::Ready(c) = commands.poll_recv(cx) {
-                return Poll::Ready(Wake::Command(c));
-            }
-            if sleep.as_mut().poll(cx).is_ready() {
-                return Poll::Ready(Wake::Timer);
-            }
-            if tick.poll_tick(cx).is_ready() {
-                return Poll::Ready(Wake::Tick);
-            }
-            if shutdown.as_mut().poll(cx).is_ready() {
-                return Poll::Ready(Wake::Shutdown);
-            }
-            Poll::Pending
-        })
-        .await;
-
-        let now = now_std();
-        match wake {
-            Wake::Wrote => writing = None,
-            Wake::Read(n) => board.handle_input(now, read_buf.get(..n).unwrap_or_default()),
-            Wake::Eof | Wake::Shutdown | Wake::Command(None) => break,
-            Wake::Command(Some(c)) => board.handle_command(now, c),
-            Wake::Timer => board.handle_timeout(now),
-            Wake::Tick => {}
-            Wake::Error(e) => return Err(io_err(e)),
-        }
-    }
-    while let Some(e) = board.poll_event() {
+    };
+    while let Some(e) = pump.engine_mut().poll_event() {
         events.push(e);
     }
-    report(&board, &mut events);
-    Ok(())
+    report(pump.engine(), &mut events);
+    result
 }
 
 /// A [`Transport`] over any byte stream, with all modem lines on (the manual's wiring for

@@ -88,8 +88,9 @@ pub struct SimFanucArgs {
     /// Bytes per second the running CNC reads from the buffer; 0 = as fast as data arrives.
     #[arg(long, default_value_t = DEFAULT_CONSUME_RATE)]
     pub consume_rate: u32,
-    /// The CNC starts reading as soon as the link is initialised (and after every program,
-    /// and resets itself after an alarm), so that any host's download works unattended.
+    /// The CNC starts reading once the link is initialised and the first SAT has been
+    /// answered (and again after every program; it resets itself after an alarm), so that
+    /// any host's download works unattended.
     #[arg(long)]
     pub autostart: bool,
     /// Delay before the board's first SYN after power-on or a line error, in ms (§4.3 (1)).

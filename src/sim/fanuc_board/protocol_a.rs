@@ -186,6 +186,9 @@ pub(super) struct ProtocolA {
     pending_alm: bool,
     /// EOD received: no GTD before the next SAT exchange.
     no_data: bool,
+    /// A SAT exchange completed since the link was initialised (autostart waits for one, so
+    /// that the host can select n with SET before the first GTD; protocol notes 5).
+    sat_done: bool,
 }
 
 impl ProtocolA {
@@ -218,6 +221,7 @@ impl ProtocolA {
             pending_rst: false,
             pending_alm: false,
             no_data: false,
+            sat_done: false,
         }
     }
 
@@ -513,6 +517,7 @@ impl ProtocolA {
             (Exchange::Rdy, C::Rdy) => {
                 self.complete(now);
                 self.no_data = false;
+                self.sat_done = false;
                 self.set_link(BoardLinkState::Ready, out);
             }
             (Exchange::Rdy, C::Syn) => {
@@ -623,6 +628,7 @@ impl ProtocolA {
     fn complete_sat(&mut self, now: Instant, cnc: &mut Cnc, out: &mut Outbox) {
         self.complete(now);
         self.no_data = false;
+        self.sat_done = true;
         if self.autostart && cnc.alarm().is_some() {
             // The host has seen the alarm in this SAT: the operator resets the CNC.
             self.cnc_reset(now, cnc, out);
@@ -1096,6 +1102,7 @@ impl ProtocolA {
         self.check_flow(now, cnc, out);
         if self.autostart
             && self.initialised()
+            && self.sat_done
             && !cnc.reading()
             && cnc.alarm().is_none()
             && !self.pending_rst
@@ -1112,10 +1119,8 @@ impl ProtocolA {
         match &self.phase {
             Phase::Off { until: Some(until) } if now >= *until && self.dr => self.start_init(out),
             Phase::WatWait { until } if now >= *until => self.phase = Phase::Idle,
-            Phase::Awaiting { .. } => {
-                if self.to_deadline().is_some_and(|d| now >= d) {
-                    self.time_out(now, cnc, out);
-                }
+            Phase::Awaiting { .. } if self.to_deadline().is_some_and(|d| now >= d) => {
+                self.time_out(now, cnc, out);
             }
             _ => {}
         }
