@@ -3,7 +3,7 @@
 //! One connection at a time is the serial line: each new connection powers a fresh board on
 //! (line up again) and replaces the previous connection. The board's output is paced at the
 //! configured baud rate (11 bit times a character at 8N2, protocol notes 2), as a device
-//! server's serial side would deliver it. Every event of interest goes to stdout as one JSON
+//! server's serial side would deliver it; the host's input is taken as it comes. Every event of interest goes to stdout as one JSON
 //! object per line:
 //!
 //! ```text
@@ -33,7 +33,7 @@ use crate::fanuc::sat::Params;
 use crate::fanuc::{CodeSystem, EndCode, Protocol};
 use crate::sim::cnc::{DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE};
 use crate::sim::{BoardConfig, BoardEvent, FanucBoard, SimError, run_board};
-use crate::transport::{LineSettings, ModemIn, ModemOut, Transport};
+use crate::transport::{LineSettings, ModemIn, ModemOut, Pacer, Transport};
 
 /// `--protocol`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -346,32 +346,26 @@ pub fn event_json(event: &BoardEvent) -> Option<Value> {
     })
 }
 
-/// A TCP connection as the board's serial line: output paced at the baud rate, all modem
-/// lines on.
+/// A TCP connection as the board's serial line: output paced at the baud rate through a
+/// UART-sized window ([`Pacer`]), all modem lines on.
 pub struct PacedLine<S> {
     stream: S,
-    settings: LineSettings,
-    /// When the line has sent everything written so far.
-    free_at: Instant,
+    pacer: Pacer,
     sleep: Pin<Box<Sleep>>,
     name: String,
 }
 
+/// Characters the simulated UART holds beyond the one being sent (a 16-byte FIFO).
+const UART_FIFO: usize = 16;
+
 impl<S> PacedLine<S> {
     pub fn new(stream: S, settings: LineSettings, name: String) -> Self {
-        let now = Instant::now();
         PacedLine {
             stream,
-            settings,
-            free_at: now,
-            sleep: Box::pin(tokio::time::sleep_until(now)),
+            pacer: Pacer::new(settings, UART_FIFO),
+            sleep: Box::pin(tokio::time::sleep_until(Instant::now())),
             name,
         }
-    }
-
-    /// Characters written at once: about 20 ms of line time.
-    fn chunk(&self) -> usize {
-        (self.settings.chars_per_sec() / 50.0).max(1.0) as usize
     }
 }
 
@@ -392,15 +386,16 @@ impl<S: AsyncWrite + Unpin> AsyncWrite for PacedLine<S> {
         buf: &[u8],
     ) -> Poll<std::io::Result<usize>> {
         let this = &mut *self;
-        let now = Instant::now();
-        if now < this.free_at {
-            this.sleep.as_mut().reset(this.free_at);
+        let mut now = Instant::now().into_std();
+        if this.pacer.writable(now) == 0 {
+            let at = Instant::from_std(this.pacer.next_writable_at(now));
+            this.sleep.as_mut().reset(at);
             ready!(this.sleep.as_mut().poll(cx));
+            now = Instant::now().into_std();
         }
-        let chunk = buf.len().min(this.chunk());
-        let n = ready!(Pin::new(&mut this.stream).poll_write(cx, &buf[..chunk]))?;
-        let start = this.free_at.max(now);
-        this.free_at = start + this.settings.time_for_chars(n as u64);
+        let room = this.pacer.writable(now).max(1);
+        let n = ready!(Pin::new(&mut this.stream).poll_write(cx, &buf[..buf.len().min(room)]))?;
+        this.pacer.wrote(n, now);
         Poll::Ready(Ok(n))
     }
     fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
@@ -432,6 +427,25 @@ mod tests {
     struct Cli {
         #[command(flatten)]
         args: SimFanucArgs,
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn output_is_paced_at_the_baud_rate() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let (a, mut b) = tokio::io::duplex(1 << 16);
+        let mut line = PacedLine::new(a, LineSettings::with_baud(9600), "test".into());
+        let start = Instant::now();
+        line.write_all(&[0x55; 873]).await.unwrap();
+        // 9600 baud at 11 bits: 872.7 characters a second; the write returns when the last
+        // 16 (the FIFO) are accepted: 857 characters' time.
+        let took = start.elapsed();
+        let expected = LineSettings::with_baud(9600).time_for_chars(857);
+        assert!(
+            took >= expected && took < expected + Duration::from_millis(5),
+            "{took:?}"
+        );
+        let mut got = vec![0; 873];
+        b.read_exact(&mut got).await.unwrap();
     }
 
     #[test]
