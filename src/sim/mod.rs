@@ -1,1 +1,343 @@
-//! (to be written)
+//! Simulated devices for tests, CI and laptops: a FANUC remote-buffer board with a CNC behind
+//! it, speaking the device side of the protocols the gateway speaks as host.
+//!
+//! - [`fanuc_board`]: the board, sans-IO ([`FanucBoard`] implements [`Engine`]);
+//! - [`cnc`]: the CNC model: buffer, consumption at a rate, programs split at EOR, DI/DO;
+//! - [`server`]: the board as a TCP serial device server (`cellgate sim fanuc`).
+//!
+//! [`BoardHandle`] runs a board over any [`Transport`] in a tokio task, and is what tests and
+//! an embedded cell use: commands in, a snapshot of the board's state, and a broadcast of its
+//! events.
+
+pub mod cnc;
+pub mod fanuc_board;
+pub mod server;
+
+use std::future::Future;
+use std::pin::Pin;
+use std::task::Poll;
+
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::sync::{broadcast, mpsc, watch};
+use tokio::task::JoinHandle;
+
+use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::sat::{Params, StatusData};
+use crate::link::Engine;
+use crate::link::pump::{Pump, PumpError};
+use crate::transport::{ModemIn, Transport};
+
+pub use cnc::ReceivedProgram;
+pub use fanuc_board::{
+    BoardCommand, BoardConfig, BoardConfigError, BoardEvent, BoardLinkState, FanucBoard,
+};
+
+/// Errors of the simulators, kept apart from the protocol events they report.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SimError {
+    #[error("simulated FANUC board: {0}")]
+    Config(#[from] BoardConfigError),
+    #[error("simulated FANUC board: {protocol} is not yet supported; use --protocol a or exp-a")]
+    UnsupportedProtocol { protocol: String },
+    #[error(
+        "simulator listen address {addr} is not loopback: simulators bind 127.0.0.1 or ::1 only"
+    )]
+    NotLoopback { addr: std::net::SocketAddr },
+    #[error("simulator cannot listen on {addr}: {source}")]
+    Bind {
+        addr: std::net::SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("simulated board line ({line}): {source}")]
+    Line {
+        line: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("simulator event output: {0}")]
+    Output(#[source] std::io::Error),
+}
+
+/// The board's state as last seen by its task.
+#[derive(Debug, Clone)]
+pub struct BoardSnapshot {
+    pub link: BoardLinkState,
+    /// What the next SAT would say (§4.4.2): status, alarm cause, bytes buffered, params, n.
+    pub status: StatusData,
+    pub params: Params,
+    pub packet_n: u8,
+    pub reading: bool,
+    pub buffered: usize,
+    pub di_image: u8,
+    pub do_image: u8,
+    /// Every program the CNC read, oldest first.
+    pub programs: Vec<ReceivedProgram>,
+    /// Every SR alarm the board raised, oldest first.
+    pub alarms: Vec<CncAlarm>,
+    /// NC data bytes stored in the buffer since power-on.
+    pub data_received: u64,
+    /// Whether the board's task has ended (line closed or error).
+    pub stopped: bool,
+}
+
+impl BoardSnapshot {
+    fn of(board: &FanucBoard) -> Self {
+        let mut s = BoardSnapshot {
+            link: board.link_state(),
+            status: board.status_data(),
+            params: board.params(),
+            packet_n: board.packet_n(),
+            reading: false,
+            buffered: 0,
+            di_image: 0,
+            do_image: 0,
+            programs: Vec::new(),
+            alarms: Vec::new(),
+            data_received: 0,
+            stopped: false,
+        };
+        s.refresh(board);
+        s
+    }
+
+    fn refresh(&mut self, board: &FanucBoard) {
+        let cnc = board.cnc();
+        self.link = board.link_state();
+        self.status = board.status_data();
+        self.params = board.params();
+        self.packet_n = board.packet_n();
+        self.reading = cnc.reading();
+        self.buffered = cnc.buffered();
+        self.di_image = cnc.di();
+        self.do_image = cnc.do_image();
+    }
+
+    fn record(&mut self, event: &BoardEvent) {
+        match event {
+            BoardEvent::ProgramReceived(p) => self.programs.push(p.clone()),
+            BoardEvent::Alarm { alarm, .. } => self.alarms.push(*alarm),
+            BoardEvent::DataReceived { bytes, .. } => self.data_received += *bytes as u64,
+            _ => {}
+        }
+    }
+}
+
+/// A simulated board running in a tokio task over a [`Transport`].
+///
+/// Dropping the handle stops the board.
+#[derive(Debug)]
+pub struct BoardHandle {
+    commands: mpsc::UnboundedSender<BoardCommand>,
+    events: broadcast::Sender<BoardEvent>,
+    state: watch::Receiver<BoardSnapshot>,
+    task: JoinHandle<Result<(), SimError>>,
+}
+
+/// Events kept for slow subscribers; older ones are lost (`RecvError::Lagged`).
+const EVENT_CAPACITY: usize = 4096;
+
+impl BoardHandle {
+    /// Powers a board on and runs it over `line` until the handle is dropped, the line
+    /// closes, or the line fails.
+    pub fn spawn<T: Transport + 'static>(config: BoardConfig, line: T) -> Result<Self, SimError> {
+        let board = FanucBoard::new(config, tokio::time::Instant::now().into_std())?;
+        let (cmd_tx, cmd_rx) = mpsc::unbounded_channel();
+        let (events, _) = broadcast::channel(EVENT_CAPACITY);
+        let (state_tx, state) = watch::channel(BoardSnapshot::of(&board));
+        let events_tx = events.clone();
+        let task = tokio::spawn(async move {
+            let result = run_board(
+                board,
+                line,
+                cmd_rx,
+                |board, new_events| {
+                    state_tx.send_modify(|s| {
+                        for e in new_events.iter() {
+                            s.record(e);
+                        }
+                        s.refresh(board);
+                    });
+                    for e in new_events.drain(..) {
+                        // No subscriber is fine.
+                        let _ = events_tx.send(e);
+                    }
+                },
+                std::future::pending::<()>(),
+            )
+            .await;
+            state_tx.send_modify(|s| s.stopped = true);
+            result
+        });
+        Ok(BoardHandle {
+            commands: cmd_tx,
+            events,
+            state,
+            task,
+        })
+    }
+
+    /// Sends a command to the board (ignored once the board has stopped).
+    pub fn command(&self, command: BoardCommand) {
+        let _ = self.commands.send(command);
+    }
+    /// Cycle start in remote mode.
+    pub fn start_reading(&self) {
+        self.command(BoardCommand::StartReading);
+    }
+    pub fn set_di(&self, di: u8) {
+        self.command(BoardCommand::SetDi(di));
+    }
+    pub fn raise_alarm(&self) {
+        self.command(BoardCommand::RaiseAlarm);
+    }
+    pub fn reset(&self) {
+        self.command(BoardCommand::Reset);
+    }
+
+    /// The board's events from now on.
+    pub fn subscribe(&self) -> broadcast::Receiver<BoardEvent> {
+        self.events.subscribe()
+    }
+
+    pub fn snapshot(&self) -> BoardSnapshot {
+        self.state.borrow().clone()
+    }
+    pub fn link_state(&self) -> BoardLinkState {
+        self.state.borrow().link
+    }
+    pub fn do_image(&self) -> u8 {
+        self.state.borrow().do_image
+    }
+    pub fn status(&self) -> StatusData {
+        self.state.borrow().status
+    }
+    pub fn programs(&self) -> Vec<ReceivedProgram> {
+        self.state.borrow().programs.clone()
+    }
+
+    /// Waits until `pred` holds for the board's state (or the board stops), and returns it.
+    pub async fn wait_for(&self, mut pred: impl FnMut(&BoardSnapshot) -> bool) -> BoardSnapshot {
+        let mut rx = self.state.clone();
+        let found = rx
+            .wait_for(|s| s.stopped || pred(s))
+            .await
+            .map(|s| s.clone());
+        found.unwrap_or_else(|_| rx.borrow().clone())
+    }
+
+    /// Stops the board and returns how its task ended.
+    pub async fn shutdown(self) -> Result<(), SimError> {
+        let BoardHandle { commands, task, .. } = self;
+        drop(commands);
+        match task.await {
+            Ok(result) => result,
+            Err(e) => Err(SimError::Line {
+                line: "board task".to_string(),
+                source: std::io::Error::other(e),
+            }),
+        }
+    }
+}
+
+/// Runs a board over a transport with the link [`Pump`] until the commands channel closes,
+/// `shutdown` completes, or the line ends (end of stream: `Ok`) or fails. `report` gets the
+/// board and the events of each step.
+pub(crate) async fn run_board<T: Transport>(
+    board: FanucBoard,
+    line: T,
+    mut commands: mpsc::UnboundedReceiver<BoardCommand>,
+    mut report: impl FnMut(&FanucBoard, &mut Vec<BoardEvent>),
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), SimError> {
+    let describe = line.describe();
+    let mut pump = Pump::new(board, line);
+    let mut shutdown = std::pin::pin!(shutdown);
+    let mut events = Vec::new();
+    let result = loop {
+        while let Some(e) = pump.engine_mut().poll_event() {
+            events.push(e);
+        }
+        report(pump.engine(), &mut events);
+        events.clear();
+        tokio::select! {
+            stepped = pump.step() => match stepped {
+                Ok(()) => {}
+                Err(PumpError::Closed) => break Ok(()),
+                Err(PumpError::Io(source)) => break Err(SimError::Line { line: describe, source }),
+            },
+            command = commands.recv() => match command {
+                Some(c) => pump.command(c),
+                None => break Ok(()),
+            },
+            () = &mut shutdown => break Ok(()),
+        }
+    };
+    while let Some(e) = pump.engine_mut().poll_event() {
+        events.push(e);
+    }
+    report(pump.engine(), &mut events);
+    result
+}
+
+/// A [`Transport`] over any byte stream, with all modem lines on (the manual's wiring for
+/// unused lines): a TCP connection to the simulated device server, an in-memory duplex pipe.
+#[derive(Debug)]
+pub struct PlainLine<S> {
+    stream: S,
+    name: String,
+}
+
+impl<S> PlainLine<S> {
+    pub fn new(stream: S, name: impl Into<String>) -> Self {
+        PlainLine {
+            stream,
+            name: name.into(),
+        }
+    }
+}
+
+impl<S: AsyncRead + Unpin> AsyncRead for PlainLine<S> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.stream).poll_read(cx, buf)
+    }
+}
+
+impl<S: AsyncWrite + Unpin> AsyncWrite for PlainLine<S> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.stream).poll_write(cx, buf)
+    }
+    fn poll_flush(
+        mut self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.stream).poll_flush(cx)
+    }
+    fn poll_shutdown(
+        mut self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.stream).poll_shutdown(cx)
+    }
+}
+
+impl<S: AsyncRead + AsyncWrite + Send + Unpin> Transport for PlainLine<S> {
+    fn set_modem(&mut self, _out: crate::transport::ModemOut) -> std::io::Result<()> {
+        Ok(())
+    }
+    fn modem(&mut self) -> std::io::Result<ModemIn> {
+        Ok(ModemIn::ALL_ON)
+    }
+    fn describe(&self) -> String {
+        self.name.clone()
+    }
+}

@@ -1,0 +1,454 @@
+//! A simulated FANUC remote-buffer board with its CNC: the device side of Protocol A and
+//! Expansion Protocol A (§4, §5 of B-63322EN-1), sans-IO.
+//!
+//! [`FanucBoard`] implements [`Engine`]: bytes from the host, modem lines, commands (the
+//! operator's cycle start, reset, a CNC alarm, the DI image) and the time go in; bytes for the
+//! host, [`BoardEvent`]s and the next deadline come out. The protocol is one variant of the
+//! board (`Variant`), so Protocol B can be added beside Protocol A without touching the CNC
+//! model ([`crate::sim::cnc`]).
+//!
+//! What the board does, in the manual's terms (details in the `protocol_a` submodule):
+//! - power-on: after `first_request_delay` (≈2 s, §4.3 (1)) it sends SYN; the host answers
+//!   SYN; the board sends RDY; the host answers RDY (initialised) or SYN (not ready yet: SYN
+//!   again after `first_request_delay`);
+//! - idle: ALM / RST first when the CNC raised an alarm or was reset; GTD when the CNC is
+//!   reading and free space ≥ Nb; otherwise SAT Tp seconds after the last reception;
+//! - every transmission waits Tx after the last reception (§4.3 (4)); every answer is awaited
+//!   for To (§4.3 (3)); checksum errors get RTY and count against Ne with received RTYs
+//!   (§4.6 2 (1)); Expansion A adds data packets and monitor packets (§5).
+
+mod expansion_a;
+mod protocol_a;
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use crate::fanuc::Protocol;
+use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::message::{Command, Framing};
+use crate::fanuc::packet::Monitor;
+use crate::fanuc::sat::{AlarmCause, BufferStatus, ParamRangeError, Params, StatusData};
+use crate::link::Engine;
+use crate::sim::cnc::{
+    Cnc, DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE, DEFAULT_KEEP_PROGRAM_BYTES, ReceivedProgram,
+};
+use crate::transport::{LineError, ModemIn, ModemOut};
+
+use protocol_a::ProtocolA;
+
+/// How the simulated board and its CNC are set up.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BoardConfig {
+    /// `A`: Protocol A only (SET's n is taken as 0, as on an RS-232-C board);
+    /// `ExpansionA`: Protocol A, and Expansion A whenever SET puts n ∈ {1, 2, 4} in force.
+    /// B and Expansion B are not simulated yet.
+    pub protocol: Protocol,
+    /// Code (5000#2) and end code (5000#3) of the messages.
+    pub framing: Framing,
+    /// Power-on values of Nb..Tw (§4.5); SET changes them.
+    pub params: Params,
+    /// Power-on packet length parameter n (§5.2 1); 0 = Protocol A until a SET says otherwise.
+    pub packet_n: u8,
+    /// The board's buffer (8 KiB on the real board, §12.2).
+    pub buffer_size: usize,
+    /// Bytes per second the CNC reads from the buffer while running; 0 = as fast as data
+    /// arrives.
+    pub consume_rate: u32,
+    /// Delay before the first request after power-on or a line error (§4.3 (1): ≈2 s).
+    pub first_request_delay: Duration,
+    /// Parameter 5000#1 ECH: echo SET byte 1 (remote/tape switching) in SAT byte 1; off, the
+    /// board always sends 0 there.
+    pub echo_remote: bool,
+    /// The operator presses cycle start by himself: whenever the link is initialised (and
+    /// one SAT exchange has completed since, so that the host can select n with SET first,
+    /// protocol notes 5) and the CNC is neither reading nor in alarm, it starts reading; a CNC
+    /// in alarm resets itself after the next SAT exchange has shown the alarm to the host.
+    pub autostart: bool,
+    /// Bytes of each received program kept in [`ReceivedProgram::data`].
+    pub keep_program_bytes: usize,
+}
+
+impl Default for BoardConfig {
+    fn default() -> Self {
+        BoardConfig {
+            protocol: Protocol::A,
+            framing: Framing::default(),
+            params: Params::POWER_ON,
+            packet_n: 0,
+            buffer_size: DEFAULT_BUFFER_SIZE,
+            consume_rate: DEFAULT_CONSUME_RATE,
+            first_request_delay: Duration::from_secs(2),
+            echo_remote: false,
+            autostart: false,
+            keep_program_bytes: DEFAULT_KEEP_PROGRAM_BYTES,
+        }
+    }
+}
+
+/// Why a [`BoardConfig`] cannot be simulated.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum BoardConfigError {
+    #[error(
+        "the simulated board does not support {} yet (Protocol A and Expansion Protocol A only)",
+        protocol.name()
+    )]
+    UnsupportedProtocol { protocol: Protocol },
+    #[error("simulated board power-on parameters: {}", join(errors))]
+    Params { errors: Vec<ParamRangeError> },
+    #[error(
+        "buffer of {buffer_size} bytes is smaller than Nb = {nb}: the board would never send GTD (§4.5)"
+    )]
+    BufferTooSmall { buffer_size: usize, nb: u16 },
+    #[error(
+        "packet length parameter n = {n} with {protocol:?}: n must be 0 for Protocol A and 0, 1, 2 or 4 for Expansion A (§5.2 1)"
+    )]
+    PacketN { n: u8, protocol: Protocol },
+}
+
+fn join(errors: &[ParamRangeError]) -> String {
+    errors
+        .iter()
+        .map(ToString::to_string)
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+impl BoardConfig {
+    pub fn validate(&self) -> Result<(), BoardConfigError> {
+        if !self.protocol.is_a_family() {
+            return Err(BoardConfigError::UnsupportedProtocol {
+                protocol: self.protocol,
+            });
+        }
+        let errors = self.params.validate();
+        if !errors.is_empty() {
+            return Err(BoardConfigError::Params { errors });
+        }
+        if self.buffer_size < usize::from(self.params.nb) {
+            return Err(BoardConfigError::BufferTooSmall {
+                buffer_size: self.buffer_size,
+                nb: self.params.nb,
+            });
+        }
+        let n_ok = match self.protocol {
+            Protocol::ExpansionA => matches!(self.packet_n, 0 | 1 | 2 | 4),
+            _ => self.packet_n == 0,
+        };
+        if !n_ok {
+            return Err(BoardConfigError::PacketN {
+                n: self.packet_n,
+                protocol: self.protocol,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// What the operator (or a test) does to the CNC.
+#[derive(Debug, Clone, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum BoardCommand {
+    /// Cycle start in remote mode: the CNC reads from the buffer (refused while in alarm).
+    StartReading,
+    /// Feed hold: the CNC stops reading; the buffer is kept.
+    StopReading,
+    /// The 8-bit DI image (PMC G152) the board reports in SDI.
+    SetDi(u8),
+    /// A CNC alarm: the CNC stops; ALM to the host; CAN during Expansion A packets.
+    RaiseAlarm,
+    /// CNC reset: buffered data lost (§8.2), alarm cleared; RST to the host; CAN during
+    /// Expansion A packets.
+    Reset,
+    /// Change the rate at which the running CNC reads, bytes per second (0 = unlimited).
+    SetConsumeRate(u32),
+}
+
+/// The state of the board's link.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BoardLinkState {
+    /// Powered on, waiting the first-request delay (§4.3 (1)).
+    PowerOn,
+    /// SYN / RDY exchange in progress (power-on or re-initialisation after a line error).
+    Initialising,
+    /// Initialised: SAT / GTD traffic.
+    Ready,
+    /// DR is off (the host's ER): the board waits for it (§3.2, SR0855).
+    LineDown,
+}
+
+impl BoardLinkState {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::PowerOn => "power-on",
+            Self::Initialising => "initialising",
+            Self::Ready => "ready",
+            Self::LineDown => "line-down",
+        }
+    }
+}
+
+/// What the board reports.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum BoardEvent {
+    LinkState(BoardLinkState),
+    /// SAT bytes 2–3 changed: status, and the alarm cause while in alarm.
+    Status {
+        status: BufferStatus,
+        alarm_cause: Option<AlarmCause>,
+    },
+    /// A SET changed parameters, n or the code conversion.
+    ParamsChanged {
+        params: Params,
+        packet_n: u8,
+        conversion: (u8, u8),
+    },
+    /// A message went to the host.
+    MessageSent(Command),
+    /// A valid message came from the host.
+    MessageReceived(Command),
+    /// An Expansion A monitor packet went to the host.
+    MonitorSent(Monitor),
+    /// NC data (DAT or data packets) went into the buffer.
+    DataReceived {
+        bytes: usize,
+        buffered: usize,
+    },
+    /// NC data arrived while the CNC was not reading and was ignored (§8.2).
+    DataIgnored {
+        bytes: usize,
+    },
+    ReadingStarted,
+    ReadingStopped,
+    /// The CNC read a whole program, up to its EOR.
+    ProgramReceived(ReceivedProgram),
+    /// An SDO wrote the DO image (for every SDO, even with an unchanged value).
+    DoChanged(u8),
+    /// The board sent this DI image in SDI.
+    DiSent(u8),
+    /// CLB cleared the buffer.
+    BufferCleared,
+    /// The board raised a CNC alarm of §11 (SR0855, SR0944, SR0945, ...).
+    Alarm {
+        alarm: CncAlarm,
+        cause: AlarmCause,
+        detail: String,
+    },
+    /// The CNC went to alarm by [`BoardCommand::RaiseAlarm`] (ALM follows).
+    CncAlarm,
+    /// The CNC was reset (RST follows).
+    CncReset,
+    /// A protocol error the board recovered from or ignored (RTY, NAK, garbage, SET field
+    /// out of range, ...). For logs.
+    ProtocolError {
+        detail: String,
+    },
+}
+
+/// Bytes and events the board has produced, waiting for the driver.
+#[derive(Debug, Default)]
+pub(crate) struct Outbox {
+    tx: VecDeque<Vec<u8>>,
+    events: VecDeque<BoardEvent>,
+}
+
+impl Outbox {
+    fn event(&mut self, e: BoardEvent) {
+        self.events.push_back(e);
+    }
+    fn send(&mut self, bytes: Vec<u8>) {
+        self.tx.push_back(bytes);
+    }
+}
+
+/// The protocol a board speaks. Protocol B will be another variant.
+#[derive(Debug)]
+enum Variant {
+    A(Box<ProtocolA>),
+}
+
+/// A simulated remote-buffer board with its CNC (sans-IO).
+#[derive(Debug)]
+pub struct FanucBoard {
+    config: BoardConfig,
+    cnc: Cnc,
+    variant: Variant,
+    out: Outbox,
+    reported_status: Option<(BufferStatus, Option<AlarmCause>)>,
+}
+
+impl FanucBoard {
+    /// A board powered on at `now`.
+    pub fn new(config: BoardConfig, now: Instant) -> Result<Self, BoardConfigError> {
+        config.validate()?;
+        let cnc = Cnc::new(
+            config.buffer_size,
+            config.consume_rate,
+            config.keep_program_bytes,
+            now,
+        );
+        let variant = Variant::A(Box::new(ProtocolA::new(&config, now)));
+        let mut board = FanucBoard {
+            config,
+            cnc,
+            variant,
+            out: Outbox::default(),
+            reported_status: None,
+        };
+        board.step(now);
+        Ok(board)
+    }
+
+    pub fn config(&self) -> &BoardConfig {
+        &self.config
+    }
+
+    /// The CNC: buffer, reading state, DI/DO images, alarm.
+    pub fn cnc(&self) -> &Cnc {
+        &self.cnc
+    }
+
+    pub fn link_state(&self) -> BoardLinkState {
+        match &self.variant {
+            Variant::A(a) => a.link_state(),
+        }
+    }
+
+    /// The parameters in force (§4.5).
+    pub fn params(&self) -> Params {
+        match &self.variant {
+            Variant::A(a) => a.params(),
+        }
+    }
+
+    /// The Expansion A packet length parameter n in force (0 = Protocol A).
+    pub fn packet_n(&self) -> u8 {
+        match &self.variant {
+            Variant::A(a) => a.packet_n(),
+        }
+    }
+
+    /// The data part the board's next SAT would carry (§4.4.2 1).
+    pub fn status_data(&self) -> StatusData {
+        match &self.variant {
+            Variant::A(a) => a.status_data(&self.cnc),
+        }
+    }
+
+    /// Runs everything due at `now`, then reports a status change.
+    fn step(&mut self, now: Instant) {
+        self.cnc.advance(now);
+        self.collect_programs();
+        match &mut self.variant {
+            Variant::A(a) => a.step(now, &mut self.cnc, &mut self.out),
+        }
+        self.collect_programs();
+        let status = (self.cnc.status(), self.cnc.alarm());
+        if self.reported_status != Some(status) {
+            self.reported_status = Some(status);
+            self.out.event(BoardEvent::Status {
+                status: status.0,
+                alarm_cause: status.1,
+            });
+        }
+    }
+
+    fn collect_programs(&mut self) {
+        while let Some(p) = self.cnc.take_finished() {
+            self.out.event(BoardEvent::ProgramReceived(p));
+            self.out.event(BoardEvent::ReadingStopped);
+        }
+    }
+}
+
+impl Engine for FanucBoard {
+    type Command = BoardCommand;
+    type Event = BoardEvent;
+
+    fn handle_input(&mut self, now: Instant, bytes: &[u8]) {
+        self.cnc.advance(now);
+        self.collect_programs();
+        match &mut self.variant {
+            Variant::A(a) => a.handle_input(now, bytes, &mut self.cnc, &mut self.out),
+        }
+        self.step(now);
+    }
+
+    fn handle_line_error(&mut self, now: Instant, error: LineError) {
+        match &mut self.variant {
+            Variant::A(a) => a.handle_line_error(now, error, &mut self.cnc, &mut self.out),
+        }
+        self.step(now);
+    }
+
+    fn handle_modem(&mut self, now: Instant, modem: ModemIn) {
+        match &mut self.variant {
+            Variant::A(a) => a.handle_modem(now, modem, &mut self.cnc, &mut self.out),
+        }
+        self.step(now);
+    }
+
+    fn handle_command(&mut self, now: Instant, command: BoardCommand) {
+        self.cnc.advance(now);
+        self.collect_programs();
+        match command {
+            BoardCommand::StartReading => {
+                let was = self.cnc.reading();
+                if self.cnc.start_reading(now) {
+                    if !was {
+                        self.out.event(BoardEvent::ReadingStarted);
+                    }
+                } else {
+                    self.out.event(BoardEvent::ProtocolError {
+                        detail: "cycle start refused: the CNC is in alarm (reset it first)"
+                            .to_string(),
+                    });
+                }
+            }
+            BoardCommand::StopReading => {
+                if self.cnc.reading() {
+                    self.cnc.stop_reading(now);
+                    self.out.event(BoardEvent::ReadingStopped);
+                }
+            }
+            BoardCommand::SetDi(di) => self.cnc.set_di(di),
+            BoardCommand::SetConsumeRate(rate) => self.cnc.set_rate(now, rate),
+            BoardCommand::RaiseAlarm => match &mut self.variant {
+                Variant::A(a) => a.cnc_alarm(now, &mut self.cnc, &mut self.out),
+            },
+            BoardCommand::Reset => match &mut self.variant {
+                Variant::A(a) => a.cnc_reset(now, &mut self.cnc, &mut self.out),
+            },
+        }
+        self.step(now);
+    }
+
+    fn handle_timeout(&mut self, now: Instant) {
+        self.step(now);
+    }
+
+    fn poll_transmit(&mut self, _now: Instant) -> Option<Vec<u8>> {
+        self.out.tx.pop_front()
+    }
+
+    fn poll_event(&mut self) -> Option<BoardEvent> {
+        self.out.events.pop_front()
+    }
+
+    fn poll_timeout(&self) -> Option<Instant> {
+        let protocol = match &self.variant {
+            Variant::A(a) => a.poll_timeout(&self.cnc),
+        };
+        // The CNC reaching EOR is an event of its own (and may restart an autostart CNC).
+        match (protocol, self.cnc.when_program_ends()) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    fn modem_out(&self) -> ModemOut {
+        ModemOut::ALL_ON
+    }
+}

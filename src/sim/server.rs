@@ -1,0 +1,479 @@
+//! The simulated board as a TCP serial device server (`cellgate sim fanuc`).
+//!
+//! One connection at a time is the serial line: each new connection powers a fresh board on
+//! (line up again) and replaces the previous connection. The board's output is paced at the
+//! configured baud rate (11 bit times a character at 8N2, protocol notes 2), as a device
+//! server's serial side would deliver it; the host's input is taken as it comes. Every event of interest goes to stdout as one JSON
+//! object per line:
+//!
+//! ```text
+//! {"event":"listening","addr":"127.0.0.1:4001","protocol":"A","baud":9600}
+//! {"event":"connected","peer":"127.0.0.1:50312"}
+//! {"event":"link","state":"ready"}
+//! {"event":"program","bytes":1234,"sha256":"…","first_line":"O1234"}
+//! {"event":"do","image":165,"hex":"A5"}
+//! {"event":"alarm","alarm":"SR0945","message":"…","cause":"checksum-retry-over","detail":"…"}
+//! ```
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll, ready};
+use std::time::Duration;
+
+use serde_json::{Value, json};
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::mpsc;
+use tokio::time::{Instant, Sleep};
+
+use crate::fanuc::message::Framing;
+use crate::fanuc::sat::Params;
+use crate::fanuc::{CodeSystem, EndCode, Protocol};
+use crate::sim::cnc::{DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE};
+use crate::sim::{BoardConfig, BoardEvent, FanucBoard, SimError, run_board};
+use crate::transport::{LineSettings, ModemIn, ModemOut, Pacer, Transport};
+
+/// `--protocol`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SimProtocol {
+    /// Protocol A (§4).
+    A,
+    /// Protocol A, and Expansion Protocol A when the host's SET selects n = 1, 2 or 4 (§5).
+    #[value(name = "exp-a")]
+    ExpA,
+    /// Protocol B (§6): not simulated yet.
+    B,
+    /// Expansion Protocol B (§7): not simulated yet.
+    #[value(name = "exp-b")]
+    ExpB,
+}
+
+/// `--code`: the code of the messages' control part (parameter 5000#2, protocol notes 3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SimCode {
+    Ascii,
+    Iso,
+}
+
+/// `--end-code`: the end code of Protocol A messages (parameter 5000#3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SimEndCode {
+    Cr,
+    Etx,
+}
+
+/// `cellgate sim fanuc`: a simulated remote-buffer board with its CNC, served over TCP.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SimFanucArgs {
+    /// Address to listen on; loopback only.
+    #[arg(long, default_value = "127.0.0.1:4001")]
+    pub listen: SocketAddr,
+    /// Remote-buffer protocol.
+    #[arg(long, value_enum, default_value_t = SimProtocol::A)]
+    pub protocol: SimProtocol,
+    /// Baud rate at which the board's output is paced (11 bits a character).
+    #[arg(long, default_value_t = 9600)]
+    pub baud: u32,
+    /// Code of the control part (5000#2).
+    #[arg(long, value_enum, default_value_t = SimCode::Ascii)]
+    pub code: SimCode,
+    /// End code of messages (5000#3).
+    #[arg(long, value_enum, default_value_t = SimEndCode::Cr)]
+    pub end_code: SimEndCode,
+    /// The board's buffer in bytes (8 KiB on the real board).
+    #[arg(long, default_value_t = DEFAULT_BUFFER_SIZE)]
+    pub buffer_size: usize,
+    /// Bytes per second the running CNC reads from the buffer; 0 = as fast as data arrives.
+    #[arg(long, default_value_t = DEFAULT_CONSUME_RATE)]
+    pub consume_rate: u32,
+    /// The CNC starts reading once the link is initialised and the first SAT has been
+    /// answered (and again after every program; it resets itself after an alarm), so that
+    /// any host's download works unattended.
+    #[arg(long)]
+    pub autostart: bool,
+    /// Delay before the board's first SYN after power-on or a line error, in ms (§4.3 (1)).
+    #[arg(long, default_value_t = 2000)]
+    pub first_request_delay_ms: u64,
+    /// Power-on Nb: minimum free buffer space before GTD, bytes (§4.5).
+    #[arg(long, default_value_t = Params::POWER_ON.nb)]
+    pub nb: u16,
+    /// Power-on No: maximum overrun on reception, bytes.
+    #[arg(long, default_value_t = Params::POWER_ON.no)]
+    pub no: u16,
+    /// Power-on Ne: retries on a transmission error.
+    #[arg(long, default_value_t = Params::POWER_ON.ne)]
+    pub ne: u16,
+    /// Power-on Tp: SAT polling interval, s.
+    #[arg(long, default_value_t = Params::POWER_ON.tp)]
+    pub tp: u16,
+    /// Power-on To: answer time-out, s.
+    #[arg(long, default_value_t = Params::POWER_ON.to)]
+    pub to: u16,
+    /// Power-on Ti: minimum interval between transmitted bytes, ms (not applied).
+    #[arg(long, default_value_t = Params::POWER_ON.ti)]
+    pub ti: u16,
+    /// Power-on Tx: wait from reception to transmission, ms.
+    #[arg(long, default_value_t = Params::POWER_ON.tx)]
+    pub tx: u16,
+    /// Power-on Tw: wait after WAT, s.
+    #[arg(long, default_value_t = Params::POWER_ON.tw)]
+    pub tw: u16,
+}
+
+impl SimFanucArgs {
+    /// The board these arguments describe.
+    pub fn board_config(&self) -> Result<BoardConfig, SimError> {
+        let protocol = match self.protocol {
+            SimProtocol::A => Protocol::A,
+            SimProtocol::ExpA => Protocol::ExpansionA,
+            SimProtocol::B => {
+                return Err(SimError::UnsupportedProtocol {
+                    protocol: "Protocol B (--protocol b)".to_string(),
+                });
+            }
+            SimProtocol::ExpB => {
+                return Err(SimError::UnsupportedProtocol {
+                    protocol: "Expansion Protocol B (--protocol exp-b)".to_string(),
+                });
+            }
+        };
+        let framing = Framing::new(
+            match self.code {
+                SimCode::Ascii => CodeSystem::Ascii,
+                SimCode::Iso => CodeSystem::Iso,
+            },
+            match self.end_code {
+                SimEndCode::Cr => EndCode::Cr,
+                SimEndCode::Etx => EndCode::Etx,
+            },
+        );
+        let config = BoardConfig {
+            protocol,
+            framing,
+            params: Params {
+                nb: self.nb,
+                no: self.no,
+                ne: self.ne,
+                tp: self.tp,
+                to: self.to,
+                ti: self.ti,
+                tx: self.tx,
+                tw: self.tw,
+            },
+            buffer_size: self.buffer_size,
+            consume_rate: self.consume_rate,
+            autostart: self.autostart,
+            first_request_delay: Duration::from_millis(self.first_request_delay_ms),
+            ..BoardConfig::default()
+        };
+        config.validate()?;
+        Ok(config)
+    }
+
+    pub fn line_settings(&self) -> LineSettings {
+        LineSettings::with_baud(self.baud)
+    }
+}
+
+/// Where the JSON events go.
+pub type EventSink = Arc<dyn Fn(&Value) + Send + Sync>;
+
+/// Serves the board on `args.listen` until `shutdown` completes, printing one JSON event per
+/// line on stdout.
+pub async fn serve_fanuc(
+    args: SimFanucArgs,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), SimError> {
+    let config = args.board_config()?;
+    if !args.listen.ip().is_loopback() {
+        return Err(SimError::NotLoopback { addr: args.listen });
+    }
+    let listener = TcpListener::bind(args.listen)
+        .await
+        .map_err(|source| SimError::Bind {
+            addr: args.listen,
+            source,
+        })?;
+    let sink: EventSink = Arc::new(|v: &Value| {
+        use std::io::Write;
+        let mut out = std::io::stdout().lock();
+        // A closed stdout must not stop the simulator.
+        let _ = writeln!(out, "{v}").and_then(|()| out.flush());
+    });
+    serve_fanuc_on(listener, config, args.line_settings(), sink, shutdown).await
+}
+
+/// Serves the board on a bound listener (tests bind port 0), sending JSON events to `sink`.
+pub async fn serve_fanuc_on(
+    listener: TcpListener,
+    config: BoardConfig,
+    settings: LineSettings,
+    sink: EventSink,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), SimError> {
+    config.validate()?;
+    let addr = listener.local_addr().map_err(SimError::Output)?;
+    sink(&json!({
+        "event": "listening",
+        "addr": addr.to_string(),
+        "protocol": config.protocol.name(),
+        "baud": settings.baud,
+    }));
+    let mut shutdown = std::pin::pin!(shutdown);
+    type Session = Pin<Box<dyn Future<Output = Result<(), SimError>> + Send>>;
+    let mut session: Option<(SocketAddr, Session)> = None;
+    loop {
+        tokio::select! {
+            () = &mut shutdown => break,
+            accepted = listener.accept() => match accepted {
+                Ok((stream, peer)) => {
+                    if let Some((old, _)) = session.take() {
+                        sink(&json!({
+                            "event": "disconnected",
+                            "peer": old.to_string(),
+                            "reason": "replaced by a new connection",
+                        }));
+                    }
+                    sink(&json!({"event": "connected", "peer": peer.to_string()}));
+                    let fut = run_session(stream, peer, config.clone(), settings, sink.clone());
+                    session = Some((peer, Box::pin(fut)));
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "simulated board: accept failed");
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                }
+            },
+            result = async {
+                match session.as_mut() {
+                    Some((_, s)) => s.await,
+                    None => std::future::pending().await,
+                }
+            }, if session.is_some() => {
+                let peer = session.take().map(|(p, _)| p.to_string());
+                let reason = match result {
+                    Ok(()) => "connection closed".to_string(),
+                    Err(e) => e.to_string(),
+                };
+                sink(&json!({"event": "disconnected", "peer": peer, "reason": reason}));
+            }
+        }
+    }
+    Ok(())
+}
+
+async fn run_session(
+    stream: TcpStream,
+    peer: SocketAddr,
+    config: BoardConfig,
+    settings: LineSettings,
+    sink: EventSink,
+) -> Result<(), SimError> {
+    // Small messages must not wait for Nagle.
+    let _ = stream.set_nodelay(true);
+    let board = FanucBoard::new(config, Instant::now().into_std())?;
+    let line = PacedLine::new(stream, settings, format!("tcp {peer} paced at {settings}"));
+    // No operator commands over TCP; the sender lives as long as the session.
+    let (_commands, commands_rx) = mpsc::unbounded_channel();
+    run_board(
+        board,
+        line,
+        commands_rx,
+        |_, events| {
+            for e in events.iter() {
+                if let Some(v) = event_json(e) {
+                    sink(&v);
+                }
+            }
+        },
+        std::future::pending::<()>(),
+    )
+    .await
+}
+
+/// The JSON line for a board event, for those worth printing.
+pub fn event_json(event: &BoardEvent) -> Option<Value> {
+    fn to<T: serde::Serialize>(v: &T) -> Value {
+        serde_json::to_value(v).unwrap_or(Value::Null)
+    }
+    Some(match event {
+        BoardEvent::LinkState(s) => json!({"event": "link", "state": s.name()}),
+        BoardEvent::Status {
+            status,
+            alarm_cause,
+        } => {
+            json!({"event": "status", "status": to(status), "alarm_cause": alarm_cause.map(|c| to(&c))})
+        }
+        BoardEvent::ParamsChanged {
+            params,
+            packet_n,
+            conversion,
+        } => json!({
+            "event": "params",
+            "params": to(params),
+            "packet_n": packet_n,
+            "conversion": [conversion.0, conversion.1],
+        }),
+        BoardEvent::ProgramReceived(p) => json!({
+            "event": "program",
+            "bytes": p.len,
+            "sha256": p.sha256_hex(),
+            "first_line": p.first_line,
+        }),
+        BoardEvent::DoChanged(v) => json!({"event": "do", "image": v, "hex": format!("{v:02X}")}),
+        BoardEvent::DiSent(v) => json!({"event": "di", "image": v, "hex": format!("{v:02X}")}),
+        BoardEvent::Alarm {
+            alarm,
+            cause,
+            detail,
+        } => json!({
+            "event": "alarm",
+            "alarm": alarm.number(),
+            "message": alarm.message(),
+            "cause": to(cause),
+            "detail": detail,
+        }),
+        BoardEvent::CncAlarm => json!({"event": "cnc-alarm"}),
+        BoardEvent::CncReset => json!({"event": "cnc-reset"}),
+        BoardEvent::ReadingStarted => json!({"event": "reading", "reading": true}),
+        BoardEvent::ReadingStopped => json!({"event": "reading", "reading": false}),
+        BoardEvent::BufferCleared => json!({"event": "buffer-cleared"}),
+        BoardEvent::ProtocolError { detail } => {
+            json!({"event": "protocol-error", "detail": detail})
+        }
+        _ => return None,
+    })
+}
+
+/// A TCP connection as the board's serial line: output paced at the baud rate through a
+/// UART-sized window ([`Pacer`]), all modem lines on.
+pub struct PacedLine<S> {
+    stream: S,
+    pacer: Pacer,
+    sleep: Pin<Box<Sleep>>,
+    name: String,
+}
+
+/// Characters the simulated UART holds beyond the one being sent (a 16-byte FIFO).
+const UART_FIFO: usize = 16;
+
+impl<S> PacedLine<S> {
+    pub fn new(stream: S, settings: LineSettings, name: String) -> Self {
+        PacedLine {
+            stream,
+            pacer: Pacer::new(settings, UART_FIFO),
+            sleep: Box::pin(tokio::time::sleep_until(Instant::now())),
+            name,
+        }
+    }
+}
+
+impl<S: AsyncRead + Unpin> AsyncRead for PacedLine<S> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.stream).poll_read(cx, buf)
+    }
+}
+
+impl<S: AsyncWrite + Unpin> AsyncWrite for PacedLine<S> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        let this = &mut *self;
+        let mut now = Instant::now().into_std();
+        if this.pacer.writable(now) == 0 {
+            let at = Instant::from_std(this.pacer.next_writable_at(now));
+            this.sleep.as_mut().reset(at);
+            ready!(this.sleep.as_mut().poll(cx));
+            now = Instant::now().into_std();
+        }
+        let room = this.pacer.writable(now).max(1);
+        let n = ready!(Pin::new(&mut this.stream).poll_write(cx, &buf[..buf.len().min(room)]))?;
+        this.pacer.wrote(n, now);
+        Poll::Ready(Ok(n))
+    }
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.stream).poll_flush(cx)
+    }
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.stream).poll_shutdown(cx)
+    }
+}
+
+impl<S: AsyncRead + AsyncWrite + Send + Unpin> Transport for PacedLine<S> {
+    fn set_modem(&mut self, _out: ModemOut) -> std::io::Result<()> {
+        Ok(())
+    }
+    fn modem(&mut self) -> std::io::Result<ModemIn> {
+        Ok(ModemIn::ALL_ON)
+    }
+    fn describe(&self) -> String {
+        self.name.clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: SimFanucArgs,
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn output_is_paced_at_the_baud_rate() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let (a, mut b) = tokio::io::duplex(1 << 16);
+        let mut line = PacedLine::new(a, LineSettings::with_baud(9600), "test".into());
+        let start = Instant::now();
+        line.write_all(&[0x55; 873]).await.unwrap();
+        // 9600 baud at 11 bits: 872.7 characters a second; the write returns when the last
+        // 16 (the FIFO) are accepted: 857 characters' time.
+        let took = start.elapsed();
+        let expected = LineSettings::with_baud(9600).time_for_chars(857);
+        assert!(
+            took >= expected && took < expected + Duration::from_millis(5),
+            "{took:?}"
+        );
+        let mut got = vec![0; 873];
+        b.read_exact(&mut got).await.unwrap();
+    }
+
+    #[test]
+    fn parses_and_refuses_protocol_b() {
+        let cli = Cli::try_parse_from([
+            "sim",
+            "--protocol",
+            "exp-a",
+            "--code",
+            "iso",
+            "--tp",
+            "3",
+            "--tw",
+            "2",
+        ])
+        .unwrap();
+        let config = cli.args.board_config().unwrap();
+        assert_eq!(config.protocol, Protocol::ExpansionA);
+        assert_eq!(config.framing.code, CodeSystem::Iso);
+        assert_eq!(config.params.tp, 3);
+        assert!(cli.args.listen.ip().is_loopback());
+
+        let cli = Cli::try_parse_from(["sim", "--protocol", "b"]).unwrap();
+        let err = cli.args.board_config().unwrap_err();
+        assert!(err.to_string().contains("not yet supported"), "{err}");
+
+        let cli = Cli::try_parse_from(["sim", "--tw", "9"]).unwrap();
+        let err = cli.args.board_config().unwrap_err();
+        assert!(err.to_string().contains("tw = 9"), "{err}");
+    }
+}
