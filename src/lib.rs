@@ -22,6 +22,7 @@
 //! - [`pb`]: the protobuf messages of `proto/cellgate/v1`, the bus's public contract.
 
 pub mod bus;
+pub mod cell;
 pub mod config;
 pub mod fanuc;
 pub mod gateway;

@@ -1,0 +1,201 @@
+//! The cell's machine links, built from the cell file: for each `[[machines]]` entry a
+//! transport (serial port, TCP device server, or a simulated line with a simulated board on its
+//! far end), a host engine for its protocol, and a link task ([`link::driver`]).
+
+use std::time::Duration;
+
+use tokio_util::sync::CancellationToken;
+
+use crate::config::{CellConfig, MachineConfig, TransportConfig};
+use crate::fanuc::Protocol;
+use crate::fanuc::message::Framing;
+use crate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
+use crate::link::driver::{self, LinkHandle};
+use crate::link::pump::now;
+use crate::sim;
+use crate::transport::serial::SerialTransport;
+use crate::transport::sim::SimLine;
+use crate::transport::tcp::{TcpOptions, TcpTransport};
+use crate::transport::{Transport, TransportError};
+
+/// One machine of the running cell.
+pub struct MachineRuntime {
+    pub config: MachineConfig,
+    pub link: LinkHandle,
+    /// The simulated board on the far end of a `sim` transport.
+    pub board: Option<sim::BoardHandle>,
+    /// The simulated line of a `sim` transport: fault injection and counters.
+    pub line: Option<SimLine>,
+}
+
+/// Why a machine's link could not be started.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum CellError {
+    #[error("machine {machine}: {source}")]
+    Transport {
+        machine: String,
+        #[source]
+        source: TransportError,
+    },
+    #[error("machine {machine}: {error}")]
+    Engine { machine: String, error: String },
+    #[error("machine {machine}: simulated board: {error}")]
+    Board { machine: String, error: String },
+}
+
+/// The links of a cell, running.
+pub struct Cell {
+    pub machines: Vec<MachineRuntime>,
+    tasks: tokio::task::JoinSet<()>,
+}
+
+impl Cell {
+    /// Starts a link for every machine the gateway can drive. Machines whose protocol has no
+    /// host engine yet are logged and left out rather than pretended.
+    pub async fn start(
+        config: &CellConfig,
+        shutdown: &CancellationToken,
+    ) -> Result<Self, CellError> {
+        let mut cell = Cell {
+            machines: Vec::new(),
+            tasks: tokio::task::JoinSet::new(),
+        };
+        for machine in &config.machines {
+            if !machine.protocol.is_a_family() {
+                tracing::warn!(
+                    machine = %machine.name,
+                    protocol = machine.protocol.name(),
+                    "no host engine for this protocol yet: the link is not started"
+                );
+                continue;
+            }
+            let runtime = cell.start_machine(machine, shutdown).await?;
+            cell.machines.push(runtime);
+        }
+        Ok(cell)
+    }
+
+    async fn start_machine(
+        &mut self,
+        machine: &MachineConfig,
+        shutdown: &CancellationToken,
+    ) -> Result<MachineRuntime, CellError> {
+        let name = machine.name.clone();
+        let line = *machine.transport.line();
+        let framing = Framing::new(machine.code, machine.effective_end_code());
+        let mut board = None;
+        let mut sim_line = None;
+        let transport: Box<dyn Transport> = match &machine.transport {
+            TransportConfig::Serial { path, line } => {
+                Box::new(SerialTransport::open(path, *line).map_err(|source| {
+                    CellError::Transport {
+                        machine: name.clone(),
+                        source,
+                    }
+                })?)
+            }
+            TransportConfig::Tcp {
+                address,
+                line,
+                window,
+                reconnect_min_ms,
+                reconnect_max_ms,
+            } => {
+                let opts = TcpOptions {
+                    window: *window as usize,
+                    backoff_min: Duration::from_millis(*reconnect_min_ms),
+                    backoff_max: Duration::from_millis(*reconnect_max_ms),
+                    ..TcpOptions::default()
+                };
+                Box::new(
+                    TcpTransport::connect(address.clone(), *line, opts)
+                        .await
+                        .map_err(|source| CellError::Transport {
+                            machine: name.clone(),
+                            source,
+                        })?,
+                )
+            }
+            TransportConfig::Sim { line } => {
+                let (host, device, control) = crate::transport::sim::line(*line);
+                let handle =
+                    sim::BoardHandle::spawn(machine_board_config(machine, framing), device)
+                        .map_err(|e| CellError::Board {
+                            machine: name.clone(),
+                            error: e.to_string(),
+                        })?;
+                board = Some(handle);
+                sim_line = Some(control);
+                Box::new(host)
+            }
+        };
+        let engine = ProtocolAHost::new(
+            ProtocolAConfig {
+                framing,
+                params: machine.params(),
+                packet_n: machine.effective_packet_n(),
+                char_time: line.char_time(),
+                ..ProtocolAConfig::default()
+            },
+            now(),
+        )
+        .map_err(|e| CellError::Engine {
+            machine: name.clone(),
+            error: e.to_string(),
+        })?;
+        let (link, task) = driver::spawn(name.clone(), engine, transport, shutdown.clone());
+        self.tasks.spawn(async move {
+            match task.await {
+                Ok(Ok(())) => tracing::info!(machine = %name, "link stopped"),
+                Ok(Err(e)) => tracing::error!(machine = %name, error = %e, "link ended"),
+                Err(e) => tracing::error!(machine = %name, error = %e, "link task failed"),
+            }
+        });
+        Ok(MachineRuntime {
+            config: machine.clone(),
+            link,
+            board,
+            line: sim_line,
+        })
+    }
+
+    pub fn machine(&self, name: &str) -> Option<&MachineRuntime> {
+        self.machines.iter().find(|m| m.config.name == name)
+    }
+
+    /// Waits for every link task to end (after the shutdown token was cancelled), then stops
+    /// the simulated boards.
+    pub async fn join(mut self) {
+        while self.tasks.join_next().await.is_some() {}
+        for machine in self.machines {
+            if let Some(board) = machine.board {
+                if let Err(e) = board.shutdown().await {
+                    tracing::debug!(machine = %machine.config.name, error = %e, "simulated board stopped");
+                }
+            }
+        }
+    }
+}
+
+/// The simulated board for a `sim` machine: the board powers on with the §4.5 defaults (the
+/// host sets its own values by SET) and its CNC starts reading by itself, so that queued jobs
+/// are delivered without an operator.
+fn machine_board_config(
+    machine: &MachineConfig,
+    framing: Framing,
+) -> sim::fanuc_board::BoardConfig {
+    let sim = machine.board_sim();
+    sim::fanuc_board::BoardConfig {
+        protocol: if machine.protocol == Protocol::ExpansionA {
+            Protocol::ExpansionA
+        } else {
+            Protocol::A
+        },
+        framing,
+        buffer_size: sim.buffer_size as usize,
+        consume_rate: sim.consume_rate,
+        autostart: true,
+        ..sim::fanuc_board::BoardConfig::default()
+    }
+}
