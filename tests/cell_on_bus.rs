@@ -62,6 +62,12 @@ fn cell_config(port: u16, dir: &std::path::Path) -> CellConfig {
 }
 
 async fn start() -> Running {
+    start_with(false).await
+}
+
+/// `late`: serve the bus only once every link is already up, as a gateway whose routes start
+/// after its links would.
+async fn start_with(late: bool) -> Running {
     let port = free_port();
     let dir = tempfile::tempdir().unwrap();
     let config = cell_config(port, dir.path());
@@ -69,6 +75,15 @@ async fn start() -> Running {
     let links_stop = CancellationToken::new();
     let cell = Cell::start(&config, &links_stop).await.unwrap();
     assert_eq!(cell.machines.len(), MACHINES.len());
+    if late {
+        for m in &cell.machines {
+            let link = m.link.clone();
+            eventually("the link is up before the routes start", move || {
+                link.state() == Some(cellgate::link::LinkState::Ready)
+            })
+            .await;
+        }
+    }
     let machines = cell
         .machines
         .iter()
@@ -234,6 +249,21 @@ async fn concurrent_jobs_on_every_machine_are_delivered_byte_exact() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn routes_started_after_the_links_still_see_them_up() {
+    // `start_with` waits for every machine's liveliness token: they must appear although the
+    // links reported Ready before the routes subscribed to their events.
+    let cell = start_with(true).await;
+    let status: pb::MachineStatus = get_one(
+        &cell.client,
+        &cell.keys.leaf("m3", MachineLeaf::Status),
+        None,
+    )
+    .await;
+    assert_eq!(status.link_state(), pb::LinkState::Idle);
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cancel_in_the_middle_ends_with_eod_then_clb() {
     let cell = start().await;
     let board = cell.board("m1");
@@ -375,7 +405,10 @@ async fn bad_requests_get_an_error_reply_and_nothing_is_queued() {
         [Ok((_, bytes, _))] => pb::JobQueue::decode(bytes.as_slice()).unwrap(),
         other => panic!("queue get: {other:?}"),
     };
-    assert!(queue.active.is_none() && queue.waiting.is_empty(), "{queue:?}");
+    assert!(
+        queue.active.is_none() && queue.waiting.is_empty(),
+        "{queue:?}"
+    );
     assert!(cell.board("m2").programs().is_empty());
     cell.stop().await;
 }
