@@ -229,7 +229,6 @@ pub(crate) struct Publishers {
 /// The machine's task: keeps the view, publishes status on change, DI when read, alarms,
 /// and job events; holds the liveliness token while the link is up; polls DI when
 /// configured. Ends when `stop` is cancelled, after publishing the job events still pending.
-#[allow(clippy::too_many_arguments)]
 /// Declares the machine's liveliness token while its link is up, and withdraws it otherwise.
 async fn sync_token(
     machine: &Machine,
@@ -251,6 +250,7 @@ async fn sync_token(
     }
 }
 
+#[allow(clippy::too_many_arguments)]
 pub(crate) async fn run(
     machine: Arc<Machine>,
     session: Session,
