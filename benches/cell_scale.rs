@@ -15,7 +15,7 @@ mod common;
 use std::time::{Duration, Instant};
 
 use cellgate::bus::keys::{CellKeys, MachineLeaf};
-use cellgate::bus::{self, BusConfig, BusMode, MachineLink};
+use cellgate::bus::{self, MachineLink};
 use cellgate::cell::Cell;
 use cellgate::config::CellConfig;
 use cellgate::fanuc::message::Framing;
@@ -74,15 +74,6 @@ impl HostEngine for Timed {
     }
 }
 
-fn client_config(port: u16) -> BusConfig {
-    BusConfig {
-        mode: BusMode::Client,
-        listen: Vec::new(),
-        connect: vec![format!("tcp/127.0.0.1:{port}")],
-        ..BusConfig::default()
-    }
-}
-
 fn percentile(sorted: &[Duration], p: f64) -> Duration {
     let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
     sorted[i.min(sorted.len() - 1)]
@@ -131,7 +122,7 @@ async fn do_latency(puts: usize) {
         }];
         tokio::spawn(async move { bus::serve(&gw, &cfg, machines, rs).await })
     };
-    let client = bus::open(&client_config(port))
+    let client = bus::open(&common::bus::client_config(port))
         .await
         .expect("client session");
     let keys = CellKeys::new(&config.bus.prefix, &config.cell).expect("keys");
@@ -228,20 +219,13 @@ async fn scale(machines: usize, program_size: usize) {
     let gateway = bus::open(&config.bus).await.expect("gateway session");
     let links_stop = CancellationToken::new();
     let cell = Cell::start(&config, &links_stop).await.expect("cell");
-    let links: Vec<MachineLink> = cell
-        .machines
-        .iter()
-        .map(|m| MachineLink {
-            config: m.config.clone(),
-            link: m.link.clone(),
-        })
-        .collect();
+    let links = cell.machine_links();
     let routes_stop = CancellationToken::new();
     let served = {
         let (gw, cfg, rs) = (gateway.clone(), config.clone(), routes_stop.clone());
         tokio::spawn(async move { bus::serve(&gw, &cfg, links, rs).await })
     };
-    let client = bus::open(&client_config(port))
+    let client = bus::open(&common::bus::client_config(port))
         .await
         .expect("client session");
     let keys = CellKeys::new(&config.bus.prefix, &config.cell).expect("keys");

@@ -160,6 +160,17 @@ impl Cell {
         })
     }
 
+    /// The links as the bus routes take them.
+    pub fn machine_links(&self) -> Vec<crate::bus::MachineLink> {
+        self.machines
+            .iter()
+            .map(|m| crate::bus::MachineLink {
+                config: m.config.clone(),
+                link: m.link.clone(),
+            })
+            .collect()
+    }
+
     pub fn machine(&self, name: &str) -> Option<&MachineRuntime> {
         self.machines.iter().find(|m| m.config.name == name)
     }

@@ -17,7 +17,7 @@ use std::future::Future;
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
-use crate::bus::{self, BusError, MachineLink};
+use crate::bus::{self, BusError};
 use crate::cell::Cell;
 use crate::config::CellConfig;
 
@@ -112,14 +112,7 @@ async fn serve(
     // The links run until the routes have stopped, so that every job's end is reported.
     let links_stop = CancellationToken::new();
     let cell = Cell::start(config, &links_stop).await?;
-    let machines: Vec<MachineLink> = cell
-        .machines
-        .iter()
-        .map(|m| MachineLink {
-            config: m.config.clone(),
-            link: m.link.clone(),
-        })
-        .collect();
+    let machines = cell.machine_links();
     let routes_stop = CancellationToken::new();
     let routes = bus::serve(session, config, machines, routes_stop.clone());
     tokio::pin!(routes);

@@ -9,7 +9,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use cellgate::bus::keys::{CellKeys, MachineLeaf};
-use cellgate::bus::{self, BusConfig, BusMode, MachineLink};
+use cellgate::bus::{self, MachineLink};
 use cellgate::config::CellConfig;
 use cellgate::fanuc::alarm::CncAlarm;
 use cellgate::fanuc::sat::{BufferStatus, Params, StatusData};
@@ -24,7 +24,7 @@ use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 use zenoh::sample::Locality;
 
-use common::bus::{eventually, free_port, get, get_err, get_one, wait_token};
+use common::bus::{client_config, eventually, free_port, get, get_err, get_one, wait_token};
 
 // ---------------------------------------------------------------------------------------------
 // A stand-in link: takes jobs when released, "sends" them in chunks, answers DO and DI.
@@ -246,14 +246,7 @@ async fn start_cell(pace: Duration) -> Cell {
         ];
         tokio::spawn(async move { bus::serve(&gw, &cfg, machines, stop).await })
     };
-    let client = bus::open(&BusConfig {
-        mode: BusMode::Client,
-        listen: Vec::new(),
-        connect: vec![format!("tcp/127.0.0.1:{port}")],
-        ..BusConfig::default()
-    })
-    .await
-    .unwrap();
+    let client = bus::open(&client_config(port)).await.unwrap();
     let cell = Cell {
         gateway,
         client,

@@ -7,15 +7,15 @@ mod common;
 
 use std::time::Duration;
 
+use cellgate::bus;
 use cellgate::bus::keys::{CellKeys, MachineLeaf};
-use cellgate::bus::{self, BusConfig, BusMode, MachineLink};
 use cellgate::cell::Cell;
 use cellgate::config::CellConfig;
 use cellgate::fanuc::message::Command;
 use cellgate::pb;
 use cellgate::pb::job_event::Kind;
 use cellgate::sim::fanuc_board::BoardEvent;
-use common::bus::{eventually, free_port, get, get_err, get_one, wait_token};
+use common::bus::{client_config, eventually, free_port, get, get_err, get_one, wait_token};
 use prost::Message;
 use sha2::{Digest, Sha256};
 use tokio_util::sync::CancellationToken;
@@ -84,27 +84,13 @@ async fn start_with(late: bool) -> Running {
             .await;
         }
     }
-    let machines = cell
-        .machines
-        .iter()
-        .map(|m| MachineLink {
-            config: m.config.clone(),
-            link: m.link.clone(),
-        })
-        .collect();
+    let machines = cell.machine_links();
     let routes_stop = CancellationToken::new();
     let served = {
         let (gw, cfg, stop) = (gateway.clone(), config.clone(), routes_stop.clone());
         tokio::spawn(async move { bus::serve(&gw, &cfg, machines, stop).await })
     };
-    let client = bus::open(&BusConfig {
-        mode: BusMode::Client,
-        listen: Vec::new(),
-        connect: vec![format!("tcp/127.0.0.1:{port}")],
-        ..BusConfig::default()
-    })
-    .await
-    .unwrap();
+    let client = bus::open(&client_config(port)).await.unwrap();
     let keys = CellKeys::new(&config.bus.prefix, &config.cell).unwrap();
     // Every link initialises with its board (≈2 s power-on delay, §4.3 (1)).
     for (name, _, _) in MACHINES {

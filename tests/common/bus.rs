@@ -15,6 +15,16 @@ pub fn free_port() -> u16 {
         .port()
 }
 
+/// A client session connecting to a gateway on `tcp/127.0.0.1:port`, multicast scouting off.
+pub fn client_config(port: u16) -> cellgate::bus::BusConfig {
+    cellgate::bus::BusConfig {
+        mode: cellgate::bus::BusMode::Client,
+        listen: Vec::new(),
+        connect: vec![format!("tcp/127.0.0.1:{port}")],
+        ..cellgate::bus::BusConfig::default()
+    }
+}
+
 pub type Replies = Vec<Result<(String, Vec<u8>, String), (Vec<u8>, String)>>;
 
 /// Every reply to a get on `key`, with its key, payload and encoding (or error payload and
