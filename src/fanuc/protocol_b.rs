@@ -221,8 +221,9 @@ pub struct ProtocolBHost {
     await_next_read: bool,
     /// Program bytes handed out since the last DC3 arrived.
     sent_since_dc3: u64,
-    /// Control codes the host owes the board (DC3 / DC1 / DC2 for punch-out flow control).
-    ctl_out: VecDeque<u8>,
+    /// The punch-out flow-control code the host owes the board (DC3, or DC1 / DC2 to resume);
+    /// only the latest instruction matters.
+    ctl_out: Option<u8>,
     rx: Rx,
     punch: Vec<u8>,
     /// Punched bytes in queued `Punched` events not yet taken.
@@ -259,7 +260,7 @@ impl ProtocolBHost {
             flowing: false,
             await_next_read: false,
             sent_since_dc3: 0,
-            ctl_out: VecDeque::new(),
+            ctl_out: None,
             rx: Rx::Control,
             punch: Vec::new(),
             punch_queued: 0,
@@ -347,11 +348,11 @@ impl ProtocolBHost {
             EngineEvent::CncAlarm
         });
         self.flowing = false;
-        // The read is over; the board asks again with DC1.
-        self.await_next_read = false;
         if self.program_started() {
             self.abort_program(if reset { REASON_RESET } else { REASON_ALARM }, false);
         }
+        // The read is over; the board asks again with DC1.
+        self.await_next_read = false;
     }
 
     fn on_control(&mut self, b: u8, garbage: &mut usize) {
@@ -409,7 +410,7 @@ impl ProtocolBHost {
         if !self.punch_paused && self.punch_held() > self.cfg.punch_high_water {
             tracing::debug!(held = self.punch_held(), "punch-out paused with DC3");
             self.punch_paused = true;
-            self.ctl_out.push_back(self.cfg.code.control(DC3));
+            self.ctl_out = Some(self.cfg.code.control(DC3));
         }
     }
 
@@ -423,7 +424,11 @@ impl ProtocolBHost {
                 DC2
             };
             tracing::debug!(held = self.punch_held(), "punch-out resumed");
-            self.ctl_out.push_back(self.cfg.code.control(resume));
+            // A DC3 not sent yet never stopped the board: drop it instead of resuming.
+            self.ctl_out = match self.ctl_out {
+                Some(_) => None,
+                None => Some(self.cfg.code.control(resume)),
+            };
         }
     }
 }
@@ -491,7 +496,7 @@ impl Engine for ProtocolBHost {
             }
             self.flowing = false;
             self.await_next_read = false;
-            self.ctl_out.clear();
+            self.ctl_out = None;
             if self.rx == Rx::Punch && !self.punch.is_empty() {
                 let lost = self.punch.len();
                 self.punch.clear();
@@ -549,8 +554,8 @@ impl Engine for ProtocolBHost {
         if !self.line_up || !self.cs {
             return None;
         }
-        if !self.ctl_out.is_empty() {
-            return Some(self.ctl_out.drain(..).collect());
+        if let Some(code) = self.ctl_out.take() {
+            return Some(vec![code]);
         }
         if !self.flowing || self.await_next_read {
             return None;
@@ -594,5 +599,445 @@ impl HostEngine for ProtocolBHost {
         self.program
             .as_ref()
             .map_or(0, |p| p.wanted(self.cfg.max_buffer))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fanuc::code::EOR;
+    use proptest::prelude::*;
+
+    fn host(code: CodeSystem, expansion: bool, notify: bool) -> (ProtocolBHost, Instant) {
+        let now = Instant::now();
+        let mut h = ProtocolBHost::new(ProtocolBConfig::new(code, expansion, notify), now).unwrap();
+        assert_eq!(h.poll_event(), Some(EngineEvent::State(LinkState::Ready)));
+        (h, now)
+    }
+
+    fn events(h: &mut ProtocolBHost) -> Vec<EngineEvent> {
+        std::iter::from_fn(|| h.poll_event()).collect()
+    }
+
+    /// Everything the host hands out now.
+    fn drain_tx(h: &mut ProtocolBHost, now: Instant) -> Vec<u8> {
+        let mut out = Vec::new();
+        while let Some(piece) = h.poll_transmit(now) {
+            assert!(!piece.is_empty());
+            assert!(piece.len() <= h.config().tx_piece);
+            out.extend(piece);
+        }
+        out
+    }
+
+    fn program(body_len: usize) -> Vec<u8> {
+        let mut p = b"%\nO0001\n".to_vec();
+        p.extend((0..body_len).map(|i| b"G01X1.;\n"[i % 8]));
+        p.push(EOR);
+        p
+    }
+
+    fn load(h: &mut ProtocolBHost, now: Instant, prog: &[u8]) {
+        h.handle_command(now, EngineCommand::StartProgram { total: None });
+        h.handle_command(
+            now,
+            EngineCommand::ProgramData(Bytes::copy_from_slice(prog)),
+        );
+        h.handle_command(now, EngineCommand::ProgramEnd);
+    }
+
+    fn punched(evs: &[EngineEvent]) -> Vec<u8> {
+        evs.iter()
+            .filter_map(|e| match e {
+                EngineEvent::Punched { data } => Some(data.to_vec()),
+                _ => None,
+            })
+            .flatten()
+            .collect()
+    }
+
+    #[test]
+    fn default_settings_are_valid_and_overrun_per_protocol() {
+        assert!(ProtocolBConfig::default().validate().is_empty());
+        let b = ProtocolBConfig::new(CodeSystem::Iso, false, true);
+        assert_eq!(b.overrun_allowance, 512);
+        let eb = ProtocolBConfig::new(CodeSystem::Iso, true, false);
+        assert_eq!(eb.overrun_allowance, 1280);
+        assert!(eb.validate().is_empty());
+        let bad = ProtocolBConfig { tx_piece: 300, ..b };
+        assert!(matches!(
+            bad.validate().as_slice(),
+            [ConfigProblem::TxPiece { piece: 300, .. }]
+        ));
+        assert!(ProtocolBHost::new(bad, Instant::now()).is_err());
+    }
+
+    #[test]
+    fn nothing_is_sent_before_dc1() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        load(&mut h, now, &program(100));
+        assert_eq!(h.poll_transmit(now), None);
+        assert!(h.data_wanted() == 0, "EOR is in: the program takes no more");
+    }
+
+    #[test]
+    fn dc1_dc3_flow_stops_within_a_piece_and_resumes_with_the_continuation() {
+        for (code, dc3) in [(CodeSystem::Iso, 0x93), (CodeSystem::Ascii, 0x13)] {
+            let (mut h, now) = host(code, false, true);
+            let prog = program(2000);
+            load(&mut h, now, &prog);
+            h.handle_input(now, &[0x11]);
+            let mut sent = Vec::new();
+            // The board stops the host after a few pieces.
+            for _ in 0..5 {
+                sent.extend(h.poll_transmit(now).unwrap());
+            }
+            // A piece is on the line when the DC3 arrives: at most that piece overruns.
+            let in_flight = h.poll_transmit(now).unwrap();
+            sent.extend(&in_flight);
+            h.handle_input(now, &[dc3]);
+            assert_eq!(h.sent_since_dc3(), 0);
+            assert_eq!(h.poll_transmit(now), None);
+            let overrun = in_flight.len() as u64 + h.sent_since_dc3();
+            let cfg = h.config();
+            assert!(overrun <= cfg.tx_piece as u64, "overrun {overrun}");
+            assert!(
+                overrun < cfg.overrun_allowance as u64 / 4,
+                "overrun {overrun}"
+            );
+            assert!(!h.flowing());
+            // DC1: the data immediately after that sent last.
+            h.handle_input(now, &[0x11]);
+            sent.extend(drain_tx(&mut h, now));
+            assert_eq!(sent, prog);
+            let evs = events(&mut h);
+            let total: u64 = evs
+                .iter()
+                .filter_map(|e| match e {
+                    EngineEvent::DataSent { bytes } => Some(*bytes),
+                    _ => None,
+                })
+                .sum();
+            assert_eq!(total, prog.len() as u64);
+            assert_eq!(
+                evs.iter()
+                    .filter(|e| **e == EngineEvent::ProgramDone)
+                    .count(),
+                1
+            );
+            assert!(evs.contains(&EngineEvent::State(LinkState::Sending)));
+            assert_eq!(evs.last(), Some(&EngineEvent::State(LinkState::Ready)));
+        }
+    }
+
+    #[test]
+    fn next_program_waits_for_dc3_and_a_following_dc1() {
+        let (mut h, now) = host(CodeSystem::Iso, false, true);
+        let first = program(10);
+        load(&mut h, now, &first);
+        h.handle_input(now, &[0x11]);
+        assert_eq!(drain_tx(&mut h, now), first);
+        assert!(events(&mut h).contains(&EngineEvent::ProgramDone));
+        let second = program(20);
+        load(&mut h, now, &second);
+        // Flow-control DC1 of the same read: nothing.
+        h.handle_input(now, &[0x11]);
+        assert_eq!(h.poll_transmit(now), None);
+        // The CNC ends the read with DC3; nothing until a new DC1.
+        h.handle_input(now, &[0x93]);
+        assert_eq!(h.poll_transmit(now), None);
+        h.handle_input(now, &[0x11]);
+        assert_eq!(drain_tx(&mut h, now), second);
+    }
+
+    #[test]
+    fn program_without_eor_gets_one() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        load(&mut h, now, b"%\nO1\nX1\n");
+        h.handle_input(now, &[0x11]);
+        assert_eq!(drain_tx(&mut h, now), b"%\nO1\nX1\n%");
+        assert!(events(&mut h).contains(&EngineEvent::ProgramDone));
+    }
+
+    #[test]
+    fn data_comes_in_bounded_pieces() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        h.handle_command(now, EngineCommand::StartProgram { total: None });
+        assert_eq!(h.data_wanted(), 64 * 1024);
+        h.handle_command(
+            now,
+            EngineCommand::ProgramData(Bytes::from(vec![b'X'; 1000])),
+        );
+        assert_eq!(h.data_wanted(), 64 * 1024 - 1000);
+        h.handle_input(now, &[0x11]);
+        let sent = drain_tx(&mut h, now);
+        assert_eq!(sent.len(), 1000);
+        // Late data: the host waits, the board keeps the read open.
+        h.handle_command(now, EngineCommand::ProgramData(Bytes::from_static(b"Y%")));
+        assert_eq!(drain_tx(&mut h, now), b"Y%");
+        assert!(events(&mut h).contains(&EngineEvent::ProgramDone));
+    }
+
+    #[test]
+    fn dc3_syn_is_a_cnc_reset_that_aborts_the_program() {
+        for (code, dc3, syn) in [
+            (CodeSystem::Iso, 0x93, 0x96),
+            (CodeSystem::Ascii, 0x13, 0x16),
+        ] {
+            let (mut h, now) = host(code, false, true);
+            load(&mut h, now, &program(500));
+            h.handle_input(now, &[0x11]);
+            let _ = h.poll_transmit(now).unwrap();
+            events(&mut h);
+            h.handle_input(now, &[dc3, syn]);
+            assert_eq!(h.poll_transmit(now), None);
+            assert_eq!(
+                events(&mut h),
+                vec![
+                    EngineEvent::CncReset,
+                    EngineEvent::ProgramAborted {
+                        reason: REASON_RESET.into(),
+                        cancelled: false
+                    },
+                    EngineEvent::State(LinkState::Ready),
+                ]
+            );
+            // The next program goes on the next read request.
+            let next = program(5);
+            load(&mut h, now, &next);
+            h.handle_input(now, &[0x11]);
+            assert_eq!(drain_tx(&mut h, now), next);
+        }
+    }
+
+    #[test]
+    fn dc3_nak_is_a_cnc_alarm_and_a_queued_program_stays() {
+        let (mut h, now) = host(CodeSystem::Iso, true, true);
+        load(&mut h, now, &program(500));
+        h.handle_input(now, &[0x11]);
+        let _ = h.poll_transmit(now).unwrap();
+        events(&mut h);
+        // Parity-less form accepted defensively with ISO.
+        h.handle_input(now, &[0x13, 0x15]);
+        let evs = events(&mut h);
+        assert_eq!(evs.first(), Some(&EngineEvent::CncAlarm));
+        assert!(evs.contains(&EngineEvent::ProgramAborted {
+            reason: REASON_ALARM.into(),
+            cancelled: false
+        }));
+        // Idle notice (§6.1.2 1): a queued, unstarted program stays queued.
+        let next = program(5);
+        load(&mut h, now, &next);
+        h.handle_input(now, &[0x95]);
+        assert_eq!(events(&mut h), vec![EngineEvent::CncAlarm]);
+        h.handle_input(now, &[0x11]);
+        assert_eq!(drain_tx(&mut h, now), next);
+    }
+
+    #[test]
+    fn punch_out_produces_exactly_the_punched_bytes() {
+        let (mut h, now) = host(CodeSystem::Iso, false, true);
+        let data: Vec<u8> = b"%\nO0002\nG00X0\n%"
+            .iter()
+            .map(|&b| CodeSystem::Iso.encode(b))
+            .collect();
+        // Split anywhere; DC4 with or without bit 7.
+        h.handle_input(now, &[0x12]);
+        h.handle_input(now, &data[..5]);
+        assert_eq!(
+            events(&mut h),
+            vec![EngineEvent::State(LinkState::Receiving)]
+        );
+        h.handle_input(now, &data[5..]);
+        h.handle_input(now, &[0x14]);
+        let evs = events(&mut h);
+        assert_eq!(punched(&evs), data);
+        assert_eq!(evs.last(), Some(&EngineEvent::State(LinkState::Ready)));
+        assert_eq!(h.punch_held(), 0);
+        // A punch-out cut by a reset: DC4 then SYN (§6.1.2 2 (5)).
+        h.handle_input(now, &[0x12, b'O', b'1', 0x94, 0x96]);
+        let evs = events(&mut h);
+        assert_eq!(punched(&evs), b"O1");
+        assert!(evs.contains(&EngineEvent::CncReset));
+        assert_eq!(h.poll_transmit(now), None);
+    }
+
+    #[test]
+    fn punch_out_flow_control_sends_dc3_then_dc1_or_dc2() {
+        for (notify, resume) in [(true, 0x11), (false, 0x12)] {
+            let (mut h, now) = host(CodeSystem::Iso, false, notify);
+            let high = h.config().punch_high_water;
+            h.handle_input(now, &[0x12]);
+            h.handle_input(now, &vec![b'A'; high]);
+            assert_eq!(h.poll_transmit(now), None);
+            // One more byte not taken: DC3 in the configured code.
+            h.handle_input(now, b"B");
+            assert_eq!(h.poll_transmit(now), Some(vec![0x93]));
+            // Overrun within the allowance is kept.
+            h.handle_input(now, &vec![b'C'; 400]);
+            assert_eq!(h.punch_held(), high + 401);
+            // Taking the pieces resumes the board.
+            let mut got = punched(&events(&mut h));
+            assert_eq!(got.len() + h.punch_held(), high + 401);
+            assert_eq!(h.poll_transmit(now), Some(vec![resume]));
+            h.handle_input(now, &[0x14]);
+            got.extend(punched(&events(&mut h)));
+            let mut expected = vec![b'A'; high];
+            expected.push(b'B');
+            expected.extend([b'C'; 400]);
+            assert!(got == expected, "punched data differs");
+            assert_eq!(h.poll_transmit(now), None);
+        }
+    }
+
+    #[test]
+    fn punch_overflow_is_dropped_and_reported() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        let max = h.config().max_buffer;
+        h.handle_input(now, &[0x12]);
+        h.handle_input(now, &vec![b'A'; max + 10]);
+        assert_eq!(h.punch_held(), max);
+        let evs = events(&mut h);
+        assert!(evs.iter().any(|e| matches!(
+            e,
+            EngineEvent::ProtocolError { error, .. } if error.contains("10 punched byte(s) dropped")
+        )));
+    }
+
+    #[test]
+    fn cancel_aborts_and_the_next_program_waits_for_a_new_read() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        load(&mut h, now, &program(500));
+        h.handle_input(now, &[0x11]);
+        let _ = h.poll_transmit(now).unwrap();
+        events(&mut h);
+        h.handle_command(now, EngineCommand::Cancel);
+        assert_eq!(h.poll_transmit(now), None);
+        assert!(events(&mut h).contains(&EngineEvent::ProgramAborted {
+            reason: REASON_CANCELLED.into(),
+            cancelled: true
+        }));
+        load(&mut h, now, &program(5));
+        assert_eq!(h.poll_transmit(now), None);
+        h.handle_input(now, &[0x13, 0x11]);
+        assert_eq!(drain_tx(&mut h, now), program(5));
+    }
+
+    #[test]
+    fn do_di_and_clb_do_not_exist_in_protocol_b() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        for c in [
+            EngineCommand::SetDo(1),
+            EngineCommand::ReadDi,
+            EngineCommand::ClearBuffer,
+        ] {
+            h.handle_command(now, c);
+            let evs = events(&mut h);
+            assert!(matches!(
+                evs.as_slice(),
+                [EngineEvent::ProtocolError { error, retried: false }]
+                    if error.contains("not available in Protocol B (§6)")
+            ));
+        }
+        assert_eq!(h.poll_transmit(now), None);
+    }
+
+    #[test]
+    fn dr_off_raises_sr0855_and_aborts() {
+        let (mut h, now) = host(CodeSystem::Iso, false, true);
+        load(&mut h, now, &program(500));
+        h.handle_input(now, &[0x11]);
+        let _ = h.poll_transmit(now).unwrap();
+        events(&mut h);
+        let down = ModemIn {
+            dr: false,
+            ..ModemIn::ALL_ON
+        };
+        h.handle_modem(now, down);
+        let evs = events(&mut h);
+        assert!(matches!(
+            evs.first(),
+            Some(EngineEvent::Alarm {
+                alarm: Some(CncAlarm::Sr0855DataSetReadyDown),
+                ..
+            })
+        ));
+        assert!(evs.contains(&EngineEvent::ProgramAborted {
+            reason: REASON_DR_OFF.into(),
+            cancelled: false
+        }));
+        assert_eq!(evs.last(), Some(&EngineEvent::State(LinkState::LineDown)));
+        h.handle_input(now, &[0x11]);
+        assert_eq!(h.poll_transmit(now), None);
+        h.handle_modem(now, ModemIn::ALL_ON);
+        assert_eq!(events(&mut h), vec![EngineEvent::State(LinkState::Ready)]);
+    }
+
+    #[test]
+    fn cs_off_pauses_sending() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        let prog = program(100);
+        load(&mut h, now, &prog);
+        h.handle_input(now, &[0x11]);
+        let mut sent = h.poll_transmit(now).unwrap();
+        h.handle_modem(
+            now,
+            ModemIn {
+                cs: false,
+                ..ModemIn::ALL_ON
+            },
+        );
+        assert_eq!(h.poll_transmit(now), None);
+        h.handle_modem(now, ModemIn::ALL_ON);
+        sent.extend(drain_tx(&mut h, now));
+        assert_eq!(sent, prog);
+    }
+
+    #[test]
+    fn garbage_is_reported_and_ignored() {
+        let (mut h, now) = host(CodeSystem::Iso, false, true);
+        h.handle_input(now, b"hello");
+        let evs = events(&mut h);
+        assert!(matches!(
+            evs.as_slice(),
+            [EngineEvent::ProtocolError { error, .. }] if error.starts_with("5 received byte(s) starting with 0x68")
+        ));
+        h.handle_line_error(now, LineError::Parity);
+        assert_eq!(events(&mut h).len(), 1);
+    }
+
+    proptest! {
+        #[test]
+        fn arbitrary_input_never_panics_and_stays_bounded(
+            chunks in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..200), 0..60),
+            take_events in any::<bool>(),
+            expansion in any::<bool>(),
+        ) {
+            let now = Instant::now();
+            let cfg = ProtocolBConfig {
+                max_buffer: 4096,
+                punch_piece: 512,
+                punch_high_water: 4096 - 2 * 1280,
+                ..ProtocolBConfig::new(CodeSystem::Iso, expansion, true)
+            };
+            let mut h = ProtocolBHost::new(cfg, now).unwrap();
+            let mut sent = Vec::new();
+            let prog = program(3000);
+            for (i, chunk) in chunks.iter().enumerate() {
+                if i % 7 == 0 {
+                    load(&mut h, now, &prog);
+                }
+                h.handle_input(now, chunk);
+                if let Some(out) = h.poll_transmit(now) {
+                    prop_assert!(out.len() <= 64);
+                    sent.extend(out);
+                }
+                if take_events {
+                    events(&mut h);
+                }
+                prop_assert!(h.punch_held() <= 4096);
+                prop_assert!(h.program_buffered() <= prog.len());
+            }
+        }
     }
 }
