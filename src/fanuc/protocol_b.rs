@@ -35,7 +35,9 @@
 //!
 //! DC2 starts punched data; every byte up to DC4 is the punched program, passed on as it was
 //! received (parity bit included) in [`EngineEvent::Punched`] pieces of at most
-//! [`ProtocolBConfig::punch_piece`] bytes. Punched bytes held by the engine (not yet taken with
+//! [`ProtocolBConfig::punch_piece`] bytes. A piece also ends at each program's EOR (the `%`
+//! after a significant character, protocol notes 8) and at DC4, so a punch-out of several
+//! programs comes out program by program. Punched bytes held by the engine (not yet taken with
 //! [`Engine::poll_event`]) are bounded: above [`ProtocolBConfig::punch_high_water`] the host
 //! sends DC3 (method (b) of §6.1.1 2 (3)); once the held data has dropped to half of that it
 //! resumes the board with DC1 when notification is on and DC2 when it is off (protocol notes
@@ -63,7 +65,7 @@ use bytes::Bytes;
 
 use crate::fanuc::CodeSystem;
 use crate::fanuc::alarm::CncAlarm;
-use crate::fanuc::code::{DC1, DC2, DC3, DC4, NAK, SYN};
+use crate::fanuc::code::{DC1, DC2, DC3, DC4, EOR, NAK, SYN};
 use crate::fanuc::protocol_a::program::Program;
 use crate::link::{Engine, EngineCommand, EngineEvent, HostEngine, LinkState};
 use crate::transport::{LineError, ModemIn};
@@ -230,6 +232,8 @@ pub struct ProtocolBHost {
     punch_queued: usize,
     /// The host stopped the board's punch-out with DC3.
     punch_paused: bool,
+    /// A significant character was punched since the last EOR: the next `%` ends a program.
+    punch_body: bool,
 }
 
 impl std::fmt::Debug for ProtocolBHost {
@@ -265,6 +269,7 @@ impl ProtocolBHost {
             punch: Vec::new(),
             punch_queued: 0,
             punch_paused: false,
+            punch_body: false,
         })
     }
 
@@ -373,6 +378,7 @@ impl ProtocolBHost {
             DC2 => {
                 self.rx = Rx::Punch;
                 self.punch_paused = false;
+                self.punch_body = false;
             }
             SYN => self.on_notice(true),
             NAK => self.on_notice(false),
@@ -404,7 +410,16 @@ impl ProtocolBHost {
             return;
         }
         self.punch.push(b);
-        if self.punch.len() >= self.cfg.punch_piece {
+        // A piece ends with each program's EOR (protocol notes 8), so that a punch-out of
+        // several programs comes out program by program.
+        let c = CodeSystem::strip(b);
+        let eor = c == EOR && self.punch_body;
+        if c == EOR {
+            self.punch_body = false;
+        } else if !matches!(c, 0x00 | 0x7F | b' ' | b'\t' | b'\n' | b'\r') {
+            self.punch_body = true;
+        }
+        if eor || self.punch.len() >= self.cfg.punch_piece {
             self.flush_punch();
         }
         if !self.punch_paused && self.punch_held() > self.cfg.punch_high_water {
@@ -605,7 +620,6 @@ impl HostEngine for ProtocolBHost {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fanuc::code::EOR;
     use proptest::prelude::*;
 
     fn host(code: CodeSystem, expansion: bool, notify: bool) -> (ProtocolBHost, Instant) {
@@ -1006,7 +1020,91 @@ mod tests {
         assert_eq!(events(&mut h).len(), 1);
     }
 
+    #[test]
+    fn punched_pieces_end_at_each_programs_eor() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        h.handle_input(now, b"\x12\n%\nO1\nX1\n%\nO2\nX2\n%\x14");
+        let pieces: Vec<Vec<u8>> = events(&mut h)
+            .into_iter()
+            .filter_map(|e| match e {
+                EngineEvent::Punched { data } => Some(data.to_vec()),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(
+            pieces,
+            vec![b"\n%\nO1\nX1\n%".to_vec(), b"\nO2\nX2\n%".to_vec()]
+        );
+    }
+
+    #[test]
+    fn notices_are_reported_with_notification_off_too() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, false);
+        h.handle_input(now, &[0x13, 0x16, 0x15]);
+        assert_eq!(
+            events(&mut h),
+            vec![EngineEvent::CncReset, EngineEvent::CncAlarm]
+        );
+    }
+
+    #[test]
+    fn a_dc3_not_sent_yet_is_dropped_rather_than_resumed() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, false);
+        let high = h.config().punch_high_water;
+        h.handle_modem(
+            now,
+            ModemIn {
+                cs: false,
+                ..ModemIn::ALL_ON
+            },
+        );
+        h.handle_input(now, &[0x12]);
+        h.handle_input(now, &vec![b'A'; high + 1]);
+        // CS off: the DC3 waits; the data is taken meanwhile.
+        assert_eq!(h.poll_transmit(now), None);
+        events(&mut h);
+        h.handle_modem(now, ModemIn::ALL_ON);
+        assert_eq!(h.poll_transmit(now), None);
+        assert!(h.punch_held() <= high / 2);
+    }
+
     proptest! {
+        /// A board that stops and resumes the host at random: nothing goes out while stopped,
+        /// at most one piece is on its way when DC3 arrives, and the board gets exactly the
+        /// program.
+        #[test]
+        fn random_dc1_dc3_flow_delivers_the_program_exactly(
+            steps in proptest::collection::vec((any::<bool>(), 0usize..4), 1..200),
+            iso in any::<bool>(),
+        ) {
+            let code = if iso { CodeSystem::Iso } else { CodeSystem::Ascii };
+            let (mut h, now) = host(code, false, true);
+            let prog = program(3000);
+            load(&mut h, now, &prog);
+            let mut sent = Vec::new();
+            let mut stopped = true;
+            for (dc1, polls) in steps {
+                h.handle_input(now, &[code.control(if dc1 { DC1 } else { DC3 })]);
+                stopped = !dc1;
+                for _ in 0..polls {
+                    match h.poll_transmit(now) {
+                        Some(out) => {
+                            prop_assert!(!stopped, "data after DC3");
+                            prop_assert!(out.len() <= 64);
+                            sent.extend(out);
+                        }
+                        None => break,
+                    }
+                }
+                prop_assert!(prog.starts_with(&sent));
+            }
+            if stopped {
+                h.handle_input(now, &[0x11]);
+            }
+            sent.extend(drain_tx(&mut h, now));
+            prop_assert!(sent == prog, "the board got other bytes than the program");
+        }
+
         #[test]
         fn arbitrary_input_never_panics_and_stays_bounded(
             chunks in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..200), 0..60),
