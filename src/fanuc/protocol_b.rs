@@ -63,10 +63,10 @@ use std::time::Instant;
 
 use bytes::Bytes;
 
-use crate::fanuc::CodeSystem;
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::code::{DC1, DC2, DC3, DC4, EOR, NAK, SYN};
 use crate::fanuc::protocol_a::program::Program;
+use crate::fanuc::{CodeSystem, Protocol};
 use crate::link::{Engine, EngineCommand, EngineEvent, HostEngine, LinkState};
 use crate::transport::{LineError, ModemIn};
 
@@ -83,8 +83,9 @@ pub struct ProtocolBConfig {
     pub code: CodeSystem,
     /// Expansion Protocol B (§7) rather than Protocol B.
     pub expansion: bool,
-    /// CNC reset/alarm is posted to the host (parameter 5003#3 = 1, §6.1.2): selects DC1 rather
-    /// than DC2 to resume a punch-out (protocol notes 11).
+    /// CNC reset/alarm is posted to the host (§6.1.2; the manual names the parameter bit
+    /// 5000#3 "ETX" in §6.1 and 5003#3 in §6.4): selects DC1 rather than DC2 to resume a
+    /// punch-out (protocol notes 11).
     pub notify_alarm_reset: bool,
     /// The board's overrun allowance after DC3 (§6.3, §7): [`OVERRUN_B`] or
     /// [`OVERRUN_EXPANSION_B`].
@@ -120,6 +121,19 @@ impl ProtocolBConfig {
             punch_piece: 16 * 1024,
             // Room for the board's overrun after DC3, twice over (§6.3).
             punch_high_water: max_buffer - 2 * overrun_allowance,
+        }
+    }
+
+    /// The settings for `protocol`, or `None` for the Protocol A family.
+    pub fn for_protocol(
+        protocol: Protocol,
+        code: CodeSystem,
+        notify_alarm_reset: bool,
+    ) -> Option<Self> {
+        match protocol {
+            Protocol::B => Some(Self::new(code, false, notify_alarm_reset)),
+            Protocol::ExpansionB => Some(Self::new(code, true, notify_alarm_reset)),
+            Protocol::A | Protocol::ExpansionA => None,
         }
     }
 
@@ -678,6 +692,14 @@ mod tests {
         let eb = ProtocolBConfig::new(CodeSystem::Iso, true, false);
         assert_eq!(eb.overrun_allowance, 1280);
         assert!(eb.validate().is_empty());
+        assert_eq!(
+            ProtocolBConfig::for_protocol(Protocol::ExpansionB, CodeSystem::Iso, false),
+            Some(eb.clone())
+        );
+        assert_eq!(
+            ProtocolBConfig::for_protocol(Protocol::A, CodeSystem::Iso, false),
+            None
+        );
         let bad = ProtocolBConfig { tx_piece: 300, ..b };
         assert!(matches!(
             bad.validate().as_slice(),
