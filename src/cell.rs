@@ -160,6 +160,17 @@ impl Cell {
         })
     }
 
+    /// The links as the bus routes take them.
+    pub fn machine_links(&self) -> Vec<crate::bus::MachineLink> {
+        self.machines
+            .iter()
+            .map(|m| crate::bus::MachineLink {
+                config: m.config.clone(),
+                link: m.link.clone(),
+            })
+            .collect()
+    }
+
     pub fn machine(&self, name: &str) -> Option<&MachineRuntime> {
         self.machines.iter().find(|m| m.config.name == name)
     }
@@ -178,9 +189,10 @@ impl Cell {
     }
 }
 
-/// The simulated board for a `sim` machine: the board powers on with the §4.5 defaults (the
-/// host sets its own values by SET) and its CNC starts reading by itself, so that queued jobs
-/// are delivered without an operator.
+/// The simulated board for a `sim` machine. It powers on with the machine's configured §4.5
+/// values rather than the factory ones: the host sets them by SET at the first SAT anyway, and
+/// a short Tp then applies from the first poll. Its CNC starts reading by itself, so that
+/// queued jobs are delivered without an operator.
 fn machine_board_config(
     machine: &MachineConfig,
     framing: Framing,
@@ -193,6 +205,7 @@ fn machine_board_config(
             Protocol::A
         },
         framing,
+        params: machine.params(),
         buffer_size: sim.buffer_size as usize,
         consume_rate: sim.consume_rate,
         autostart: true,

@@ -14,10 +14,11 @@
 
 use std::future::Future;
 
-use tokio::task::JoinSet;
+use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
 use crate::bus::{self, BusError};
+use crate::cell::Cell;
 use crate::config::CellConfig;
 
 /// The crate version, as reported by `--version` and the admin key.
@@ -37,6 +38,9 @@ pub enum GatewayError {
         #[source]
         source: zenoh::Error,
     },
+    /// A machine link could not be started.
+    #[error(transparent)]
+    Cell(#[from] crate::cell::CellError),
     /// The session did not close cleanly.
     #[error("closing the zenoh session: {0}")]
     Close(#[source] zenoh::Error),
@@ -105,7 +109,14 @@ async fn serve(
     let zid = session.zid().to_string();
     let admin_reply = admin_document(config, &zid).to_string();
 
-    let mut links = start_machine_links(config, session);
+    // The links run until the routes have stopped, so that every job's end is reported.
+    let links_stop = CancellationToken::new();
+    let cell = Cell::start(config, &links_stop).await?;
+    let machines = cell.machine_links();
+    let routes_stop = CancellationToken::new();
+    let routes = bus::serve(session, config, machines, routes_stop.clone());
+    tokio::pin!(routes);
+    let mut routes_result = None;
 
     // Zenoh's own list of bound locators is an unstable API; the configured endpoints
     // are what the session bound, since opening fails otherwise.
@@ -140,16 +151,24 @@ async fn serve(
                 // The session was closed under us: nothing more will arrive.
                 Err(_) => break,
             },
-            Some(ended) = links.join_next() => {
-                // Later work: a link task that ends is restarted or reported here.
-                if let Err(e) = ended {
-                    tracing::error!(error = %e, "a link task ended abnormally");
+            result = &mut routes, if routes_result.is_none() => {
+                // The routes only end early on an error: the gateway cannot serve its cell.
+                if let Err(e) = &result {
+                    tracing::error!(error = %e, "the bus routes stopped");
                 }
+                routes_result = Some(result);
+                break;
             }
         }
     }
 
-    links.shutdown().await;
+    routes_stop.cancel();
+    let routes_result = match routes_result {
+        Some(r) => r,
+        None => routes.await,
+    };
+    links_stop.cancel();
+    cell.join().await;
     // Undeclare explicitly so peers see the token go at once rather than on session close.
     let undeclared_admin = queryable.undeclare().await;
     let undeclared_token = token.undeclare().await;
@@ -161,25 +180,7 @@ async fn serve(
             tracing::warn!(error = %e, "undeclaring the {what} failed");
         }
     }
-    Ok(())
-}
-
-/// Starts one task per configured machine and PLC link.
-///
-/// Not written yet: no link is driven, whatever the cell file says. The gateway says so
-/// in its log rather than pretend. Later work spawns each link's driver task into the
-/// returned set; [`serve`] watches the set and shuts it down on exit.
-fn start_machine_links(config: &CellConfig, _session: &Session) -> JoinSet<()> {
-    let links = JoinSet::new();
-    let configured = config.machines.len() + config.plcs.len();
-    if configured > 0 {
-        tracing::warn!(
-            machines = config.machines.len(),
-            plcs = config.plcs.len(),
-            "machine and PLC links are not implemented yet: none of the configured links is driven"
-        );
-    }
-    links
+    routes_result.map_err(GatewayError::from)
 }
 
 #[cfg(test)]

@@ -59,6 +59,16 @@ enum Command {
     Program(client::ProgramCommand),
     /// Cancel a job, waiting or running.
     Cancel(client::CancelArgs),
+    /// Run a simulated device on its own, for testing any host against it.
+    #[command(subcommand)]
+    Sim(SimCommand),
+}
+
+#[derive(Debug, Subcommand)]
+enum SimCommand {
+    /// A FANUC remote-buffer board with a CNC behind it, served as a TCP serial device
+    /// server; prints one JSON object per line for each event.
+    Fanuc(cellgate::sim::server::SimFanucArgs),
 }
 
 #[derive(Debug, Args)]
@@ -91,6 +101,15 @@ enum LogFormatArg {
     Json,
 }
 
+impl From<LogFormatArg> for LogFormat {
+    fn from(f: LogFormatArg) -> Self {
+        match f {
+            LogFormatArg::Human => LogFormat::Human,
+            LogFormatArg::Json => LogFormat::Json,
+        }
+    }
+}
+
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum ModeArg {
     Peer,
@@ -110,6 +129,7 @@ fn main() -> ExitCode {
         Command::Di(ref args) => client_command(&cli, args),
         Command::Program(ref args) => client_command(&cli, args),
         Command::Cancel(ref args) => client_command(&cli, args),
+        Command::Sim(SimCommand::Fanuc(ref args)) => sim_fanuc(&cli, args.clone()),
     }
 }
 
@@ -130,6 +150,50 @@ fn client_command(cli: &Cli, command: &impl client::ClientCommand) -> ExitCode {
             .try_init();
     }
     client::execute(command)
+}
+
+/// `cellgate sim fanuc ...`: logs go to stderr, events as JSON lines to stdout.
+fn sim_fanuc(cli: &Cli, args: cellgate::sim::server::SimFanucArgs) -> ExitCode {
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
+            return ExitCode::from(EXIT_RUNTIME);
+        }
+    };
+    let mut telemetry = cellgate::telemetry::TelemetryConfig::default();
+    if let Some(format) = cli.log_format {
+        telemetry.log_format = format.into();
+    }
+    runtime.block_on(async move {
+        let mut guard = match telemetry::init(&telemetry) {
+            Ok(guard) => guard,
+            Err(e) => {
+                eprintln!("cellgate: {e}");
+                return ExitCode::from(EXIT_CONFIG);
+            }
+        };
+        let code = match shutdown_signal() {
+            Ok(shutdown) => match cellgate::sim::server::serve_fanuc(args, shutdown).await {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("cellgate sim fanuc: {e}");
+                    ExitCode::from(EXIT_CONFIG)
+                }
+            },
+            Err(e) => {
+                eprintln!("cellgate: cannot install the SIGINT/SIGTERM handlers: {e}");
+                ExitCode::from(EXIT_RUNTIME)
+            }
+        };
+        if let Err(e) = guard.shutdown() {
+            eprintln!("cellgate: {e}");
+        }
+        code
+    })
 }
 
 /// `cellgate check-config FILE`.
@@ -233,10 +297,7 @@ fn apply_overrides(config: &mut CellConfig, cli: &Cli, args: &RunArgs) -> bool {
         any = true;
     }
     if let Some(format) = cli.log_format {
-        config.telemetry.log_format = match format {
-            LogFormatArg::Human => LogFormat::Human,
-            LogFormatArg::Json => LogFormat::Json,
-        };
+        config.telemetry.log_format = format.into();
     }
     match cli.verbose {
         0 => {}

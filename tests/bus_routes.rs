@@ -2,12 +2,14 @@
 //! whose links are stand-ins, and a client session talking to it over tcp/127.0.0.1 with
 //! multicast scouting off. Real time (zenoh cannot run under paused time), short waits.
 
+mod common;
+
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use cellgate::bus::keys::{CellKeys, MachineLeaf};
-use cellgate::bus::{self, BusConfig, BusMode, MachineLink};
+use cellgate::bus::{self, MachineLink};
 use cellgate::config::CellConfig;
 use cellgate::fanuc::alarm::CncAlarm;
 use cellgate::fanuc::sat::{BufferStatus, Params, StatusData};
@@ -21,6 +23,8 @@ use tokio::sync::{Semaphore, broadcast, mpsc};
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 use zenoh::sample::Locality;
+
+use common::bus::{client_config, eventually, free_port, get, get_err, get_one, wait_token};
 
 // ---------------------------------------------------------------------------------------------
 // A stand-in link: takes jobs when released, "sends" them in chunks, answers DO and DI.
@@ -211,14 +215,6 @@ struct Cell {
     dir: tempfile::TempDir,
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 async fn start_cell(pace: Duration) -> Cell {
     let port = free_port();
     let dir = tempfile::tempdir().unwrap();
@@ -250,14 +246,7 @@ async fn start_cell(pace: Duration) -> Cell {
         ];
         tokio::spawn(async move { bus::serve(&gw, &cfg, machines, stop).await })
     };
-    let client = bus::open(&BusConfig {
-        mode: BusMode::Client,
-        listen: Vec::new(),
-        connect: vec![format!("tcp/127.0.0.1:{port}")],
-        ..BusConfig::default()
-    })
-    .await
-    .unwrap();
+    let client = bus::open(&client_config(port)).await.unwrap();
     let cell = Cell {
         gateway,
         client,
@@ -320,81 +309,6 @@ impl Cell {
         }
         panic!("the client's subscription to {key} never reached the gateway");
     }
-}
-
-type Replies = Vec<Result<(String, Vec<u8>, String), (Vec<u8>, String)>>;
-
-/// Every reply to a get on `key`, with its key, payload and encoding (or error payload and
-/// encoding).
-async fn get(client: &Session, key: &str, payload: Option<Vec<u8>>) -> Replies {
-    let mut builder = client.get(key.to_string()).timeout(Duration::from_secs(5));
-    if let Some(p) = payload {
-        builder = builder.payload(p);
-    }
-    let replies = builder.await.unwrap();
-    let mut out = Vec::new();
-    while let Ok(reply) = replies.recv_async().await {
-        out.push(match reply.result() {
-            Ok(s) => Ok((
-                s.key_expr().to_string(),
-                s.payload().to_bytes().into_owned(),
-                s.encoding().to_string(),
-            )),
-            Err(e) => Err((
-                e.payload().to_bytes().into_owned(),
-                e.encoding().to_string(),
-            )),
-        });
-    }
-    out
-}
-
-/// The one message answering a get, decoded; panics on an error reply.
-async fn get_one<M: Message + Default>(client: &Session, key: &str, payload: Option<Vec<u8>>) -> M {
-    let replies = get(client, key, payload).await;
-    assert_eq!(replies.len(), 1, "{key}: {replies:?}");
-    match replies.into_iter().next().unwrap() {
-        Ok((_, bytes, _)) => M::decode(bytes.as_slice()).unwrap(),
-        Err((bytes, _)) => panic!(
-            "{key}: error reply {:?}",
-            pb::ErrorReply::decode(bytes.as_slice())
-        ),
-    }
-}
-
-/// The one error reply to a get.
-async fn get_err(client: &Session, key: &str, payload: Option<Vec<u8>>) -> pb::ErrorReply {
-    let replies = get(client, key, payload).await;
-    assert_eq!(replies.len(), 1, "{key}: {replies:?}");
-    match replies.into_iter().next().unwrap() {
-        Err((bytes, encoding)) => {
-            assert_eq!(encoding, "application/protobuf;cellgate.v1.ErrorReply");
-            pb::ErrorReply::decode(bytes.as_slice()).unwrap()
-        }
-        Ok(ok) => panic!("{key}: expected an error, got {ok:?}"),
-    }
-}
-
-async fn wait_token(client: &Session, key: &str, present: bool) {
-    for _ in 0..100 {
-        let replies = client.liveliness().get(key.to_string()).await.unwrap();
-        if replies.recv_async().await.is_ok() == present {
-            return;
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    panic!("liveliness token {key} never became present = {present}");
-}
-
-/// Polls `check` until it holds, for up to 5 s.
-async fn eventually(what: &str, mut check: impl FnMut() -> bool) {
-    for _ in 0..250 {
-        if check() {
-            return;
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    panic!("never happened: {what}");
 }
 
 fn request(program: pb::job_request::Program) -> pb::JobRequest {

@@ -61,14 +61,8 @@ async fn one_mib_expansion_a_n4_86400() {
     one_mib("expansion-a", Some(4), 86_400).await;
 }
 
-#[tokio::test(start_paused = true)]
-async fn do_and_di_round_trip() {
-    let config = sim_cell("a", None, 19_200, 2000);
-    let (cell, token) = start(&config).await;
-    let m = cell.machine("m1").unwrap();
-    let board = m.board.as_ref().unwrap();
-    let mut events = m.link.subscribe();
-    next_event(&mut events, HOUR, |ev| {
+async fn wait_ready(events: &mut tokio::sync::broadcast::Receiver<LinkEvent>) {
+    next_event(events, HOUR, |ev| {
         matches!(
             ev,
             LinkEvent::State {
@@ -78,6 +72,16 @@ async fn do_and_di_round_trip() {
         .then_some(())
     })
     .await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn do_and_di_round_trip() {
+    let config = sim_cell("a", None, 19_200, 2000);
+    let (cell, token) = start(&config).await;
+    let m = cell.machine("m1").unwrap();
+    let board = m.board.as_ref().unwrap();
+    let mut events = m.link.subscribe();
+    wait_ready(&mut events).await;
 
     m.link
         .send(LinkCommand::SetDo {
@@ -120,16 +124,7 @@ async fn cnc_alarm_and_reset_come_out_as_events() {
     let m = cell.machine("m1").unwrap();
     let board = m.board.as_ref().unwrap();
     let mut events = m.link.subscribe();
-    next_event(&mut events, HOUR, |ev| {
-        matches!(
-            ev,
-            LinkEvent::State {
-                state: cellgate::link::LinkState::Ready
-            }
-        )
-        .then_some(())
-    })
-    .await;
+    wait_ready(&mut events).await;
     board.raise_alarm();
     next_event(&mut events, HOUR, |ev| {
         matches!(ev, LinkEvent::CncAlarm).then_some(())
@@ -198,16 +193,7 @@ async fn retry_over_raises_alarm_cause_1_and_sr0945() {
     let line = m.line.as_ref().unwrap();
     let board = m.board.as_ref().unwrap();
     let mut events = m.link.subscribe();
-    next_event(&mut events, HOUR, |ev| {
-        matches!(
-            ev,
-            LinkEvent::State {
-                state: cellgate::link::LinkState::Ready
-            }
-        )
-        .then_some(())
-    })
-    .await;
+    wait_ready(&mut events).await;
     // Every answer the host sends arrives with one corrupted character until the board gives
     // up: Ne = 10 retries (§4.5), then a reception error with alarm cause 1 (§4.4.2, §4.6 2 (1)).
     // One character is armed each time the board sends SAT or RTY, so the host's answer to it

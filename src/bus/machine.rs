@@ -229,6 +229,27 @@ pub(crate) struct Publishers {
 /// The machine's task: keeps the view, publishes status on change, DI when read, alarms,
 /// and job events; holds the liveliness token while the link is up; polls DI when
 /// configured. Ends when `stop` is cancelled, after publishing the job events still pending.
+/// Declares the machine's liveliness token while its link is up, and withdraws it otherwise.
+async fn sync_token(
+    machine: &Machine,
+    session: &Session,
+    keys: &CellKeys,
+    token: &mut Option<LivelinessToken>,
+) {
+    let up = machine.link_up();
+    if up && token.is_none() {
+        let key = keys.machine(machine.name());
+        match session.liveliness().declare_token(key.as_str()).await {
+            Ok(t) => *token = Some(t),
+            Err(e) => {
+                tracing::warn!(%key, error = %e, "cannot declare the machine's liveliness token")
+            }
+        }
+    } else if !up && let Some(t) = token.take() {
+        undeclare_token(t).await;
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 pub(crate) async fn run(
     machine: Arc<Machine>,
@@ -254,6 +275,11 @@ pub(crate) async fn run(
         });
     let mut poll = poll;
     let mut jobs_running = true;
+    // Events the link sent before this task subscribed are not replayed: start from its state.
+    if let Some(state) = machine.link.state() {
+        let _ = machine.on_link_event(&LinkEvent::State { state });
+        sync_token(&machine, &session, &keys, &mut token).await;
+    }
     publish_status(&machine, &publishers.status, &mut published).await;
     loop {
         tokio::select! {
@@ -266,16 +292,7 @@ pub(crate) async fn run(
                         Some(Extra::Alarm(alarm)) => put(&publishers.alarm, &alarm).await,
                         None => {}
                     }
-                    let up = machine.link_up();
-                    if up && token.is_none() {
-                        let key = keys.machine(&name);
-                        match session.liveliness().declare_token(key.as_str()).await {
-                            Ok(t) => token = Some(t),
-                            Err(e) => tracing::warn!(%key, error = %e, "cannot declare the machine's liveliness token"),
-                        }
-                    } else if !up && let Some(t) = token.take() {
-                        undeclare_token(t).await;
-                    }
+                    sync_token(&machine, &session, &keys, &mut token).await;
                 }
                 Err(broadcast::error::RecvError::Lagged(n)) => {
                     tracing::warn!(machine = %name, missed = n, "the bus fell behind this link's events");

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use serde::Serialize;
 use tokio::io::{AsyncRead, AsyncReadExt};
-use tokio::sync::{broadcast, mpsc};
+use tokio::sync::{broadcast, mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
 use super::pump::{Pump, PumpError, now};
@@ -137,6 +137,8 @@ pub struct LinkHandle {
     machine: String,
     commands: mpsc::Sender<LinkCommand>,
     events: broadcast::Sender<LinkEvent>,
+    /// The link's state now, for whoever starts watching after the link started.
+    state: watch::Receiver<Option<LinkState>>,
 }
 
 impl LinkHandle {
@@ -148,10 +150,13 @@ impl LinkHandle {
         commands: mpsc::Sender<LinkCommand>,
         events: broadcast::Sender<LinkEvent>,
     ) -> Self {
+        // A link built from bare channels reports its state by events only.
+        let (_, state) = watch::channel(None);
         LinkHandle {
             machine: machine.into(),
             commands,
             events,
+            state,
         }
     }
 
@@ -173,6 +178,12 @@ impl LinkHandle {
     pub fn subscribe(&self) -> broadcast::Receiver<LinkEvent> {
         self.events.subscribe()
     }
+
+    /// The link's current state (`None` before the engine reported one). Events sent before a
+    /// subscriber subscribed are not replayed; this is what such a subscriber starts from.
+    pub fn state(&self) -> Option<LinkState> {
+        *self.state.borrow()
+    }
 }
 
 /// Starts the link task for `machine`. It ends when `shutdown` is cancelled, when every
@@ -190,16 +201,19 @@ where
     let machine = machine.into();
     let (cmd_tx, cmd_rx) = mpsc::channel(64);
     let (ev_tx, _) = broadcast::channel(1024);
+    let (state_tx, state_rx) = watch::channel(None);
     let handle = LinkHandle {
         machine: machine.clone(),
         commands: cmd_tx,
         events: ev_tx.clone(),
+        state: state_rx,
     };
     let span = tracing::info_span!("link", machine = %machine, line = %transport.describe());
     let driver = Driver {
         pump: Pump::new(engine, transport),
         commands: cmd_rx,
         events: ev_tx,
+        state: state_tx,
         queue: VecDeque::new(),
         active: None,
         do_image: 0,
@@ -223,6 +237,7 @@ struct Driver<E, T> {
     pump: Pump<E, T>,
     commands: mpsc::Receiver<LinkCommand>,
     events: broadcast::Sender<LinkEvent>,
+    state: watch::Sender<Option<LinkState>>,
     queue: VecDeque<ProgramJob>,
     active: Option<ActiveJob>,
     do_image: u8,
@@ -389,7 +404,10 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
 
     fn on_engine_event(&mut self, event: EngineEvent) {
         let event = match event {
-            EngineEvent::State(state) => LinkEvent::State { state },
+            EngineEvent::State(state) => {
+                self.state.send_replace(Some(state));
+                LinkEvent::State { state }
+            }
             EngineEvent::Status(status) => LinkEvent::Status { status },
             EngineEvent::Di(value) => LinkEvent::Di { value },
             EngineEvent::DoSent(value) => {

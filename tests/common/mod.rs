@@ -1,6 +1,8 @@
 //! Shared set-up for tests that run a simulated cell.
 #![allow(dead_code)]
 
+pub mod bus;
+
 use std::time::Duration;
 
 use cellgate::cell::Cell;
