@@ -1,12 +1,14 @@
-//! The client commands against a gateway serving a simulated cell: mill-1 (Protocol A,
-//! 19200 baud) and mill-2 (Expansion Protocol A, 86400 baud), each a simulated remote-buffer
-//! board with its CNC on a simulated line. The library functions are called in process; the
-//! `cellgate` binary is run against the same gateway. Real time, loopback, multicast off.
+//! The client commands against a gateway serving the embedded default cell: mill-1
+//! (Protocol A, 19200 baud) and mill-2 (Expansion Protocol A, 86400 baud), each a simulated
+//! remote-buffer board with its CNC on a simulated line. The library functions are called in
+//! process, against a gateway assembled here like `gateway::run` does it, so that the test
+//! can look into the simulated CNCs; the `cellgate` binary is run against that gateway and
+//! against a `cellgate run` process. Real time, loopback, multicast off.
 
 use std::path::Path;
 use std::time::Duration;
 
-use cellgate::bus::{self, MachineLink};
+use cellgate::bus;
 use cellgate::cell::Cell;
 use cellgate::client::cli::{
     self, CancelArgs, ClientCommand, ConnectArgs, DiArgs, DoArgs, Io, ProgramCommand, StatusArgs,
@@ -75,14 +77,7 @@ async fn start_gateway() -> Gateway {
 
     let links_stop = CancellationToken::new();
     let cell = Cell::start(&config, &links_stop).await.unwrap();
-    let machines: Vec<MachineLink> = cell
-        .machines
-        .iter()
-        .map(|m| MachineLink {
-            config: m.config.clone(),
-            link: m.link.clone(),
-        })
-        .collect();
+    let machines = cell.machine_links();
     let stop = CancellationToken::new();
     let served = {
         let (s, c, stop) = (session.clone(), config.clone(), stop.clone());
@@ -775,4 +770,126 @@ async fn the_binary_says_when_no_gateway_answers() {
     assert_eq!(code, 1, "{err}");
     assert!(err.contains(&format!("cannot connect to {ep}")), "{err}");
     assert!(err.contains("`cellgate run` running"), "{err}");
+}
+
+// ---------------------------------------------------------------------------------------------
+// The binary against a `cellgate run` process
+// ---------------------------------------------------------------------------------------------
+
+/// A `cellgate run` process on the embedded default cell, on a free loopback port, in a
+/// temporary directory (its program library goes there). Stopped with SIGTERM on drop.
+struct RunProcess {
+    child: std::process::Child,
+    endpoint: String,
+    _dir: tempfile::TempDir,
+}
+
+impl RunProcess {
+    async fn start() -> RunProcess {
+        let port = free_port();
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let dir = tempfile::tempdir().unwrap();
+        let child = std::process::Command::new(BIN)
+            .args(["run", "-l", &endpoint])
+            .current_dir(dir.path())
+            .env("RUST_LOG", "warn")
+            .env_remove("CELLGATE_CONFIG")
+            .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        let run = RunProcess {
+            child,
+            endpoint,
+            _dir: dir,
+        };
+        // Up once both Protocol A family links are initialised (status says idle).
+        for _ in 0..120 {
+            let (code, out, _) = cellgate(&["status", "-e", &run.endpoint, "--json"]).await;
+            if code == 0 {
+                let json: serde_json::Value = serde_json::from_str(&out).unwrap();
+                let idle = json
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .filter(|s| s["link_state"] == "LINK_STATE_IDLE")
+                    .count();
+                if idle >= 2 {
+                    return run;
+                }
+            }
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+        panic!(
+            "cellgate run on {} never showed two idle links",
+            run.endpoint
+        );
+    }
+}
+
+impl Drop for RunProcess {
+    fn drop(&mut self) {
+        let pid = self.child.id() as libc::pid_t;
+        // SAFETY: kill(2) on the pid of a child this process spawned and has not reaped.
+        unsafe {
+            libc::kill(pid, libc::SIGTERM);
+        }
+        for _ in 0..100 {
+            if matches!(self.child.try_wait(), Ok(Some(_))) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_binary_against_cellgate_run() {
+    let run = RunProcess::start().await;
+    let ep = run.endpoint.as_str();
+    let files = tempfile::tempdir().unwrap();
+    let program = nc_program(4000, 77);
+    let file = write_file(files.path(), "O0077.nc", &program);
+
+    // The cell is found without --cell: the embedded default is "demo".
+    let (code, out, err) = cellgate(&["status", "-e", ep]).await;
+    assert_eq!(code, 0, "{err}");
+    let rows: Vec<&str> = out.lines().skip(1).collect();
+    assert!(rows.iter().any(|r| r.starts_with("mill-1 ")), "{out}");
+    assert!(rows.iter().any(|r| r.starts_with("mill-2 ")), "{out}");
+
+    for machine in [MILL_A, MILL_X] {
+        let (code, out, err) =
+            cellgate(&["submit", "-e", ep, "-m", machine, file.to_str().unwrap()]).await;
+        assert_eq!(code, 0, "{machine}: stdout {out:?}\nstderr {err}");
+        let job = out.trim();
+        assert!(job.starts_with(&format!("{machine}-")), "{out:?}");
+        assert!(
+            err.contains(&format!(
+                "{job}: completed: {}",
+                cellgate::client::render::bytes(program.len() as u64)
+            )),
+            "{err}"
+        );
+    }
+    let (code, out, err) = cellgate(&["status", "-e", ep, "--cell", "demo", "--json"]).await;
+    assert_eq!(code, 0, "{err}");
+    let json: serde_json::Value = serde_json::from_str(&out).unwrap();
+    for s in json.as_array().unwrap() {
+        if s["machine"] == MILL_A || s["machine"] == MILL_X {
+            assert_eq!(s["counters"]["jobs_completed"], 1, "{s}");
+            assert_eq!(s["counters"]["nc_bytes_sent"], program.len(), "{s}");
+        }
+    }
+
+    // A refused submit: exit 2 with the gateway's message.
+    let (code, _, err) =
+        cellgate(&["submit", "-e", ep, "-m", "nosuch", file.to_str().unwrap()]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("no machine \"nosuch\""), "{err}");
+    drop(run);
 }
