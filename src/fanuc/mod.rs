@@ -6,6 +6,7 @@
 //! - [`sat`]: the SAT/SET data part and the remote-buffer parameters Nb..Tw (§4.4.2, §4.5);
 //! - [`packet`]: Expansion Protocol A data packets and monitor packets (§5.2, §5.3);
 //! - [`protocol_a`]: the sans-IO host engine for Protocol A and Expansion Protocol A (§4, §5);
+//! - [`protocol_b`]: the sans-IO host engine for Protocol B and Expansion Protocol B (§6, §7);
 //! - [`alarm`]: the CNC alarm numbers of §11 that a link can raise.
 
 pub mod alarm;
@@ -13,6 +14,7 @@ pub mod code;
 pub mod message;
 pub mod packet;
 pub mod protocol_a;
+pub mod protocol_b;
 pub mod sat;
 
 use serde::{Deserialize, Serialize};

@@ -424,6 +424,8 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 tracing::debug!(%error, retried, "protocol error");
                 LinkEvent::ProtocolError { error, retried }
             }
+            // Published by the bus layer later.
+            EngineEvent::Punched { .. } => return,
             EngineEvent::DataSent { bytes } => match self.progress(bytes) {
                 Some(event) => event,
                 None => return,

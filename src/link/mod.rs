@@ -95,6 +95,13 @@ pub enum EngineEvent {
         error: String,
         retried: bool,
     },
+    /// Punched data from the board (Protocol B punch-out, DC2 … DC4, §6.1.1 2), in order. A
+    /// long punch-out arrives in several pieces; the last piece of a punch-out is followed by
+    /// nothing that marks it, the next punch-out starts a new piece.
+    #[serde(skip)]
+    Punched {
+        data: Bytes,
+    },
 }
 
 /// A sans-IO protocol engine: the host side of a link, or the device side of a simulated board.

@@ -67,7 +67,7 @@
 //! `ProtocolError` event: the board polls again with SAT.
 
 mod expansion;
-mod program;
+pub(crate) mod program;
 
 pub use expansion::PAD;
 pub use program::ProgramError;

@@ -1,0 +1,1163 @@
+//! The host computer's side of Protocol B and Expansion Protocol B (§6, §7), sans-IO.
+//!
+//! [`ProtocolBHost`] is fed received bytes, line errors, modem lines, commands and the time; it
+//! hands out bytes to transmit and events. There is no message framing in Protocol B: the board
+//! steers the host with single control codes (§6.2) and everything the host sends is the data
+//! part (§8.1). Program bytes stream through a bounded buffer ([`ProtocolBConfig::max_buffer`]).
+//!
+//! # Download: the remote buffer receives data (§6.1.1 1, §6.1.2 2)
+//!
+//! - Nothing is sent until the board sends DC1 (a read request). Then the program flows.
+//! - DC3 stops the host. The board tolerates less than the overrun allowance after DC3 (§6.3:
+//!   512 characters in Protocol B; 1280 in Expansion Protocol B, protocol notes 12). The driver
+//!   writes what [`Engine::poll_transmit`] returns completely before asking again, so the host
+//!   hands out pieces of at most [`ProtocolBConfig::tx_piece`] bytes: after DC3 at most one
+//!   piece is still on its way. [`ProtocolBHost::sent_since_dc3`] counts what was handed out
+//!   after the last DC3, for tests and diagnostics.
+//! - The next DC1 resumes with the data immediately after that sent last (§6.1.1 1 (6)).
+//! - The program ends at EOR `%` (protocol notes 8; EOR is appended when the source has none,
+//!   as in Protocol A). Once the EOR has been handed out the program is reported done. The host
+//!   then waits for the CNC's DC3 that ends the read, and starts the next program only on a
+//!   DC1 after it: one program per read request (protocol notes 13), since a flow-control DC1
+//!   cannot be told from a new read request and the CNC ignores data after EOR (§8.2).
+//!
+//! # CNC reset and alarm (§6.1.2, §6.4)
+//!
+//! With notification on (parameter 5003#3 = 1) the board sends SYN on a CNC reset and NAK on a
+//! CNC alarm: alone while idle, after DC3 while it receives, after DC4 while it punches. The
+//! host reports [`EngineEvent::CncReset`] / [`EngineEvent::CncAlarm`], stops, and aborts a
+//! program that has started and is not completely sent. A program that has not started stays
+//! queued for the next read request. The notices are reported even with notification off,
+//! since a board that sends them means them. With notification off the board instead ends the
+//! read with DC3 and turns ER off (§6.4 (1)), which the host sees as DR off.
+//!
+//! # Punch-out: the remote buffer sends data (§6.1.1 2, §6.1.2 2)
+//!
+//! DC2 starts punched data; every byte up to DC4 is the punched program, passed on as it was
+//! received (parity bit included) in [`EngineEvent::Punched`] pieces of at most
+//! [`ProtocolBConfig::punch_piece`] bytes. A piece also ends at each program's EOR (the `%`
+//! after a significant character, protocol notes 8) and at DC4, so a punch-out of several
+//! programs comes out program by program. Punched bytes held by the engine (not yet taken with
+//! [`Engine::poll_event`]) are bounded: above [`ProtocolBConfig::punch_high_water`] the host
+//! sends DC3 (method (b) of §6.1.1 2 (3)); once the held data has dropped to half of that it
+//! resumes the board with DC1 when notification is on and DC2 when it is off (protocol notes
+//! 11). Bytes beyond [`ProtocolBConfig::max_buffer`] (a board that overruns) are dropped with
+//! a [`EngineEvent::ProtocolError`].
+//!
+//! # Control codes (§6.2)
+//!
+//! The board sends DC3, NAK and SYN with the parity bit in ISO (93h, 95h, 96h) and without it
+//! in ASCII (13h, 15h, 16h); DC1, DC2 and DC4 are the same in both. The host recognises each
+//! code with or without bit 7, whatever the configured code (protocol notes 10 reads monitor
+//! codes the same way), and sends its own DC1, DC2 and DC3 in the configured code. Any other
+//! byte outside a punch-out is ignored with a `ProtocolError`.
+//!
+//! # Not in Protocol B
+//!
+//! There are no DO/DI signals and no buffer clear: `SetDo`, `ReadDi` and `ClearBuffer` are
+//! answered with a `ProtocolError`. There is no time supervision on the host side: the board
+//! may keep the host stopped as long as its CNC does not read.
+
+use std::collections::VecDeque;
+use std::time::Instant;
+
+use bytes::Bytes;
+
+use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::code::{DC1, DC2, DC3, DC4, EOR, NAK, SYN};
+use crate::fanuc::protocol_a::program::Program;
+use crate::fanuc::{CodeSystem, Protocol};
+use crate::link::{Engine, EngineCommand, EngineEvent, HostEngine, LinkState};
+use crate::transport::{LineError, ModemIn};
+
+/// Overrun allowance after DC3 in Protocol B (§6.3: "less than 512 characters").
+pub const OVERRUN_B: usize = 512;
+/// Overrun allowance after DC3 in Expansion Protocol B (§7: 1280 characters; protocol notes 12).
+pub const OVERRUN_EXPANSION_B: usize = 1280;
+
+/// Settings of a Protocol B / Expansion Protocol B host link.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ProtocolBConfig {
+    /// ISO or ASCII (parameter 5000#2: 0 = ISO, 1 = ASCII for Protocol B): the code of the
+    /// control codes the host sends (§6.2).
+    pub code: CodeSystem,
+    /// Expansion Protocol B (§7) rather than Protocol B.
+    pub expansion: bool,
+    /// CNC reset/alarm is posted to the host (§6.1.2; the manual names the parameter bit
+    /// 5000#3 "ETX" in §6.1 and 5003#3 in §6.4): selects DC1 rather than DC2 to resume a
+    /// punch-out (protocol notes 11).
+    pub notify_alarm_reset: bool,
+    /// The board's overrun allowance after DC3 (§6.3, §7): [`OVERRUN_B`] or
+    /// [`OVERRUN_EXPANSION_B`].
+    pub overrun_allowance: usize,
+    /// Most bytes handed out per [`Engine::poll_transmit`], and so the most that can still go
+    /// out after a DC3. At most half the overrun allowance.
+    pub tx_piece: usize,
+    /// Most program bytes held at once ([`HostEngine::data_wanted`] is the free space), and
+    /// most punched bytes held.
+    pub max_buffer: usize,
+    /// Largest [`EngineEvent::Punched`] piece.
+    pub punch_piece: usize,
+    /// Punched bytes held above which the host sends DC3 to the board.
+    pub punch_high_water: usize,
+}
+
+impl ProtocolBConfig {
+    /// The settings for Protocol B (`expansion` false) or Expansion Protocol B.
+    pub fn new(code: CodeSystem, expansion: bool, notify_alarm_reset: bool) -> Self {
+        let overrun_allowance = if expansion {
+            OVERRUN_EXPANSION_B
+        } else {
+            OVERRUN_B
+        };
+        let max_buffer = 64 * 1024;
+        ProtocolBConfig {
+            code,
+            expansion,
+            notify_alarm_reset,
+            overrun_allowance,
+            tx_piece: 64,
+            max_buffer,
+            punch_piece: 16 * 1024,
+            // Room for the board's overrun after DC3, twice over (§6.3).
+            punch_high_water: max_buffer - 2 * overrun_allowance,
+        }
+    }
+
+    /// The settings for `protocol`, or `None` for the Protocol A family.
+    pub fn for_protocol(
+        protocol: Protocol,
+        code: CodeSystem,
+        notify_alarm_reset: bool,
+    ) -> Option<Self> {
+        match protocol {
+            Protocol::B => Some(Self::new(code, false, notify_alarm_reset)),
+            Protocol::ExpansionB => Some(Self::new(code, true, notify_alarm_reset)),
+            Protocol::A | Protocol::ExpansionA => None,
+        }
+    }
+
+    /// Every problem of these settings.
+    pub fn validate(&self) -> Vec<ConfigProblem> {
+        let mut problems = Vec::new();
+        if self.tx_piece == 0 || self.tx_piece > self.overrun_allowance / 2 {
+            problems.push(ConfigProblem::TxPiece {
+                piece: self.tx_piece,
+                allowance: self.overrun_allowance,
+            });
+        }
+        if self.punch_piece == 0 || self.punch_piece > self.max_buffer {
+            problems.push(ConfigProblem::PunchPiece {
+                piece: self.punch_piece,
+                max: self.max_buffer,
+            });
+        }
+        if self.punch_high_water == 0
+            || self.punch_high_water.saturating_add(self.overrun_allowance) > self.max_buffer
+        {
+            problems.push(ConfigProblem::HighWater {
+                high: self.punch_high_water,
+                allowance: self.overrun_allowance,
+                max: self.max_buffer,
+            });
+        }
+        problems
+    }
+}
+
+impl Default for ProtocolBConfig {
+    fn default() -> Self {
+        ProtocolBConfig::new(CodeSystem::default(), false, true)
+    }
+}
+
+/// One problem with a [`ProtocolBConfig`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConfigProblem {
+    #[error(
+        "tx_piece = {piece} must be between 1 and half the overrun allowance after DC3 ({allowance} characters, §6.3)"
+    )]
+    TxPiece { piece: usize, allowance: usize },
+    #[error("punch_piece = {piece} must be between 1 and max_buffer = {max}")]
+    PunchPiece { piece: usize, max: usize },
+    #[error(
+        "punch_high_water = {high} must be above zero and leave room for the board's overrun after DC3 ({allowance} characters, §6.3) within max_buffer = {max}"
+    )]
+    HighWater {
+        high: usize,
+        allowance: usize,
+        max: usize,
+    },
+}
+
+/// A [`ProtocolBConfig`] that cannot run, with every problem found.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("invalid Protocol B settings: {}", join(.problems))]
+pub struct InvalidConfig {
+    pub problems: Vec<ConfigProblem>,
+}
+
+fn join(problems: &[ConfigProblem]) -> String {
+    problems
+        .iter()
+        .map(ToString::to_string)
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// Why the current program was abandoned (the `reason` of [`EngineEvent::ProgramAborted`]).
+const REASON_RESET: &str = "CNC reset (SYN, §6.1.2)";
+const REASON_ALARM: &str = "CNC alarm (NAK, §6.1.2)";
+const REASON_CANCELLED: &str = "cancelled";
+const REASON_REPLACED: &str = "replaced by a new program";
+const REASON_DR_OFF: &str = "data set ready (DR) went off (SR0855)";
+
+/// What the board is doing on its side of the line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Rx {
+    /// Sending control codes only.
+    Control,
+    /// Punching out: data until DC4 (§6.1.1 2).
+    Punch,
+}
+
+/// The host side of a Protocol B / Expansion Protocol B link.
+pub struct ProtocolBHost {
+    cfg: ProtocolBConfig,
+    events: VecDeque<EngineEvent>,
+    state: LinkState,
+    line_up: bool,
+    cs: bool,
+    program: Option<Program>,
+    /// The board asked for data (DC1) and has not stopped the host (DC3) since.
+    flowing: bool,
+    /// A program was completely sent in this read request: the next one waits for the DC3
+    /// that ends the read and a DC1 after it (protocol notes 13).
+    await_next_read: bool,
+    /// Program bytes handed out since the last DC3 arrived.
+    sent_since_dc3: u64,
+    /// The punch-out flow-control code the host owes the board (DC3, or DC1 / DC2 to resume);
+    /// only the latest instruction matters.
+    ctl_out: Option<u8>,
+    rx: Rx,
+    punch: Vec<u8>,
+    /// Punched bytes in queued `Punched` events not yet taken.
+    punch_queued: usize,
+    /// The host stopped the board's punch-out with DC3.
+    punch_paused: bool,
+    /// A significant character was punched since the last EOR: the next `%` ends a program.
+    punch_body: bool,
+}
+
+impl std::fmt::Debug for ProtocolBHost {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ProtocolBHost")
+            .field("state", &self.state)
+            .field("flowing", &self.flowing)
+            .field("await_next_read", &self.await_next_read)
+            .field("rx", &self.rx)
+            .field("punch_held", &self.punch_held())
+            .finish_non_exhaustive()
+    }
+}
+
+impl ProtocolBHost {
+    pub fn new(config: ProtocolBConfig, _now: Instant) -> Result<Self, InvalidConfig> {
+        let problems = config.validate();
+        if !problems.is_empty() {
+            return Err(InvalidConfig { problems });
+        }
+        Ok(ProtocolBHost {
+            cfg: config,
+            events: VecDeque::from([EngineEvent::State(LinkState::Ready)]),
+            state: LinkState::Ready,
+            line_up: true,
+            cs: true,
+            program: None,
+            flowing: false,
+            await_next_read: false,
+            sent_since_dc3: 0,
+            ctl_out: None,
+            rx: Rx::Control,
+            punch: Vec::new(),
+            punch_queued: 0,
+            punch_paused: false,
+            punch_body: false,
+        })
+    }
+
+    pub fn config(&self) -> &ProtocolBConfig {
+        &self.cfg
+    }
+
+    /// Program bytes handed out for transmission since the last DC3 arrived (all of them when
+    /// no DC3 came yet). Right after a DC3 it is zero and stays so until the next DC1.
+    pub fn sent_since_dc3(&self) -> u64 {
+        self.sent_since_dc3
+    }
+
+    /// The board has asked for data (DC1) and not stopped the host since.
+    pub fn flowing(&self) -> bool {
+        self.flowing
+    }
+
+    /// Punched bytes held by the engine: received and not yet taken with `poll_event`.
+    pub fn punch_held(&self) -> usize {
+        self.punch.len() + self.punch_queued
+    }
+
+    /// Program bytes buffered and not yet handed out.
+    pub fn program_buffered(&self) -> usize {
+        self.program.as_ref().map_or(0, Program::buffered)
+    }
+
+    fn emit(&mut self, event: EngineEvent) {
+        self.events.push_back(event);
+    }
+
+    fn protocol_error(&mut self, error: String) {
+        tracing::debug!(%error, "Protocol B");
+        self.emit(EngineEvent::ProtocolError {
+            error,
+            retried: false,
+        });
+    }
+
+    fn program_started(&self) -> bool {
+        self.program.as_ref().is_some_and(|p| p.sent > 0)
+    }
+
+    fn update_state(&mut self) {
+        let state = if !self.line_up {
+            LinkState::LineDown
+        } else if self.rx == Rx::Punch {
+            LinkState::Receiving
+        } else if self.program_started() {
+            LinkState::Sending
+        } else {
+            LinkState::Ready
+        };
+        if state != self.state {
+            self.state = state;
+            self.emit(EngineEvent::State(state));
+        }
+    }
+
+    /// Abandons the current program. One the board has part of ends its read request: the
+    /// next program waits for a new one.
+    fn abort_program(&mut self, reason: &str, cancelled: bool) {
+        if let Some(p) = self.program.take() {
+            tracing::info!(sent = p.sent, reason, "program aborted");
+            if p.sent > 0 {
+                self.await_next_read = true;
+            }
+            self.emit(EngineEvent::ProgramAborted {
+                reason: reason.to_owned(),
+                cancelled,
+            });
+        }
+    }
+
+    /// A CNC reset (SYN) or alarm (NAK) notice (§6.1.2, §6.4 (2)).
+    fn on_notice(&mut self, reset: bool) {
+        self.emit(if reset {
+            EngineEvent::CncReset
+        } else {
+            EngineEvent::CncAlarm
+        });
+        self.flowing = false;
+        if self.program_started() {
+            self.abort_program(if reset { REASON_RESET } else { REASON_ALARM }, false);
+        }
+        // The read is over; the board asks again with DC1.
+        self.await_next_read = false;
+    }
+
+    fn on_control(&mut self, b: u8, garbage: &mut usize) {
+        match CodeSystem::strip(b) {
+            DC1 => {
+                if self.await_next_read {
+                    // Flow control of the read whose program already went (protocol notes 13).
+                    tracing::trace!("DC1 before the read ended: no new program yet");
+                } else {
+                    self.flowing = true;
+                }
+            }
+            DC3 => {
+                self.flowing = false;
+                self.await_next_read = false;
+                self.sent_since_dc3 = 0;
+            }
+            DC2 => {
+                self.rx = Rx::Punch;
+                self.punch_paused = false;
+                self.punch_body = false;
+            }
+            SYN => self.on_notice(true),
+            NAK => self.on_notice(false),
+            DC4 => tracing::trace!("DC4 outside a punch-out"),
+            _ => *garbage += 1,
+        }
+    }
+
+    /// Passes the punched bytes held on as an event.
+    fn flush_punch(&mut self) {
+        if self.punch.is_empty() {
+            return;
+        }
+        let data = Bytes::from(std::mem::take(&mut self.punch));
+        self.punch_queued += data.len();
+        self.emit(EngineEvent::Punched { data });
+    }
+
+    fn on_punch_byte(&mut self, b: u8, dropped: &mut usize) {
+        if CodeSystem::strip(b) == DC4 {
+            self.flush_punch();
+            self.rx = Rx::Control;
+            // The board has finished; a pause the host asked for ends with the punch-out.
+            self.punch_paused = false;
+            return;
+        }
+        if self.punch_held() >= self.cfg.max_buffer {
+            *dropped += 1;
+            return;
+        }
+        self.punch.push(b);
+        // A piece ends with each program's EOR (protocol notes 8), so that a punch-out of
+        // several programs comes out program by program.
+        let c = CodeSystem::strip(b);
+        let eor = c == EOR && self.punch_body;
+        if c == EOR {
+            self.punch_body = false;
+        } else if !matches!(c, 0x00 | 0x7F | b' ' | b'\t' | b'\n' | b'\r') {
+            self.punch_body = true;
+        }
+        if eor || self.punch.len() >= self.cfg.punch_piece {
+            self.flush_punch();
+        }
+        if !self.punch_paused && self.punch_held() > self.cfg.punch_high_water {
+            tracing::debug!(held = self.punch_held(), "punch-out paused with DC3");
+            self.punch_paused = true;
+            self.ctl_out = Some(self.cfg.code.control(DC3));
+        }
+    }
+
+    /// Resumes a paused punch-out once the held data has been taken (protocol notes 11).
+    fn maybe_resume_punch(&mut self) {
+        if self.punch_paused && self.punch_held() <= self.cfg.punch_high_water / 2 {
+            self.punch_paused = false;
+            let resume = if self.cfg.notify_alarm_reset {
+                DC1
+            } else {
+                DC2
+            };
+            tracing::debug!(held = self.punch_held(), "punch-out resumed");
+            // A DC3 not sent yet never stopped the board: drop it instead of resuming.
+            self.ctl_out = match self.ctl_out {
+                Some(_) => None,
+                None => Some(self.cfg.code.control(resume)),
+            };
+        }
+    }
+}
+
+impl Engine for ProtocolBHost {
+    type Command = EngineCommand;
+    type Event = EngineEvent;
+
+    fn handle_input(&mut self, _now: Instant, bytes: &[u8]) {
+        if !self.line_up {
+            // DR off: nothing on the line is trusted.
+            return;
+        }
+        let mut garbage = 0usize;
+        let mut first_garbage = 0u8;
+        let mut dropped = 0usize;
+        for &b in bytes {
+            match self.rx {
+                Rx::Punch => self.on_punch_byte(b, &mut dropped),
+                Rx::Control => {
+                    let before = garbage;
+                    self.on_control(b, &mut garbage);
+                    if before == 0 && garbage == 1 {
+                        first_garbage = b;
+                    }
+                }
+            }
+        }
+        if garbage > 0 {
+            self.protocol_error(format!(
+                "{garbage} received byte(s) starting with {first_garbage:#04x} are not Protocol B control codes (§6.2); ignored"
+            ));
+        }
+        if dropped > 0 {
+            self.protocol_error(format!(
+                "punch-out overflow: {dropped} punched byte(s) dropped; the board did not stop within the overrun after DC3 (§6.3) or the punched data is not being taken"
+            ));
+        }
+        self.update_state();
+    }
+
+    fn handle_line_error(&mut self, _now: Instant, error: LineError) {
+        if !self.line_up {
+            return;
+        }
+        let during = if self.rx == Rx::Punch {
+            "; a punched character was lost"
+        } else {
+            ""
+        };
+        self.protocol_error(format!("line error on a Protocol B line: {error}{during}"));
+    }
+
+    fn handle_modem(&mut self, _now: Instant, modem: ModemIn) {
+        self.cs = modem.cs;
+        let up = modem.dr && modem.cd;
+        if !up && self.line_up {
+            self.line_up = false;
+            self.emit(EngineEvent::Alarm {
+                alarm: Some(CncAlarm::Sr0855DataSetReadyDown),
+                error: "data set ready (DR) went off on a Protocol B line (§6.4 (1))".into(),
+            });
+            if self.program_started() {
+                self.abort_program(REASON_DR_OFF, false);
+            }
+            self.flowing = false;
+            self.await_next_read = false;
+            self.ctl_out = None;
+            if self.rx == Rx::Punch && !self.punch.is_empty() {
+                let lost = self.punch.len();
+                self.punch.clear();
+                self.protocol_error(format!(
+                    "punch-out cut off by DR off: {lost} punched byte(s) without DC4 discarded"
+                ));
+            }
+            self.rx = Rx::Control;
+            self.punch_paused = false;
+        } else if up && !self.line_up {
+            tracing::info!("Protocol B line up again: waiting for DC1 or DC2");
+            self.line_up = true;
+        }
+        self.update_state();
+    }
+
+    fn handle_command(&mut self, _now: Instant, command: EngineCommand) {
+        match command {
+            EngineCommand::StartProgram { total } => {
+                self.abort_program(REASON_REPLACED, false);
+                tracing::debug!(?total, "program queued");
+                self.program = Some(Program::new());
+            }
+            EngineCommand::ProgramData(data) => match self.program.as_mut() {
+                Some(p) => {
+                    // Every byte can travel in Protocol B (§8.1): nothing is forbidden.
+                    if let Err(e) = p.push(&data, None) {
+                        self.abort_program(&e.to_string(), false);
+                    }
+                }
+                None => tracing::trace!(len = data.len(), "program data without a program"),
+            },
+            EngineCommand::ProgramEnd => {
+                if let Some(Err(e)) = self.program.as_mut().map(Program::end) {
+                    self.abort_program(&e.to_string(), false);
+                }
+            }
+            EngineCommand::Cancel => self.abort_program(REASON_CANCELLED, true),
+            EngineCommand::SetDo(_) => {
+                self.protocol_error("DO output (SDO) is not available in Protocol B (§6)".into())
+            }
+            EngineCommand::ReadDi => {
+                self.protocol_error("DI input (RDI) is not available in Protocol B (§6)".into())
+            }
+            EngineCommand::ClearBuffer => self.protocol_error(
+                "clearing the board's buffer (CLB) is not available in Protocol B (§6)".into(),
+            ),
+        }
+        self.update_state();
+    }
+
+    fn handle_timeout(&mut self, _now: Instant) {}
+
+    fn poll_transmit(&mut self, _now: Instant) -> Option<Vec<u8>> {
+        if !self.line_up || !self.cs {
+            return None;
+        }
+        if let Some(code) = self.ctl_out.take() {
+            return Some(vec![code]);
+        }
+        if !self.flowing || self.await_next_read {
+            return None;
+        }
+        let program = self.program.as_mut()?;
+        let piece = program.take(self.cfg.tx_piece);
+        if piece.is_empty() {
+            return None;
+        }
+        let done = program.all_sent();
+        self.sent_since_dc3 += piece.len() as u64;
+        self.emit(EngineEvent::DataSent {
+            bytes: piece.len() as u64,
+        });
+        if done {
+            tracing::debug!("program sent through EOR: waiting for the read to end");
+            self.program = None;
+            self.await_next_read = true;
+            self.emit(EngineEvent::ProgramDone);
+        }
+        self.update_state();
+        Some(piece)
+    }
+
+    fn poll_event(&mut self) -> Option<EngineEvent> {
+        let event = self.events.pop_front()?;
+        if let EngineEvent::Punched { data } = &event {
+            self.punch_queued = self.punch_queued.saturating_sub(data.len());
+            self.maybe_resume_punch();
+        }
+        Some(event)
+    }
+
+    fn poll_timeout(&self) -> Option<Instant> {
+        None
+    }
+}
+
+impl HostEngine for ProtocolBHost {
+    fn data_wanted(&self) -> usize {
+        self.program
+            .as_ref()
+            .map_or(0, |p| p.wanted(self.cfg.max_buffer))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn host(code: CodeSystem, expansion: bool, notify: bool) -> (ProtocolBHost, Instant) {
+        let now = Instant::now();
+        let mut h = ProtocolBHost::new(ProtocolBConfig::new(code, expansion, notify), now).unwrap();
+        assert_eq!(h.poll_event(), Some(EngineEvent::State(LinkState::Ready)));
+        (h, now)
+    }
+
+    fn events(h: &mut ProtocolBHost) -> Vec<EngineEvent> {
+        std::iter::from_fn(|| h.poll_event()).collect()
+    }
+
+    /// Everything the host hands out now.
+    fn drain_tx(h: &mut ProtocolBHost, now: Instant) -> Vec<u8> {
+        let mut out = Vec::new();
+        while let Some(piece) = h.poll_transmit(now) {
+            assert!(!piece.is_empty());
+            assert!(piece.len() <= h.config().tx_piece);
+            out.extend(piece);
+        }
+        out
+    }
+
+    fn program(body_len: usize) -> Vec<u8> {
+        let mut p = b"%\nO0001\n".to_vec();
+        p.extend((0..body_len).map(|i| b"G01X1.;\n"[i % 8]));
+        p.push(EOR);
+        p
+    }
+
+    fn load(h: &mut ProtocolBHost, now: Instant, prog: &[u8]) {
+        h.handle_command(now, EngineCommand::StartProgram { total: None });
+        h.handle_command(
+            now,
+            EngineCommand::ProgramData(Bytes::copy_from_slice(prog)),
+        );
+        h.handle_command(now, EngineCommand::ProgramEnd);
+    }
+
+    fn punched(evs: &[EngineEvent]) -> Vec<u8> {
+        evs.iter()
+            .filter_map(|e| match e {
+                EngineEvent::Punched { data } => Some(data.to_vec()),
+                _ => None,
+            })
+            .flatten()
+            .collect()
+    }
+
+    #[test]
+    fn default_settings_are_valid_and_overrun_per_protocol() {
+        assert!(ProtocolBConfig::default().validate().is_empty());
+        let b = ProtocolBConfig::new(CodeSystem::Iso, false, true);
+        assert_eq!(b.overrun_allowance, 512);
+        let eb = ProtocolBConfig::new(CodeSystem::Iso, true, false);
+        assert_eq!(eb.overrun_allowance, 1280);
+        assert!(eb.validate().is_empty());
+        assert_eq!(
+            ProtocolBConfig::for_protocol(Protocol::ExpansionB, CodeSystem::Iso, false),
+            Some(eb.clone())
+        );
+        assert_eq!(
+            ProtocolBConfig::for_protocol(Protocol::A, CodeSystem::Iso, false),
+            None
+        );
+        let bad = ProtocolBConfig { tx_piece: 300, ..b };
+        assert!(matches!(
+            bad.validate().as_slice(),
+            [ConfigProblem::TxPiece { piece: 300, .. }]
+        ));
+        assert!(ProtocolBHost::new(bad, Instant::now()).is_err());
+    }
+
+    #[test]
+    fn nothing_is_sent_before_dc1() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        load(&mut h, now, &program(100));
+        assert_eq!(h.poll_transmit(now), None);
+        assert!(h.data_wanted() == 0, "EOR is in: the program takes no more");
+    }
+
+    #[test]
+    fn dc1_dc3_flow_stops_within_a_piece_and_resumes_with_the_continuation() {
+        for (code, dc3) in [(CodeSystem::Iso, 0x93), (CodeSystem::Ascii, 0x13)] {
+            let (mut h, now) = host(code, false, true);
+            let prog = program(2000);
+            load(&mut h, now, &prog);
+            h.handle_input(now, &[0x11]);
+            let mut sent = Vec::new();
+            // The board stops the host after a few pieces.
+            for _ in 0..5 {
+                sent.extend(h.poll_transmit(now).unwrap());
+            }
+            // A piece is on the line when the DC3 arrives: at most that piece overruns.
+            let in_flight = h.poll_transmit(now).unwrap();
+            sent.extend(&in_flight);
+            h.handle_input(now, &[dc3]);
+            assert_eq!(h.sent_since_dc3(), 0);
+            assert_eq!(h.poll_transmit(now), None);
+            let overrun = in_flight.len() as u64 + h.sent_since_dc3();
+            let cfg = h.config();
+            assert!(overrun <= cfg.tx_piece as u64, "overrun {overrun}");
+            assert!(
+                overrun < cfg.overrun_allowance as u64 / 4,
+                "overrun {overrun}"
+            );
+            assert!(!h.flowing());
+            // DC1: the data immediately after that sent last.
+            h.handle_input(now, &[0x11]);
+            sent.extend(drain_tx(&mut h, now));
+            assert_eq!(sent, prog);
+            let evs = events(&mut h);
+            let total: u64 = evs
+                .iter()
+                .filter_map(|e| match e {
+                    EngineEvent::DataSent { bytes } => Some(*bytes),
+                    _ => None,
+                })
+                .sum();
+            assert_eq!(total, prog.len() as u64);
+            assert_eq!(
+                evs.iter()
+                    .filter(|e| **e == EngineEvent::ProgramDone)
+                    .count(),
+                1
+            );
+            assert!(evs.contains(&EngineEvent::State(LinkState::Sending)));
+            assert_eq!(evs.last(), Some(&EngineEvent::State(LinkState::Ready)));
+        }
+    }
+
+    #[test]
+    fn next_program_waits_for_dc3_and_a_following_dc1() {
+        let (mut h, now) = host(CodeSystem::Iso, false, true);
+        let first = program(10);
+        load(&mut h, now, &first);
+        h.handle_input(now, &[0x11]);
+        assert_eq!(drain_tx(&mut h, now), first);
+        assert!(events(&mut h).contains(&EngineEvent::ProgramDone));
+        let second = program(20);
+        load(&mut h, now, &second);
+        // Flow-control DC1 of the same read: nothing.
+        h.handle_input(now, &[0x11]);
+        assert_eq!(h.poll_transmit(now), None);
+        // The CNC ends the read with DC3; nothing until a new DC1.
+        h.handle_input(now, &[0x93]);
+        assert_eq!(h.poll_transmit(now), None);
+        h.handle_input(now, &[0x11]);
+        assert_eq!(drain_tx(&mut h, now), second);
+    }
+
+    #[test]
+    fn program_without_eor_gets_one() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        load(&mut h, now, b"%\nO1\nX1\n");
+        h.handle_input(now, &[0x11]);
+        assert_eq!(drain_tx(&mut h, now), b"%\nO1\nX1\n%");
+        assert!(events(&mut h).contains(&EngineEvent::ProgramDone));
+    }
+
+    #[test]
+    fn data_comes_in_bounded_pieces() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        h.handle_command(now, EngineCommand::StartProgram { total: None });
+        assert_eq!(h.data_wanted(), 64 * 1024);
+        h.handle_command(
+            now,
+            EngineCommand::ProgramData(Bytes::from(vec![b'X'; 1000])),
+        );
+        assert_eq!(h.data_wanted(), 64 * 1024 - 1000);
+        h.handle_input(now, &[0x11]);
+        let sent = drain_tx(&mut h, now);
+        assert_eq!(sent.len(), 1000);
+        // Late data: the host waits, the board keeps the read open.
+        h.handle_command(now, EngineCommand::ProgramData(Bytes::from_static(b"Y%")));
+        assert_eq!(drain_tx(&mut h, now), b"Y%");
+        assert!(events(&mut h).contains(&EngineEvent::ProgramDone));
+    }
+
+    #[test]
+    fn dc3_syn_is_a_cnc_reset_that_aborts_the_program() {
+        for (code, dc3, syn) in [
+            (CodeSystem::Iso, 0x93, 0x96),
+            (CodeSystem::Ascii, 0x13, 0x16),
+        ] {
+            let (mut h, now) = host(code, false, true);
+            load(&mut h, now, &program(500));
+            h.handle_input(now, &[0x11]);
+            let _ = h.poll_transmit(now).unwrap();
+            events(&mut h);
+            h.handle_input(now, &[dc3, syn]);
+            assert_eq!(h.poll_transmit(now), None);
+            assert_eq!(
+                events(&mut h),
+                vec![
+                    EngineEvent::CncReset,
+                    EngineEvent::ProgramAborted {
+                        reason: REASON_RESET.into(),
+                        cancelled: false
+                    },
+                    EngineEvent::State(LinkState::Ready),
+                ]
+            );
+            // The next program goes on the next read request.
+            let next = program(5);
+            load(&mut h, now, &next);
+            h.handle_input(now, &[0x11]);
+            assert_eq!(drain_tx(&mut h, now), next);
+        }
+    }
+
+    #[test]
+    fn dc3_nak_is_a_cnc_alarm_and_a_queued_program_stays() {
+        let (mut h, now) = host(CodeSystem::Iso, true, true);
+        load(&mut h, now, &program(500));
+        h.handle_input(now, &[0x11]);
+        let _ = h.poll_transmit(now).unwrap();
+        events(&mut h);
+        // Parity-less form accepted defensively with ISO.
+        h.handle_input(now, &[0x13, 0x15]);
+        let evs = events(&mut h);
+        assert_eq!(evs.first(), Some(&EngineEvent::CncAlarm));
+        assert!(evs.contains(&EngineEvent::ProgramAborted {
+            reason: REASON_ALARM.into(),
+            cancelled: false
+        }));
+        // Idle notice (§6.1.2 1): a queued, unstarted program stays queued.
+        let next = program(5);
+        load(&mut h, now, &next);
+        h.handle_input(now, &[0x95]);
+        assert_eq!(events(&mut h), vec![EngineEvent::CncAlarm]);
+        h.handle_input(now, &[0x11]);
+        assert_eq!(drain_tx(&mut h, now), next);
+    }
+
+    #[test]
+    fn punch_out_produces_exactly_the_punched_bytes() {
+        let (mut h, now) = host(CodeSystem::Iso, false, true);
+        let data: Vec<u8> = b"%\nO0002\nG00X0\n%"
+            .iter()
+            .map(|&b| CodeSystem::Iso.encode(b))
+            .collect();
+        // Split anywhere; DC4 with or without bit 7.
+        h.handle_input(now, &[0x12]);
+        h.handle_input(now, &data[..5]);
+        assert_eq!(
+            events(&mut h),
+            vec![EngineEvent::State(LinkState::Receiving)]
+        );
+        h.handle_input(now, &data[5..]);
+        h.handle_input(now, &[0x14]);
+        let evs = events(&mut h);
+        assert_eq!(punched(&evs), data);
+        assert_eq!(evs.last(), Some(&EngineEvent::State(LinkState::Ready)));
+        assert_eq!(h.punch_held(), 0);
+        // A punch-out cut by a reset: DC4 then SYN (§6.1.2 2 (5)).
+        h.handle_input(now, &[0x12, b'O', b'1', 0x94, 0x96]);
+        let evs = events(&mut h);
+        assert_eq!(punched(&evs), b"O1");
+        assert!(evs.contains(&EngineEvent::CncReset));
+        assert_eq!(h.poll_transmit(now), None);
+    }
+
+    #[test]
+    fn punch_out_flow_control_sends_dc3_then_dc1_or_dc2() {
+        for (notify, resume) in [(true, 0x11), (false, 0x12)] {
+            let (mut h, now) = host(CodeSystem::Iso, false, notify);
+            let high = h.config().punch_high_water;
+            h.handle_input(now, &[0x12]);
+            h.handle_input(now, &vec![b'A'; high]);
+            assert_eq!(h.poll_transmit(now), None);
+            // One more byte not taken: DC3 in the configured code.
+            h.handle_input(now, b"B");
+            assert_eq!(h.poll_transmit(now), Some(vec![0x93]));
+            // Overrun within the allowance is kept.
+            h.handle_input(now, &vec![b'C'; 400]);
+            assert_eq!(h.punch_held(), high + 401);
+            // Taking the pieces resumes the board.
+            let mut got = punched(&events(&mut h));
+            assert_eq!(got.len() + h.punch_held(), high + 401);
+            assert_eq!(h.poll_transmit(now), Some(vec![resume]));
+            h.handle_input(now, &[0x14]);
+            got.extend(punched(&events(&mut h)));
+            let mut expected = vec![b'A'; high];
+            expected.push(b'B');
+            expected.extend([b'C'; 400]);
+            assert!(got == expected, "punched data differs");
+            assert_eq!(h.poll_transmit(now), None);
+        }
+    }
+
+    #[test]
+    fn punch_overflow_is_dropped_and_reported() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        let max = h.config().max_buffer;
+        h.handle_input(now, &[0x12]);
+        h.handle_input(now, &vec![b'A'; max + 10]);
+        assert_eq!(h.punch_held(), max);
+        let evs = events(&mut h);
+        assert!(evs.iter().any(|e| matches!(
+            e,
+            EngineEvent::ProtocolError { error, .. } if error.contains("10 punched byte(s) dropped")
+        )));
+    }
+
+    #[test]
+    fn cancel_aborts_and_the_next_program_waits_for_a_new_read() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        load(&mut h, now, &program(500));
+        h.handle_input(now, &[0x11]);
+        let _ = h.poll_transmit(now).unwrap();
+        events(&mut h);
+        h.handle_command(now, EngineCommand::Cancel);
+        assert_eq!(h.poll_transmit(now), None);
+        assert!(events(&mut h).contains(&EngineEvent::ProgramAborted {
+            reason: REASON_CANCELLED.into(),
+            cancelled: true
+        }));
+        load(&mut h, now, &program(5));
+        assert_eq!(h.poll_transmit(now), None);
+        h.handle_input(now, &[0x13, 0x11]);
+        assert_eq!(drain_tx(&mut h, now), program(5));
+    }
+
+    #[test]
+    fn do_di_and_clb_do_not_exist_in_protocol_b() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        for c in [
+            EngineCommand::SetDo(1),
+            EngineCommand::ReadDi,
+            EngineCommand::ClearBuffer,
+        ] {
+            h.handle_command(now, c);
+            let evs = events(&mut h);
+            assert!(matches!(
+                evs.as_slice(),
+                [EngineEvent::ProtocolError { error, retried: false }]
+                    if error.contains("not available in Protocol B (§6)")
+            ));
+        }
+        assert_eq!(h.poll_transmit(now), None);
+    }
+
+    #[test]
+    fn dr_off_raises_sr0855_and_aborts() {
+        let (mut h, now) = host(CodeSystem::Iso, false, true);
+        load(&mut h, now, &program(500));
+        h.handle_input(now, &[0x11]);
+        let _ = h.poll_transmit(now).unwrap();
+        events(&mut h);
+        let down = ModemIn {
+            dr: false,
+            ..ModemIn::ALL_ON
+        };
+        h.handle_modem(now, down);
+        let evs = events(&mut h);
+        assert!(matches!(
+            evs.first(),
+            Some(EngineEvent::Alarm {
+                alarm: Some(CncAlarm::Sr0855DataSetReadyDown),
+                ..
+            })
+        ));
+        assert!(evs.contains(&EngineEvent::ProgramAborted {
+            reason: REASON_DR_OFF.into(),
+            cancelled: false
+        }));
+        assert_eq!(evs.last(), Some(&EngineEvent::State(LinkState::LineDown)));
+        h.handle_input(now, &[0x11]);
+        assert_eq!(h.poll_transmit(now), None);
+        h.handle_modem(now, ModemIn::ALL_ON);
+        assert_eq!(events(&mut h), vec![EngineEvent::State(LinkState::Ready)]);
+    }
+
+    #[test]
+    fn cs_off_pauses_sending() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        let prog = program(100);
+        load(&mut h, now, &prog);
+        h.handle_input(now, &[0x11]);
+        let mut sent = h.poll_transmit(now).unwrap();
+        h.handle_modem(
+            now,
+            ModemIn {
+                cs: false,
+                ..ModemIn::ALL_ON
+            },
+        );
+        assert_eq!(h.poll_transmit(now), None);
+        h.handle_modem(now, ModemIn::ALL_ON);
+        sent.extend(drain_tx(&mut h, now));
+        assert_eq!(sent, prog);
+    }
+
+    #[test]
+    fn garbage_is_reported_and_ignored() {
+        let (mut h, now) = host(CodeSystem::Iso, false, true);
+        h.handle_input(now, b"hello");
+        let evs = events(&mut h);
+        assert!(matches!(
+            evs.as_slice(),
+            [EngineEvent::ProtocolError { error, .. }] if error.starts_with("5 received byte(s) starting with 0x68")
+        ));
+        h.handle_line_error(now, LineError::Parity);
+        assert_eq!(events(&mut h).len(), 1);
+    }
+
+    #[test]
+    fn punched_pieces_end_at_each_programs_eor() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        h.handle_input(now, b"\x12\n%\nO1\nX1\n%\nO2\nX2\n%\x14");
+        let pieces: Vec<Vec<u8>> = events(&mut h)
+            .into_iter()
+            .filter_map(|e| match e {
+                EngineEvent::Punched { data } => Some(data.to_vec()),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(
+            pieces,
+            vec![b"\n%\nO1\nX1\n%".to_vec(), b"\nO2\nX2\n%".to_vec()]
+        );
+    }
+
+    #[test]
+    fn notices_are_reported_with_notification_off_too() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, false);
+        h.handle_input(now, &[0x13, 0x16, 0x15]);
+        assert_eq!(
+            events(&mut h),
+            vec![EngineEvent::CncReset, EngineEvent::CncAlarm]
+        );
+    }
+
+    #[test]
+    fn a_dc3_not_sent_yet_is_dropped_rather_than_resumed() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, false);
+        let high = h.config().punch_high_water;
+        h.handle_modem(
+            now,
+            ModemIn {
+                cs: false,
+                ..ModemIn::ALL_ON
+            },
+        );
+        h.handle_input(now, &[0x12]);
+        h.handle_input(now, &vec![b'A'; high + 1]);
+        // CS off: the DC3 waits; the data is taken meanwhile.
+        assert_eq!(h.poll_transmit(now), None);
+        events(&mut h);
+        h.handle_modem(now, ModemIn::ALL_ON);
+        assert_eq!(h.poll_transmit(now), None);
+        assert!(h.punch_held() <= high / 2);
+    }
+
+    proptest! {
+        /// A board that stops and resumes the host at random: nothing goes out while stopped,
+        /// at most one piece is on its way when DC3 arrives, and the board gets exactly the
+        /// program.
+        #[test]
+        fn random_dc1_dc3_flow_delivers_the_program_exactly(
+            steps in proptest::collection::vec((any::<bool>(), 0usize..4), 1..200),
+            iso in any::<bool>(),
+        ) {
+            let code = if iso { CodeSystem::Iso } else { CodeSystem::Ascii };
+            let (mut h, now) = host(code, false, true);
+            let prog = program(3000);
+            load(&mut h, now, &prog);
+            let mut sent = Vec::new();
+            let mut stopped = true;
+            for (dc1, polls) in steps {
+                h.handle_input(now, &[code.control(if dc1 { DC1 } else { DC3 })]);
+                stopped = !dc1;
+                for _ in 0..polls {
+                    match h.poll_transmit(now) {
+                        Some(out) => {
+                            prop_assert!(!stopped, "data after DC3");
+                            prop_assert!(out.len() <= 64);
+                            sent.extend(out);
+                        }
+                        None => break,
+                    }
+                }
+                prop_assert!(prog.starts_with(&sent));
+            }
+            if stopped {
+                h.handle_input(now, &[0x11]);
+            }
+            sent.extend(drain_tx(&mut h, now));
+            prop_assert!(sent == prog, "the board got other bytes than the program");
+        }
+
+        #[test]
+        fn arbitrary_input_never_panics_and_stays_bounded(
+            chunks in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..200), 0..60),
+            take_events in any::<bool>(),
+            expansion in any::<bool>(),
+        ) {
+            let now = Instant::now();
+            let cfg = ProtocolBConfig {
+                max_buffer: 4096,
+                punch_piece: 512,
+                punch_high_water: 4096 - 2 * 1280,
+                ..ProtocolBConfig::new(CodeSystem::Iso, expansion, true)
+            };
+            let mut h = ProtocolBHost::new(cfg, now).unwrap();
+            let mut sent = Vec::new();
+            let prog = program(3000);
+            for (i, chunk) in chunks.iter().enumerate() {
+                if i % 7 == 0 {
+                    load(&mut h, now, &prog);
+                }
+                h.handle_input(now, chunk);
+                if let Some(out) = h.poll_transmit(now) {
+                    prop_assert!(out.len() <= 64);
+                    sent.extend(out);
+                }
+                if take_events {
+                    events(&mut h);
+                }
+                prop_assert!(h.punch_held() <= 4096);
+                prop_assert!(h.program_buffered() <= prog.len());
+            }
+        }
+    }
+}
