@@ -16,6 +16,8 @@
 //! - [`jobs`]: per-machine job queues, program sources and checks, the program library.
 //! - [`bus`]: the Zenoh session, the cell's key expressions, and the routes that serve each
 //!   machine's link, its jobs and the program library on the bus ([`bus::serve`]).
+//! - [`client`]: a client of the bus contract: the library side of `cellgate submit`,
+//!   `status`, `watch`, `do`, `di`, `program` and `cancel`.
 //! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves its admin
 //!   key, and stops cleanly when the shutdown future completes.
 //! - [`telemetry`]: tracing subscriber and the optional OpenTelemetry export.
@@ -23,6 +25,7 @@
 
 pub mod bus;
 pub mod cell;
+pub mod client;
 pub mod config;
 pub mod fanuc;
 pub mod gateway;

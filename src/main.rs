@@ -10,6 +10,7 @@ use std::time::Duration;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
 use cellgate::bus::BusMode;
+use cellgate::client::cli as client;
 use cellgate::config::{CellConfig, ConfigErrors};
 use cellgate::telemetry::{self, LogFormat, TelemetryError};
 
@@ -42,6 +43,22 @@ enum Command {
         /// The cell file (TOML).
         file: PathBuf,
     },
+    /// Send an NC program to a machine and follow the job to its end (exit 0 only if the
+    /// whole program was delivered).
+    Submit(client::SubmitArgs),
+    /// Show the status of the cell's machines.
+    Status(client::StatusArgs),
+    /// Print the cell's events (status, jobs, alarms, DI, links) as they happen.
+    Watch(client::WatchArgs),
+    /// Output the DO image of a machine (SDO).
+    Do(client::DoArgs),
+    /// Read the DI image of a machine now (RDI → SDI).
+    Di(client::DiArgs),
+    /// The cell's program library: put, get, ls, rm.
+    #[command(subcommand)]
+    Program(client::ProgramCommand),
+    /// Cancel a job, waiting or running.
+    Cancel(client::CancelArgs),
     /// Run a simulated device on its own, for testing any host against it.
     #[command(subcommand)]
     Sim(SimCommand),
@@ -105,8 +122,34 @@ fn main() -> ExitCode {
     match cli.command {
         Command::CheckConfig { ref file } => check_config(file),
         Command::Run(ref args) => run(&cli, args),
+        Command::Submit(ref args) => client_command(&cli, args),
+        Command::Status(ref args) => client_command(&cli, args),
+        Command::Watch(ref args) => client_command(&cli, args),
+        Command::Do(ref args) => client_command(&cli, args),
+        Command::Di(ref args) => client_command(&cli, args),
+        Command::Program(ref args) => client_command(&cli, args),
+        Command::Cancel(ref args) => client_command(&cli, args),
         Command::Sim(SimCommand::Fanuc(ref args)) => sim_fanuc(&cli, args.clone()),
     }
+}
+
+/// `cellgate submit`, `status`, `watch`, `do`, `di`, `program`, `cancel`: a zenoh client
+/// of the cell's gateway. Logs (zenoh's included) go to stderr only when asked for with -v
+/// or RUST_LOG.
+fn client_command(cli: &Cli, command: &impl client::ClientCommand) -> ExitCode {
+    let filter = match cli.verbose {
+        0 => std::env::var("RUST_LOG").ok(),
+        1 => Some("warn,cellgate=debug".to_string()),
+        2 => Some("debug".to_string()),
+        _ => Some("trace".to_string()),
+    };
+    if let Some(filter) = filter {
+        let _ = tracing_subscriber::fmt()
+            .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
+            .with_writer(std::io::stderr)
+            .try_init();
+    }
+    client::execute(command)
 }
 
 /// `cellgate sim fanuc ...`: logs go to stderr, events as JSON lines to stdout.

@@ -1,0 +1,614 @@
+//! The client commands of the `cellgate` binary: their arguments (clap) and what each one
+//! does with a connected [`Client`], writing to the given output streams.
+//!
+//! Exit codes: 0 success; 1 failure at run time (no gateway, no answer, a job that failed or
+//! was cancelled); 2 a request the gateway refused (its `ErrorReply` is printed) or bad usage;
+//! 130 `submit` interrupted by Ctrl-C (the job keeps running).
+
+use std::future::Future;
+use std::io::{IsTerminal, Write};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+use super::render::{self, WatchPrinter};
+use super::{Client, ClientError, ConnectOptions, DEFAULT_ENDPOINT, JobOutcome, parse_byte};
+use crate::pb;
+use crate::pb::job_event::Kind;
+
+/// Exit code of an interrupted `submit`.
+pub const EXIT_INTERRUPTED: u8 = 130;
+
+/// Inline programs above this size get a hint to use the library instead.
+const INLINE_HINT: u64 = 16 * 1024 * 1024;
+
+/// Where the gateway is: options every client command takes.
+#[derive(Debug, Clone, Args)]
+pub struct ConnectArgs {
+    /// Zenoh endpoint of the gateway (or of a router it is connected to). The client connects
+    /// there only: client mode, no listen endpoint, multicast scouting off.
+    #[arg(short = 'e', long = "connect", value_name = "ENDPOINT", default_value = DEFAULT_ENDPOINT, env = "CELLGATE_CONNECT")]
+    pub connect: String,
+    /// Key prefix the gateway serves under (its bus.prefix).
+    #[arg(
+        long,
+        value_name = "PREFIX",
+        default_value = "cellgate",
+        env = "CELLGATE_PREFIX"
+    )]
+    pub prefix: String,
+    /// The cell. Default: the only cell whose gateway answers at the endpoint.
+    #[arg(long, value_name = "CELL", env = "CELLGATE_CELL")]
+    pub cell: Option<String>,
+    /// Seconds to wait for the answer to an ordinary request (status, program library).
+    #[arg(long, value_name = "SECS", default_value_t = 10)]
+    pub timeout: u64,
+}
+
+impl ConnectArgs {
+    pub fn options(&self) -> ConnectOptions {
+        ConnectOptions {
+            endpoint: self.connect.clone(),
+            prefix: self.prefix.clone(),
+            cell: self.cell.clone(),
+            timeout: Duration::from_secs(self.timeout.max(1)),
+        }
+    }
+}
+
+/// Output streams of a command. `progress_bar` draws the live bar of `submit` on the
+/// terminal's stderr (off when stderr is not a terminal, and in tests).
+pub struct Io<'a> {
+    pub out: &'a mut (dyn Write + Send),
+    pub err: &'a mut (dyn Write + Send),
+    pub progress_bar: bool,
+}
+
+/// A client command: where to connect, and what to do once connected.
+pub trait ClientCommand {
+    fn connect_args(&self) -> &ConnectArgs;
+    /// Runs the command; `Ok` carries the exit code.
+    fn run(
+        &self,
+        client: &Client,
+        io: &mut Io<'_>,
+    ) -> impl Future<Output = Result<u8, ClientError>>;
+}
+
+/// Connects, runs `command`, closes, and returns its exit code; errors are written to
+/// `io.err`, prefixed `cellgate:`.
+pub async fn run_command(command: &impl ClientCommand, io: &mut Io<'_>) -> u8 {
+    let client = match Client::connect(&command.connect_args().options()).await {
+        Ok(c) => c,
+        Err(e) => return report(io, &e),
+    };
+    let result = command.run(&client, io).await;
+    client.close().await;
+    match result {
+        Ok(code) => code,
+        Err(e) => report(io, &e),
+    }
+}
+
+fn report(io: &mut Io<'_>, e: &ClientError) -> u8 {
+    let _ = writeln!(io.err, "cellgate: {e}");
+    e.exit_code()
+}
+
+/// Runs a client command from the binary: a multi-thread runtime (zenoh's requirement), the
+/// process's stdout and stderr.
+pub fn execute(command: &impl ClientCommand) -> ExitCode {
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .worker_threads(2)
+        .thread_name("cellgate-client")
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
+            return ExitCode::from(1);
+        }
+    };
+    let mut out = std::io::stdout();
+    let mut err = std::io::stderr();
+    let progress_bar = err.is_terminal();
+    let mut io = Io {
+        out: &mut out,
+        err: &mut err,
+        progress_bar,
+    };
+    let code = runtime.block_on(run_command(command, &mut io));
+    let _ = io.out.flush();
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    ExitCode::from(code)
+}
+
+// ---- submit ----------------------------------------------------------------------------------
+
+/// `cellgate submit`.
+#[derive(Debug, Clone, Args)]
+#[command(group(clap::ArgGroup::new("source").required(true).args(["file", "library", "key"])))]
+pub struct SubmitArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// The machine to send the program to (its name in the cell file).
+    #[arg(short, long, value_name = "MACHINE")]
+    pub machine: String,
+    /// The program file. It is sent inline, in one message, so it is held whole in memory;
+    /// for large programs put it in the library first (`cellgate program put`) and use
+    /// --library.
+    #[arg(value_name = "FILE")]
+    pub file: Option<PathBuf>,
+    /// A program of the gateway's library instead of a file.
+    #[arg(long, value_name = "NAME")]
+    pub library: Option<String>,
+    /// A zenoh key the gateway fetches the program from (one get), instead of a file.
+    #[arg(long, value_name = "KEY")]
+    pub key: Option<String>,
+    /// Higher runs first; equal priorities run in arrival order.
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    pub priority: i32,
+    /// The name shown in status and events (default: derived by the gateway from the
+    /// library name, the key or the program's O-number).
+    #[arg(long, value_name = "DISPLAY")]
+    pub name: Option<String>,
+    /// Append the EOR code `%` if the program does not end with one (§4.4.2).
+    #[arg(long)]
+    pub append_eor: bool,
+    /// Print the job id once accepted and return, without following the job.
+    #[arg(long)]
+    pub detach: bool,
+}
+
+impl SubmitArgs {
+    /// The `JobRequest` these arguments make (reads FILE).
+    pub async fn request(&self, io: &mut Io<'_>) -> Result<pb::JobRequest, ClientError> {
+        use pb::job_request::Program;
+        let program = if let Some(path) = &self.file {
+            let data = tokio::fs::read(path)
+                .await
+                .map_err(|source| ClientError::File {
+                    path: path.clone(),
+                    op: "read",
+                    source,
+                })?;
+            if data.len() as u64 > INLINE_HINT {
+                let _ = writeln!(
+                    io.err,
+                    "note: {} is {} and goes inline in one message; for large programs, \
+                     `cellgate program put NAME {}` once and submit --library NAME",
+                    path.display(),
+                    render::bytes(data.len() as u64),
+                    path.display()
+                );
+            }
+            Program::Inline(data)
+        } else if let Some(name) = &self.library {
+            Program::Library(name.clone())
+        } else if let Some(key) = &self.key {
+            Program::Key(key.clone())
+        } else {
+            return Err(ClientError::InvalidArgument {
+                what: "submit".to_string(),
+                reason: "give a FILE, --library NAME or --key KEY".to_string(),
+            });
+        };
+        Ok(pb::JobRequest {
+            program: Some(program),
+            name: self.name.clone().unwrap_or_default(),
+            priority: self.priority,
+            append_eor: self.append_eor,
+        })
+    }
+}
+
+impl ClientCommand for SubmitArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        let request = self.request(io).await?;
+        let (accepted, mut follower) = client.submit(&self.machine, &request).await?;
+        let job = accepted.job_id.clone();
+        let _ = writeln!(io.out, "{job}");
+        let _ = io.out.flush();
+        let _ = writeln!(
+            io.err,
+            "{job}: accepted by {}, {} job(s) ahead",
+            self.machine, accepted.queue_position
+        );
+        if self.detach {
+            follower.close().await;
+            return Ok(0);
+        }
+        let bar = progress_bar(io.progress_bar, &job);
+        let interrupt = tokio::signal::ctrl_c();
+        tokio::pin!(interrupt);
+        let outcome = loop {
+            let event = tokio::select! {
+                e = follower.next() => e,
+                _ = &mut interrupt => {
+                    bar.abandon();
+                    let _ = writeln!(
+                        io.err,
+                        "interrupted: job {job} keeps running on {m}; follow it with \
+                         `cellgate watch {m}`, cancel it with `cellgate cancel {m} {job}`",
+                        m = self.machine
+                    );
+                    follower.close().await;
+                    return Ok(EXIT_INTERRUPTED);
+                }
+            };
+            let event = match event {
+                Ok(Some(e)) => e,
+                Ok(None) => break None,
+                Err(e) => {
+                    bar.abandon();
+                    follower.close().await;
+                    return Err(e);
+                }
+            };
+            show_progress(&bar, io, &event);
+            if let Some(outcome) = JobOutcome::of(&event) {
+                break Some(outcome);
+            }
+        };
+        follower.close().await;
+        Ok(outcome.map_or(1, |o| o.exit_code()))
+    }
+}
+
+fn progress_bar(visible: bool, job: &str) -> ProgressBar {
+    if !visible {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::stderr());
+    let style = ProgressStyle::with_template(
+        "{prefix} {msg:24} [{wide_bar}] {bytes}/{total_bytes} {elapsed_precise} eta {eta}",
+    )
+    .map(|s| s.progress_chars("=> "))
+    .unwrap_or_else(|_| ProgressStyle::default_bar());
+    bar.set_style(style);
+    bar.set_prefix(job.to_string());
+    bar.enable_steady_tick(Duration::from_millis(200));
+    bar
+}
+
+/// Shows one job event: on the bar when there is one; otherwise as a line for each step but
+/// the progress events.
+fn show_progress(bar: &ProgressBar, io: &mut Io<'_>, event: &pb::JobEvent) {
+    let line = format!("{}: {}", event.job_id, render::job_kind_text(event));
+    match &event.kind {
+        Some(Kind::Queued(q)) => bar.set_message(format!("queued, {} ahead", q.queue_position)),
+        Some(Kind::Started(s)) => {
+            if let Some(total) = s.bytes_total {
+                bar.set_length(total);
+            }
+            bar.reset_elapsed();
+            bar.set_message("sending");
+        }
+        Some(Kind::Progress(p)) => {
+            if let Some(total) = p.bytes_total {
+                bar.set_length(total);
+            }
+            bar.set_position(p.bytes_sent);
+            bar.set_message(format!("sending, {} B/s", p.rate_bps));
+            return; // no line per progress event
+        }
+        Some(Kind::Completed(c)) => {
+            bar.set_position(c.bytes_sent);
+            bar.finish_and_clear();
+        }
+        Some(Kind::Failed(_) | Kind::Cancelled(_)) | None => bar.abandon(),
+    }
+    if bar.is_hidden() || JobOutcome::of(event).is_some() {
+        let _ = writeln!(io.err, "{line}");
+    }
+}
+
+// ---- status ----------------------------------------------------------------------------------
+
+/// `cellgate status`.
+#[derive(Debug, Clone, Args)]
+pub struct StatusArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// One machine; default every machine of the cell.
+    #[arg(value_name = "MACHINE")]
+    pub machine: Option<String>,
+    /// Print JSON (an array of MachineStatus, with the .proto's field and enum names).
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl ClientCommand for StatusArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        let statuses = client.status(self.machine.as_deref()).await?;
+        if self.json {
+            let all: Vec<_> = statuses.iter().map(render::status_json).collect();
+            let text = serde_json::to_string_pretty(&all).unwrap_or_default();
+            let _ = writeln!(io.out, "{text}");
+        } else {
+            let _ = write!(io.out, "{}", render::status_table(&statuses));
+        }
+        Ok(0)
+    }
+}
+
+// ---- watch -----------------------------------------------------------------------------------
+
+/// `cellgate watch`.
+#[derive(Debug, Clone, Args)]
+pub struct WatchArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// Only this machine's events.
+    #[arg(value_name = "MACHINE")]
+    pub machine: Option<String>,
+    /// One JSON object per line.
+    #[arg(long)]
+    pub json: bool,
+    /// Stop after this many lines (default: until Ctrl-C).
+    #[arg(long, value_name = "N")]
+    pub count: Option<u64>,
+}
+
+impl ClientCommand for WatchArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        let mut watch = client.watch().await?;
+        let mut printer = WatchPrinter::new();
+        let mut printed = 0;
+        let interrupt = tokio::signal::ctrl_c();
+        tokio::pin!(interrupt);
+        while self.count.is_none_or(|n| printed < n) {
+            let event = tokio::select! {
+                e = watch.next() => e,
+                _ = &mut interrupt => break,
+            };
+            let Some(event) = event else {
+                watch.close().await;
+                return Err(ClientError::Closed {
+                    what: "watch".to_string(),
+                });
+            };
+            if let Some(m) = &self.machine
+                && render::watch_machine(&event) != Some(m.as_str())
+            {
+                continue;
+            }
+            let now = crate::jobs::unix_ms();
+            let line = if self.json {
+                Some(render::watch_json(&event, now).to_string())
+            } else {
+                printer.line(&event, now)
+            };
+            if let Some(line) = line {
+                // A closed stdout (`cellgate watch | head`) ends the watch.
+                if writeln!(io.out, "{line}")
+                    .and_then(|()| io.out.flush())
+                    .is_err()
+                {
+                    break;
+                }
+                printed += 1;
+            }
+        }
+        watch.close().await;
+        Ok(0)
+    }
+}
+
+// ---- DO / DI ---------------------------------------------------------------------------------
+
+fn byte_arg(text: &str) -> Result<u8, String> {
+    parse_byte(text)
+}
+
+/// `cellgate do`.
+#[derive(Debug, Clone, Args)]
+pub struct DoArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// The machine (Protocol A family only: SDO, §4.4.1).
+    #[arg(value_name = "MACHINE")]
+    pub machine: String,
+    /// The DO bits: 0x.. hex, 0b.. binary or decimal, 0..=255.
+    #[arg(value_name = "VALUE", value_parser = byte_arg)]
+    pub value: u8,
+    /// Which bits to change (same notations); the others keep the last DO image. Default:
+    /// all 8.
+    #[arg(long, value_name = "MASK", value_parser = byte_arg)]
+    pub mask: Option<u8>,
+    /// Put the command and return without waiting for SDO to go out (no confirmation).
+    #[arg(long)]
+    pub no_wait: bool,
+}
+
+impl ClientCommand for DoArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        if self.no_wait {
+            client.put_do(&self.machine, self.value, self.mask).await?;
+            let _ = writeln!(io.err, "{}: DO command sent (not confirmed)", self.machine);
+            return Ok(0);
+        }
+        let status = client.set_do(&self.machine, self.value, self.mask).await?;
+        let image = status.do_image.unwrap_or(u32::from(self.value));
+        let _ = writeln!(io.out, "{} DO {}", self.machine, render::byte_image(image));
+        Ok(0)
+    }
+}
+
+/// `cellgate di`.
+#[derive(Debug, Clone, Args)]
+pub struct DiArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// The machine (Protocol A family only: RDI → SDI, §4.4.1). The read waits for the
+    /// board's next exchange, up to Tp + 1 s.
+    #[arg(value_name = "MACHINE")]
+    pub machine: String,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl ClientCommand for DiArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        let di = client.read_di(&self.machine).await?;
+        if self.json {
+            let _ = writeln!(io.out, "{}", render::di_json(&di));
+        } else {
+            let _ = write!(io.out, "{}", render::di_text(&di));
+        }
+        Ok(0)
+    }
+}
+
+// ---- program library -------------------------------------------------------------------------
+
+/// `cellgate program`.
+#[derive(Debug, Clone, Subcommand)]
+pub enum ProgramCommand {
+    /// Store a program file in the gateway's library under NAME (replacing one of that name).
+    Put {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// Library name: 1-128 of A-Z a-z 0-9 . _ + -, starting with a letter or digit.
+        name: String,
+        /// The program file.
+        file: PathBuf,
+    },
+    /// Fetch a program of the library.
+    Get {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        name: String,
+        /// Write it to FILE instead of stdout.
+        #[arg(short, long, value_name = "FILE")]
+        output: Option<PathBuf>,
+    },
+    /// List the library.
+    Ls {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// Print JSON (an array of ProgramInfo).
+        #[arg(long)]
+        json: bool,
+    },
+    /// Remove a program from the library.
+    Rm {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        name: String,
+    },
+}
+
+impl ClientCommand for ProgramCommand {
+    fn connect_args(&self) -> &ConnectArgs {
+        match self {
+            ProgramCommand::Put { connect, .. }
+            | ProgramCommand::Get { connect, .. }
+            | ProgramCommand::Ls { connect, .. }
+            | ProgramCommand::Rm { connect, .. } => connect,
+        }
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        match self {
+            ProgramCommand::Put { name, file, .. } => {
+                let data = tokio::fs::read(file)
+                    .await
+                    .map_err(|source| ClientError::File {
+                        path: file.clone(),
+                        op: "read",
+                        source,
+                    })?;
+                let info = client.program_put(name, &data).await?;
+                let _ = writeln!(io.err, "{}: stored, {} bytes", info.name, info.size);
+            }
+            ProgramCommand::Get { name, output, .. } => {
+                let data = client.program_get(name).await?;
+                match output {
+                    Some(path) => {
+                        tokio::fs::write(path, &data)
+                            .await
+                            .map_err(|source| ClientError::File {
+                                path: path.clone(),
+                                op: "write",
+                                source,
+                            })?
+                    }
+                    None => {
+                        let _ = io.out.write_all(&data);
+                    }
+                }
+            }
+            ProgramCommand::Ls { json, .. } => {
+                let list = client.program_list().await?;
+                if *json {
+                    let all: Vec<_> = list.iter().map(render::program_json).collect();
+                    let text = serde_json::to_string_pretty(&all).unwrap_or_default();
+                    let _ = writeln!(io.out, "{text}");
+                } else {
+                    let _ = write!(io.out, "{}", render::program_table(&list));
+                }
+            }
+            ProgramCommand::Rm { name, .. } => {
+                client.program_remove(name).await?;
+                let _ = writeln!(io.err, "{name}: removed");
+            }
+        }
+        Ok(0)
+    }
+}
+
+// ---- cancel ----------------------------------------------------------------------------------
+
+/// `cellgate cancel`.
+#[derive(Debug, Clone, Args)]
+pub struct CancelArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// The machine the job runs on.
+    #[arg(value_name = "MACHINE")]
+    pub machine: String,
+    /// The job id `submit` printed.
+    #[arg(value_name = "JOB_ID")]
+    pub job_id: String,
+}
+
+impl ClientCommand for CancelArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        let last = client.cancel(&self.machine, &self.job_id).await?;
+        let _ = writeln!(io.err, "{}: {}", last.job_id, render::job_kind_text(&last));
+        Ok(match JobOutcome::of(&last) {
+            Some(JobOutcome::Cancelled(_)) => 0,
+            _ => 1,
+        })
+    }
+}

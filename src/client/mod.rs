@@ -1,0 +1,1336 @@
+//! A client of the cell's bus contract: the library side of `cellgate submit`, `status`,
+//! `watch`, `do`, `di`, `program` and `cancel`.
+//!
+//! [`Client::connect`] opens a zenoh session in client mode that connects to one endpoint
+//! only, listens nowhere and has multicast scouting off, then finds the cell: the one named,
+//! or, if none is, the only cell whose gateway answers `P/*/@admin` there. Every operation
+//! after that speaks the contract of [`crate::bus`] (keys of [`CellKeys`], protobuf payloads
+//! of [`crate::pb`], `ErrorReply` on refusal) and nothing else, so it works against any
+//! gateway of the same contract. [`cli`] turns the operations into the commands; [`render`]
+//! formats their results for people (text) and programs (JSON).
+
+pub mod cli;
+pub mod render;
+
+use std::collections::VecDeque;
+use std::time::Duration;
+
+use prost::Message;
+use zenoh::Session;
+use zenoh::bytes::{Encoding, ZBytes};
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::Subscriber;
+use zenoh::query::{ConsolidationMode, Reply};
+use zenoh::sample::{Sample, SampleKind};
+
+use crate::bus::keys::{CellKey, CellKeys, KeyError, MachineLeaf, is_plain_chunk};
+use crate::bus::payload::{BusMessage, encoding, schema_of};
+use crate::bus::{BusConfig, BusError, BusMode};
+use crate::jobs::library::{LibraryError, validate_name};
+use crate::pb;
+use crate::pb::job_event::Kind;
+
+/// The endpoint a client connects to unless told otherwise: where `cellgate run` listens
+/// by default.
+pub const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";
+
+/// How long an ordinary request (status, program library, admin) may wait for its reply.
+/// A get ends as soon as every gateway that matches has answered, so this only bounds the
+/// wait on a gateway that stopped answering.
+pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// How long a job request may wait for `JobAccepted`: the gateway checks the whole program
+/// (and may fetch it from a key, for up to 5 s) before answering.
+pub const SUBMIT_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// How long a DI read or a DO output may wait. The gateway answers within Tp + 1 s (the
+/// board's next exchange, `bus/routes.rs`), and Tp is at most 99 s (§4.5).
+pub const IO_TIMEOUT: Duration = Duration::from_secs(105);
+
+/// How long a followed job may stay silent before the client asks the gateway for its latest
+/// event (a job waiting in the queue publishes nothing).
+pub const SILENCE: Duration = Duration::from_secs(5);
+
+/// How long `program put` / `program rm` wait to see the library change. A put or delete
+/// has no reply in the contract, so the client reads the library back.
+pub const LIBRARY_CONFIRM: Duration = Duration::from_secs(5);
+
+/// Why a client operation failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ClientError {
+    /// Zenoh refused the endpoint given with `--connect`.
+    #[error("--connect {endpoint}: not a zenoh endpoint (e.g. tcp/127.0.0.1:7447): {source}")]
+    Endpoint {
+        endpoint: String,
+        #[source]
+        source: BusError,
+    },
+    /// Nothing accepted the connection.
+    #[error(
+        "cannot connect to {endpoint}: nothing accepted a zenoh session there. Is `cellgate run` \
+         running and listening there? (it listens on tcp/127.0.0.1:7447 unless told otherwise; \
+         give its endpoint with --connect)"
+    )]
+    Unreachable {
+        endpoint: String,
+        #[source]
+        source: zenoh::Error,
+    },
+    /// The session opened, but no gateway of the cell (or of any cell) answered its admin
+    /// key.
+    #[error("{}", no_gateway_message(endpoint, prefix, cell.as_deref(), others))]
+    NoGateway {
+        endpoint: String,
+        prefix: String,
+        cell: Option<String>,
+        /// Cells whose gateways did answer.
+        others: Vec<String>,
+    },
+    /// No cell was named and several answer.
+    #[error(
+        "gateways of several cells answer at {endpoint}: {}; choose one with --cell",
+        cells.join(", ")
+    )]
+    SeveralCells {
+        endpoint: String,
+        cells: Vec<String>,
+    },
+    /// `--prefix` and `--cell` do not make a key.
+    #[error("--prefix/--cell: {0}")]
+    Keys(#[from] KeyError),
+    /// A command-line value that cannot be used (a machine name with a wildcard, a DO value
+    /// out of range, ...).
+    #[error("{what}: {reason}")]
+    InvalidArgument { what: String, reason: String },
+    /// A library name the gateway would refuse.
+    #[error("{0}")]
+    ProgramName(#[source] LibraryError),
+    /// The gateway answered with an `ErrorReply`.
+    #[error("{what}: refused by the gateway ({}): {message}", code.as_str_name())]
+    Refused {
+        what: String,
+        code: pb::ErrorCode,
+        message: String,
+    },
+    /// No gateway answered the request in time.
+    #[error(
+        "{what}: no answer on {key} within {} s; is the gateway of this cell still running?",
+        timeout.as_secs()
+    )]
+    NoAnswer {
+        what: String,
+        key: String,
+        timeout: Duration,
+    },
+    /// The reply could not be read as the message the contract names.
+    #[error("{what}: the reply on {key} is not a {expected}: {detail}")]
+    BadReply {
+        what: String,
+        key: String,
+        expected: &'static str,
+        detail: String,
+    },
+    /// A put or delete on the program library did not show in the library.
+    #[error(
+        "program {name}: the library did not show the {op} within {} s; the gateway refused it \
+         or is slow (see its log: the name must be valid and the program within programs.max_size)",
+        LIBRARY_CONFIRM.as_secs()
+    )]
+    NotConfirmed { name: String, op: &'static str },
+    /// Zenoh failed a declaration, a put or a get.
+    #[error("{what}: zenoh: {source}")]
+    Zenoh {
+        what: String,
+        #[source]
+        source: zenoh::Error,
+    },
+    /// The session closed under a subscriber.
+    #[error("{what}: the zenoh session closed")]
+    Closed { what: String },
+    /// A file given on the command line could not be read or written.
+    #[error("{}: cannot {op}: {source}", path.display())]
+    File {
+        path: std::path::PathBuf,
+        op: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+fn no_gateway_message(
+    endpoint: &str,
+    prefix: &str,
+    cell: Option<&str>,
+    others: &[String],
+) -> String {
+    match cell {
+        None => format!(
+            "no gateway answered at {endpoint} (on {prefix}/*/@admin): is `cellgate run` running? \
+             (if it serves another key prefix, give it with --prefix)"
+        ),
+        Some(cell) if others.is_empty() => format!(
+            "no gateway of cell {cell} answered at {endpoint} (on {prefix}/{cell}/@admin): is \
+             `cellgate run` running for that cell?"
+        ),
+        Some(cell) => format!(
+            "no gateway of cell {cell} answered at {endpoint}; cells answering there: {}",
+            others.join(", ")
+        ),
+    }
+}
+
+impl ClientError {
+    /// The exit code a command ends with on this error: 2 when the request itself is wrong
+    /// (usage, a refusal by the gateway), 1 when something failed at run time.
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            ClientError::Endpoint { .. }
+            | ClientError::SeveralCells { .. }
+            | ClientError::Keys(_)
+            | ClientError::InvalidArgument { .. }
+            | ClientError::ProgramName(_)
+            | ClientError::Refused { .. }
+            | ClientError::File { op: "read", .. } => 2,
+            _ => 1,
+        }
+    }
+
+    /// The gateway's error code, when the gateway refused.
+    pub fn refusal(&self) -> Option<pb::ErrorCode> {
+        match self {
+            ClientError::Refused { code, .. } => Some(*code),
+            _ => None,
+        }
+    }
+}
+
+/// Where and how to connect.
+#[derive(Debug, Clone)]
+pub struct ConnectOptions {
+    /// The zenoh endpoint to connect to (the only one).
+    pub endpoint: String,
+    /// Key prefix `P`.
+    pub prefix: String,
+    /// The cell `C`; `None` to discover it.
+    pub cell: Option<String>,
+    /// Timeout of ordinary requests.
+    pub timeout: Duration,
+}
+
+impl Default for ConnectOptions {
+    fn default() -> Self {
+        ConnectOptions {
+            endpoint: DEFAULT_ENDPOINT.to_string(),
+            prefix: "cellgate".to_string(),
+            cell: None,
+            timeout: DEFAULT_TIMEOUT,
+        }
+    }
+}
+
+/// One reply to a get: the sample's key, payload and encoding, or the error's payload and
+/// encoding.
+type RawReply = Result<(String, Vec<u8>, Encoding), (Vec<u8>, Encoding)>;
+type RawReplies = Vec<RawReply>;
+
+/// A connected client of one cell.
+pub struct Client {
+    session: Session,
+    keys: CellKeys,
+    endpoint: String,
+    timeout: Duration,
+    admin: serde_json::Value,
+}
+
+impl std::fmt::Debug for Client {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Client")
+            .field("root", &self.keys.root())
+            .field("endpoint", &self.endpoint)
+            .finish_non_exhaustive()
+    }
+}
+
+/// The zenoh configuration of a client session: client mode, the one endpoint, no listen,
+/// no multicast scouting. In client mode zenoh tries the endpoint once and fails at once if
+/// nothing accepts, which is what a command wants.
+pub fn client_config(endpoint: &str) -> Result<zenoh::Config, ClientError> {
+    let bus = BusConfig {
+        mode: BusMode::Client,
+        listen: Vec::new(),
+        connect: vec![endpoint.to_string()],
+        multicast_scouting: false,
+        ..BusConfig::default()
+    };
+    crate::bus::session::zenoh_config(&bus).map_err(|source| ClientError::Endpoint {
+        endpoint: endpoint.to_string(),
+        source,
+    })
+}
+
+impl Client {
+    /// Connects to `options.endpoint` and finds the cell. Must run on a multi-thread Tokio
+    /// runtime (zenoh's requirement); close the client with [`Client::close`].
+    pub async fn connect(options: &ConnectOptions) -> Result<Client, ClientError> {
+        // Both checked before any connection: a bad prefix or cell is a usage error.
+        CellKeys::new(&options.prefix, options.cell.as_deref().unwrap_or("cell"))?;
+        let config = client_config(&options.endpoint)?;
+        let session = zenoh::open(config)
+            .await
+            .map_err(|source| ClientError::Unreachable {
+                endpoint: options.endpoint.clone(),
+                source,
+            })?;
+        match Self::find_cell(&session, options).await {
+            Ok((cell, admin)) => match CellKeys::new(&options.prefix, &cell) {
+                Ok(keys) => Ok(Client {
+                    session,
+                    keys,
+                    endpoint: options.endpoint.clone(),
+                    timeout: options.timeout,
+                    admin,
+                }),
+                Err(e) => {
+                    let _ = session.close().await;
+                    Err(e.into())
+                }
+            },
+            Err(e) => {
+                let _ = session.close().await;
+                Err(e)
+            }
+        }
+    }
+
+    /// The cells whose gateways answer `P/<cell>/@admin` (`cell` may be `*`), with their
+    /// admin documents.
+    async fn admin_answers(
+        session: &Session,
+        prefix: &str,
+        cell: &str,
+        timeout: Duration,
+    ) -> Result<Vec<(String, serde_json::Value)>, ClientError> {
+        let key = format!("{prefix}/{cell}/@admin");
+        let replies = session
+            .get(key.as_str())
+            .consolidation(ConsolidationMode::None)
+            .timeout(timeout)
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("get {key}"),
+                source,
+            })?;
+        let mut found = Vec::new();
+        let head = format!("{prefix}/");
+        while let Ok(reply) = replies.recv_async().await {
+            let Ok(sample) = reply.result() else { continue };
+            let Some(name) = sample
+                .key_expr()
+                .as_str()
+                .strip_prefix(head.as_str())
+                .and_then(|rest| rest.strip_suffix("/@admin"))
+            else {
+                continue;
+            };
+            let doc = serde_json::from_slice(&sample.payload().to_bytes())
+                .unwrap_or(serde_json::Value::Null);
+            if !found.iter().any(|(c, _)| c == name) {
+                found.push((name.to_string(), doc));
+            }
+        }
+        found.sort_by(|a, b| a.0.cmp(&b.0));
+        Ok(found)
+    }
+
+    async fn find_cell(
+        session: &Session,
+        options: &ConnectOptions,
+    ) -> Result<(String, serde_json::Value), ClientError> {
+        let prefix = options.prefix.as_str();
+        let no_gateway = |cell: Option<&str>, others: Vec<String>| ClientError::NoGateway {
+            endpoint: options.endpoint.clone(),
+            prefix: prefix.to_string(),
+            cell: cell.map(str::to_string),
+            others,
+        };
+        if let Some(cell) = options.cell.as_deref() {
+            let mut answers = Self::admin_answers(session, prefix, cell, options.timeout).await?;
+            return match answers.pop() {
+                Some(answer) => Ok(answer),
+                None => {
+                    let others = Self::admin_answers(session, prefix, "*", options.timeout)
+                        .await?
+                        .into_iter()
+                        .map(|(c, _)| c)
+                        .collect();
+                    Err(no_gateway(Some(cell), others))
+                }
+            };
+        }
+        let mut answers = Self::admin_answers(session, prefix, "*", options.timeout).await?;
+        match answers.len() {
+            0 => Err(no_gateway(None, Vec::new())),
+            1 => Ok(answers.remove(0)),
+            _ => Err(ClientError::SeveralCells {
+                endpoint: options.endpoint.clone(),
+                cells: answers.into_iter().map(|(c, _)| c).collect(),
+            }),
+        }
+    }
+
+    /// Closes the session. Call it before the runtime ends.
+    pub async fn close(self) {
+        if let Err(e) = self.session.close().await {
+            tracing::debug!(error = %e, "closing the client session");
+        }
+    }
+
+    /// The cell's keys.
+    pub fn keys(&self) -> &CellKeys {
+        &self.keys
+    }
+
+    /// The cell's name.
+    pub fn cell(&self) -> &str {
+        self.keys
+            .root()
+            .rsplit_once('/')
+            .map_or(self.keys.root(), |(_, c)| c)
+    }
+
+    /// The gateway's admin document (`name`, `version`, `cell`, `zid`, `config`).
+    pub fn admin(&self) -> &serde_json::Value {
+        &self.admin
+    }
+
+    /// The zenoh session, for what the commands do not cover.
+    pub fn session(&self) -> &Session {
+        &self.session
+    }
+
+    /// The machines the gateway's configuration names, if its admin document says.
+    pub fn configured_machines(&self) -> Vec<String> {
+        self.admin["config"]["machines"]
+            .as_array()
+            .map(|ms| {
+                ms.iter()
+                    .filter_map(|m| m["name"].as_str().map(str::to_string))
+                    .collect()
+            })
+            .unwrap_or_default()
+    }
+
+    // ---- requests --------------------------------------------------------------------------
+
+    /// Every reply to a get on `key`.
+    async fn get_raw(
+        &self,
+        what: &str,
+        key: &str,
+        payload: Option<(Vec<u8>, Encoding)>,
+        timeout: Duration,
+    ) -> Result<RawReplies, ClientError> {
+        get_raw(&self.session, what, key, payload, timeout).await
+    }
+
+    /// The replies to a get, each decoded as `M`; the first `ErrorReply` fails the whole.
+    async fn get_all<M: BusMessage>(
+        &self,
+        what: &str,
+        key: &str,
+        payload: Option<(Vec<u8>, Encoding)>,
+        timeout: Duration,
+    ) -> Result<Vec<(String, M)>, ClientError> {
+        let replies = self.get_raw(what, key, payload, timeout).await?;
+        decode_all(what, replies)
+    }
+
+    /// The one message a concrete get answers.
+    async fn get_one<M: BusMessage>(
+        &self,
+        what: &str,
+        key: &str,
+        payload: Option<(Vec<u8>, Encoding)>,
+        timeout: Duration,
+    ) -> Result<M, ClientError> {
+        self.get_all(what, key, payload, timeout)
+            .await?
+            .into_iter()
+            .next()
+            .map(|(_, m)| m)
+            .ok_or_else(|| ClientError::NoAnswer {
+                what: what.to_string(),
+                key: key.to_string(),
+                timeout,
+            })
+    }
+
+    fn machine_arg(machine: &str) -> Result<(), ClientError> {
+        if is_plain_chunk(machine) {
+            Ok(())
+        } else {
+            Err(ClientError::InvalidArgument {
+                what: format!("machine {machine:?}"),
+                reason: "name one machine: one key chunk, without '/', '*', '$', '?' or '#'"
+                    .to_string(),
+            })
+        }
+    }
+
+    /// The status of one machine, or of every machine (`None`), sorted by name.
+    pub async fn status(
+        &self,
+        machine: Option<&str>,
+    ) -> Result<Vec<pb::MachineStatus>, ClientError> {
+        let key = match machine {
+            Some(m) => {
+                Self::machine_arg(m)?;
+                self.keys.leaf(m, MachineLeaf::Status)
+            }
+            None => self.keys.any_leaf(MachineLeaf::Status),
+        };
+        let what = match machine {
+            Some(m) => format!("status of {m}"),
+            None => "status".to_string(),
+        };
+        let mut all: Vec<pb::MachineStatus> = self
+            .get_all(&what, &key, None, self.timeout)
+            .await?
+            .into_iter()
+            .map(|(_, s)| s)
+            .collect();
+        if machine.is_some() && all.is_empty() {
+            return Err(ClientError::NoAnswer {
+                what,
+                key,
+                timeout: self.timeout,
+            });
+        }
+        all.sort_by(|a, b| a.machine.cmp(&b.machine));
+        Ok(all)
+    }
+
+    /// Sends a job request to `machine` and returns its `JobAccepted` with a follower of its
+    /// events.
+    ///
+    /// The job id is only known from the reply, so the follower subscribes to every job of
+    /// the machine (`P/C/machine/M/job/*`) before the request goes out and keeps the events
+    /// of this job. The subscription and the request travel in order on the one link to the
+    /// gateway, which processes the subscription first: no event of the job is missed.
+    pub async fn submit(
+        &self,
+        machine: &str,
+        request: &pb::JobRequest,
+    ) -> Result<(pb::JobAccepted, JobFollower), ClientError> {
+        Self::machine_arg(machine)?;
+        let what = format!("submit to {machine}");
+        let events_key = self.keys.job_events(machine, "*");
+        let subscriber = self
+            .session
+            .declare_subscriber(events_key.as_str())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("subscribe to {events_key}"),
+                source,
+            })?;
+        let key = self.keys.leaf(machine, MachineLeaf::Job);
+        let payload = (request.encode_to_vec(), encoding::<pb::JobRequest>());
+        let accepted: pb::JobAccepted = match self
+            .get_one(&what, &key, Some(payload), SUBMIT_TIMEOUT)
+            .await
+        {
+            Ok(a) => a,
+            Err(e) => {
+                let _ = subscriber.undeclare().await;
+                return Err(e);
+            }
+        };
+        let follower = JobFollower {
+            session: self.session.clone(),
+            subscriber,
+            keys: self.keys.clone(),
+            machine: machine.to_string(),
+            job_id: accepted.job_id.clone(),
+            ended: false,
+            timeout: self.timeout,
+        };
+        Ok((accepted, follower))
+    }
+
+    /// Follows a job already submitted (e.g. by another client).
+    pub async fn follow(&self, machine: &str, job_id: &str) -> Result<JobFollower, ClientError> {
+        Self::machine_arg(machine)?;
+        Self::job_arg(job_id)?;
+        let events_key = self.keys.job_events(machine, job_id);
+        let subscriber = self
+            .session
+            .declare_subscriber(events_key.as_str())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("subscribe to {events_key}"),
+                source,
+            })?;
+        Ok(JobFollower {
+            session: self.session.clone(),
+            subscriber,
+            keys: self.keys.clone(),
+            machine: machine.to_string(),
+            job_id: job_id.to_string(),
+            ended: false,
+            timeout: self.timeout,
+        })
+    }
+
+    fn job_arg(job_id: &str) -> Result<(), ClientError> {
+        if is_plain_chunk(job_id) {
+            Ok(())
+        } else {
+            Err(ClientError::InvalidArgument {
+                what: format!("job {job_id:?}"),
+                reason: "name one job id as `submit` printed it, without wildcards".to_string(),
+            })
+        }
+    }
+
+    /// The latest event of a job (the gateway keeps the last 256 jobs of each machine).
+    pub async fn job_latest(
+        &self,
+        machine: &str,
+        job_id: &str,
+    ) -> Result<pb::JobEvent, ClientError> {
+        Self::machine_arg(machine)?;
+        Self::job_arg(job_id)?;
+        let key = self.keys.job_events(machine, job_id);
+        self.get_one(&format!("job {job_id}"), &key, None, self.timeout)
+            .await
+    }
+
+    /// The queue of one machine.
+    pub async fn queue(&self, machine: &str) -> Result<pb::JobQueue, ClientError> {
+        Self::machine_arg(machine)?;
+        let key = self.keys.leaf(machine, MachineLeaf::Job);
+        self.get_one(&format!("queue of {machine}"), &key, None, self.timeout)
+            .await
+    }
+
+    /// Cancels a job (a delete on its key) and waits for it to end; returns its last event.
+    /// A job that already ended is an error naming how it ended.
+    pub async fn cancel(&self, machine: &str, job_id: &str) -> Result<pb::JobEvent, ClientError> {
+        let latest = self.job_latest(machine, job_id).await?;
+        if is_end(&latest) {
+            return Err(ClientError::InvalidArgument {
+                what: format!("cancel job {job_id}"),
+                reason: format!("the job already ended: {}", render::job_kind_text(&latest)),
+            });
+        }
+        let mut follower = self.follow(machine, job_id).await?;
+        let key = self.keys.job_events(machine, job_id);
+        let deleted = self.session.delete(key.as_str()).await;
+        if let Err(source) = deleted {
+            follower.close().await;
+            return Err(ClientError::Zenoh {
+                what: format!("delete {key}"),
+                source,
+            });
+        }
+        let end = follower.wait_end().await;
+        follower.close().await;
+        end
+    }
+
+    /// Outputs DO on `machine` (SDO) with a get, and returns the status the gateway answers
+    /// once SDO went out. `mask` `None` sets all 8 bits.
+    pub async fn set_do(
+        &self,
+        machine: &str,
+        value: u8,
+        mask: Option<u8>,
+    ) -> Result<pb::MachineStatus, ClientError> {
+        Self::machine_arg(machine)?;
+        let key = self.keys.leaf(machine, MachineLeaf::Do);
+        let cmd = pb::DoCommand {
+            value: u32::from(value),
+            mask: mask.map(u32::from),
+        };
+        let payload = (cmd.encode_to_vec(), encoding::<pb::DoCommand>());
+        self.get_one(&format!("DO of {machine}"), &key, Some(payload), IO_TIMEOUT)
+            .await
+    }
+
+    /// Outputs DO with a put: no confirmation (the gateway logs a refusal).
+    pub async fn put_do(
+        &self,
+        machine: &str,
+        value: u8,
+        mask: Option<u8>,
+    ) -> Result<(), ClientError> {
+        Self::machine_arg(machine)?;
+        let key = self.keys.leaf(machine, MachineLeaf::Do);
+        let cmd = pb::DoCommand {
+            value: u32::from(value),
+            mask: mask.map(u32::from),
+        };
+        self.session
+            .put(key.as_str(), cmd.encode_to_vec())
+            .encoding(encoding::<pb::DoCommand>())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("put {key}"),
+                source,
+            })
+    }
+
+    /// Reads DI of `machine` now (RDI → SDI).
+    pub async fn read_di(&self, machine: &str) -> Result<pb::DiImage, ClientError> {
+        Self::machine_arg(machine)?;
+        let key = self.keys.leaf(machine, MachineLeaf::Di);
+        self.get_one(&format!("DI of {machine}"), &key, None, IO_TIMEOUT)
+            .await
+    }
+
+    // ---- program library -------------------------------------------------------------------
+
+    fn program_arg(name: &str) -> Result<(), ClientError> {
+        validate_name(name).map_err(ClientError::ProgramName)
+    }
+
+    /// Every program of the library, sorted by name.
+    pub async fn program_list(&self) -> Result<Vec<pb::ProgramInfo>, ClientError> {
+        let key = self.keys.any_program();
+        let mut all: Vec<pb::ProgramInfo> = self
+            .get_all("program library", &key, None, self.timeout)
+            .await?
+            .into_iter()
+            .map(|(_, p)| p)
+            .collect();
+        all.sort_by(|a, b| a.name.cmp(&b.name));
+        Ok(all)
+    }
+
+    /// One program's bytes.
+    pub async fn program_get(&self, name: &str) -> Result<Vec<u8>, ClientError> {
+        Self::program_arg(name)?;
+        let key = self.keys.program(name);
+        let what = format!("program {name}");
+        let replies = self.get_raw(&what, &key, None, self.timeout).await?;
+        match replies.into_iter().next() {
+            Some(Ok((_, bytes, _))) => Ok(bytes),
+            Some(Err((bytes, enc))) => Err(refusal(&what, &bytes, &enc)),
+            None => Err(ClientError::NoAnswer {
+                what,
+                key,
+                timeout: self.timeout,
+            }),
+        }
+    }
+
+    /// Stores a program in the library, and waits until the library holds exactly these
+    /// bytes under `name`.
+    pub async fn program_put(
+        &self,
+        name: &str,
+        program: &[u8],
+    ) -> Result<pb::ProgramInfo, ClientError> {
+        Self::program_arg(name)?;
+        if let Some(max) = self.admin["config"]["programs"]["max_size"].as_u64()
+            && program.len() as u64 > max
+        {
+            return Err(ClientError::InvalidArgument {
+                what: format!("program {name}"),
+                reason: format!(
+                    "{} bytes; the gateway's programs.max_size allows {max}",
+                    program.len()
+                ),
+            });
+        }
+        let key = self.keys.program(name);
+        self.session
+            .put(key.as_str(), program.to_vec())
+            .encoding(Encoding::APPLICATION_OCTET_STREAM)
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("put {key}"),
+                source,
+            })?;
+        let deadline = tokio::time::Instant::now() + LIBRARY_CONFIRM;
+        loop {
+            let listed = self.program_list().await?;
+            if let Some(info) = listed
+                .into_iter()
+                .find(|p| p.name == name && p.size == program.len() as u64)
+            {
+                // Same size: compare the bytes, since the put may replace a program of the
+                // same size.
+                if self.program_get(name).await.ok().as_deref() == Some(program) {
+                    return Ok(info);
+                }
+            }
+            if tokio::time::Instant::now() >= deadline {
+                return Err(ClientError::NotConfirmed {
+                    name: name.to_string(),
+                    op: "put",
+                });
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    /// Removes a program from the library, and waits until it is gone.
+    pub async fn program_remove(&self, name: &str) -> Result<(), ClientError> {
+        Self::program_arg(name)?;
+        let present = |list: &[pb::ProgramInfo]| list.iter().any(|p| p.name == name);
+        if !present(&self.program_list().await?) {
+            return Err(ClientError::Refused {
+                what: format!("remove program {name}"),
+                code: pb::ErrorCode::NotFound,
+                message: format!("the program library has no program {name:?}"),
+            });
+        }
+        let key = self.keys.program(name);
+        self.session
+            .delete(key.as_str())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("delete {key}"),
+                source,
+            })?;
+        let deadline = tokio::time::Instant::now() + LIBRARY_CONFIRM;
+        loop {
+            if !present(&self.program_list().await?) {
+                return Ok(());
+            }
+            if tokio::time::Instant::now() >= deadline {
+                return Err(ClientError::NotConfirmed {
+                    name: name.to_string(),
+                    op: "removal",
+                });
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    // ---- watch -----------------------------------------------------------------------------
+
+    /// Subscribes to everything the cell publishes (`P/C/**`) and to its liveliness tokens.
+    /// The tokens standing now come first (as `Gateway` / `Link` events with `up`).
+    pub async fn watch(&self) -> Result<Watch, ClientError> {
+        let all = format!("{}/**", self.keys.root());
+        let data = self
+            .session
+            .declare_subscriber(all.as_str())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("subscribe to {all}"),
+                source,
+            })?;
+        let tokens = self
+            .session
+            .liveliness()
+            .declare_subscriber(all.as_str())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("subscribe to the liveliness tokens {all}"),
+                source,
+            })?;
+        let mut watch = Watch {
+            keys: self.keys.clone(),
+            data,
+            tokens,
+            pending: VecDeque::new(),
+        };
+        // The standing tokens, asked for after subscribing so that no change is missed
+        // (one may show twice).
+        let replies = self
+            .session
+            .liveliness()
+            .get(all.as_str())
+            .timeout(self.timeout)
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("get the liveliness tokens {all}"),
+                source,
+            })?;
+        let mut standing = Vec::new();
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result()
+                && let Some(event) = watch.token_event(sample)
+            {
+                standing.push(event);
+            }
+        }
+        // The gateway first, then the machines by name.
+        standing.sort_by_key(|e| match e {
+            WatchEvent::Link { machine, .. } => (1, machine.clone()),
+            _ => (0, String::new()),
+        });
+        watch.pending.extend(standing);
+        Ok(watch)
+    }
+}
+
+async fn get_raw(
+    session: &Session,
+    what: &str,
+    key: &str,
+    payload: Option<(Vec<u8>, Encoding)>,
+    timeout: Duration,
+) -> Result<RawReplies, ClientError> {
+    let mut builder = session.get(key).timeout(timeout);
+    if let Some((bytes, enc)) = payload {
+        builder = builder.payload(ZBytes::from(bytes)).encoding(enc);
+    }
+    let replies = builder.await.map_err(|source| ClientError::Zenoh {
+        what: format!("{what}: get {key}"),
+        source,
+    })?;
+    let mut out = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        out.push(raw(&reply));
+    }
+    Ok(out)
+}
+
+fn raw(reply: &Reply) -> RawReply {
+    match reply.result() {
+        Ok(s) => Ok((
+            s.key_expr().to_string(),
+            s.payload().to_bytes().into_owned(),
+            s.encoding().clone(),
+        )),
+        Err(e) => Err((e.payload().to_bytes().into_owned(), e.encoding().clone())),
+    }
+}
+
+fn decode_all<M: BusMessage>(
+    what: &str,
+    replies: RawReplies,
+) -> Result<Vec<(String, M)>, ClientError> {
+    let mut out = Vec::new();
+    for reply in replies {
+        match reply {
+            Ok((reply_key, bytes, enc)) => out.push((
+                reply_key.clone(),
+                decode::<M>(what, &reply_key, &bytes, &enc)?,
+            )),
+            Err((bytes, enc)) => return Err(refusal(what, &bytes, &enc)),
+        }
+    }
+    Ok(out)
+}
+
+/// Decodes a payload as `M`, checking the schema its encoding names (if any).
+fn decode<M: BusMessage>(
+    what: &str,
+    key: &str,
+    bytes: &[u8],
+    enc: &Encoding,
+) -> Result<M, ClientError> {
+    let bad = |detail: String| ClientError::BadReply {
+        what: what.to_string(),
+        key: key.to_string(),
+        expected: M::SCHEMA,
+        detail,
+    };
+    if let Some(schema) = schema_of(enc)
+        && schema != M::SCHEMA
+    {
+        return Err(bad(format!("its encoding names {schema}")));
+    }
+    M::decode(bytes).map_err(|e| bad(e.to_string()))
+}
+
+/// An error reply as a [`ClientError::Refused`]: the `ErrorReply` if it is one, else the
+/// payload as text.
+fn refusal(what: &str, bytes: &[u8], enc: &Encoding) -> ClientError {
+    let is_error_reply = schema_of(enc).is_none_or(|s| s == pb::ErrorReply::SCHEMA);
+    match pb::ErrorReply::decode(bytes) {
+        Ok(e) if is_error_reply => ClientError::Refused {
+            what: what.to_string(),
+            code: e.code(),
+            message: e.message,
+        },
+        _ => ClientError::Refused {
+            what: what.to_string(),
+            code: pb::ErrorCode::Unspecified,
+            message: String::from_utf8_lossy(bytes).into_owned(),
+        },
+    }
+}
+
+/// Whether a job event is the last of its job.
+pub fn is_end(event: &pb::JobEvent) -> bool {
+    matches!(
+        event.kind,
+        Some(Kind::Completed(_) | Kind::Failed(_) | Kind::Cancelled(_))
+    )
+}
+
+/// How a job ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum JobOutcome {
+    Completed(pb::job_event::Completed),
+    Failed(pb::job_event::Failed),
+    Cancelled(pb::job_event::Cancelled),
+}
+
+impl JobOutcome {
+    /// The outcome a job's last event tells; `None` for an event that is not the last.
+    pub fn of(event: &pb::JobEvent) -> Option<JobOutcome> {
+        match &event.kind {
+            Some(Kind::Completed(c)) => Some(JobOutcome::Completed(*c)),
+            Some(Kind::Failed(f)) => Some(JobOutcome::Failed(f.clone())),
+            Some(Kind::Cancelled(c)) => Some(JobOutcome::Cancelled(c.clone())),
+            _ => None,
+        }
+    }
+
+    /// 0 when the program was delivered, 1 otherwise.
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            JobOutcome::Completed(_) => 0,
+            JobOutcome::Failed(_) | JobOutcome::Cancelled(_) => 1,
+        }
+    }
+}
+
+/// The events of one job, as [`Client::submit`] or [`Client::follow`] subscribed to them.
+pub struct JobFollower {
+    session: Session,
+    subscriber: Subscriber<FifoChannelHandler<Sample>>,
+    keys: CellKeys,
+    machine: String,
+    job_id: String,
+    ended: bool,
+    timeout: Duration,
+}
+
+impl JobFollower {
+    pub fn job_id(&self) -> &str {
+        &self.job_id
+    }
+
+    pub fn machine(&self) -> &str {
+        &self.machine
+    }
+
+    /// The job's next event; `None` once its last event (completed, failed, cancelled) was
+    /// returned. When the job stays silent for [`SILENCE`], the gateway is asked for its
+    /// latest event, so an end is seen even if its publication was lost.
+    pub async fn next(&mut self) -> Result<Option<pb::JobEvent>, ClientError> {
+        if self.ended {
+            return Ok(None);
+        }
+        loop {
+            match tokio::time::timeout(SILENCE, self.subscriber.recv_async()).await {
+                Ok(Ok(sample)) => {
+                    if let Some(event) = self.accept(&sample) {
+                        self.ended = is_end(&event);
+                        return Ok(Some(event));
+                    }
+                }
+                Ok(Err(_)) => {
+                    return Err(ClientError::Closed {
+                        what: format!("following job {}", self.job_id),
+                    });
+                }
+                Err(_) => {
+                    let latest = self.latest().await?;
+                    if is_end(&latest) {
+                        self.ended = true;
+                        return Ok(Some(latest));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Reads events until the job ends; returns the last one.
+    pub async fn wait_end(&mut self) -> Result<pb::JobEvent, ClientError> {
+        let mut last = None;
+        while let Some(event) = self.next().await? {
+            last = Some(event);
+        }
+        last.ok_or_else(|| ClientError::Closed {
+            what: format!("following job {}", self.job_id),
+        })
+    }
+
+    /// This job's event in a sample of `P/C/machine/M/job/*`, if it is one.
+    fn accept(&self, sample: &Sample) -> Option<pb::JobEvent> {
+        if sample.kind() != SampleKind::Put {
+            return None; // a cancel request
+        }
+        match self.keys.parse(sample.key_expr().as_str()) {
+            Some(CellKey::JobEvents { job, .. }) if job == self.job_id => {}
+            _ => return None,
+        }
+        let event = decode::<pb::JobEvent>(
+            "job event",
+            sample.key_expr().as_str(),
+            &sample.payload().to_bytes(),
+            sample.encoding(),
+        );
+        match event {
+            Ok(e) if e.job_id == self.job_id => Some(e),
+            Ok(_) => None,
+            Err(e) => {
+                tracing::warn!(error = %e, "job event skipped");
+                None
+            }
+        }
+    }
+
+    async fn latest(&self) -> Result<pb::JobEvent, ClientError> {
+        let key = self.keys.job_events(&self.machine, &self.job_id);
+        let what = format!("job {}", self.job_id);
+        let replies = get_raw(&self.session, &what, &key, None, self.timeout).await?;
+        decode_all::<pb::JobEvent>(&what, replies)?
+            .into_iter()
+            .map(|(_, e)| e)
+            .find(|e| e.job_id == self.job_id)
+            .ok_or(ClientError::NoAnswer {
+                what,
+                key,
+                timeout: self.timeout,
+            })
+    }
+
+    /// Undeclares the subscription.
+    pub async fn close(self) {
+        if let Err(e) = self.subscriber.undeclare().await {
+            tracing::debug!(error = %e, "undeclaring the job subscriber");
+        }
+    }
+}
+
+/// One thing seen on the cell's keys.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum WatchEvent {
+    Status(Box<pb::MachineStatus>),
+    Job(pb::JobEvent),
+    Alarm(pb::AlarmEvent),
+    Di(pb::DiImage),
+    /// A `DoCommand` put by some client.
+    DoCommand {
+        machine: String,
+        command: pb::DoCommand,
+    },
+    /// A delete on a job key: a cancel request.
+    CancelRequested {
+        machine: String,
+        job_id: String,
+    },
+    /// A program put into the library.
+    ProgramPut {
+        name: String,
+        size: u64,
+    },
+    /// A delete on a program: removal requested.
+    ProgramDeleted {
+        name: String,
+    },
+    /// A machine's liveliness token: its link came up (`up`) or went down.
+    Link {
+        machine: String,
+        up: bool,
+    },
+    /// The gateway's liveliness token.
+    Gateway {
+        up: bool,
+    },
+    /// A sample on the cell's keys that is not what the contract puts there.
+    Unexpected {
+        key: String,
+        detail: String,
+    },
+}
+
+/// The cell's publications, as [`Client::watch`] subscribed to them.
+pub struct Watch {
+    keys: CellKeys,
+    data: Subscriber<FifoChannelHandler<Sample>>,
+    tokens: Subscriber<FifoChannelHandler<Sample>>,
+    pending: VecDeque<WatchEvent>,
+}
+
+impl Watch {
+    /// The next event; `None` when the session closed.
+    pub async fn next(&mut self) -> Option<WatchEvent> {
+        if let Some(e) = self.pending.pop_front() {
+            return Some(e);
+        }
+        loop {
+            let (sample, token) = tokio::select! {
+                s = self.tokens.recv_async() => (s.ok()?, true),
+                s = self.data.recv_async() => (s.ok()?, false),
+            };
+            let event = if token {
+                self.token_event(&sample)
+            } else {
+                self.data_event(&sample)
+            };
+            if let Some(e) = event {
+                return Some(e);
+            }
+        }
+    }
+
+    fn token_event(&self, sample: &Sample) -> Option<WatchEvent> {
+        let up = sample.kind() == SampleKind::Put;
+        let key = sample.key_expr().as_str();
+        if key == format!("{}/gateway", self.keys.root()) {
+            return Some(WatchEvent::Gateway { up });
+        }
+        match self.keys.parse(key) {
+            Some(CellKey::Machine { machine }) => Some(WatchEvent::Link {
+                machine: machine.to_string(),
+                up,
+            }),
+            _ => None,
+        }
+    }
+
+    fn data_event(&self, sample: &Sample) -> Option<WatchEvent> {
+        let key = sample.key_expr().as_str();
+        let bytes = sample.payload().to_bytes();
+        let enc = sample.encoding();
+        let put = sample.kind() == SampleKind::Put;
+        let parsed = self.keys.parse(key)?;
+        let event = match parsed {
+            CellKey::Leaf { leaf, machine } if put => match leaf {
+                MachineLeaf::Status => {
+                    decode(key, key, &bytes, enc).map(|s| WatchEvent::Status(Box::new(s)))
+                }
+                MachineLeaf::Alarm => decode(key, key, &bytes, enc).map(WatchEvent::Alarm),
+                MachineLeaf::Di => decode(key, key, &bytes, enc).map(WatchEvent::Di),
+                MachineLeaf::Do => {
+                    decode(key, key, &bytes, enc).map(|command| WatchEvent::DoCommand {
+                        machine: machine.to_string(),
+                        command,
+                    })
+                }
+                // Job requests are gets, not puts.
+                MachineLeaf::Job => return None,
+            },
+            CellKey::JobEvents { .. } if put => decode(key, key, &bytes, enc).map(WatchEvent::Job),
+            CellKey::JobEvents { machine, job } => Ok(WatchEvent::CancelRequested {
+                machine: machine.to_string(),
+                job_id: job.to_string(),
+            }),
+            CellKey::Program { name } if put => Ok(WatchEvent::ProgramPut {
+                name: name.to_string(),
+                size: bytes.len() as u64,
+            }),
+            CellKey::Program { name } => Ok(WatchEvent::ProgramDeleted {
+                name: name.to_string(),
+            }),
+            _ => return None,
+        };
+        Some(event.unwrap_or_else(|e| WatchEvent::Unexpected {
+            key: key.to_string(),
+            detail: e.to_string(),
+        }))
+    }
+
+    /// Undeclares both subscriptions.
+    pub async fn close(self) {
+        let _ = self.data.undeclare().await;
+        let _ = self.tokens.undeclare().await;
+    }
+}
+
+/// Reads a byte given as `0x..` (hex), `0b..` (binary) or decimal, with optional `_`
+/// separators, range-checked 0..=255.
+pub fn parse_byte(text: &str) -> Result<u8, String> {
+    let t = text.trim().replace('_', "");
+    let lower = t.to_ascii_lowercase();
+    let (digits, radix) = if let Some(h) = lower.strip_prefix("0x") {
+        (h, 16)
+    } else if let Some(b) = lower.strip_prefix("0b") {
+        (b, 2)
+    } else {
+        (lower.as_str(), 10)
+    };
+    if digits.is_empty() {
+        return Err(format!("{text:?} has no digits"));
+    }
+    let value = u64::from_str_radix(digits, radix).map_err(|_| {
+        format!("{text:?} is not a number (write 0x.. for hex, 0b.. for binary, or decimal)")
+    })?;
+    u8::try_from(value).map_err(|_| format!("{text:?} = {value} is out of range 0..=255 (8 bits)"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bytes_parse_in_three_notations_and_are_range_checked() {
+        assert_eq!(parse_byte("0x5A"), Ok(0x5A));
+        assert_eq!(parse_byte("0XfF"), Ok(0xFF));
+        assert_eq!(parse_byte("0b1010_0101"), Ok(0xA5));
+        assert_eq!(parse_byte("255"), Ok(255));
+        assert_eq!(parse_byte("0"), Ok(0));
+        assert!(parse_byte("256").unwrap_err().contains("0..=255"));
+        assert!(parse_byte("0x100").unwrap_err().contains("0..=255"));
+        assert!(parse_byte("0b2").unwrap_err().contains("not a number"));
+        assert!(parse_byte("-1").is_err());
+        assert!(parse_byte("0x").unwrap_err().contains("no digits"));
+        assert!(parse_byte("").is_err());
+    }
+
+    #[test]
+    fn the_client_session_connects_only_and_never_scouts() {
+        let c = client_config("tcp/127.0.0.1:7447").unwrap();
+        assert_eq!(c.get_json("mode").unwrap(), "\"client\"");
+        assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
+        assert_eq!(c.get_json("listen/endpoints").unwrap(), "[]");
+        assert!(
+            c.get_json("connect/endpoints")
+                .unwrap()
+                .contains("tcp/127.0.0.1:7447")
+        );
+        assert!(matches!(
+            client_config("nonsense"),
+            Err(ClientError::Endpoint { .. })
+        ));
+    }
+
+    #[test]
+    fn refusals_keep_the_gateways_code_and_message() {
+        let e = pb::ErrorReply {
+            code: pb::ErrorCode::UnknownMachine as i32,
+            message: "cell x has no machine \"m\"".to_string(),
+        };
+        let err = refusal("status", &e.encode_to_vec(), &encoding::<pb::ErrorReply>());
+        assert_eq!(err.refusal(), Some(pb::ErrorCode::UnknownMachine));
+        assert_eq!(err.exit_code(), 2);
+        let text = err.to_string();
+        assert!(text.contains("ERROR_CODE_UNKNOWN_MACHINE"), "{text}");
+        assert!(text.contains("no machine"), "{text}");
+    }
+
+    #[test]
+    fn a_reply_of_another_schema_is_a_bad_reply() {
+        let s = pb::MachineStatus::default().encode_to_vec();
+        let r = decode::<pb::DiImage>("di", "k", &s, &encoding::<pb::MachineStatus>());
+        assert!(matches!(r, Err(ClientError::BadReply { .. })));
+    }
+
+    #[test]
+    fn outcomes_map_to_exit_codes() {
+        let ev = |kind| pb::JobEvent {
+            kind: Some(kind),
+            ..pb::JobEvent::default()
+        };
+        let done = ev(Kind::Completed(pb::job_event::Completed::default()));
+        let failed = ev(Kind::Failed(pb::job_event::Failed::default()));
+        let progress = ev(Kind::Progress(pb::job_event::Progress::default()));
+        assert_eq!(JobOutcome::of(&done).unwrap().exit_code(), 0);
+        assert_eq!(JobOutcome::of(&failed).unwrap().exit_code(), 1);
+        assert!(JobOutcome::of(&progress).is_none());
+        assert!(is_end(&done) && !is_end(&progress));
+    }
+}

@@ -1,0 +1,685 @@
+//! Text for people and JSON for programs, from the contract's messages.
+//!
+//! JSON keeps the field names and enum value names of `proto/cellgate/v1/*.proto` (e.g.
+//! `"link_state": "LINK_STATE_IDLE"`); optional fields that are absent are `null`. 64-bit
+//! integers are plain JSON numbers.
+
+use std::collections::HashMap;
+use std::fmt::Write as _;
+
+use serde_json::{Value, json};
+
+use super::WatchEvent;
+use crate::pb;
+use crate::pb::job_event::Kind;
+
+// ---- small pieces ----------------------------------------------------------------------------
+
+/// `HH:MM:SS.mmmZ` (UTC) of a Unix time in milliseconds.
+pub fn clock(unix_ms: u64) -> String {
+    let secs = unix_ms / 1000;
+    let day = secs % 86_400;
+    format!(
+        "{:02}:{:02}:{:02}.{:03}Z",
+        day / 3600,
+        day / 60 % 60,
+        day % 60,
+        unix_ms % 1000
+    )
+}
+
+/// `YYYY-MM-DD HH:MM:SSZ` (UTC) of a Unix time in milliseconds.
+pub fn date_time(unix_ms: u64) -> String {
+    let secs = unix_ms / 1000;
+    let (y, m, d) = civil_from_days(secs / 86_400);
+    let day = secs % 86_400;
+    format!(
+        "{y:04}-{m:02}-{d:02} {:02}:{:02}:{:02}Z",
+        day / 3600,
+        day / 60 % 60,
+        day % 60
+    )
+}
+
+/// Year, month, day of a day count since 1970-01-01 (proleptic Gregorian; H. Hinnant's
+/// `civil_from_days`).
+fn civil_from_days(days: u64) -> (u64, u64, u64) {
+    let z = days + 719_468;
+    let era = z / 146_097;
+    let doe = z % 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + u64::from(m <= 2);
+    (y, m, d)
+}
+
+/// A byte count for people: `512 B`, `40.0 KiB`, `1.5 MiB`.
+pub fn bytes(n: u64) -> String {
+    const KIB: f64 = 1024.0;
+    let f = n as f64;
+    if n < 1024 {
+        format!("{n} B")
+    } else if f < KIB * KIB {
+        format!("{:.1} KiB", f / KIB)
+    } else if f < KIB * KIB * KIB {
+        format!("{:.1} MiB", f / (KIB * KIB))
+    } else {
+        format!("{:.1} GiB", f / (KIB * KIB * KIB))
+    }
+}
+
+/// An 8-bit image as `0x5A 0b01011010`.
+pub fn byte_image(value: u32) -> String {
+    format!("0x{value:02X} 0b{value:08b}")
+}
+
+/// `ENUM_PREFIX_SOME_NAME` → `some name`.
+fn short(name: &str, prefix: &str) -> String {
+    name.strip_prefix(prefix)
+        .unwrap_or(name)
+        .to_ascii_lowercase()
+        .replace('_', " ")
+}
+
+pub fn protocol_text(p: pb::Protocol) -> &'static str {
+    match p {
+        pb::Protocol::Unspecified => "?",
+        pb::Protocol::A => "A",
+        pb::Protocol::ExpansionA => "Expansion A",
+        pb::Protocol::B => "B",
+        pb::Protocol::ExpansionB => "Expansion B",
+    }
+}
+
+pub fn link_text(s: pb::LinkState) -> String {
+    short(s.as_str_name(), "LINK_STATE_")
+}
+
+/// The SAT's buffer status, with the alarm cause when in alarm (§4.4.2).
+pub fn sat_text(sat: Option<&pb::Sat>) -> String {
+    let Some(sat) = sat else {
+        return "-".to_string();
+    };
+    let status = short(sat.buffer_status().as_str_name(), "BUFFER_STATUS_");
+    if sat.buffer_status() == pb::BufferStatus::Alarm {
+        let cause = short(sat.alarm_cause().as_str_name(), "ALARM_CAUSE_");
+        format!("alarm: {cause}")
+    } else {
+        status
+    }
+}
+
+fn opt_image(v: Option<u32>) -> String {
+    v.map_or_else(|| "-".to_string(), |v| format!("0x{v:02X}"))
+}
+
+fn dash(s: &str) -> &str {
+    if s.is_empty() { "-" } else { s }
+}
+
+/// Rows as a table with columns padded to their widest cell.
+fn table(header: &[&str], rows: &[Vec<String>]) -> String {
+    let mut widths: Vec<usize> = header.iter().map(|h| h.chars().count()).collect();
+    for row in rows {
+        for (w, cell) in widths.iter_mut().zip(row) {
+            *w = (*w).max(cell.chars().count());
+        }
+    }
+    let mut out = String::new();
+    let mut line = |cells: Vec<&str>| {
+        let mut l = String::new();
+        for (i, (cell, w)) in cells.iter().zip(&widths).enumerate() {
+            if i + 1 == cells.len() {
+                l.push_str(cell);
+            } else {
+                let _ = write!(l, "{cell:<w$}  ");
+            }
+        }
+        out.push_str(l.trim_end());
+        out.push('\n');
+    };
+    line(header.to_vec());
+    for row in rows {
+        line(row.iter().map(String::as_str).collect());
+    }
+    out
+}
+
+// ---- status ----------------------------------------------------------------------------------
+
+/// The status of machines as a table, then one line per machine with a last alarm.
+pub fn status_table(statuses: &[pb::MachineStatus]) -> String {
+    if statuses.is_empty() {
+        return "no machine answered\n".to_string();
+    }
+    let header = [
+        "MACHINE", "PROTOCOL", "LINK", "SAT", "BUFFERED", "JOB", "WAITING", "DO", "DI", "NC SENT",
+        "JOBS OK", "FAILED", "RETRIES", "ERRORS", "ALARMS",
+    ];
+    let rows: Vec<Vec<String>> = statuses
+        .iter()
+        .map(|s| {
+            let c = s.counters.unwrap_or_default();
+            vec![
+                s.machine.clone(),
+                protocol_text(s.protocol()).to_string(),
+                link_text(s.link_state()),
+                sat_text(s.sat.as_ref()),
+                s.sat
+                    .as_ref()
+                    .and_then(|sat| sat.bytes_buffered)
+                    .map_or_else(|| "-".to_string(), |b| b.to_string()),
+                dash(&s.current_job_id).to_string(),
+                s.jobs_waiting.to_string(),
+                opt_image(s.do_image),
+                opt_image(s.di_image),
+                bytes(c.nc_bytes_sent),
+                c.jobs_completed.to_string(),
+                c.jobs_failed.to_string(),
+                c.retries.to_string(),
+                c.protocol_errors.to_string(),
+                c.link_alarms.to_string(),
+            ]
+        })
+        .collect();
+    let mut out = table(&header, &rows);
+    for s in statuses {
+        if let Some(a) = &s.last_alarm {
+            let _ = writeln!(out, "{}: last alarm {}", s.machine, alarm_text(a));
+        }
+    }
+    out
+}
+
+pub fn sat_json(sat: &pb::Sat) -> Value {
+    json!({
+        "remote": sat.remote,
+        "buffer_status": sat.buffer_status().as_str_name(),
+        "buffer_status_digit": sat.buffer_status_digit,
+        "alarm_cause": sat.alarm_cause().as_str_name(),
+        "alarm_cause_digit": sat.alarm_cause_digit,
+        "bytes_buffered": sat.bytes_buffered,
+        "params": sat.params.as_ref().map(|p| json!({
+            "nb": p.nb, "no": p.no, "ne": p.ne, "tp": p.tp,
+            "to": p.to, "ti": p.ti, "tx": p.tx, "tw": p.tw,
+        })),
+        "packet_n": sat.packet_n,
+    })
+}
+
+pub fn counters_json(c: &pb::LinkCounters) -> Value {
+    json!({
+        "bytes_sent": c.bytes_sent,
+        "bytes_received": c.bytes_received,
+        "frames": c.frames,
+        "retries": c.retries,
+        "checksum_errors": c.checksum_errors,
+        "protocol_errors": c.protocol_errors,
+        "link_alarms": c.link_alarms,
+        "nc_bytes_sent": c.nc_bytes_sent,
+        "jobs_completed": c.jobs_completed,
+        "jobs_failed": c.jobs_failed,
+    })
+}
+
+pub fn status_json(s: &pb::MachineStatus) -> Value {
+    json!({
+        "machine": s.machine,
+        "protocol": s.protocol().as_str_name(),
+        "link_state": s.link_state().as_str_name(),
+        "sat": s.sat.as_ref().map(sat_json),
+        "counters": s.counters.as_ref().map(counters_json),
+        "current_job_id": s.current_job_id,
+        "jobs_waiting": s.jobs_waiting,
+        "do_image": s.do_image,
+        "di_image": s.di_image,
+        "last_alarm": s.last_alarm.as_ref().map(alarm_json),
+        "unix_ms": s.unix_ms,
+    })
+}
+
+// ---- jobs ------------------------------------------------------------------------------------
+
+/// What a job event says, without the job id: `queued (0 ahead)`, `failed at byte 512: ...`.
+pub fn job_kind_text(e: &pb::JobEvent) -> String {
+    match &e.kind {
+        Some(Kind::Queued(q)) => format!("queued ({} ahead)", q.queue_position),
+        Some(Kind::Started(s)) => match s.bytes_total {
+            Some(t) => format!("started ({})", bytes(t)),
+            None => "started".to_string(),
+        },
+        Some(Kind::Progress(p)) => {
+            let mut t = format!("sent {}", bytes(p.bytes_sent));
+            if let Some(total) = p.bytes_total.filter(|t| *t > 0) {
+                let _ = write!(
+                    t,
+                    " of {} ({}%)",
+                    bytes(total),
+                    p.bytes_sent.saturating_mul(100) / total
+                );
+            }
+            let _ = write!(t, ", {} B/s", p.rate_bps);
+            t
+        }
+        Some(Kind::Completed(c)) => format!(
+            "completed: {} sent in {:.1} s",
+            bytes(c.bytes_sent),
+            c.duration_ms as f64 / 1000.0
+        ),
+        Some(Kind::Failed(f)) => failed_text(f),
+        Some(Kind::Cancelled(c)) => {
+            format!("cancelled by {} at byte {}", dash(&c.by), c.byte_offset)
+        }
+        None => "event of an unknown kind".to_string(),
+    }
+}
+
+/// `failed at byte 512: <reason> [SR0945] (LINK_FAILED)`.
+pub fn failed_text(f: &pb::job_event::Failed) -> String {
+    let mut t = format!("failed at byte {}: {}", f.byte_offset, f.reason);
+    if !f.alarm_number.is_empty() {
+        let _ = write!(t, " [{}]", f.alarm_number);
+    }
+    if f.code() != pb::ErrorCode::Unspecified {
+        let _ = write!(t, " ({})", short(f.code().as_str_name(), "ERROR_CODE_"));
+    }
+    t
+}
+
+pub fn job_event_json(e: &pb::JobEvent) -> Value {
+    let (kind, detail) = match &e.kind {
+        Some(Kind::Queued(q)) => ("queued", json!({ "queue_position": q.queue_position })),
+        Some(Kind::Started(s)) => ("started", json!({ "bytes_total": s.bytes_total })),
+        Some(Kind::Progress(p)) => (
+            "progress",
+            json!({ "bytes_sent": p.bytes_sent, "bytes_total": p.bytes_total, "rate_bps": p.rate_bps }),
+        ),
+        Some(Kind::Completed(c)) => (
+            "completed",
+            json!({ "bytes_sent": c.bytes_sent, "duration_ms": c.duration_ms }),
+        ),
+        Some(Kind::Failed(f)) => (
+            "failed",
+            json!({
+                "reason": f.reason,
+                "byte_offset": f.byte_offset,
+                "alarm_number": f.alarm_number,
+                "code": f.code().as_str_name(),
+            }),
+        ),
+        Some(Kind::Cancelled(c)) => (
+            "cancelled",
+            json!({ "byte_offset": c.byte_offset, "by": c.by }),
+        ),
+        None => ("unknown", Value::Null),
+    };
+    json!({
+        "job_id": e.job_id,
+        "machine": e.machine,
+        "unix_ms": e.unix_ms,
+        kind: detail,
+    })
+}
+
+pub fn accepted_json(a: &pb::JobAccepted) -> Value {
+    json!({ "job_id": a.job_id, "queue_position": a.queue_position })
+}
+
+// ---- alarms, DI, programs --------------------------------------------------------------------
+
+/// `12:00:01.250Z link alarm SR0945: <message>`.
+pub fn alarm_text(a: &pb::AlarmEvent) -> String {
+    let mut t = format!(
+        "{} {}",
+        clock(a.unix_ms),
+        short(a.kind().as_str_name(), "ALARM_KIND_")
+    );
+    if !a.alarm_number.is_empty() {
+        let _ = write!(t, " {}", a.alarm_number);
+    }
+    if !a.message.is_empty() {
+        let _ = write!(t, ": {}", a.message);
+    }
+    t
+}
+
+pub fn alarm_json(a: &pb::AlarmEvent) -> Value {
+    json!({
+        "machine": a.machine,
+        "kind": a.kind().as_str_name(),
+        "alarm_number": a.alarm_number,
+        "message": a.message,
+        "unix_ms": a.unix_ms,
+    })
+}
+
+/// The DI image in hex and bit by bit (bit 7 first, as the manual draws G152).
+pub fn di_text(di: &pb::DiImage) -> String {
+    let bits: Vec<String> = (0..8)
+        .rev()
+        .map(|b| ((di.value >> b) & 1).to_string())
+        .collect();
+    format!(
+        "{} DI {} ({}) at {}\n  bit  7 6 5 4 3 2 1 0\n       {}\n",
+        di.machine,
+        byte_image(di.value),
+        di.value,
+        clock(di.unix_ms),
+        bits.join(" ")
+    )
+}
+
+pub fn di_json(di: &pb::DiImage) -> Value {
+    json!({ "machine": di.machine, "value": di.value, "unix_ms": di.unix_ms })
+}
+
+pub fn program_table(programs: &[pb::ProgramInfo]) -> String {
+    if programs.is_empty() {
+        return "the program library is empty\n".to_string();
+    }
+    let rows: Vec<Vec<String>> = programs
+        .iter()
+        .map(|p| {
+            vec![
+                p.name.clone(),
+                p.size.to_string(),
+                date_time(p.modified_unix_ms),
+            ]
+        })
+        .collect();
+    table(&["NAME", "BYTES", "MODIFIED"], &rows)
+}
+
+pub fn program_json(p: &pb::ProgramInfo) -> Value {
+    json!({ "name": p.name, "size": p.size, "modified_unix_ms": p.modified_unix_ms })
+}
+
+// ---- watch -----------------------------------------------------------------------------------
+
+/// Turns watch events into lines. A status is published on every change, counters
+/// included; as text, a machine's status is printed only when what a person follows changes
+/// (link, SAT status, job, queue, DO, DI). JSON prints every event.
+#[derive(Debug, Default)]
+pub struct WatchPrinter {
+    headlines: HashMap<String, String>,
+}
+
+impl WatchPrinter {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The text line for an event, if it is worth one.
+    pub fn line(&mut self, event: &WatchEvent, now_ms: u64) -> Option<String> {
+        let line = match event {
+            WatchEvent::Status(s) => {
+                let headline = format!(
+                    "link {}, SAT {}, job {}, {} waiting, DO {}, DI {}",
+                    link_text(s.link_state()),
+                    sat_text(s.sat.as_ref()),
+                    dash(&s.current_job_id),
+                    s.jobs_waiting,
+                    opt_image(s.do_image),
+                    opt_image(s.di_image),
+                );
+                if self.headlines.get(&s.machine) == Some(&headline) {
+                    return None;
+                }
+                self.headlines.insert(s.machine.clone(), headline.clone());
+                format!("{} {} status: {headline}", clock(s.unix_ms), s.machine)
+            }
+            WatchEvent::Job(e) => format!(
+                "{} {} job {} {}",
+                clock(e.unix_ms),
+                e.machine,
+                e.job_id,
+                job_kind_text(e)
+            ),
+            WatchEvent::Alarm(a) => format!("{} ALARM {}", a.machine, alarm_text(a)),
+            WatchEvent::Di(d) => format!(
+                "{} {} DI {}",
+                clock(d.unix_ms),
+                d.machine,
+                byte_image(d.value)
+            ),
+            WatchEvent::DoCommand { machine, command } => format!(
+                "{} {machine} DO command {} mask {}",
+                clock(now_ms),
+                byte_image(command.value),
+                command
+                    .mask
+                    .map_or_else(|| "all".to_string(), |m| format!("0x{m:02X}"))
+            ),
+            WatchEvent::CancelRequested { machine, job_id } => {
+                format!("{} {machine} job {job_id} cancel requested", clock(now_ms))
+            }
+            WatchEvent::ProgramPut { name, size } => {
+                format!("{} program {name} put ({})", clock(now_ms), bytes(*size))
+            }
+            WatchEvent::ProgramDeleted { name } => {
+                format!("{} program {name} removal requested", clock(now_ms))
+            }
+            WatchEvent::Link { machine, up } => format!(
+                "{} {machine} link {}",
+                clock(now_ms),
+                if *up { "up" } else { "down" }
+            ),
+            WatchEvent::Gateway { up } => format!(
+                "{} gateway {}",
+                clock(now_ms),
+                if *up { "up" } else { "gone" }
+            ),
+            WatchEvent::Unexpected { key, detail } => {
+                format!("{} {key}: unexpected sample: {detail}", clock(now_ms))
+            }
+        };
+        Some(line)
+    }
+}
+
+/// The machine an event concerns, if one.
+pub fn watch_machine(event: &WatchEvent) -> Option<&str> {
+    match event {
+        WatchEvent::Status(s) => Some(&s.machine),
+        WatchEvent::Job(e) => Some(&e.machine),
+        WatchEvent::Alarm(a) => Some(&a.machine),
+        WatchEvent::Di(d) => Some(&d.machine),
+        WatchEvent::DoCommand { machine, .. }
+        | WatchEvent::CancelRequested { machine, .. }
+        | WatchEvent::Link { machine, .. } => Some(machine),
+        _ => None,
+    }
+}
+
+/// One JSON object per event: `{"event": "<kind>", ...}`.
+pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
+    match event {
+        WatchEvent::Status(s) => json!({ "event": "status", "status": status_json(s) }),
+        WatchEvent::Job(e) => json!({ "event": "job", "job": job_event_json(e) }),
+        WatchEvent::Alarm(a) => json!({ "event": "alarm", "alarm": alarm_json(a) }),
+        WatchEvent::Di(d) => json!({ "event": "di", "di": di_json(d) }),
+        WatchEvent::DoCommand { machine, command } => json!({
+            "event": "do_command", "machine": machine, "unix_ms": now_ms,
+            "do_command": { "value": command.value, "mask": command.mask },
+        }),
+        WatchEvent::CancelRequested { machine, job_id } => json!({
+            "event": "cancel_requested", "machine": machine, "job_id": job_id, "unix_ms": now_ms,
+        }),
+        WatchEvent::ProgramPut { name, size } => json!({
+            "event": "program_put", "name": name, "size": size, "unix_ms": now_ms,
+        }),
+        WatchEvent::ProgramDeleted { name } => json!({
+            "event": "program_deleted", "name": name, "unix_ms": now_ms,
+        }),
+        WatchEvent::Link { machine, up } => json!({
+            "event": if *up { "link_up" } else { "link_down" }, "machine": machine, "unix_ms": now_ms,
+        }),
+        WatchEvent::Gateway { up } => json!({
+            "event": if *up { "gateway_up" } else { "gateway_gone" }, "unix_ms": now_ms,
+        }),
+        WatchEvent::Unexpected { key, detail } => json!({
+            "event": "unexpected", "key": key, "detail": detail, "unix_ms": now_ms,
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn times_are_utc() {
+        assert_eq!(clock(0), "00:00:00.000Z");
+        assert_eq!(clock(1_700_000_000_123), "22:13:20.123Z");
+        assert_eq!(date_time(1_700_000_000_123), "2023-11-14 22:13:20Z");
+        assert_eq!(date_time(951_782_400_000), "2000-02-29 00:00:00Z");
+    }
+
+    #[test]
+    fn sizes_and_images_read_well() {
+        assert_eq!(bytes(512), "512 B");
+        assert_eq!(bytes(40 * 1024), "40.0 KiB");
+        assert_eq!(bytes(3 * 1024 * 1024 / 2), "1.5 MiB");
+        assert_eq!(byte_image(0x5A), "0x5A 0b01011010");
+    }
+
+    fn status() -> pb::MachineStatus {
+        pb::MachineStatus {
+            machine: "mill-1".to_string(),
+            protocol: pb::Protocol::ExpansionA as i32,
+            link_state: pb::LinkState::Sending as i32,
+            sat: Some(pb::Sat {
+                buffer_status: pb::BufferStatus::Alarm as i32,
+                alarm_cause: pb::AlarmCause::ChecksumRetryOver as i32,
+                bytes_buffered: Some(300),
+                ..pb::Sat::default()
+            }),
+            counters: Some(pb::LinkCounters {
+                nc_bytes_sent: 2048,
+                jobs_completed: 3,
+                retries: 4,
+                ..pb::LinkCounters::default()
+            }),
+            current_job_id: "mill-1-x-7".to_string(),
+            do_image: Some(0xA5),
+            last_alarm: Some(pb::AlarmEvent {
+                machine: "mill-1".to_string(),
+                kind: pb::AlarmKind::LinkAlarm as i32,
+                alarm_number: "SR0945".to_string(),
+                message: "retry over".to_string(),
+                unix_ms: 0,
+            }),
+            ..pb::MachineStatus::default()
+        }
+    }
+
+    #[test]
+    fn the_status_table_shows_what_the_contract_carries() {
+        let t = status_table(&[status()]);
+        let mut lines = t.lines();
+        let header = lines.next().unwrap();
+        assert!(header.starts_with("MACHINE"), "{t}");
+        let row = lines.next().unwrap();
+        for cell in [
+            "mill-1",
+            "Expansion A",
+            "sending",
+            "alarm: checksum retry over",
+            "300",
+            "mill-1-x-7",
+            "0xA5",
+            "2.0 KiB",
+        ] {
+            assert!(row.contains(cell), "{cell:?} missing from {row:?}");
+        }
+        assert!(
+            lines
+                .next()
+                .unwrap()
+                .contains("link alarm SR0945: retry over"),
+            "{t}"
+        );
+        assert_eq!(status_table(&[]), "no machine answered\n");
+    }
+
+    #[test]
+    fn status_json_uses_the_proto_names() {
+        let j = status_json(&status());
+        assert_eq!(j["protocol"], "PROTOCOL_EXPANSION_A");
+        assert_eq!(j["link_state"], "LINK_STATE_SENDING");
+        assert_eq!(j["sat"]["buffer_status"], "BUFFER_STATUS_ALARM");
+        assert_eq!(j["sat"]["bytes_buffered"], 300);
+        assert_eq!(j["do_image"], 0xA5);
+        assert_eq!(j["di_image"], Value::Null);
+        assert_eq!(j["counters"]["jobs_completed"], 3);
+        assert_eq!(j["last_alarm"]["alarm_number"], "SR0945");
+    }
+
+    #[test]
+    fn job_events_read_as_sentences() {
+        let ev = |kind| pb::JobEvent {
+            job_id: "j".to_string(),
+            machine: "m".to_string(),
+            unix_ms: 0,
+            kind: Some(kind),
+        };
+        let p = ev(Kind::Progress(pb::job_event::Progress {
+            bytes_sent: 512,
+            bytes_total: Some(2048),
+            rate_bps: 1900,
+        }));
+        assert_eq!(job_kind_text(&p), "sent 512 B of 2.0 KiB (25%), 1900 B/s");
+        let f = ev(Kind::Failed(pb::job_event::Failed {
+            reason: "retry over".to_string(),
+            byte_offset: 512,
+            alarm_number: "SR0945".to_string(),
+            code: pb::ErrorCode::LinkFailed as i32,
+        }));
+        assert_eq!(
+            job_kind_text(&f),
+            "failed at byte 512: retry over [SR0945] (link failed)"
+        );
+        let j = job_event_json(&f);
+        assert_eq!(j["failed"]["byte_offset"], 512);
+        assert_eq!(j["failed"]["code"], "ERROR_CODE_LINK_FAILED");
+    }
+
+    #[test]
+    fn di_is_shown_in_hex_and_bits() {
+        let t = di_text(&pb::DiImage {
+            machine: "mill-1".to_string(),
+            value: 0x5A,
+            unix_ms: 0,
+        });
+        assert!(t.starts_with("mill-1 DI 0x5A 0b01011010 (90)"), "{t}");
+        assert!(t.contains("0 1 0 1 1 0 1 0"), "{t}");
+    }
+
+    #[test]
+    fn watch_prints_a_status_only_when_its_headline_changes() {
+        let mut p = WatchPrinter::new();
+        let mut s = status();
+        assert!(
+            p.line(&WatchEvent::Status(Box::new(s.clone())), 0)
+                .is_some()
+        );
+        s.counters.as_mut().unwrap().retries += 1;
+        assert!(
+            p.line(&WatchEvent::Status(Box::new(s.clone())), 0)
+                .is_none()
+        );
+        s.do_image = Some(0);
+        let line = p.line(&WatchEvent::Status(Box::new(s)), 0).unwrap();
+        assert!(line.contains("DO 0x00"), "{line}");
+        let link = WatchEvent::Link {
+            machine: "mill-1".to_string(),
+            up: false,
+        };
+        assert!(p.line(&link, 0).unwrap().ends_with("mill-1 link down"));
+        assert_eq!(watch_json(&link, 5)["event"], "link_down");
+        assert_eq!(watch_machine(&link), Some("mill-1"));
+    }
+}
