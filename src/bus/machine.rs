@@ -87,9 +87,11 @@ impl Machine {
     }
 
     /// How long to wait for the board to answer RDI or to output SDO: the host speaks at
-    /// the next SAT or GTD, and the board sends SAT every Tp seconds (§4.4, §4.5).
+    /// the next SAT or GTD, and the board sends SAT every Tp seconds (§4.4, §4.5). Right after
+    /// an exchange that next SAT is a whole poll plus the board's turnaround away, so allow
+    /// one missed poll: 2·Tp + 1 s.
     pub fn exchange_timeout(&self) -> Duration {
-        Duration::from_secs(u64::from(self.config.params().tp) + 1)
+        Duration::from_secs(2 * u64::from(self.config.params().tp) + 1)
     }
 
     fn counters(view: &mut View) -> &mut pb::LinkCounters {

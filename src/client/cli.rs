@@ -461,7 +461,7 @@ pub struct DiArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
     /// The machine (Protocol A family only: RDI → SDI, §4.4.1). The read waits for the
-    /// board's next exchange, up to Tp + 1 s.
+    /// board's next exchange, up to 2·Tp + 1 s.
     #[arg(value_name = "MACHINE")]
     pub machine: String,
     /// Print JSON.

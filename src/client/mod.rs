@@ -43,9 +43,10 @@ pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(10);
 /// (and may fetch it from a key, for up to 5 s) before answering.
 pub const SUBMIT_TIMEOUT: Duration = Duration::from_secs(60);
 
-/// How long a DI read or a DO output may wait. The gateway answers within Tp + 1 s (the
-/// board's next exchange, `bus/routes.rs`), and Tp is at most 99 s (§4.5).
-pub const IO_TIMEOUT: Duration = Duration::from_secs(105);
+/// How long a DI read or a DO output may wait. The gateway answers within 2·Tp + 1 s (the
+/// board's next exchange, one missed poll allowed, `bus/machine.rs`), and Tp is at most
+/// 99 s (§4.5).
+pub const IO_TIMEOUT: Duration = Duration::from_secs(205);
 
 /// How long a followed job may stay silent before the client asks the gateway for its latest
 /// event (a job waiting in the queue publishes nothing).
