@@ -1,4 +1,5 @@
-//! The job manager against a stand-in link, in paused tokio time.
+//! The job manager against a stand-in link, in paused tokio time. Test code only: `mod.rs`
+//! declares this module under #[cfg(test)].
 
 use std::sync::{Arc, Mutex};
 
