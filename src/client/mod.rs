@@ -527,14 +527,7 @@ impl Client {
         Self::machine_arg(machine)?;
         let what = format!("submit to {machine}");
         let events_key = self.keys.job_events(machine, "*");
-        let subscriber = self
-            .session
-            .declare_subscriber(events_key.as_str())
-            .await
-            .map_err(|source| ClientError::Zenoh {
-                what: format!("subscribe to {events_key}"),
-                source,
-            })?;
+        let subscriber = self.subscribe(&events_key).await?;
         let key = self.keys.leaf(machine, MachineLeaf::Job);
         let payload = (request.encode_to_vec(), encoding::<pb::JobRequest>());
         let accepted: pb::JobAccepted = match self
@@ -547,15 +540,7 @@ impl Client {
                 return Err(e);
             }
         };
-        let follower = JobFollower {
-            session: self.session.clone(),
-            subscriber,
-            keys: self.keys.clone(),
-            machine: machine.to_string(),
-            job_id: accepted.job_id.clone(),
-            ended: false,
-            timeout: self.timeout,
-        };
+        let follower = self.follower(subscriber, machine, &accepted.job_id);
         Ok((accepted, follower))
     }
 
@@ -564,15 +549,33 @@ impl Client {
         Self::machine_arg(machine)?;
         Self::job_arg(job_id)?;
         let events_key = self.keys.job_events(machine, job_id);
-        let subscriber = self
-            .session
-            .declare_subscriber(events_key.as_str())
+        let subscriber = self.subscribe(&events_key).await?;
+        Ok(self.follower(subscriber, machine, job_id))
+    }
+
+    /// Subscribes to job events on `key`.
+    async fn subscribe(
+        &self,
+        key: &str,
+    ) -> Result<Subscriber<FifoChannelHandler<Sample>>, ClientError> {
+        self.session
+            .declare_subscriber(key)
             .await
             .map_err(|source| ClientError::Zenoh {
-                what: format!("subscribe to {events_key}"),
+                what: format!("subscribe to {key}"),
                 source,
-            })?;
-        Ok(JobFollower {
+            })
+    }
+
+    fn follower(
+        &self,
+        subscriber: zenoh::pubsub::Subscriber<
+            zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>,
+        >,
+        machine: &str,
+        job_id: &str,
+    ) -> JobFollower {
+        JobFollower {
             session: self.session.clone(),
             subscriber,
             keys: self.keys.clone(),
@@ -580,7 +583,7 @@ impl Client {
             job_id: job_id.to_string(),
             ended: false,
             timeout: self.timeout,
-        })
+        }
     }
 
     fn job_arg(job_id: &str) -> Result<(), ClientError> {

@@ -354,6 +354,24 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
     }
 }
 
+/// Arm `slot` for `deadline` and poll it. Ready means the deadline has passed.
+pub(crate) fn poll_sleep(
+    slot: &mut Option<std::pin::Pin<Box<tokio::time::Sleep>>>,
+    deadline: tokio::time::Instant,
+    cx: &mut std::task::Context<'_>,
+) -> std::task::Poll<()> {
+    let sleep = match slot {
+        Some(s) => {
+            if s.deadline() != deadline {
+                s.as_mut().reset(deadline);
+            }
+            s
+        }
+        None => slot.insert(Box::pin(tokio::time::sleep_until(deadline))),
+    };
+    sleep.as_mut().poll(cx)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

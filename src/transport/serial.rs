@@ -26,7 +26,6 @@
 
 use std::collections::VecDeque;
 use std::fmt;
-use std::future::Future;
 use std::io;
 use std::pin::Pin;
 use std::task::{Context, Poll};
@@ -371,16 +370,7 @@ impl AsyncWrite for SerialTransport {
                 } else {
                     now + this.line.time_for_chars(kernel - window + 1)
                 };
-                let sleep = match &mut this.write_sleep {
-                    Some(s) => {
-                        s.as_mut().reset(at);
-                        s
-                    }
-                    None => this
-                        .write_sleep
-                        .insert(Box::pin(tokio::time::sleep_until(at))),
-                };
-                match sleep.as_mut().poll(cx) {
+                match super::poll_sleep(&mut this.write_sleep, at, cx) {
                     Poll::Ready(()) => continue,
                     Poll::Pending => return Poll::Pending,
                 }

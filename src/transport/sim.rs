@@ -29,7 +29,6 @@
 
 use std::collections::VecDeque;
 use std::fmt;
-use std::future::Future as _;
 use std::io;
 use std::pin::Pin;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -372,24 +371,6 @@ impl SimPort {
     }
 }
 
-/// Arm `slot` for `deadline` and poll it. Ready means the deadline has passed.
-fn poll_sleep(
-    slot: &mut Option<Pin<Box<Sleep>>>,
-    deadline: Instant,
-    cx: &mut Context<'_>,
-) -> Poll<()> {
-    let sleep = match slot {
-        Some(s) => {
-            if s.deadline() != deadline {
-                s.as_mut().reset(deadline);
-            }
-            s
-        }
-        None => slot.insert(Box::pin(tokio::time::sleep_until(deadline))),
-    };
-    sleep.as_mut().poll(cx)
-}
-
 fn store_waker(slot: &mut Option<Waker>, cx: &Context<'_>) {
     match slot {
         Some(w) if w.will_wake(cx.waker()) => {}
@@ -454,7 +435,7 @@ impl AsyncRead for SimPort {
             };
             store_waker(&mut d.reader_waker, cx);
             drop(guard);
-            match poll_sleep(&mut this.read_sleep, next, cx) {
+            match super::poll_sleep(&mut this.read_sleep, next, cx) {
                 Poll::Ready(()) => continue,
                 Poll::Pending => return Poll::Pending,
             }
@@ -488,7 +469,7 @@ impl AsyncWrite for SimPort {
             if room == 0 {
                 let at = Instant::from_std(d.pacer.next_writable_at(now.into_std()));
                 drop(guard);
-                match poll_sleep(&mut this.write_sleep, at, cx) {
+                match super::poll_sleep(&mut this.write_sleep, at, cx) {
                     Poll::Ready(()) => continue,
                     Poll::Pending => return Poll::Pending,
                 }

@@ -400,16 +400,7 @@ impl AsyncWrite for TcpTransport {
             let room = this.pacer.writable(now.into_std());
             if room == 0 {
                 let at = Instant::from_std(this.pacer.next_writable_at(now.into_std()));
-                let sleep = match &mut this.write_sleep {
-                    Some(s) => {
-                        s.as_mut().reset(at);
-                        s
-                    }
-                    None => this
-                        .write_sleep
-                        .insert(Box::pin(tokio::time::sleep_until(at))),
-                };
-                match sleep.as_mut().poll(cx) {
+                match super::poll_sleep(&mut this.write_sleep, at, cx) {
                     Poll::Ready(()) => continue,
                     Poll::Pending => return Poll::Pending,
                 }
