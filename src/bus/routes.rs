@@ -37,7 +37,7 @@ use super::keys::{CellKey, CellKeys, MachineLeaf, intersects, is_plain_chunk};
 use super::machine::{self, Machine};
 use super::payload::{BusMessage, encoding, error_reply};
 use crate::config::{CellConfig, MachineConfig};
-use crate::jobs::library::{LibraryError, ProgramLibrary};
+use crate::jobs::library::ProgramLibrary;
 use crate::jobs::source::ProgramInput;
 use crate::jobs::{self, JobSubmission};
 use crate::link::driver::{LinkCommand, LinkEvent, LinkHandle};
@@ -727,7 +727,7 @@ impl Routes {
                         }
                     }
                 }
-                Err(e) => reply_err(q, library_code(&e), e.to_string()).await,
+                Err(e) => reply_err(q, e.code(), e.to_string()).await,
             }
             return;
         }
@@ -744,7 +744,7 @@ impl Routes {
                     tracing::warn!(key = %q.key_expr(), error = %e, "program reply failed");
                 }
             }
-            Err(e) => reply_err(q, library_code(&e), e.to_string()).await,
+            Err(e) => reply_err(q, e.code(), e.to_string()).await,
         }
     }
 
@@ -771,16 +771,6 @@ impl Routes {
         if let Err(e) = result {
             tracing::warn!(%key, error = %e, "program library request refused");
         }
-    }
-}
-
-fn library_code(e: &LibraryError) -> pb::ErrorCode {
-    match e {
-        LibraryError::NotFound { .. } => pb::ErrorCode::NotFound,
-        LibraryError::InvalidName { .. } | LibraryError::TooLarge { .. } => {
-            pb::ErrorCode::InvalidRequest
-        }
-        LibraryError::Io { .. } => pb::ErrorCode::Internal,
     }
 }
 

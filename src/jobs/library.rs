@@ -27,6 +27,8 @@ pub enum LibraryError {
     InvalidName { name: String, reason: &'static str },
     #[error("the program library has no program {name:?}")]
     NotFound { name: String },
+    #[error("the program library already has a program {name:?}")]
+    Exists { name: String },
     #[error("program {name:?} is {size} bytes; programs.max_size allows {max}")]
     TooLarge { name: String, size: u64, max: u64 },
     #[error("program {name:?}: cannot {op} {}: {source}", path.display())]
@@ -39,6 +41,20 @@ pub enum LibraryError {
     },
 }
 
+impl LibraryError {
+    /// The bus error code for this error.
+    pub fn code(&self) -> crate::pb::ErrorCode {
+        use crate::pb::ErrorCode;
+        match self {
+            LibraryError::NotFound { .. } => ErrorCode::NotFound,
+            LibraryError::InvalidName { .. }
+            | LibraryError::TooLarge { .. }
+            | LibraryError::Exists { .. } => ErrorCode::InvalidRequest,
+            LibraryError::Io { .. } => ErrorCode::Internal,
+        }
+    }
+}
+
 /// One stored program.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ProgramEntry {
@@ -46,6 +62,13 @@ pub struct ProgramEntry {
     pub size: u64,
     /// Last stored, ms since the Unix epoch (0 if the file system does not say).
     pub modified_unix_ms: u64,
+}
+
+/// Whether a store may replace a program of the same name.
+#[derive(Debug, Clone, Copy)]
+enum Place {
+    Replace,
+    New,
 }
 
 /// The program library. Cheap to clone.
@@ -129,6 +152,26 @@ impl ProgramLibrary {
 
     /// Stores `program` under `name`, replacing any program of that name.
     pub async fn store(&self, name: &str, program: &[u8]) -> Result<ProgramEntry, LibraryError> {
+        self.write(name, program, Place::Replace).await
+    }
+
+    /// Stores `program` under `name` only if no program has that name yet
+    /// ([`LibraryError::Exists`] otherwise). Two writers racing for one name cannot both win:
+    /// the file is linked into place, which fails when the name is taken.
+    pub async fn store_new(
+        &self,
+        name: &str,
+        program: &[u8],
+    ) -> Result<ProgramEntry, LibraryError> {
+        self.write(name, program, Place::New).await
+    }
+
+    async fn write(
+        &self,
+        name: &str,
+        program: &[u8],
+        place: Place,
+    ) -> Result<ProgramEntry, LibraryError> {
         let path = self.path_of(name)?;
         let size = program.len() as u64;
         if size > self.max_size {
@@ -149,11 +192,23 @@ impl ProgramLibrary {
             file.write_all(program).await?;
             file.sync_all().await?;
             drop(file);
-            tokio::fs::rename(&temp, &path).await
+            match place {
+                Place::Replace => tokio::fs::rename(&temp, &path).await,
+                Place::New => {
+                    let linked = tokio::fs::hard_link(&temp, &path).await;
+                    let _ = tokio::fs::remove_file(&temp).await;
+                    linked
+                }
+            }
         }
         .await;
         if let Err(e) = written {
             let _ = tokio::fs::remove_file(&temp).await;
+            if e.kind() == std::io::ErrorKind::AlreadyExists {
+                return Err(LibraryError::Exists {
+                    name: name.to_string(),
+                });
+            }
             return Err(LibraryError::Io {
                 name: name.to_string(),
                 op: "write",
@@ -346,5 +401,35 @@ mod tests {
             .map(|e| e.name)
             .collect();
         assert_eq!(names, ["O2"]);
+    }
+
+    #[tokio::test]
+    async fn store_new_never_replaces() {
+        let dir = tempfile::tempdir().unwrap();
+        let lib = ProgramLibrary::new(dir.path(), 100);
+        lib.store_new("m-O1", b"%\nO1\n%").await.unwrap();
+        assert!(matches!(
+            lib.store_new("m-O1", b"%\nO1\nM30\n%").await,
+            Err(LibraryError::Exists { .. })
+        ));
+        assert_eq!(lib.read("m-O1").await.unwrap(), b"%\nO1\n%");
+        // Racing writers: exactly one wins each name, and no temporary file is left.
+        let tries = (0..8).map(|i| {
+            let lib = lib.clone();
+            tokio::spawn(async move { lib.store_new("m-O2", format!("%{i}%").as_bytes()).await })
+        });
+        let mut won = 0;
+        for t in tries {
+            if t.await.unwrap().is_ok() {
+                won += 1;
+            }
+        }
+        assert_eq!(won, 1);
+        let mut files: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        files.sort();
+        assert_eq!(files, ["m-O1", "m-O2"]);
     }
 }

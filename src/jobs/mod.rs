@@ -92,13 +92,7 @@ impl JobError {
     pub fn code(&self) -> pb::ErrorCode {
         match self {
             JobError::Program { .. } => pb::ErrorCode::InvalidRequest,
-            JobError::Library { error, .. } => match error {
-                LibraryError::NotFound { .. } => pb::ErrorCode::NotFound,
-                LibraryError::InvalidName { .. } | LibraryError::TooLarge { .. } => {
-                    pb::ErrorCode::InvalidRequest
-                }
-                LibraryError::Io { .. } => pb::ErrorCode::Internal,
-            },
+            JobError::Library { error, .. } => error.code(),
             JobError::QueueFull { .. } => pb::ErrorCode::QueueFull,
             JobError::UnknownJob { .. } => pb::ErrorCode::NotFound,
             JobError::LinkStopped { .. } | JobError::Stopped { .. } => pb::ErrorCode::Unavailable,

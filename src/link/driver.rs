@@ -110,6 +110,13 @@ pub enum LinkEvent {
         job: JobId,
         offset: u64,
     },
+    /// Punched data from the CNC (Protocol B punch-out, §6.1.1 2), as received, in order. A
+    /// piece ends at latest with each program's EOR, so a whole program is the pieces up to
+    /// and including one that ends with its `%`.
+    #[serde(skip)]
+    Punched {
+        data: Bytes,
+    },
     /// The link task ended (shutdown, or the line closed for good).
     Stopped {
         error: Option<String>,
@@ -424,8 +431,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 tracing::debug!(%error, retried, "protocol error");
                 LinkEvent::ProtocolError { error, retried }
             }
-            // Published by the bus layer later.
-            EngineEvent::Punched { .. } => return,
+            EngineEvent::Punched { data } => LinkEvent::Punched { data },
             EngineEvent::DataSent { bytes } => match self.progress(bytes) {
                 Some(event) => event,
                 None => return,
