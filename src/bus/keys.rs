@@ -11,13 +11,14 @@
 //! | `P/C/machine/M/di` | `DiImage` |
 //! | `P/C/machine/M/do` | `DoCommand` |
 //! | `P/C/machine/M/alarm` | `AlarmEvent` |
+//! | `P/C/machine/M/punch` | `PunchedProgram`s the CNC punched out (Protocol B) |
 //! | `P/C/program/NAME` | the program library |
 //!
 //! zenoh's `kedefine!`/`keformat!` macros would declare these formats at compile time, but
 //! in zenoh 1.10 they live in `zenoh::key_expr::format`, which exists only with zenoh's
 //! `unstable` feature (the macro expands to paths under that module, so depending on
 //! `zenoh-keyexpr` alone does not help). Turning `unstable` on would opt the whole gateway
-//! into APIs zenoh may change in any release, for seven fixed formats. [`CellKeys`] does the
+//! into APIs zenoh may change in any release, for eight fixed formats. [`CellKeys`] does the
 //! same job in plain code: every key is built here and nowhere else, every variable chunk is
 //! checked to be one non-wild chunk, and [`CellKeys::parse`] reads a key back into a
 //! [`CellKey`].
@@ -32,15 +33,17 @@ pub enum MachineLeaf {
     Di,
     Do,
     Alarm,
+    Punch,
 }
 
 impl MachineLeaf {
-    pub const ALL: [MachineLeaf; 5] = [
+    pub const ALL: [MachineLeaf; 6] = [
         MachineLeaf::Status,
         MachineLeaf::Job,
         MachineLeaf::Di,
         MachineLeaf::Do,
         MachineLeaf::Alarm,
+        MachineLeaf::Punch,
     ];
 
     pub fn chunk(self) -> &'static str {
@@ -50,6 +53,7 @@ impl MachineLeaf {
             MachineLeaf::Di => "di",
             MachineLeaf::Do => "do",
             MachineLeaf::Alarm => "alarm",
+            MachineLeaf::Punch => "punch",
         }
     }
 

@@ -1116,6 +1116,8 @@ pub enum WatchEvent {
     Job(pb::JobEvent),
     Alarm(pb::AlarmEvent),
     Di(pb::DiImage),
+    /// A program the CNC punched out (and the remote request it carried, if any).
+    Punched(Box<pb::PunchedProgram>),
     /// A `DoCommand` put by some client.
     DoCommand {
         machine: String,
@@ -1209,6 +1211,9 @@ impl Watch {
                 }
                 MachineLeaf::Alarm => decode(key, key, &bytes, enc).map(WatchEvent::Alarm),
                 MachineLeaf::Di => decode(key, key, &bytes, enc).map(WatchEvent::Di),
+                MachineLeaf::Punch => {
+                    decode(key, key, &bytes, enc).map(|p| WatchEvent::Punched(Box::new(p)))
+                }
                 MachineLeaf::Do => {
                     decode(key, key, &bytes, enc).map(|command| WatchEvent::DoCommand {
                         machine: machine.to_string(),

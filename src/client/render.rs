@@ -356,6 +356,36 @@ pub fn alarm_json(a: &pb::AlarmEvent) -> Value {
     })
 }
 
+/// A remote request's outcome, as a suffix of the punched program's line.
+fn request_text(r: &pb::RemoteRequest) -> String {
+    if r.error.is_empty() {
+        format!(
+            "; remote request for {}: {} queued as job {}",
+            r.program, r.library_name, r.job_id
+        )
+    } else {
+        format!("; remote request for {} refused: {}", r.program, r.error)
+    }
+}
+
+pub fn punched_json(p: &pb::PunchedProgram) -> Value {
+    json!({
+        "machine": p.machine,
+        "name": p.name,
+        "o_number": p.o_number,
+        "code_system": p.code_system().as_str_name(),
+        "size": p.program.len(),
+        "library_name": p.library_name,
+        "unix_ms": p.unix_ms,
+        "request": p.request.as_ref().map(|r| json!({
+            "program": r.program,
+            "library_name": r.library_name,
+            "job_id": r.job_id,
+            "error": r.error,
+        })),
+    })
+}
+
 /// The DI image in hex and bit by bit (bit 7 first, as the manual draws G152).
 pub fn di_text(di: &pb::DiImage) -> String {
     let bits: Vec<String> = (0..8)
@@ -439,6 +469,24 @@ impl WatchPrinter {
                 job_kind_text(e)
             ),
             WatchEvent::Alarm(a) => format!("{} ALARM {}", a.machine, alarm_text(a)),
+            WatchEvent::Punched(p) => format!(
+                "{} {} punched {} ({} bytes, {}){}{}",
+                clock(p.unix_ms),
+                p.machine,
+                if p.name.is_empty() {
+                    "a program"
+                } else {
+                    &p.name
+                },
+                p.program.len(),
+                p.code_system().as_str_name(),
+                if p.library_name.is_empty() {
+                    String::new()
+                } else {
+                    format!(" stored as {}", p.library_name)
+                },
+                p.request.as_ref().map(request_text).unwrap_or_default(),
+            ),
             WatchEvent::Di(d) => format!(
                 "{} {} DI {}",
                 clock(d.unix_ms),
@@ -486,6 +534,7 @@ pub fn watch_machine(event: &WatchEvent) -> Option<&str> {
         WatchEvent::Status(s) => Some(&s.machine),
         WatchEvent::Job(e) => Some(&e.machine),
         WatchEvent::Alarm(a) => Some(&a.machine),
+        WatchEvent::Punched(p) => Some(&p.machine),
         WatchEvent::Di(d) => Some(&d.machine),
         WatchEvent::DoCommand { machine, .. }
         | WatchEvent::CancelRequested { machine, .. }
@@ -500,6 +549,7 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
         WatchEvent::Status(s) => json!({ "event": "status", "status": status_json(s) }),
         WatchEvent::Job(e) => json!({ "event": "job", "job": job_event_json(e) }),
         WatchEvent::Alarm(a) => json!({ "event": "alarm", "alarm": alarm_json(a) }),
+        WatchEvent::Punched(p) => json!({ "event": "punched", "punched": punched_json(p) }),
         WatchEvent::Di(d) => json!({ "event": "di", "di": di_json(d) }),
         WatchEvent::DoCommand { machine, command } => json!({
             "event": "do_command", "machine": machine, "unix_ms": now_ms,
