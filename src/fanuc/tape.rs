@@ -295,31 +295,39 @@ pub fn detect(bytes: &[u8]) -> TapeCode {
     }
 }
 
-/// Punched bytes → their code and their text (see [`detect`]). NUL (feed) and DEL are
-/// dropped in every code, as readers skip them; nothing else is changed (ISO CRs stay).
+/// Punched bytes → their code and their text (see [`detect`] and [`decode_as`]).
 ///
 /// Bytes that are not 7-bit yet fit neither ISO nor EIA are reported as a parity error of
 /// the code most of them fit: EIA when most non-blank bytes have odd parity, else ISO.
 pub fn decode(bytes: &[u8]) -> Result<(TapeCode, Vec<u8>), TapeError> {
     let code = detect(bytes);
-    let keep = |c: &u8| *c != 0x00 && *c != 0x7F;
-    match code {
-        TapeCode::Eia => Ok((code, eia_to_iso(bytes)?)),
-        TapeCode::Iso => Ok((
-            code,
-            bytes
-                .iter()
-                .map(|&b| CodeSystem::strip(b))
-                .filter(keep)
-                .collect(),
-        )),
-        TapeCode::Ascii => {
-            if bytes.iter().any(|&b| b & 0x80 != 0) {
-                return Err(misfit(bytes));
-            }
-            Ok((code, bytes.iter().copied().filter(keep).collect()))
+    if code == TapeCode::Ascii && bytes.iter().any(|&b| b & 0x80 != 0) {
+        return Err(misfit(bytes));
+    }
+    Ok((code, decode_as(bytes, code)?))
+}
+
+/// Bytes punched in `code` → text. NUL (feed) and DEL are dropped in every code, as readers
+/// skip them; nothing else is changed (ISO CRs stay). ISO bytes must have even parity, ASCII
+/// bytes bit 7 clear; EIA is [`eia_to_iso`].
+pub fn decode_as(bytes: &[u8], code: TapeCode) -> Result<Vec<u8>, TapeError> {
+    if code == TapeCode::Eia {
+        return eia_to_iso(bytes);
+    }
+    let mut text = Vec::with_capacity(bytes.len());
+    for (offset, &byte) in bytes.iter().enumerate() {
+        let c = match code {
+            TapeCode::Eia => return eia_to_iso(bytes),
+            TapeCode::Iso if has_even_parity(byte) => CodeSystem::strip(byte),
+            TapeCode::Ascii if byte & 0x80 == 0 => byte,
+            TapeCode::Iso => return Err(TapeError::Parity { code, offset, byte }),
+            TapeCode::Ascii => return Err(TapeError::EightBit { offset, byte }),
+        };
+        if c != 0x00 && c != 0x7F {
+            text.push(c);
         }
     }
+    Ok(text)
 }
 
 /// The parity error that keeps 8-bit `bytes` from being ISO or EIA.
@@ -537,6 +545,30 @@ mod tests {
             detect(&encode(b"G0\n", TapeCode::Iso).unwrap()),
             TapeCode::Ascii
         );
+    }
+
+    #[test]
+    fn decode_as_a_known_code() {
+        let iso = encode(PROGRAM, TapeCode::Iso).unwrap();
+        assert_eq!(decode_as(&iso, TapeCode::Iso).unwrap(), PROGRAM);
+        assert_eq!(
+            decode_as(&iso, TapeCode::Ascii),
+            Err(TapeError::EightBit {
+                offset: 0,
+                byte: 0xA5
+            })
+        );
+        assert_eq!(
+            decode_as(b"%\nO1", TapeCode::Iso),
+            Err(TapeError::Parity {
+                code: TapeCode::Iso,
+                offset: 0,
+                byte: b'%'
+            })
+        );
+        // Feed and delete are dropped in every code.
+        assert_eq!(decode_as(b"\0%\x7f\n", TapeCode::Ascii).unwrap(), b"%\n");
+        assert_eq!(decode_as(&[0x00, 0xA5, 0xFF], TapeCode::Iso).unwrap(), b"%");
     }
 
     #[test]
