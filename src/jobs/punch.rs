@@ -33,8 +33,8 @@
 //! [`PunchedText::text`] is plain 7-bit text from the tape-start `%` through the EOR `%`.
 //! Feed and delete are dropped (as readers skip them) and every EOB is a single LF: the CRs
 //! an ISO CNC punches after LF (LF CR CR, parameter 0000#3 NCR = 0) are dropped, so a
-//! program gives the same text in every code and setting, and the text can be sent on a
-//! Protocol A link whose end code is CR.
+//! program gives the same text in every code and setting (and those CRs do not keep it
+//! from a Protocol A link whose end code is CR, §4.1).
 //!
 //! # End of punch-out
 //!
