@@ -7,6 +7,7 @@
 //! - [`packet`]: Expansion Protocol A data packets and monitor packets (§5.2, §5.3);
 //! - [`protocol_a`]: the sans-IO host engine for Protocol A and Expansion Protocol A (§4, §5);
 //! - [`protocol_b`]: the sans-IO host engine for Protocol B and Expansion Protocol B (§6, §7);
+//! - [`tape`]: punch codes ISO / ASCII / EIA, conversion and recognition (§10 0000#2, #4);
 //! - [`alarm`]: the CNC alarm numbers of §11 that a link can raise.
 
 pub mod alarm;
@@ -16,6 +17,7 @@ pub mod packet;
 pub mod protocol_a;
 pub mod protocol_b;
 pub mod sat;
+pub mod tape;
 
 use serde::{Deserialize, Serialize};
 

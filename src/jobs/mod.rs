@@ -9,6 +9,8 @@
 //! - Sources ([`source`]): inline bytes, a library program ([`library`]) streamed from its
 //!   file, or bytes fetched from a bus key. Every program is checked before it is queued;
 //!   a bad one is refused with the reason and nothing is queued.
+//! - Punched programs ([`punch`]): a punch-out split into programs and decoded, library
+//!   names for them, and remote requests for a program.
 //! - Job ids: `<machine>-<run>-<n>`, where `<run>` is the time the manager started, in
 //!   seconds since the Unix epoch written in base 36, and `<n>` counts the machine's jobs
 //!   from 1. Unique in the cell as long as the clock does not run backwards across restarts;
@@ -23,6 +25,7 @@
 //! paused time with a stand-in link.
 
 pub mod library;
+pub mod punch;
 pub mod queue;
 pub mod source;
 
