@@ -42,7 +42,7 @@ pub struct CellConfig {
     pub plcs: Vec<PlcConfig>,
 }
 
-/// `[programs]`: where submitted NC programs are kept.
+/// `[programs]`: where submitted NC programs are kept, and what becomes of punched ones.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ProgramsConfig {
@@ -50,10 +50,26 @@ pub struct ProgramsConfig {
     pub dir: PathBuf,
     /// Largest program accepted, bytes.
     pub max_size: u64,
+    /// Store every program a CNC punches out in the library, under a new name
+    /// `<machine>-<O-number>-<UTC time>` (Protocol B family).
+    pub store_punched: bool,
+    /// Remote request patterns: a punched program that holds nothing but one comment
+    /// matching one of these asks for the library program `O<n>` to be sent to the machine.
+    /// `{n}` stands for the program number's digits. Empty: punched programs are never
+    /// requests.
+    pub requests: Vec<String>,
 }
 
 impl ProgramsConfig {
     pub const DEFAULT_MAX_SIZE: u64 = 512 * 1024 * 1024;
+
+    /// The default remote request patterns.
+    pub fn default_requests() -> Vec<String> {
+        crate::jobs::punch::DEFAULT_REQUEST_PATTERNS
+            .iter()
+            .map(ToString::to_string)
+            .collect()
+    }
 }
 
 impl Default for ProgramsConfig {
@@ -61,6 +77,8 @@ impl Default for ProgramsConfig {
         ProgramsConfig {
             dir: PathBuf::from("programs"),
             max_size: Self::DEFAULT_MAX_SIZE,
+            store_punched: true,
+            requests: Self::default_requests(),
         }
     }
 }
@@ -1526,6 +1544,17 @@ fn check_programs(c: &mut Checker, p: &ProgramsConfig) {
             "must be at least 1 byte".to_string(),
             "",
         );
+    }
+    for (i, pattern) in p.requests.iter().enumerate() {
+        if let Err(e) = crate::jobs::punch::RequestPatterns::parse(std::slice::from_ref(pattern)) {
+            let crate::jobs::punch::PatternError::Invalid { reason, .. } = e;
+            c.invalid(
+                format!("programs.requests[{i}]"),
+                q(pattern),
+                reason.to_string(),
+                "",
+            );
+        }
     }
 }
 

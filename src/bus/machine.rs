@@ -15,6 +15,7 @@ use zenoh::qos::CongestionControl;
 
 use super::keys::CellKeys;
 use super::payload::{self, BusMessage, encoding};
+use super::punch::{Outcome, PunchDesk, PunchSettings};
 use crate::config::MachineConfig;
 use crate::jobs::{self, JobsHandle, JobsSnapshot};
 use crate::link::LinkState;
@@ -226,6 +227,7 @@ pub(crate) struct Publishers {
     pub status: Publisher<'static>,
     pub di: Publisher<'static>,
     pub alarm: Publisher<'static>,
+    pub punch: Publisher<'static>,
 }
 
 /// The machine's task: keeps the view, publishes status on change, DI when read, alarms,
@@ -261,9 +263,11 @@ pub(crate) async fn run(
     mut link_events: broadcast::Receiver<LinkEvent>,
     mut job_events: broadcast::Receiver<pb::JobEvent>,
     mut snapshot: watch::Receiver<JobsSnapshot>,
+    punch: PunchSettings,
     stop: CancellationToken,
 ) {
     let name = machine.name().to_string();
+    let mut desk = PunchDesk::new(&name, punch);
     let mut token: Option<LivelinessToken> = None;
     let mut published: Option<pb::MachineStatus> = None;
     let poll = machine
@@ -287,17 +291,30 @@ pub(crate) async fn run(
         tokio::select! {
             () = stop.cancelled() => break,
             event = link_events.recv() => match event {
+                Ok(LinkEvent::Punched { data }) => {
+                    for outcome in desk.feed(&data, &machine.jobs).await {
+                        publish_punch_outcome(&machine, &publishers, outcome).await;
+                    }
+                }
                 Ok(event) => {
+                    let was_receiving = machine.view().link_state == Some(LinkState::Receiving);
                     let extra = machine.on_link_event(&event);
                     match extra {
                         Some(Extra::Di(di)) => put(&publishers.di, &di).await,
                         Some(Extra::Alarm(alarm)) => put(&publishers.alarm, &alarm).await,
                         None => {}
                     }
+                    // The punch-out is over once the link stops receiving (DC4, §6.1.1 2).
+                    let receiving = machine.view().link_state == Some(LinkState::Receiving);
+                    if was_receiving && !receiving && let Some(outcome) = desk.finish() {
+                        publish_punch_outcome(&machine, &publishers, outcome).await;
+                    }
                     sync_token(&machine, &session, &keys, &mut token).await;
                 }
                 Err(broadcast::error::RecvError::Lagged(n)) => {
                     tracing::warn!(machine = %name, missed = n, "the bus fell behind this link's events");
+                    let outcome = desk.lost(n);
+                    publish_punch_outcome(&machine, &publishers, outcome).await;
                 }
                 // Cannot happen while the machine holds its link handle.
                 Err(broadcast::error::RecvError::Closed) => break,
@@ -337,10 +354,28 @@ pub(crate) async fn run(
     if let Some(t) = token.take() {
         undeclare_token(t).await;
     }
-    for p in [publishers.status, publishers.di, publishers.alarm] {
+    for p in [
+        publishers.status,
+        publishers.di,
+        publishers.alarm,
+        publishers.punch,
+    ] {
         if let Err(e) = p.undeclare().await {
             tracing::debug!(error = %e, "undeclaring a publisher failed");
         }
+    }
+}
+
+/// Publishes a punched program and the alarm that may come with it.
+async fn publish_punch_outcome(machine: &Machine, publishers: &Publishers, outcome: Outcome) {
+    if let Some(punched) = outcome.punched {
+        Machine::counters(&mut machine.view()).programs_punched += 1;
+        put(&publishers.punch, &punched).await;
+    }
+    if let Some((message, kind)) = outcome.alarm {
+        let event = machine.alarm_event(kind, "", message);
+        machine.view().status.last_alarm = Some(event.clone());
+        put(&publishers.alarm, &event).await;
     }
 }
 
@@ -434,6 +469,12 @@ pub(crate) async fn declare_publishers(
         alarm: declare(
             MachineLeaf::Alarm,
             encoding::<pb::AlarmEvent>(),
+            CongestionControl::Block,
+        )
+        .await?,
+        punch: declare(
+            MachineLeaf::Punch,
+            encoding::<pb::PunchedProgram>(),
             CongestionControl::Block,
         )
         .await?,

@@ -5,6 +5,7 @@
 pub mod keys;
 mod machine;
 pub mod payload;
+mod punch;
 pub mod routes;
 pub mod session;
 

@@ -36,6 +36,7 @@ use super::BusError;
 use super::keys::{CellKey, CellKeys, MachineLeaf, intersects, is_plain_chunk};
 use super::machine::{self, Machine};
 use super::payload::{BusMessage, encoding, error_reply};
+use super::punch::PunchSettings;
 use crate::config::{CellConfig, MachineConfig};
 use crate::jobs::library::ProgramLibrary;
 use crate::jobs::source::ProgramInput;
@@ -124,6 +125,7 @@ pub async fn serve(
                 link_events,
                 job_events,
                 snapshot,
+                PunchSettings::from_config(&config.programs),
                 machines_stop.clone(),
             ));
         }

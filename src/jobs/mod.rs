@@ -159,6 +159,11 @@ impl JobsHandle {
         self.rules
     }
 
+    /// The program library the machine's jobs read from.
+    pub fn library(&self) -> &ProgramLibrary {
+        &self.library
+    }
+
     fn stopped(&self) -> JobError {
         JobError::Stopped {
             machine: self.machine.to_string(),

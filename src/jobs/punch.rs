@@ -588,6 +588,13 @@ fn squeeze(text: &[u8]) -> Vec<u8> {
 }
 
 impl RequestPatterns {
+    /// Patterns that recognise no request.
+    pub fn none() -> Self {
+        RequestPatterns {
+            patterns: Vec::new(),
+        }
+    }
+
     /// The patterns of the cell file (see [`RequestPatterns`] for the syntax). An empty list
     /// recognises no request.
     pub fn parse(patterns: &[String]) -> Result<Self, PatternError> {

@@ -1,0 +1,261 @@
+//! Programs a CNC punches out (Protocol B family, §6.1.1 2), on the bus.
+//!
+//! The link hands punched bytes on as they arrive ([`LinkEvent::Punched`]); the machine's task
+//! feeds them to a [`PunchDesk`], which splits them into programs at EOR and decodes ISO,
+//! ASCII or EIA to text ([`jobs::punch`]). For each program the desk
+//! - stores it in the program library under a new name `<machine>-<O-number>-<UTC time>`
+//!   (`programs.store_punched`; never over an existing program);
+//! - or, when the program is a remote request (`programs.requests`, by default a program
+//!   holding only `(REQ O1234)` or `(PRG=1234)`), queues the library program it names as a
+//!   job for the machine. A request is not stored: it is a message, not a program.
+//!
+//! It returns the `PunchedProgram` to publish on `P/C/machine/M/punch` and, when something
+//! went wrong that an operator must see (a request for a program the library lacks, a
+//! punched program lost), an `AlarmEvent`.
+//!
+//! [`LinkEvent::Punched`]: crate::link::driver::LinkEvent::Punched
+
+use crate::config::ProgramsConfig;
+use crate::fanuc::tape::TapeCode;
+use crate::jobs::library::LibraryError;
+use crate::jobs::punch::{
+    PunchAssembler, PunchError, PunchedText, RemoteRequest, RequestPatterns, library_name,
+};
+use crate::jobs::source::ProgramInput;
+use crate::jobs::{self, JobError, JobSubmission, JobsHandle};
+use crate::pb;
+
+/// What the cell file says about punched programs.
+#[derive(Debug, Clone)]
+pub(crate) struct PunchSettings {
+    pub store: bool,
+    pub requests: RequestPatterns,
+    /// Largest punched program kept, bytes (`programs.max_size`, at most 64 MiB: a punched
+    /// program is held whole until its EOR).
+    pub max_program: usize,
+}
+
+/// Most bytes of one punched program held in memory.
+const MAX_PUNCHED_PROGRAM: u64 = 64 * 1024 * 1024;
+
+impl PunchSettings {
+    pub fn from_config(programs: &ProgramsConfig) -> Self {
+        PunchSettings {
+            store: programs.store_punched,
+            // Checked when the cell file was read; a pattern that fails here recognises
+            // nothing rather than stopping the gateway.
+            requests: RequestPatterns::parse(&programs.requests).unwrap_or_else(|e| {
+                tracing::error!(error = %e, "remote requests are off");
+                RequestPatterns::none()
+            }),
+            max_program: usize::try_from(programs.max_size.min(MAX_PUNCHED_PROGRAM))
+                .unwrap_or(usize::MAX),
+        }
+    }
+}
+
+/// What one punched program (or a punch-out gone wrong) comes to.
+#[derive(Debug, Default)]
+pub(crate) struct Outcome {
+    pub punched: Option<pb::PunchedProgram>,
+    pub alarm: Option<(String, pb::AlarmKind)>,
+}
+
+/// The punched-program side of one machine.
+pub(crate) struct PunchDesk {
+    machine: String,
+    settings: PunchSettings,
+    assembler: PunchAssembler,
+}
+
+impl PunchDesk {
+    pub fn new(machine: &str, settings: PunchSettings) -> Self {
+        PunchDesk {
+            machine: machine.to_string(),
+            assembler: PunchAssembler::new(settings.max_program),
+            settings,
+        }
+    }
+
+    /// Takes a piece of punched data; handles every program that ended in it.
+    pub async fn feed(&mut self, data: &[u8], jobs: &JobsHandle) -> Vec<Outcome> {
+        let mut out = Vec::new();
+        for result in self.assembler.feed(data) {
+            out.push(match result {
+                Ok(program) => self.program(program, jobs).await,
+                Err(e) => self.error(&e),
+            });
+        }
+        out
+    }
+
+    /// The punch-out has ended (the link left the receiving state): a program without EOR
+    /// is reported and dropped.
+    pub fn finish(&mut self) -> Option<Outcome> {
+        self.assembler.finish().map(|e| self.error(&e))
+    }
+
+    /// The link's events were lost (the bus fell behind): what was pending is dropped.
+    pub fn lost(&mut self, missed: u64) -> Outcome {
+        let pending = self.assembler.pending();
+        self.assembler = PunchAssembler::new(self.settings.max_program);
+        let message = format!(
+            "{missed} link event(s) lost while a punch-out may have been under way; \
+             {pending} punched byte(s) of an unfinished program dropped"
+        );
+        tracing::warn!(machine = %self.machine, %message);
+        Outcome {
+            punched: None,
+            alarm: (pending > 0).then_some((message, pb::AlarmKind::LinkAlarm)),
+        }
+    }
+
+    fn error(&self, e: &PunchError) -> Outcome {
+        tracing::warn!(machine = %self.machine, error = %e, "punched data");
+        // Bytes outside any program are line noise between programs; the others lose a
+        // program, which the operator must hear about.
+        let alarm = match e {
+            PunchError::OutsideProgram { .. } => None,
+            _ => Some((
+                format!("punched program lost: {e}"),
+                pb::AlarmKind::LinkAlarm,
+            )),
+        };
+        Outcome {
+            punched: None,
+            alarm,
+        }
+    }
+
+    async fn program(&self, program: PunchedText, jobs: &JobsHandle) -> Outcome {
+        let unix_ms = jobs::unix_ms();
+        let request = self.settings.requests.match_program(&program);
+        tracing::info!(
+            machine = %self.machine,
+            o_number = ?program.o_number,
+            code = %program.code,
+            bytes = program.text.len(),
+            request = ?request.as_ref().map(|r| &r.program),
+            "program punched out"
+        );
+        let mut punched = pb::PunchedProgram {
+            machine: self.machine.clone(),
+            name: program
+                .comment
+                .clone()
+                .or_else(|| program.o_number.clone())
+                .unwrap_or_default(),
+            o_number: program.o_number.clone().unwrap_or_default(),
+            code_system: code_system(program.code) as i32,
+            program: program.text.clone(),
+            library_name: String::new(),
+            unix_ms,
+            request: None,
+        };
+        let mut alarm = None;
+        if let Some(request) = request {
+            let answer = self.request(&request, jobs).await;
+            if !answer.error.is_empty() {
+                alarm = Some((
+                    format!(
+                        "remote request for {} from the CNC: {}",
+                        request.program, answer.error
+                    ),
+                    pb::AlarmKind::RemoteRequest,
+                ));
+            }
+            punched.request = Some(answer);
+        } else if self.settings.store {
+            match self.store(&program, unix_ms, jobs).await {
+                Ok(name) => punched.library_name = name,
+                Err(e) => {
+                    tracing::warn!(machine = %self.machine, error = %e, "punched program not stored");
+                    alarm = Some((
+                        format!("punched program not stored in the library: {e}"),
+                        pb::AlarmKind::LinkAlarm,
+                    ));
+                }
+            }
+        }
+        Outcome {
+            punched: Some(punched),
+            alarm,
+        }
+    }
+
+    /// Stores the program under the first free name.
+    async fn store(
+        &self,
+        program: &PunchedText,
+        unix_ms: u64,
+        jobs: &JobsHandle,
+    ) -> Result<String, LibraryError> {
+        let mut taken: Vec<String> = Vec::new();
+        loop {
+            let Some(name) =
+                library_name(&self.machine, program.o_number.as_deref(), unix_ms, |n| {
+                    taken.iter().any(|t| t == n)
+                })
+            else {
+                // Every suffix up to NAME_SUFFIX_MAX is taken within one second.
+                return Err(LibraryError::Exists {
+                    name: taken.pop().unwrap_or_default(),
+                });
+            };
+            match jobs.library().store_new(&name, &program.text).await {
+                Ok(entry) => return Ok(entry.name),
+                Err(LibraryError::Exists { .. }) => taken.push(name),
+                Err(e) => return Err(e),
+            }
+        }
+    }
+
+    /// Queues the requested library program; the answer says what became of it.
+    async fn request(&self, request: &RemoteRequest, jobs: &JobsHandle) -> pb::RemoteRequest {
+        let mut answer = pb::RemoteRequest {
+            program: request.program.clone(),
+            ..pb::RemoteRequest::default()
+        };
+        let candidates = request.candidates();
+        for name in &candidates {
+            let submission = JobSubmission {
+                input: ProgramInput::Library(name.clone()),
+                name: String::new(),
+                priority: 0,
+                append_eor: false,
+            };
+            match jobs.submit(submission).await {
+                Ok(accepted) => {
+                    tracing::info!(machine = %self.machine, program = %name, job = %accepted.job_id, "remote request queued");
+                    answer.library_name = name.clone();
+                    answer.job_id = accepted.job_id;
+                    return answer;
+                }
+                Err(JobError::Library {
+                    error: LibraryError::NotFound { .. },
+                    ..
+                }) => {}
+                Err(e) => {
+                    answer.library_name = name.clone();
+                    answer.error = e.to_string();
+                    return answer;
+                }
+            }
+        }
+        answer.error = format!(
+            "the program library has no program {} (looked for {})",
+            request.program,
+            candidates.join(", ")
+        );
+        tracing::warn!(machine = %self.machine, error = %answer.error, "remote request refused");
+        answer
+    }
+}
+
+fn code_system(code: TapeCode) -> pb::CodeSystem {
+    match code {
+        TapeCode::Iso => pb::CodeSystem::Iso,
+        TapeCode::Ascii => pb::CodeSystem::Ascii,
+        TapeCode::Eia => pb::CodeSystem::Eia,
+    }
+}
