@@ -1,13 +1,13 @@
-//! A simulated FANUC remote-buffer board with its CNC: the device side of Protocol A and
-//! Expansion Protocol A (§4, §5 of B-63322EN-1), sans-IO.
+//! A simulated FANUC remote-buffer board with its CNC: the device side of Protocol A,
+//! Expansion Protocol A, Protocol B and Expansion Protocol B (§4–§7 of B-63322EN-1), sans-IO.
 //!
 //! [`FanucBoard`] implements [`Engine`]: bytes from the host, modem lines, commands (the
-//! operator's cycle start, reset, a CNC alarm, the DI image) and the time go in; bytes for the
-//! host, [`BoardEvent`]s and the next deadline come out. The protocol is one variant of the
-//! board (`Variant`), so Protocol B can be added beside Protocol A without touching the CNC
-//! model ([`crate::sim::cnc`]).
+//! operator's cycle start, reset, a CNC alarm, the DI image, a punch-out) and the time go in;
+//! bytes for the host, [`BoardEvent`]s, the ER output and the next deadline come out. The
+//! protocol is one variant of the board (`Variant`), beside one CNC model
+//! ([`crate::sim::cnc`]).
 //!
-//! What the board does, in the manual's terms (details in the `protocol_a` submodule):
+//! Protocol A / Expansion A, in the manual's terms (details in the `protocol_a` submodule):
 //! - power-on: after `first_request_delay` (≈2 s, §4.3 (1)) it sends SYN; the host answers
 //!   SYN; the board sends RDY; the host answers RDY (initialised) or SYN (not ready yet: SYN
 //!   again after `first_request_delay`);
@@ -16,9 +16,16 @@
 //! - every transmission waits Tx after the last reception (§4.3 (4)); every answer is awaited
 //!   for To (§4.3 (3)); checksum errors get RTY and count against Ne with received RTYs
 //!   (§4.6 2 (1)); Expansion A adds data packets and monitor packets (§5).
+//!
+//! Protocol B / Expansion B (details in the `protocol_b` submodule): no messages, only control
+//! codes (§6.2). DC1 when the CNC reads and 4096 bytes are free; DC3 at 512 (2560) bytes free;
+//! SR0856 past the overrun allowance after DC3; DC3 when the read ends at EOR; CNC alarm and
+//! reset posted as NAK / SYN (after DC3 or DC4) or, with notification off, as DC3 and ER off
+//! (§6.4); punch-out on demand as DC2 … DC4 under the host's DC3 / DC1 / DC2 and CS.
 
 mod expansion_a;
 mod protocol_a;
+pub mod protocol_b;
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -35,26 +42,30 @@ use crate::sim::cnc::{
 use crate::transport::{LineError, ModemIn, ModemOut};
 
 use protocol_a::ProtocolA;
+use protocol_b::ProtocolB;
 
 /// How the simulated board and its CNC are set up.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BoardConfig {
     /// `A`: Protocol A only (SET's n is taken as 0, as on an RS-232-C board);
-    /// `ExpansionA`: Protocol A, and Expansion A whenever SET puts n ∈ {1, 2, 4} in force.
-    /// B and Expansion B are not simulated yet.
+    /// `ExpansionA`: Protocol A, and Expansion A whenever SET puts n ∈ {1, 2, 4} in force;
+    /// `B`, `ExpansionB`: Protocol B / Expansion B (§6, §7).
     pub protocol: Protocol,
-    /// Code (5000#2) and end code (5000#3) of the messages.
+    /// Code (5000#2) and end code (5000#3) of the messages. Protocol B uses the code for its
+    /// control codes (§6.2) and has no end code.
     pub framing: Framing,
     /// Power-on values of Nb..Tw (§4.5); SET changes them.
     pub params: Params,
     /// Power-on packet length parameter n (§5.2 1); 0 = Protocol A until a SET says otherwise.
     pub packet_n: u8,
-    /// The board's buffer (8 KiB on the real board, §12.2).
+    /// The board's buffer (8 KiB on the real board, §12.2). Protocol B needs at least 4096
+    /// (its DC1 condition, §6.3); 8 KiB leaves DC3 at 7680 bytes held (B) or 5632 (Expansion B).
     pub buffer_size: usize,
     /// Bytes per second the CNC reads from the buffer while running; 0 = as fast as data
     /// arrives.
     pub consume_rate: u32,
     /// Delay before the first request after power-on or a line error (§4.3 (1): ≈2 s).
+    /// Protocol B with `autostart`: how long a CNC in alarm waits before it resets itself.
     pub first_request_delay: Duration,
     /// Parameter 5000#1 ECH: echo SET byte 1 (remote/tape switching) in SAT byte 1; off, the
     /// board always sends 0 there.
@@ -63,9 +74,17 @@ pub struct BoardConfig {
     /// one SAT exchange has completed since, so that the host can select n with SET first,
     /// protocol notes 5) and the CNC is neither reading nor in alarm, it starts reading; a CNC
     /// in alarm resets itself after the next SAT exchange has shown the alarm to the host.
+    /// Protocol B: the CNC reads from power-on and again after every program; a CNC in alarm
+    /// resets itself `first_request_delay` after the alarm (with the reset's notice).
     pub autostart: bool,
     /// Bytes of each received program kept in [`ReceivedProgram::data`].
     pub keep_program_bytes: usize,
+    /// Protocol B: CNC alarm and reset are posted to the host as NAK / SYN (parameter 5003#3
+    /// = 1, §6.1.2); off, the board sends DC3 and turns ER off instead (§6.4 (1)).
+    pub notify_alarm_reset: bool,
+    /// Protocol B with notification off: how long ER stays off after an alarm or reset. Longer
+    /// than the host's modem-line polling (50 ms in cellgate), so that the host sees DR off.
+    pub er_off_time: Duration,
 }
 
 impl Default for BoardConfig {
@@ -81,19 +100,19 @@ impl Default for BoardConfig {
             echo_remote: false,
             autostart: false,
             keep_program_bytes: DEFAULT_KEEP_PROGRAM_BYTES,
+            notify_alarm_reset: true,
+            er_off_time: DEFAULT_ER_OFF_TIME,
         }
     }
 }
+
+/// Default [`BoardConfig::er_off_time`].
+pub const DEFAULT_ER_OFF_TIME: Duration = Duration::from_secs(1);
 
 /// Why a [`BoardConfig`] cannot be simulated.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
 pub enum BoardConfigError {
-    #[error(
-        "the simulated board does not support {} yet (Protocol A and Expansion Protocol A only)",
-        protocol.name()
-    )]
-    UnsupportedProtocol { protocol: Protocol },
     #[error("simulated board power-on parameters: {}", join(errors))]
     Params { errors: Vec<ParamRangeError> },
     #[error(
@@ -101,7 +120,11 @@ pub enum BoardConfigError {
     )]
     BufferTooSmall { buffer_size: usize, nb: u16 },
     #[error(
-        "packet length parameter n = {n} with {protocol:?}: n must be 0 for Protocol A and 0, 1, 2 or 4 for Expansion A (§5.2 1)"
+        "buffer of {buffer_size} bytes is smaller than the {dc1_free} bytes of free space Protocol B asks for with DC1: the board would never send DC1 (§6.3)"
+    )]
+    BufferTooSmallForDc1 { buffer_size: usize, dc1_free: usize },
+    #[error(
+        "packet length parameter n = {n} with {protocol:?}: n must be 0, except 0, 1, 2 or 4 for Expansion A (§5.2 1)"
     )]
     PacketN { n: u8, protocol: Protocol },
 }
@@ -116,16 +139,18 @@ fn join(errors: &[ParamRangeError]) -> String {
 
 impl BoardConfig {
     pub fn validate(&self) -> Result<(), BoardConfigError> {
-        if !self.protocol.is_a_family() {
-            return Err(BoardConfigError::UnsupportedProtocol {
-                protocol: self.protocol,
-            });
-        }
         let errors = self.params.validate();
         if !errors.is_empty() {
             return Err(BoardConfigError::Params { errors });
         }
-        if self.buffer_size < usize::from(self.params.nb) {
+        if !self.protocol.is_a_family() {
+            if self.buffer_size < protocol_b::DC1_FREE {
+                return Err(BoardConfigError::BufferTooSmallForDc1 {
+                    buffer_size: self.buffer_size,
+                    dc1_free: protocol_b::DC1_FREE,
+                });
+            }
+        } else if self.buffer_size < usize::from(self.params.nb) {
             return Err(BoardConfigError::BufferTooSmall {
                 buffer_size: self.buffer_size,
                 nb: self.params.nb,
@@ -162,6 +187,68 @@ pub enum BoardCommand {
     Reset,
     /// Change the rate at which the running CNC reads, bytes per second (0 = unlimited).
     SetConsumeRate(u32),
+    /// Protocol B: punch these bytes out to the host, exactly as given (the tape is already
+    /// encoded: ISO with parity, ASCII or EIA), framed as DC2 … DC4 (§6.1.1 2). Punch-outs
+    /// queue up; refused while DR is off or the CNC is in alarm. Ignored by Protocol A.
+    Punch(Vec<u8>),
+}
+
+/// A Protocol B control code (§6.2), by its manual name.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+#[serde(rename_all = "UPPERCASE")]
+pub enum ControlCode {
+    /// Starts host transmission.
+    Dc1,
+    /// Starts punch-out; from the host: resume the punch-out.
+    Dc2,
+    /// Stops host transmission; from the host: stop the punch-out.
+    Dc3,
+    /// Stops punch-out.
+    Dc4,
+    /// Posts a CNC alarm.
+    Nak,
+    /// Posts a CNC reset.
+    Syn,
+}
+
+impl ControlCode {
+    /// The 7-bit code; [`crate::fanuc::CodeSystem::control`] gives the byte on the line.
+    pub fn byte(self) -> u8 {
+        use crate::fanuc::code;
+        match self {
+            Self::Dc1 => code::DC1,
+            Self::Dc2 => code::DC2,
+            Self::Dc3 => code::DC3,
+            Self::Dc4 => code::DC4,
+            Self::Nak => code::NAK,
+            Self::Syn => code::SYN,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Dc1 => "DC1",
+            Self::Dc2 => "DC2",
+            Self::Dc3 => "DC3",
+            Self::Dc4 => "DC4",
+            Self::Nak => "NAK",
+            Self::Syn => "SYN",
+        }
+    }
+}
+
+/// Protocol B flow-control counters of a board since power-on (all zero for Protocol A).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct FlowCounters {
+    /// DC1 codes sent: read requests and resumptions.
+    pub dc1_sent: u64,
+    /// DC3 codes sent: stops, ends of reads, and those before notices.
+    pub dc3_sent: u64,
+    /// Most characters received after one DC3 (the host's overrun, §6.3).
+    pub max_overrun: usize,
+    /// SR0856 alarms raised (past the allowance or the buffer full).
+    pub overruns: u64,
+    /// Punched bytes handed to the line.
+    pub punched: u64,
 }
 
 /// The state of the board's link.
@@ -230,6 +317,28 @@ pub enum BoardEvent {
     DiSent(u8),
     /// CLB cleared the buffer.
     BufferCleared,
+    /// Protocol B: a control code went to the line.
+    ControlSent(ControlCode),
+    /// Protocol B: the host's DC3 / DC1 / DC2 during a punch-out.
+    ControlReceived(ControlCode),
+    /// Protocol B: DC2 went out; `bytes` to punch.
+    PunchStarted {
+        bytes: usize,
+    },
+    /// Protocol B: the whole punch-out and its DC4 went out.
+    PunchFinished {
+        bytes: usize,
+    },
+    /// Protocol B: a punch-out ended early (CNC reset or alarm, DR off) after `sent` of
+    /// `bytes`, or was dropped before it started (`sent` 0).
+    PunchInterrupted {
+        sent: usize,
+        bytes: usize,
+    },
+    /// Protocol B: the board turned its ER output off or on (§6.4 (1)).
+    ErSignal {
+        on: bool,
+    },
     /// The board raised a CNC alarm of §11 (SR0855, SR0944, SR0945, ...).
     Alarm {
         alarm: CncAlarm,
@@ -263,10 +372,11 @@ impl Outbox {
     }
 }
 
-/// The protocol a board speaks. Protocol B will be another variant.
+/// The protocol a board speaks.
 #[derive(Debug)]
 enum Variant {
     A(Box<ProtocolA>),
+    B(Box<ProtocolB>),
 }
 
 /// A simulated remote-buffer board with its CNC (sans-IO).
@@ -289,7 +399,11 @@ impl FanucBoard {
             config.keep_program_bytes,
             now,
         );
-        let variant = Variant::A(Box::new(ProtocolA::new(&config, now)));
+        let variant = if config.protocol.is_a_family() {
+            Variant::A(Box::new(ProtocolA::new(&config, now)))
+        } else {
+            Variant::B(Box::new(ProtocolB::new(&config, now)))
+        };
         let mut board = FanucBoard {
             config,
             cnc,
@@ -313,13 +427,15 @@ impl FanucBoard {
     pub fn link_state(&self) -> BoardLinkState {
         match &self.variant {
             Variant::A(a) => a.link_state(),
+            Variant::B(b) => b.link_state(),
         }
     }
 
-    /// The parameters in force (§4.5).
+    /// The parameters in force (§4.5; Protocol B: the configured ones, unused).
     pub fn params(&self) -> Params {
         match &self.variant {
             Variant::A(a) => a.params(),
+            Variant::B(_) => self.config.params,
         }
     }
 
@@ -327,13 +443,24 @@ impl FanucBoard {
     pub fn packet_n(&self) -> u8 {
         match &self.variant {
             Variant::A(a) => a.packet_n(),
+            Variant::B(_) => 0,
         }
     }
 
-    /// The data part the board's next SAT would carry (§4.4.2 1).
+    /// The data part the board's next SAT would carry (§4.4.2 1). Protocol B has no SAT:
+    /// status, alarm cause and bytes buffered only.
     pub fn status_data(&self) -> StatusData {
         match &self.variant {
             Variant::A(a) => a.status_data(&self.cnc),
+            Variant::B(b) => b.status_data(&self.cnc),
+        }
+    }
+
+    /// Protocol B flow-control counters (zero for Protocol A).
+    pub fn flow_counters(&self) -> FlowCounters {
+        match &self.variant {
+            Variant::A(_) => FlowCounters::default(),
+            Variant::B(b) => b.counters(),
         }
     }
 
@@ -343,6 +470,7 @@ impl FanucBoard {
         self.collect_programs();
         match &mut self.variant {
             Variant::A(a) => a.step(now, &mut self.cnc, &mut self.out),
+            Variant::B(b) => b.step(now, &mut self.cnc, &mut self.out),
         }
         self.collect_programs();
         let status = (self.cnc.status(), self.cnc.alarm());
@@ -372,6 +500,7 @@ impl Engine for FanucBoard {
         self.collect_programs();
         match &mut self.variant {
             Variant::A(a) => a.handle_input(now, bytes, &mut self.cnc, &mut self.out),
+            Variant::B(b) => b.handle_input(now, bytes, &mut self.cnc, &mut self.out),
         }
         self.step(now);
     }
@@ -379,6 +508,7 @@ impl Engine for FanucBoard {
     fn handle_line_error(&mut self, now: Instant, error: LineError) {
         match &mut self.variant {
             Variant::A(a) => a.handle_line_error(now, error, &mut self.cnc, &mut self.out),
+            Variant::B(b) => b.handle_line_error(now, error, &mut self.cnc, &mut self.out),
         }
         self.step(now);
     }
@@ -386,6 +516,7 @@ impl Engine for FanucBoard {
     fn handle_modem(&mut self, now: Instant, modem: ModemIn) {
         match &mut self.variant {
             Variant::A(a) => a.handle_modem(now, modem, &mut self.cnc, &mut self.out),
+            Variant::B(b) => b.handle_modem(now, modem, &mut self.cnc, &mut self.out),
         }
         self.step(now);
     }
@@ -417,9 +548,17 @@ impl Engine for FanucBoard {
             BoardCommand::SetConsumeRate(rate) => self.cnc.set_rate(now, rate),
             BoardCommand::RaiseAlarm => match &mut self.variant {
                 Variant::A(a) => a.cnc_alarm(now, &mut self.cnc, &mut self.out),
+                Variant::B(b) => b.cnc_alarm(now, &mut self.cnc, &mut self.out),
             },
             BoardCommand::Reset => match &mut self.variant {
                 Variant::A(a) => a.cnc_reset(now, &mut self.cnc, &mut self.out),
+                Variant::B(b) => b.cnc_reset(now, &mut self.cnc, &mut self.out),
+            },
+            BoardCommand::Punch(data) => match &mut self.variant {
+                Variant::A(_) => self.out.event(BoardEvent::ProtocolError {
+                    detail: "punch-out is a Protocol B function (§6.1.1 2); ignored".to_string(),
+                }),
+                Variant::B(b) => b.punch(data, &self.cnc, &mut self.out),
             },
         }
         self.step(now);
@@ -429,8 +568,20 @@ impl Engine for FanucBoard {
         self.step(now);
     }
 
-    fn poll_transmit(&mut self, _now: Instant) -> Option<Vec<u8>> {
-        self.out.tx.pop_front()
+    fn poll_transmit(&mut self, now: Instant) -> Option<Vec<u8>> {
+        if let Some(bytes) = self.out.tx.pop_front() {
+            return Some(bytes);
+        }
+        match &mut self.variant {
+            Variant::A(_) => None,
+            Variant::B(b) => {
+                // Protocol B hands out codes and punch pieces as the line takes them; what it
+                // handed out (a DC4, a DC3) may let it queue more.
+                let bytes = b.poll_transmit(now, &mut self.out)?;
+                self.step(now);
+                Some(bytes)
+            }
+        }
     }
 
     fn poll_event(&mut self) -> Option<BoardEvent> {
@@ -440,6 +591,7 @@ impl Engine for FanucBoard {
     fn poll_timeout(&self) -> Option<Instant> {
         let protocol = match &self.variant {
             Variant::A(a) => a.poll_timeout(&self.cnc),
+            Variant::B(b) => b.poll_timeout(&self.cnc),
         };
         // The CNC reaching EOR is an event of its own (and may restart an autostart CNC).
         match (protocol, self.cnc.when_program_ends()) {
@@ -449,6 +601,9 @@ impl Engine for FanucBoard {
     }
 
     fn modem_out(&self) -> ModemOut {
-        ModemOut::ALL_ON
+        match &self.variant {
+            Variant::A(_) => ModemOut::ALL_ON,
+            Variant::B(b) => b.modem_out(),
+        }
     }
 }

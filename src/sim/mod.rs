@@ -29,7 +29,8 @@ use crate::transport::{ModemIn, Transport};
 
 pub use cnc::ReceivedProgram;
 pub use fanuc_board::{
-    BoardCommand, BoardConfig, BoardConfigError, BoardEvent, BoardLinkState, FanucBoard,
+    BoardCommand, BoardConfig, BoardConfigError, BoardEvent, BoardLinkState, ControlCode,
+    FanucBoard, FlowCounters,
 };
 
 /// Errors of the simulators, kept apart from the protocol events they report.
@@ -38,8 +39,14 @@ pub use fanuc_board::{
 pub enum SimError {
     #[error("simulated FANUC board: {0}")]
     Config(#[from] BoardConfigError),
-    #[error("simulated FANUC board: {protocol} is not yet supported; use --protocol a or exp-a")]
-    UnsupportedProtocol { protocol: String },
+    #[error("simulated FANUC board: cannot read the punch-out file {path}: {source}")]
+    PunchFile {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("simulated FANUC board: --punch needs --protocol b or exp-b (punch-out is §6.1.1 2)")]
+    PunchNeedsProtocolB,
     #[error(
         "simulator listen address {addr} is not loopback: simulators bind 127.0.0.1 or ::1 only"
     )]
@@ -78,6 +85,16 @@ pub struct BoardSnapshot {
     pub alarms: Vec<CncAlarm>,
     /// NC data bytes stored in the buffer since power-on.
     pub data_received: u64,
+    /// Protocol B: DC1 codes sent since power-on (read requests and resumptions).
+    pub dc1_sent: u64,
+    /// Protocol B: DC3 codes sent since power-on (stops, ends of reads, before notices).
+    pub dc3_sent: u64,
+    /// Protocol B: most characters received after one DC3 (§6.3).
+    pub max_overrun: usize,
+    /// Protocol B: SR0856 alarms raised for data past the allowance or a full buffer.
+    pub overruns: u64,
+    /// Protocol B: punched bytes handed to the line since power-on.
+    pub punched: u64,
     /// Whether the board's task has ended (line closed or error).
     pub stopped: bool,
 }
@@ -96,6 +113,11 @@ impl BoardSnapshot {
             programs: Vec::new(),
             alarms: Vec::new(),
             data_received: 0,
+            dc1_sent: 0,
+            dc3_sent: 0,
+            max_overrun: 0,
+            overruns: 0,
+            punched: 0,
             stopped: false,
         };
         s.refresh(board);
@@ -112,6 +134,12 @@ impl BoardSnapshot {
         self.buffered = cnc.buffered();
         self.di_image = cnc.di();
         self.do_image = cnc.do_image();
+        let flow = board.flow_counters();
+        self.dc1_sent = flow.dc1_sent;
+        self.dc3_sent = flow.dc3_sent;
+        self.max_overrun = flow.max_overrun;
+        self.overruns = flow.overruns;
+        self.punched = flow.punched;
     }
 
     fn record(&mut self, event: &BoardEvent) {
@@ -194,6 +222,10 @@ impl BoardHandle {
     }
     pub fn reset(&self) {
         self.command(BoardCommand::Reset);
+    }
+    /// Protocol B: punch `bytes` out to the host as given (already encoded), DC2 … DC4.
+    pub fn punch(&self, bytes: impl Into<Vec<u8>>) {
+        self.command(BoardCommand::Punch(bytes.into()));
     }
 
     /// The board's events from now on.

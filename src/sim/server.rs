@@ -3,8 +3,8 @@
 //! One connection at a time is the serial line: each new connection powers a fresh board on
 //! (line up again) and replaces the previous connection. The board's output is paced at the
 //! configured baud rate (11 bit times a character at 8N2, protocol notes 2), as a device
-//! server's serial side would deliver it; the host's input is taken as it comes. Every event of interest goes to stdout as one JSON
-//! object per line:
+//! server's serial side would deliver it; the host's input is taken as it comes. Every event
+//! of interest goes to stdout as one JSON object per line:
 //!
 //! ```text
 //! {"event":"listening","addr":"127.0.0.1:4001","protocol":"A","baud":9600}
@@ -13,10 +13,18 @@
 //! {"event":"program","bytes":1234,"sha256":"…","first_line":"O1234"}
 //! {"event":"do","image":165,"hex":"A5"}
 //! {"event":"alarm","alarm":"SR0945","message":"…","cause":"checksum-retry-over","detail":"…"}
+//! {"event":"punch","state":"finished","bytes":4096}
 //! ```
+//!
+//! Protocol B (`--protocol b|exp-b`): `--punch FILE` punches the file's bytes out, as they are
+//! (the file holds the encoded tape), `--punch-after-ms` after each connection; `--no-notify`
+//! turns the CNC reset/alarm notices off (parameter 5003#3 = 0). A raw TCP device server
+//! carries no modem lines, so the ER off that replaces the notices then never reaches the
+//! host: it sees only the DC3.
 
 use std::future::Future;
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll, ready};
@@ -32,7 +40,7 @@ use crate::fanuc::message::Framing;
 use crate::fanuc::sat::Params;
 use crate::fanuc::{CodeSystem, EndCode, Protocol};
 use crate::sim::cnc::{DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE};
-use crate::sim::{BoardConfig, BoardEvent, FanucBoard, SimError, run_board};
+use crate::sim::{BoardCommand, BoardConfig, BoardEvent, FanucBoard, SimError, run_board};
 use crate::transport::{LineSettings, ModemIn, ModemOut, Pacer, Transport};
 
 /// `--protocol`.
@@ -43,9 +51,9 @@ pub enum SimProtocol {
     /// Protocol A, and Expansion Protocol A when the host's SET selects n = 1, 2 or 4 (§5).
     #[value(name = "exp-a")]
     ExpA,
-    /// Protocol B (§6): not simulated yet.
+    /// Protocol B (§6): DC1 / DC3 flow control, punch-out.
     B,
-    /// Expansion Protocol B (§7): not simulated yet.
+    /// Expansion Protocol B (§7): Protocol B with a 2560-character stop level and allowance.
     #[value(name = "exp-b")]
     ExpB,
 }
@@ -120,6 +128,29 @@ pub struct SimFanucArgs {
     /// Power-on Tw: wait after WAT, s.
     #[arg(long, default_value_t = Params::POWER_ON.tw)]
     pub tw: u16,
+    /// Protocol B: CNC reset/alarm not posted to the host (parameter 5003#3 = 0): the board
+    /// sends DC3 and turns ER off instead of SYN / NAK (§6.4).
+    #[arg(long)]
+    pub no_notify: bool,
+    /// Protocol B with --no-notify: how long ER stays off after a reset or alarm, in ms.
+    #[arg(long, default_value_t = 1000)]
+    pub er_off_ms: u64,
+    /// Protocol B: punch this file out to the host after each connection, byte for byte (it
+    /// holds the encoded tape: ISO with parity, ASCII or EIA), framed as DC2 … DC4.
+    #[arg(long, value_name = "FILE")]
+    pub punch: Option<PathBuf>,
+    /// Protocol B: how long after the host connects the --punch file is punched out, in ms.
+    #[arg(long, default_value_t = 2000)]
+    pub punch_after_ms: u64,
+}
+
+/// A punch-out the server does on every connection.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PunchPlan {
+    /// The bytes, as they go on the line.
+    pub data: Vec<u8>,
+    /// Time from the connection to the punch-out command.
+    pub after: Duration,
 }
 
 impl SimFanucArgs {
@@ -128,16 +159,8 @@ impl SimFanucArgs {
         let protocol = match self.protocol {
             SimProtocol::A => Protocol::A,
             SimProtocol::ExpA => Protocol::ExpansionA,
-            SimProtocol::B => {
-                return Err(SimError::UnsupportedProtocol {
-                    protocol: "Protocol B (--protocol b)".to_string(),
-                });
-            }
-            SimProtocol::ExpB => {
-                return Err(SimError::UnsupportedProtocol {
-                    protocol: "Expansion Protocol B (--protocol exp-b)".to_string(),
-                });
-            }
+            SimProtocol::B => Protocol::B,
+            SimProtocol::ExpB => Protocol::ExpansionB,
         };
         let framing = Framing::new(
             match self.code {
@@ -166,10 +189,30 @@ impl SimFanucArgs {
             consume_rate: self.consume_rate,
             autostart: self.autostart,
             first_request_delay: Duration::from_millis(self.first_request_delay_ms),
+            notify_alarm_reset: !self.no_notify,
+            er_off_time: Duration::from_millis(self.er_off_ms),
             ..BoardConfig::default()
         };
         config.validate()?;
         Ok(config)
+    }
+
+    /// The `--punch` file, read once (Protocol B only).
+    pub fn punch_plan(&self) -> Result<Option<PunchPlan>, SimError> {
+        let Some(path) = &self.punch else {
+            return Ok(None);
+        };
+        if matches!(self.protocol, SimProtocol::A | SimProtocol::ExpA) {
+            return Err(SimError::PunchNeedsProtocolB);
+        }
+        let data = std::fs::read(path).map_err(|source| SimError::PunchFile {
+            path: path.clone(),
+            source,
+        })?;
+        Ok(Some(PunchPlan {
+            data,
+            after: Duration::from_millis(self.punch_after_ms),
+        }))
     }
 
     pub fn line_settings(&self) -> LineSettings {
@@ -187,6 +230,7 @@ pub async fn serve_fanuc(
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), SimError> {
     let config = args.board_config()?;
+    let punch = args.punch_plan()?;
     if !args.listen.ip().is_loopback() {
         return Err(SimError::NotLoopback { addr: args.listen });
     }
@@ -202,7 +246,15 @@ pub async fn serve_fanuc(
         // A closed stdout must not stop the simulator.
         let _ = writeln!(out, "{v}").and_then(|()| out.flush());
     });
-    serve_fanuc_on(listener, config, args.line_settings(), sink, shutdown).await
+    serve_fanuc_with(
+        listener,
+        config,
+        args.line_settings(),
+        punch,
+        sink,
+        shutdown,
+    )
+    .await
 }
 
 /// Serves the board on a bound listener (tests bind port 0), sending JSON events to `sink`.
@@ -213,7 +265,20 @@ pub async fn serve_fanuc_on(
     sink: EventSink,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), SimError> {
+    serve_fanuc_with(listener, config, settings, None, sink, shutdown).await
+}
+
+/// [`serve_fanuc_on`], punching `punch` out on every connection.
+pub async fn serve_fanuc_with(
+    listener: TcpListener,
+    config: BoardConfig,
+    settings: LineSettings,
+    punch: Option<PunchPlan>,
+    sink: EventSink,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), SimError> {
     config.validate()?;
+    let punch = punch.map(Arc::new);
     let addr = listener.local_addr().map_err(SimError::Output)?;
     sink(&json!({
         "event": "listening",
@@ -237,7 +302,14 @@ pub async fn serve_fanuc_on(
                         }));
                     }
                     sink(&json!({"event": "connected", "peer": peer.to_string()}));
-                    let fut = run_session(stream, peer, config.clone(), settings, sink.clone());
+                    let fut = run_session(
+                        stream,
+                        peer,
+                        config.clone(),
+                        settings,
+                        punch.clone(),
+                        sink.clone(),
+                    );
                     session = Some((peer, Box::pin(fut)));
                 }
                 Err(e) => {
@@ -268,15 +340,24 @@ async fn run_session(
     peer: SocketAddr,
     config: BoardConfig,
     settings: LineSettings,
+    punch: Option<Arc<PunchPlan>>,
     sink: EventSink,
 ) -> Result<(), SimError> {
     // Small messages must not wait for Nagle.
     let _ = stream.set_nodelay(true);
     let board = FanucBoard::new(config, Instant::now().into_std())?;
     let line = PacedLine::new(stream, settings, format!("tcp {peer} paced at {settings}"));
-    // No operator commands over TCP; the sender lives as long as the session.
-    let (_commands, commands_rx) = mpsc::unbounded_channel();
-    run_board(
+    // The only operator command over TCP is the planned punch-out; the sender lives as long
+    // as the session (the board stops when it closes).
+    let (commands, commands_rx) = mpsc::unbounded_channel();
+    let punch_task = punch.map(|plan| {
+        let commands = commands.clone();
+        tokio::spawn(async move {
+            tokio::time::sleep(plan.after).await;
+            let _ = commands.send(BoardCommand::Punch(plan.data.clone()));
+        })
+    });
+    let result = run_board(
         board,
         line,
         commands_rx,
@@ -289,7 +370,12 @@ async fn run_session(
         },
         std::future::pending::<()>(),
     )
-    .await
+    .await;
+    if let Some(task) = punch_task {
+        task.abort();
+    }
+    drop(commands);
+    result
 }
 
 /// The JSON line for a board event, for those worth printing.
@@ -339,6 +425,16 @@ pub fn event_json(event: &BoardEvent) -> Option<Value> {
         BoardEvent::ReadingStarted => json!({"event": "reading", "reading": true}),
         BoardEvent::ReadingStopped => json!({"event": "reading", "reading": false}),
         BoardEvent::BufferCleared => json!({"event": "buffer-cleared"}),
+        BoardEvent::PunchStarted { bytes } => {
+            json!({"event": "punch", "state": "started", "bytes": bytes})
+        }
+        BoardEvent::PunchFinished { bytes } => {
+            json!({"event": "punch", "state": "finished", "bytes": bytes})
+        }
+        BoardEvent::PunchInterrupted { sent, bytes } => {
+            json!({"event": "punch", "state": "interrupted", "sent": sent, "bytes": bytes})
+        }
+        BoardEvent::ErSignal { on } => json!({"event": "er", "on": on}),
         BoardEvent::ProtocolError { detail } => {
             json!({"event": "protocol-error", "detail": detail})
         }
@@ -449,7 +545,55 @@ mod tests {
     }
 
     #[test]
-    fn parses_and_refuses_protocol_b() {
+    fn parses_protocol_b_with_punch_and_notification_off() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("tape.iso");
+        std::fs::write(&file, b"\xA5\n\x4FO1\n\xA5").unwrap();
+        let cli = Cli::try_parse_from([
+            "sim",
+            "--protocol",
+            "exp-b",
+            "--code",
+            "iso",
+            "--no-notify",
+            "--punch",
+            file.to_str().unwrap(),
+            "--punch-after-ms",
+            "500",
+        ])
+        .unwrap();
+        let config = cli.args.board_config().unwrap();
+        assert_eq!(config.protocol, Protocol::ExpansionB);
+        assert!(!config.notify_alarm_reset);
+        let plan = cli.args.punch_plan().unwrap().unwrap();
+        assert_eq!(plan.data, b"\xA5\n\x4FO1\n\xA5");
+        assert_eq!(plan.after, Duration::from_millis(500));
+
+        let cli = Cli::try_parse_from(["sim", "--protocol", "b"]).unwrap();
+        assert_eq!(cli.args.board_config().unwrap().protocol, Protocol::B);
+        assert!(cli.args.board_config().unwrap().notify_alarm_reset);
+        assert_eq!(cli.args.punch_plan().unwrap(), None);
+
+        let cli = Cli::try_parse_from(["sim", "--punch", "x"]).unwrap();
+        assert!(matches!(
+            cli.args.punch_plan(),
+            Err(SimError::PunchNeedsProtocolB)
+        ));
+        let missing = dir.path().join("missing");
+        let cli = Cli::try_parse_from([
+            "sim",
+            "--protocol",
+            "b",
+            "--punch",
+            missing.to_str().unwrap(),
+        ])
+        .unwrap();
+        let err = cli.args.punch_plan().unwrap_err();
+        assert!(err.to_string().contains("missing"), "{err}");
+    }
+
+    #[test]
+    fn parses_and_validates_protocol_a() {
         let cli = Cli::try_parse_from([
             "sim",
             "--protocol",
@@ -468,9 +612,9 @@ mod tests {
         assert_eq!(config.params.tp, 3);
         assert!(cli.args.listen.ip().is_loopback());
 
-        let cli = Cli::try_parse_from(["sim", "--protocol", "b"]).unwrap();
+        let cli = Cli::try_parse_from(["sim", "--protocol", "b", "--buffer-size", "4000"]).unwrap();
         let err = cli.args.board_config().unwrap_err();
-        assert!(err.to_string().contains("not yet supported"), "{err}");
+        assert!(err.to_string().contains("DC1"), "{err}");
 
         let cli = Cli::try_parse_from(["sim", "--tw", "9"]).unwrap();
         let err = cli.args.board_config().unwrap_err();

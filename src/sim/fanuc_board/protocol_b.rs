@@ -1,0 +1,1230 @@
+//! Protocol B and Expansion Protocol B from the remote buffer's side (§6, §7).
+//!
+//! There are no messages: the board steers the host with single control codes (§6.2) and
+//! everything the host sends is the data part (§8.1). Codes go out in the configured code:
+//! DC3, NAK and SYN with the parity bit in ISO (93h, 95h, 96h), without it in ASCII; DC1, DC2
+//! and DC4 are the same in both. Codes from the host are recognised with or without bit 7.
+//!
+//! # Download (§6.1.1 1, §6.1.2 2, §6.3)
+//!
+//! - A read request opens when the CNC reads (cycle start, or autostart) and the buffer has
+//!   at least [`DC1_FREE`] (4096) bytes free: DC1. Every byte received then goes into the
+//!   buffer.
+//! - Free space at or below [`dc3_free`] (512 in Protocol B, 2560 in Expansion B): DC3. Bytes
+//!   received after the DC3 was handed to the line are counted; more than the overrun
+//!   allowance ([`overrun_allowance`]: 512; 2560 in Expansion B, protocol notes 12), or more
+//!   than the buffer holds, is SR0856.
+//! - Free space back at 4096 or more: DC1 (the continuation, §6.1.1 1 (6)).
+//! - Once the program's EOR is in the buffer the board asks for nothing more in this read:
+//!   the host cannot tell a flow-control DC1 from a new read request (protocol notes 13), so
+//!   a DC1 then would bring the next program's bytes behind the EOR, where the CNC ignores
+//!   them (§8.2).
+//! - When the CNC has read the EOR (or stops reading) the read ends with DC3 (§6.1.1 1 (7));
+//!   data arriving after that is ignored (§8.2). The next read starts with DC1 again.
+//!
+//! # CNC alarm and reset (§6.1.2, §6.4)
+//!
+//! With notification on (parameter 5003#3 = 1, [`BoardConfig::notify_alarm_reset`]): NAK
+//! (alarm) or SYN (reset), alone while idle, after DC3 while a read is open, after DC4 while
+//! punching. With notification off: DC3 (DC4 while punching, since the host would take a DC3
+//! for punched data), then ER off for [`BoardConfig::er_off_time`] (§6.4 (1)): the host sees
+//! DR off. The manual says ER stays off until the CNC opens the interface again; a fixed time
+//! keeps an unattended simulator going. A reset loses the buffered data (§8.2).
+//!
+//! With autostart, a CNC in alarm resets itself `first_request_delay` after the alarm (or
+//! after DR came back), with the reset's own notice, and reads again.
+//!
+//! # Punch-out (§6.1.1 2, §6.1.2 2)
+//!
+//! [`BoardCommand::Punch`](super::BoardCommand::Punch) bytes go out exactly as given (the
+//! tape is already encoded), framed as DC2 … DC4, in pieces of [`PUNCH_PIECE`] bytes so that a
+//! stop takes effect within a piece. An open read is stopped with DC3 first (the host must not
+//! send program data meanwhile, and no DC1/DC3 can travel inside the punched data); it resumes
+//! with DC1 after the DC4. The host stops the punch-out with DC3 and resumes it with DC1 or DC2
+//! (protocol notes 11); CS off holds every transmission, CS on continues. While a punch-out
+//! runs, and until the board's next DC1 after it, DC1 / DC2 / DC3 from the host are flow
+//! control, not data (a late DC3 must not land in the program). A CNC reset or alarm ends the
+//! punch-out with DC4 and the notice; DR off ends it silently.
+//!
+//! # Line
+//!
+//! DR off (the host's ER; and CD in Protocol B, an RS-232-C interface) while the CNC reads or
+//! punches: SR0855 (§11), the read and punch-out end, queued codes are dropped. A framing or
+//! overrun error on a received character: SR0946. A parity error loses the character and is
+//! reported as a protocol error.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use crate::fanuc::CodeSystem;
+use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::code::{DC1, DC2, DC3};
+use crate::fanuc::sat::{AlarmCause, StatusData};
+use crate::sim::cnc::{Cnc, Push};
+use crate::transport::{LineError, ModemIn, ModemOut};
+
+use super::{BoardConfig, BoardEvent, BoardLinkState, ControlCode, FlowCounters, Outbox};
+
+/// Free space at which the board asks for data with DC1 (§6.3: "vacant space ≥ 4096").
+pub const DC1_FREE: usize = 4096;
+/// Free space at or below which the board stops the host with DC3 in Protocol B (§6.3).
+pub const DC3_FREE_B: usize = 512;
+/// The same in Expansion Protocol B (§6.3).
+pub const DC3_FREE_EXPANSION_B: usize = 2560;
+/// Characters the board takes after its DC3 in Protocol B before SR0856 (§6.3, §11).
+pub const OVERRUN_B: usize = 512;
+/// The same in Expansion Protocol B: the §6.3 table and §11 say 2560, §7 says 1280; the host
+/// keeps within 1280 and the board alarms only past 2560 (protocol notes 12).
+pub const OVERRUN_EXPANSION_B: usize = 2560;
+/// Punched bytes handed to the line at once: a host's DC3 or CS off takes effect after at
+/// most this many more (plus the UART FIFO).
+pub const PUNCH_PIECE: usize = 32;
+
+/// The free space at or below which the board sends DC3.
+pub const fn dc3_free(expansion: bool) -> usize {
+    if expansion {
+        DC3_FREE_EXPANSION_B
+    } else {
+        DC3_FREE_B
+    }
+}
+
+/// Characters after a DC3 beyond which the board raises SR0856.
+pub const fn overrun_allowance(expansion: bool) -> usize {
+    if expansion {
+        OVERRUN_EXPANSION_B
+    } else {
+        OVERRUN_B
+    }
+}
+
+/// The board's ER output (§6.4 (1)).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Er {
+    On,
+    /// Off once the codes queued before it (the DC3 or DC4) have been handed to the line.
+    OffAfterSend,
+    Off {
+        until: Instant,
+    },
+}
+
+/// A punch-out in progress.
+#[derive(Debug)]
+struct Punch {
+    data: Vec<u8>,
+    sent: usize,
+    /// DC2 has been handed to the line.
+    started: bool,
+    /// The host stopped it with DC3.
+    held: bool,
+    /// All data handed out; DC4 queued.
+    finishing: bool,
+}
+
+/// The device side of Protocol B / Expansion B.
+#[derive(Debug)]
+pub(super) struct ProtocolB {
+    code: CodeSystem,
+    expansion: bool,
+    notify: bool,
+    autostart: bool,
+    er_off_time: Duration,
+    reset_delay: Duration,
+    link: BoardLinkState,
+    /// DR (and CD in Protocol B) on: the host is there.
+    dr: bool,
+    cs: bool,
+    er: Er,
+    /// Control codes waiting for the line, in order.
+    tx: VecDeque<ControlCode>,
+    /// A read request is open: DC1 went since the CNC started reading, and the read has not
+    /// ended.
+    read_open: bool,
+    /// The host is stopped in the open read (DC3 queued or sent).
+    stopped: bool,
+    /// Bytes received since the flow-control DC3 was handed to the line; `None` while the
+    /// host may send.
+    after_dc3: Option<usize>,
+    punch: Option<Punch>,
+    punch_queue: VecDeque<Vec<u8>>,
+    /// A punch-out ended and the host has not been asked for data since: DC1 / DC2 / DC3
+    /// from it are still punch flow control.
+    punch_tail: bool,
+    /// Since when the CNC has been in alarm with the line up (autostart resets it later).
+    alarm_since: Option<Instant>,
+    counters: FlowCounters,
+}
+
+impl ProtocolB {
+    pub(super) fn new(config: &BoardConfig, _now: Instant) -> Self {
+        ProtocolB {
+            code: config.framing.code,
+            expansion: config.protocol == crate::fanuc::Protocol::ExpansionB,
+            notify: config.notify_alarm_reset,
+            autostart: config.autostart,
+            er_off_time: config.er_off_time,
+            reset_delay: config.first_request_delay,
+            link: BoardLinkState::Ready,
+            dr: true,
+            cs: true,
+            er: Er::On,
+            tx: VecDeque::new(),
+            read_open: false,
+            stopped: false,
+            after_dc3: None,
+            punch: None,
+            punch_queue: VecDeque::new(),
+            punch_tail: false,
+            alarm_since: None,
+            counters: FlowCounters::default(),
+        }
+    }
+
+    pub(super) fn link_state(&self) -> BoardLinkState {
+        self.link
+    }
+
+    pub(super) fn counters(&self) -> FlowCounters {
+        self.counters
+    }
+
+    pub(super) fn modem_out(&self) -> ModemOut {
+        ModemOut {
+            er: !matches!(self.er, Er::Off { .. }),
+            rs: true,
+        }
+    }
+
+    /// What a SAT would say, for the snapshot: Protocol B has no SAT.
+    pub(super) fn status_data(&self, cnc: &Cnc) -> StatusData {
+        StatusData {
+            status: Some(cnc.status()),
+            alarm_cause: cnc.alarm(),
+            buffered: Some(u16::try_from(cnc.buffered()).unwrap_or(u16::MAX)),
+            ..StatusData::default()
+        }
+    }
+
+    fn set_link(&mut self, link: BoardLinkState, out: &mut Outbox) {
+        if self.link != link {
+            self.link = link;
+            out.event(BoardEvent::LinkState(link));
+        }
+    }
+
+    fn punching(&self) -> bool {
+        self.punch.as_ref().is_some_and(|p| p.started)
+    }
+
+    /// The EOR of the program being read is in the buffer: this read needs no more data.
+    fn eor_buffered(cnc: &Cnc) -> bool {
+        cnc.when_program_ends().is_some()
+    }
+
+    /// The board may open or continue a read or start a punch-out.
+    fn line_usable(&self) -> bool {
+        self.dr && self.er == Er::On
+    }
+
+    // ---- input ----------------------------------------------------------------------------
+
+    pub(super) fn handle_input(
+        &mut self,
+        now: Instant,
+        bytes: &[u8],
+        cnc: &mut Cnc,
+        out: &mut Outbox,
+    ) {
+        if !self.dr {
+            // DR off: nothing on the line is trusted.
+            return;
+        }
+        if self.punch.is_some() || self.punch_tail {
+            let mut data = Vec::new();
+            for &b in bytes {
+                match CodeSystem::strip(b) {
+                    DC3 => self.host_flow(ControlCode::Dc3, out),
+                    DC1 => self.host_flow(ControlCode::Dc1, out),
+                    DC2 => self.host_flow(ControlCode::Dc2, out),
+                    _ => data.push(b),
+                }
+            }
+            self.receive(now, &data, cnc, out);
+        } else {
+            self.receive(now, bytes, cnc, out);
+        }
+    }
+
+    /// DC3 / DC1 / DC2 from the host during a punch-out (§6.1.1 2 (3), protocol notes 11).
+    fn host_flow(&mut self, code: ControlCode, out: &mut Outbox) {
+        out.event(BoardEvent::ControlReceived(code));
+        if let Some(p) = self.punch.as_mut() {
+            p.held = code == ControlCode::Dc3;
+        }
+    }
+
+    /// The data part (§8.1): into the buffer while the CNC reads; counted after a DC3.
+    fn receive(&mut self, now: Instant, data: &[u8], cnc: &mut Cnc, out: &mut Outbox) {
+        if data.is_empty() {
+            return;
+        }
+        let mut take = data.len();
+        let mut overrun = None;
+        if let Some(n) = self.after_dc3.as_mut() {
+            let allowance = overrun_allowance(self.expansion);
+            let before = *n;
+            *n = n.saturating_add(data.len());
+            self.counters.max_overrun = self.counters.max_overrun.max(*n);
+            if *n > allowance {
+                take = allowance.saturating_sub(before);
+                overrun = Some(*n);
+            }
+        }
+        let mut overflow = None;
+        if take > 0 {
+            let part = data.get(..take).unwrap_or(data);
+            match cnc.push_data(now, part) {
+                Push::Stored(bytes) => out.event(BoardEvent::DataReceived {
+                    bytes,
+                    buffered: cnc.buffered(),
+                }),
+                Push::Ignored(bytes) => out.event(BoardEvent::DataIgnored { bytes }),
+                Push::Overflow { len, free } => {
+                    // What fits is kept; the rest is lost with the alarm.
+                    if free > 0
+                        && let Some(fits) = part.get(..free)
+                        && let Push::Stored(bytes) = cnc.push_data(now, fits)
+                    {
+                        out.event(BoardEvent::DataReceived {
+                            bytes,
+                            buffered: cnc.buffered(),
+                        });
+                    }
+                    overflow = Some((len, free));
+                }
+            }
+        }
+        if let Some(n) = overrun {
+            let detail = format!(
+                "{n} characters received after DC3, more than the {} the board allows (§6.3, §11)",
+                overrun_allowance(self.expansion)
+            );
+            self.counters.overruns += 1;
+            self.raise(now, CncAlarm::Sr0856BufferOverflow, detail, cnc, out);
+        } else if let Some((len, free)) = overflow {
+            let detail = format!(
+                "buffer full: {len} bytes of NC data with {free} bytes free; the host did not stop on DC3 (§6.3, §11)"
+            );
+            self.counters.overruns += 1;
+            self.raise(now, CncAlarm::Sr0856BufferOverflow, detail, cnc, out);
+        }
+    }
+
+    pub(super) fn handle_line_error(
+        &mut self,
+        now: Instant,
+        error: LineError,
+        cnc: &mut Cnc,
+        out: &mut Outbox,
+    ) {
+        if !self.dr {
+            return;
+        }
+        match error {
+            LineError::Parity => out.event(BoardEvent::ProtocolError {
+                detail: format!("{error}: the character is lost (Protocol B has no retry)"),
+            }),
+            _ => self.raise(
+                now,
+                CncAlarm::Sr0946FramingOverrun,
+                format!("{error} (§11)"),
+                cnc,
+                out,
+            ),
+        }
+    }
+
+    pub(super) fn handle_modem(
+        &mut self,
+        now: Instant,
+        modem: ModemIn,
+        cnc: &mut Cnc,
+        out: &mut Outbox,
+    ) {
+        self.cs = modem.cs;
+        // CD counts on the RS-232-C interface only (§11 SR0855); Expansion B is RS-422.
+        let up = modem.dr && (self.expansion || modem.cd);
+        if up == self.dr {
+            return;
+        }
+        self.dr = up;
+        if !up {
+            let in_use = cnc.reading() || self.read_open || self.punch.is_some();
+            self.tx.clear();
+            if self.er == Er::OffAfterSend {
+                self.er_off(now, out);
+            }
+            self.end_read();
+            self.drop_punches(out);
+            if in_use {
+                self.raise(
+                    now,
+                    CncAlarm::Sr0855DataSetReadyDown,
+                    "DR (the host's ER) went off (§11)".to_string(),
+                    cnc,
+                    out,
+                );
+            }
+            self.set_link(BoardLinkState::LineDown, out);
+        } else {
+            if cnc.alarm().is_some() {
+                self.alarm_since = Some(now);
+            }
+            self.set_link(BoardLinkState::Ready, out);
+        }
+    }
+
+    // ---- the CNC's side -------------------------------------------------------------------
+
+    /// An SR alarm of §11 raised by the board: the CNC stops; the host hears of it as of any
+    /// CNC alarm (NAK, or DC3 and ER off).
+    fn raise(
+        &mut self,
+        now: Instant,
+        alarm: CncAlarm,
+        detail: String,
+        cnc: &mut Cnc,
+        out: &mut Outbox,
+    ) {
+        tracing::warn!(alarm = alarm.number(), %detail, "simulated board alarm");
+        let cause = match alarm {
+            CncAlarm::Sr0856BufferOverflow => AlarmCause::OverrunRetryOver,
+            _ => AlarmCause::NcAlarm,
+        };
+        out.event(BoardEvent::Alarm {
+            alarm,
+            cause,
+            detail,
+        });
+        let was_reading = cnc.reading();
+        cnc.raise_alarm(now, cause);
+        if was_reading {
+            out.event(BoardEvent::ReadingStopped);
+        }
+        self.alarm_since = Some(now);
+        if self.dr {
+            self.notice(false, out);
+        }
+    }
+
+    /// [`BoardCommand::RaiseAlarm`](super::BoardCommand::RaiseAlarm).
+    pub(super) fn cnc_alarm(&mut self, now: Instant, cnc: &mut Cnc, out: &mut Outbox) {
+        let was_reading = cnc.reading();
+        cnc.raise_alarm(now, AlarmCause::NcAlarm);
+        out.event(BoardEvent::CncAlarm);
+        if was_reading {
+            out.event(BoardEvent::ReadingStopped);
+        }
+        self.alarm_since = Some(now);
+        if self.dr {
+            self.notice(false, out);
+        }
+    }
+
+    /// [`BoardCommand::Reset`](super::BoardCommand::Reset): buffered data lost (§8.2).
+    pub(super) fn cnc_reset(&mut self, now: Instant, cnc: &mut Cnc, out: &mut Outbox) {
+        let was_reading = cnc.reading();
+        cnc.reset(now);
+        out.event(BoardEvent::CncReset);
+        if was_reading {
+            out.event(BoardEvent::ReadingStopped);
+        }
+        self.alarm_since = None;
+        if self.dr {
+            self.notice(true, out);
+        }
+    }
+
+    /// Tells the host of a CNC reset or alarm (§6.1.2, §6.4) and ends the read and any
+    /// punch-out.
+    fn notice(&mut self, reset: bool, out: &mut Outbox) {
+        // Nothing asks the host for data or starts a punch-out any more.
+        self.tx
+            .retain(|c| !matches!(c, ControlCode::Dc1 | ControlCode::Dc2));
+        let punching = self.punching();
+        self.drop_punches(out);
+        let first = if punching {
+            Some(ControlCode::Dc4)
+        } else if self.read_open {
+            Some(ControlCode::Dc3)
+        } else {
+            None
+        };
+        self.end_read();
+        if self.notify {
+            self.tx.extend(first);
+            self.tx.push_back(if reset {
+                ControlCode::Syn
+            } else {
+                ControlCode::Nak
+            });
+        } else {
+            self.tx.push_back(first.unwrap_or(ControlCode::Dc3));
+            if self.er == Er::On {
+                self.er = Er::OffAfterSend;
+            }
+        }
+    }
+
+    fn end_read(&mut self) {
+        self.read_open = false;
+        self.stopped = false;
+        self.after_dc3 = None;
+    }
+
+    /// Ends the current punch-out (if any) and forgets the queued ones.
+    fn drop_punches(&mut self, out: &mut Outbox) {
+        if let Some(p) = self.punch.take() {
+            self.punch_tail = p.started;
+            out.event(BoardEvent::PunchInterrupted {
+                sent: p.sent,
+                bytes: p.data.len(),
+            });
+        }
+        for p in self.punch_queue.drain(..) {
+            out.event(BoardEvent::PunchInterrupted {
+                sent: 0,
+                bytes: p.len(),
+            });
+        }
+    }
+
+    fn er_off(&mut self, now: Instant, out: &mut Outbox) {
+        self.er = Er::Off {
+            until: now + self.er_off_time,
+        };
+        out.event(BoardEvent::ErSignal { on: false });
+    }
+
+    /// [`BoardCommand::Punch`](super::BoardCommand::Punch).
+    pub(super) fn punch(&mut self, data: Vec<u8>, cnc: &Cnc, out: &mut Outbox) {
+        let refused = if !self.dr {
+            Some("DR is off")
+        } else if cnc.alarm().is_some() {
+            Some("the CNC is in alarm (reset it first)")
+        } else {
+            None
+        };
+        match refused {
+            Some(why) => out.event(BoardEvent::ProtocolError {
+                detail: format!("punch-out of {} bytes refused: {why}", data.len()),
+            }),
+            None => self.punch_queue.push_back(data),
+        }
+    }
+
+    // ---- time -----------------------------------------------------------------------------
+
+    pub(super) fn step(&mut self, now: Instant, cnc: &mut Cnc, out: &mut Outbox) {
+        if let Er::Off { until } = self.er
+            && now >= until
+        {
+            self.er = Er::On;
+            out.event(BoardEvent::ErSignal { on: true });
+        }
+        if self.autostart
+            && cnc.alarm().is_some()
+            && self.line_usable()
+            && self
+                .alarm_since
+                .is_some_and(|t| now >= t + self.reset_delay)
+        {
+            // The operator resets the CNC: the reset's own notice follows the alarm's.
+            self.cnc_reset(now, cnc, out);
+        }
+        if self.read_open && !cnc.reading() && !self.punching() {
+            // The CNC read the EOR or stopped: the read ends (§6.1.1 1 (7)).
+            self.end_read();
+            self.queue_code(ControlCode::Dc3);
+        }
+        if self.autostart
+            && self.line_usable()
+            && !cnc.reading()
+            && cnc.alarm().is_none()
+            && cnc.start_reading(now)
+        {
+            out.event(BoardEvent::ReadingStarted);
+        }
+        self.check_flow(cnc);
+        self.start_punch();
+    }
+
+    /// DC1 / DC3 of the download (§6.3).
+    fn check_flow(&mut self, cnc: &Cnc) {
+        if !self.line_usable() || self.punch.is_some() || !cnc.reading() {
+            return;
+        }
+        let free = cnc.free();
+        if !self.read_open {
+            if free >= DC1_FREE && !Self::eor_buffered(cnc) {
+                self.read_open = true;
+                self.stopped = false;
+                self.queue_code(ControlCode::Dc1);
+            }
+        } else if !self.stopped {
+            if free <= dc3_free(self.expansion) {
+                self.stopped = true;
+                self.queue_code(ControlCode::Dc3);
+            }
+        } else if free >= DC1_FREE && !Self::eor_buffered(cnc) {
+            self.stopped = false;
+            self.queue_code(ControlCode::Dc1);
+        }
+    }
+
+    fn start_punch(&mut self) {
+        if self.punch.is_some() || !self.line_usable() {
+            return;
+        }
+        let Some(data) = self.punch_queue.pop_front() else {
+            return;
+        };
+        if self.read_open && !self.stopped {
+            // No program data while the board punches, and no DC3 inside the punched data.
+            self.stopped = true;
+            self.queue_code(ControlCode::Dc3);
+        }
+        self.queue_code(ControlCode::Dc2);
+        self.punch = Some(Punch {
+            data,
+            sent: 0,
+            started: false,
+            held: false,
+            finishing: false,
+        });
+    }
+
+    fn queue_code(&mut self, code: ControlCode) {
+        self.tx.push_back(code);
+    }
+
+    /// The next bytes for the line: queued control codes first, then a piece of the
+    /// punch-out. Nothing while CS or DR is off.
+    pub(super) fn poll_transmit(&mut self, now: Instant, out: &mut Outbox) -> Option<Vec<u8>> {
+        if !self.dr || !self.cs {
+            return None;
+        }
+        if !self.tx.is_empty() {
+            let mut bytes = Vec::with_capacity(self.tx.len());
+            while let Some(code) = self.tx.pop_front() {
+                bytes.push(self.code.control(code.byte()));
+                self.handed(code, out);
+            }
+            if self.er == Er::OffAfterSend {
+                self.er_off(now, out);
+            }
+            return Some(bytes);
+        }
+        if self.er != Er::On {
+            return None;
+        }
+        let p = self.punch.as_mut()?;
+        if !p.started || p.held || p.finishing {
+            return None;
+        }
+        let end = p.sent.saturating_add(PUNCH_PIECE).min(p.data.len());
+        let piece = p
+            .data
+            .get(p.sent..end)
+            .map(<[u8]>::to_vec)
+            .unwrap_or_default();
+        p.sent = end;
+        self.counters.punched += piece.len() as u64;
+        if p.sent >= p.data.len() {
+            p.finishing = true;
+            self.tx.push_back(ControlCode::Dc4);
+        }
+        if piece.is_empty() {
+            // An empty punch-out: DC2 DC4.
+            return self.poll_transmit(now, out);
+        }
+        Some(piece)
+    }
+
+    /// A control code went to the line.
+    fn handed(&mut self, code: ControlCode, out: &mut Outbox) {
+        out.event(BoardEvent::ControlSent(code));
+        match code {
+            ControlCode::Dc1 => {
+                self.counters.dc1_sent += 1;
+                self.after_dc3 = None;
+                self.punch_tail = false;
+            }
+            ControlCode::Dc3 => {
+                self.counters.dc3_sent += 1;
+                if self.read_open && self.stopped {
+                    self.after_dc3 = Some(0);
+                }
+            }
+            ControlCode::Dc2 => {
+                if let Some(p) = self.punch.as_mut() {
+                    p.started = true;
+                    out.event(BoardEvent::PunchStarted {
+                        bytes: p.data.len(),
+                    });
+                }
+            }
+            ControlCode::Dc4 => {
+                if self.punch.as_ref().is_some_and(|p| p.finishing)
+                    && let Some(p) = self.punch.take()
+                {
+                    self.punch_tail = true;
+                    out.event(BoardEvent::PunchFinished {
+                        bytes: p.data.len(),
+                    });
+                }
+            }
+            ControlCode::Nak | ControlCode::Syn => {}
+        }
+    }
+
+    pub(super) fn poll_timeout(&self, cnc: &Cnc) -> Option<Instant> {
+        let mut best: Option<Instant> = None;
+        let mut at = |t: Instant| best = Some(best.map_or(t, |b| b.min(t)));
+        if let Er::Off { until } = self.er {
+            at(until);
+        }
+        if self.autostart
+            && cnc.alarm().is_some()
+            && self.line_usable()
+            && let Some(t) = self.alarm_since
+        {
+            at(t + self.reset_delay);
+        }
+        // The CNC's reading makes room: DC1 once 4096 bytes are free.
+        if self.line_usable()
+            && self.punch.is_none()
+            && (!self.read_open || self.stopped)
+            && !Self::eor_buffered(cnc)
+            && let Some(t) = cnc.when_free_at_least(DC1_FREE)
+        {
+            at(t);
+        }
+        best
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fanuc::Protocol;
+    use crate::fanuc::code::{DC4, NAK, SYN};
+    use crate::fanuc::message::Framing;
+    use crate::link::Engine;
+    use crate::sim::fanuc_board::{BoardCommand, FanucBoard};
+
+    /// A board under a scripted host with a virtual clock.
+    struct Rig {
+        board: FanucBoard,
+        now: Instant,
+        /// Bytes the board sent, oldest first.
+        sent: Vec<u8>,
+        events: Vec<BoardEvent>,
+    }
+
+    fn config(expansion: bool, code: CodeSystem, notify: bool) -> BoardConfig {
+        BoardConfig {
+            protocol: if expansion {
+                Protocol::ExpansionB
+            } else {
+                Protocol::B
+            },
+            framing: Framing::new(code, crate::fanuc::EndCode::Cr),
+            notify_alarm_reset: notify,
+            consume_rate: 1000,
+            ..BoardConfig::default()
+        }
+    }
+
+    impl Rig {
+        fn new(config: BoardConfig) -> Rig {
+            let now = Instant::now();
+            let mut rig = Rig {
+                board: FanucBoard::new(config, now).unwrap(),
+                now,
+                sent: Vec::new(),
+                events: Vec::new(),
+            };
+            rig.board.handle_modem(now, ModemIn::ALL_ON);
+            rig.pump();
+            rig
+        }
+
+        /// Takes everything the board wants to send now, and its events.
+        fn pump(&mut self) {
+            while let Some(b) = self.board.poll_transmit(self.now) {
+                self.sent.extend(b);
+            }
+            self.collect();
+        }
+
+        fn collect(&mut self) {
+            while let Some(e) = self.board.poll_event() {
+                self.events.push(e);
+            }
+        }
+
+        fn take(&mut self) -> Vec<u8> {
+            self.pump();
+            std::mem::take(&mut self.sent)
+        }
+
+        /// The next piece the board hands out.
+        fn poll(&mut self) -> Option<Vec<u8>> {
+            let piece = self.board.poll_transmit(self.now);
+            self.collect();
+            piece
+        }
+
+        fn command(&mut self, c: BoardCommand) {
+            self.board.handle_command(self.now, c);
+            self.collect();
+        }
+
+        fn input(&mut self, bytes: &[u8]) {
+            self.board.handle_input(self.now, bytes);
+            self.collect();
+        }
+
+        fn modem(&mut self, m: ModemIn) {
+            self.board.handle_modem(self.now, m);
+            self.collect();
+        }
+
+        /// Advances to `t`, firing every deadline on the way.
+        fn run_until(&mut self, t: Instant) {
+            while let Some(d) = self.board.poll_timeout() {
+                if d > t {
+                    break;
+                }
+                self.now = self.now.max(d);
+                self.board.handle_timeout(self.now);
+                self.pump();
+            }
+            self.now = self.now.max(t);
+            self.board.handle_timeout(self.now);
+            self.pump();
+        }
+
+        fn advance(&mut self, d: Duration) {
+            let t = self.now + d;
+            self.run_until(t);
+        }
+
+        fn alarms(&self) -> Vec<CncAlarm> {
+            self.events
+                .iter()
+                .filter_map(|e| match e {
+                    BoardEvent::Alarm { alarm, .. } => Some(*alarm),
+                    _ => None,
+                })
+                .collect()
+        }
+
+        fn cnc(&self) -> &Cnc {
+            self.board.cnc()
+        }
+    }
+
+    fn data(n: usize) -> Vec<u8> {
+        vec![b'X'; n]
+    }
+
+    const ISO_DC3: u8 = 0x93;
+    const ISO_NAK: u8 = 0x95;
+    const ISO_SYN: u8 = 0x96;
+
+    #[test]
+    fn dc1_on_start_then_dc3_at_512_free_and_dc1_at_4096_free() {
+        let mut r = Rig::new(config(false, CodeSystem::Iso, true));
+        assert_eq!(r.take(), b"");
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        // 8192 − 7679 = 513 free: still flowing; one more byte: 512 free → DC3 (93h in ISO).
+        r.input(&data(7679));
+        assert_eq!(r.take(), b"");
+        r.input(&data(1));
+        assert_eq!(r.take(), [ISO_DC3]);
+        assert_eq!(r.cnc().free(), 512);
+        // At 1000 B/s, 4096 free 3.584 s later: DC1.
+        let dc1_at = r.board.poll_timeout().unwrap();
+        assert_eq!(dc1_at - r.now, Duration::from_millis(3584));
+        r.run_until(dc1_at - Duration::from_millis(1));
+        assert_eq!(r.take(), b"");
+        r.run_until(dc1_at);
+        assert_eq!(r.take(), [DC1]);
+        let c = r.board.flow_counters();
+        assert_eq!((c.dc1_sent, c.dc3_sent), (2, 1));
+    }
+
+    #[test]
+    fn expansion_b_dc3_at_2560_free_ascii() {
+        let mut r = Rig::new(config(true, CodeSystem::Ascii, true));
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        r.input(&data(8192 - 2561));
+        assert_eq!(r.take(), b"");
+        r.input(&data(1));
+        assert_eq!(r.take(), [DC3], "ASCII: DC3 without parity");
+    }
+
+    /// Fills the buffer to the DC3 and hands it out; returns the rig.
+    fn stopped(expansion: bool) -> Rig {
+        // A CNC that reads next to nothing (1 byte a second; the clock stands still here).
+        let mut r = Rig::new(BoardConfig {
+            consume_rate: 1,
+            ..config(expansion, CodeSystem::Iso, true)
+        });
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        r.input(&data(8192 - dc3_free(expansion) - 100));
+        r.input(&data(100));
+        assert_eq!(r.take(), [ISO_DC3]);
+        r
+    }
+
+    #[test]
+    fn sr0856_only_past_the_allowance_b() {
+        let mut r = stopped(false);
+        r.input(&data(512));
+        assert!(
+            r.alarms().is_empty(),
+            "512 after DC3 is within the allowance"
+        );
+        assert_eq!(r.board.flow_counters().max_overrun, 512);
+        assert_eq!(r.take(), b"");
+        r.input(&data(1));
+        assert_eq!(r.alarms(), vec![CncAlarm::Sr0856BufferOverflow]);
+        assert!(r.cnc().alarm().is_some());
+        // The CNC alarm is posted: DC3 then NAK (§6.1.2 2 (7)).
+        assert_eq!(r.take(), [ISO_DC3, ISO_NAK]);
+        assert_eq!(r.board.flow_counters().overruns, 1);
+    }
+
+    #[test]
+    fn sr0856_only_past_2560_in_expansion_b() {
+        let mut r = stopped(true);
+        r.input(&data(1280));
+        r.input(&data(1280));
+        assert!(r.alarms().is_empty());
+        r.input(&data(1));
+        assert_eq!(r.alarms(), vec![CncAlarm::Sr0856BufferOverflow]);
+    }
+
+    #[test]
+    fn data_after_eor_is_ignored_and_the_read_ends_with_dc3() {
+        let mut r = Rig::new(config(false, CodeSystem::Ascii, true));
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        r.input(b"%\nO0001\nG00X0\nM30\n%\nO0002\nLOST\n");
+        assert_eq!(r.take(), b"");
+        r.advance(Duration::from_secs(1));
+        let programs: Vec<_> = r
+            .events
+            .iter()
+            .filter_map(|e| match e {
+                BoardEvent::ProgramReceived(p) => Some(p.clone()),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(programs.len(), 1);
+        assert_eq!(&programs[0].data[..], b"%\nO0001\nG00X0\nM30\n%");
+        assert_eq!(r.take(), [DC3], "end of the read (§6.1.1 1 (7))");
+        assert_eq!(r.cnc().buffered(), 0, "data after EOR is ignored (§8.2)");
+        r.input(b"MORE");
+        assert!(r.events.contains(&BoardEvent::DataIgnored { bytes: 4 }));
+        // A new read (next program) starts with DC1.
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+    }
+
+    #[test]
+    fn no_flow_control_dc1_once_the_eor_is_buffered() {
+        let mut r = Rig::new(config(false, CodeSystem::Ascii, true));
+        r.command(BoardCommand::StartReading);
+        r.take();
+        let mut prog = b"%\nO1\n".to_vec();
+        prog.extend(data(7680 - 6));
+        prog.push(b'%');
+        r.input(&prog);
+        assert_eq!(r.take(), [DC3]);
+        // 4096 free comes and goes: no DC1 (protocol notes 13); the CNC reads the EOR at
+        // 7.68 s and the read ends with DC3.
+        r.advance(Duration::from_millis(7679));
+        assert_eq!(r.take(), b"");
+        r.advance(Duration::from_millis(1));
+        assert_eq!(r.take(), [DC3]);
+        assert_eq!(r.board.flow_counters().dc1_sent, 1);
+    }
+
+    #[test]
+    fn autostart_reads_again_after_each_program() {
+        let mut r = Rig::new(BoardConfig {
+            autostart: true,
+            consume_rate: 0,
+            ..config(false, CodeSystem::Ascii, true)
+        });
+        assert_eq!(r.take(), [DC1]);
+        r.input(b"%\nO1\n%");
+        assert_eq!(r.take(), [DC3, DC1]);
+        r.input(b"%\nO2\n%");
+        assert_eq!(r.take(), [DC3, DC1]);
+        assert_eq!(
+            r.events
+                .iter()
+                .filter(|e| matches!(e, BoardEvent::ProgramReceived(_)))
+                .count(),
+            2
+        );
+    }
+
+    #[test]
+    fn notices_with_notification_on_idle_receiving_punching() {
+        // Idle: the notice alone (§6.1.2 1).
+        let mut r = Rig::new(config(false, CodeSystem::Iso, true));
+        r.command(BoardCommand::RaiseAlarm);
+        assert_eq!(r.take(), [ISO_NAK]);
+        r.command(BoardCommand::Reset);
+        assert_eq!(r.take(), [ISO_SYN]);
+        // Receiving: DC3 first (§6.1.2 2 (7)).
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        r.input(b"%\nO1\nG0");
+        r.command(BoardCommand::Reset);
+        assert_eq!(r.take(), [ISO_DC3, ISO_SYN]);
+        assert_eq!(r.cnc().buffered(), 0, "a reset loses the buffer (§8.2)");
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        r.command(BoardCommand::RaiseAlarm);
+        assert_eq!(r.take(), [ISO_DC3, ISO_NAK]);
+        r.command(BoardCommand::Reset);
+        r.take();
+        // Punching: DC4 first (§6.1.2 2 (5)).
+        r.command(BoardCommand::Punch(data(100)));
+        let out = r.take();
+        assert_eq!(out.first(), Some(&DC2));
+        assert_eq!(out.last(), Some(&DC4));
+        assert_eq!(out.len(), 102);
+        r.command(BoardCommand::Punch(data(1000)));
+        assert_eq!(r.poll(), Some(vec![DC2]));
+        assert_eq!(r.poll(), Some(data(PUNCH_PIECE)));
+        r.command(BoardCommand::RaiseAlarm);
+        assert_eq!(r.take(), [DC4, ISO_NAK]);
+        assert!(r.events.contains(&BoardEvent::PunchInterrupted {
+            sent: PUNCH_PIECE,
+            bytes: 1000
+        }));
+    }
+
+    #[test]
+    fn notification_off_sends_dc3_and_turns_er_off_for_a_moment() {
+        let mut r = Rig::new(BoardConfig {
+            er_off_time: Duration::from_millis(500),
+            ..config(false, CodeSystem::Ascii, false)
+        });
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        r.input(b"%\nO1\nG0");
+        r.command(BoardCommand::RaiseAlarm);
+        assert!(
+            r.board.modem_out().er,
+            "ER stays on until the DC3 is on the line"
+        );
+        assert_eq!(r.take(), [DC3], "no NAK with notification off");
+        assert!(!r.board.modem_out().er, "then ER off (§6.4 (1))");
+        r.advance(Duration::from_millis(499));
+        assert!(!r.board.modem_out().er);
+        r.advance(Duration::from_millis(1));
+        assert!(r.board.modem_out().er);
+        assert_eq!(r.take(), b"", "the CNC in alarm asks for nothing");
+        assert!(r.events.contains(&BoardEvent::ErSignal { on: false }));
+        assert!(r.events.contains(&BoardEvent::ErSignal { on: true }));
+        // A reset while idle: DC3, ER off again.
+        r.command(BoardCommand::Reset);
+        assert_eq!(r.take(), [DC3]);
+        assert!(!r.board.modem_out().er);
+    }
+
+    #[test]
+    fn punch_out_honours_host_dc3_and_resumes_on_dc1_or_dc2() {
+        for resume in [DC1, DC2, 0x11 | 0x80] {
+            let mut r = Rig::new(config(false, CodeSystem::Iso, true));
+            let tape: Vec<u8> = (0..200u8).collect();
+            r.command(BoardCommand::Punch(tape.clone()));
+            let mut got = Vec::new();
+            assert_eq!(r.poll(), Some(vec![DC2]));
+            got.extend(r.poll().unwrap());
+            // The host stops the punch-out (DC3 with parity, ISO host).
+            r.input(&[ISO_DC3]);
+            assert_eq!(r.take(), b"", "stopped at once");
+            r.advance(Duration::from_secs(5));
+            assert_eq!(r.take(), b"");
+            r.input(&[resume]);
+            let rest = r.take();
+            assert_eq!(rest.last(), Some(&DC4));
+            got.extend(&rest[..rest.len() - 1]);
+            assert!(got == tape, "punched bytes differ (resume {resume:#04x})");
+            assert!(r.events.contains(&BoardEvent::PunchFinished { bytes: 200 }));
+            assert!(
+                r.events
+                    .contains(&BoardEvent::ControlReceived(ControlCode::Dc3))
+            );
+            assert_eq!(r.board.flow_counters().punched, 200);
+        }
+    }
+
+    #[test]
+    fn cs_off_pauses_every_transmission() {
+        let mut r = Rig::new(config(false, CodeSystem::Ascii, true));
+        r.command(BoardCommand::Punch(data(100)));
+        assert_eq!(r.poll(), Some(vec![DC2]));
+        assert_eq!(r.poll(), Some(data(PUNCH_PIECE)));
+        let cs_off = ModemIn {
+            cs: false,
+            ..ModemIn::ALL_ON
+        };
+        r.modem(cs_off);
+        assert_eq!(r.take(), b"");
+        r.advance(Duration::from_secs(1));
+        assert_eq!(r.take(), b"");
+        r.modem(ModemIn::ALL_ON);
+        let rest = r.take();
+        assert_eq!(rest.len(), 100 - PUNCH_PIECE + 1);
+        assert_eq!(rest.last(), Some(&DC4));
+    }
+
+    #[test]
+    fn reset_during_punch_sends_dc4_then_syn_and_cs_holds_them() {
+        let mut r = Rig::new(config(false, CodeSystem::Ascii, true));
+        r.command(BoardCommand::Punch(data(1000)));
+        assert_eq!(r.poll(), Some(vec![DC2]));
+        assert_eq!(r.poll(), Some(data(PUNCH_PIECE)));
+        r.modem(ModemIn {
+            cs: false,
+            ..ModemIn::ALL_ON
+        });
+        r.command(BoardCommand::Reset);
+        assert_eq!(r.take(), b"");
+        r.modem(ModemIn::ALL_ON);
+        assert_eq!(r.take(), [DC4, SYN]);
+        assert!(r.events.contains(&BoardEvent::PunchInterrupted {
+            sent: PUNCH_PIECE,
+            bytes: 1000
+        }));
+    }
+
+    #[test]
+    fn punch_during_a_read_stops_the_host_first_and_resumes_after() {
+        let mut r = Rig::new(config(false, CodeSystem::Ascii, true));
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        r.input(b"%\nO1\nG0");
+        r.command(BoardCommand::Punch(b"%\nO9\n%".to_vec()));
+        assert_eq!(r.take(), b"\x13\x12%\nO9\n%\x14\x11");
+        let before = r.cnc().buffered();
+        r.input(b"G1");
+        assert_eq!(r.cnc().buffered(), before + 2);
+    }
+
+    #[test]
+    fn a_late_host_dc3_after_the_punch_is_not_program_data() {
+        let mut r = Rig::new(BoardConfig {
+            consume_rate: 1,
+            ..config(false, CodeSystem::Iso, true)
+        });
+        r.command(BoardCommand::StartReading);
+        r.input(&data(7680));
+        assert_eq!(r.take(), [DC1, ISO_DC3]);
+        // Stopped already: no DC3 before the DC2; not 4096 free: no DC1 after the DC4.
+        r.command(BoardCommand::Punch(b"AB".to_vec()));
+        assert_eq!(r.take(), b"\x12AB\x14");
+        r.input(&[ISO_DC3]);
+        assert_eq!(r.cnc().buffered(), 7680);
+        assert!(
+            r.events
+                .contains(&BoardEvent::ControlReceived(ControlCode::Dc3))
+        );
+        // Other bytes are the data part (overrun after the DC3, within the allowance).
+        r.input(b"G1");
+        assert_eq!(r.cnc().buffered(), 7682);
+        assert!(r.alarms().is_empty());
+    }
+
+    #[test]
+    fn dr_off_raises_sr0855_while_reading() {
+        let mut r = Rig::new(config(false, CodeSystem::Ascii, true));
+        // Idle: no alarm.
+        r.modem(ModemIn {
+            dr: false,
+            cd: false,
+            cs: false,
+        });
+        assert!(r.alarms().is_empty());
+        r.modem(ModemIn::ALL_ON);
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        // Protocol B is RS-232-C: CD off counts too.
+        r.modem(ModemIn {
+            cd: false,
+            ..ModemIn::ALL_ON
+        });
+        assert_eq!(r.alarms(), vec![CncAlarm::Sr0855DataSetReadyDown]);
+        assert_eq!(r.take(), b"", "nothing goes to a host that is not there");
+        assert_eq!(r.board.link_state(), BoardLinkState::LineDown);
+        r.modem(ModemIn::ALL_ON);
+        assert_eq!(r.board.link_state(), BoardLinkState::Ready);
+        r.command(BoardCommand::Reset);
+        assert_eq!(r.take(), [SYN]);
+    }
+
+    #[test]
+    fn autostart_resets_an_alarm_after_the_delay() {
+        let mut r = Rig::new(BoardConfig {
+            autostart: true,
+            first_request_delay: Duration::from_secs(2),
+            ..config(false, CodeSystem::Ascii, true)
+        });
+        assert_eq!(r.take(), [DC1]);
+        r.command(BoardCommand::RaiseAlarm);
+        assert_eq!(r.take(), [DC3, NAK]);
+        r.advance(Duration::from_millis(1999));
+        assert_eq!(r.take(), b"");
+        r.advance(Duration::from_millis(1));
+        assert_eq!(r.take(), [SYN, DC1]);
+    }
+
+    #[test]
+    fn arbitrary_input_never_panics() {
+        let mut r = Rig::new(BoardConfig {
+            autostart: true,
+            ..config(true, CodeSystem::Iso, true)
+        });
+        let mut x: u32 = 7;
+        for i in 0..2000 {
+            x = x.wrapping_mul(1_103_515_245).wrapping_add(12_345);
+            let len = (x >> 16) as usize % 300;
+            let bytes: Vec<u8> = (0..len).map(|j| (x >> (j % 24)) as u8).collect();
+            r.input(&bytes);
+            if i % 97 == 0 {
+                r.command(BoardCommand::Punch(bytes.clone()));
+            }
+            if i % 131 == 0 {
+                r.command(BoardCommand::Reset);
+            }
+            r.advance(Duration::from_millis(u64::from(x % 50)));
+            r.sent.clear();
+            r.events.clear();
+        }
+    }
+}
