@@ -7,9 +7,9 @@ use std::time::Duration;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::{CellConfig, MachineConfig, TransportConfig};
-use crate::fanuc::Protocol;
 use crate::fanuc::message::Framing;
 use crate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
+use crate::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
 use crate::link::driver::{self, LinkHandle};
 use crate::link::pump::now;
 use crate::sim;
@@ -51,8 +51,7 @@ pub struct Cell {
 }
 
 impl Cell {
-    /// Starts a link for every machine the gateway can drive. Machines whose protocol has no
-    /// host engine yet are logged and left out rather than pretended.
+    /// Starts a link for every machine of the cell.
     pub async fn start(
         config: &CellConfig,
         shutdown: &CancellationToken,
@@ -62,14 +61,6 @@ impl Cell {
             tasks: tokio::task::JoinSet::new(),
         };
         for machine in &config.machines {
-            if !machine.protocol.is_a_family() {
-                tracing::warn!(
-                    machine = %machine.name,
-                    protocol = machine.protocol.name(),
-                    "no host engine for this protocol yet: the link is not started"
-                );
-                continue;
-            }
             let runtime = cell.start_machine(machine, shutdown).await?;
             cell.machines.push(runtime);
         }
@@ -130,21 +121,33 @@ impl Cell {
                 Box::new(host)
             }
         };
-        let engine = ProtocolAHost::new(
-            ProtocolAConfig {
-                framing,
-                params: machine.params(),
-                packet_n: machine.effective_packet_n(),
-                char_time: line.char_time(),
-                ..ProtocolAConfig::default()
-            },
-            now(),
-        )
-        .map_err(|e| CellError::Engine {
-            machine: name.clone(),
-            error: e.to_string(),
-        })?;
-        let (link, task) = driver::spawn(name.clone(), engine, transport, shutdown.clone());
+        let (link, task) = if let Some(b) = ProtocolBConfig::for_protocol(
+            machine.protocol,
+            machine.code,
+            machine.effective_notify_alarm_reset(),
+        ) {
+            let engine = ProtocolBHost::new(b, now()).map_err(|e| CellError::Engine {
+                machine: name.clone(),
+                error: e.to_string(),
+            })?;
+            driver::spawn(name.clone(), engine, transport, shutdown.clone())
+        } else {
+            let engine = ProtocolAHost::new(
+                ProtocolAConfig {
+                    framing,
+                    params: machine.params(),
+                    packet_n: machine.effective_packet_n(),
+                    char_time: line.char_time(),
+                    ..ProtocolAConfig::default()
+                },
+                now(),
+            )
+            .map_err(|e| CellError::Engine {
+                machine: name.clone(),
+                error: e.to_string(),
+            })?;
+            driver::spawn(name.clone(), engine, transport, shutdown.clone())
+        };
         self.tasks.spawn(async move {
             match task.await {
                 Ok(Ok(())) => tracing::info!(machine = %name, "link stopped"),
@@ -199,16 +202,13 @@ fn machine_board_config(
 ) -> sim::fanuc_board::BoardConfig {
     let sim = machine.board_sim();
     sim::fanuc_board::BoardConfig {
-        protocol: if machine.protocol == Protocol::ExpansionA {
-            Protocol::ExpansionA
-        } else {
-            Protocol::A
-        },
+        protocol: machine.protocol,
         framing,
         params: machine.params(),
         buffer_size: sim.buffer_size as usize,
         consume_rate: sim.consume_rate,
         autostart: true,
+        notify_alarm_reset: machine.effective_notify_alarm_reset(),
         ..sim::fanuc_board::BoardConfig::default()
     }
 }
