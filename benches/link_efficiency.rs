@@ -5,7 +5,12 @@
 //! beside the protocol's own upper bound (framing overhead only, no turnaround time).
 //! The CNC reads faster than any line here, so the line and the protocol are the only limits.
 //!
-//! `cargo bench --bench link_efficiency` prints the table; under `cargo test` a short smoke
+//! A second table runs Protocol B and Expansion B with the CNC reading at half the line's
+//! rate, so that the board stops and resumes the host with DC3 / DC1 all the way through: it
+//! shows the cycles, the most characters the board received after one DC3 against its
+//! allowance (§6.3, §7), and the SR0856 overruns (there must be none).
+//!
+//! `cargo bench --bench link_efficiency` prints the tables; under `cargo test` a short smoke
 //! run checks that the benchmark still works.
 
 #[path = "../tests/common/mod.rs"]
@@ -35,6 +40,10 @@ impl Case {
 
     /// Data ÷ characters on the line when nothing but framing costs time.
     fn upper_bound(&self) -> f64 {
+        if self.protocol.ends_with('b') {
+            // Protocol B sends nothing but the data part (§8.1).
+            return 1.0;
+        }
         match self.packet_n {
             // One data packet: packet no + 256·n data + 2 checksum + CR (§5.2).
             Some(n) => {
@@ -52,9 +61,23 @@ impl Case {
     }
 }
 
-/// Runs one program through a one-machine simulated cell; returns (bytes, virtual seconds).
-async fn measure(case: &Case, size: usize) -> (u64, f64) {
-    let config = common::sim_cell(case.protocol, case.packet_n, case.baud, 10_000_000);
+/// What one run measured.
+struct Run {
+    bytes: u64,
+    /// Virtual seconds from the first NC byte to the job's end (Protocol B family: to the
+    /// CNC having read the whole program).
+    secs: f64,
+    /// The board's flow control (Protocol B family).
+    dc3: u64,
+    dc1: u64,
+    max_overrun: usize,
+    overruns: u64,
+}
+
+/// Runs one program through a one-machine simulated cell whose CNC reads `consume_rate`
+/// bytes a second.
+async fn measure(case: &Case, size: usize, consume_rate: u32) -> Run {
+    let config = common::sim_cell(case.protocol, case.packet_n, case.baud, consume_rate);
     let (cell, token) = common::start(&config).await;
     let m = cell.machine("m1").expect("machine m1");
     let mut events = m.link.subscribe();
@@ -74,10 +97,25 @@ async fn measure(case: &Case, size: usize) -> (u64, f64) {
         }
     })
     .await;
+    let board = m.board.as_ref().expect("a simulated board");
+    // A Protocol B host is done once it has handed out the EOR, which may still be on its
+    // way: count until the CNC has read the whole program.
+    let (board, end) = if case.protocol.ends_with('b') {
+        let snap = board.wait_for(|s| !s.programs.is_empty()).await;
+        (snap, tokio::time::Instant::now())
+    } else {
+        (board.snapshot(), end)
+    };
     token.cancel();
     cell.join().await;
-    let secs = (end - started.unwrap_or(end)).as_secs_f64();
-    (bytes, secs)
+    Run {
+        bytes,
+        secs: (end - started.unwrap_or(end)).as_secs_f64(),
+        dc3: board.dc3_sent,
+        dc1: board.dc1_sent,
+        max_overrun: board.max_overrun,
+        overruns: board.overruns,
+    }
 }
 
 fn main() {
@@ -98,6 +136,21 @@ fn main() {
             });
         }
     }
+    // Protocol B runs at 19200 baud at most (§6.3); Expansion B up to 86400.
+    let b_cases: Vec<Case> = [
+        ("b", 4_800),
+        ("b", 19_200),
+        ("expansion-b", 4_800),
+        ("expansion-b", 19_200),
+        ("expansion-b", 86_400),
+    ]
+    .into_iter()
+    .map(|(protocol, baud)| Case {
+        protocol,
+        packet_n: None,
+        baud,
+    })
+    .collect();
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .start_paused(true)
@@ -107,24 +160,58 @@ fn main() {
         "link efficiency, {} KiB program, simulated line 8N2 (11 bits a character), virtual time",
         size / 1024
     );
+    println!("CNC reading faster than the line:");
     println!(
         "{:<16} {:>6} {:>10} {:>10} {:>11} {:>12}",
         "protocol", "baud", "bytes", "seconds", "efficiency", "upper bound"
     );
-    for case in &cases {
+    for case in cases.iter().chain(&b_cases) {
         let wall = std::time::Instant::now();
-        let (bytes, secs) = rt.block_on(measure(case, size));
+        let run = rt.block_on(measure(case, size, 10_000_000));
         let cps = LineSettings::with_baud(case.baud).chars_per_sec();
-        let efficiency = bytes as f64 / (secs * cps);
+        let efficiency = run.bytes as f64 / (run.secs * cps);
         println!(
             "{:<16} {:>6} {:>10} {:>10.1} {:>10.1}% {:>11.1}%   ({:.2} s wall)",
             case.label(),
             case.baud,
-            bytes,
-            secs,
+            run.bytes,
+            run.secs,
             100.0 * efficiency,
             100.0 * case.upper_bound(),
             wall.elapsed().as_secs_f64()
+        );
+    }
+    println!();
+    println!("Protocol B family, CNC reading at half the line's rate (DC3/DC1 flow control):");
+    println!(
+        "{:<16} {:>6} {:>10} {:>10} {:>9} {:>9} {:>9} {:>13} {:>7}",
+        "protocol", "baud", "bytes", "seconds", "of CNC", "DC3", "DC1", "max overrun", "SR0856"
+    );
+    for case in &b_cases {
+        let cps = LineSettings::with_baud(case.baud).chars_per_sec();
+        let rate = (cps / 2.0) as u32;
+        let wall = std::time::Instant::now();
+        let run = rt.block_on(measure(case, size, rate));
+        let allowance = if case.protocol == "b" { 512 } else { 1280 };
+        println!(
+            "{:<16} {:>6} {:>10} {:>10.1} {:>8.1}% {:>9} {:>9} {:>7} / {:<4} {:>7}   ({:.2} s wall)",
+            case.label(),
+            case.baud,
+            run.bytes,
+            run.secs,
+            100.0 * run.bytes as f64 / (run.secs * f64::from(rate)),
+            run.dc3,
+            run.dc1,
+            run.max_overrun,
+            allowance,
+            run.overruns,
+            wall.elapsed().as_secs_f64()
+        );
+        assert_eq!(
+            run.overruns,
+            0,
+            "{}: the host overran the board",
+            case.label()
         );
     }
 }
