@@ -29,7 +29,9 @@
 //! punching. With notification off: DC3 (DC4 while punching, since the host would take a DC3
 //! for punched data), then ER off for [`BoardConfig::er_off_time`] (§6.4 (1)): the host sees
 //! DR off. The manual says ER stays off until the CNC opens the interface again; a fixed time
-//! keeps an unattended simulator going. A reset loses the buffered data (§8.2).
+//! keeps an unattended simulator going. After ER is back on the board sends nothing for
+//! [`ER_ON_SETTLE`], so that the host has seen DR on before the next DC1. A reset loses the
+//! buffered data (§8.2).
 //!
 //! With autostart, a CNC in alarm resets itself `first_request_delay` after the alarm (or
 //! after DR came back), with the reset's own notice, and reads again.
@@ -107,7 +109,16 @@ enum Er {
     Off {
         until: Instant,
     },
+    /// On again; nothing is sent before `until`, so that a host that polls its modem lines
+    /// has seen DR on before the next DC1.
+    Settling {
+        until: Instant,
+    },
 }
+
+/// How long the board waits after turning ER back on before it sends anything. A host reads
+/// DR by polling (cellgate every 50 ms) and ignores what arrives while it sees DR off.
+pub const ER_ON_SETTLE: Duration = Duration::from_millis(200);
 
 /// A punch-out in progress.
 #[derive(Debug)]
@@ -530,8 +541,15 @@ impl ProtocolB {
         if let Er::Off { until } = self.er
             && now >= until
         {
-            self.er = Er::On;
+            self.er = Er::Settling {
+                until: now + ER_ON_SETTLE,
+            };
             out.event(BoardEvent::ErSignal { on: true });
+        }
+        if let Er::Settling { until } = self.er
+            && now >= until
+        {
+            self.er = Er::On;
         }
         if self.autostart
             && cnc.alarm().is_some()
@@ -692,7 +710,7 @@ impl ProtocolB {
     pub(super) fn poll_timeout(&self, cnc: &Cnc) -> Option<Instant> {
         let mut best: Option<Instant> = None;
         let mut at = |t: Instant| best = Some(best.map_or(t, |b| b.min(t)));
-        if let Er::Off { until } = self.er {
+        if let Er::Off { until } | Er::Settling { until } = self.er {
             at(until);
         }
         if self.autostart
@@ -1048,12 +1066,21 @@ mod tests {
         r.advance(Duration::from_millis(1));
         assert!(r.board.modem_out().er);
         assert_eq!(r.take(), b"", "the CNC in alarm asks for nothing");
+        r.advance(ER_ON_SETTLE);
         assert!(r.events.contains(&BoardEvent::ErSignal { on: false }));
         assert!(r.events.contains(&BoardEvent::ErSignal { on: true }));
         // A reset while idle: DC3, ER off again.
         r.command(BoardCommand::Reset);
         assert_eq!(r.take(), [DC3]);
         assert!(!r.board.modem_out().er);
+        // Cycle start meanwhile: the DC1 waits for ER, and for the host to see it.
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), b"");
+        r.advance(Duration::from_millis(500));
+        assert!(r.board.modem_out().er);
+        assert_eq!(r.take(), b"");
+        r.advance(ER_ON_SETTLE);
+        assert_eq!(r.take(), [DC1]);
     }
 
     #[test]
