@@ -181,9 +181,10 @@ pub enum BoardCommand {
     /// The 8-bit DI image (PMC G152) the board reports in SDI.
     SetDi(u8),
     /// A CNC alarm: the CNC stops; ALM to the host; CAN during Expansion A packets.
+    /// Protocol B: NAK (after DC3 / DC4), or DC3 and ER off with notification off (§6.4).
     RaiseAlarm,
     /// CNC reset: buffered data lost (§8.2), alarm cleared; RST to the host; CAN during
-    /// Expansion A packets.
+    /// Expansion A packets. Protocol B: SYN (after DC3 / DC4), or DC3 and ER off.
     Reset,
     /// Change the rate at which the running CNC reads, bytes per second (0 = unlimited).
     SetConsumeRate(u32),
@@ -259,7 +260,7 @@ pub enum BoardLinkState {
     PowerOn,
     /// SYN / RDY exchange in progress (power-on or re-initialisation after a line error).
     Initialising,
-    /// Initialised: SAT / GTD traffic.
+    /// Initialised: SAT / GTD traffic (Protocol B: DR on).
     Ready,
     /// DR is off (the host's ER): the board waits for it (§3.2, SR0855).
     LineDown,
@@ -345,9 +346,10 @@ pub enum BoardEvent {
         cause: AlarmCause,
         detail: String,
     },
-    /// The CNC went to alarm by [`BoardCommand::RaiseAlarm`] (ALM follows).
+    /// The CNC went to alarm by [`BoardCommand::RaiseAlarm`] (ALM follows; Protocol B: NAK,
+    /// or DC3 and ER off).
     CncAlarm,
-    /// The CNC was reset (RST follows).
+    /// The CNC was reset (RST follows; Protocol B: SYN, or DC3 and ER off).
     CncReset,
     /// A protocol error the board recovered from or ignored (RTY, NAK, garbage, SET field
     /// out of range, ...). For logs.

@@ -592,6 +592,70 @@ mod tests {
         assert!(err.to_string().contains("missing"), "{err}");
     }
 
+    /// `--protocol b --punch FILE`: the file's bytes go out as DC2 … DC4 after the delay,
+    /// and the punch-out shows in the JSON events.
+    #[tokio::test]
+    async fn protocol_b_server_punches_the_file_after_connecting() {
+        use tokio::io::AsyncReadExt;
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let config = BoardConfig {
+            protocol: Protocol::B,
+            framing: Framing::new(CodeSystem::Iso, EndCode::Cr),
+            ..BoardConfig::default()
+        };
+        let tape: Vec<u8> = b"%\nO0001\nG00X0\nM30\n%"
+            .iter()
+            .map(|&b| CodeSystem::Iso.encode(b))
+            .collect();
+        let plan = PunchPlan {
+            data: tape.clone(),
+            after: Duration::from_millis(50),
+        };
+        let (tx, mut json) = mpsc::unbounded_channel();
+        let sink: EventSink = Arc::new(move |v| {
+            let _ = tx.send(v.clone());
+        });
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let server = tokio::spawn(serve_fanuc_with(
+            listener,
+            config,
+            LineSettings::with_baud(115_200),
+            Some(plan),
+            sink,
+            async {
+                let _ = stopped.await;
+            },
+        ));
+        let mut stream = TcpStream::connect(addr).await.unwrap();
+        let mut got = Vec::new();
+        let mut buf = [0u8; 256];
+        while got.last() != Some(&0x14) {
+            let n = tokio::time::timeout(Duration::from_secs(10), stream.read(&mut buf))
+                .await
+                .unwrap()
+                .unwrap();
+            assert!(n > 0, "connection closed after {got:?}");
+            got.extend_from_slice(&buf[..n]);
+        }
+        let mut expected = vec![0x12];
+        expected.extend_from_slice(&tape);
+        expected.push(0x14);
+        assert_eq!(got, expected);
+        let finished = loop {
+            let v = tokio::time::timeout(Duration::from_secs(10), json.recv())
+                .await
+                .unwrap()
+                .unwrap();
+            if v["event"] == "punch" && v["state"] == "finished" {
+                break v;
+            }
+        };
+        assert_eq!(finished["bytes"], tape.len());
+        stop.send(()).unwrap();
+        server.await.unwrap().unwrap();
+    }
+
     #[test]
     fn parses_and_validates_protocol_a() {
         let cli = Cli::try_parse_from([

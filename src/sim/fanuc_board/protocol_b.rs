@@ -29,7 +29,9 @@
 //! punching. With notification off: DC3 (DC4 while punching, since the host would take a DC3
 //! for punched data), then ER off for [`BoardConfig::er_off_time`] (§6.4 (1)): the host sees
 //! DR off. The manual says ER stays off until the CNC opens the interface again; a fixed time
-//! keeps an unattended simulator going. A reset loses the buffered data (§8.2).
+//! keeps an unattended simulator going. After ER is back on the board sends nothing for
+//! [`ER_ON_SETTLE`], so that the host has seen DR on before the next DC1. A reset loses the
+//! buffered data (§8.2).
 //!
 //! With autostart, a CNC in alarm resets itself `first_request_delay` after the alarm (or
 //! after DR came back), with the reset's own notice, and reads again.
@@ -50,8 +52,8 @@
 //!
 //! DR off (the host's ER; and CD in Protocol B, an RS-232-C interface) while the CNC reads or
 //! punches: SR0855 (§11), the read and punch-out end, queued codes are dropped. A framing or
-//! overrun error on a received character: SR0946. A parity error loses the character and is
-//! reported as a protocol error.
+//! overrun error on a received character then: SR0946. A parity error loses the character
+//! and is reported as a protocol error. Nothing is sent while ER is off or settling.
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -107,7 +109,16 @@ enum Er {
     Off {
         until: Instant,
     },
+    /// On again; nothing is sent before `until`, so that a host that polls its modem lines
+    /// has seen DR on before the next DC1.
+    Settling {
+        until: Instant,
+    },
 }
+
+/// How long the board waits after turning ER back on before it sends anything. A host reads
+/// DR by polling (cellgate every 50 ms) and ignores what arrives while it sees DR off.
+pub const ER_ON_SETTLE: Duration = Duration::from_millis(200);
 
 /// A punch-out in progress.
 #[derive(Debug)]
@@ -269,6 +280,11 @@ impl ProtocolB {
         if data.is_empty() {
             return;
         }
+        if !cnc.reading() {
+            // After EOR, a reset or an alarm: ignored (§8.2), and no overrun either.
+            out.event(BoardEvent::DataIgnored { bytes: data.len() });
+            return;
+        }
         let mut take = data.len();
         let mut overrun = None;
         if let Some(n) = self.after_dc3.as_mut() {
@@ -331,9 +347,13 @@ impl ProtocolB {
         if !self.dr {
             return;
         }
+        let in_use = cnc.reading() || self.punch.is_some();
         match error {
             LineError::Parity => out.event(BoardEvent::ProtocolError {
                 detail: format!("{error}: the character is lost (Protocol B has no retry)"),
+            }),
+            _ if !in_use => out.event(BoardEvent::ProtocolError {
+                detail: format!("{error} while the interface is not in use: ignored"),
             }),
             _ => self.raise(
                 now,
@@ -469,12 +489,12 @@ impl ProtocolB {
             } else {
                 ControlCode::Nak
             });
-        } else {
+        } else if self.er == Er::On {
             self.tx.push_back(first.unwrap_or(ControlCode::Dc3));
-            if self.er == Er::On {
-                self.er = Er::OffAfterSend;
-            }
+            self.er = Er::OffAfterSend;
         }
+        // Otherwise ER is (about to go, or just came back from) off for an earlier notice:
+        // the host has seen the interface close already.
     }
 
     fn end_read(&mut self) {
@@ -530,8 +550,15 @@ impl ProtocolB {
         if let Er::Off { until } = self.er
             && now >= until
         {
-            self.er = Er::On;
+            self.er = Er::Settling {
+                until: now + ER_ON_SETTLE,
+            };
             out.event(BoardEvent::ErSignal { on: true });
+        }
+        if let Er::Settling { until } = self.er
+            && now >= until
+        {
+            self.er = Er::On;
         }
         if self.autostart
             && cnc.alarm().is_some()
@@ -612,7 +639,7 @@ impl ProtocolB {
     /// The next bytes for the line: queued control codes first, then a piece of the
     /// punch-out. Nothing while CS or DR is off.
     pub(super) fn poll_transmit(&mut self, now: Instant, out: &mut Outbox) -> Option<Vec<u8>> {
-        if !self.dr || !self.cs {
+        if !self.dr || !self.cs || matches!(self.er, Er::Off { .. } | Er::Settling { .. }) {
             return None;
         }
         if !self.tx.is_empty() {
@@ -692,7 +719,7 @@ impl ProtocolB {
     pub(super) fn poll_timeout(&self, cnc: &Cnc) -> Option<Instant> {
         let mut best: Option<Instant> = None;
         let mut at = |t: Instant| best = Some(best.map_or(t, |b| b.min(t)));
-        if let Er::Off { until } = self.er {
+        if let Er::Off { until } | Er::Settling { until } = self.er {
             at(until);
         }
         if self.autostart
@@ -722,7 +749,7 @@ mod tests {
     use crate::fanuc::code::{DC4, NAK, SYN};
     use crate::fanuc::message::Framing;
     use crate::link::Engine;
-    use crate::sim::fanuc_board::{BoardCommand, FanucBoard};
+    use crate::sim::fanuc_board::{BoardCommand, DEFAULT_ER_OFF_TIME, FanucBoard};
 
     /// A board under a scripted host with a virtual clock.
     struct Rig {
@@ -1048,12 +1075,21 @@ mod tests {
         r.advance(Duration::from_millis(1));
         assert!(r.board.modem_out().er);
         assert_eq!(r.take(), b"", "the CNC in alarm asks for nothing");
+        r.advance(ER_ON_SETTLE);
         assert!(r.events.contains(&BoardEvent::ErSignal { on: false }));
         assert!(r.events.contains(&BoardEvent::ErSignal { on: true }));
         // A reset while idle: DC3, ER off again.
         r.command(BoardCommand::Reset);
         assert_eq!(r.take(), [DC3]);
         assert!(!r.board.modem_out().er);
+        // Cycle start meanwhile: the DC1 waits for ER, and for the host to see it.
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), b"");
+        r.advance(Duration::from_millis(500));
+        assert!(r.board.modem_out().er);
+        assert_eq!(r.take(), b"");
+        r.advance(ER_ON_SETTLE);
+        assert_eq!(r.take(), [DC1]);
     }
 
     #[test]
@@ -1186,6 +1222,36 @@ mod tests {
         assert_eq!(r.board.link_state(), BoardLinkState::Ready);
         r.command(BoardCommand::Reset);
         assert_eq!(r.take(), [SYN]);
+    }
+
+    #[test]
+    fn framing_error_while_reading_is_sr0946_and_ignored_when_idle() {
+        let mut r = Rig::new(config(false, CodeSystem::Ascii, true));
+        r.board.handle_line_error(r.now, LineError::Framing);
+        r.collect();
+        assert!(r.alarms().is_empty());
+        r.command(BoardCommand::StartReading);
+        assert_eq!(r.take(), [DC1]);
+        r.board.handle_line_error(r.now, LineError::Parity);
+        r.collect();
+        assert!(r.alarms().is_empty());
+        r.board.handle_line_error(r.now, LineError::Overrun);
+        r.collect();
+        assert_eq!(r.alarms(), vec![CncAlarm::Sr0946FramingOverrun]);
+        assert_eq!(r.take(), [DC3, NAK]);
+    }
+
+    #[test]
+    fn a_second_notice_while_er_is_off_adds_nothing() {
+        let mut r = Rig::new(config(false, CodeSystem::Ascii, false));
+        r.command(BoardCommand::RaiseAlarm);
+        assert_eq!(r.take(), [DC3]);
+        r.command(BoardCommand::Reset);
+        assert_eq!(r.take(), b"");
+        r.advance(DEFAULT_ER_OFF_TIME + ER_ON_SETTLE);
+        assert!(r.board.modem_out().er);
+        assert_eq!(r.take(), b"");
+        assert!(r.cnc().alarm().is_none(), "the reset itself took effect");
     }
 
     #[test]
