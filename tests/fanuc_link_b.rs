@@ -167,15 +167,16 @@ fn assert_flow(snap: &BoardSnapshot, expansion: bool, min_cycles: u64) {
     );
 }
 
-/// A 1 MiB program over the simulated line, with the CNC reading at half the line's rate so
-/// that the board stops and resumes the host over and over.
+/// A 1 MiB program over the simulated line, with the CNC reading at a quarter of the line's
+/// rate so that the board stops and resumes the host over and over: each cycle moves about
+/// 4/3 of the 3584 (Expansion B: 1536) characters between the DC3 and DC1 levels (§6.3).
 async fn one_mib_on_sim_line(expansion: bool, code: CodeSystem, baud: u32) {
-    let rig = Rig::on_sim_line(expansion, code, true, baud, chars_per_sec(baud) / 2);
+    let rig = Rig::on_sim_line(expansion, code, true, baud, chars_per_sec(baud) / 4);
     let mut events = rig.link.subscribe();
     let program = nc_program(1 << 20, 11);
     let snap = rig.deliver(&mut events, 1, &program, 0).await;
     assert_eq!(snap.programs[0].first_line, "O0011");
-    assert_flow(&snap, expansion, 100);
+    assert_flow(&snap, expansion, 200);
     rig.stop().await;
 }
 
@@ -287,7 +288,7 @@ async fn over_tcp(expansion: bool, baud: u32, program_len: usize, min_cycles: u6
     let (serial_host_end, device_end, _cable) = sim::line(line);
     let code = CodeSystem::Iso;
     let board = BoardHandle::spawn(
-        board_config(expansion, code, true, chars_per_sec(baud) / 2),
+        board_config(expansion, code, true, chars_per_sec(baud) / 4),
         device_end,
     )
     .unwrap();
@@ -321,12 +322,12 @@ async fn over_tcp(expansion: bool, baud: u32, program_len: usize, min_cycles: u6
 
 #[tokio::test(start_paused = true)]
 async fn one_mib_protocol_b_over_tcp_through_a_device_server() {
-    over_tcp(false, 19_200, 1 << 20, 100).await;
+    over_tcp(false, 19_200, 1 << 20, 200).await;
 }
 
 #[tokio::test(start_paused = true)]
 async fn one_mib_expansion_b_over_tcp_through_a_device_server() {
-    over_tcp(true, 86_400, 1 << 20, 100).await;
+    over_tcp(true, 86_400, 1 << 20, 200).await;
 }
 
 /// A CNC alarm in the middle of a transfer fails the job at its byte offset; the CNC resets
