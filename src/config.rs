@@ -2087,6 +2087,26 @@ transport = { kind = "sim" }
     }
 
     #[test]
+    fn request_patterns_are_checked() {
+        let with = |requests: &str| format!("{MINIMAL}\n[programs]\nrequests = {requests}\n");
+        assert!(errors_of(&with(r#"["(CALL {n})", "(PRG={n})"]"#)).is_empty());
+        assert!(errors_of(&with("[]")).is_empty());
+        let e = errors_of(&with(r#"["(REQ O{n})", "(REQ)", "({n}%)"]"#));
+        assert_eq!(e.len(), 2, "{e:?}");
+        assert!(
+            e[0].contains("programs.requests[1]") && e[0].contains("{n}"),
+            "{e:?}"
+        );
+        assert!(
+            e[1].contains("programs.requests[2]") && e[1].contains("EOR"),
+            "{e:?}"
+        );
+        let cfg = CellConfig::from_toml_str(MINIMAL, "t").unwrap();
+        assert!(cfg.programs.store_punched);
+        assert_eq!(cfg.programs.requests, ["(REQ O{n})", "(PRG={n})"]);
+    }
+
+    #[test]
     fn minimal_file_takes_defaults() {
         let cfg = CellConfig::from_toml_str(MINIMAL, "t").unwrap();
         let m = &cfg.machines[0];

@@ -47,6 +47,12 @@ pub enum SimError {
     },
     #[error("simulated FANUC board: --punch needs --protocol b or exp-b (punch-out is §6.1.1 2)")]
     PunchNeedsProtocolB,
+    #[error("punch file {}: {error}", path.display())]
+    PunchCode {
+        path: std::path::PathBuf,
+        #[source]
+        error: crate::fanuc::tape::TapeError,
+    },
     #[error(
         "simulator listen address {addr} is not loopback: simulators bind 127.0.0.1 or ::1 only"
     )]

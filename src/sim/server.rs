@@ -38,6 +38,7 @@ use tokio::time::{Instant, Sleep};
 
 use crate::fanuc::message::Framing;
 use crate::fanuc::sat::Params;
+use crate::fanuc::tape::{self, TapeCode};
 use crate::fanuc::{CodeSystem, EndCode, Protocol};
 use crate::sim::cnc::{DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE};
 use crate::sim::{BoardCommand, BoardConfig, BoardEvent, FanucBoard, SimError, run_board};
@@ -142,6 +143,19 @@ pub struct SimFanucArgs {
     /// Protocol B: how long after the host connects the --punch file is punched out, in ms.
     #[arg(long, default_value_t = 2000)]
     pub punch_after_ms: u64,
+    /// Protocol B: the --punch file is program text (7-bit, EOB = LF) to punch in this code:
+    /// ISO with even parity, ASCII, or EIA (parameter 0000#4). `raw`: the file is the tape.
+    #[arg(long, value_enum, default_value_t = PunchCode::Raw)]
+    pub punch_code: PunchCode,
+}
+
+/// How the `--punch` file becomes a tape.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PunchCode {
+    Raw,
+    Iso,
+    Ascii,
+    Eia,
 }
 
 /// A punch-out the server does on every connection.
@@ -205,10 +219,23 @@ impl SimFanucArgs {
         if matches!(self.protocol, SimProtocol::A | SimProtocol::ExpA) {
             return Err(SimError::PunchNeedsProtocolB);
         }
-        let data = std::fs::read(path).map_err(|source| SimError::PunchFile {
+        let text = std::fs::read(path).map_err(|source| SimError::PunchFile {
             path: path.clone(),
             source,
         })?;
+        let code = match self.punch_code {
+            PunchCode::Raw => None,
+            PunchCode::Iso => Some(TapeCode::Iso),
+            PunchCode::Ascii => Some(TapeCode::Ascii),
+            PunchCode::Eia => Some(TapeCode::Eia),
+        };
+        let data = match code {
+            None => text,
+            Some(code) => tape::encode(&text, code).map_err(|error| SimError::PunchCode {
+                path: path.clone(),
+                error,
+            })?,
+        };
         Ok(Some(PunchPlan {
             data,
             after: Duration::from_millis(self.punch_after_ms),
@@ -590,6 +617,45 @@ mod tests {
         .unwrap();
         let err = cli.args.punch_plan().unwrap_err();
         assert!(err.to_string().contains("missing"), "{err}");
+    }
+
+    #[test]
+    fn punch_code_encodes_a_text_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("O1.nc");
+        let text = b"%\nO1(PART)\nG00X1.\nM30\n%";
+        std::fs::write(&file, text).unwrap();
+        let plan = |code: &str| {
+            let cli = Cli::try_parse_from([
+                "sim",
+                "--protocol",
+                "b",
+                "--punch",
+                file.to_str().unwrap(),
+                "--punch-code",
+                code,
+            ])
+            .unwrap();
+            cli.args.punch_plan().map(|p| p.unwrap().data)
+        };
+        for (name, code) in [
+            ("iso", TapeCode::Iso),
+            ("ascii", TapeCode::Ascii),
+            ("eia", TapeCode::Eia),
+        ] {
+            let data = plan(name).unwrap();
+            assert_eq!(data, tape::encode(text, code).unwrap(), "{name}");
+            assert_eq!(
+                tape::decode(&data).unwrap(),
+                (code, text.to_vec()),
+                "{name}"
+            );
+        }
+        assert_eq!(plan("raw").unwrap(), text);
+        // A character EIA cannot punch is refused, naming the file.
+        std::fs::write(&file, b"%\nO1\n#1=2\n%").unwrap();
+        let err = plan("eia").unwrap_err();
+        assert!(err.to_string().contains("O1.nc"), "{err}");
     }
 
     /// `--protocol b --punch FILE`: the file's bytes go out as DC2 … DC4 after the delay,
