@@ -935,9 +935,19 @@ impl CellConfig {
         )?;
         writeln!(
             s,
-            "programs: in {}, at most {} each",
+            "programs: in {}, at most {} each; punched programs {}; remote requests {}",
             self.programs.dir.display(),
-            show_size(self.programs.max_size)
+            show_size(self.programs.max_size),
+            if self.programs.store_punched {
+                "stored"
+            } else {
+                "not stored"
+            },
+            if self.programs.requests.is_empty() {
+                "off".to_string()
+            } else {
+                self.programs.requests.join(" ")
+            }
         )?;
         writeln!(s, "machines: {}", self.machines.len())?;
         for m in &self.machines {
@@ -984,7 +994,10 @@ impl CellConfig {
                     b.buffer_size, b.consume_rate, b.axes
                 )?;
             }
-            writeln!(s, "    parameters: {}", m.params())?;
+            // SET and the §4.5 timers exist in the Protocol A family only.
+            if p.is_a_family() {
+                writeln!(s, "    parameters: {}", m.params())?;
+            }
         }
         writeln!(s, "plcs: {}", self.plcs.len())?;
         for p in &self.plcs {

@@ -346,7 +346,8 @@ fn summary_of_the_example() {
         "cell line-3",
         "bus: peer mode, keys under cellgate/line-3, listen tcp/127.0.0.1:7447, connect none, \
          multicast scouting off",
-        "programs: in programs, at most 512 MiB each",
+        "programs: in programs, at most 512 MiB each; punched programs stored; remote requests \
+         (REQ O{n}) (PRG={n})",
         "  mill-1: Protocol A, ISO code (5000#2 = 1), RS-232-C",
         "    end code ETX (5000#3 = 1)",
         "    transport: serial /dev/ttyS0, 9600 8E1",
@@ -364,4 +365,13 @@ fn summary_of_the_example() {
             "missing {expected:?} in\n{s}"
         );
     }
+    // Protocol B has no SET: the §4.5 parameters are not shown for it.
+    let lathe: Vec<&str> = s
+        .lines()
+        .skip_while(|l| !l.starts_with("  lathe-1:"))
+        .skip(1)
+        .take_while(|l| l.starts_with("    "))
+        .collect();
+    assert!(!lathe.is_empty(), "{s}");
+    assert!(!lathe.iter().any(|l| l.contains("parameters")), "{lathe:?}");
 }
