@@ -39,9 +39,10 @@
 //! after a significant character, protocol notes 8) and at DC4, so a punch-out of several
 //! programs comes out program by program. Punched bytes held by the engine (not yet taken with
 //! [`Engine::poll_event`]) are bounded: above [`ProtocolBConfig::punch_high_water`] the host
-//! sends DC3 (method (b) of §6.1.1 2 (3)); once the held data has dropped to half of that it
-//! resumes the board with DC1 when notification is on and DC2 when it is off (protocol notes
-//! 11). Bytes beyond [`ProtocolBConfig::max_buffer`] (a board that overruns) are dropped with
+//! sends DC3 (method (b) of §6.1.1 2 (3)) and, with [`ProtocolBConfig::rs_flow`], also turns
+//! RS off, which the board sees as CS off (method (a)); once the held data has dropped to half
+//! of that it turns RS on and resumes the board with DC1 when notification is on and DC2 when
+//! it is off (protocol notes 11). Bytes beyond [`ProtocolBConfig::max_buffer`] (a board that overruns) are dropped with
 //! a [`EngineEvent::ProtocolError`].
 //!
 //! # Control codes (§6.2)
@@ -68,7 +69,7 @@ use crate::fanuc::code::{DC1, DC2, DC3, DC4, EOR, NAK, SYN};
 use crate::fanuc::protocol_a::program::Program;
 use crate::fanuc::{CodeSystem, Protocol};
 use crate::link::{Engine, EngineCommand, EngineEvent, HostEngine, LinkState};
-use crate::transport::{LineError, ModemIn};
+use crate::transport::{LineError, ModemIn, ModemOut};
 
 /// Overrun allowance after DC3 in Protocol B (§6.3: "less than 512 characters").
 pub const OVERRUN_B: usize = 512;
@@ -100,6 +101,10 @@ pub struct ProtocolBConfig {
     pub punch_piece: usize,
     /// Punched bytes held above which the host sends DC3 to the board.
     pub punch_high_water: usize,
+    /// Also hold a punch-out with RS off (the board's CS, method (a) of §6.1.1 2 (3)) while
+    /// it is stopped by DC3. Where the transport carries no modem lines (a TCP device
+    /// server) only the DC3 acts.
+    pub rs_flow: bool,
 }
 
 impl ProtocolBConfig {
@@ -121,6 +126,7 @@ impl ProtocolBConfig {
             punch_piece: 16 * 1024,
             // Room for the board's overrun after DC3, twice over (§6.3).
             punch_high_water: max_buffer - 2 * overrun_allowance,
+            rs_flow: true,
         }
     }
 
@@ -621,6 +627,15 @@ impl Engine for ProtocolBHost {
     fn poll_timeout(&self) -> Option<Instant> {
         None
     }
+
+    fn modem_out(&self) -> ModemOut {
+        ModemOut {
+            er: true,
+            // CS off stops the board within two characters (§6.1.1 2 (3) (a)); the DC3 sent
+            // with it covers boards that ignore CS.
+            rs: !(self.cfg.rs_flow && self.punch_paused),
+        }
+    }
 }
 
 impl HostEngine for ProtocolBHost {
@@ -906,9 +921,12 @@ mod tests {
             h.handle_input(now, &[0x12]);
             h.handle_input(now, &vec![b'A'; high]);
             assert_eq!(h.poll_transmit(now), None);
-            // One more byte not taken: DC3 in the configured code.
+            assert!(h.modem_out().rs);
+            // One more byte not taken: DC3 in the configured code, and RS off (CS of the
+            // board).
             h.handle_input(now, b"B");
             assert_eq!(h.poll_transmit(now), Some(vec![0x93]));
+            assert!(!h.modem_out().rs);
             // Overrun within the allowance is kept.
             h.handle_input(now, &vec![b'C'; 400]);
             assert_eq!(h.punch_held(), high + 401);
@@ -916,6 +934,7 @@ mod tests {
             let mut got = punched(&events(&mut h));
             assert_eq!(got.len() + h.punch_held(), high + 401);
             assert_eq!(h.poll_transmit(now), Some(vec![resume]));
+            assert!(h.modem_out().rs);
             h.handle_input(now, &[0x14]);
             got.extend(punched(&events(&mut h)));
             let mut expected = vec![b'A'; high];
@@ -924,6 +943,21 @@ mod tests {
             assert!(got == expected, "punched data differs");
             assert_eq!(h.poll_transmit(now), None);
         }
+    }
+
+    #[test]
+    fn rs_stays_on_without_rs_flow() {
+        let cfg = ProtocolBConfig {
+            rs_flow: false,
+            ..ProtocolBConfig::new(CodeSystem::Ascii, false, true)
+        };
+        let now = Instant::now();
+        let mut h = ProtocolBHost::new(cfg, now).unwrap();
+        let high = h.config().punch_high_water;
+        h.handle_input(now, &[0x12]);
+        h.handle_input(now, &vec![b'A'; high + 1]);
+        assert_eq!(h.poll_transmit(now), Some(vec![0x13]));
+        assert!(h.modem_out().rs);
     }
 
     #[test]
