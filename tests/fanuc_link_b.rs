@@ -150,6 +150,10 @@ impl Rig {
 
 /// Checks the flow control of a download that needed at least `min_cycles` DC3 / DC1 cycles.
 fn assert_flow(snap: &BoardSnapshot, expansion: bool, min_cycles: u64) {
+    println!(
+        "DC1 {} DC3 {}, at most {} characters after one DC3",
+        snap.dc1_sent, snap.dc3_sent, snap.max_overrun
+    );
     assert!(snap.alarms.is_empty(), "alarms: {:?}", snap.alarms);
     assert_eq!(snap.overruns, 0);
     assert!(
