@@ -2511,7 +2511,7 @@ transport = { kind = "sim" }
             "{s}"
         );
         assert!(
-            s.contains("lathe-1: Protocol B, ASCII code (5000#2 = 1), RS-232-C"),
+            s.contains("lathe-1: Protocol B, ISO code (5000#2 = 0), RS-232-C"),
             "{s}"
         );
         assert!(s.contains("Nb=2000 No=50"), "{s}");

@@ -7,19 +7,15 @@ mod common;
 
 use std::time::Duration;
 
-use cellgate::bus;
-use cellgate::bus::keys::{CellKeys, MachineLeaf};
-use cellgate::cell::Cell;
+use cellgate::bus::keys::MachineLeaf;
 use cellgate::config::CellConfig;
 use cellgate::fanuc::message::Command;
 use cellgate::pb;
 use cellgate::pb::job_event::Kind;
 use cellgate::sim::fanuc_board::BoardEvent;
-use common::bus::{client_config, eventually, free_port, get, get_err, get_one, wait_token};
+use common::bus::{RunningCell, Sub, eventually, get, get_err, get_one};
 use prost::Message;
 use sha2::{Digest, Sha256};
-use tokio_util::sync::CancellationToken;
-use zenoh::Session;
 
 /// Machines of the test cell: (name, protocol, packet n).
 const MACHINES: [(&str, &str, Option<u8>); 8] = [
@@ -32,17 +28,6 @@ const MACHINES: [(&str, &str, Option<u8>); 8] = [
     ("m7", "expansion-a", Some(4)),
     ("m8", "expansion-a", Some(1)),
 ];
-
-struct Running {
-    client: Session,
-    gateway: Session,
-    keys: CellKeys,
-    cell: Cell,
-    routes_stop: CancellationToken,
-    links_stop: CancellationToken,
-    served: tokio::task::JoinHandle<Result<(), bus::BusError>>,
-    _dir: tempfile::TempDir,
-}
 
 fn cell_config(port: u16, dir: &std::path::Path) -> CellConfig {
     let mut text = format!(
@@ -61,108 +46,12 @@ fn cell_config(port: u16, dir: &std::path::Path) -> CellConfig {
     CellConfig::from_toml_str(&text, "e2e cell").unwrap_or_else(|e| panic!("{e}"))
 }
 
-async fn start() -> Running {
-    start_with(false).await
-}
-
-/// `late`: serve the bus only once every link is already up, as a gateway whose routes start
-/// after its links would.
-async fn start_with(late: bool) -> Running {
-    let port = free_port();
-    let dir = tempfile::tempdir().unwrap();
-    let config = cell_config(port, dir.path());
-    let gateway = bus::open(&config.bus).await.unwrap();
-    let links_stop = CancellationToken::new();
-    let cell = Cell::start(&config, &links_stop).await.unwrap();
-    assert_eq!(cell.machines.len(), MACHINES.len());
-    if late {
-        for m in &cell.machines {
-            let link = m.link.clone();
-            eventually("the link is up before the routes start", move || {
-                link.state() == Some(cellgate::link::LinkState::Ready)
-            })
-            .await;
-        }
-    }
-    let machines = cell.machine_links();
-    let routes_stop = CancellationToken::new();
-    let served = {
-        let (gw, cfg, stop) = (gateway.clone(), config.clone(), routes_stop.clone());
-        tokio::spawn(async move { bus::serve(&gw, &cfg, machines, stop).await })
-    };
-    let client = bus::open(&client_config(port)).await.unwrap();
-    let keys = CellKeys::new(&config.bus.prefix, &config.cell).unwrap();
-    // Every link initialises with its board (≈2 s power-on delay, §4.3 (1)).
-    for (name, _, _) in MACHINES {
-        wait_token(&client, &keys.machine(name), true).await;
-    }
-    Running {
-        client,
-        gateway,
-        keys,
-        cell,
-        routes_stop,
-        links_stop,
-        served,
-        _dir: dir,
-    }
-}
-
-impl Running {
-    async fn stop(self) {
-        self.routes_stop.cancel();
-        tokio::time::timeout(Duration::from_secs(10), self.served)
-            .await
-            .expect("routes stop")
-            .unwrap()
-            .unwrap();
-        self.links_stop.cancel();
-        self.cell.join().await;
-        self.client.close().await.unwrap();
-        self.gateway.close().await.unwrap();
-    }
-
-    fn board(&self, machine: &str) -> &cellgate::sim::BoardHandle {
-        self.cell.machine(machine).unwrap().board.as_ref().unwrap()
-    }
-
-    /// Submits an inline program; returns the job id, with the job's event subscriber
-    /// declared before the request so that no event is missed.
-    async fn submit(
-        &self,
-        machine: &str,
-        program: &[u8],
-    ) -> (
-        String,
-        zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
-    ) {
-        let events = self
-            .client
-            .declare_subscriber(self.keys.job_events(machine, "*"))
-            .await
-            .unwrap();
-        let request = pb::JobRequest {
-            program: Some(pb::job_request::Program::Inline(program.to_vec())),
-            name: format!("{machine} test"),
-            priority: 0,
-            append_eor: false,
-        };
-        let accepted: pb::JobAccepted = get_one(
-            &self.client,
-            &self.keys.leaf(machine, MachineLeaf::Job),
-            Some(request.encode_to_vec()),
-        )
-        .await;
-        (accepted.job_id, events)
-    }
+async fn start() -> RunningCell {
+    RunningCell::start(cell_config, false).await
 }
 
 /// The job's events until it ends, checking that progress never goes backwards.
-async fn follow(
-    events: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
-    job: &str,
-    within: Duration,
-) -> Vec<Kind> {
+async fn follow(events: &Sub, job: &str, within: Duration) -> Vec<Kind> {
     let mut seen = Vec::new();
     let mut last_sent = 0;
     tokio::time::timeout(within, async {
@@ -236,9 +125,9 @@ async fn concurrent_jobs_on_every_machine_are_delivered_byte_exact() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn routes_started_after_the_links_still_see_them_up() {
-    // `start_with` waits for every machine's liveliness token: they must appear although the
+    // `RunningCell::start` waits for every machine's liveliness token: they must appear although the
     // links reported Ready before the routes subscribed to their events.
-    let cell = start_with(true).await;
+    let cell = RunningCell::start(cell_config, true).await;
     let status: pb::MachineStatus = get_one(
         &cell.client,
         &cell.keys.leaf("m3", MachineLeaf::Status),

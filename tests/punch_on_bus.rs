@@ -8,41 +8,23 @@ mod common;
 
 use std::time::Duration;
 
-use cellgate::bus;
-use cellgate::bus::keys::{CellKeys, MachineLeaf};
-use cellgate::cell::Cell;
+use cellgate::bus::keys::MachineLeaf;
 use cellgate::config::CellConfig;
 use cellgate::fanuc::tape::{self, TapeCode};
 use cellgate::pb;
 use cellgate::pb::job_event::Kind;
-use common::bus::{client_config, free_port, get, get_one, wait_token};
+use common::bus::{RunningCell, Sub, get, get_one};
 use prost::Message;
 use sha2::{Digest, Sha256};
-use tokio_util::sync::CancellationToken;
-use zenoh::Session;
-use zenoh::handlers::FifoChannelHandler;
-use zenoh::pubsub::Subscriber;
-use zenoh::sample::Sample;
 
-type Sub = Subscriber<FifoChannelHandler<Sample>>;
-
-struct Running {
-    client: Session,
-    gateway: Session,
-    keys: CellKeys,
-    cell: Cell,
-    routes_stop: CancellationToken,
-    links_stop: CancellationToken,
-    served: tokio::task::JoinHandle<Result<(), bus::BusError>>,
-    _dir: tempfile::TempDir,
+async fn start() -> RunningCell {
+    RunningCell::start(cell_config, false).await
 }
 
 /// `lathe-1`: Protocol B, ISO control codes, notification on, 19200 baud.
 /// `lathe-2`: Expansion B, ASCII control codes, notification off, 86400 baud.
 /// Both CNCs read 1000 bytes/s, slower than either line.
-async fn start() -> Running {
-    let port = free_port();
-    let dir = tempfile::tempdir().unwrap();
+fn cell_config(port: u16, dir: &std::path::Path) -> CellConfig {
     let text = format!(
         r#"
 cell = "punch"
@@ -65,58 +47,13 @@ notify_alarm_reset = false
 transport = {{ kind = "sim", line = {{ baud = 86400 }} }}
 sim = {{ consume_rate = 1000, buffer_size = 16384 }}
 "#,
-        dir.path().join("programs")
+        dir.join("programs")
     );
-    let config = CellConfig::from_toml_str(&text, "punch cell").unwrap_or_else(|e| panic!("{e}"));
-    let gateway = bus::open(&config.bus).await.unwrap();
-    let links_stop = CancellationToken::new();
-    let cell = Cell::start(&config, &links_stop).await.unwrap();
-    assert_eq!(cell.machines.len(), 2);
-    let machines = cell.machine_links();
-    let routes_stop = CancellationToken::new();
-    let served = {
-        let (gw, cfg, stop) = (gateway.clone(), config.clone(), routes_stop.clone());
-        tokio::spawn(async move { bus::serve(&gw, &cfg, machines, stop).await })
-    };
-    let client = bus::open(&client_config(port)).await.unwrap();
-    let keys = CellKeys::new(&config.bus.prefix, &config.cell).unwrap();
-    for name in ["lathe-1", "lathe-2"] {
-        wait_token(&client, &keys.machine(name), true).await;
-    }
-    Running {
-        client,
-        gateway,
-        keys,
-        cell,
-        routes_stop,
-        links_stop,
-        served,
-        _dir: dir,
-    }
+    CellConfig::from_toml_str(&text, "punch cell").unwrap_or_else(|e| panic!("{e}"))
 }
 
-impl Running {
-    async fn stop(self) {
-        self.routes_stop.cancel();
-        tokio::time::timeout(Duration::from_secs(10), self.served)
-            .await
-            .expect("routes stop")
-            .unwrap()
-            .unwrap();
-        self.links_stop.cancel();
-        self.cell.join().await;
-        self.client.close().await.unwrap();
-        self.gateway.close().await.unwrap();
-    }
-
-    fn board(&self, machine: &str) -> &cellgate::sim::BoardHandle {
-        self.cell.machine(machine).unwrap().board.as_ref().unwrap()
-    }
-
-    async fn subscribe(&self, key: String) -> Sub {
-        self.client.declare_subscriber(key).await.unwrap()
-    }
-
+impl RunningCell {
+    /// Puts a program into the library and waits until the library has it.
     async fn put_program(&self, name: &str, program: &[u8]) {
         self.client
             .put(self.keys.program(name), program.to_vec())
@@ -318,24 +255,6 @@ async fn a_request_for_a_missing_program_raises_an_alarm() {
     cell.stop().await;
 }
 
-/// Submits an inline program; returns the job id and its event subscriber.
-async fn submit(cell: &Running, machine: &str, program: &[u8]) -> (String, Sub) {
-    let events = cell.subscribe(cell.keys.job_events(machine, "*")).await;
-    let request = pb::JobRequest {
-        program: Some(pb::job_request::Program::Inline(program.to_vec())),
-        name: "alarm test".to_string(),
-        priority: 0,
-        append_eor: false,
-    };
-    let accepted: pb::JobAccepted = get_one(
-        &cell.client,
-        &cell.keys.leaf(machine, MachineLeaf::Job),
-        Some(request.encode_to_vec()),
-    )
-    .await;
-    (accepted.job_id, events)
-}
-
 /// A CNC alarm in the middle of a download: with notification on (NAK) and off (ER off, seen
 /// as DR off: SR0855).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -350,7 +269,7 @@ async fn a_cnc_alarm_mid_transfer_fails_the_job_with_its_offset() {
             .await;
         // 200 KiB at 1000 bytes/s: minutes, so the alarm comes in the middle.
         let program = common::nc_program(200 * 1024, 3);
-        let (job, events) = submit(&cell, machine, &program).await;
+        let (job, events) = cell.submit(machine, &program).await;
         // Wait for the transfer to be well under way.
         tokio::time::timeout(Duration::from_secs(30), async {
             loop {

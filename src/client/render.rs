@@ -31,7 +31,7 @@ pub fn clock(unix_ms: u64) -> String {
 /// `YYYY-MM-DD HH:MM:SSZ` (UTC) of a Unix time in milliseconds.
 pub fn date_time(unix_ms: u64) -> String {
     let secs = unix_ms / 1000;
-    let (y, m, d) = civil_from_days(secs / 86_400);
+    let (y, m, d) = crate::jobs::punch::civil_from_days(secs / 86_400);
     let day = secs % 86_400;
     format!(
         "{y:04}-{m:02}-{d:02} {:02}:{:02}:{:02}Z",
@@ -39,21 +39,6 @@ pub fn date_time(unix_ms: u64) -> String {
         day / 60 % 60,
         day % 60
     )
-}
-
-/// Year, month, day of a day count since 1970-01-01 (proleptic Gregorian; H. Hinnant's
-/// `civil_from_days`).
-fn civil_from_days(days: u64) -> (u64, u64, u64) {
-    let z = days + 719_468;
-    let era = z / 146_097;
-    let doe = z % 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    let y = yoe + era * 400 + u64::from(m <= 2);
-    (y, m, d)
 }
 
 /// A byte count for people: `512 B`, `40.0 KiB`, `1.5 MiB`.

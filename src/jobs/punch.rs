@@ -461,7 +461,7 @@ pub fn compact_utc(unix_ms: u64) -> String {
 
 /// Year, month, day of the `days`-th day after 1970-01-01 (proleptic Gregorian; H. Hinnant's
 /// `civil_from_days`, for non-negative days).
-fn civil_from_days(days: u64) -> (u64, u64, u64) {
+pub fn civil_from_days(days: u64) -> (u64, u64, u64) {
     let z = days + 719_468;
     let era = z / 146_097;
     let doe = z % 146_097;

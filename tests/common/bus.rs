@@ -103,3 +103,113 @@ pub async fn eventually(what: &str, mut check: impl FnMut() -> bool) {
     }
     panic!("never happened: {what}");
 }
+
+/// A gateway session serving a cell of real links (simulated boards on simulated lines),
+/// and a separate client session, both on loopback with multicast scouting off.
+pub struct RunningCell {
+    pub client: Session,
+    pub gateway: Session,
+    pub keys: cellgate::bus::keys::CellKeys,
+    pub cell: cellgate::cell::Cell,
+    routes_stop: tokio_util::sync::CancellationToken,
+    links_stop: tokio_util::sync::CancellationToken,
+    served: tokio::task::JoinHandle<Result<(), cellgate::bus::BusError>>,
+    _dir: tempfile::TempDir,
+}
+
+pub type Sub =
+    zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+impl RunningCell {
+    /// Starts the cell `config(port, dir)` gives, for a free loopback port and a fresh
+    /// directory, and waits until every machine's liveliness token is up. `late`: serve the
+    /// bus only once every link is already up, as a gateway whose routes start after its
+    /// links would.
+    pub async fn start(
+        config: impl FnOnce(u16, &std::path::Path) -> cellgate::config::CellConfig,
+        late: bool,
+    ) -> Self {
+        let port = free_port();
+        let dir = tempfile::tempdir().unwrap();
+        let config = config(port, dir.path());
+        let gateway = cellgate::bus::open(&config.bus).await.unwrap();
+        let links_stop = tokio_util::sync::CancellationToken::new();
+        let cell = cellgate::cell::Cell::start(&config, &links_stop)
+            .await
+            .unwrap();
+        assert_eq!(cell.machines.len(), config.machines.len());
+        if late {
+            for m in &cell.machines {
+                let link = m.link.clone();
+                eventually("the link is up before the routes start", move || {
+                    link.state() == Some(cellgate::link::LinkState::Ready)
+                })
+                .await;
+            }
+        }
+        let machines = cell.machine_links();
+        let routes_stop = tokio_util::sync::CancellationToken::new();
+        let served = {
+            let (gw, cfg, stop) = (gateway.clone(), config.clone(), routes_stop.clone());
+            tokio::spawn(async move { cellgate::bus::serve(&gw, &cfg, machines, stop).await })
+        };
+        let client = cellgate::bus::open(&client_config(port)).await.unwrap();
+        let keys = cellgate::bus::keys::CellKeys::new(&config.bus.prefix, &config.cell).unwrap();
+        // Every link comes up with its board (Protocol A: ≈2 s power-on delay, §4.3 (1)).
+        for m in &config.machines {
+            wait_token(&client, &keys.machine(&m.name), true).await;
+        }
+        RunningCell {
+            client,
+            gateway,
+            keys,
+            cell,
+            routes_stop,
+            links_stop,
+            served,
+            _dir: dir,
+        }
+    }
+
+    /// Stops the routes, then the links, then both sessions.
+    pub async fn stop(self) {
+        self.routes_stop.cancel();
+        tokio::time::timeout(Duration::from_secs(10), self.served)
+            .await
+            .expect("routes stop")
+            .unwrap()
+            .unwrap();
+        self.links_stop.cancel();
+        self.cell.join().await;
+        self.client.close().await.unwrap();
+        self.gateway.close().await.unwrap();
+    }
+
+    pub fn board(&self, machine: &str) -> &cellgate::sim::BoardHandle {
+        self.cell.machine(machine).unwrap().board.as_ref().unwrap()
+    }
+
+    pub async fn subscribe(&self, key: String) -> Sub {
+        self.client.declare_subscriber(key).await.unwrap()
+    }
+
+    /// Submits an inline program; returns the job id, with the job's event subscriber
+    /// declared before the request so that no event is missed.
+    pub async fn submit(&self, machine: &str, program: &[u8]) -> (String, Sub) {
+        use cellgate::bus::keys::MachineLeaf;
+        let events = self.subscribe(self.keys.job_events(machine, "*")).await;
+        let request = pb::JobRequest {
+            program: Some(pb::job_request::Program::Inline(program.to_vec())),
+            name: format!("{machine} test"),
+            priority: 0,
+            append_eor: false,
+        };
+        let accepted: pb::JobAccepted = get_one(
+            &self.client,
+            &self.keys.leaf(machine, MachineLeaf::Job),
+            Some(request.encode_to_vec()),
+        )
+        .await;
+        (accepted.job_id, events)
+    }
+}
