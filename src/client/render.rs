@@ -142,7 +142,7 @@ pub fn status_table(statuses: &[pb::MachineStatus]) -> String {
     }
     let header = [
         "MACHINE", "PROTOCOL", "LINK", "SAT", "BUFFERED", "JOB", "WAITING", "DO", "DI", "NC SENT",
-        "JOBS OK", "FAILED", "RETRIES", "ERRORS", "ALARMS",
+        "JOBS OK", "FAILED", "PUNCHED", "RETRIES", "ERRORS", "ALARMS",
     ];
     let rows: Vec<Vec<String>> = statuses
         .iter()
@@ -164,6 +164,7 @@ pub fn status_table(statuses: &[pb::MachineStatus]) -> String {
                 bytes(c.nc_bytes_sent),
                 c.jobs_completed.to_string(),
                 c.jobs_failed.to_string(),
+                c.programs_punched.to_string(),
                 c.retries.to_string(),
                 c.protocol_errors.to_string(),
                 c.link_alarms.to_string(),
@@ -207,6 +208,7 @@ pub fn counters_json(c: &pb::LinkCounters) -> Value {
         "nc_bytes_sent": c.nc_bytes_sent,
         "jobs_completed": c.jobs_completed,
         "jobs_failed": c.jobs_failed,
+        "programs_punched": c.programs_punched,
     })
 }
 
@@ -595,6 +597,7 @@ mod tests {
             counters: Some(pb::LinkCounters {
                 nc_bytes_sent: 2048,
                 jobs_completed: 3,
+                programs_punched: 5,
                 retries: 4,
                 ..pb::LinkCounters::default()
             }),
@@ -641,6 +644,53 @@ mod tests {
     }
 
     #[test]
+    fn punched_programs_read_as_sentences() {
+        let mut p = pb::PunchedProgram {
+            machine: "lathe-1".to_string(),
+            name: "SHAFT".to_string(),
+            o_number: "O1234".to_string(),
+            code_system: pb::CodeSystem::Eia as i32,
+            program: b"%\nO1234(SHAFT)\n%".to_vec(),
+            library_name: "lathe-1-O1234-20261122T061500Z".to_string(),
+            unix_ms: 0,
+            request: None,
+        };
+        let mut printer = WatchPrinter::new();
+        let line = printer
+            .line(&WatchEvent::Punched(Box::new(p.clone())), 0)
+            .unwrap();
+        assert!(
+            line.contains("lathe-1 punched SHAFT (16 bytes, CODE_SYSTEM_EIA)"),
+            "{line}"
+        );
+        assert!(
+            line.ends_with("stored as lathe-1-O1234-20261122T061500Z"),
+            "{line}"
+        );
+        p.library_name.clear();
+        p.request = Some(pb::RemoteRequest {
+            program: "O12".to_string(),
+            error: "no program O12".to_string(),
+            ..pb::RemoteRequest::default()
+        });
+        let line = printer
+            .line(&WatchEvent::Punched(Box::new(p.clone())), 0)
+            .unwrap();
+        assert!(
+            line.ends_with("remote request for O12 refused: no program O12"),
+            "{line}"
+        );
+        let j = watch_json(&WatchEvent::Punched(Box::new(p)), 0);
+        assert_eq!(j["event"], "punched");
+        assert_eq!(j["punched"]["code_system"], "CODE_SYSTEM_EIA");
+        assert_eq!(j["punched"]["request"]["program"], "O12");
+        assert_eq!(
+            watch_machine(&WatchEvent::Punched(Box::default())),
+            Some("")
+        );
+    }
+
+    #[test]
     fn status_json_uses_the_proto_names() {
         let j = status_json(&status());
         assert_eq!(j["protocol"], "PROTOCOL_EXPANSION_A");
@@ -650,6 +700,7 @@ mod tests {
         assert_eq!(j["do_image"], 0xA5);
         assert_eq!(j["di_image"], Value::Null);
         assert_eq!(j["counters"]["jobs_completed"], 3);
+        assert_eq!(j["counters"]["programs_punched"], 5);
         assert_eq!(j["last_alarm"]["alarm_number"], "SR0945");
     }
 
