@@ -7,15 +7,18 @@
 //!
 //! - [`transport`]: what carries a link's bytes: serial port, TCP device server, simulated line.
 //! - [`fanuc`]: FANUC remote-buffer protocols (A, Expansion A, B, Expansion B), sans-IO: bytes
-//!   and `now` go in; bytes to send, events and the next deadline come out.
+//!   and `now` go in; bytes to send, events and the next deadline come out. Also the tape
+//!   codes (ISO, ASCII, EIA) of punched programs ([`fanuc::tape`]).
 //! - [`link`]: the async driver that runs one engine over one transport, and the typed
 //!   commands and events through which the rest of the gateway talks to a link.
 //! - [`sim`]: simulated devices (a remote-buffer board with a CNC behind it) that speak the
 //!   device side of the same protocols, for tests, CI and laptops.
 //! - [`config`]: the cell file: serde types, defaults, and validation that reports every error.
-//! - [`jobs`]: per-machine job queues, program sources and checks, the program library.
+//! - [`jobs`]: per-machine job queues, program sources and checks, the program library, and
+//!   punched programs: split at EOR, named for the library, remote requests ([`jobs::punch`]).
 //! - [`bus`]: the Zenoh session, the cell's key expressions, and the routes that serve each
-//!   machine's link, its jobs and the program library on the bus ([`bus::serve`]).
+//!   machine's link, its jobs, the programs it punches out and the program library on the
+//!   bus ([`bus::serve`]).
 //! - [`client`]: a client of the bus contract: the library side of `cellgate submit`,
 //!   `status`, `watch`, `do`, `di`, `program` and `cancel`.
 //! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves its admin
