@@ -541,13 +541,15 @@ async fn a_running_job_is_cancelled_and_watch_sees_it() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("already ended"), "{err}");
 
-    // The watch saw the link up, the job's events and the cancel request, in order.
-    let mut seen = Vec::new();
+    // The watch saw the link up, the job's events in order, and the cancel request after the
+    // job started. The delete reaches the watch through the gateway's router while the
+    // gateway acts on it, so it may show before or after the job's `cancelled` event.
+    let mut seen: Vec<String> = Vec::new();
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    while !seen.iter().any(|s: &String| s.starts_with("cancelled")) {
+    while !(seen.iter().any(|s| s == "cancelled") && seen.iter().any(|s| s == "cancel-requested")) {
         let e = tokio::time::timeout_at(deadline, watch.next())
             .await
-            .expect("watch never saw the job end")
+            .expect("watch never saw the job end and the cancel request")
             .unwrap();
         match e {
             WatchEvent::Link { machine, up } if machine == MILL_A => {
@@ -571,7 +573,7 @@ async fn a_running_job_is_cancelled_and_watch_sees_it() {
     );
     assert!(pos("queued") < pos("started"), "{seen:?}");
     assert!(pos("started") < pos("cancel-requested"), "{seen:?}");
-    assert!(pos("cancel-requested") < pos("cancelled"), "{seen:?}");
+    assert!(pos("started") < pos("cancelled"), "{seen:?}");
     watch.close().await;
     client.close().await;
     gw.stop().await;
