@@ -13,7 +13,7 @@ use cellgate::fanuc::message::Command;
 use cellgate::pb;
 use cellgate::pb::job_event::Kind;
 use cellgate::sim::fanuc_board::BoardEvent;
-use common::bus::{RunningCell, Sub, eventually, get, get_err, get_one};
+use common::bus::{RunningCell, eventually, follow, get, get_err, get_one};
 use prost::Message;
 use sha2::{Digest, Sha256};
 
@@ -48,40 +48,6 @@ fn cell_config(port: u16, dir: &std::path::Path) -> CellConfig {
 
 async fn start() -> RunningCell {
     RunningCell::start(cell_config, false).await
-}
-
-/// The job's events until it ends, checking that progress never goes backwards.
-async fn follow(events: &Sub, job: &str, within: Duration) -> Vec<Kind> {
-    let mut seen = Vec::new();
-    let mut last_sent = 0;
-    tokio::time::timeout(within, async {
-        loop {
-            let sample = events.recv_async().await.unwrap();
-            let ev = pb::JobEvent::decode(sample.payload().to_bytes().as_ref()).unwrap();
-            if ev.job_id != job {
-                continue;
-            }
-            let kind = ev.kind.unwrap();
-            if let Kind::Progress(p) = &kind {
-                assert!(
-                    p.bytes_sent >= last_sent,
-                    "progress went backwards: {seen:?} then {p:?}"
-                );
-                last_sent = p.bytes_sent;
-            }
-            let end = matches!(
-                kind,
-                Kind::Completed(_) | Kind::Failed(_) | Kind::Cancelled(_)
-            );
-            seen.push(kind);
-            if end {
-                return;
-            }
-        }
-    })
-    .await
-    .unwrap_or_else(|_| panic!("job {job} did not end within {within:?}: {seen:?}"));
-    seen
 }
 
 fn program(size: usize, seed: u32) -> Vec<u8> {

@@ -13,7 +13,7 @@ use cellgate::config::CellConfig;
 use cellgate::fanuc::tape::{self, TapeCode};
 use cellgate::pb;
 use cellgate::pb::job_event::Kind;
-use common::bus::{RunningCell, Sub, get, get_one};
+use common::bus::{RunningCell, Sub, follow, get, get_one};
 use prost::Message;
 use sha2::{Digest, Sha256};
 
@@ -80,31 +80,6 @@ async fn next<M: Message + Default>(sub: &Sub, what: &str) -> M {
         .unwrap_or_else(|_| panic!("no {what} within 30 s"))
         .unwrap();
     M::decode(sample.payload().to_bytes().as_ref()).unwrap()
-}
-
-/// The job's events until it ends.
-async fn follow(events: &Sub, job: &str) -> Vec<Kind> {
-    let mut seen = Vec::new();
-    tokio::time::timeout(Duration::from_secs(60), async {
-        loop {
-            let ev: pb::JobEvent = next(events, "job event").await;
-            if ev.job_id != job {
-                continue;
-            }
-            let kind = ev.kind.unwrap();
-            let end = matches!(
-                kind,
-                Kind::Completed(_) | Kind::Failed(_) | Kind::Cancelled(_)
-            );
-            seen.push(kind);
-            if end {
-                return;
-            }
-        }
-    })
-    .await
-    .unwrap_or_else(|_| panic!("job {job} did not end: {seen:?}"));
-    seen
 }
 
 const PART: &[u8] = b"%\nO1234(SHAFT 7)\nG00X10.Y2.5\nG01Z-1.F100\nM30\n%";
@@ -207,7 +182,7 @@ async fn a_remote_request_queues_the_library_program() {
     assert!(!r.job_id.is_empty());
     assert!(p.library_name.is_empty(), "a request is not stored");
     // The job runs to the end, and the CNC gets the program byte for byte.
-    let seen = follow(&jobs, &r.job_id).await;
+    let seen = follow(&jobs, &r.job_id, Duration::from_secs(60)).await;
     match seen.last() {
         Some(Kind::Completed(c)) => assert_eq!(c.bytes_sent, program.len() as u64),
         other => panic!("the requested job ended with {other:?}"),
@@ -284,7 +259,7 @@ async fn a_cnc_alarm_mid_transfer_fails_the_job_with_its_offset() {
         .await
         .expect("the transfer got under way");
         cell.board(machine).raise_alarm();
-        let seen = follow(&events, &job).await;
+        let seen = follow(&events, &job, Duration::from_secs(60)).await;
         match seen.last() {
             Some(Kind::Failed(f)) => {
                 assert!(

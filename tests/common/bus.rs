@@ -213,3 +213,38 @@ impl RunningCell {
         (accepted.job_id, events)
     }
 }
+
+/// The job's events until it ends, checking that progress never goes backwards.
+pub async fn follow(events: &Sub, job: &str, within: Duration) -> Vec<pb::job_event::Kind> {
+    use pb::job_event::Kind;
+    let mut seen = Vec::new();
+    let mut last_sent = 0;
+    tokio::time::timeout(within, async {
+        loop {
+            let sample = events.recv_async().await.unwrap();
+            let ev = pb::JobEvent::decode(sample.payload().to_bytes().as_ref()).unwrap();
+            if ev.job_id != job {
+                continue;
+            }
+            let kind = ev.kind.unwrap();
+            if let Kind::Progress(p) = &kind {
+                assert!(
+                    p.bytes_sent >= last_sent,
+                    "progress went backwards: {seen:?} then {p:?}"
+                );
+                last_sent = p.bytes_sent;
+            }
+            let end = matches!(
+                kind,
+                Kind::Completed(_) | Kind::Failed(_) | Kind::Cancelled(_)
+            );
+            seen.push(kind);
+            if end {
+                return;
+            }
+        }
+    })
+    .await
+    .unwrap_or_else(|_| panic!("job {job} did not end within {within:?}: {seen:?}"));
+    seen
+}
