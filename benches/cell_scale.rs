@@ -18,9 +18,11 @@ use cellgate::bus::keys::{CellKeys, MachineLeaf};
 use cellgate::bus::{self, MachineLink};
 use cellgate::cell::Cell;
 use cellgate::config::CellConfig;
+use cellgate::engine::Engine;
+use cellgate::fanuc::host::{EngineCommand, HostEngine};
 use cellgate::fanuc::message::Framing;
 use cellgate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
-use cellgate::link::{Engine, EngineCommand, HostEngine, driver};
+use cellgate::link::driver;
 use cellgate::pb;
 use cellgate::sim::{BoardHandle, fanuc_board::BoardConfig};
 use cellgate::transport::{LineError, LineSettings, ModemIn, ModemOut, sim};
@@ -35,7 +37,7 @@ struct Timed {
 
 impl Engine for Timed {
     type Command = EngineCommand;
-    type Event = cellgate::link::EngineEvent;
+    type Event = cellgate::fanuc::host::EngineEvent;
     fn handle_input(&mut self, now: Instant, bytes: &[u8]) {
         self.inner.handle_input(now, bytes)
     }

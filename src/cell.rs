@@ -38,10 +38,24 @@ pub enum CellError {
         #[source]
         source: TransportError,
     },
-    #[error("machine {machine}: {error}")]
-    Engine { machine: String, error: String },
-    #[error("machine {machine}: simulated board: {error}")]
-    Board { machine: String, error: String },
+    #[error("machine {machine}: {source}")]
+    ProtocolA {
+        machine: String,
+        #[source]
+        source: crate::fanuc::protocol_a::InvalidConfig,
+    },
+    #[error("machine {machine}: {source}")]
+    ProtocolB {
+        machine: String,
+        #[source]
+        source: crate::fanuc::protocol_b::InvalidConfig,
+    },
+    #[error("machine {machine}: simulated board: {source}")]
+    Board {
+        machine: String,
+        #[source]
+        source: crate::sim::SimError,
+    },
 }
 
 /// The links of a cell, running.
@@ -112,9 +126,9 @@ impl Cell {
                 let (host, device, control) = crate::transport::sim::line(*line);
                 let handle =
                     sim::BoardHandle::spawn(machine_board_config(machine, framing), device)
-                        .map_err(|e| CellError::Board {
+                        .map_err(|source| CellError::Board {
                             machine: name.clone(),
-                            error: e.to_string(),
+                            source,
                         })?;
                 board = Some(handle);
                 sim_line = Some(control);
@@ -126,9 +140,9 @@ impl Cell {
             machine.code,
             machine.effective_notify_alarm_reset(),
         ) {
-            let engine = ProtocolBHost::new(b, now()).map_err(|e| CellError::Engine {
+            let engine = ProtocolBHost::new(b, now()).map_err(|source| CellError::ProtocolB {
                 machine: name.clone(),
-                error: e.to_string(),
+                source,
             })?;
             driver::spawn(name.clone(), engine, transport, shutdown.clone())
         } else {
@@ -142,9 +156,9 @@ impl Cell {
                 },
                 now(),
             )
-            .map_err(|e| CellError::Engine {
+            .map_err(|source| CellError::ProtocolA {
                 machine: name.clone(),
-                error: e.to_string(),
+                source,
             })?;
             driver::spawn(name.clone(), engine, transport, shutdown.clone())
         };

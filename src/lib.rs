@@ -29,7 +29,9 @@
 pub mod bus;
 pub mod cell;
 pub mod client;
+pub mod codes;
 pub mod config;
+pub mod engine;
 pub mod fanuc;
 pub mod gateway;
 pub mod jobs;

@@ -11,9 +11,10 @@ use std::time::Duration;
 use cellgate::bus::keys::{CellKeys, MachineLeaf};
 use cellgate::bus::{self, MachineLink};
 use cellgate::config::CellConfig;
-use cellgate::fanuc::alarm::CncAlarm;
+use cellgate::fanuc::error::{LinkAlarm, ProtocolError};
+use cellgate::fanuc::host::LinkState;
+use cellgate::fanuc::message::{Command, FrameError};
 use cellgate::fanuc::sat::{BufferStatus, Params, StatusData};
-use cellgate::link::LinkState;
 use cellgate::link::driver::{LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use cellgate::pb;
 use cellgate::pb::job_event::Kind;
@@ -828,10 +829,8 @@ async fn link_alarms_appear_on_the_alarm_key() {
         .await
         .unwrap();
     cell.wait_subscribed(&alarm_key).await;
-    cell.mill.emit(LinkEvent::Alarm {
-        alarm: Some(CncAlarm::Sr0945RetryOver),
-        error: "RTY answered 10 times (Ne)".to_string(),
-    });
+    cell.mill
+        .emit(LinkEvent::Alarm(LinkAlarm::RetryOver { count: 10, ne: 9 }));
     let s = next_sample(&sub).await;
     assert_eq!(
         s.encoding().to_string(),
@@ -841,7 +840,7 @@ async fn link_alarms_appear_on_the_alarm_key() {
     assert_eq!(a.kind(), pb::AlarmKind::LinkAlarm);
     assert_eq!(a.alarm_number, "SR0945");
     assert_eq!(a.machine, MILL);
-    assert!(a.message.contains("RTY answered 10 times"), "{}", a.message);
+    assert!(a.message.contains("10 retries > Ne = 9"), "{}", a.message);
     cell.mill.emit(LinkEvent::CncReset);
     let a = pb::AlarmEvent::decode(next_sample(&sub).await.payload().to_bytes().as_ref()).unwrap();
     assert_eq!(a.kind(), pb::AlarmKind::CncReset);
@@ -885,11 +884,21 @@ async fn status_is_published_on_change_and_answered_on_get() {
         },
     });
     cell.mill.emit(LinkEvent::ProtocolError {
-        error: "checksum error in DAT".to_string(),
+        error: ProtocolError::ChecksumRetry {
+            error: FrameError::Checksum {
+                received: 0x12,
+                computed: 0x13,
+            },
+            count: 1,
+            ne: 3,
+        },
         retried: true,
     });
     cell.mill.emit(LinkEvent::ProtocolError {
-        error: "unexpected command".to_string(),
+        error: ProtocolError::Unexpected {
+            command: Command::Gtd,
+            context: "in a test",
+        },
         retried: false,
     });
     // Published on change: the last publication carries all three.

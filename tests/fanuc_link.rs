@@ -66,7 +66,7 @@ async fn wait_ready(events: &mut tokio::sync::broadcast::Receiver<LinkEvent>) {
         matches!(
             ev,
             LinkEvent::State {
-                state: cellgate::link::LinkState::Ready
+                state: cellgate::fanuc::host::LinkState::Ready
             }
         )
         .then_some(())
@@ -220,7 +220,7 @@ async fn retry_over_raises_alarm_cause_1_and_sr0945() {
     assert_eq!(cause, AlarmCause::ChecksumRetryOver);
     // With the line clean again, the host reads the alarm from the next SAT and reports it.
     let reported = next_event(&mut events, HOUR, |ev| match ev {
-        LinkEvent::Alarm { alarm: Some(a), .. } => Some(*a),
+        LinkEvent::Alarm(a) => a.cnc_alarm(),
         _ => None,
     })
     .await;

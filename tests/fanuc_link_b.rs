@@ -7,13 +7,14 @@ mod common;
 
 use std::time::Duration;
 
+use cellgate::engine::Engine;
 use cellgate::fanuc::alarm::CncAlarm;
+use cellgate::fanuc::host::EngineEvent;
 use cellgate::fanuc::message::Framing;
 use cellgate::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
 use cellgate::fanuc::{CodeSystem, EndCode, Protocol};
 use cellgate::link::driver::{self, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use cellgate::link::pump::{Pump, PumpError, now};
-use cellgate::link::{Engine, EngineEvent};
 use cellgate::sim::fanuc_board::protocol_b::overrun_allowance;
 use cellgate::sim::{BoardConfig, BoardEvent, BoardHandle, BoardSnapshot, ControlCode};
 use cellgate::transport::sim::{self, SimPort};
@@ -57,7 +58,7 @@ struct Rig {
     board: BoardHandle,
     link: LinkHandle,
     token: CancellationToken,
-    task: JoinHandle<Result<(), PumpError>>,
+    task: JoinHandle<Result<(), std::sync::Arc<PumpError>>>,
 }
 
 impl Rig {
@@ -357,10 +358,7 @@ async fn alarm_mid_transfer(notify: bool) {
             notice = true;
             None
         }
-        LinkEvent::Alarm {
-            alarm: Some(CncAlarm::Sr0855DataSetReadyDown),
-            ..
-        } => {
+        LinkEvent::Alarm(a) if a.cnc_alarm() == Some(CncAlarm::Sr0855DataSetReadyDown) => {
             dr_off = true;
             None
         }

@@ -5,13 +5,14 @@
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
+use cellgate::engine::Engine;
 use cellgate::fanuc::alarm::CncAlarm;
+use cellgate::fanuc::host::{EngineCommand, EngineEvent, HostEngine, LinkState};
 use cellgate::fanuc::message::{Command, Decoder, Framing, Message};
 use cellgate::fanuc::packet::{DUMMY_PACKET, END_PACKET, Monitor, decode_data_packet};
 use cellgate::fanuc::protocol_a::{PAD, ProtocolAConfig, ProtocolAHost};
 use cellgate::fanuc::sat::{AlarmCause, BufferStatus, Params, StatusData};
 use cellgate::fanuc::{CodeSystem, EndCode};
-use cellgate::link::{Engine, EngineCommand, EngineEvent, HostEngine, LinkState};
 use cellgate::transport::{LineError, ModemIn};
 
 const SEC: Duration = Duration::from_secs(1);
@@ -227,7 +228,9 @@ fn aborted(events: &[EngineEvent]) -> Vec<(String, bool)> {
     events
         .iter()
         .filter_map(|e| match e {
-            EngineEvent::ProgramAborted { reason, cancelled } => Some((reason.clone(), *cancelled)),
+            EngineEvent::ProgramAborted { reason, cancelled } => {
+                Some((reason.to_string(), *cancelled))
+            }
             _ => None,
         })
         .collect()
@@ -237,7 +240,7 @@ fn protocol_errors(events: &[EngineEvent]) -> Vec<String> {
     events
         .iter()
         .filter_map(|e| match e {
-            EngineEvent::ProtocolError { error, .. } => Some(error.clone()),
+            EngineEvent::ProtocolError { error, .. } => Some(error.to_string()),
             _ => None,
         })
         .collect()
@@ -247,7 +250,7 @@ fn alarms(events: &[EngineEvent]) -> Vec<(Option<CncAlarm>, String)> {
     events
         .iter()
         .filter_map(|e| match e {
-            EngineEvent::Alarm { alarm, error } => Some((*alarm, error.clone())),
+            EngineEvent::Alarm(alarm) => Some((alarm.cnc_alarm(), alarm.to_string())),
             _ => None,
         })
         .collect()
@@ -642,7 +645,7 @@ fn checksum_error_is_answered_with_rty_1() {
     assert_eq!(b.answer(), Message::with_data(Command::Rty, b"1".to_vec()));
     let ev = b.take_events();
     assert!(
-        matches!(&ev[0], EngineEvent::ProtocolError { retried: true, error } if error.contains("checksum"))
+        matches!(&ev[0], EngineEvent::ProtocolError { retried: true, error } if error.is_checksum())
     );
     // The board sends it again, correctly.
     assert_eq!(

@@ -4,12 +4,12 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
+use cellgate::engine::Engine;
 use cellgate::fanuc::alarm::CncAlarm;
 use cellgate::fanuc::message::{Command, Framing, Message};
 use cellgate::fanuc::packet::{self, Monitor};
 use cellgate::fanuc::sat::{AlarmCause, BufferStatus, Params, StatusData};
 use cellgate::fanuc::{CodeSystem, EndCode, Protocol};
-use cellgate::link::Engine;
 use cellgate::sim::{
     BoardCommand, BoardConfig, BoardEvent, BoardLinkState, FanucBoard, ReceivedProgram,
 };
@@ -1196,7 +1196,7 @@ mod cell {
         line: SimLine,
         events: broadcast::Receiver<LinkEvent>,
         shutdown: CancellationToken,
-        task: tokio::task::JoinHandle<Result<(), cellgate::link::pump::PumpError>>,
+        task: tokio::task::JoinHandle<Result<(), std::sync::Arc<cellgate::link::pump::PumpError>>>,
     }
 
     impl Cell {
@@ -1247,7 +1247,9 @@ mod cell {
             loop {
                 match self.events.recv().await.unwrap() {
                     LinkEvent::JobDone { job, bytes } if job == id => return Ok(bytes),
-                    LinkEvent::JobFailed { job, reason, .. } if job == id => return Err(reason),
+                    LinkEvent::JobFailed { job, reason, .. } if job == id => {
+                        return Err(reason.to_string());
+                    }
                     _ => {}
                 }
             }

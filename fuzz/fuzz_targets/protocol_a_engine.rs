@@ -9,7 +9,8 @@ use bytes::Bytes;
 use cellgate::fanuc::message::{Framing, MAX_FRAME};
 use cellgate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
 use cellgate::fanuc::{CodeSystem, EndCode};
-use cellgate::link::{Engine, EngineCommand, HostEngine};
+use cellgate::engine::Engine;
+use cellgate::fanuc::host::{EngineCommand, HostEngine};
 use cellgate::transport::{LineError, ModemIn};
 use libfuzzer_sys::fuzz_target;
 

@@ -9,7 +9,8 @@ use std::time::Instant;
 use bytes::Bytes;
 use cellgate::fanuc::CodeSystem;
 use cellgate::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
-use cellgate::link::{Engine, EngineCommand, HostEngine};
+use cellgate::engine::Engine;
+use cellgate::fanuc::host::{EngineCommand, HostEngine};
 use cellgate::transport::{LineError, ModemIn};
 use libfuzzer_sys::fuzz_target;
 

@@ -17,8 +17,8 @@ use super::keys::CellKeys;
 use super::payload::{self, BusMessage, encoding};
 use super::punch::{Outcome, PunchDesk, PunchSettings};
 use crate::config::MachineConfig;
+use crate::fanuc::host::LinkState;
 use crate::jobs::{self, JobsHandle, JobsSnapshot};
-use crate::link::LinkState;
 use crate::link::driver::{LinkCommand, LinkEvent, LinkHandle};
 use crate::pb;
 
@@ -134,17 +134,18 @@ impl Machine {
                 if *retried {
                     c.retries += 1;
                 }
-                if error.to_ascii_lowercase().contains("checksum") {
+                if error.is_checksum() {
                     c.checksum_errors += 1;
                 }
                 None
             }
-            LinkEvent::Alarm { alarm, error } => {
+            LinkEvent::Alarm(error) => {
                 Self::counters(&mut view).link_alarms += 1;
                 view.status.link_state = pb::LinkState::Alarm as i32;
+                let alarm = error.cnc_alarm();
                 let message = match alarm {
                     Some(a) => format!("{}: {error}", a.message()),
-                    None => error.clone(),
+                    None => error.to_string(),
                 };
                 let event = self.alarm_event(
                     pb::AlarmKind::LinkAlarm,

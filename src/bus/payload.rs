@@ -5,8 +5,8 @@
 use zenoh::bytes::Encoding;
 
 use crate::fanuc::Protocol;
+use crate::fanuc::host::LinkState;
 use crate::fanuc::sat::{AlarmCause, BufferStatus, StatusData};
-use crate::link::LinkState;
 use crate::pb;
 
 /// A message of the bus contract, with the full name that goes in its encoding's schema.

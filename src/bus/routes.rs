@@ -37,6 +37,7 @@ use super::keys::{CellKey, CellKeys, MachineLeaf, intersects, is_plain_chunk};
 use super::machine::{self, Machine};
 use super::payload::{BusMessage, encoding, error_reply};
 use super::punch::PunchSettings;
+use crate::codes::BusCode;
 use crate::config::{CellConfig, MachineConfig};
 use crate::jobs::library::ProgramLibrary;
 use crate::jobs::source::ProgramInput;

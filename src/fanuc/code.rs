@@ -19,6 +19,18 @@ pub const CAN: u8 = 0x18;
 /// End of record: an NC program ends at `%` (§4.4.2 3, §8.2; protocol notes 8).
 pub const EOR: u8 = b'%';
 
+/// Whether `b` is a significant character of a tape (protocol notes 8): anything but feed
+/// (NUL), delete, blank, tab and line ends, with or without the ISO parity bit. The first `%`
+/// before any significant character is the tape-start mark; the next one is EOR.
+pub const fn is_significant(b: u8) -> bool {
+    !matches!(b & 0x7F, 0x00 | 0x7F | b' ' | b'\t' | LF | CR)
+}
+
+/// Whether `b` is EOR `%`, with or without the ISO parity bit (A5h).
+pub const fn is_eor(b: u8) -> bool {
+    b & 0x7F == EOR
+}
+
 /// `b` (7-bit) with bit 7 set where needed for even parity over all 8 bits.
 pub const fn with_even_parity(b: u8) -> u8 {
     let b = b & 0x7F;

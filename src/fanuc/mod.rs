@@ -1,10 +1,17 @@
 //! FANUC remote buffer (B-63322EN-1): the host computer's side of Protocol A, Expansion
 //! Protocol A, Protocol B and Expansion Protocol B.
 //!
-//! - [`code`]: ISO / ASCII character codes and the control codes (§4.2, §6.2);
+//! Everything here is sans-IO: it imports [`crate::engine`] and its own codecs, and nothing
+//! of the async runtime, the link drivers or the transports.
+//!
+//! - [`code`]: ISO / ASCII character codes, the control codes, significant characters and EOR
+//!   (§4.2, §6.2; protocol notes 8);
 //! - [`message`]: Protocol A message framing: checksum, command, data part, end code (§4.1);
 //! - [`sat`]: the SAT/SET data part and the remote-buffer parameters Nb..Tw (§4.4.2, §4.5);
 //! - [`packet`]: Expansion Protocol A data packets and monitor packets (§5.2, §5.3);
+//! - [`program`]: the program being sent, a bounded window of it up to its EOR (§8.2);
+//! - [`host`]: the host engines' contract: commands, events, [`host::HostEngine`];
+//! - [`error`]: protocol errors, link alarms and abort reasons, typed (§4.6, §6.4, §11);
 //! - [`protocol_a`]: the sans-IO host engine for Protocol A and Expansion Protocol A (§4, §5);
 //! - [`protocol_b`]: the sans-IO host engine for Protocol B and Expansion Protocol B (§6, §7);
 //! - [`tape`]: punch codes ISO / ASCII / EIA, conversion and recognition (§10 0000#2, #4);
@@ -12,8 +19,11 @@
 
 pub mod alarm;
 pub mod code;
+pub mod error;
+pub mod host;
 pub mod message;
 pub mod packet;
+pub mod program;
 pub mod protocol_a;
 pub mod protocol_b;
 pub mod sat;

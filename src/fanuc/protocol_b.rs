@@ -64,12 +64,12 @@ use std::time::Instant;
 
 use bytes::Bytes;
 
-use crate::fanuc::alarm::CncAlarm;
-use crate::fanuc::code::{DC1, DC2, DC3, DC4, EOR, NAK, SYN};
-use crate::fanuc::protocol_a::program::Program;
+use crate::engine::{Engine, LineError, ModemIn, ModemOut};
+use crate::fanuc::code::{DC1, DC2, DC3, DC4, EOR, NAK, SYN, is_significant};
+use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
+use crate::fanuc::host::{EngineCommand, EngineEvent, HostEngine, LinkState};
+use crate::fanuc::program::Program;
 use crate::fanuc::{CodeSystem, Protocol};
-use crate::link::{Engine, EngineCommand, EngineEvent, HostEngine, LinkState};
-use crate::transport::{LineError, ModemIn, ModemOut};
 
 /// Overrun allowance after DC3 in Protocol B (§6.3: "less than 512 characters").
 pub const OVERRUN_B: usize = 512;
@@ -212,13 +212,6 @@ fn join(problems: &[ConfigProblem]) -> String {
         .join("; ")
 }
 
-/// Why the current program was abandoned (the `reason` of [`EngineEvent::ProgramAborted`]).
-const REASON_RESET: &str = "CNC reset (SYN, §6.1.2)";
-const REASON_ALARM: &str = "CNC alarm (NAK, §6.1.2)";
-const REASON_CANCELLED: &str = "cancelled";
-const REASON_REPLACED: &str = "replaced by a new program";
-const REASON_DR_OFF: &str = "data set ready (DR) went off (SR0855)";
-
 /// What the board is doing on its side of the line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Rx {
@@ -322,7 +315,7 @@ impl ProtocolBHost {
         self.events.push_back(event);
     }
 
-    fn protocol_error(&mut self, error: String) {
+    fn protocol_error(&mut self, error: ProtocolError) {
         tracing::debug!(%error, "Protocol B");
         self.emit(EngineEvent::ProtocolError {
             error,
@@ -352,16 +345,13 @@ impl ProtocolBHost {
 
     /// Abandons the current program. One the board has part of ends its read request: the
     /// next program waits for a new one.
-    fn abort_program(&mut self, reason: &str, cancelled: bool) {
+    fn abort_program(&mut self, reason: AbortReason, cancelled: bool) {
         if let Some(p) = self.program.take() {
-            tracing::info!(sent = p.sent, reason, "program aborted");
+            tracing::info!(sent = p.sent, %reason, "program aborted");
             if p.sent > 0 {
                 self.await_next_read = true;
             }
-            self.emit(EngineEvent::ProgramAborted {
-                reason: reason.to_owned(),
-                cancelled,
-            });
+            self.emit(EngineEvent::ProgramAborted { reason, cancelled });
         }
     }
 
@@ -374,7 +364,12 @@ impl ProtocolBHost {
         });
         self.flowing = false;
         if self.program_started() {
-            self.abort_program(if reset { REASON_RESET } else { REASON_ALARM }, false);
+            let reason = if reset {
+                AbortReason::ResetNotice
+            } else {
+                AbortReason::AlarmNotice
+            };
+            self.abort_program(reason, false);
         }
         // The read is over; the board asks again with DC1.
         self.await_next_read = false;
@@ -436,7 +431,7 @@ impl ProtocolBHost {
         let eor = c == EOR && self.punch_body;
         if c == EOR {
             self.punch_body = false;
-        } else if !matches!(c, 0x00 | 0x7F | b' ' | b'\t' | b'\n' | b'\r') {
+        } else if is_significant(c) {
             self.punch_body = true;
         }
         if eor || self.punch.len() >= self.cfg.punch_piece {
@@ -493,14 +488,13 @@ impl Engine for ProtocolBHost {
             }
         }
         if garbage > 0 {
-            self.protocol_error(format!(
-                "{garbage} received byte(s) starting with {first_garbage:#04x} are not Protocol B control codes (§6.2); ignored"
-            ));
+            self.protocol_error(ProtocolError::NotControlCodes {
+                count: garbage,
+                first: first_garbage,
+            });
         }
         if dropped > 0 {
-            self.protocol_error(format!(
-                "punch-out overflow: {dropped} punched byte(s) dropped; the board did not stop within the overrun after DC3 (§6.3) or the punched data is not being taken"
-            ));
+            self.protocol_error(ProtocolError::PunchOverflow { dropped });
         }
         self.update_state();
     }
@@ -509,12 +503,10 @@ impl Engine for ProtocolBHost {
         if !self.line_up {
             return;
         }
-        let during = if self.rx == Rx::Punch {
-            "; a punched character was lost"
-        } else {
-            ""
-        };
-        self.protocol_error(format!("line error on a Protocol B line: {error}{during}"));
+        self.protocol_error(ProtocolError::LineB {
+            error,
+            punching: self.rx == Rx::Punch,
+        });
     }
 
     fn handle_modem(&mut self, _now: Instant, modem: ModemIn) {
@@ -522,12 +514,9 @@ impl Engine for ProtocolBHost {
         let up = modem.dr && modem.cd;
         if !up && self.line_up {
             self.line_up = false;
-            self.emit(EngineEvent::Alarm {
-                alarm: Some(CncAlarm::Sr0855DataSetReadyDown),
-                error: "data set ready (DR) went off on a Protocol B line (§6.4 (1))".into(),
-            });
+            self.emit(EngineEvent::Alarm(LinkAlarm::DataSetReadyOffB));
             if self.program_started() {
-                self.abort_program(REASON_DR_OFF, false);
+                self.abort_program(AbortReason::Link(LinkAlarm::DataSetReadyOffB), false);
             }
             self.flowing = false;
             self.await_next_read = false;
@@ -535,9 +524,7 @@ impl Engine for ProtocolBHost {
             if self.rx == Rx::Punch && !self.punch.is_empty() {
                 let lost = self.punch.len();
                 self.punch.clear();
-                self.protocol_error(format!(
-                    "punch-out cut off by DR off: {lost} punched byte(s) without DC4 discarded"
-                ));
+                self.protocol_error(ProtocolError::PunchCutOff { lost });
             }
             self.rx = Rx::Control;
             self.punch_paused = false;
@@ -551,7 +538,7 @@ impl Engine for ProtocolBHost {
     fn handle_command(&mut self, _now: Instant, command: EngineCommand) {
         match command {
             EngineCommand::StartProgram { total } => {
-                self.abort_program(REASON_REPLACED, false);
+                self.abort_program(AbortReason::Replaced, false);
                 tracing::debug!(?total, "program queued");
                 self.program = Some(Program::new());
             }
@@ -559,26 +546,26 @@ impl Engine for ProtocolBHost {
                 Some(p) => {
                     // Every byte can travel in Protocol B (§8.1): nothing is forbidden.
                     if let Err(e) = p.push(&data, None) {
-                        self.abort_program(&e.to_string(), false);
+                        self.abort_program(AbortReason::Program(e), false);
                     }
                 }
                 None => tracing::trace!(len = data.len(), "program data without a program"),
             },
             EngineCommand::ProgramEnd => {
                 if let Some(Err(e)) = self.program.as_mut().map(Program::end) {
-                    self.abort_program(&e.to_string(), false);
+                    self.abort_program(AbortReason::Program(e), false);
                 }
             }
-            EngineCommand::Cancel => self.abort_program(REASON_CANCELLED, true),
-            EngineCommand::SetDo(_) => {
-                self.protocol_error("DO output (SDO) is not available in Protocol B (§6)".into())
-            }
-            EngineCommand::ReadDi => {
-                self.protocol_error("DI input (RDI) is not available in Protocol B (§6)".into())
-            }
-            EngineCommand::ClearBuffer => self.protocol_error(
-                "clearing the board's buffer (CLB) is not available in Protocol B (§6)".into(),
-            ),
+            EngineCommand::Cancel => self.abort_program(AbortReason::Cancelled, true),
+            EngineCommand::SetDo(_) => self.protocol_error(ProtocolError::NotInProtocolB {
+                what: "DO output (SDO)",
+            }),
+            EngineCommand::ReadDi => self.protocol_error(ProtocolError::NotInProtocolB {
+                what: "DI input (RDI)",
+            }),
+            EngineCommand::ClearBuffer => self.protocol_error(ProtocolError::NotInProtocolB {
+                what: "clearing the board's buffer (CLB)",
+            }),
         }
         self.update_state();
     }
@@ -649,6 +636,7 @@ impl HostEngine for ProtocolBHost {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::fanuc::alarm::CncAlarm;
     use proptest::prelude::*;
 
     fn host(code: CodeSystem, expansion: bool, notify: bool) -> (ProtocolBHost, Instant) {
@@ -847,7 +835,7 @@ mod tests {
                 vec![
                     EngineEvent::CncReset,
                     EngineEvent::ProgramAborted {
-                        reason: REASON_RESET.into(),
+                        reason: AbortReason::ResetNotice,
                         cancelled: false
                     },
                     EngineEvent::State(LinkState::Ready),
@@ -873,7 +861,7 @@ mod tests {
         let evs = events(&mut h);
         assert_eq!(evs.first(), Some(&EngineEvent::CncAlarm));
         assert!(evs.contains(&EngineEvent::ProgramAborted {
-            reason: REASON_ALARM.into(),
+            reason: AbortReason::AlarmNotice,
             cancelled: false
         }));
         // Idle notice (§6.1.2 1): a queued, unstarted program stays queued.
@@ -970,7 +958,10 @@ mod tests {
         let evs = events(&mut h);
         assert!(evs.iter().any(|e| matches!(
             e,
-            EngineEvent::ProtocolError { error, .. } if error.contains("10 punched byte(s) dropped")
+            EngineEvent::ProtocolError {
+                error: ProtocolError::PunchOverflow { dropped: 10 },
+                ..
+            }
         )));
     }
 
@@ -984,7 +975,7 @@ mod tests {
         h.handle_command(now, EngineCommand::Cancel);
         assert_eq!(h.poll_transmit(now), None);
         assert!(events(&mut h).contains(&EngineEvent::ProgramAborted {
-            reason: REASON_CANCELLED.into(),
+            reason: AbortReason::Cancelled,
             cancelled: true
         }));
         load(&mut h, now, &program(5));
@@ -1005,8 +996,10 @@ mod tests {
             let evs = events(&mut h);
             assert!(matches!(
                 evs.as_slice(),
-                [EngineEvent::ProtocolError { error, retried: false }]
-                    if error.contains("not available in Protocol B (§6)")
+                [EngineEvent::ProtocolError {
+                    error: ProtocolError::NotInProtocolB { .. },
+                    retried: false
+                }]
             ));
         }
         assert_eq!(h.poll_transmit(now), None);
@@ -1027,13 +1020,10 @@ mod tests {
         let evs = events(&mut h);
         assert!(matches!(
             evs.first(),
-            Some(EngineEvent::Alarm {
-                alarm: Some(CncAlarm::Sr0855DataSetReadyDown),
-                ..
-            })
+            Some(EngineEvent::Alarm(a)) if a.cnc_alarm() == Some(CncAlarm::Sr0855DataSetReadyDown)
         ));
         assert!(evs.contains(&EngineEvent::ProgramAborted {
-            reason: REASON_DR_OFF.into(),
+            reason: AbortReason::Link(LinkAlarm::DataSetReadyOffB),
             cancelled: false
         }));
         assert_eq!(evs.last(), Some(&EngineEvent::State(LinkState::LineDown)));
@@ -1070,7 +1060,13 @@ mod tests {
         let evs = events(&mut h);
         assert!(matches!(
             evs.as_slice(),
-            [EngineEvent::ProtocolError { error, .. }] if error.starts_with("5 received byte(s) starting with 0x68")
+            [EngineEvent::ProtocolError {
+                error: ProtocolError::NotControlCodes {
+                    count: 5,
+                    first: 0x68
+                },
+                ..
+            }]
         ));
         h.handle_line_error(now, LineError::Parity);
         assert_eq!(events(&mut h).len(), 1);

@@ -41,20 +41,6 @@ pub enum LibraryError {
     },
 }
 
-impl LibraryError {
-    /// The bus error code for this error.
-    pub fn code(&self) -> crate::pb::ErrorCode {
-        use crate::pb::ErrorCode;
-        match self {
-            LibraryError::NotFound { .. } => ErrorCode::NotFound,
-            LibraryError::InvalidName { .. }
-            | LibraryError::TooLarge { .. }
-            | LibraryError::Exists { .. } => ErrorCode::InvalidRequest,
-            LibraryError::Io { .. } => ErrorCode::Internal,
-        }
-    }
-}
-
 /// One stored program.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ProgramEntry {

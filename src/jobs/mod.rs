@@ -36,10 +36,13 @@ use tokio::sync::{broadcast, mpsc, oneshot, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
+use crate::codes::BusCode;
 use crate::config::MachineConfig;
 use crate::fanuc::alarm::CncAlarm;
 use crate::link::JobId;
-use crate::link::driver::{LinkCommand, LinkEvent, LinkHandle, ProgramJob, ProgramSource};
+use crate::link::driver::{
+    JobFailure, LinkCommand, LinkEvent, LinkHandle, ProgramJob, ProgramSource,
+};
 use crate::pb;
 use crate::pb::job_event::Kind;
 use library::{LibraryError, ProgramLibrary};
@@ -88,19 +91,6 @@ pub enum JobError {
     LinkStopped { machine: String },
     #[error("machine {machine}: the job manager has stopped (gateway shutting down)")]
     Stopped { machine: String },
-}
-
-impl JobError {
-    /// The bus error code for this error.
-    pub fn code(&self) -> pb::ErrorCode {
-        match self {
-            JobError::Program { .. } => pb::ErrorCode::InvalidRequest,
-            JobError::Library { error, .. } => error.code(),
-            JobError::QueueFull { .. } => pb::ErrorCode::QueueFull,
-            JobError::UnknownJob { .. } => pb::ErrorCode::NotFound,
-            JobError::LinkStopped { .. } | JobError::Stopped { .. } => pb::ErrorCode::Unavailable,
-        }
-    }
 }
 
 /// What a cancellation did.
@@ -379,7 +369,6 @@ struct Active {
     cancel_requested: bool,
     /// The link alarm (with its CNC number) seen while this job ran.
     alarm: Option<CncAlarm>,
-    cnc_alarm: bool,
     cnc_reset: bool,
 }
 
@@ -601,7 +590,6 @@ impl Manager {
             shaper: ProgressShaper::new(now, Some(job.size)),
             cancel_requested: false,
             alarm: None,
-            cnc_alarm: false,
             cnc_reset: false,
         };
         let command = LinkCommand::Queue(ProgramJob {
@@ -647,14 +635,9 @@ impl Manager {
                 };
                 self.link_gone(&why);
             }
-            LinkEvent::Alarm { alarm, .. } => {
+            LinkEvent::Alarm(alarm) => {
                 if let Some(active) = self.active.as_mut() {
-                    active.alarm = alarm.or(active.alarm);
-                }
-            }
-            LinkEvent::CncAlarm => {
-                if let Some(active) = self.active.as_mut() {
-                    active.cnc_alarm = true;
+                    active.alarm = alarm.cnc_alarm().or(active.alarm);
                 }
             }
             LinkEvent::CncReset => {
@@ -730,7 +713,8 @@ impl Manager {
                     return;
                 };
                 self.totals.nc_bytes_sent += offset.saturating_sub(published_bytes(&active));
-                if active.cnc_reset || active.cancel_requested {
+                let reset = matches!(&reason, JobFailure::Aborted(r) if r.is_reset());
+                if active.cnc_reset || reset || active.cancel_requested {
                     // A CNC reset abandons the program: the proto counts that as a
                     // cancellation, as it does one the request asked for.
                     let by = if active.cancel_requested {
@@ -748,22 +732,15 @@ impl Manager {
                     return;
                 }
                 self.totals.jobs_failed += 1;
-                let code = if active.cnc_alarm && active.alarm.is_none() {
-                    pb::ErrorCode::CncAlarm
-                } else {
-                    pb::ErrorCode::LinkFailed
-                };
                 tracing::warn!(job = %active.id, offset, %reason, "job failed");
+                let alarm = active.alarm.or(reason.cnc_alarm());
                 self.emit(
                     &active.id,
                     Kind::Failed(pb::job_event::Failed {
-                        reason,
+                        reason: reason.to_string(),
                         byte_offset: offset,
-                        alarm_number: active
-                            .alarm
-                            .map(|a| a.number().to_string())
-                            .unwrap_or_default(),
-                        code: code as i32,
+                        alarm_number: alarm.map(|a| a.number().to_string()).unwrap_or_default(),
+                        code: reason.code() as i32,
                     }),
                 );
             }

@@ -43,8 +43,7 @@
 //! [`PunchError::Unterminated`] and does not hand it out: the CNC sends a program's EOR
 //! last, so a program without it was cut short (STOP, reset, or a lost line).
 
-use crate::fanuc::CodeSystem;
-use crate::fanuc::code::{CR, EOR, LF, has_even_parity};
+use crate::fanuc::code::{CR, EOR, LF, has_even_parity, is_eor, is_significant};
 use crate::fanuc::tape::{self, EIA_EOB, EIA_ER, TapeCode, TapeError};
 
 /// Blanks kept between a tape-start mark and the program text.
@@ -201,11 +200,9 @@ impl PunchAssembler {
                 0x00 | 0x7F | EIA_EOB | 0x10 | 0x3E | 0x7A | 0x7C => Class::Blank,
                 _ => Class::Significant,
             },
-            Family::Percent => match CodeSystem::strip(b) {
-                EOR => Class::Mark,
-                0x00 | 0x7F | b' ' | b'\t' | LF | CR => Class::Blank,
-                _ => Class::Significant,
-            },
+            Family::Percent if is_eor(b) => Class::Mark,
+            Family::Percent if is_significant(b) => Class::Significant,
+            Family::Percent => Class::Blank,
         }
     }
 
@@ -582,7 +579,7 @@ fn parse_pattern(pattern: &str) -> Result<Pattern, PatternError> {
 fn squeeze(text: &[u8]) -> Vec<u8> {
     text.iter()
         .copied()
-        .filter(|&b| !matches!(b, EOR | b' ' | b'\t' | LF | CR | 0x00 | 0x7F))
+        .filter(|&b| b != EOR && is_significant(b))
         .map(|b| b.to_ascii_uppercase())
         .collect()
 }

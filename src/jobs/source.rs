@@ -27,7 +27,7 @@ use tokio::io::{AsyncReadExt, AsyncSeekExt};
 
 use super::library::{LibraryError, ProgramLibrary};
 use crate::config::MachineConfig;
-use crate::fanuc::code::{CR, DC1, DC2, DC3, DC4, EOR, ETX, LF, NAK, SYN};
+use crate::fanuc::code::{CR, DC1, DC2, DC3, DC4, EOR, ETX, LF, NAK, SYN, is_significant};
 use crate::fanuc::{EndCode, Protocol};
 use crate::link::driver::ProgramSource;
 
@@ -216,7 +216,7 @@ impl Scanner {
     }
 
     fn track(&mut self, b: u8) {
-        let blank = matches!(b, 0x00 | b' ' | b'\t' | LF | CR | 0x7F);
+        let blank = !is_significant(b);
         if let Some(digits) = self.o_digits.as_mut() {
             if b.is_ascii_digit() && digits.len() < O_DIGITS_MAX {
                 digits.push(char::from(b));

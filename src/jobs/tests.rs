@@ -10,6 +10,7 @@ use tokio::sync::Semaphore;
 use super::*;
 use crate::config::CellConfig;
 use crate::fanuc::Protocol;
+use crate::fanuc::error::{AbortReason, LinkAlarm};
 
 /// What the stand-in link was told, in order.
 type Log = Arc<Mutex<Vec<String>>>;
@@ -460,14 +461,13 @@ async fn link_alarms_and_resets_end_the_active_job_with_their_reason() {
             break;
         }
     }
-    let _ = r.link_events.send(LinkEvent::Alarm {
-        alarm: Some(CncAlarm::Sr0945RetryOver),
-        error: "retry over".to_string(),
-    });
+    let retry_over = LinkAlarm::RetryOver { count: 4, ne: 3 };
+    let _ = r.link_events.send(LinkEvent::Alarm(retry_over.clone()));
+    let failure = JobFailure::Aborted(AbortReason::Link(retry_over));
     let _ = r.link_events.send(LinkEvent::JobFailed {
         job: 1,
         offset: 4,
-        reason: "retry count exceeded".to_string(),
+        reason: failure.clone(),
     });
     let events = until_end(&mut r.events, &a.job_id).await;
     match &events.last().unwrap().kind {
@@ -475,7 +475,7 @@ async fn link_alarms_and_resets_end_the_active_job_with_their_reason() {
             assert_eq!(f.alarm_number, "SR0945");
             assert_eq!(f.byte_offset, 4);
             assert_eq!(f.code(), pb::ErrorCode::LinkFailed);
-            assert_eq!(f.reason, "retry count exceeded");
+            assert_eq!(f.reason, failure.to_string());
         }
         other => panic!("{other:?}"),
     }
@@ -492,7 +492,7 @@ async fn link_alarms_and_resets_end_the_active_job_with_their_reason() {
     let _ = r.link_events.send(LinkEvent::JobFailed {
         job: 2,
         offset: 2,
-        reason: "CNC reset".to_string(),
+        reason: JobFailure::Aborted(AbortReason::CncReset),
     });
     let events = until_end(&mut r.events, &b.job_id).await;
     match &events.last().unwrap().kind {
@@ -508,7 +508,7 @@ async fn a_stopped_link_fails_its_jobs_and_refuses_new_ones() {
     let a = r.jobs.submit(inline(b"%\nO1\n%", 0)).await.unwrap();
     let b = r.jobs.submit(inline(b"%\nO2\n%", 0)).await.unwrap();
     let _ = r.link_events.send(LinkEvent::Stopped {
-        error: Some("port closed".to_string()),
+        error: Some(Arc::new(crate::link::pump::PumpError::Closed)),
     });
     let events = until_end(&mut r.events, &b.job_id).await;
     let failed: Vec<_> = events

@@ -6,15 +6,18 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
+use std::sync::Arc;
+
 use bytes::Bytes;
-use serde::Serialize;
 use tokio::io::{AsyncRead, AsyncReadExt};
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
+use super::JobId;
 use super::pump::{Pump, PumpError, now};
-use super::{EngineCommand, EngineEvent, HostEngine, JobId, LinkState};
 use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
+use crate::fanuc::host::{EngineCommand, EngineEvent, HostEngine, LinkState};
 use crate::fanuc::sat::StatusData;
 use crate::transport::Transport;
 
@@ -57,9 +60,36 @@ pub enum LinkCommand {
     ClearBuffer,
 }
 
+/// Why a job on a link failed.
+#[derive(Debug, Clone, thiserror::Error)]
+#[non_exhaustive]
+pub enum JobFailure {
+    /// The engine abandoned the program.
+    #[error("{0}")]
+    Aborted(AbortReason),
+    /// The program's source could not be read to its end.
+    #[error("program source failed: {0}")]
+    Source(Arc<std::io::Error>),
+    /// The link task ended with its line failed for good.
+    #[error("{0}")]
+    LinkStopped(Arc<PumpError>),
+    /// The link task was stopped (the gateway shuts down).
+    #[error("gateway shutting down")]
+    Shutdown,
+}
+
+impl JobFailure {
+    /// The CNC alarm number behind the failure, where one applies.
+    pub fn cnc_alarm(&self) -> Option<CncAlarm> {
+        match self {
+            JobFailure::Aborted(reason) => reason.cnc_alarm(),
+            _ => None,
+        }
+    }
+}
+
 /// What a link reports.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-#[serde(tag = "event", rename_all = "kebab-case")]
+#[derive(Debug, Clone)]
 #[non_exhaustive]
 pub enum LinkEvent {
     State {
@@ -76,13 +106,10 @@ pub enum LinkEvent {
     },
     CncReset,
     CncAlarm,
-    /// A link alarm, with the CNC alarm number where one applies.
-    Alarm {
-        alarm: Option<CncAlarm>,
-        error: String,
-    },
+    /// A link alarm; [`LinkAlarm::cnc_alarm`] is the CNC alarm number where one applies.
+    Alarm(LinkAlarm),
     ProtocolError {
-        error: String,
+        error: ProtocolError,
         retried: bool,
     },
     JobQueued {
@@ -104,7 +131,7 @@ pub enum LinkEvent {
     JobFailed {
         job: JobId,
         offset: u64,
-        reason: String,
+        reason: JobFailure,
     },
     JobCancelled {
         job: JobId,
@@ -113,13 +140,12 @@ pub enum LinkEvent {
     /// Punched data from the CNC (Protocol B punch-out, §6.1.1 2), as received, in order. A
     /// piece ends at latest with each program's EOR, so a whole program is the pieces up to
     /// and including one that ends with its `%`.
-    #[serde(skip)]
     Punched {
         data: Bytes,
     },
     /// The link task ended (shutdown, or the line closed for good).
     Stopped {
-        error: Option<String>,
+        error: Option<Arc<PumpError>>,
     },
 }
 
@@ -200,7 +226,10 @@ pub fn spawn<E, T>(
     engine: E,
     transport: T,
     shutdown: CancellationToken,
-) -> (LinkHandle, tokio::task::JoinHandle<Result<(), PumpError>>)
+) -> (
+    LinkHandle,
+    tokio::task::JoinHandle<Result<(), Arc<PumpError>>>,
+)
 where
     E: HostEngine + 'static,
     T: Transport + 'static,
@@ -259,7 +288,7 @@ enum Wake {
 }
 
 impl<E: HostEngine, T: Transport> Driver<E, T> {
-    async fn run(mut self, shutdown: CancellationToken) -> Result<(), PumpError> {
+    async fn run(mut self, shutdown: CancellationToken) -> Result<(), Arc<PumpError>> {
         let result = loop {
             self.drain_engine_events();
             self.start_next_job();
@@ -291,11 +320,18 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             }
         };
         self.drain_engine_events();
-        let error = result.as_ref().err().map(ToString::to_string);
+        let (result, error) = match result {
+            Ok(()) => (Ok(()), None),
+            Err(e) => {
+                let shared = Arc::new(e);
+                (Err(Arc::clone(&shared)), Some(shared))
+            }
+        };
         if let Some(active) = self.active.take() {
-            let reason = error
-                .clone()
-                .unwrap_or_else(|| "gateway shutting down".to_string());
+            let reason = match &error {
+                Some(e) => JobFailure::LinkStopped(Arc::clone(e)),
+                None => JobFailure::Shutdown,
+            };
             self.emit(LinkEvent::JobFailed {
                 job: active.id,
                 offset: active.sent,
@@ -376,7 +412,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                     self.emit(LinkEvent::JobFailed {
                         job: active.id,
                         offset: active.sent,
-                        reason: format!("program source failed: {e}"),
+                        reason: JobFailure::Source(Arc::new(e)),
                     });
                 }
             }
@@ -423,9 +459,9 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             }
             EngineEvent::CncReset => LinkEvent::CncReset,
             EngineEvent::CncAlarm => LinkEvent::CncAlarm,
-            EngineEvent::Alarm { alarm, error } => {
-                tracing::warn!(alarm = alarm.map(CncAlarm::number), %error, "link alarm");
-                LinkEvent::Alarm { alarm, error }
+            EngineEvent::Alarm(alarm) => {
+                tracing::warn!(number = alarm.cnc_alarm().map(CncAlarm::number), %alarm, "link alarm");
+                LinkEvent::Alarm(alarm)
             }
             EngineEvent::ProtocolError { error, retried } => {
                 tracing::debug!(%error, retried, "protocol error");
@@ -456,7 +492,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                     LinkEvent::JobFailed {
                         job: active.id,
                         offset: active.sent,
-                        reason,
+                        reason: JobFailure::Aborted(reason),
                     }
                 }
                 None => return,

@@ -18,8 +18,9 @@ use std::time::{Duration, Instant};
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::time::{Interval, MissedTickBehavior, Sleep};
 
-use super::Engine;
-use crate::transport::{ModemIn, ModemOut, Transport};
+use crate::engine::Engine;
+use crate::engine::{ModemIn, ModemOut};
+use crate::transport::Transport;
 
 /// How often the input modem lines are read. DR going off must be noticed quickly (SR0855),
 /// but transports cannot signal changes, so they are polled.
@@ -272,7 +273,7 @@ impl<E, T: AsyncRead + AsyncWrite> std::fmt::Debug for Pump<E, T> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::transport::LineError;
+    use crate::engine::LineError;
     use std::collections::VecDeque;
     use tokio::io::DuplexStream;
 

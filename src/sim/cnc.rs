@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use sha2::{Digest, Sha256};
 
-use crate::fanuc::code::EOR;
+use crate::fanuc::code::{EOR, is_eor, is_significant};
 use crate::fanuc::sat::{AlarmCause, BufferStatus};
 
 /// The remote buffer's buffer on the real board: 8 KiB (§12.2).
@@ -62,16 +62,6 @@ impl fmt::Debug for ReceivedProgram {
     }
 }
 
-/// Characters the CNC skips before a program starts: NUL, tab, LF, CR, space, DEL (tape
-/// feed and blank lines), with or without the ISO parity bit.
-fn insignificant(b: u8) -> bool {
-    matches!(b & 0x7F, 0x00 | b'\t' | b'\n' | b'\r' | b' ' | 0x7F)
-}
-
-fn is_eor(b: u8) -> bool {
-    b & 0x7F == EOR
-}
-
 /// Splits what the CNC reads into programs at EOR.
 #[derive(Debug)]
 struct Tape {
@@ -113,7 +103,7 @@ impl Tape {
     /// Reads one byte; returns the program it completes.
     fn feed(&mut self, b: u8) -> Option<ReceivedProgram> {
         if !self.in_program {
-            if insignificant(b) {
+            if !is_significant(b) {
                 return None;
             }
             // The tape-start `%` or the program's first character: neither ends a program.
@@ -152,7 +142,7 @@ fn first_line(data: &[u8]) -> String {
     let text = data
         .iter()
         .map(|&b| b & 0x7F)
-        .skip_while(|&c| c == EOR || insignificant(c))
+        .skip_while(|&c| c == EOR || !is_significant(c))
         .take_while(|&c| !matches!(c, b'\n' | b'\r' | b';') && c != EOR)
         .take(80)
         .map(|c| {
@@ -226,7 +216,7 @@ impl EndScan {
         }
         for (i, &b) in buffer.iter().enumerate().skip(self.scanned) {
             if !self.in_program {
-                self.in_program = !insignificant(b);
+                self.in_program = is_significant(b);
             } else if is_eor(b) {
                 self.found = Some(i);
                 self.scanned = i + 1;

@@ -30,16 +30,16 @@ pub mod protocol_b;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
+use crate::engine::Engine;
+use crate::engine::{LineError, ModemIn, ModemOut};
 use crate::fanuc::Protocol;
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::message::{Command, Framing};
 use crate::fanuc::packet::Monitor;
 use crate::fanuc::sat::{AlarmCause, BufferStatus, ParamRangeError, Params, StatusData};
-use crate::link::Engine;
 use crate::sim::cnc::{
     Cnc, DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE, DEFAULT_KEEP_PROGRAM_BYTES, ReceivedProgram,
 };
-use crate::transport::{LineError, ModemIn, ModemOut};
 
 use protocol_a::ProtocolA;
 use protocol_b::ProtocolB;

@@ -21,11 +21,12 @@ use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio::task::JoinHandle;
 
+use crate::engine::Engine;
+use crate::engine::ModemIn;
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::sat::{Params, StatusData};
-use crate::link::Engine;
 use crate::link::pump::{Pump, PumpError};
-use crate::transport::{ModemIn, Transport};
+use crate::transport::Transport;
 
 pub use cnc::ReceivedProgram;
 pub use fanuc_board::{

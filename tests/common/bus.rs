@@ -142,7 +142,7 @@ impl RunningCell {
             for m in &cell.machines {
                 let link = m.link.clone();
                 eventually("the link is up before the routes start", move || {
-                    link.state() == Some(cellgate::link::LinkState::Ready)
+                    link.state() == Some(cellgate::fanuc::host::LinkState::Ready)
                 })
                 .await;
             }

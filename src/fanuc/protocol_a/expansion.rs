@@ -14,7 +14,7 @@ use crate::fanuc::packet::{
     DUMMY_PACKET, END_PACKET, FIRST_PACKET, Monitor, data_len, encode_data_packet, next_packet_no,
 };
 
-use super::program::Program;
+use crate::fanuc::program::Program;
 
 /// Packets kept for retransmission: the ten numbers 30h..39h name at most ten packets.
 pub(crate) const HISTORY: usize = 10;

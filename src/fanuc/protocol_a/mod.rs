@@ -67,29 +67,27 @@
 //! `ProtocolError` event: the board polls again with SAT.
 
 mod expansion;
-pub(crate) mod program;
 
 pub use expansion::PAD;
-pub use program::ProgramError;
 
 use std::collections::VecDeque;
 use std::fmt;
 use std::time::{Duration, Instant};
 
+use crate::engine::{Engine, LineError, ModemIn};
 use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
+use crate::fanuc::host::{EngineCommand, EngineEvent, HostEngine, LinkState};
 use crate::fanuc::message::{
     Command, Decoder, FrameError, Framing, MAX_DAT_DATA, Message, RTY_CHECKSUM, hex2,
 };
-use crate::fanuc::packet::{MONITOR_LEN, Monitor, PacketError, data_len};
+use crate::fanuc::packet::{MONITOR_LEN, Monitor, data_len};
+use crate::fanuc::program::{Program, ProgramError};
 use crate::fanuc::sat::{
-    AlarmCause, BufferStatus, ParamRangeError, Params, StatusData, StatusDataError,
-    effective_packet_n,
+    AlarmCause, BufferStatus, ParamRangeError, Params, StatusData, effective_packet_n,
 };
-use crate::link::{Engine, EngineCommand, EngineEvent, HostEngine, LinkState};
-use crate::transport::{LineError, ModemIn};
 
 use expansion::{PacketRun, RunOutcome};
-use program::Program;
 
 /// Settings of a Protocol A / Expansion Protocol A host link.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -201,125 +199,6 @@ impl ProtocolAConfig {
             });
         }
         problems
-    }
-}
-
-/// A protocol error the engine recovered from; the text of `EngineEvent::ProtocolError`.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[non_exhaustive]
-pub enum ProtocolAError {
-    /// A received frame that is not a valid message (ignored, §4.6 2).
-    #[error("received message refused: {error}{}", frame_hint(.error))]
-    Frame { error: FrameError },
-    /// A received frame with a checksum error; RTY was sent.
-    #[error(
-        "checksum error in a received message, RTY '1' sent (retry {count}, Ne = {ne}): {error}"
-    )]
-    ChecksumRetry {
-        error: FrameError,
-        count: u16,
-        ne: u16,
-    },
-    /// The board asked for the last message again (RTY).
-    #[error(
-        "the board sent RTY (reason {reason:?}): last message sent again (retry {count}, Ne = {ne})"
-    )]
-    RtyReceived { reason: String, count: u16, ne: u16 },
-    #[error("the board sent RTY before the host had sent any message; ignored")]
-    RtyNothingSent,
-    /// A command that does not fit the state (§4.6 2 (2)).
-    #[error(
-        "unexpected {command} {context}; ignored (§4.6 2 (2); a remote buffer reports this as SR0947)"
-    )]
-    Unexpected {
-        command: Command,
-        context: &'static str,
-    },
-    #[error("SAT data part unreadable, no Status reported: {0}")]
-    Status(StatusDataError),
-    #[error("SDI data part {data:?} does not start with two hex digits (§4.4.2 4)")]
-    SdiData { data: String },
-    #[error("monitor packet refused: {0}")]
-    Monitor(PacketError),
-    #[error("monitor packet {monitor:?} outside an Expansion A transmission; ignored (§5.3)")]
-    StrayMonitor { monitor: Monitor },
-    #[error("no RDY within {waited:?} of the host's SYN; waiting for SYN again (§4.7)")]
-    NoRdy { waited: Duration },
-}
-
-fn frame_hint(error: &FrameError) -> &'static str {
-    match error {
-        FrameError::UnknownCommand { .. } => {
-            " (a remote buffer reports an undefined command as SR0948)"
-        }
-        FrameError::DataTooLong { .. } => " (reception error, §4.6 2)",
-        _ => "",
-    }
-}
-
-/// A link alarm; the text of `EngineEvent::Alarm`.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[non_exhaustive]
-pub enum LinkAlarm {
-    #[error("line error: {0}; link re-initialised, waiting for SYN (§4.6 1)")]
-    Line(LineError),
-    #[error("{error}; link re-initialised, waiting for SYN (§4.6 1 (3))")]
-    FrameParity { error: FrameError },
-    #[error(
-        "data set ready (DR) or carrier detect (CD) off; waiting for the line, then for SYN (§4.6 1 (4))"
-    )]
-    DataSetReadyOff,
-    #[error(
-        "retry count exceeded: {count} retries > Ne = {ne} (§4.6 1 (7)); link re-initialised, waiting for SYN"
-    )]
-    RetryOver { count: u16, ne: u16 },
-    #[error(
-        "no message from the board for {waited:?} after the host's last message (§4.3 (3), (4); §4.6 1 (6)); link re-initialised, waiting for SYN"
-    )]
-    TimeOut { waited: Duration },
-    #[error("remote buffer in alarm status: {cause} (SAT byte 3 = {digit:X}, §4.4.2 1)")]
-    BoardAlarm { cause: &'static str, digit: u8 },
-}
-
-/// Why a program was abandoned; the text of `EngineEvent::ProgramAborted`.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[non_exhaustive]
-pub enum AbortReason {
-    #[error("cancelled")]
-    Cancelled,
-    #[error("CNC reset (RST, §4.4.1): the CNC discards the data it had (§8.2)")]
-    CncReset,
-    #[error("CNC alarm (ALM, §4.4.1)")]
-    CncAlarm,
-    #[error("CNC reset or alarm: the board sent CAN during the packet transmission (§5.3 1)")]
-    CncStop,
-    #[error("{0}")]
-    Program(#[from] ProgramError),
-    #[error("link lost: {0}")]
-    Link(String),
-    #[error("the board re-initialised the link (SYN, §4.7)")]
-    BoardReinit,
-    #[error("the remote buffer went to alarm status: {0}")]
-    BoardAlarm(&'static str),
-    #[error(
-        "the board asked to resend packet {no:02X}h, which is not among the last packets kept (§5.3 2)"
-    )]
-    UnknownPacket { no: u8 },
-    #[error("replaced by a new program before it was finished")]
-    Replaced,
-}
-
-impl AbortReason {
-    /// A notice the board sends with a valid message, which proves that everything the host
-    /// sent before it arrived: a program whose last byte had gone out is delivered, not lost.
-    fn confirms_delivery(&self) -> bool {
-        matches!(
-            self,
-            AbortReason::CncReset
-                | AbortReason::CncAlarm
-                | AbortReason::CncStop
-                | AbortReason::BoardAlarm(_)
-        )
     }
 }
 
@@ -541,20 +420,14 @@ impl ProtocolAHost {
         self.events.push_back(event);
     }
 
-    fn protocol_error(&mut self, error: ProtocolAError, retried: bool) {
+    fn protocol_error(&mut self, error: ProtocolError, retried: bool) {
         tracing::debug!(%error, retried, "Protocol A error");
-        self.emit(EngineEvent::ProtocolError {
-            error: error.to_string(),
-            retried,
-        });
+        self.emit(EngineEvent::ProtocolError { error, retried });
     }
 
-    fn alarm(&mut self, alarm: Option<CncAlarm>, error: LinkAlarm) {
-        tracing::warn!(alarm = alarm.map(CncAlarm::number), %error, "Protocol A link alarm");
-        self.emit(EngineEvent::Alarm {
-            alarm,
-            error: error.to_string(),
-        });
+    fn alarm(&mut self, error: LinkAlarm) {
+        tracing::warn!(alarm = error.cnc_alarm().map(CncAlarm::number), %error, "Protocol A link alarm");
+        self.emit(EngineEvent::Alarm(error));
     }
 
     fn queue(&mut self, bytes: Vec<u8>, program_bytes: u64, do_sent: Option<u8>) {
@@ -647,7 +520,7 @@ impl ProtocolAHost {
             if let Some(run) = self.run.as_mut() {
                 run.outcome = RunOutcome::Stopped;
             }
-            if reason.confirms_delivery() {
+            if confirms_delivery(&reason) {
                 // The board answered with a valid message rather than RTY: the program was
                 // delivered (a CNC that ends with M30 may reset before the EOD). The EOD is no
                 // longer owed to a reset board.
@@ -683,7 +556,7 @@ impl ProtocolAHost {
     fn program_aborted(&mut self, reason: &AbortReason, cancelled: bool, cleanup: bool) {
         tracing::info!(%reason, cancelled, "program aborted");
         self.emit(EngineEvent::ProgramAborted {
-            reason: reason.to_string(),
+            reason: reason.clone(),
             cancelled,
         });
         if cleanup {
@@ -710,10 +583,9 @@ impl ProtocolAHost {
         self.last_activity = now;
     }
 
-    fn line_failure(&mut self, now: Instant, alarm: Option<CncAlarm>, error: LinkAlarm) {
-        let text = error.to_string();
-        self.alarm(alarm, error);
-        self.reinit(now, AbortReason::Link(text));
+    fn line_failure(&mut self, now: Instant, error: LinkAlarm) {
+        self.alarm(error.clone());
+        self.reinit(now, AbortReason::Link(error));
     }
 
     fn retry_over(&mut self, now: Instant) {
@@ -721,7 +593,7 @@ impl ProtocolAHost {
             count: self.retries,
             ne: self.ne(),
         };
-        self.line_failure(now, Some(CncAlarm::Sr0945RetryOver), error);
+        self.line_failure(now, error);
     }
 
     // ---- reception ----
@@ -730,11 +602,11 @@ impl ProtocolAHost {
         match frame {
             Ok(msg) => self.on_message(now, msg),
             Err(error) if error.is_line_error() => {
-                self.line_failure(now, None, LinkAlarm::FrameParity { error });
+                self.line_failure(now, LinkAlarm::FrameParity { error });
             }
             Err(error) if error.is_checksum_error() => {
                 if self.run.as_ref().is_some_and(|r| !r.end_sent) {
-                    self.protocol_error(ProtocolAError::Frame { error }, false);
+                    self.protocol_error(ProtocolError::Frame { error }, false);
                     return;
                 }
                 self.last_activity = now;
@@ -745,7 +617,7 @@ impl ProtocolAHost {
                     return;
                 }
                 self.protocol_error(
-                    ProtocolAError::ChecksumRetry {
+                    ProtocolError::ChecksumRetry {
                         error,
                         count: self.retries,
                         ne,
@@ -755,7 +627,7 @@ impl ProtocolAHost {
                 self.send_with(&Message::with_data(Command::Rty, [RTY_CHECKSUM]), 0, None);
             }
             // Reception errors: ignore the data and wait for the next SAT (§4.6 2).
-            Err(error) => self.protocol_error(ProtocolAError::Frame { error }, false),
+            Err(error) => self.protocol_error(ProtocolError::Frame { error }, false),
         }
     }
 
@@ -776,7 +648,7 @@ impl ProtocolAHost {
                 self.run = None;
             } else {
                 self.protocol_error(
-                    ProtocolAError::Unexpected {
+                    ProtocolError::Unexpected {
                         command,
                         context: "during an Expansion A packet transmission (§5.1)",
                     },
@@ -857,8 +729,8 @@ impl ProtocolAHost {
                     match parse_di(&msg.data) {
                         Some(v) => self.emit(EngineEvent::Di(v)),
                         None => self.protocol_error(
-                            ProtocolAError::SdiData {
-                                data: String::from_utf8_lossy(&msg.data).into_owned(),
+                            ProtocolError::SdiData {
+                                data: msg.data.to_vec(),
                             },
                             false,
                         ),
@@ -870,7 +742,7 @@ impl ProtocolAHost {
                     }
                 }
                 None => self.protocol_error(
-                    ProtocolAError::Unexpected {
+                    ProtocolError::Unexpected {
                         command: Command::Sdi,
                         context: "without an RDI before it",
                     },
@@ -879,7 +751,7 @@ impl ProtocolAHost {
             },
             Command::Rty => self.on_rty(now, &msg),
             command => self.protocol_error(
-                ProtocolAError::Unexpected {
+                ProtocolError::Unexpected {
                     command,
                     context: "from the remote buffer (a host command, §4.4.1)",
                 },
@@ -893,7 +765,7 @@ impl ProtocolAHost {
         let sd = match StatusData::decode(data) {
             Ok(sd) => sd,
             Err(e) => {
-                self.protocol_error(ProtocolAError::Status(e), false);
+                self.protocol_error(ProtocolError::Status(e), false);
                 return None;
             }
         };
@@ -912,30 +784,8 @@ impl ProtocolAHost {
             let alarm = status == BufferStatus::Alarm;
             if alarm && !self.board_in_alarm {
                 let cause = sd.alarm_cause.unwrap_or(AlarmCause::NcAlarm);
-                let (sr, text) = match cause {
-                    AlarmCause::NcAlarm => (None, "NC alarm"),
-                    AlarmCause::ChecksumRetryOver => (
-                        Some(CncAlarm::Sr0945RetryOver),
-                        "checksum error, retry over (SR0945)",
-                    ),
-                    AlarmCause::OverrunRetryOver => (
-                        Some(CncAlarm::Sr0945RetryOver),
-                        "overrun error, retry over (SR0945)",
-                    ),
-                    AlarmCause::CommandError => (
-                        Some(CncAlarm::Sr0947InvalidResponse),
-                        "unexpected response received, command error (SR0947/SR0948)",
-                    ),
-                    AlarmCause::Other(_) => (None, "unknown cause"),
-                };
-                self.alarm(
-                    sr,
-                    LinkAlarm::BoardAlarm {
-                        cause: text,
-                        digit: cause.digit(),
-                    },
-                );
-                self.abort_program(AbortReason::BoardAlarm(text), false, false, true);
+                self.alarm(LinkAlarm::BoardAlarm { cause });
+                self.abort_program(AbortReason::BoardAlarm(cause), false, false, true);
             }
             self.board_in_alarm = alarm;
         }
@@ -950,18 +800,12 @@ impl ProtocolAHost {
             return;
         }
         let Some(bytes) = self.last_sent.clone() else {
-            self.protocol_error(ProtocolAError::RtyNothingSent, false);
+            self.protocol_error(ProtocolError::RtyNothingSent, false);
             return;
         };
-        let reason = match msg.data.first() {
-            Some(b'1') => "1: checksum error".to_string(),
-            Some(b'3') => "3: overrun error".to_string(),
-            Some(&b) => String::from_utf8_lossy(&[b]).into_owned(),
-            None => "none given".to_string(),
-        };
         self.protocol_error(
-            ProtocolAError::RtyReceived {
-                reason,
+            ProtocolError::RtyReceived {
+                reason: msg.data.first().copied(),
                 count: self.retries,
                 ne,
             },
@@ -975,12 +819,12 @@ impl ProtocolAHost {
         let monitor = match Monitor::decode(&packet) {
             Ok(m) => m,
             Err(e) => {
-                self.protocol_error(ProtocolAError::Monitor(e), false);
+                self.protocol_error(ProtocolError::Monitor(e), false);
                 return;
             }
         };
         let Some(run) = self.run.as_mut() else {
-            self.protocol_error(ProtocolAError::StrayMonitor { monitor }, false);
+            self.protocol_error(ProtocolError::StrayMonitor { monitor }, false);
             return;
         };
         tracing::debug!(?monitor, "monitor packet");
@@ -1174,6 +1018,18 @@ impl ProtocolAHost {
     }
 }
 
+/// A notice the board sends with a valid message, which proves that everything the host sent
+/// before it arrived: a program whose last byte had gone out is delivered, not lost.
+fn confirms_delivery(reason: &AbortReason) -> bool {
+    matches!(
+        reason,
+        AbortReason::CncReset
+            | AbortReason::CncAlarm
+            | AbortReason::CncStop
+            | AbortReason::BoardAlarm(_)
+    )
+}
+
 /// The DI image of an SDI: two hex digits (either case).
 fn parse_di(data: &[u8]) -> Option<u8> {
     let digit = |c: u8| char::from(c).to_digit(16);
@@ -1230,11 +1086,7 @@ impl Engine for ProtocolAHost {
         if !self.line_up {
             return;
         }
-        let alarm = match error {
-            LineError::Framing | LineError::Overrun => Some(CncAlarm::Sr0946FramingOverrun),
-            _ => None,
-        };
-        self.line_failure(now, alarm, LinkAlarm::Line(error));
+        self.line_failure(now, LinkAlarm::Line(error));
         self.after_step(now);
     }
 
@@ -1243,14 +1095,8 @@ impl Engine for ProtocolAHost {
         let up = modem.dr && modem.cd;
         if !up && self.line_up {
             self.line_up = false;
-            self.alarm(
-                Some(CncAlarm::Sr0855DataSetReadyDown),
-                LinkAlarm::DataSetReadyOff,
-            );
-            self.reinit(
-                now,
-                AbortReason::Link(LinkAlarm::DataSetReadyOff.to_string()),
-            );
+            self.alarm(LinkAlarm::DataSetReadyOff);
+            self.reinit(now, AbortReason::Link(LinkAlarm::DataSetReadyOff));
         } else if up && !self.line_up {
             tracing::info!("line up again: waiting for SYN");
             self.line_up = true;
@@ -1307,14 +1153,10 @@ impl Engine for ProtocolAHost {
         {
             let waited = self.supervision_interval();
             if self.phase == Phase::RdyWait {
-                self.protocol_error(ProtocolAError::NoRdy { waited }, false);
+                self.protocol_error(ProtocolError::NoRdy { waited }, false);
                 self.phase = Phase::SynWait;
             } else {
-                self.line_failure(
-                    now,
-                    Some(CncAlarm::Sr0944TimeOut),
-                    LinkAlarm::TimeOut { waited },
-                );
+                self.line_failure(now, LinkAlarm::TimeOut { waited });
             }
         }
         let interval = self.cfg.dummy_interval;

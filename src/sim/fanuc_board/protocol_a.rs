@@ -41,6 +41,7 @@
 
 use std::time::{Duration, Instant};
 
+use crate::engine::{LineError, ModemIn};
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::code::with_even_parity;
 use crate::fanuc::message::{
@@ -50,7 +51,6 @@ use crate::fanuc::packet::{self, Monitor};
 use crate::fanuc::sat::{AlarmCause, Params, StatusData, StatusDataError, effective_packet_n};
 use crate::fanuc::{CodeSystem, Protocol};
 use crate::sim::cnc::{Cnc, Push};
-use crate::transport::{LineError, ModemIn};
 
 use super::expansion_a::{GtdRx, Verdict};
 use super::{BoardConfig, BoardEvent, BoardLinkState, Outbox};

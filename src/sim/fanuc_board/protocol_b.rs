@@ -58,12 +58,12 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
+use crate::engine::{LineError, ModemIn, ModemOut};
 use crate::fanuc::CodeSystem;
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::code::{DC1, DC2, DC3};
 use crate::fanuc::sat::{AlarmCause, StatusData};
 use crate::sim::cnc::{Cnc, Push};
-use crate::transport::{LineError, ModemIn, ModemOut};
 
 use super::{BoardConfig, BoardEvent, BoardLinkState, ControlCode, FlowCounters, Outbox};
 
@@ -745,10 +745,10 @@ impl ProtocolB {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::Engine;
     use crate::fanuc::Protocol;
     use crate::fanuc::code::{DC4, NAK, SYN};
     use crate::fanuc::message::Framing;
-    use crate::link::Engine;
     use crate::sim::fanuc_board::{BoardCommand, DEFAULT_ER_OFF_TIME, FanucBoard};
 
     /// A board under a scripted host with a virtual clock.

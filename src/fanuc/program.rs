@@ -9,7 +9,7 @@
 
 use std::collections::VecDeque;
 
-use crate::fanuc::code::EOR;
+use crate::fanuc::code::{EOR, is_eor, is_significant};
 
 /// Why a program cannot be sent as it is.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -36,18 +36,8 @@ enum Scan {
     Ended,
 }
 
-/// Characters that may precede the tape-start mark without being "significant": feed (NUL),
-/// delete, blank, tab and line ends, with or without the ISO parity bit.
-fn is_leader(b: u8) -> bool {
-    matches!(b & 0x7F, 0x00 | 0x7F | b' ' | b'\t' | b'\n' | b'\r')
-}
-
-fn is_eor(b: u8) -> bool {
-    b & 0x7F == EOR
-}
-
 #[derive(Debug)]
-pub(crate) struct Program {
+pub struct Program {
     buf: VecDeque<u8>,
     scan: Scan,
     /// The EOR byte as the program writes it (25h, or A5h with ISO parity), from its tape-start.
@@ -57,13 +47,19 @@ pub(crate) struct Program {
     /// Bytes after EOR that were dropped.
     ignored: u64,
     /// Program bytes handed out for transmission (first transmission only).
-    pub(crate) sent: u64,
+    pub sent: u64,
     /// EOR was appended because the source had none.
-    pub(crate) eor_appended: bool,
+    pub eor_appended: bool,
+}
+
+impl Default for Program {
+    fn default() -> Self {
+        Self::new()
+    }
 }
 
 impl Program {
-    pub(crate) fn new() -> Self {
+    pub fn new() -> Self {
         Program {
             buf: VecDeque::new(),
             scan: Scan::Leader,
@@ -77,7 +73,7 @@ impl Program {
 
     /// Takes the next bytes from the source. `forbidden` is a byte the program may not contain
     /// (the end code, when the program travels in DATs). Bytes after EOR are dropped.
-    pub(crate) fn push(&mut self, data: &[u8], forbidden: Option<u8>) -> Result<(), ProgramError> {
+    pub fn push(&mut self, data: &[u8], forbidden: Option<u8>) -> Result<(), ProgramError> {
         for &b in data {
             if self.scan == Scan::Ended {
                 self.ignored += 1;
@@ -96,7 +92,7 @@ impl Program {
                     self.eor = b;
                     self.scan = Scan::Body;
                 }
-                Scan::Leader if !is_leader(b) => self.scan = Scan::Body,
+                Scan::Leader if is_significant(b) => self.scan = Scan::Body,
                 Scan::Body if is_eor(b) => self.scan = Scan::Ended,
                 _ => {}
             }
@@ -108,7 +104,7 @@ impl Program {
     }
 
     /// The source has no more bytes: appends EOR if the program has none.
-    pub(crate) fn end(&mut self) -> Result<(), ProgramError> {
+    pub fn end(&mut self) -> Result<(), ProgramError> {
         match self.scan {
             Scan::Leader => Err(ProgramError::Empty),
             Scan::Body => {
@@ -124,32 +120,32 @@ impl Program {
     }
 
     /// Every byte of the program up to and including EOR is in the buffer or already sent.
-    pub(crate) fn complete(&self) -> bool {
+    pub fn complete(&self) -> bool {
         self.scan == Scan::Ended
     }
 
     /// Complete, and nothing of it is left to send.
-    pub(crate) fn all_sent(&self) -> bool {
+    pub fn all_sent(&self) -> bool {
         self.complete() && self.buf.is_empty()
     }
 
-    pub(crate) fn buffered(&self) -> usize {
+    pub fn buffered(&self) -> usize {
         self.buf.len()
     }
 
     /// Whether a data part of `len` bytes can be filled now, or the rest of the program is
     /// shorter and complete.
-    pub(crate) fn can_fill(&self, len: usize) -> bool {
+    pub fn can_fill(&self, len: usize) -> bool {
         self.buf.len() >= len || (self.complete() && !self.buf.is_empty())
     }
 
     /// The rest of the program fits in `len` bytes (the next piece is its last).
-    pub(crate) fn ends_within(&self, len: usize) -> bool {
+    pub fn ends_within(&self, len: usize) -> bool {
         self.complete() && self.buf.len() <= len
     }
 
     /// Whether the next `len` bytes contain `b` (the end code check of a DAT).
-    pub(crate) fn find_in_next(&self, len: usize, b: u8) -> Option<u64> {
+    pub fn find_in_next(&self, len: usize, b: u8) -> Option<u64> {
         self.buf
             .iter()
             .take(len)
@@ -158,7 +154,7 @@ impl Program {
     }
 
     /// Takes up to `len` bytes for transmission.
-    pub(crate) fn take(&mut self, len: usize) -> Vec<u8> {
+    pub fn take(&mut self, len: usize) -> Vec<u8> {
         let n = len.min(self.buf.len());
         let out: Vec<u8> = self.buf.drain(..n).collect();
         self.sent += n as u64;
@@ -167,7 +163,7 @@ impl Program {
 
     /// How many more bytes the program takes now, within `limit` bytes of buffer. None after
     /// EOR: what follows it would only be dropped.
-    pub(crate) fn wanted(&self, limit: usize) -> usize {
+    pub fn wanted(&self, limit: usize) -> usize {
         if self.complete() {
             0
         } else {

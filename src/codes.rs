@@ -1,0 +1,58 @@
+//! The one place where typed errors become bus error codes ([`pb::ErrorCode`]), as rustls maps
+//! its errors to alert codes in one place. Every error that reaches the bus implements
+//! [`BusCode`] here; the message people read is the error's own `Display`.
+
+use crate::fanuc::error::AbortReason;
+use crate::jobs::JobError;
+use crate::jobs::library::LibraryError;
+use crate::link::driver::JobFailure;
+use crate::pb;
+
+/// The bus error code of an error.
+pub trait BusCode {
+    fn code(&self) -> pb::ErrorCode;
+}
+
+impl BusCode for LibraryError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            LibraryError::NotFound { .. } => pb::ErrorCode::NotFound,
+            LibraryError::InvalidName { .. }
+            | LibraryError::TooLarge { .. }
+            | LibraryError::Exists { .. } => pb::ErrorCode::InvalidRequest,
+            LibraryError::Io { .. } => pb::ErrorCode::Internal,
+        }
+    }
+}
+
+impl BusCode for JobError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            JobError::Program { .. } => pb::ErrorCode::InvalidRequest,
+            JobError::Library { error, .. } => error.code(),
+            JobError::QueueFull { .. } => pb::ErrorCode::QueueFull,
+            JobError::UnknownJob { .. } => pb::ErrorCode::NotFound,
+            JobError::LinkStopped { .. } | JobError::Stopped { .. } => pb::ErrorCode::Unavailable,
+        }
+    }
+}
+
+impl BusCode for AbortReason {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            // A reset abandons the program as a cancellation does; it is reported cancelled.
+            AbortReason::CncAlarm | AbortReason::AlarmNotice => pb::ErrorCode::CncAlarm,
+            _ => pb::ErrorCode::LinkFailed,
+        }
+    }
+}
+
+impl BusCode for JobFailure {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            JobFailure::Aborted(reason) => reason.code(),
+            JobFailure::Source(_) | JobFailure::LinkStopped(_) => pb::ErrorCode::LinkFailed,
+            JobFailure::Shutdown => pb::ErrorCode::Unavailable,
+        }
+    }
+}

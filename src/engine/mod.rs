@@ -1,0 +1,52 @@
+//! The sans-IO contract every protocol engine keeps, host or device, FANUC or Fuji.
+//!
+//! An engine does no I/O and has no clock of its own (quinn-proto's promise): bytes, line
+//! errors, modem lines, commands and `now` go in; bytes to send, events and the next deadline
+//! come out. This module and everything that implements [`Engine`] import no async runtime,
+//! no sockets, nothing of the link drivers or the transports, so an engine can be read,
+//! tested with a scripted peer in plain time, fuzzed, and reused by the simulated devices.
+//! The async side (the link pump) runs any engine over any transport.
+//!
+//! - [`Engine`]: the contract itself;
+//! - [`line`]: the plain data it speaks of: character framing, modem lines, line errors.
+
+pub mod line;
+
+use std::time::Instant;
+
+pub use line::{LineError, LineSettings, ModemIn, ModemOut};
+
+/// A sans-IO protocol engine: the host side of a link, or the device side of a simulated board.
+///
+/// Every method is synchronous and cheap; `now` is the only clock. Inputs may arrive in any
+/// split; garbage never panics the engine.
+pub trait Engine: Send {
+    type Command: Send;
+    type Event: Send;
+
+    /// Bytes received from the line.
+    fn handle_input(&mut self, now: Instant, bytes: &[u8]);
+    /// A character error the transport reported (parity, framing, overrun): §4.6 line errors.
+    fn handle_line_error(&mut self, now: Instant, error: LineError);
+    /// The input modem lines, whenever the driver reads them (after every change at least).
+    fn handle_modem(&mut self, now: Instant, modem: ModemIn);
+    /// A command from the owner of the engine.
+    fn handle_command(&mut self, now: Instant, command: Self::Command);
+    /// Time passed: act on any deadline at or before `now`.
+    fn handle_timeout(&mut self, now: Instant);
+    /// The next bytes to write. The driver writes them completely before asking again, so an
+    /// engine that must be able to stop quickly (DC3, monitor packets) hands out small pieces.
+    #[must_use]
+    fn poll_transmit(&mut self, now: Instant) -> Option<Vec<u8>>;
+    /// The next event, if any.
+    #[must_use]
+    fn poll_event(&mut self) -> Option<Self::Event>;
+    /// The earliest deadline the engine wants to be woken at.
+    #[must_use]
+    fn poll_timeout(&self) -> Option<Instant>;
+    /// The modem output lines (ER, RS) the engine wants driven.
+    #[must_use]
+    fn modem_out(&self) -> ModemOut {
+        ModemOut::ALL_ON
+    }
+}

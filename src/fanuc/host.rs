@@ -1,0 +1,103 @@
+//! The host side's contract: what the gateway asks of a remote-buffer host engine
+//! ([`EngineCommand`]), what the engine reports ([`EngineEvent`]), and [`HostEngine`], the
+//! [`Engine`](crate::engine::Engine) both host engines ([`ProtocolAHost`], [`ProtocolBHost`])
+//! implement. Plain data and a trait: the async link driver runs any `HostEngine` over any
+//! transport.
+//!
+//! [`ProtocolAHost`]: super::protocol_a::ProtocolAHost
+//! [`ProtocolBHost`]: super::protocol_b::ProtocolBHost
+
+use bytes::Bytes;
+use serde::Serialize;
+
+use super::error::{AbortReason, LinkAlarm, ProtocolError};
+use super::sat::StatusData;
+use crate::engine::Engine;
+
+/// The state of a link as users see it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LinkState {
+    /// Waiting for the board to initialise the link (Protocol A: SYN wait, §4.6 1).
+    Initialising,
+    /// Initialised and idle (Protocol A: RDY exchanged; Protocol B: ER/DR on).
+    Ready,
+    /// Sending NC data to the board.
+    Sending,
+    /// Receiving punched data from the board (Protocol B).
+    Receiving,
+    /// The line is down (DR off, device server unreachable); the engine waits for it.
+    LineDown,
+}
+
+/// Commands a host engine takes. Program data comes in pieces no larger than
+/// [`HostEngine::data_wanted`], so that no program is ever held whole.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum EngineCommand {
+    /// A program is ready to be sent when the board asks for data. `total` is its size
+    /// when known (for progress).
+    StartProgram { total: Option<u64> },
+    /// The next bytes of the current program.
+    ProgramData(Bytes),
+    /// The current program's source has no more bytes.
+    ProgramEnd,
+    /// Abandon the current program: Protocol A answers the next GTD with EOD and clears the
+    /// board's buffer with CLB at the next SAT; Expansion A ends the packets with an end packet.
+    Cancel,
+    /// Output this 8-bit DO image (SDO) at the protocol's next chance.
+    SetDo(u8),
+    /// Read the 8-bit DI image (RDI → SDI) at the protocol's next chance.
+    ReadDi,
+    /// Clear the board's buffer (CLB) at the next SAT.
+    ClearBuffer,
+}
+
+/// What a host engine reports.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum EngineEvent {
+    State(LinkState),
+    /// A SAT arrived, decoded (§4.4.2).
+    Status(StatusData),
+    /// An SDI arrived with this DI image.
+    Di(u8),
+    /// An SDO carrying this DO image was sent.
+    DoSent(u8),
+    /// The CNC was reset (ALM/RST in Protocol A; SYN in Protocol B).
+    CncReset,
+    /// The CNC raised an alarm (ALM in Protocol A; NAK in Protocol B).
+    CncAlarm,
+    /// `bytes` more program bytes went onto the line as NC data (in DAT or data packets;
+    /// retransmissions are not counted again).
+    DataSent {
+        bytes: u64,
+    },
+    /// The whole current program was delivered and the board was told (EOD / end packet).
+    ProgramDone,
+    /// The current program was abandoned: by `Cancel` (`cancelled`), by the CNC (reset or
+    /// alarm), or by a link failure.
+    ProgramAborted {
+        reason: AbortReason,
+        cancelled: bool,
+    },
+    /// A link alarm; [`LinkAlarm::cnc_alarm`] is the CNC alarm number the board raises for it.
+    Alarm(LinkAlarm),
+    /// A protocol error that the engine recovered from (retry, resync). For logs and counters.
+    ProtocolError {
+        error: ProtocolError,
+        retried: bool,
+    },
+    /// Punched data from the board (Protocol B punch-out, DC2 … DC4, §6.1.1 2), in order. A
+    /// long punch-out arrives in several pieces; the last piece of a punch-out is followed by
+    /// nothing that marks it, the next punch-out starts a new piece.
+    Punched {
+        data: Bytes,
+    },
+}
+
+/// A host-side engine (Protocol A family or Protocol B family).
+pub trait HostEngine: Engine<Command = EngineCommand, Event = EngineEvent> {
+    /// How many more program bytes the engine will take now (bounded buffer).
+    #[must_use]
+    fn data_wanted(&self) -> usize;
+}
