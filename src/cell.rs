@@ -8,8 +8,8 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::{CellConfig, MachineConfig, TransportConfig};
 use crate::fanuc::message::Framing;
-use crate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
-use crate::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
+use crate::fanuc::protocol_a::ProtocolAHost;
+use crate::fanuc::protocol_b::ProtocolBHost;
 use crate::link::driver::{self, LinkHandle};
 use crate::link::pump::now;
 use crate::sim;
@@ -87,7 +87,6 @@ impl Cell {
         shutdown: &CancellationToken,
     ) -> Result<MachineRuntime, CellError> {
         let name = machine.name.clone();
-        let line = *machine.transport.line();
         let framing = Framing::new(machine.code, machine.effective_end_code());
         let mut board = None;
         let mut sim_line = None;
@@ -135,28 +134,15 @@ impl Cell {
                 Box::new(host)
             }
         };
-        let (link, task) = if let Some(b) = ProtocolBConfig::for_protocol(
-            machine.protocol,
-            machine.code,
-            machine.effective_notify_alarm_reset(),
-        ) {
+        let (link, task) = if let Some(b) = machine.protocol_b_config() {
             let engine = ProtocolBHost::new(b, now()).map_err(|source| CellError::ProtocolB {
                 machine: name.clone(),
                 source,
             })?;
             driver::spawn(name.clone(), engine, transport, shutdown.clone())
         } else {
-            let engine = ProtocolAHost::new(
-                ProtocolAConfig {
-                    framing,
-                    params: machine.params(),
-                    packet_n: machine.effective_packet_n(),
-                    char_time: line.char_time(),
-                    ..ProtocolAConfig::default()
-                },
-                now(),
-            )
-            .map_err(|source| CellError::ProtocolA {
+            let a = machine.protocol_a_config().unwrap_or_default();
+            let engine = ProtocolAHost::new(a, now()).map_err(|source| CellError::ProtocolA {
                 machine: name.clone(),
                 source,
             })?;

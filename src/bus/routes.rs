@@ -84,7 +84,14 @@ pub async fn serve(
             continue;
         }
         let link_events = link.subscribe();
-        let (jobs, task) = jobs::spawn(&mc, library.clone(), link.clone(), jobs_stop.clone());
+        let rules = mc.program_rules(library.max_size());
+        let (jobs, task) = jobs::spawn(
+            &mc.name,
+            rules,
+            library.clone(),
+            link.clone(),
+            jobs_stop.clone(),
+        );
         job_tasks.spawn(async move {
             let _ = task.await;
         });

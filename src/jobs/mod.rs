@@ -37,7 +37,6 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 use crate::codes::BusCode;
-use crate::config::MachineConfig;
 use crate::fanuc::alarm::CncAlarm;
 use crate::link::JobId;
 use crate::link::driver::{
@@ -238,16 +237,16 @@ impl JobsHandle {
 /// cancelled or every handle is dropped; jobs still waiting are then reported cancelled, and
 /// the active one failed (the link is asked to cancel it).
 pub fn spawn(
-    machine: &MachineConfig,
+    machine: &str,
+    rules: ProgramRules,
     library: ProgramLibrary,
     link: LinkHandle,
     shutdown: CancellationToken,
 ) -> (JobsHandle, tokio::task::JoinHandle<()>) {
-    let rules = ProgramRules::for_machine(machine, library.max_size());
     let (req_tx, req_rx) = mpsc::channel(64);
     let (ev_tx, _) = broadcast::channel(1024);
     let (snap_tx, snap_rx) = watch::channel(JobsSnapshot::default());
-    let name: Arc<str> = Arc::from(machine.name.as_str());
+    let name: Arc<str> = Arc::from(machine);
     let handle = JobsHandle {
         machine: name.clone(),
         rules,

@@ -26,7 +26,6 @@ use bytes::Bytes;
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 
 use super::library::{LibraryError, ProgramLibrary};
-use crate::config::MachineConfig;
 use crate::fanuc::code::{CR, DC1, DC2, DC3, DC4, EOR, ETX, LF, NAK, SYN, is_significant};
 use crate::fanuc::{EndCode, Protocol};
 use crate::link::driver::ProgramSource;
@@ -41,15 +40,6 @@ pub struct ProgramRules {
 }
 
 impl ProgramRules {
-    /// The rules of `machine`'s link, with `programs.max_size`.
-    pub fn for_machine(machine: &MachineConfig, max_size: u64) -> Self {
-        ProgramRules {
-            protocol: machine.protocol,
-            end_code: machine.effective_end_code(),
-            max_size,
-        }
-    }
-
     /// Why the link cannot carry the 7-bit byte `b` as NC data, if it cannot.
     fn forbidden(&self, b: u8) -> Option<ProgramError> {
         if self.protocol.is_a_family() {

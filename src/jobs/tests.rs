@@ -157,7 +157,14 @@ fn rig(protocol: Protocol, chunk: usize, pace: Duration) -> Rig {
     let dir = tempfile::tempdir().unwrap();
     let library = ProgramLibrary::new(dir.path(), 1 << 20);
     let shutdown = CancellationToken::new();
-    let (jobs, _task) = spawn(&machine, library.clone(), link, shutdown.clone());
+    let rules = machine.program_rules(library.max_size());
+    let (jobs, _task) = spawn(
+        &machine.name,
+        rules,
+        library.clone(),
+        link,
+        shutdown.clone(),
+    );
     let events = jobs.subscribe();
     Rig {
         jobs,

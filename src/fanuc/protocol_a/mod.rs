@@ -168,6 +168,23 @@ fn join(problems: &[ConfigProblem]) -> String {
 }
 
 impl ProtocolAConfig {
+    /// The settings of a link with these framing, parameters, packet length and character
+    /// time. The WAT grace and the dummy-packet interval stay within a quarter of To, so
+    /// that every To of §4.5 (1..=999 s) gives settings that validate.
+    pub fn for_link(framing: Framing, params: Params, packet_n: u8, char_time: Duration) -> Self {
+        let defaults = ProtocolAConfig::default();
+        let quarter_to = Duration::from_secs(u64::from(params.to)) / 4;
+        ProtocolAConfig {
+            framing,
+            params,
+            packet_n,
+            char_time,
+            wat_grace: defaults.wat_grace.min(quarter_to),
+            dummy_interval: defaults.dummy_interval.min(quarter_to),
+            ..defaults
+        }
+    }
+
     /// Every problem of these settings.
     pub fn validate(&self) -> Vec<ConfigProblem> {
         let mut problems: Vec<ConfigProblem> = self

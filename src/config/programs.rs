@@ -1,0 +1,78 @@
+//! `[programs]`: the program library and what becomes of punched programs.
+
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+use super::error::{Checker, q};
+
+/// `[programs]`: where submitted NC programs are kept, and what becomes of punched ones.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ProgramsConfig {
+    /// Directory of stored programs; a relative path is taken from the working directory.
+    pub dir: PathBuf,
+    /// Largest program accepted, bytes.
+    pub max_size: u64,
+    /// Store every program a CNC punches out in the library, under a new name
+    /// `<machine>-<O-number>-<UTC time>` (Protocol B family).
+    pub store_punched: bool,
+    /// Remote request patterns: a punched program that holds nothing but one comment
+    /// matching one of these asks for the library program `O<n>` to be sent to the machine.
+    /// `{n}` stands for the program number's digits. Empty: punched programs are never
+    /// requests.
+    pub requests: Vec<String>,
+}
+
+impl ProgramsConfig {
+    pub const DEFAULT_MAX_SIZE: u64 = 512 * 1024 * 1024;
+
+    /// The default remote request patterns.
+    pub fn default_requests() -> Vec<String> {
+        crate::jobs::punch::DEFAULT_REQUEST_PATTERNS
+            .iter()
+            .map(ToString::to_string)
+            .collect()
+    }
+}
+
+impl Default for ProgramsConfig {
+    fn default() -> Self {
+        ProgramsConfig {
+            dir: PathBuf::from("programs"),
+            max_size: Self::DEFAULT_MAX_SIZE,
+            store_punched: true,
+            requests: Self::default_requests(),
+        }
+    }
+}
+
+pub(super) fn check_programs(c: &mut Checker, p: &ProgramsConfig) {
+    if p.dir.as_os_str().is_empty() {
+        c.invalid(
+            "programs.dir".to_string(),
+            "\"\"".to_string(),
+            "must name a directory".to_string(),
+            "",
+        );
+    }
+    if p.max_size == 0 {
+        c.invalid(
+            "programs.max_size".to_string(),
+            "0".to_string(),
+            "must be at least 1 byte".to_string(),
+            "",
+        );
+    }
+    for (i, pattern) in p.requests.iter().enumerate() {
+        if let Err(e) = crate::jobs::punch::RequestPatterns::parse(std::slice::from_ref(pattern)) {
+            let crate::jobs::punch::PatternError::Invalid { reason, .. } = e;
+            c.invalid(
+                format!("programs.requests[{i}]"),
+                q(pattern),
+                reason.to_string(),
+                "",
+            );
+        }
+    }
+}

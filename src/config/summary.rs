@@ -1,0 +1,195 @@
+//! What `cellgate check-config` prints of a valid cell file: the values in force, defaults
+//! filled in, and the CNC parameter values they imply.
+
+use std::fmt::{self, Write as _};
+
+use super::CellConfig;
+use super::error::plain_name;
+use super::fanuc::protocol_title;
+use super::plc::BccKind;
+use super::transport::TransportConfig;
+use crate::fanuc::{CodeSystem, EndCode, Protocol};
+
+impl CellConfig {
+    /// A human-readable view of the validated configuration, with the values in force
+    /// (defaults filled in) and the CNC parameter values they imply.
+    pub fn summary(&self) -> String {
+        let mut s = String::new();
+        let _ = self.write_summary(&mut s);
+        s
+    }
+
+    fn write_summary(&self, s: &mut String) -> fmt::Result {
+        writeln!(s, "cell {}", self.cell)?;
+        let b = &self.bus;
+        let list = |v: &[String]| {
+            if v.is_empty() {
+                "none".to_string()
+            } else {
+                v.join(", ")
+            }
+        };
+        writeln!(
+            s,
+            "bus: {} mode, keys under {}/{}, listen {}, connect {}, multicast scouting {}",
+            plain_name(&b.mode),
+            b.prefix,
+            self.cell,
+            list(&b.listen),
+            list(&b.connect),
+            on_off(b.multicast_scouting),
+        )?;
+        if let Some(z) = &b.zenoh_config {
+            writeln!(s, "  zenoh config file {}", z.display())?;
+        }
+        let t = &self.telemetry;
+        writeln!(
+            s,
+            "telemetry: {} logs, filter {:?}, OTLP export {}",
+            plain_name(&t.log_format),
+            t.log_filter,
+            t.otlp_endpoint.as_deref().map_or_else(
+                || "off".to_string(),
+                |e| format!("to {e} as {:?}", t.service_name)
+            ),
+        )?;
+        writeln!(
+            s,
+            "programs: in {}, at most {} each; punched programs {}; remote requests {}",
+            self.programs.dir.display(),
+            show_size(self.programs.max_size),
+            if self.programs.store_punched {
+                "stored"
+            } else {
+                "not stored"
+            },
+            if self.programs.requests.is_empty() {
+                "off".to_string()
+            } else {
+                self.programs.requests.join(" ")
+            }
+        )?;
+        writeln!(s, "machines: {}", self.machines.len())?;
+        for m in &self.machines {
+            let p = m.protocol;
+            write!(s, "  {}: {}", m.name, protocol_title(p))?;
+            if p == Protocol::ExpansionA {
+                let n = m.effective_packet_n();
+                write!(s, " n = {n} ({}-byte packets)", 256 * u32::from(n))?;
+            }
+            writeln!(
+                s,
+                ", {} code (5000#2 = {}), {}",
+                match m.code {
+                    CodeSystem::Ascii => "ASCII",
+                    CodeSystem::Iso => "ISO",
+                },
+                m.code.param_5000_bit2(p),
+                m.effective_interface().name(),
+            )?;
+            if p.is_a_family() {
+                writeln!(
+                    s,
+                    "    end code {} (5000#3 = {})",
+                    match m.effective_end_code() {
+                        EndCode::Cr => "CR",
+                        EndCode::Etx => "ETX",
+                    },
+                    m.param_5000_bit3()
+                )?;
+            } else {
+                writeln!(
+                    s,
+                    "    reset/alarm notification {} (5000#3 = {})",
+                    on_off(m.effective_notify_alarm_reset()),
+                    m.param_5000_bit3()
+                )?;
+            }
+            writeln!(s, "    transport: {}", m.transport.describe())?;
+            if let TransportConfig::Sim { .. } = m.transport {
+                let b = m.board_sim();
+                writeln!(
+                    s,
+                    "    simulated board: buffer {} bytes, CNC takes {} bytes/s, {} axes",
+                    b.buffer_size, b.consume_rate, b.axes
+                )?;
+            }
+            // SET and the §4.5 timers exist in the Protocol A family only.
+            if p.is_a_family() {
+                writeln!(s, "    parameters: {}", m.params())?;
+            }
+        }
+        writeln!(s, "plcs: {}", self.plcs.len())?;
+        for p in &self.plcs {
+            let stations: Vec<String> = p.stations.iter().map(|n| format!("{n:02}")).collect();
+            writeln!(
+                s,
+                "  {}: FFU120B mode {}, stations {}",
+                p.name,
+                p.mode,
+                stations.join(", ")
+            )?;
+            writeln!(
+                s,
+                "    start code {}, end code {}, code transposition {}, reply time-out {} ms",
+                show_bytes(p.start_code.bytes(&p.start_codes)),
+                show_bytes(p.end_code.bytes(&p.end_codes)),
+                on_off(p.transposition),
+                p.timeout_ms
+            )?;
+            if p.bcc == BccKind::None {
+                writeln!(s, "    BCC none")?;
+            } else {
+                writeln!(
+                    s,
+                    "    BCC {} ({}, {}), over {}, as {}",
+                    plain_name(&p.bcc_calc),
+                    plain_name(&p.bcc),
+                    if p.bcc == BccKind::Set1 {
+                        "high byte first"
+                    } else {
+                        "low byte first"
+                    },
+                    plain_name(&p.bcc_range),
+                    plain_name(&p.bcc_code)
+                )?;
+            }
+            writeln!(s, "    transport: {}", p.transport.describe())?;
+        }
+        Ok(())
+    }
+}
+
+pub(super) fn show_size(bytes: u64) -> String {
+    const MIB: u64 = 1024 * 1024;
+    if bytes >= MIB && bytes % MIB == 0 {
+        format!("{} MiB", bytes / MIB)
+    } else if bytes >= 1024 && bytes % 1024 == 0 {
+        format!("{} KiB", bytes / 1024)
+    } else {
+        format!("{bytes} bytes")
+    }
+}
+
+pub(super) fn on_off(b: bool) -> &'static str {
+    if b { "on" } else { "off" }
+}
+
+pub(super) fn show_bytes(b: &[u8]) -> String {
+    if b.is_empty() {
+        return "none".to_string();
+    }
+    let names: Vec<String> = b
+        .iter()
+        .map(|&c| match c {
+            0x02 => "STX".to_string(),
+            0x03 => "ETX".to_string(),
+            0x0A => "LF".to_string(),
+            0x0D => "CR".to_string(),
+            0x10 => "DLE".to_string(),
+            0x21..=0x7E => format!("'{}'", char::from(c)),
+            _ => format!("{c:02X}h"),
+        })
+        .collect();
+    names.join(" ")
+}

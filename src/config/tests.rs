@@ -1,0 +1,457 @@
+//! Validation rules, one test per rule; `tests/config.rs` covers the file as users meet it.
+use super::fanuc::default_interface;
+use super::*;
+use crate::engine::LineSettings;
+use crate::fanuc::sat::Params;
+use crate::fanuc::{EndCode, Protocol};
+
+const MINIMAL: &str = r#"
+cell = "c1"
+[[machines]]
+name = "m1"
+protocol = "a"
+transport = { kind = "sim" }
+"#;
+
+fn errors_of(text: &str) -> Vec<String> {
+    match CellConfig::from_toml_str(text, "test.toml") {
+        Ok(_) => Vec::new(),
+        Err(e) => e.iter().map(ToString::to_string).collect(),
+    }
+}
+
+#[test]
+fn request_patterns_are_checked() {
+    let with = |requests: &str| format!("{MINIMAL}\n[programs]\nrequests = {requests}\n");
+    assert!(errors_of(&with(r#"["(CALL {n})", "(PRG={n})"]"#)).is_empty());
+    assert!(errors_of(&with("[]")).is_empty());
+    let e = errors_of(&with(r#"["(REQ O{n})", "(REQ)", "({n}%)"]"#));
+    assert_eq!(e.len(), 2, "{e:?}");
+    assert!(
+        e[0].contains("programs.requests[1]") && e[0].contains("{n}"),
+        "{e:?}"
+    );
+    assert!(
+        e[1].contains("programs.requests[2]") && e[1].contains("EOR"),
+        "{e:?}"
+    );
+    let cfg = CellConfig::from_toml_str(MINIMAL, "t").unwrap();
+    assert!(cfg.programs.store_punched);
+    assert_eq!(cfg.programs.requests, ["(REQ O{n})", "(PRG={n})"]);
+}
+
+#[test]
+fn minimal_file_takes_defaults() {
+    let cfg = CellConfig::from_toml_str(MINIMAL, "t").unwrap();
+    let m = &cfg.machines[0];
+    assert_eq!(m.params(), Params::POWER_ON);
+    assert_eq!(m.effective_end_code(), EndCode::Cr);
+    assert_eq!(m.effective_packet_n(), 0);
+    assert_eq!(m.effective_interface(), Interface::Rs232c);
+    assert_eq!(m.transport.line(), &LineSettings::default());
+    assert_eq!(m.board_sim(), BoardSimConfig::DEFAULT);
+    assert_eq!(cfg.programs, ProgramsConfig::default());
+    assert_eq!(cfg.bus, BusConfig::default());
+}
+
+#[test]
+fn embedded_default_is_valid() {
+    let cfg = CellConfig::embedded_default();
+    assert_eq!(cfg.cell, "demo");
+    let names: Vec<&str> = cfg.machines.iter().map(|m| m.name.as_str()).collect();
+    assert_eq!(names, ["mill-1", "mill-2", "lathe-1"]);
+    assert!(cfg.bus.listen == ["tcp/127.0.0.1:7447"] && !cfg.bus.multicast_scouting);
+    let mill2 = cfg.machine("mill-2").unwrap();
+    assert_eq!(mill2.effective_packet_n(), 2);
+    assert_eq!(mill2.effective_interface(), Interface::Rs422);
+    assert!(cfg.validate().is_ok());
+}
+
+#[test]
+fn interface_default_follows_baud_and_protocol() {
+    assert_eq!(
+        default_interface(Protocol::A, 19_200, None),
+        Interface::Rs232c
+    );
+    assert_eq!(
+        default_interface(Protocol::A, 38_400, None),
+        Interface::Rs422
+    );
+    assert_eq!(
+        default_interface(Protocol::ExpansionB, 9600, None),
+        Interface::Rs422
+    );
+    assert_eq!(
+        default_interface(Protocol::B, 9600, Some(Interface::Rs422)),
+        Interface::Rs422
+    );
+}
+
+#[test]
+fn param_errors_carry_the_machine_path() {
+    let errs = errors_of(&format!("{MINIMAL}tw = 12\n"));
+    assert_eq!(
+        errs,
+        ["machines.m1.tw = 12: must be within 0..=5 (tp = 5) (§4.5)"]
+    );
+}
+
+#[test]
+fn packet_n_rules() {
+    let file = |protocol: &str, n: &str| {
+        format!(
+            "cell = \"c\"\n[[machines]]\nname = \"m\"\nprotocol = \"{protocol}\"\n{n}\n\
+             transport = {{ kind = \"sim\", line = {{ baud = 86400 }} }}\n"
+        )
+    };
+    assert!(errors_of(&file("expansion-a", "packet_n = 4")).is_empty());
+    assert!(errors_of(&file("expansion-a", "")).is_empty());
+    assert!(errors_of(&file("a", "packet_n = 0")).is_empty());
+    let e = errors_of(&file("expansion-a", "packet_n = 3"));
+    assert_eq!(e.len(), 1);
+    assert!(e[0].starts_with("machines.m.packet_n = 3: must be 1, 2 or 4"));
+    assert!(e[0].ends_with("(§5.2)"));
+    let e = errors_of(&file("expansion-a", "packet_n = 0"));
+    assert!(e[0].contains("n = 0 is plain Protocol A"), "{e:?}");
+    let e = errors_of(&file("a", "packet_n = 2"));
+    assert!(e[0].starts_with("machines.m.packet_n = 2: Protocol A sends NC data"));
+    let e = errors_of(&file("expansion-b", "packet_n = 1"));
+    assert!(e[0].starts_with("machines.m.packet_n: Expansion Protocol B has no data packets"));
+}
+
+#[test]
+fn di_poll_rules() {
+    let file = |protocol: &str, key: &str| {
+        format!(
+            "cell = \"c\"\n[[machines]]\nname = \"m\"\nprotocol = \"{protocol}\"\n{key}\n\
+             transport = {{ kind = \"sim\", line = {{ baud = 19200 }} }}\n"
+        )
+    };
+    assert!(errors_of(&file("a", "di_poll_ms = 500")).is_empty());
+    let e = errors_of(&file("a", "di_poll_ms = 10"));
+    assert_eq!(e.len(), 1);
+    assert!(e[0].starts_with("machines.m.di_poll_ms = 10: must be within 100..=3600000"));
+    let e = errors_of(&file("b", "di_poll_ms = 500"));
+    assert_eq!(e.len(), 1);
+    assert!(
+        e[0].starts_with("machines.m.di_poll_ms: Protocol B has no RDI/SDI"),
+        "{e:?}"
+    );
+    let c = CellConfig::from_toml_str(&file("a", "di_poll_ms = 500"), "t").unwrap();
+    assert_eq!(c.machines[0].di_poll_ms, Some(500));
+    let back = CellConfig::from_toml_str(&c.to_toml_string().unwrap(), "t").unwrap();
+    assert_eq!(back, c);
+}
+
+#[test]
+fn family_specific_keys() {
+    let b = |extra: &str| {
+        format!(
+            "cell = \"c\"\n[[machines]]\nname = \"l\"\nprotocol = \"b\"\n{extra}\n\
+             transport = {{ kind = \"sim\" }}\n"
+        )
+    };
+    assert!(errors_of(&b("notify_alarm_reset = true")).is_empty());
+    let e = errors_of(&b("end_code = \"etx\""));
+    assert_eq!(e.len(), 1);
+    assert!(e[0].starts_with("machines.l.end_code: Protocol B has no message end code"));
+    let e = errors_of(&format!("{MINIMAL}notify_alarm_reset = true\n"));
+    assert!(e[0].starts_with("machines.m1.notify_alarm_reset: Protocol A does not post"));
+}
+
+#[test]
+fn baud_rates_and_interfaces() {
+    let f = |protocol: &str, baud: u32, interface: &str| {
+        format!(
+            "cell = \"c\"\n[[machines]]\nname = \"m\"\nprotocol = \"{protocol}\"\n{interface}\n\
+             transport = {{ kind = \"sim\", line = {{ baud = {baud} }} }}\n"
+        )
+    };
+    assert!(errors_of(&f("a", 19200, "")).is_empty());
+    assert!(errors_of(&f("a", 86400, "")).is_empty());
+    assert!(errors_of(&f("expansion-b", 76800, "")).is_empty());
+    let e = errors_of(&f("a", 115_200, ""));
+    assert!(e[0].starts_with("machines.m.transport.line.baud = 115200: must be one of"));
+    assert!(e[0].ends_with("76800, 86400 (§10.2)"));
+    let e = errors_of(&f("a", 38_400, "interface = \"rs232c\""));
+    assert_eq!(
+        e,
+        [
+            "machines.m.transport.line.baud = 38400: RS-232-C carries 50..=19200 baud; \
+             set interface = \"rs422\" for faster rates (§2.1)"
+        ]
+    );
+    let e = errors_of(&f("b", 38_400, ""));
+    assert!(
+        e[0].contains("Protocol B runs at 19200 baud at most"),
+        "{e:?}"
+    );
+    let e = errors_of(&f("expansion-a", 19_200, "interface = \"rs232c\""));
+    assert_eq!(
+        e,
+        [
+            "machines.m.interface = \"rs232c\": Expansion Protocol A runs on RS-422 only \
+             (§2.2)"
+        ]
+    );
+}
+
+#[test]
+fn fanuc_framing() {
+    let f = |line: &str| {
+        format!(
+            "cell = \"c\"\n[[machines]]\nname = \"m\"\nprotocol = \"a\"\n\
+             transport = {{ kind = \"sim\", line = {{ {line} }} }}\n"
+        )
+    };
+    assert!(errors_of(&f("parity = \"even\", stop_bits = \"1\"")).is_empty());
+    assert!(errors_of(&f("parity = \"none\", stop_bits = \"2\"")).is_empty());
+    let e = errors_of(&f("parity = \"none\", stop_bits = \"1\""));
+    assert_eq!(e.len(), 1);
+    assert!(e[0].starts_with("machines.m.transport.line = \"9600 8N1\": the remote buffer"));
+    assert!(errors_of(&f("data_bits = \"7\"")).len() == 1);
+    assert!(errors_of(&f("parity = \"odd\", stop_bits = \"1\"")).len() == 1);
+}
+
+#[test]
+fn tcp_transport_checks() {
+    let f = |protocol: &str, t: &str| {
+        format!(
+            "cell = \"c\"\n[[machines]]\nname = \"m\"\nprotocol = \"{protocol}\"\n\
+             transport = {{ kind = \"tcp\", {t} }}\n"
+        )
+    };
+    assert!(errors_of(&f("a", "address = \"127.0.0.1:4001\"")).is_empty());
+    assert!(errors_of(&f("a", "address = \"moxa-3.local:4001\"")).is_empty());
+    assert!(errors_of(&f("a", "address = \"[::1]:4001\"")).is_empty());
+    let e = errors_of(&f("a", "address = \"moxa-3\""));
+    assert!(e[0].starts_with("machines.m.transport.address = \"moxa-3\": must be host:port"));
+    let e = errors_of(&f("b", "address = \"h:1\", window = 1024"));
+    assert_eq!(e.len(), 1);
+    assert!(e[0].starts_with("machines.m.transport.window = 1024: must be within 1..=511"));
+    assert!(errors_of(&f("expansion-b", "address = \"h:1\", window = 1024")).is_empty());
+    let e = errors_of(&f(
+        "a",
+        "address = \"h:1\", reconnect_min_ms = 500, reconnect_max_ms = 100",
+    ));
+    assert_eq!(
+        e,
+        [
+            "machines.m.transport.reconnect_max_ms = 100: must be within 500..=3600000 \
+             (reconnect_min_ms or more)"
+        ]
+    );
+}
+
+#[test]
+fn transport_tables() {
+    let e = errors_of(&MINIMAL.replace("{ kind = \"sim\" }", "{}"));
+    assert_eq!(
+        e,
+        ["machines.m1.transport.kind: missing; one of \"serial\", \"tcp\" or \"sim\""]
+    );
+    let e = errors_of(&MINIMAL.replace("{ kind = \"sim\" }", "{ kind = \"tcp\" }"));
+    assert!(e[0].starts_with("machines.m1.transport.address: missing; a tcp transport"));
+
+    // Read on its own, a transport reports its problems through serde.
+    let t: TransportConfig =
+        toml::from_str("kind = \"tcp\"\naddress = \"h:1\"\nline = { baud = 19200 }").unwrap();
+    assert_eq!(
+        t,
+        TransportConfig::Tcp {
+            address: "h:1".to_string(),
+            line: LineSettings::with_baud(19_200),
+            window: 256,
+            reconnect_min_ms: 100,
+            reconnect_max_ms: 5000,
+        }
+    );
+    let err = toml::from_str::<TransportConfig>("kind = \"sim\"\npath = \"/dev/x\"")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("`path`: used only with kind = \"serial\", not \"sim\""),
+        "{err}"
+    );
+}
+
+#[test]
+fn sim_table_only_with_sim_transport() {
+    let text = "cell = \"c\"\n[[machines]]\nname = \"m\"\nprotocol = \"a\"\n\
+                transport = { kind = \"serial\", path = \"/dev/ttyS0\" }\n\
+                [machines.sim]\nbuffer_size = 8192\n";
+    let e = errors_of(text);
+    assert_eq!(e.len(), 1);
+    assert!(e[0].starts_with("machines.m.sim: board simulation settings"));
+    let e = errors_of(&format!(
+        "{MINIMAL}[machines.sim]\nbuffer_size = 100\naxes = 0\n"
+    ));
+    assert_eq!(e.len(), 2, "{e:?}");
+    assert!(e[0].starts_with("machines.m1.sim.buffer_size = 100: must be within 4096..="));
+    assert!(e[1].starts_with("machines.m1.sim.axes = 0: must be within 1..=24"));
+}
+
+#[test]
+fn names_must_be_key_chunks_and_unique_across_links() {
+    let text = r#"
+cell = "my cell"
+[[machines]]
+name = "m/1"
+protocol = "a"
+transport = { kind = "sim" }
+[[machines]]
+name = "x"
+protocol = "a"
+transport = { kind = "sim" }
+[[plcs]]
+name = "x"
+transport = { kind = "sim" }
+"#;
+    let e = errors_of(text);
+    assert_eq!(e.len(), 3, "{e:?}");
+    assert!(e[0].starts_with("cell = \"my cell\": use only letters"));
+    assert!(e[1].starts_with("machines[1].name = \"m/1\": use only letters"));
+    assert_eq!(
+        e[2],
+        "plcs.x: [[machines]] #2 and [[plcs]] #1 are both named \"x\"; names must be \
+         unique in a cell (each becomes a key chunk)"
+    );
+}
+
+#[test]
+fn plc_defaults_and_initial_errors() {
+    let f = |extra: &str| {
+        format!(
+            "cell = \"c\"\n[[plcs]]\nname = \"p\"\n{extra}\n\
+             transport = {{ kind = \"sim\" }}\n"
+        )
+    };
+    let cfg = CellConfig::from_toml_str(&f(""), "t").unwrap();
+    let p = &cfg.plcs[0];
+    assert_eq!((p.mode, p.stations.as_slice()), (1, &[0u8][..]));
+    assert_eq!(p.start_code.bytes(&p.start_codes), b":");
+    assert_eq!(p.end_code.bytes(&p.end_codes), b"\r");
+    assert!(p.transposition);
+
+    // F1: binary BCC before the end code.
+    let e = errors_of(&f("bcc = \"set1\"\nbcc_code = \"binary\""));
+    assert_eq!(e.len(), 1);
+    assert!(e[0].starts_with("plcs.p.bcc_range = \"text\": a binary BCC (initial error F1)"));
+    // F2 + F3.
+    let e = errors_of(&f("bcc = \"set1\"\nbcc_calc = \"crc16\""));
+    assert_eq!(e.len(), 2, "{e:?}");
+    assert!(e[0].contains("a CRC-16 BCC (initial error F2)"));
+    assert!(e[1].starts_with("plcs.p.bcc_code = \"transmission-code\": a CRC-16 BCC"));
+    assert!(
+        errors_of(&f(
+            "bcc = \"set2\"\nbcc_calc = \"crc16\"\nbcc_code = \"binary\"\nbcc_range = \"start+text+end\""
+        ))
+        .is_empty()
+    );
+}
+
+#[test]
+fn plc_stations_modes_and_codes() {
+    let f = |extra: &str| {
+        format!(
+            "cell = \"c\"\n[[plcs]]\nname = \"p\"\n{extra}\n\
+             transport = {{ kind = \"sim\", line = {{ baud = 19200 }} }}\n"
+        )
+    };
+    assert!(errors_of(&f("mode = 2\nstations = [1, 2, 31]")).is_empty());
+    let e = errors_of(&f("stations = [1]"));
+    assert!(e[0].starts_with("plcs.p.stations = [1]: mode 1 is a 1:1 link"));
+    let e = errors_of(&f("mode = 3\nstations = [5, 120, 5]"));
+    assert_eq!(e.len(), 2, "{e:?}");
+    assert!(e[0].contains("station 120 is not a station number"));
+    assert!(e[1].contains("each station number may appear once"));
+    let e = errors_of(&f("mode = 4"));
+    assert!(e[0].starts_with("plcs.p.mode = 4: must be 1 (1:1), 2 or 3"));
+    let e = errors_of(&f("end_code = \"set2\"\nend_codes = [0x0D]"));
+    assert_eq!(
+        e,
+        [
+            "plcs.p.end_codes = [13]: end_code = \"set2\" needs exactly 2 bytes, e.g. \
+             end_codes = [0x2A, 0x2A] (FFU120B §4-3 items 18, 19)"
+        ]
+    );
+    let e = errors_of(&f("start_codes = [0x02]"));
+    assert!(e[0].starts_with("plcs.p.start_codes: used only with start_code = \"set1\""));
+    assert!(errors_of(&f("start_code = \"set1\"\nstart_codes = [0x2A]")).is_empty());
+}
+
+#[test]
+fn plc_baud_rates() {
+    let text = "cell = \"c\"\n[[plcs]]\nname = \"p\"\n\
+                transport = { kind = \"tcp\", address = \"h:1\", line = { baud = 38400 } }\n";
+    assert_eq!(
+        errors_of(text),
+        [
+            "plcs.p.transport.line.baud = 38400: must be one of 300, 600, 1200, 2400, 4800, \
+             9600, 19200 (FFU120B §3-2, §4-3 item 4)"
+        ]
+    );
+}
+
+#[test]
+fn bus_and_telemetry_checks() {
+    let text = "cell = \"c\"\n[bus]\nprefix = \"a//b\"\nlisten = [\"127.0.0.1:7447\"]\n\
+                [telemetry]\notlp_endpoint = \"127.0.0.1:4317\"\n";
+    let e = errors_of(text);
+    assert_eq!(e.len(), 3, "{e:?}");
+    assert!(e[0].starts_with("bus.prefix = \"a//b\""));
+    assert!(e[1].starts_with("bus.listen[1] = \"127.0.0.1:7447\""));
+    assert!(e[2].starts_with("telemetry.otlp_endpoint"));
+}
+
+#[test]
+fn missing_keys_are_validation_errors() {
+    let text = "[[machines]]\ntw = 9\n[[plcs]]\nname = \"p\"\n";
+    let e = errors_of(text);
+    assert_eq!(e.len(), 6, "{e:?}");
+    assert!(e[0].starts_with("cell: missing;"));
+    assert_eq!(
+        e[1],
+        "machines[1].name: missing; every [[machines]] #1 table needs a name"
+    );
+    assert!(e[2].starts_with("machines[1].protocol: missing;"));
+    assert_eq!(
+        e[3],
+        "machines[1].tw = 9: must be within 0..=5 (tp = 5) (§4.5)"
+    );
+    assert!(e[4].starts_with("machines[1].transport: missing;"));
+    assert!(e[5].starts_with("plcs.p.transport: missing;"));
+}
+
+#[test]
+fn summary_shows_values_in_force() {
+    let s = CellConfig::embedded_default().summary();
+    assert!(s.starts_with("cell demo\n"), "{s}");
+    assert!(
+        s.contains("mill-2: Expansion Protocol A n = 2 (512-byte packets)"),
+        "{s}"
+    );
+    assert!(
+        s.contains("lathe-1: Protocol B, ISO code (5000#2 = 0), RS-232-C"),
+        "{s}"
+    );
+    assert!(s.contains("Nb=2000 No=50"), "{s}");
+}
+
+#[test]
+fn every_time_out_of_the_manual_gives_engine_settings_that_run() {
+    // To may be 1..=999 s (§4.5); the host's WAT grace and dummy-packet interval follow it.
+    for to in [1, 2, 10, 20, 999] {
+        for protocol in ["a", "expansion-a"] {
+            let text = MINIMAL.replace(
+                "protocol = \"a\"",
+                &format!("protocol = \"{protocol}\"\nto = {to}"),
+            );
+            let cell = CellConfig::from_toml_str(&text, "t").unwrap();
+            let settings = cell.machines[0].protocol_a_config().unwrap();
+            assert_eq!(settings.validate(), vec![], "to = {to}, {protocol}");
+            crate::fanuc::protocol_a::ProtocolAHost::new(settings, std::time::Instant::now())
+                .unwrap();
+        }
+    }
+}
