@@ -5,26 +5,44 @@
 //!
 //! Bytes flow bottom-up; commands top-down.
 //!
+//! - [`engine`]: the sans-IO contract every protocol engine keeps ([`engine::Engine`]: bytes,
+//!   line errors, modem lines, commands and `now` in; bytes, events and the next deadline
+//!   out) and the line's plain data (framing, modem lines, line errors).
+//! - [`fanuc`]: FANUC remote-buffer protocols (A, Expansion A, B, Expansion B), sans-IO: the
+//!   codecs, the host engines, their contract ([`fanuc::host`]) and typed errors
+//!   ([`fanuc::error`]); the tape codes of punched programs ([`fanuc::tape`]).
 //! - [`transport`]: what carries a link's bytes: serial port, TCP device server, simulated line.
-//! - [`fanuc`]: FANUC remote-buffer protocols (A, Expansion A, B, Expansion B), sans-IO: bytes
-//!   and `now` go in; bytes to send, events and the next deadline come out. Also the tape
-//!   codes (ISO, ASCII, EIA) of punched programs ([`fanuc::tape`]).
-//! - [`link`]: the async driver that runs one engine over one transport, and the typed
-//!   commands and events through which the rest of the gateway talks to a link.
+//! - [`link`]: the async side: [`link::pump`] runs any engine over any transport in tokio
+//!   time; [`link::driver`] is a FANUC link's task (program queue, streamed sources, typed
+//!   commands and events).
 //! - [`sim`]: simulated devices (a remote-buffer board with a CNC behind it) that speak the
 //!   device side of the same protocols, for tests, CI and laptops.
-//! - [`config`]: the cell file: serde types, defaults, and validation that reports every error.
+//! - [`config`]: the cell file, one file per concern, with validation that reports every error.
 //! - [`jobs`]: per-machine job queues, program sources and checks, the program library, and
 //!   punched programs: split at EOR, named for the library, remote requests ([`jobs::punch`]).
-//! - [`bus`]: the Zenoh session, the cell's key expressions, and the routes that serve each
-//!   machine's link, its jobs, the programs it punches out and the program library on the
-//!   bus ([`bus::serve`]).
+//! - [`bus`]: the Zenoh session, the cell's key expressions, and one route per kind (status,
+//!   jobs, DI/DO, alarms, punched programs, the program library) ([`bus::serve`]).
+//! - [`codes`]: the one place where typed errors become bus error codes.
+//! - [`cell`]: the cell's links, built from the cell file.
+//! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves it, and stops
+//!   cleanly when the shutdown future completes.
 //! - [`client`]: a client of the bus contract: the library side of `cellgate submit`,
 //!   `status`, `watch`, `do`, `di`, `program` and `cancel`.
-//! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves its admin
-//!   key, and stops cleanly when the shutdown future completes.
 //! - [`telemetry`]: tracing subscriber and the optional OpenTelemetry export.
 //! - [`pb`]: the protobuf messages of `proto/cellgate/v1`, the bus's public contract.
+//!
+//! # Who imports whom
+//!
+//! - `engine` imports nothing of the crate. `fanuc` (and every protocol engine or codec) imports
+//!   only `engine` and its own modules: no tokio, no sockets, nothing of `link` or
+//!   `transport`, so it can be tested in plain time, fuzzed, and reused by the simulators.
+//! - `transport` imports `engine` (the line's data) and tokio; `link` imports `engine`, the
+//!   protocol engines and `transport`; `sim`'s device engines import `engine` and the
+//!   codecs, its runners `link::pump` and `transport`.
+//! - `jobs` imports `fanuc`, `link` and `pb`; `config` imports `engine`, `fanuc`, `jobs` and
+//!   `telemetry`, never `bus` or `link`.
+//! - `bus` may import everything below it; only `cell`, `gateway` and `client` import `bus`.
+//! - `codes` imports the error types it maps; every layer that builds a bus message uses it.
 
 pub mod bus;
 pub mod cell;

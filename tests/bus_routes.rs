@@ -45,6 +45,8 @@ struct FakeLink {
     pace: Duration,
     pending: VecDeque<ProgramJob>,
     do_image: u8,
+    /// ReadDi goes unanswered while set: a board that never gets to its next exchange.
+    mute_di: Arc<std::sync::atomic::AtomicBool>,
 }
 
 /// What the test holds of a stand-in link.
@@ -54,6 +56,7 @@ struct FakeCtl {
     log: Log,
     delivered: Delivered,
     release: Arc<Semaphore>,
+    mute_di: Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl FakeCtl {
@@ -73,6 +76,7 @@ fn fake_link(machine: &str, chunk: usize, pace: Duration) -> (LinkHandle, FakeCt
         log: Log::default(),
         delivered: Arc::default(),
         release: Arc::new(Semaphore::new(0)),
+        mute_di: Arc::default(),
     };
     let fake = FakeLink {
         commands: cmd_rx,
@@ -84,6 +88,7 @@ fn fake_link(machine: &str, chunk: usize, pace: Duration) -> (LinkHandle, FakeCt
         pace,
         pending: VecDeque::new(),
         do_image: 0,
+        mute_di: ctl.mute_di.clone(),
     };
     tokio::spawn(fake.run());
     (LinkHandle::from_channels(machine, cmd_tx, ev_tx), ctl)
@@ -109,7 +114,9 @@ impl FakeLink {
             }
             LinkCommand::ReadDi => {
                 self.log.lock().unwrap().push("ReadDi".to_string());
-                self.emit(LinkEvent::Di { value: 0x5A });
+                if !self.mute_di.load(std::sync::atomic::Ordering::SeqCst) {
+                    self.emit(LinkEvent::Di { value: 0x5A });
+                }
             }
             other => self.log.lock().unwrap().push(format!("{other:?}")),
         }
@@ -820,6 +827,51 @@ async fn di_get_reads_now_and_publishes() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_request_that_waits_holds_up_no_other_route() {
+    let cell = start_cell(Duration::from_millis(1)).await;
+    cell.mill
+        .mute_di
+        .store(true, std::sync::atomic::Ordering::SeqCst);
+    let di_key = cell.keys.leaf(MILL, MachineLeaf::Di);
+    let di = {
+        let (client, key) = (cell.client.clone(), di_key.clone());
+        tokio::spawn(async move { get(&client, &key, None).await })
+    };
+    eventually("the DI read reached the link", || {
+        cell.mill.log().contains(&"ReadDi".to_string())
+    })
+    .await;
+    // While the DI read waits for the board, the other routes answer, and so does the DI
+    // route itself for another machine.
+    let status: pb::MachineStatus = get_one(
+        &cell.client,
+        &cell.keys.leaf(MILL, MachineLeaf::Status),
+        None,
+    )
+    .await;
+    assert_eq!(status.machine, MILL);
+    let accepted: pb::JobAccepted = get_one(
+        &cell.client,
+        &cell.keys.leaf(LATHE, MachineLeaf::Job),
+        Some(inline(b"%\nO1\nG01X1\n%").encode_to_vec()),
+    )
+    .await;
+    assert!(!accepted.job_id.is_empty());
+    let e = get_err(&cell.client, &cell.keys.leaf(LATHE, MachineLeaf::Di), None).await;
+    assert_eq!(e.code(), pb::ErrorCode::NotSupported);
+    assert!(
+        !di.is_finished(),
+        "the DI read cannot have been answered yet"
+    );
+    // The board answers: the waiting read completes with its image.
+    cell.mill.emit(LinkEvent::Di { value: 0x21 });
+    let replies = di.await.unwrap();
+    let (_, bytes, _) = replies.into_iter().next().unwrap().unwrap();
+    assert_eq!(pb::DiImage::decode(bytes.as_slice()).unwrap().value, 0x21);
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn link_alarms_appear_on_the_alarm_key() {
     let cell = start_cell(Duration::from_millis(1)).await;
     let alarm_key = cell.keys.leaf(MILL, MachineLeaf::Alarm);
@@ -1036,6 +1088,60 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
         .map(|e| e.unwrap().file_name().into_string().unwrap())
         .collect();
     assert_eq!(names, ["O200.nc"]);
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_get_with_a_program_write_stores_and_removes_with_a_reply() {
+    let cell = start_cell(Duration::from_millis(1)).await;
+    let key = cell.keys.program("O300");
+    let store = |bytes: &[u8]| {
+        pb::ProgramWrite {
+            op: Some(pb::program_write::Op::Store(bytes.to_vec())),
+        }
+        .encode_to_vec()
+    };
+    let remove = pb::ProgramWrite {
+        op: Some(pb::program_write::Op::Remove(pb::program_write::Remove {})),
+    }
+    .encode_to_vec();
+    let path = cell.dir.path().join("programs").join("O300");
+
+    // The reply comes once the program is on disk: no polling.
+    let info: pb::ProgramInfo = get_one(&cell.client, &key, Some(store(b"%\nO300\n%"))).await;
+    assert_eq!((info.name.as_str(), info.size), ("O300", 8));
+    assert!(info.modified_unix_ms > 0);
+    assert_eq!(std::fs::read(&path).unwrap(), b"%\nO300\n%");
+    // A store replaces.
+    let info: pb::ProgramInfo = get_one(&cell.client, &key, Some(store(b"%\nO300\nM30\n%"))).await;
+    assert_eq!(info.size, 12);
+    assert_eq!(std::fs::read(&path).unwrap(), b"%\nO300\nM30\n%");
+
+    // Refusals are error replies, and change nothing.
+    let too_big = vec![b'x'; MAX_SIZE as usize + 1];
+    let e = get_err(&cell.client, &key, Some(store(&too_big))).await;
+    assert_eq!(e.code(), pb::ErrorCode::InvalidRequest, "{}", e.message);
+    assert_eq!(std::fs::read(&path).unwrap(), b"%\nO300\nM30\n%");
+    let e = get_err(&cell.client, &key, Some(b"\xff\xff".to_vec())).await;
+    assert_eq!(e.code(), pb::ErrorCode::InvalidRequest);
+    assert!(e.message.contains("ProgramWrite"), "{}", e.message);
+    let e = get_err(&cell.client, &key, Some(Vec::new())).await;
+    assert_eq!(e.code(), pb::ErrorCode::InvalidRequest);
+    assert!(e.message.contains("names no operation"), "{}", e.message);
+    let e = get_err(
+        &cell.client,
+        &cell.keys.program("-bad"),
+        Some(store(b"%\n%")),
+    )
+    .await;
+    assert_eq!(e.code(), pb::ErrorCode::InvalidRequest);
+
+    // Removal answers the program as it was; a second one finds nothing.
+    let info: pb::ProgramInfo = get_one(&cell.client, &key, Some(remove.clone())).await;
+    assert_eq!((info.name.as_str(), info.size), ("O300", 12));
+    assert!(!path.exists());
+    let e = get_err(&cell.client, &key, Some(remove)).await;
+    assert_eq!(e.code(), pb::ErrorCode::NotFound);
     cell.stop().await;
 }
 

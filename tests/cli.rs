@@ -1,5 +1,9 @@
 //! The `cellgate` binary as a user runs it: version, run until a signal, check-config.
 
+mod common;
+
+use common::bus::free_port;
+
 use std::io::Read;
 use std::net::{TcpListener, TcpStream};
 use std::process::{Child, Command, ExitStatus, Stdio};
@@ -7,14 +11,6 @@ use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 /// Collects a child's stderr on a thread so the pipe never fills up.
 fn collect_stderr(child: &mut Child) -> JoinHandle<String> {

@@ -5,10 +5,15 @@
 //! can look into the simulated CNCs; the `cellgate` binary is run against that gateway and
 //! against a `cellgate run` process. Real time, loopback, multicast off.
 
+mod common;
+
+use common::bus::free_port;
+
 use std::path::Path;
 use std::time::Duration;
 
 use cellgate::bus;
+use cellgate::bus::keys::CellKeys;
 use cellgate::cell::Cell;
 use cellgate::client::cli::{
     self, CancelArgs, ClientCommand, ConnectArgs, DiArgs, DoArgs, Io, ProgramCommand, StatusArgs,
@@ -26,14 +31,6 @@ const CELL: &str = "line-7";
 const MILL_A: &str = "mill-1";
 const MILL_X: &str = "mill-2";
 const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 /// A plain NC program of about `size` bytes: `%`, an O number, G01 blocks, M30, EOR `%`.
 fn nc_program(size: usize, number: u32) -> Vec<u8> {
@@ -84,12 +81,13 @@ async fn start_gateway() -> Gateway {
         tokio::spawn(async move { bus::serve(&s, &c, machines, stop).await })
     };
     let admin = {
-        let key = gateway::admin_key(&config);
+        let keys = CellKeys::new(&config.bus.prefix, &config.cell).unwrap();
+        let key = keys.admin();
         let doc = gateway::admin_document(&config, &session.zid().to_string()).to_string();
         let queryable = session.declare_queryable(key.as_str()).await.unwrap();
         let token = session
             .liveliness()
-            .declare_token(gateway::liveliness_key(&config))
+            .declare_token(keys.gateway())
             .await
             .unwrap();
         tokio::spawn(async move {

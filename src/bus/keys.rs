@@ -4,6 +4,8 @@
 //!
 //! | key | |
 //! |---|---|
+//! | `P/C/gateway` | liveliness token while the gateway runs |
+//! | `P/C/@admin` | the gateway's admin document (a verbatim chunk: `P/C/**` does not match it) |
 //! | `P/C/machine/M` | liveliness token while the machine's link is up |
 //! | `P/C/machine/M/status` | `MachineStatus` |
 //! | `P/C/machine/M/job` | job requests (`JobRequest` → `JobAccepted`), the queue |
@@ -66,6 +68,10 @@ impl MachineLeaf {
 /// may be wildcards.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum CellKey<'a> {
+    /// `P/C/gateway`
+    Gateway,
+    /// `P/C/@admin`
+    Admin,
     /// `P/C/machine/M`
     Machine { machine: &'a str },
     /// `P/C/machine/M/<leaf>`
@@ -118,6 +124,21 @@ impl CellKeys {
         &self.root
     }
 
+    /// `P/C/gateway`: the gateway's liveliness token.
+    pub fn gateway(&self) -> String {
+        format!("{}/gateway", self.root)
+    }
+
+    /// `P/C/@admin`: the gateway's admin document.
+    pub fn admin(&self) -> String {
+        format!("{}/{ADMIN_CHUNK}", self.root)
+    }
+
+    /// `P/C/**`: everything the cell publishes (the admin key aside).
+    pub fn all(&self) -> String {
+        format!("{}/**", self.root)
+    }
+
     /// `P/C/machine/M`: the machine's liveliness token.
     pub fn machine(&self, machine: &str) -> String {
         format!("{}/machine/{machine}", self.root)
@@ -158,6 +179,8 @@ impl CellKeys {
         let rest = key.strip_prefix(self.root.as_str())?.strip_prefix('/')?;
         let chunks: Vec<&'k str> = rest.split('/').collect();
         match chunks.as_slice() {
+            ["gateway"] => Some(CellKey::Gateway),
+            [ADMIN_CHUNK] => Some(CellKey::Admin),
             ["machine", m] => Some(CellKey::Machine { machine: m }),
             ["machine", m, leaf] => Some(CellKey::Leaf {
                 machine: m,
@@ -171,6 +194,23 @@ impl CellKeys {
             _ => None,
         }
     }
+}
+
+/// The admin chunk: verbatim, so that wildcards never match it.
+const ADMIN_CHUNK: &str = "@admin";
+
+/// `P/<cell>/@admin` for discovery, where `cell` may be `*` (any cell under `prefix`).
+pub fn admin_selector(prefix: &str, cell: &str) -> String {
+    format!("{prefix}/{cell}/{ADMIN_CHUNK}")
+}
+
+/// The cell of an admin key `P/<cell>/@admin` under `prefix`.
+pub fn cell_of_admin_key<'k>(prefix: &str, key: &'k str) -> Option<&'k str> {
+    key.strip_prefix(prefix)?
+        .strip_prefix('/')?
+        .strip_suffix(ADMIN_CHUNK)?
+        .strip_suffix('/')
+        .filter(|cell| is_plain_chunk(cell))
 }
 
 /// Whether a query's key expression `query` takes in the concrete key `key`.
@@ -215,6 +255,17 @@ mod tests {
             k.parse(&k.machine("m")),
             Some(CellKey::Machine { machine: "m" })
         );
+        assert_eq!(k.gateway(), "cellgate/line-3/gateway");
+        assert_eq!(k.admin(), "cellgate/line-3/@admin");
+        assert_eq!(k.parse(&k.gateway()), Some(CellKey::Gateway));
+        assert_eq!(k.parse(&k.admin()), Some(CellKey::Admin));
+        assert_eq!(admin_selector("cellgate", "*"), "cellgate/*/@admin");
+        assert_eq!(
+            cell_of_admin_key("cellgate", "cellgate/line-3/@admin"),
+            Some("line-3")
+        );
+        assert_eq!(cell_of_admin_key("cellgate", "cellgate/a/b/@admin"), None);
+        assert_eq!(cell_of_admin_key("cellgate", "other/line-3/@admin"), None);
         assert_eq!(k.parse("cellgate/line-3/machine/m/nope"), None);
         assert_eq!(k.parse("cellgate/line-30/program/p"), None);
         assert_eq!(k.parse("other/line-3/program/p"), None);
@@ -231,6 +282,9 @@ mod tests {
             k.any_leaf(MachineLeaf::Status),
             k.any_job_events(),
             k.any_program(),
+            k.gateway(),
+            k.admin(),
+            k.all(),
         ];
         for key in keys {
             assert!(keyexpr::new(key.as_str()).is_ok(), "{key}");

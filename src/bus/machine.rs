@@ -1,29 +1,33 @@
 //! One machine on the bus: its view (status, DI, recent jobs) kept up to date from its link's
-//! and its job manager's events, and the task that publishes them.
+//! and its job manager's events, and the task that publishes them through the machine's
+//! publishers of each route (status, DI, alarm, punch, job events) and holds its liveliness
+//! token `P/C/machine/M` while its link is up.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
-use prost::Message;
 use tokio::sync::{broadcast, watch};
 use tokio_util::sync::CancellationToken;
-use zenoh::Session;
+use zenoh::bytes::Encoding;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Publisher;
 use zenoh::qos::CongestionControl;
 
-use super::keys::CellKeys;
-use super::payload::{self, BusMessage, encoding};
-use super::punch::{Outcome, PunchDesk, PunchSettings};
+use super::BusError;
+use super::context::RouteContext;
+use super::keys::MachineLeaf;
+use super::payload::{self, BusMessage};
+use super::route_alarm::AlarmPublisher;
+use super::route_io::DiPublisher;
+use super::route_job::publish_job_event;
+use super::route_punch::{Outcome, PunchDesk, PunchPublisher, PunchSettings};
+use super::route_status::StatusPublisher;
 use crate::config::MachineConfig;
 use crate::fanuc::host::LinkState;
 use crate::jobs::{self, JobsHandle, JobsSnapshot};
 use crate::link::driver::{LinkCommand, LinkEvent, LinkHandle};
 use crate::pb;
-
-/// Finished jobs whose last event a `get` on `P/C/machine/M/job/*` still answers.
-pub const RECENT_JOBS: usize = 256;
 
 /// What the bus knows of a machine right now.
 #[derive(Debug, Default)]
@@ -205,14 +209,15 @@ impl Machine {
         c.jobs_failed = snapshot.jobs_failed;
     }
 
-    fn remember_job_event(&self, event: &pb::JobEvent) {
+    /// Keeps `event` as the latest of its job, and at most `keep` jobs.
+    pub fn remember_job_event(&self, event: &pb::JobEvent, keep: usize) {
         let mut view = self.view();
         let recent = &mut view.recent_jobs;
         if let Some(i) = recent.iter().position(|e| e.job_id == event.job_id) {
             recent.remove(i);
         }
         recent.push_back(event.clone());
-        while recent.len() > RECENT_JOBS {
+        while recent.len() > keep {
             recent.pop_front();
         }
     }
@@ -223,160 +228,222 @@ enum Extra {
     Alarm(pb::AlarmEvent),
 }
 
-/// The publishers of one machine, declared before its task starts.
-pub(crate) struct Publishers {
-    pub status: Publisher<'static>,
-    pub di: Publisher<'static>,
-    pub alarm: Publisher<'static>,
-    pub punch: Publisher<'static>,
+/// Declares one of a machine's publishers on `P/C/machine/M/<leaf>`.
+pub(crate) async fn declare_publisher(
+    ctx: &RouteContext,
+    machine: &str,
+    leaf: MachineLeaf,
+    encoding: Encoding,
+    congestion: CongestionControl,
+) -> Result<Publisher<'static>, BusError> {
+    let key = ctx.keys.leaf(machine, leaf);
+    ctx.session
+        .declare_publisher(key.clone())
+        .encoding(encoding)
+        .congestion_control(congestion)
+        .await
+        .map_err(|source| BusError::Declare {
+            what: "publisher",
+            key,
+            source,
+        })
 }
 
-/// The machine's task: keeps the view, publishes status on change, DI when read, alarms,
-/// and job events; holds the liveliness token while the link is up; polls DI when
-/// configured. Ends when `stop` is cancelled, after publishing the job events still pending.
-/// Declares the machine's liveliness token while its link is up, and withdraws it otherwise.
-async fn sync_token(
-    machine: &Machine,
-    session: &Session,
-    keys: &CellKeys,
-    token: &mut Option<LivelinessToken>,
-) {
-    let up = machine.link_up();
-    if up && token.is_none() {
-        let key = keys.machine(machine.name());
-        match session.liveliness().declare_token(key.as_str()).await {
-            Ok(t) => *token = Some(t),
-            Err(e) => {
-                tracing::warn!(%key, error = %e, "cannot declare the machine's liveliness token")
-            }
-        }
-    } else if !up && let Some(t) = token.take() {
-        undeclare_token(t).await;
+pub(crate) async fn put<M: BusMessage>(publisher: &Publisher<'static>, message: &M) {
+    if let Err(e) = publisher.put(message.encode_to_vec()).await {
+        tracing::warn!(key = %publisher.key_expr(), error = %e, "publishing failed");
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-pub(crate) async fn run(
+/// A machine's task and what it publishes through.
+pub(crate) struct MachineTask {
     machine: Arc<Machine>,
-    session: Session,
-    keys: Arc<CellKeys>,
-    publishers: Publishers,
-    mut link_events: broadcast::Receiver<LinkEvent>,
-    mut job_events: broadcast::Receiver<pb::JobEvent>,
-    mut snapshot: watch::Receiver<JobsSnapshot>,
-    punch: PunchSettings,
-    stop: CancellationToken,
-) {
-    let name = machine.name().to_string();
-    let mut desk = PunchDesk::new(&name, punch);
-    let mut token: Option<LivelinessToken> = None;
-    let mut published: Option<pb::MachineStatus> = None;
-    let poll = machine
-        .config
-        .di_poll_ms
-        .filter(|_| machine.config.protocol.is_a_family())
-        .map(|ms| {
-            let mut t = tokio::time::interval(Duration::from_millis(u64::from(ms)));
-            t.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-            t
-        });
-    let mut poll = poll;
-    let mut jobs_running = true;
-    // Events the link sent before this task subscribed are not replayed: start from its state.
-    if let Some(state) = machine.link.state() {
-        let _ = machine.on_link_event(&LinkEvent::State { state });
-        sync_token(&machine, &session, &keys, &mut token).await;
-    }
-    publish_status(&machine, &publishers.status, &mut published).await;
-    loop {
-        tokio::select! {
-            () = stop.cancelled() => break,
-            event = link_events.recv() => match event {
-                Ok(LinkEvent::Punched { data }) => {
-                    for outcome in desk.feed(&data, &machine.jobs).await {
-                        publish_punch_outcome(&machine, &publishers, outcome).await;
-                    }
-                }
-                Ok(event) => {
-                    let was_receiving = machine.view().link_state == Some(LinkState::Receiving);
-                    let extra = machine.on_link_event(&event);
-                    match extra {
-                        Some(Extra::Di(di)) => put(&publishers.di, &di).await,
-                        Some(Extra::Alarm(alarm)) => put(&publishers.alarm, &alarm).await,
-                        None => {}
-                    }
-                    // The punch-out is over once the link stops receiving (DC4, §6.1.1 2).
-                    let receiving = machine.view().link_state == Some(LinkState::Receiving);
-                    if was_receiving && !receiving && let Some(outcome) = desk.finish() {
-                        publish_punch_outcome(&machine, &publishers, outcome).await;
-                    }
-                    sync_token(&machine, &session, &keys, &mut token).await;
-                }
-                Err(broadcast::error::RecvError::Lagged(n)) => {
-                    tracing::warn!(machine = %name, missed = n, "the bus fell behind this link's events");
-                    let outcome = desk.lost(n);
-                    publish_punch_outcome(&machine, &publishers, outcome).await;
-                }
-                // Cannot happen while the machine holds its link handle.
-                Err(broadcast::error::RecvError::Closed) => break,
-            },
-            event = job_events.recv() => match event {
-                Ok(event) => publish_job_event(&machine, &session, &keys, &event).await,
-                Err(broadcast::error::RecvError::Lagged(n)) => {
-                    tracing::warn!(machine = %name, missed = n, "the bus fell behind this machine's job events");
-                }
-                Err(broadcast::error::RecvError::Closed) => break,
-            },
-            changed = snapshot.changed(), if jobs_running => {
-                if changed.is_ok() {
-                    let s = snapshot.borrow_and_update().clone();
-                    machine.on_jobs_snapshot(&s);
-                } else {
-                    // The job manager has stopped; its last snapshot is folded in below.
-                    jobs_running = false;
-                }
-            }
-            () = tick(&mut poll) => {
-                // RDI needs an initialised link (§4.4.1); a read that fails is no loss.
-                if machine.link_up() {
-                    let _ = machine.link.send(LinkCommand::ReadDi).await;
-                }
-            }
-        }
-        publish_status(&machine, &publishers.status, &mut published).await;
-    }
-    // The job manager stopped first: publish the ends it reported.
-    while let Ok(event) = job_events.try_recv() {
-        publish_job_event(&machine, &session, &keys, &event).await;
-    }
-    let s = snapshot.borrow().clone();
-    machine.on_jobs_snapshot(&s);
-    publish_status(&machine, &publishers.status, &mut published).await;
-    if let Some(t) = token.take() {
-        undeclare_token(t).await;
-    }
-    for p in [
-        publishers.status,
-        publishers.di,
-        publishers.alarm,
-        publishers.punch,
-    ] {
-        if let Err(e) = p.undeclare().await {
-            tracing::debug!(error = %e, "undeclaring a publisher failed");
+    ctx: RouteContext,
+    status: StatusPublisher,
+    di: DiPublisher,
+    alarm: AlarmPublisher,
+    punch: PunchPublisher,
+    desk: PunchDesk,
+    token: Option<LivelinessToken>,
+    link_events: broadcast::Receiver<LinkEvent>,
+    job_events: broadcast::Receiver<pb::JobEvent>,
+    snapshot: watch::Receiver<JobsSnapshot>,
+}
+
+/// What a machine's task listens to, subscribed before the gateway first awaits so that no
+/// event of a running link is missed.
+pub(crate) struct MachineFeeds {
+    pub link_events: broadcast::Receiver<LinkEvent>,
+    pub job_events: broadcast::Receiver<pb::JobEvent>,
+    pub snapshot: watch::Receiver<JobsSnapshot>,
+}
+
+impl MachineFeeds {
+    pub fn subscribe(link: &LinkHandle, jobs: &JobsHandle) -> Self {
+        MachineFeeds {
+            link_events: link.subscribe(),
+            job_events: jobs.subscribe(),
+            snapshot: jobs.snapshot(),
         }
     }
 }
 
-/// Publishes a punched program and the alarm that may come with it.
-async fn publish_punch_outcome(machine: &Machine, publishers: &Publishers, outcome: Outcome) {
-    if let Some(punched) = outcome.punched {
-        Machine::counters(&mut machine.view()).programs_punched += 1;
-        put(&publishers.punch, &punched).await;
+impl MachineTask {
+    /// Declares the machine's publishers.
+    pub async fn declare(
+        ctx: &RouteContext,
+        machine: Arc<Machine>,
+        feeds: MachineFeeds,
+        punch: PunchSettings,
+    ) -> Result<Self, BusError> {
+        let name = machine.name().to_string();
+        Ok(MachineTask {
+            status: StatusPublisher::declare(ctx, &name).await?,
+            di: DiPublisher::declare(ctx, &name).await?,
+            alarm: AlarmPublisher::declare(ctx, &name).await?,
+            punch: PunchPublisher::declare(ctx, &name).await?,
+            desk: PunchDesk::new(&name, punch),
+            token: None,
+            ctx: ctx.clone(),
+            machine,
+            link_events: feeds.link_events,
+            job_events: feeds.job_events,
+            snapshot: feeds.snapshot,
+        })
     }
-    if let Some((message, kind)) = outcome.alarm {
-        let event = machine.alarm_event(kind, "", message);
-        machine.view().status.last_alarm = Some(event.clone());
-        put(&publishers.alarm, &event).await;
+
+    /// Keeps the view, publishes status on change, DI when read, alarms, punched programs
+    /// and job events; holds the liveliness token while the link is up; polls DI when
+    /// configured. Ends when `stop` is cancelled, after publishing the job events still
+    /// pending; its publishers and token are undeclared when it returns.
+    pub async fn run(mut self, stop: CancellationToken) {
+        let machine = Arc::clone(&self.machine);
+        let mut poll = machine
+            .config
+            .di_poll_ms
+            .filter(|_| machine.config.protocol.is_a_family())
+            .map(|ms| {
+                let mut t = tokio::time::interval(Duration::from_millis(u64::from(ms)));
+                t.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+                t
+            });
+        let mut jobs_running = true;
+        // Events the link sent before this task subscribed are not replayed: start from its
+        // state.
+        if let Some(state) = machine.link.state() {
+            let _ = machine.on_link_event(&LinkEvent::State { state });
+            self.sync_token().await;
+        }
+        self.status.publish(&machine).await;
+        loop {
+            tokio::select! {
+                () = stop.cancelled() => break,
+                event = self.link_events.recv() => match event {
+                    Ok(event) => self.on_link_event(event).await,
+                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                        tracing::warn!(machine = %machine.name(), missed = n, "the bus fell behind this link's events");
+                        let outcome = self.desk.lost(n);
+                        self.publish_punch_outcome(outcome).await;
+                    }
+                    // Cannot happen while the machine holds its link handle.
+                    Err(broadcast::error::RecvError::Closed) => break,
+                },
+                event = self.job_events.recv() => match event {
+                    Ok(event) => publish_job_event(&self.ctx, &machine, &event).await,
+                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                        tracing::warn!(machine = %machine.name(), missed = n, "the bus fell behind this machine's job events");
+                    }
+                    Err(broadcast::error::RecvError::Closed) => break,
+                },
+                changed = self.snapshot.changed(), if jobs_running => {
+                    if changed.is_ok() {
+                        let s = self.snapshot.borrow_and_update().clone();
+                        machine.on_jobs_snapshot(&s);
+                    } else {
+                        // The job manager has stopped; its last snapshot is folded in below.
+                        jobs_running = false;
+                    }
+                }
+                () = tick(&mut poll) => {
+                    // RDI needs an initialised link (§4.4.1); a read that fails is no loss.
+                    if machine.link_up() {
+                        let _ = machine.link.send(LinkCommand::ReadDi).await;
+                    }
+                }
+            }
+            self.status.publish(&machine).await;
+        }
+        // The job manager stopped first: publish the ends it reported.
+        while let Ok(event) = self.job_events.try_recv() {
+            publish_job_event(&self.ctx, &machine, &event).await;
+        }
+        let s = self.snapshot.borrow().clone();
+        machine.on_jobs_snapshot(&s);
+        self.status.publish(&machine).await;
+        if let Some(t) = self.token.take() {
+            undeclare_token(t).await;
+        }
+    }
+
+    async fn on_link_event(&mut self, event: LinkEvent) {
+        let machine = Arc::clone(&self.machine);
+        if let LinkEvent::Punched { data } = &event {
+            for outcome in self.desk.feed(data, &machine.jobs).await {
+                self.publish_punch_outcome(outcome).await;
+            }
+            return;
+        }
+        let was_receiving = machine.view().link_state == Some(LinkState::Receiving);
+        match machine.on_link_event(&event) {
+            Some(Extra::Di(di)) => self.di.publish(&di).await,
+            Some(Extra::Alarm(alarm)) => self.alarm.publish(&alarm).await,
+            None => {}
+        }
+        // The punch-out is over once the link stops receiving (DC4, §6.1.1 2).
+        let receiving = machine.view().link_state == Some(LinkState::Receiving);
+        if was_receiving
+            && !receiving
+            && let Some(outcome) = self.desk.finish()
+        {
+            self.publish_punch_outcome(outcome).await;
+        }
+        self.sync_token().await;
+    }
+
+    /// Publishes a punched program and the alarm that may come with it.
+    async fn publish_punch_outcome(&self, outcome: Outcome) {
+        if let Some(punched) = outcome.punched {
+            Machine::counters(&mut self.machine.view()).programs_punched += 1;
+            self.punch.publish(&punched).await;
+        }
+        if let Some((message, kind)) = outcome.alarm {
+            let event = self.machine.alarm_event(kind, "", message);
+            self.machine.view().status.last_alarm = Some(event.clone());
+            self.alarm.publish(&event).await;
+        }
+    }
+
+    /// Declares the machine's liveliness token while its link is up, and withdraws it
+    /// otherwise.
+    async fn sync_token(&mut self) {
+        let up = self.machine.link_up();
+        if up && self.token.is_none() {
+            let key = self.ctx.keys.machine(self.machine.name());
+            match self
+                .ctx
+                .session
+                .liveliness()
+                .declare_token(key.as_str())
+                .await
+            {
+                Ok(t) => self.token = Some(t),
+                Err(e) => {
+                    tracing::warn!(%key, error = %e, "cannot declare the machine's liveliness token")
+                }
+            }
+        } else if !up && let Some(t) = self.token.take() {
+            undeclare_token(t).await;
+        }
     }
 }
 
@@ -393,91 +460,4 @@ async fn undeclare_token(token: LivelinessToken) {
     if let Err(e) = token.undeclare().await {
         tracing::debug!(error = %e, "undeclaring a liveliness token failed");
     }
-}
-
-/// Publishes the status if it changed since `published` (the time of day aside).
-async fn publish_status(
-    machine: &Machine,
-    publisher: &Publisher<'static>,
-    published: &mut Option<pb::MachineStatus>,
-) {
-    let current = machine.view().status.clone();
-    if published.as_ref() == Some(&current) {
-        return;
-    }
-    let mut stamped = current.clone();
-    stamped.unix_ms = jobs::unix_ms();
-    put(publisher, &stamped).await;
-    *published = Some(current);
-}
-
-async fn put<M: BusMessage>(publisher: &Publisher<'static>, message: &M) {
-    if let Err(e) = publisher.put(message.encode_to_vec()).await {
-        tracing::warn!(key = %publisher.key_expr(), error = %e, "publishing failed");
-    }
-}
-
-async fn publish_job_event(
-    machine: &Machine,
-    session: &Session,
-    keys: &CellKeys,
-    event: &pb::JobEvent,
-) {
-    machine.remember_job_event(event);
-    let key = keys.job_events(machine.name(), &event.job_id);
-    let sent = session
-        .put(key.as_str(), event.encode_to_vec())
-        .encoding(encoding::<pb::JobEvent>())
-        .congestion_control(CongestionControl::Block)
-        .await;
-    if let Err(e) = sent {
-        tracing::warn!(%key, error = %e, "publishing a job event failed");
-    }
-}
-
-/// Declares the machine's publishers: status and DI telemetry drop under congestion,
-/// alarms do not.
-pub(crate) async fn declare_publishers(
-    session: &Session,
-    keys: &CellKeys,
-    name: &str,
-) -> Result<Publishers, (String, zenoh::Error)> {
-    use super::keys::MachineLeaf;
-    let declare = |leaf: MachineLeaf, enc: zenoh::bytes::Encoding, cc: CongestionControl| {
-        let key = keys.leaf(name, leaf);
-        async move {
-            session
-                .declare_publisher(key.clone())
-                .encoding(enc)
-                .congestion_control(cc)
-                .await
-                .map_err(|e| (key, e))
-        }
-    };
-    Ok(Publishers {
-        status: declare(
-            MachineLeaf::Status,
-            encoding::<pb::MachineStatus>(),
-            CongestionControl::Drop,
-        )
-        .await?,
-        di: declare(
-            MachineLeaf::Di,
-            encoding::<pb::DiImage>(),
-            CongestionControl::Drop,
-        )
-        .await?,
-        alarm: declare(
-            MachineLeaf::Alarm,
-            encoding::<pb::AlarmEvent>(),
-            CongestionControl::Block,
-        )
-        .await?,
-        punch: declare(
-            MachineLeaf::Punch,
-            encoding::<pb::PunchedProgram>(),
-            CongestionControl::Block,
-        )
-        .await?,
-    })
 }

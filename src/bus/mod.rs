@@ -1,15 +1,166 @@
-//! The Zenoh side of the gateway: session settings, the cell's key expressions ([`keys`]),
-//! the protobuf payloads ([`payload`]) and the routes that put each machine's link, its job
-//! queue and the cell's program library on the bus ([`routes`]).
+//! The Zenoh side of the gateway: the cell's machines, jobs and program library as keys,
+//! queryables, publishers and liveliness tokens, with protobuf payloads.
+//!
+//! One file per concern, as the zenoh bridges do it:
+//! - [`session`]: opening the session from `[bus]` (loopback, multicast scouting off by default);
+//! - [`keys`]: every key expression of the cell, built and parsed in one place;
+//! - [`payload`]: the protobuf messages and their encodings, and the link's data as messages;
+//! - `context`: what every route shares, the typed request errors, the reply helpers;
+//! - one route per kind: `route_status`, `route_job`, `route_io` (DI/DO), `route_alarm`,
+//!   `route_punch`, `route_program` (library); each declares its own queryables, subscribers
+//!   or publishers, and they are undeclared when it is dropped;
+//! - `machine`: a machine's view (its status) and the task that publishes through the
+//!   machine's publishers of each route;
+//! - [`admin`]: the gateway's own token and `@admin` key.
+//!
+//! One queryable or subscriber per route serves every machine (`P/C/machine/*/status`, …): a
+//! request for a machine the cell does not have still reaches the gateway, which answers
+//! `ERROR_CODE_UNKNOWN_MACHINE` instead of leaving the client to time out. Each route runs in
+//! its own task, and requests that may wait run off it within a bound
+//! ([`context::MAX_WAITING_REQUESTS`]), so one slow querier stalls no other request.
+//!
+//! QoS per route: job requests, DO commands and program transfers are queries or puts the
+//! client sends (a query is `Block` by default, and its replies follow it); job events,
+//! alarms and punched programs are published reliable with `Block`; status and DI telemetry
+//! with `Drop`, since the next value supersedes a lost one.
 
+pub mod admin;
+pub mod context;
 pub mod keys;
 mod machine;
 pub mod payload;
-mod punch;
-pub mod routes;
+mod route_alarm;
+mod route_io;
+mod route_job;
+mod route_program;
+mod route_punch;
+mod route_status;
 pub mod session;
 
-pub use routes::{MachineLink, serve};
+pub use route_job::{FETCH_TIMEOUT, RECENT_JOBS};
 pub use session::{BusError, open};
 
 pub use crate::config::{BusConfig, BusMode};
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use tokio::task::JoinSet;
+use tokio_util::sync::CancellationToken;
+use zenoh::Session;
+
+use self::context::RouteContext;
+use self::keys::CellKeys;
+use self::machine::{Machine, MachineFeeds, MachineTask};
+use self::route_io::IoRoute;
+use self::route_job::JobRoute;
+use self::route_program::ProgramRoute;
+use self::route_punch::PunchSettings;
+use self::route_status::StatusRoute;
+use crate::config::{CellConfig, MachineConfig};
+use crate::jobs;
+use crate::jobs::library::ProgramLibrary;
+use crate::link::driver::LinkHandle;
+
+/// A machine of the cell and its running link, as the gateway hands them to [`serve`].
+#[derive(Debug, Clone)]
+pub struct MachineLink {
+    pub config: MachineConfig,
+    pub link: LinkHandle,
+}
+
+/// Serves the cell's machines and program library on `session` until `shutdown` is
+/// cancelled, then undeclares everything: routes first, then each machine's job manager
+/// (jobs still waiting are reported cancelled, the active one failed), then each machine's
+/// publishers and liveliness token. The links themselves are left running: they belong to
+/// the caller.
+///
+/// Each link is subscribed to before this function first awaits, so call it as soon as the
+/// links are spawned. Must run on a multi-thread Tokio runtime (zenoh's requirement).
+pub async fn serve(
+    session: &Session,
+    config: &CellConfig,
+    machines: Vec<MachineLink>,
+    shutdown: CancellationToken,
+) -> Result<(), BusError> {
+    let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
+    let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size);
+    let jobs_stop = shutdown.child_token();
+    let machines_stop = CancellationToken::new();
+    let routes_stop = shutdown.child_token();
+
+    // Subscribed before any await, so no event of a link that is already running is missed.
+    let mut started = Vec::new();
+    let mut by_name = BTreeMap::new();
+    let mut job_tasks = JoinSet::new();
+    for MachineLink { config: mc, link } in machines {
+        if by_name.contains_key(&mc.name) {
+            tracing::error!(machine = %mc.name, "machine given twice; serving the first only");
+            continue;
+        }
+        let rules = mc.program_rules(library.max_size());
+        let (jobs, task) = jobs::spawn(
+            &mc.name,
+            rules,
+            library.clone(),
+            link.clone(),
+            jobs_stop.clone(),
+        );
+        job_tasks.spawn(async move {
+            let _ = task.await;
+        });
+        let feeds = MachineFeeds::subscribe(&link, &jobs);
+        let machine = Arc::new(Machine::new(mc, link, jobs));
+        by_name.insert(machine.name().to_string(), Arc::clone(&machine));
+        started.push((machine, feeds));
+    }
+    let ctx = RouteContext::new(
+        session.clone(),
+        Arc::clone(&keys),
+        Arc::new(by_name),
+        library.clone(),
+    );
+
+    let mut machine_tasks = JoinSet::new();
+    let mut route_tasks = JoinSet::new();
+    let served = async {
+        library
+            .create_dir()
+            .await
+            .map_err(|source| BusError::ProgramDir {
+                dir: library.dir().to_path_buf(),
+                source,
+            })?;
+        let punch = PunchSettings::from_config(&config.programs);
+        for (machine, feeds) in started {
+            let task = MachineTask::declare(&ctx, machine, feeds, punch.clone()).await?;
+            machine_tasks.spawn(task.run(machines_stop.clone()));
+        }
+        let status = StatusRoute::declare(&ctx).await?;
+        let job = JobRoute::declare(&ctx).await?;
+        let io = IoRoute::declare(&ctx).await?;
+        let program = ProgramRoute::declare(&ctx).await?;
+        route_tasks.spawn(status.run(ctx.clone(), routes_stop.clone()));
+        route_tasks.spawn(job.run(ctx.clone(), routes_stop.clone()));
+        route_tasks.spawn(io.run(ctx.clone(), routes_stop.clone()));
+        route_tasks.spawn(program.run(ctx.clone(), routes_stop.clone()));
+        tracing::info!(root = %keys.root(), machines = ctx.machines.len(), "cell routes declared");
+        // A route ends early only when the session closed under it.
+        tokio::select! {
+            () = shutdown.cancelled() => {}
+            _ = route_tasks.join_next() => {}
+        }
+        Ok(())
+    }
+    .await;
+
+    // Whatever happened, stop in order: the routes (their queryables go with them), then the
+    // job managers report their last events, then the machine tasks publish them and withdraw.
+    routes_stop.cancel();
+    while route_tasks.join_next().await.is_some() {}
+    jobs_stop.cancel();
+    while job_tasks.join_next().await.is_some() {}
+    machines_stop.cancel();
+    while machine_tasks.join_next().await.is_some() {}
+    served
+}

@@ -33,6 +33,7 @@ bus_messages!(
     AlarmEvent,
     ErrorReply,
     ProgramInfo,
+    ProgramWrite,
     PunchedProgram,
 );
 

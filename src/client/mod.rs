@@ -23,7 +23,9 @@ use zenoh::pubsub::Subscriber;
 use zenoh::query::{ConsolidationMode, Reply};
 use zenoh::sample::{Sample, SampleKind};
 
-use crate::bus::keys::{CellKey, CellKeys, KeyError, MachineLeaf, is_plain_chunk};
+use crate::bus::keys::{
+    CellKey, CellKeys, KeyError, MachineLeaf, admin_selector, cell_of_admin_key, is_plain_chunk,
+};
 use crate::bus::payload::{BusMessage, encoding, schema_of};
 use crate::bus::{BusConfig, BusError, BusMode};
 use crate::jobs::library::{LibraryError, validate_name};
@@ -51,10 +53,6 @@ pub const IO_TIMEOUT: Duration = Duration::from_secs(205);
 /// How long a followed job may stay silent before the client asks the gateway for its latest
 /// event (a job waiting in the queue publishes nothing).
 pub const SILENCE: Duration = Duration::from_secs(5);
-
-/// How long `program put` / `program rm` wait to see the library change. A put or delete
-/// has no reply in the contract, so the client reads the library back.
-pub const LIBRARY_CONFIRM: Duration = Duration::from_secs(5);
 
 /// Why a client operation failed.
 #[derive(Debug, thiserror::Error)]
@@ -132,13 +130,6 @@ pub enum ClientError {
         expected: &'static str,
         detail: String,
     },
-    /// A put or delete on the program library did not show in the library.
-    #[error(
-        "program {name}: the library did not show the {op} within {} s; the gateway refused it \
-         or is slow (see its log: the name must be valid and the program within programs.max_size)",
-        LIBRARY_CONFIRM.as_secs()
-    )]
-    NotConfirmed { name: String, op: &'static str },
     /// Zenoh failed a declaration, a put or a get.
     #[error("{what}: zenoh: {source}")]
     Zenoh {
@@ -312,7 +303,7 @@ impl Client {
         cell: &str,
         timeout: Duration,
     ) -> Result<Vec<(String, serde_json::Value)>, ClientError> {
-        let key = format!("{prefix}/{cell}/@admin");
+        let key = admin_selector(prefix, cell);
         let replies = session
             .get(key.as_str())
             .consolidation(ConsolidationMode::None)
@@ -323,15 +314,9 @@ impl Client {
                 source,
             })?;
         let mut found = Vec::new();
-        let head = format!("{prefix}/");
         while let Ok(reply) = replies.recv_async().await {
             let Ok(sample) = reply.result() else { continue };
-            let Some(name) = sample
-                .key_expr()
-                .as_str()
-                .strip_prefix(head.as_str())
-                .and_then(|rest| rest.strip_suffix("/@admin"))
-            else {
+            let Some(name) = cell_of_admin_key(prefix, sample.key_expr().as_str()) else {
                 continue;
             };
             let doc = serde_json::from_slice(&sample.payload().to_bytes())
@@ -729,8 +714,8 @@ impl Client {
         }
     }
 
-    /// Stores a program in the library, and waits until the library holds exactly these
-    /// bytes under `name`.
+    /// Stores a program in the library; answers it as stored, once it is on the gateway's
+    /// disk (a get with a `ProgramWrite`).
     pub async fn program_put(
         &self,
         name: &str,
@@ -748,70 +733,37 @@ impl Client {
                 ),
             });
         }
-        let key = self.keys.program(name);
-        self.session
-            .put(key.as_str(), program.to_vec())
-            .encoding(Encoding::APPLICATION_OCTET_STREAM)
-            .await
-            .map_err(|source| ClientError::Zenoh {
-                what: format!("put {key}"),
-                source,
-            })?;
-        let deadline = tokio::time::Instant::now() + LIBRARY_CONFIRM;
-        loop {
-            let listed = self.program_list().await?;
-            if let Some(info) = listed
-                .into_iter()
-                .find(|p| p.name == name && p.size == program.len() as u64)
-            {
-                // Same size: compare the bytes, since the put may replace a program of the
-                // same size.
-                if self.program_get(name).await.ok().as_deref() == Some(program) {
-                    return Ok(info);
-                }
-            }
-            if tokio::time::Instant::now() >= deadline {
-                return Err(ClientError::NotConfirmed {
-                    name: name.to_string(),
-                    op: "put",
-                });
-            }
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
+        let write = pb::ProgramWrite {
+            op: Some(pb::program_write::Op::Store(program.to_vec())),
+        };
+        self.program_write(name, "store", write).await
     }
 
-    /// Removes a program from the library, and waits until it is gone.
-    pub async fn program_remove(&self, name: &str) -> Result<(), ClientError> {
+    /// Removes a program from the library; answers it as it was, once it is gone.
+    pub async fn program_remove(&self, name: &str) -> Result<pb::ProgramInfo, ClientError> {
         Self::program_arg(name)?;
-        let present = |list: &[pb::ProgramInfo]| list.iter().any(|p| p.name == name);
-        if !present(&self.program_list().await?) {
-            return Err(ClientError::Refused {
-                what: format!("remove program {name}"),
-                code: pb::ErrorCode::NotFound,
-                message: format!("the program library has no program {name:?}"),
-            });
-        }
+        let write = pb::ProgramWrite {
+            op: Some(pb::program_write::Op::Remove(pb::program_write::Remove {})),
+        };
+        self.program_write(name, "remove", write).await
+    }
+
+    /// A confirmed library change: a get with a `ProgramWrite` on the program's key.
+    async fn program_write(
+        &self,
+        name: &str,
+        op: &str,
+        write: pb::ProgramWrite,
+    ) -> Result<pb::ProgramInfo, ClientError> {
         let key = self.keys.program(name);
-        self.session
-            .delete(key.as_str())
-            .await
-            .map_err(|source| ClientError::Zenoh {
-                what: format!("delete {key}"),
-                source,
-            })?;
-        let deadline = tokio::time::Instant::now() + LIBRARY_CONFIRM;
-        loop {
-            if !present(&self.program_list().await?) {
-                return Ok(());
-            }
-            if tokio::time::Instant::now() >= deadline {
-                return Err(ClientError::NotConfirmed {
-                    name: name.to_string(),
-                    op: "removal",
-                });
-            }
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
+        let payload = (write.encode_to_vec(), encoding::<pb::ProgramWrite>());
+        self.get_one(
+            &format!("{op} program {name}"),
+            &key,
+            Some(payload),
+            self.timeout,
+        )
+        .await
     }
 
     // ---- watch -----------------------------------------------------------------------------
@@ -819,7 +771,7 @@ impl Client {
     /// Subscribes to everything the cell publishes (`P/C/**`) and to its liveliness tokens.
     /// The tokens standing now come first (as `Gateway` / `Link` events with `up`).
     pub async fn watch(&self) -> Result<Watch, ClientError> {
-        let all = format!("{}/**", self.keys.root());
+        let all = self.keys.all();
         let data = self
             .session
             .declare_subscriber(all.as_str())
@@ -1186,10 +1138,8 @@ impl Watch {
     fn token_event(&self, sample: &Sample) -> Option<WatchEvent> {
         let up = sample.kind() == SampleKind::Put;
         let key = sample.key_expr().as_str();
-        if key == format!("{}/gateway", self.keys.root()) {
-            return Some(WatchEvent::Gateway { up });
-        }
         match self.keys.parse(key) {
+            Some(CellKey::Gateway) => Some(WatchEvent::Gateway { up }),
             Some(CellKey::Machine { machine }) => Some(WatchEvent::Link {
                 machine: machine.to_string(),
                 up,

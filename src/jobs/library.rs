@@ -257,14 +257,15 @@ impl ProgramLibrary {
             .map_err(|e| self.io_error(name, "read", e))
     }
 
-    /// Removes a program.
-    pub async fn remove(&self, name: &str) -> Result<(), LibraryError> {
+    /// Removes a program; returns it as it was.
+    pub async fn remove(&self, name: &str) -> Result<ProgramEntry, LibraryError> {
         let path = self.path_of(name)?;
         // Only programs: a directory that happens to carry a valid name is not one.
-        self.entry(name).await?;
+        let entry = self.entry(name).await?;
         tokio::fs::remove_file(&path)
             .await
-            .map_err(|e| self.io_error(name, "remove", e))
+            .map_err(|e| self.io_error(name, "remove", e))?;
+        Ok(entry)
     }
 
     /// Every program, by name. Files whose names are not valid library names are skipped.

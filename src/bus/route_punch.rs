@@ -1,4 +1,5 @@
-//! Programs a CNC punches out (Protocol B family, §6.1.1 2), on the bus.
+//! `P/C/machine/M/punch`: programs a CNC punches out (Protocol B family, §6.1.1 2), each a
+//! `PunchedProgram` published reliably (QoS `Block`).
 //!
 //! The link hands punched bytes on as they arrive ([`LinkEvent::Punched`]); the machine's task
 //! feeds them to a [`PunchDesk`], which splits them into programs at EOR and decodes ISO,
@@ -15,6 +16,14 @@
 //!
 //! [`LinkEvent::Punched`]: crate::link::driver::LinkEvent::Punched
 
+use zenoh::pubsub::Publisher;
+use zenoh::qos::CongestionControl;
+
+use super::BusError;
+use super::context::RouteContext;
+use super::keys::MachineLeaf;
+use super::machine::{declare_publisher, put};
+use super::payload::encoding;
 use crate::config::ProgramsConfig;
 use crate::fanuc::tape::TapeCode;
 use crate::jobs::library::LibraryError;
@@ -257,5 +266,28 @@ fn code_system(code: TapeCode) -> pb::CodeSystem {
         TapeCode::Iso => pb::CodeSystem::Iso,
         TapeCode::Ascii => pb::CodeSystem::Ascii,
         TapeCode::Eia => pb::CodeSystem::Eia,
+    }
+}
+
+/// One machine's punched-program publisher.
+pub(crate) struct PunchPublisher {
+    publisher: Publisher<'static>,
+}
+
+impl PunchPublisher {
+    pub async fn declare(ctx: &RouteContext, machine: &str) -> Result<Self, BusError> {
+        let publisher = declare_publisher(
+            ctx,
+            machine,
+            MachineLeaf::Punch,
+            encoding::<pb::PunchedProgram>(),
+            CongestionControl::Block,
+        )
+        .await?;
+        Ok(PunchPublisher { publisher })
+    }
+
+    pub async fn publish(&self, punched: &pb::PunchedProgram) {
+        put(&self.publisher, punched).await;
     }
 }

@@ -1,0 +1,293 @@
+//! DI and DO (Protocol A family: RDI → SDI, SDO; §4.4.1).
+//!
+//! - `P/C/machine/M/di`: a get on one machine reads DI now and answers the `DiImage`; a
+//!   wildcard get answers the last image read of each machine. Each image read is published
+//!   (QoS `Drop`: the next image supersedes a lost one).
+//! - `P/C/machine/M/do`: a put with a `DoCommand` outputs DO; a get with one outputs it and
+//!   answers the `MachineStatus` once the SDO went out.
+//!
+//! The board speaks at its next SAT or GTD, so a read or an output waits up to
+//! [`Machine::exchange_timeout`]; it runs off the route's loop.
+
+use prost::Message;
+use tokio::task::JoinSet;
+use tokio_util::sync::CancellationToken;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::qos::CongestionControl;
+use zenoh::query::{Query, Queryable};
+use zenoh::sample::{Locality, Sample, SampleKind};
+
+use super::BusError;
+use super::context::{RequestError, RouteContext, Target, reply, reply_err};
+use super::keys::MachineLeaf;
+use super::machine::{Machine, declare_publisher};
+use super::payload::encoding;
+use crate::jobs;
+use crate::link::driver::{LinkCommand, LinkEvent};
+use crate::pb;
+
+/// The DI and DO queryables and the DO subscriber of the cell. Undeclared when dropped.
+pub(crate) struct IoRoute {
+    di: Queryable<FifoChannelHandler<Query>>,
+    do_get: Queryable<FifoChannelHandler<Query>>,
+    do_put: Subscriber<FifoChannelHandler<Sample>>,
+}
+
+impl IoRoute {
+    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+        Ok(IoRoute {
+            di: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::Di)).await?,
+            do_get: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::Do)).await?,
+            do_put: ctx
+                .subscriber(ctx.keys.any_leaf(MachineLeaf::Do), Locality::Any)
+                .await?,
+        })
+    }
+
+    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+        let mut tasks = JoinSet::new();
+        loop {
+            tokio::select! {
+                () = stop.cancelled() => break,
+                q = self.di.recv_async() => match q {
+                    Ok(q) => {
+                        let c = ctx.clone();
+                        ctx.spawn_request(&mut tasks, async move { di_get(&c, &q).await }).await;
+                    }
+                    Err(_) => break,
+                },
+                q = self.do_get.recv_async() => match q {
+                    Ok(q) => {
+                        let c = ctx.clone();
+                        ctx.spawn_request(&mut tasks, async move { do_get(&c, &q).await }).await;
+                    }
+                    Err(_) => break,
+                },
+                s = self.do_put.recv_async() => match s {
+                    Ok(s) => do_put(&ctx, &s).await,
+                    Err(_) => break,
+                },
+                Some(_) = tasks.join_next() => {}
+            }
+        }
+        tasks.shutdown().await;
+    }
+}
+
+/// Why `m` cannot do DI/DO now, if it cannot.
+fn io_refusal(m: &Machine) -> Option<RequestError> {
+    if !m.config.protocol.is_a_family() {
+        return Some(RequestError::NoIo {
+            machine: m.name().to_string(),
+            protocol: m.config.protocol,
+        });
+    }
+    if !m.link_up() {
+        return Some(RequestError::NotInitialised {
+            machine: m.name().to_string(),
+        });
+    }
+    None
+}
+
+/// Gives the link `command` and waits, up to the machine's exchange time-out, for the
+/// first link event `answer` picks. `what` names the answer in the time-out error.
+async fn exchange<T>(
+    m: &Machine,
+    command: LinkCommand,
+    what: &'static str,
+    mut answer: impl FnMut(&LinkEvent) -> Option<T>,
+) -> Result<T, RequestError> {
+    let mut events = m.link.subscribe();
+    m.link
+        .send(command)
+        .await
+        .map_err(|_| RequestError::NotRunning {
+            machine: m.name().to_string(),
+        })?;
+    let waited = m.exchange_timeout();
+    let got = tokio::time::timeout(waited, async {
+        loop {
+            match events.recv().await {
+                Ok(LinkEvent::Stopped { .. })
+                | Err(tokio::sync::broadcast::error::RecvError::Closed) => return None,
+                Ok(event) => {
+                    if let Some(t) = answer(&event) {
+                        return Some(t);
+                    }
+                }
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
+            }
+        }
+    })
+    .await;
+    got.ok().flatten().ok_or_else(|| RequestError::NoAnswer {
+        machine: m.name().to_string(),
+        answer: what,
+        waited,
+    })
+}
+
+/// A get on `di`: a concrete key reads the DI image now (RDI → SDI); a wildcard answers the
+/// last image read of each machine that has one.
+async fn di_get(ctx: &RouteContext, q: &Query) {
+    let m = match ctx.target(q.key_expr()) {
+        Target::One(m) => m.clone(),
+        Target::Unknown(_) => return ctx.unmatched(q).await,
+        Target::Wild => {
+            for (key, m) in ctx.matching(q, MachineLeaf::Di) {
+                let last = m.view().last_di.clone();
+                if let Some(di) = last {
+                    reply(q, key, &di).await;
+                }
+            }
+            return;
+        }
+    };
+    if let Some(e) = io_refusal(&m) {
+        return reply_err(q, &e).await;
+    }
+    let read = exchange(&m, LinkCommand::ReadDi, "SDI answered RDI", |e| match e {
+        LinkEvent::Di { value } => Some(*value),
+        _ => None,
+    })
+    .await;
+    match read {
+        Ok(value) => {
+            let di = pb::DiImage {
+                machine: m.name().to_string(),
+                value: u32::from(value),
+                unix_ms: jobs::unix_ms(),
+            };
+            reply(q, q.key_expr().to_string(), &di).await;
+        }
+        Err(e) => reply_err(q, &e).await,
+    }
+}
+
+/// Checks a DO command; returns `(value, mask)`.
+fn do_command(m: &Machine, payload: &[u8]) -> Result<(u8, u8), RequestError> {
+    let invalid = |what: String| RequestError::Invalid {
+        machine: m.name().to_string(),
+        what,
+    };
+    let cmd = pb::DoCommand::decode(payload).map_err(|error| RequestError::Payload {
+        machine: m.name().to_string(),
+        message: "DoCommand",
+        error,
+    })?;
+    let value = u8::try_from(cmd.value)
+        .map_err(|_| invalid(format!("DO value {} is not 8 bits (0..=255)", cmd.value)))?;
+    let mask = u8::try_from(cmd.mask.unwrap_or(0xFF))
+        .map_err(|_| invalid(format!("DO mask {:?} is not 8 bits (0..=255)", cmd.mask)))?;
+    Ok((value, mask))
+}
+
+/// A put on `do`: outputs the DO image (SDO). A put has no reply: refusals are logged.
+async fn do_put(ctx: &RouteContext, sample: &Sample) {
+    if sample.kind() != SampleKind::Put {
+        return;
+    }
+    let key = sample.key_expr();
+    let m = match ctx.target(key) {
+        Target::One(m) => m.clone(),
+        Target::Unknown(name) => {
+            return tracing::warn!(%key, "DO refused: {}", ctx.unknown_machine(&name));
+        }
+        Target::Wild => return tracing::warn!(%key, "DO refused: name one machine"),
+    };
+    if !m.config.protocol.is_a_family() {
+        return tracing::warn!(%key, "DO refused: Protocol B has no SDO (§4.4.1)");
+    }
+    match do_command(&m, sample.payload().to_bytes().as_ref()) {
+        Ok((value, mask)) => {
+            if m.link
+                .send(LinkCommand::SetDo { value, mask })
+                .await
+                .is_err()
+            {
+                tracing::warn!(%key, "DO refused: the link is not running");
+            }
+        }
+        Err(e) => tracing::warn!(%key, "DO refused: {e}"),
+    }
+}
+
+/// A get with a `DoCommand` on `do`: outputs the DO image and answers the status once the
+/// SDO went out.
+async fn do_get(ctx: &RouteContext, q: &Query) {
+    let m = match ctx.target(q.key_expr()) {
+        Target::One(m) => m.clone(),
+        Target::Unknown(_) => return ctx.unmatched(q).await,
+        // A wildcard get without payload (e.g. on `P/C/**`) browses; `do` has nothing to show.
+        Target::Wild if q.payload().is_none() => return,
+        Target::Wild => {
+            let e = RequestError::OneMachine {
+                what: "DoCommand",
+                expected: ctx.keys.leaf("<machine>", MachineLeaf::Do),
+                got: None,
+            };
+            return reply_err(q, &e).await;
+        }
+    };
+    let Some(payload) = q.payload() else {
+        let e = RequestError::Invalid {
+            machine: m.name().to_string(),
+            what: "a get on do carries a DoCommand".to_string(),
+        };
+        return reply_err(q, &e).await;
+    };
+    let (value, mask) = match do_command(&m, payload.to_bytes().as_ref()) {
+        Ok(c) => c,
+        Err(e) => return reply_err(q, &e).await,
+    };
+    if let Some(e) = io_refusal(&m) {
+        return reply_err(q, &e).await;
+    }
+    let sent = exchange(
+        &m,
+        LinkCommand::SetDo { value, mask },
+        "SDO went out",
+        |e| match e {
+            LinkEvent::Do { value: out } if out & mask == value & mask => Some(()),
+            _ => None,
+        },
+    )
+    .await;
+    match sent {
+        Ok(()) => {
+            // The machine's task folds the same event into the view; make sure the reply
+            // shows it even if that task has not run yet.
+            let mut status = m.status();
+            let old = status.do_image.unwrap_or(0);
+            let image = (u8::try_from(old).unwrap_or(0) & !mask) | (value & mask);
+            status.do_image = Some(u32::from(image));
+            reply(q, q.key_expr().to_string(), &status).await;
+        }
+        Err(e) => reply_err(q, &e).await,
+    }
+}
+
+/// One machine's DI publisher.
+pub(crate) struct DiPublisher {
+    publisher: Publisher<'static>,
+}
+
+impl DiPublisher {
+    pub async fn declare(ctx: &RouteContext, machine: &str) -> Result<Self, BusError> {
+        let publisher = declare_publisher(
+            ctx,
+            machine,
+            MachineLeaf::Di,
+            encoding::<pb::DiImage>(),
+            CongestionControl::Drop,
+        )
+        .await?;
+        Ok(DiPublisher { publisher })
+    }
+
+    pub async fn publish(&self, di: &pb::DiImage) {
+        super::machine::put(&self.publisher, di).await;
+    }
+}

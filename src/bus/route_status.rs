@@ -1,0 +1,91 @@
+//! `P/C/machine/M/status`: each machine's `MachineStatus`, published when it changes (QoS
+//! `Drop`: the next value supersedes a lost one) and answered on `get`, so that a late joiner
+//! gets the current value. A wildcard get answers every machine it takes in.
+//!
+//! zenoh-ext's `AdvancedPublisher` would replay a cache to late subscribers, but its API is
+//! unstable in zenoh 1.x; a queryable holding the last value gives the same with the stable API.
+
+use tokio_util::sync::CancellationToken;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::Publisher;
+use zenoh::qos::CongestionControl;
+use zenoh::query::{Query, Queryable};
+
+use super::BusError;
+use super::context::{RouteContext, reply};
+use super::keys::MachineLeaf;
+use super::machine::{Machine, declare_publisher, put};
+use super::payload::encoding;
+use crate::jobs;
+use crate::pb;
+
+/// The status queryable of the cell. Undeclared when dropped.
+pub(crate) struct StatusRoute {
+    queryable: Queryable<FifoChannelHandler<Query>>,
+}
+
+impl StatusRoute {
+    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+        let queryable = ctx
+            .queryable(ctx.keys.any_leaf(MachineLeaf::Status))
+            .await?;
+        Ok(StatusRoute { queryable })
+    }
+
+    /// Answers gets until `stop`. A status is at hand, so the answer never waits.
+    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+        loop {
+            let q = tokio::select! {
+                () = stop.cancelled() => break,
+                q = self.queryable.recv_async() => match q {
+                    Ok(q) => q,
+                    Err(_) => break,
+                },
+            };
+            let matching = ctx.matching(&q, MachineLeaf::Status);
+            if matching.is_empty() {
+                ctx.unmatched(&q).await;
+                continue;
+            }
+            for (key, m) in matching {
+                reply(&q, key, &m.status()).await;
+            }
+        }
+    }
+}
+
+/// One machine's status publisher, and what it published last.
+pub(crate) struct StatusPublisher {
+    publisher: Publisher<'static>,
+    published: Option<pb::MachineStatus>,
+}
+
+impl StatusPublisher {
+    pub async fn declare(ctx: &RouteContext, machine: &str) -> Result<Self, BusError> {
+        let publisher = declare_publisher(
+            ctx,
+            machine,
+            MachineLeaf::Status,
+            encoding::<pb::MachineStatus>(),
+            CongestionControl::Drop,
+        )
+        .await?;
+        Ok(StatusPublisher {
+            publisher,
+            published: None,
+        })
+    }
+
+    /// Publishes the machine's status if it changed since the last publication (the time of
+    /// day aside).
+    pub async fn publish(&mut self, machine: &Machine) {
+        let current = machine.view().status.clone();
+        if self.published.as_ref() == Some(&current) {
+            return;
+        }
+        let mut stamped = current.clone();
+        stamped.unix_ms = jobs::unix_ms();
+        put(&self.publisher, &stamped).await;
+        self.published = Some(current);
+    }
+}
