@@ -9,7 +9,6 @@ use std::time::Duration;
 
 use tokio::sync::{broadcast, watch};
 use tokio_util::sync::CancellationToken;
-use zenoh::bytes::Encoding;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Publisher;
 use zenoh::qos::CongestionControl;
@@ -17,12 +16,11 @@ use zenoh::qos::CongestionControl;
 use super::BusError;
 use super::context::RouteContext;
 use super::keys::MachineLeaf;
-use super::payload::{self, BusMessage};
-use super::route_alarm::AlarmPublisher;
-use super::route_io::DiPublisher;
+use super::payload::{self, BusMessage, encoding};
 use super::route_job::publish_job_event;
-use super::route_punch::{Outcome, PunchDesk, PunchPublisher, PunchSettings};
+use super::route_punch::{Outcome, PunchDesk, PunchSettings};
 use super::route_status::StatusPublisher;
+use super::{route_alarm, route_io, route_punch};
 use crate::config::MachineConfig;
 use crate::fanuc::host::LinkState;
 use crate::jobs::{self, JobsHandle, JobsSnapshot};
@@ -228,30 +226,42 @@ enum Extra {
     Alarm(pb::AlarmEvent),
 }
 
-/// Declares one of a machine's publishers on `P/C/machine/M/<leaf>`.
-pub(crate) async fn declare_publisher(
-    ctx: &RouteContext,
-    machine: &str,
-    leaf: MachineLeaf,
-    encoding: Encoding,
-    congestion: CongestionControl,
-) -> Result<Publisher<'static>, BusError> {
-    let key = ctx.keys.leaf(machine, leaf);
-    ctx.session
-        .declare_publisher(key.clone())
-        .encoding(encoding)
-        .congestion_control(congestion)
-        .await
-        .map_err(|source| BusError::Declare {
-            what: "publisher",
-            key,
-            source,
-        })
+/// One of a machine's publishers: messages `M` on `P/C/machine/M/<leaf>`, with the QoS its
+/// route chose. Undeclared when dropped.
+pub(crate) struct MachinePublisher<M> {
+    publisher: Publisher<'static>,
+    message: std::marker::PhantomData<fn(&M)>,
 }
 
-pub(crate) async fn put<M: BusMessage>(publisher: &Publisher<'static>, message: &M) {
-    if let Err(e) = publisher.put(message.encode_to_vec()).await {
-        tracing::warn!(key = %publisher.key_expr(), error = %e, "publishing failed");
+impl<M: BusMessage> MachinePublisher<M> {
+    pub async fn declare(
+        ctx: &RouteContext,
+        machine: &str,
+        leaf: MachineLeaf,
+        congestion: CongestionControl,
+    ) -> Result<Self, BusError> {
+        let key = ctx.keys.leaf(machine, leaf);
+        let publisher = ctx
+            .session
+            .declare_publisher(key.clone())
+            .encoding(encoding::<M>())
+            .congestion_control(congestion)
+            .await
+            .map_err(|source| BusError::Declare {
+                what: "publisher",
+                key,
+                source,
+            })?;
+        Ok(MachinePublisher {
+            publisher,
+            message: std::marker::PhantomData,
+        })
+    }
+
+    pub async fn publish(&self, message: &M) {
+        if let Err(e) = self.publisher.put(message.encode_to_vec()).await {
+            tracing::warn!(key = %self.publisher.key_expr(), error = %e, "publishing failed");
+        }
     }
 }
 
@@ -260,9 +270,9 @@ pub(crate) struct MachineTask {
     machine: Arc<Machine>,
     ctx: RouteContext,
     status: StatusPublisher,
-    di: DiPublisher,
-    alarm: AlarmPublisher,
-    punch: PunchPublisher,
+    di: MachinePublisher<pb::DiImage>,
+    alarm: MachinePublisher<pb::AlarmEvent>,
+    punch: MachinePublisher<pb::PunchedProgram>,
     desk: PunchDesk,
     token: Option<LivelinessToken>,
     link_events: broadcast::Receiver<LinkEvent>,
@@ -299,9 +309,9 @@ impl MachineTask {
         let name = machine.name().to_string();
         Ok(MachineTask {
             status: StatusPublisher::declare(ctx, &name).await?,
-            di: DiPublisher::declare(ctx, &name).await?,
-            alarm: AlarmPublisher::declare(ctx, &name).await?,
-            punch: PunchPublisher::declare(ctx, &name).await?,
+            di: route_io::declare_di_publisher(ctx, &name).await?,
+            alarm: route_alarm::declare_publisher(ctx, &name).await?,
+            punch: route_punch::declare_publisher(ctx, &name).await?,
             desk: PunchDesk::new(&name, punch),
             token: None,
             ctx: ctx.clone(),

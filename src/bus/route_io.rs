@@ -13,7 +13,7 @@ use prost::Message;
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 use zenoh::handlers::FifoChannelHandler;
-use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::pubsub::Subscriber;
 use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
@@ -21,8 +21,7 @@ use zenoh::sample::{Locality, Sample, SampleKind};
 use super::BusError;
 use super::context::{RequestError, RouteContext, Target, reply, reply_err};
 use super::keys::MachineLeaf;
-use super::machine::{Machine, declare_publisher};
-use super::payload::encoding;
+use super::machine::{Machine, MachinePublisher};
 use crate::jobs;
 use crate::link::driver::{LinkCommand, LinkEvent};
 use crate::pb;
@@ -269,25 +268,10 @@ async fn do_get(ctx: &RouteContext, q: &Query) {
     }
 }
 
-/// One machine's DI publisher.
-pub(crate) struct DiPublisher {
-    publisher: Publisher<'static>,
-}
-
-impl DiPublisher {
-    pub async fn declare(ctx: &RouteContext, machine: &str) -> Result<Self, BusError> {
-        let publisher = declare_publisher(
-            ctx,
-            machine,
-            MachineLeaf::Di,
-            encoding::<pb::DiImage>(),
-            CongestionControl::Drop,
-        )
-        .await?;
-        Ok(DiPublisher { publisher })
-    }
-
-    pub async fn publish(&self, di: &pb::DiImage) {
-        super::machine::put(&self.publisher, di).await;
-    }
+/// Declares one machine's DI publisher: telemetry, the next image supersedes a lost one.
+pub(crate) async fn declare_di_publisher(
+    ctx: &RouteContext,
+    machine: &str,
+) -> Result<MachinePublisher<pb::DiImage>, BusError> {
+    MachinePublisher::declare(ctx, machine, MachineLeaf::Di, CongestionControl::Drop).await
 }

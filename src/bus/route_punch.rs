@@ -16,14 +16,12 @@
 //!
 //! [`LinkEvent::Punched`]: crate::link::driver::LinkEvent::Punched
 
-use zenoh::pubsub::Publisher;
 use zenoh::qos::CongestionControl;
 
 use super::BusError;
 use super::context::RouteContext;
 use super::keys::MachineLeaf;
-use super::machine::{declare_publisher, put};
-use super::payload::encoding;
+use super::machine::MachinePublisher;
 use crate::config::ProgramsConfig;
 use crate::fanuc::tape::TapeCode;
 use crate::jobs::library::LibraryError;
@@ -269,25 +267,10 @@ fn code_system(code: TapeCode) -> pb::CodeSystem {
     }
 }
 
-/// One machine's punched-program publisher.
-pub(crate) struct PunchPublisher {
-    publisher: Publisher<'static>,
-}
-
-impl PunchPublisher {
-    pub async fn declare(ctx: &RouteContext, machine: &str) -> Result<Self, BusError> {
-        let publisher = declare_publisher(
-            ctx,
-            machine,
-            MachineLeaf::Punch,
-            encoding::<pb::PunchedProgram>(),
-            CongestionControl::Block,
-        )
-        .await?;
-        Ok(PunchPublisher { publisher })
-    }
-
-    pub async fn publish(&self, punched: &pb::PunchedProgram) {
-        put(&self.publisher, punched).await;
-    }
+/// Declares one machine's punched-program publisher: reliable, a program is never dropped.
+pub(crate) async fn declare_publisher(
+    ctx: &RouteContext,
+    machine: &str,
+) -> Result<MachinePublisher<pb::PunchedProgram>, BusError> {
+    MachinePublisher::declare(ctx, machine, MachineLeaf::Punch, CongestionControl::Block).await
 }

@@ -7,15 +7,13 @@
 
 use tokio_util::sync::CancellationToken;
 use zenoh::handlers::FifoChannelHandler;
-use zenoh::pubsub::Publisher;
 use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 
 use super::BusError;
 use super::context::{RouteContext, reply};
 use super::keys::MachineLeaf;
-use super::machine::{Machine, declare_publisher, put};
-use super::payload::encoding;
+use super::machine::{Machine, MachinePublisher};
 use crate::jobs;
 use crate::pb;
 
@@ -56,20 +54,16 @@ impl StatusRoute {
 
 /// One machine's status publisher, and what it published last.
 pub(crate) struct StatusPublisher {
-    publisher: Publisher<'static>,
+    publisher: MachinePublisher<pb::MachineStatus>,
     published: Option<pb::MachineStatus>,
 }
 
 impl StatusPublisher {
     pub async fn declare(ctx: &RouteContext, machine: &str) -> Result<Self, BusError> {
-        let publisher = declare_publisher(
-            ctx,
-            machine,
-            MachineLeaf::Status,
-            encoding::<pb::MachineStatus>(),
-            CongestionControl::Drop,
-        )
-        .await?;
+        // Telemetry: the next status supersedes a lost one.
+        let publisher =
+            MachinePublisher::declare(ctx, machine, MachineLeaf::Status, CongestionControl::Drop)
+                .await?;
         Ok(StatusPublisher {
             publisher,
             published: None,
@@ -85,7 +79,7 @@ impl StatusPublisher {
         }
         let mut stamped = current.clone();
         stamped.unix_ms = jobs::unix_ms();
-        put(&self.publisher, &stamped).await;
+        self.publisher.publish(&stamped).await;
         self.published = Some(current);
     }
 }
