@@ -247,6 +247,7 @@ async fn scale(machines: usize, program_size: usize) {
             name: String::new(),
             priority: 0,
             append_eor: false,
+            ..Default::default()
         };
         let accepted: pb::JobAccepted = common::bus::get_one(
             &client,

@@ -28,7 +28,11 @@ impl BusCode for LibraryError {
 impl BusCode for JobError {
     fn code(&self) -> pb::ErrorCode {
         match self {
-            JobError::Program { .. } => pb::ErrorCode::InvalidRequest,
+            JobError::Program { .. }
+            | JobError::RequestId { .. }
+            | JobError::Start { .. }
+            | JobError::NotResumable { .. } => pb::ErrorCode::InvalidRequest,
+            JobError::Journal { .. } => pb::ErrorCode::Internal,
             JobError::Library { error, .. } => error.code(),
             JobError::QueueFull { .. } => pb::ErrorCode::QueueFull,
             JobError::UnknownJob { .. } => pb::ErrorCode::NotFound,

@@ -76,6 +76,12 @@ pub mod pb {
                 name: "O0001".to_string(),
                 priority: -3,
                 append_eor: true,
+                request_id: "r-1".to_string(),
+                start_at: Some(BlockStart {
+                    at: Some(block_start::At::SequenceNumber(1234)),
+                    header_lines: 0,
+                }),
+                resume_after_restart: true,
             };
             let bytes = request.encode_to_vec();
             let decoded = JobRequest::decode(bytes.as_slice()).unwrap();
@@ -93,6 +99,7 @@ pub mod pb {
                     byte_offset: 512,
                     alarm_number: "SR0945".to_string(),
                     code: ErrorCode::LinkFailed as i32,
+                    ..job_event::Failed::default()
                 })),
             };
             let decoded = JobEvent::decode(event.encode_to_vec().as_slice()).unwrap();

@@ -152,7 +152,7 @@ impl FakeLink {
                 cmd = self.commands.recv() => match cmd {
                     Some(LinkCommand::Cancel(id)) if id == job.id => {
                         self.log.lock().unwrap().push(format!("cancel {} at 0", job.name));
-                        self.emit(LinkEvent::JobCancelled { job: id, offset: 0 });
+                        self.emit(LinkEvent::JobCancelled { job: id, offset: 0, sent: 0 });
                         return;
                     }
                     Some(other) => self.other(other),
@@ -174,6 +174,7 @@ impl FakeLink {
             data.extend_from_slice(&buf[..n]);
             self.emit(LinkEvent::Progress {
                 job: job.id,
+                acked: data.len() as u64,
                 sent: data.len() as u64,
                 total: job.size,
             });
@@ -182,7 +183,7 @@ impl FakeLink {
                 cmd = self.commands.recv() => match cmd {
                     Some(LinkCommand::Cancel(id)) if id == job.id => {
                         self.log.lock().unwrap().push(format!("cancel {} at {}", job.name, data.len()));
-                        self.emit(LinkEvent::JobCancelled { job: id, offset: data.len() as u64 });
+                        self.emit(LinkEvent::JobCancelled { job: id, offset: data.len() as u64, sent: data.len() as u64 });
                         self.emit(LinkEvent::State { state: LinkState::Ready });
                         return;
                     }
@@ -197,7 +198,11 @@ impl FakeLink {
             .lock()
             .unwrap()
             .push((job.name.clone(), data));
-        self.emit(LinkEvent::JobDone { job: job.id, bytes });
+        self.emit(LinkEvent::JobDone {
+            job: job.id,
+            bytes,
+            confirmation: cellgate::fanuc::host::Confirmation::Acknowledged,
+        });
         self.emit(LinkEvent::State {
             state: LinkState::Ready,
         });
@@ -322,9 +327,7 @@ impl Cell {
 fn request(program: pb::job_request::Program) -> pb::JobRequest {
     pb::JobRequest {
         program: Some(program),
-        name: String::new(),
-        priority: 0,
-        append_eor: false,
+        ..Default::default()
     }
 }
 
@@ -1086,6 +1089,7 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
     let names: Vec<_> = std::fs::read_dir(cell.dir.path().join("programs"))
         .unwrap()
         .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n != ".journal")
         .collect();
     assert_eq!(names, ["O200.nc"]);
     cell.stop().await;

@@ -220,6 +220,7 @@ async fn bad_requests_get_an_error_reply_and_nothing_is_queued() {
             name: String::new(),
             priority: 0,
             append_eor: false,
+            ..Default::default()
         }
         .encode_to_vec()
     };

@@ -49,7 +49,10 @@ fn version_prints_the_crate_version() {
 fn run_then_signal(signal: &str) {
     let port = free_port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
+    // The embedded cell keeps its programs and journal under the working directory.
+    let dir = tempfile::tempdir().unwrap();
     let mut child = Command::new(BIN)
+        .current_dir(dir.path())
         .args(["run", "--listen", &endpoint, "--no-multicast-scouting"])
         .env("RUST_LOG", "info")
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")

@@ -194,6 +194,11 @@ fn submit_args(gw: &Gateway, machine: &str) -> SubmitArgs {
         name: None,
         append_eor: false,
         detach: false,
+        resume: None,
+        from_block: None,
+        header_lines: 0,
+        resume_after_restart: false,
+        request_id: None,
     }
 }
 
@@ -510,10 +515,10 @@ async fn a_running_job_is_cancelled_and_watch_sees_it() {
     };
     let (accepted, mut follower) = client.submit(MILL_A, &request).await.unwrap();
     let job = accepted.job_id.clone();
-    // Wait until the program is under way.
+    // Wait until the board has acknowledged part of the program.
     loop {
         let e = follower.next().await.unwrap().unwrap();
-        if matches!(e.kind, Some(pb::job_event::Kind::Progress(_))) {
+        if matches!(e.kind, Some(pb::job_event::Kind::Progress(p)) if p.bytes_sent > 0) {
             break;
         }
     }

@@ -24,7 +24,7 @@ async fn one_mib(protocol: &str, packet_n: Option<u8>, baud: u32) {
     assert!(program.len() > 1_000_000);
     queue(&m.link, 1, program.clone()).await;
     let bytes = next_event(&mut events, HOUR, |ev| match ev {
-        LinkEvent::JobDone { job: 1, bytes } => Some(*bytes),
+        LinkEvent::JobDone { job: 1, bytes, .. } => Some(*bytes),
         LinkEvent::JobFailed { job: 1, reason, .. } => panic!("job failed: {reason}"),
         _ => None,
     })
@@ -157,7 +157,7 @@ async fn recovers_from_corruption(protocol: &str, packet_n: Option<u8>) {
                 line.corrupt_next(Dir::HostToDevice, 0x04);
                 corrupted += 1;
             }
-            LinkEvent::JobDone { job: 1, bytes } => break bytes,
+            LinkEvent::JobDone { job: 1, bytes, .. } => break bytes,
             LinkEvent::JobFailed { reason, .. } => panic!("job failed: {reason}"),
             _ => {}
         }

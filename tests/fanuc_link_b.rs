@@ -116,7 +116,7 @@ impl Rig {
     ) -> BoardSnapshot {
         self.queue(id, program).await;
         let bytes = next_event(events, 4 * HOUR, |ev| match ev {
-            LinkEvent::JobDone { job, bytes } if *job == id => Some(*bytes),
+            LinkEvent::JobDone { job, bytes, .. } if *job == id => Some(*bytes),
             LinkEvent::JobFailed { job, reason, .. } if *job == id => {
                 panic!("job {id} failed: {reason}")
             }

@@ -33,6 +33,8 @@ async fn announces_the_cell_answers_admin_and_stops_on_shutdown() {
     let mut config = CellConfig::embedded_default();
     config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
     config.bus.connect = Vec::new();
+    let dir = tempfile::tempdir().unwrap();
+    config.programs.dir = dir.path().join("programs");
     let keys = CellKeys::new(&config.bus.prefix, &config.cell).unwrap();
     let token_key = keys.gateway();
     let admin = keys.admin();

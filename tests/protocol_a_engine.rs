@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use cellgate::engine::Engine;
 use cellgate::fanuc::alarm::CncAlarm;
-use cellgate::fanuc::host::{EngineCommand, EngineEvent, HostEngine, LinkState};
+use cellgate::fanuc::host::{Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState};
 use cellgate::fanuc::message::{Command, Decoder, Framing, Message};
 use cellgate::fanuc::packet::{DUMMY_PACKET, END_PACKET, Monitor, decode_data_packet};
 use cellgate::fanuc::protocol_a::{PAD, ProtocolAConfig, ProtocolAHost};
@@ -450,7 +450,9 @@ fn a_10_kib_program_in_dats_then_eod() {
     assert_eq!(data_sent(&ev), program.len() as u64);
     assert!(ev.contains(&EngineEvent::State(LinkState::Sending)));
     assert_eq!(ev.last(), Some(&EngineEvent::State(LinkState::Ready)));
-    assert!(ev.contains(&EngineEvent::ProgramDone));
+    assert!(ev.contains(&EngineEvent::ProgramDone {
+        confirmation: Confirmation::Acknowledged
+    }));
     // Nothing queued any more: the next GTD waits, then gets WAT.
     b.board(Command::Gtd);
     b.expect_silence();
@@ -625,7 +627,9 @@ fn cancel_answers_gtd_with_eod_and_sat_with_clb() {
     b.board(Command::Gtd);
     assert_eq!(b.dat(), b"%\nO2;\n%");
     // Nothing reported done for the cancelled one.
-    assert!(!b.take_events().contains(&EngineEvent::ProgramDone));
+    assert!(!b.take_events().contains(&EngineEvent::ProgramDone {
+        confirmation: Confirmation::Acknowledged
+    }));
 }
 
 // ---------------------------------------------------------------- RTY
@@ -763,37 +767,104 @@ fn rst_gets_ars_and_aborts_the_program() {
     assert_eq!(b.dat(), b"%\nO7;\n%");
 }
 
-/// A reset after the DAT carrying EOR (e.g. M30 resets the CNC before the board asks again):
-/// the program was delivered; the EOD is no longer owed.
-#[test]
-fn rst_after_the_last_dat_completes_the_program() {
-    let mut b = Bench::ready(ProtocolAConfig::default());
-    b.command(EngineCommand::StartProgram { total: None });
-    b.data(b"%\nO1;\nM30;\n%");
-    b.board(Command::Gtd);
-    b.dat();
-    b.board(Command::Rst);
-    b.expect(Command::Ars);
-    let ev = b.take_events();
-    assert!(ev.contains(&EngineEvent::ProgramDone));
-    assert!(aborted(&ev).is_empty());
-    b.board(Command::Gtd);
-    b.advance(SEC);
-    b.expect(Command::Wat);
-    // A line failure at the same point is not a delivery.
-    b.command(EngineCommand::StartProgram { total: None });
-    b.data(b"%\nO2;\n%");
-    b.board(Command::Gtd);
-    b.dat();
-    b.host.handle_line_error(b.now, LineError::Overrun);
-    let ev = b.take_events();
-    assert!(!ev.contains(&EngineEvent::ProgramDone));
-    assert_eq!(aborted(&ev).len(), 1);
+fn acked(events: &[EngineEvent]) -> Option<u64> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            EngineEvent::Acked { offset } => Some(*offset),
+            _ => None,
+        })
+        .max()
 }
 
-/// CAN after the end packet went out: delivered (§5.3 1: the end packet need not be sent again).
+fn done(events: &[EngineEvent]) -> bool {
+    events
+        .iter()
+        .any(|e| matches!(e, EngineEvent::ProgramDone { .. }))
+}
+
+/// A program is the board's only once its next exchange acknowledges the final DAT: a reset,
+/// an alarm or a retry-over right after that DAT fails it at what was acknowledged before.
 #[test]
-fn expansion_stop_request_after_the_end_packet() {
+fn a_reset_an_alarm_or_a_retry_over_right_after_the_final_dat_fails_the_program() {
+    let params = Params {
+        ne: 2,
+        ..Params::POWER_ON
+    };
+    let program = b"%\nO1;\nG01X1;\nM30;\n%";
+    let dat1 = &program[..9];
+    for after in ["RST", "ALM", "retry over"] {
+        let mut b = Bench::ready(ProtocolAConfig {
+            params: Params {
+                nb: 60,
+                no: 51,
+                ..params
+            },
+            ..Default::default()
+        });
+        b.command(EngineCommand::StartProgram { total: None });
+        b.data(program);
+        // Two DATs of min(4096, Nb - No) = 9 bytes: the second carries EOR.
+        b.board(Command::Gtd);
+        assert_eq!(b.dat(), dat1);
+        b.board(Command::Gtd);
+        assert_eq!(b.dat(), &program[9..18]);
+        // The first DAT is acknowledged by the GTD that asked for the second.
+        b.board(Command::Gtd);
+        assert_eq!(b.dat(), &program[18..]);
+        let ev = b.take_events();
+        assert_eq!(acked(&ev), Some(18), "{after}");
+        assert!(!done(&ev), "{after}");
+        match after {
+            "RST" => {
+                b.board(Command::Rst);
+                b.expect(Command::Ars);
+            }
+            "ALM" => {
+                b.board(Command::Alm);
+                b.expect(Command::Aal);
+            }
+            _ => {
+                for _ in 0..3 {
+                    b.board_data(Command::Rty, b"1");
+                    b.drain();
+                }
+            }
+        }
+        let ev = b.take_events();
+        assert!(!done(&ev), "{after}: not acknowledged, so not delivered");
+        assert_eq!(aborted(&ev).len(), 1, "{after}: {ev:?}");
+        assert_eq!(
+            acked(&ev),
+            None,
+            "{after}: the final DAT is not acknowledged"
+        );
+    }
+    // The board's next exchange acknowledges it: delivered, then EOD.
+    let mut b = Bench::ready(ProtocolAConfig::default());
+    b.command(EngineCommand::StartProgram { total: None });
+    b.data(program);
+    b.board(Command::Gtd);
+    assert_eq!(b.dat(), program);
+    assert!(!done(&b.take_events()));
+    b.board(Command::Gtd);
+    b.expect(Command::Eod);
+    let ev = b.take_events();
+    assert_eq!(acked(&ev), Some(program.len() as u64));
+    assert!(ev.contains(&EngineEvent::ProgramDone {
+        confirmation: Confirmation::Acknowledged
+    }));
+    // A reset after that changes nothing of it.
+    b.board(Command::Rst);
+    b.expect(Command::Ars);
+    assert!(aborted(&b.take_events()).is_empty());
+}
+
+/// CAN after the end packet went out: the transmission was stopped before the board was back
+/// in Protocol A, so the end of the program is not confirmed; the program fails at the
+/// packets past the NAK window (§5.2 2 b, §5.3 1).
+#[test]
+fn expansion_stop_request_after_the_end_packet_fails_the_program() {
     let mut b = expansion(1);
     start(&mut b, &program_of(600), true);
     b.board(Command::Gtd);
@@ -803,13 +874,36 @@ fn expansion_stop_request_after_the_end_packet() {
     b.board(Command::Rst);
     b.expect(Command::Ars);
     let ev = b.take_events();
-    assert_eq!(
-        ev.iter()
-            .filter(|e| **e == EngineEvent::ProgramDone)
-            .count(),
-        1
-    );
-    assert!(aborted(&ev).is_empty());
+    assert!(!done(&ev));
+    assert_eq!(aborted(&ev).len(), 1, "{ev:?}");
+    // Three packets are all within the window of ten: none is acknowledged.
+    assert_eq!(acked(&ev), None);
+
+    // The board back in Protocol A after the end packet acknowledges the whole program.
+    let mut b = expansion(1);
+    let program = program_of(600);
+    start(&mut b, &program, true);
+    b.board(Command::Gtd);
+    assert_eq!(numbers(&b.packets(1)), [0x30, 0x31, 0xFF]);
+    b.sat(board_sat(Params::POWER_ON, 1));
+    let ev = b.take_events();
+    assert_eq!(acked(&ev), Some(600));
+    assert!(done(&ev));
+}
+
+/// Expansion A packets ten packets back are past any NAK: acknowledged while the rest flows.
+#[test]
+fn expansion_packets_past_the_nak_window_are_acknowledged() {
+    let mut b = expansion(1);
+    let program = program_of(256 * 15 + 100);
+    start(&mut b, &program, true);
+    b.board(Command::Gtd);
+    let packets = b.packets(1);
+    assert_eq!(packets.len(), 16);
+    let ev = b.take_events();
+    // 16 packets sent, the last ten kept: six past the window.
+    assert_eq!(acked(&ev), Some(6 * 256));
+    assert!(!done(&ev));
 }
 
 #[test]
@@ -1046,14 +1140,18 @@ fn expansion_1_normal() {
     assert_eq!(assemble(&packets), program);
     let ev = b.take_events();
     assert_eq!(data_sent(&ev), 900);
-    assert!(!ev.contains(&EngineEvent::ProgramDone));
+    assert!(!ev.contains(&EngineEvent::ProgramDone {
+        confirmation: Confirmation::Acknowledged
+    }));
     b.expect_silence();
     assert_eq!(
         b.sat(board_sat(Params::POWER_ON, 1)),
         Message::new(Command::Set)
     );
     let ev = b.take_events();
-    assert!(ev.contains(&EngineEvent::ProgramDone));
+    assert!(ev.contains(&EngineEvent::ProgramDone {
+        confirmation: Confirmation::Acknowledged
+    }));
     assert_eq!(ev.last(), Some(&EngineEvent::State(LinkState::Ready)));
 }
 
@@ -1102,7 +1200,9 @@ fn expansion_2_stop_request() {
     let ev = b.take_events();
     assert!(ev.contains(&EngineEvent::CncReset));
     assert!(aborted(&ev).is_empty());
-    assert!(!ev.contains(&EngineEvent::ProgramDone));
+    assert!(!ev.contains(&EngineEvent::ProgramDone {
+        confirmation: Confirmation::Acknowledged
+    }));
 }
 
 /// CAN while paused by DC3: the end packet still goes (§5.3 1).
@@ -1160,7 +1260,9 @@ fn expansion_3ii_retransmission_of_the_end_packet() {
     assert_eq!(numbers(&again), [0xFF]);
     assert_eq!(again[0].1, packets[2].1);
     b.sat(board_sat(Params::POWER_ON, 1));
-    assert!(b.take_events().contains(&EngineEvent::ProgramDone));
+    assert!(b.take_events().contains(&EngineEvent::ProgramDone {
+        confirmation: Confirmation::Acknowledged
+    }));
 }
 
 /// §5.4 3) Retransmission (iii). Reconstructed: GTD → a lone packet FFh arrives damaged; the
@@ -1339,7 +1441,9 @@ fn expansion_cancel() {
         b.sat(board_sat(Params::POWER_ON, 1)),
         Message::new(Command::Clb)
     );
-    assert!(!b.take_events().contains(&EngineEvent::ProgramDone));
+    assert!(!b.take_events().contains(&EngineEvent::ProgramDone {
+        confirmation: Confirmation::Acknowledged
+    }));
 }
 
 /// Monitor packets with and without parity, split off a stream that also carries messages.
@@ -1384,7 +1488,9 @@ fn expansion_over_iso_etx() {
     assert_eq!(numbers(&rest), [0x30, 0x31, 0xFF]);
     assert_eq!(assemble(&rest), program);
     b.sat(board_sat(Params::POWER_ON, 1));
-    assert!(b.take_events().contains(&EngineEvent::ProgramDone));
+    assert!(b.take_events().contains(&EngineEvent::ProgramDone {
+        confirmation: Confirmation::Acknowledged
+    }));
 }
 
 #[test]

@@ -1246,7 +1246,7 @@ mod cell {
         async fn job_end(&mut self, id: u64) -> Result<u64, String> {
             loop {
                 match self.events.recv().await.unwrap() {
-                    LinkEvent::JobDone { job, bytes } if job == id => return Ok(bytes),
+                    LinkEvent::JobDone { job, bytes, .. } if job == id => return Ok(bytes),
                     LinkEvent::JobFailed { job, reason, .. } if job == id => {
                         return Err(reason.to_string());
                     }

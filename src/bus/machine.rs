@@ -55,12 +55,15 @@ impl Machine {
             counters: Some(pb::LinkCounters::default()),
             ..pb::MachineStatus::default()
         };
+        // The jobs the journal kept answer gets by id from the start.
+        let recent_jobs = jobs.restored_events().iter().cloned().collect();
         Machine {
             config,
             link,
             jobs,
             view: Mutex::new(View {
                 status,
+                recent_jobs,
                 ..View::default()
             }),
         }
@@ -289,10 +292,15 @@ pub(crate) struct MachineFeeds {
 }
 
 impl MachineFeeds {
-    pub fn subscribe(link: &LinkHandle, jobs: &JobsHandle) -> Self {
+    /// `job_events`: the job manager's events subscribed before it ran.
+    pub fn subscribe(
+        link: &LinkHandle,
+        jobs: &JobsHandle,
+        job_events: broadcast::Receiver<pb::JobEvent>,
+    ) -> Self {
         MachineFeeds {
             link_events: link.subscribe(),
-            job_events: jobs.subscribe(),
+            job_events,
             snapshot: jobs.snapshot(),
         }
     }

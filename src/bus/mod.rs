@@ -58,8 +58,9 @@ use self::route_program::ProgramRoute;
 use self::route_punch::PunchSettings;
 use self::route_status::StatusRoute;
 use crate::config::{CellConfig, MachineConfig};
-use crate::jobs;
+use crate::jobs::journal::Journal;
 use crate::jobs::library::ProgramLibrary;
+use crate::jobs::{self, JobsSettings};
 use crate::link::driver::LinkHandle;
 
 /// A machine of the cell and its running link, as the gateway hands them to [`serve`].
@@ -85,6 +86,8 @@ pub async fn serve(
 ) -> Result<(), BusError> {
     let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
     let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size);
+    let journal = Journal::open(&config.programs.journal_dir())?;
+    let mut restored = journal.restore()?;
     let jobs_stop = shutdown.child_token();
     let machines_stop = CancellationToken::new();
     let routes_stop = shutdown.child_token();
@@ -98,18 +101,19 @@ pub async fn serve(
             tracing::error!(machine = %mc.name, "machine given twice; serving the first only");
             continue;
         }
-        let rules = mc.program_rules(library.max_size());
-        let (jobs, task) = jobs::spawn(
-            &mc.name,
-            rules,
-            library.clone(),
-            link.clone(),
-            jobs_stop.clone(),
-        );
+        let settings = JobsSettings {
+            rules: mc.program_rules(library.max_size()),
+            library: library.clone(),
+            journal: journal.clone(),
+            restored: restored.jobs.remove(&mc.name).unwrap_or_default(),
+            keep: config.programs.keep_jobs,
+        };
+        let (jobs, task, job_events) =
+            jobs::spawn(&mc.name, settings, link.clone(), jobs_stop.clone());
         job_tasks.spawn(async move {
             let _ = task.await;
         });
-        let feeds = MachineFeeds::subscribe(&link, &jobs);
+        let feeds = MachineFeeds::subscribe(&link, &jobs, job_events);
         let machine = Arc::new(Machine::new(mc, link, jobs));
         by_name.insert(machine.name().to_string(), Arc::clone(&machine));
         started.push((machine, feeds));

@@ -29,6 +29,7 @@ use super::keys::{CellKey, MachineLeaf, intersects, is_plain_chunk};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, schema_of};
 use crate::jobs::JobSubmission;
+use crate::jobs::blocks::StartAt;
 use crate::jobs::source::ProgramInput;
 use crate::pb;
 
@@ -136,12 +137,34 @@ async fn submit(
             let bytes = fetch(ctx, &m, &key).await?;
             ProgramInput::Fetched { key, bytes }
         }
+        Some(pb::job_request::Program::ResumeJob(job)) => ProgramInput::Resume(job),
+    };
+    let start_at = match request.start_at {
+        None => None,
+        Some(start) => {
+            let at = match start.at {
+                Some(pb::block_start::At::SequenceNumber(n)) => StartAt::Sequence(n),
+                Some(pb::block_start::At::Line(l)) => StartAt::Line(l),
+                None => {
+                    return Err(RequestError::Invalid {
+                        machine: m.name().to_string(),
+                        what: "the JobRequest's start_at names no block: set sequence_number \
+                               or line"
+                            .to_string(),
+                    });
+                }
+            };
+            Some((at, start.header_lines))
+        }
     };
     let submission = JobSubmission {
         input,
         name: request.name,
         priority: request.priority,
         append_eor: request.append_eor,
+        request_id: request.request_id,
+        start_at,
+        resume_after_restart: request.resume_after_restart,
     };
     Ok(m.jobs.submit(submission).await?)
 }

@@ -227,9 +227,7 @@ impl PunchDesk {
         for name in &candidates {
             let submission = JobSubmission {
                 input: ProgramInput::Library(name.clone()),
-                name: String::new(),
-                priority: 0,
-                append_eor: false,
+                ..JobSubmission::default()
             };
             match jobs.submit(submission).await {
                 Ok(accepted) => {

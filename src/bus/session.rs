@@ -57,6 +57,9 @@ pub enum BusError {
         #[source]
         source: std::io::Error,
     },
+    /// The job journal could not be opened.
+    #[error(transparent)]
+    Journal(#[from] crate::jobs::journal::JournalError),
 }
 
 impl BusMode {

@@ -162,6 +162,58 @@ pub struct SubmitArgs {
     /// Print the job id once accepted and return, without following the job.
     #[arg(long)]
     pub detach: bool,
+    /// Send the program of an earlier job that failed or was cancelled again, from the
+    /// first block the board did not acknowledge whole, with the program's header first.
+    #[arg(long, value_name = "JOB_ID", conflicts_with_all = ["file", "library", "key"])]
+    pub resume: Option<String>,
+    /// Start at a block: `N1234` (its sequence number) or a line number; the program's
+    /// header (its lines before the first numbered block) goes first.
+    #[arg(long, value_name = "BLOCK")]
+    pub from_block: Option<String>,
+    /// Lines of the program's start that make its header (default: up to its first
+    /// numbered block).
+    #[arg(long, value_name = "LINES", default_value_t = 0)]
+    pub header_lines: u32,
+    /// If the gateway restarts while sending this job, resume it from the first block the
+    /// board did not acknowledge whole instead of failing it.
+    #[arg(long)]
+    pub resume_after_restart: bool,
+    /// The request id that makes the submit idempotent (default: a new one for each run):
+    /// a retry with the same id queues nothing twice.
+    #[arg(long, value_name = "ID")]
+    pub request_id: Option<String>,
+}
+
+/// A new request id: unique per process and moment.
+pub fn new_request_id() -> String {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNT: AtomicU64 = AtomicU64::new(0);
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    format!(
+        "{nanos:x}-{:x}-{}",
+        std::process::id(),
+        COUNT.fetch_add(1, Ordering::Relaxed)
+    )
+}
+
+/// `N1234` or `1234` → the block, by sequence number or line.
+fn parse_block(text: &str) -> Result<pb::block_start::At, ClientError> {
+    let bad = || ClientError::InvalidArgument {
+        what: format!("--from-block {text}"),
+        reason: "give N and a sequence number (N1234) or a line number (57)".to_string(),
+    };
+    match text.strip_prefix(['N', 'n']) {
+        Some(digits) => digits
+            .parse()
+            .map(pb::block_start::At::SequenceNumber)
+            .map_err(|_| bad()),
+        None => text
+            .parse()
+            .map(pb::block_start::At::Line)
+            .map_err(|_| bad()),
+    }
 }
 
 impl SubmitArgs {
@@ -191,17 +243,29 @@ impl SubmitArgs {
             Program::Library(name.clone())
         } else if let Some(key) = &self.key {
             Program::Key(key.clone())
+        } else if let Some(job) = &self.resume {
+            Program::ResumeJob(job.clone())
         } else {
             return Err(ClientError::InvalidArgument {
                 what: "submit".to_string(),
-                reason: "give a FILE, --library NAME or --key KEY".to_string(),
+                reason: "give a FILE, --library NAME, --key KEY or --resume JOB_ID".to_string(),
             });
+        };
+        let start_at = match &self.from_block {
+            Some(block) => Some(pb::BlockStart {
+                at: Some(parse_block(block)?),
+                header_lines: self.header_lines,
+            }),
+            None => None,
         };
         Ok(pb::JobRequest {
             program: Some(program),
             name: self.name.clone().unwrap_or_default(),
             priority: self.priority,
             append_eor: self.append_eor,
+            request_id: self.request_id.clone().unwrap_or_else(new_request_id),
+            start_at,
+            resume_after_restart: self.resume_after_restart,
         })
     }
 }

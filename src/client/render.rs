@@ -248,17 +248,34 @@ pub fn job_kind_text(e: &pb::JobEvent) -> String {
                     p.bytes_sent.saturating_mul(100) / total
                 );
             }
+            if p.bytes_on_line > p.bytes_sent {
+                let _ = write!(t, ", {} on the line", bytes(p.bytes_on_line));
+            }
             let _ = write!(t, ", {} B/s", p.rate_bps);
             t
         }
-        Some(Kind::Completed(c)) => format!(
-            "completed: {} sent in {:.1} s",
-            bytes(c.bytes_sent),
-            c.duration_ms as f64 / 1000.0
-        ),
+        Some(Kind::Completed(c)) => {
+            let mut t = format!(
+                "completed: {} sent in {:.1} s",
+                bytes(c.bytes_sent),
+                c.duration_ms as f64 / 1000.0
+            );
+            match c.confirmation() {
+                pb::Confirmation::EndOfRead => t.push_str(" (end of read)"),
+                pb::Confirmation::Unverified => t.push_str(
+                    " (unverified: this link cannot tell the end of a read from a CNC reset)",
+                ),
+                _ => {}
+            }
+            t
+        }
         Some(Kind::Failed(f)) => failed_text(f),
         Some(Kind::Cancelled(c)) => {
-            format!("cancelled by {} at byte {}", dash(&c.by), c.byte_offset)
+            let mut t = format!("cancelled by {} at byte {}", dash(&c.by), c.byte_offset);
+            if let Some(b) = &c.next_block {
+                t.push_str(&resume_text(b));
+            }
+            t
         }
         None => "event of an unknown kind".to_string(),
     }
@@ -273,7 +290,30 @@ pub fn failed_text(f: &pb::job_event::Failed) -> String {
     if f.code() != pb::ErrorCode::Unspecified {
         let _ = write!(t, " ({})", short(f.code().as_str_name(), "ERROR_CODE_"));
     }
+    if let Some(b) = &f.next_block {
+        t.push_str(&resume_text(b));
+    }
     t
+}
+
+/// `; resumes at line 57 (N1234)`.
+fn resume_text(b: &pb::BlockPosition) -> String {
+    if b.sequence_number.is_empty() {
+        format!("; resumes at line {}", b.line)
+    } else {
+        format!("; resumes at line {} ({})", b.line, b.sequence_number)
+    }
+}
+
+fn block_json(b: &Option<pb::BlockPosition>) -> Value {
+    match b {
+        Some(b) => json!({
+            "line": b.line,
+            "sequence_number": b.sequence_number,
+            "byte_offset": b.byte_offset,
+        }),
+        None => Value::Null,
+    }
 }
 
 pub fn job_event_json(e: &pb::JobEvent) -> Value {
@@ -282,11 +322,20 @@ pub fn job_event_json(e: &pb::JobEvent) -> Value {
         Some(Kind::Started(s)) => ("started", json!({ "bytes_total": s.bytes_total })),
         Some(Kind::Progress(p)) => (
             "progress",
-            json!({ "bytes_sent": p.bytes_sent, "bytes_total": p.bytes_total, "rate_bps": p.rate_bps }),
+            json!({
+                "bytes_sent": p.bytes_sent,
+                "bytes_total": p.bytes_total,
+                "bytes_on_line": p.bytes_on_line,
+                "rate_bps": p.rate_bps,
+            }),
         ),
         Some(Kind::Completed(c)) => (
             "completed",
-            json!({ "bytes_sent": c.bytes_sent, "duration_ms": c.duration_ms }),
+            json!({
+                "bytes_sent": c.bytes_sent,
+                "duration_ms": c.duration_ms,
+                "confirmation": c.confirmation().as_str_name(),
+            }),
         ),
         Some(Kind::Failed(f)) => (
             "failed",
@@ -295,11 +344,18 @@ pub fn job_event_json(e: &pb::JobEvent) -> Value {
                 "byte_offset": f.byte_offset,
                 "alarm_number": f.alarm_number,
                 "code": f.code().as_str_name(),
+                "bytes_on_line": f.bytes_on_line,
+                "next_block": block_json(&f.next_block),
             }),
         ),
         Some(Kind::Cancelled(c)) => (
             "cancelled",
-            json!({ "byte_offset": c.byte_offset, "by": c.by }),
+            json!({
+                "byte_offset": c.byte_offset,
+                "by": c.by,
+                "bytes_on_line": c.bytes_on_line,
+                "next_block": block_json(&c.next_block),
+            }),
         ),
         None => ("unknown", Value::Null),
     };
@@ -716,21 +772,34 @@ mod tests {
             bytes_sent: 512,
             bytes_total: Some(2048),
             rate_bps: 1900,
+            bytes_on_line: 512,
         }));
         assert_eq!(job_kind_text(&p), "sent 512 B of 2.0 KiB (25%), 1900 B/s");
+        let p = ev(Kind::Progress(pb::job_event::Progress {
+            bytes_on_line: 1024,
+            ..pb::job_event::Progress::default()
+        }));
+        assert_eq!(job_kind_text(&p), "sent 0 B, 1.0 KiB on the line, 0 B/s");
         let f = ev(Kind::Failed(pb::job_event::Failed {
             reason: "retry over".to_string(),
             byte_offset: 512,
             alarm_number: "SR0945".to_string(),
             code: pb::ErrorCode::LinkFailed as i32,
+            bytes_on_line: 700,
+            next_block: Some(pb::BlockPosition {
+                line: 20,
+                sequence_number: "N190".to_string(),
+                byte_offset: 500,
+            }),
         }));
         assert_eq!(
             job_kind_text(&f),
-            "failed at byte 512: retry over [SR0945] (link failed)"
+            "failed at byte 512: retry over [SR0945] (link failed); resumes at line 20 (N190)"
         );
         let j = job_event_json(&f);
         assert_eq!(j["failed"]["byte_offset"], 512);
         assert_eq!(j["failed"]["code"], "ERROR_CODE_LINK_FAILED");
+        assert_eq!(j["failed"]["next_block"]["line"], 20);
     }
 
     #[test]

@@ -175,13 +175,19 @@ impl MachineConfig {
         })
     }
 
-    /// The settings of this machine's host engine, Protocol B family.
+    /// The settings of this machine's host engine, Protocol B family. A TCP device server
+    /// carries no modem lines, so the board's ER is not seen there (§6.4 (1)).
     pub fn protocol_b_config(&self) -> Option<ProtocolBConfig> {
         ProtocolBConfig::for_protocol(
             self.protocol,
             self.code,
             self.effective_notify_alarm_reset(),
         )
+        .map(|b| ProtocolBConfig {
+            char_time: self.transport.line().char_time(),
+            er_visible: !matches!(self.transport, TransportConfig::Tcp { .. }),
+            ..b
+        })
     }
 
     /// The value of parameter 5000#3 this configuration expects on the CNC (§10.2): the end

@@ -22,10 +22,25 @@ pub struct ProgramsConfig {
     /// `{n}` stands for the program number's digits. Empty: punched programs are never
     /// requests.
     pub requests: Vec<String>,
+    /// The job journal's directory (jobs and their programs, kept across restarts). Default:
+    /// `.journal` in `dir`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub journal: Option<PathBuf>,
+    /// Ended jobs each machine keeps in the journal: their latest event answers a `get` by
+    /// id, their request id makes a retried submit idempotent, their program lets a failed
+    /// job resume.
+    pub keep_jobs: usize,
 }
 
 impl ProgramsConfig {
     pub const DEFAULT_MAX_SIZE: u64 = 512 * 1024 * 1024;
+
+    /// The journal's directory in force.
+    pub fn journal_dir(&self) -> PathBuf {
+        self.journal
+            .clone()
+            .unwrap_or_else(|| self.dir.join(".journal"))
+    }
 
     /// The default remote request patterns.
     pub fn default_requests() -> Vec<String> {
@@ -43,6 +58,8 @@ impl Default for ProgramsConfig {
             max_size: Self::DEFAULT_MAX_SIZE,
             store_punched: true,
             requests: Self::default_requests(),
+            journal: None,
+            keep_jobs: crate::jobs::KEEP_ENDED,
         }
     }
 }
@@ -56,6 +73,14 @@ pub(super) fn check_programs(c: &mut Checker, p: &ProgramsConfig) {
             "",
         );
     }
+    c.range(
+        || "programs.keep_jobs".to_string(),
+        p.keep_jobs,
+        1,
+        100_000,
+        " jobs",
+        "",
+    );
     if p.max_size == 0 {
         c.invalid(
             "programs.max_size".to_string(),

@@ -67,13 +67,20 @@ pub enum EngineEvent {
     CncReset,
     /// The CNC raised an alarm (ALM in Protocol A; NAK in Protocol B).
     CncAlarm,
-    /// `bytes` more program bytes went onto the line as NC data (in DAT or data packets;
-    /// retransmissions are not counted again).
+    /// `bytes` more program bytes were handed to the line as NC data (in DAT or data packets;
+    /// retransmissions are not counted again). Handed out is not yet received: see `Acked`.
     DataSent {
         bytes: u64,
     },
-    /// The whole current program was delivered and the board was told (EOD / end packet).
-    ProgramDone,
+    /// The board has acknowledged the current program's first `offset` bytes (how a protocol
+    /// acknowledges is said at [`Confirmation`]). Never decreases within a program.
+    Acked {
+        offset: u64,
+    },
+    /// The board has acknowledged the whole current program, through its EOR.
+    ProgramDone {
+        confirmation: Confirmation,
+    },
     /// The current program was abandoned: by `Cancel` (`cancelled`), by the CNC (reset or
     /// alarm), or by a link failure.
     ProgramAborted {
@@ -93,6 +100,23 @@ pub enum EngineEvent {
     Punched {
         data: Bytes,
     },
+}
+
+/// How the board showed that it holds a program (and, for offsets, its first bytes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Confirmation {
+    /// The protocol acknowledged every byte: in Protocol A the board's next exchange after
+    /// the DAT (not RTY, RST or ALM), in Expansion Protocol A the board back in Protocol A
+    /// after the end packet, with every packet past the NAK window (§4.4, §5.2).
+    Acknowledged,
+    /// Protocol B: the DC3 that ends the read arrived after the EOR had had its line time,
+    /// and no reset or alarm notice (SYN, NAK) or ER off followed it (§6.1.1 (7), §6.4).
+    EndOfRead,
+    /// Protocol B with reset/alarm notification off over a line that does not carry the
+    /// board's ER (a TCP device server): the DC3 that ends a read cannot be told from the one
+    /// a CNC reset or alarm sends, so the end of the read is taken as delivery, unverified.
+    Unverified,
 }
 
 /// A host-side engine (Protocol A family or Protocol B family).

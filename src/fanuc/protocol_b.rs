@@ -60,14 +60,14 @@
 //! may keep the host stopped as long as its CNC does not read.
 
 use std::collections::VecDeque;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 
 use crate::engine::{Engine, LineError, ModemIn, ModemOut};
 use crate::fanuc::code::{DC1, DC2, DC3, DC4, EOR, NAK, SYN, is_significant};
 use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
-use crate::fanuc::host::{EngineCommand, EngineEvent, HostEngine, LinkState};
+use crate::fanuc::host::{Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState};
 use crate::fanuc::program::Program;
 use crate::fanuc::{CodeSystem, Protocol};
 
@@ -105,6 +105,13 @@ pub struct ProtocolBConfig {
     /// it is stopped by DC3. Where the transport carries no modem lines (a TCP device
     /// server) only the DC3 acts.
     pub rs_flow: bool,
+    /// Line time of one character (`LineSettings::char_time`): when a byte handed out has
+    /// reached the board, for acknowledged offsets and the end of a program. Zero when unknown.
+    pub char_time: Duration,
+    /// The line carries the board's ER (our DR): a serial port or the simulated line does, a
+    /// TCP device server does not. Without it and without notification, the end of a read
+    /// cannot be told from a CNC reset or alarm (§6.4 (1)).
+    pub er_visible: bool,
 }
 
 impl ProtocolBConfig {
@@ -127,6 +134,8 @@ impl ProtocolBConfig {
             // Room for the board's overrun after DC3, twice over (§6.3).
             punch_high_water: max_buffer - 2 * overrun_allowance,
             rs_flow: true,
+            char_time: Duration::ZERO,
+            er_visible: true,
         }
     }
 
@@ -247,7 +256,38 @@ pub struct ProtocolBHost {
     punch_paused: bool,
     /// A significant character was punched since the last EOR: the next `%` ends a program.
     punch_body: bool,
+    /// When the last byte handed out reaches the board, by the line's character time.
+    line_end: Instant,
+    /// (when it reaches the board, program bytes up to it) of pieces handed out and not yet
+    /// acknowledged; oldest first, at most [`MAX_MARKS`].
+    marks: VecDeque<(Instant, u64)>,
+    /// Program bytes of the current program the board has acknowledged: those that reached
+    /// it before a control code it sent.
+    acked: u64,
+    /// The current program went out through its EOR and awaits the end of the read.
+    finishing: Option<Finishing>,
 }
+
+/// A program sent through its EOR, not confirmed yet.
+#[derive(Debug, Clone, Copy)]
+struct Finishing {
+    /// When the EOR reaches the board: a DC3 before it is flow control.
+    eor_on_board: Instant,
+    /// The DC3 that ends the read came; the program is the board's unless a reset or alarm
+    /// notice, or ER off, follows by then (§6.1.2 (7), §6.4).
+    confirm_at: Option<Instant>,
+}
+
+/// Acknowledgement marks kept at most; past it the oldest go, which only makes acknowledged
+/// offsets coarser, never wrong.
+const MAX_MARKS: usize = 256;
+
+/// How long after the DC3 that ends a read a SYN or NAK may still come (it follows the DC3
+/// at once, §6.1.2 (7)), in characters and at least.
+const NOTICE_CHARS: u32 = 20;
+const NOTICE_MIN: Duration = Duration::from_millis(10);
+/// How long after that DC3 ER may still go off (§6.4 (1)): a few reads of the modem lines.
+const ER_OFF_SETTLE: Duration = Duration::from_millis(150);
 
 impl std::fmt::Debug for ProtocolBHost {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -262,7 +302,7 @@ impl std::fmt::Debug for ProtocolBHost {
 }
 
 impl ProtocolBHost {
-    pub fn new(config: ProtocolBConfig, _now: Instant) -> Result<Self, InvalidConfig> {
+    pub fn new(config: ProtocolBConfig, now: Instant) -> Result<Self, InvalidConfig> {
         let problems = config.validate();
         if !problems.is_empty() {
             return Err(InvalidConfig { problems });
@@ -283,6 +323,10 @@ impl ProtocolBHost {
             punch_queued: 0,
             punch_paused: false,
             punch_body: false,
+            line_end: now,
+            marks: VecDeque::new(),
+            acked: 0,
+            finishing: None,
         })
     }
 
@@ -323,8 +367,92 @@ impl ProtocolBHost {
         });
     }
 
+    /// The board has (or had) data of the current program: part of it went out, or all of
+    /// it and its end is not confirmed yet.
     fn program_started(&self) -> bool {
-        self.program.as_ref().is_some_and(|p| p.sent > 0)
+        self.program.as_ref().is_some_and(|p| p.sent > 0) || self.finishing.is_some()
+    }
+
+    /// A control code from the board arrived at `now`: every byte that had reached the board
+    /// before it was received (the line carries bytes in order; Protocol B acknowledges
+    /// nothing more precisely).
+    fn ack_until(&mut self, now: Instant) {
+        let mut offset = self.acked;
+        while let Some(&(at, upto)) = self.marks.front() {
+            if at > now {
+                break;
+            }
+            offset = upto;
+            self.marks.pop_front();
+        }
+        if offset > self.acked {
+            self.acked = offset;
+            self.emit(EngineEvent::Acked { offset });
+        }
+    }
+
+    /// A piece of `len` program bytes, up to `upto`, was handed out at `now`.
+    fn handed_out(&mut self, now: Instant, len: usize, upto: u64) {
+        let line_time = self
+            .cfg
+            .char_time
+            .saturating_mul(u32::try_from(len).unwrap_or(u32::MAX));
+        self.line_end = self.line_end.max(now) + line_time;
+        if self.marks.len() >= MAX_MARKS {
+            self.marks.pop_front();
+        }
+        self.marks.push_back((self.line_end, upto));
+    }
+
+    /// How long the end of a read waits for a reset or alarm that would undo it.
+    fn settle_time(&self) -> Duration {
+        if self.cfg.notify_alarm_reset {
+            self.cfg
+                .char_time
+                .saturating_mul(NOTICE_CHARS)
+                .max(NOTICE_MIN)
+        } else {
+            ER_OFF_SETTLE
+        }
+    }
+
+    /// A DC3 arrived while the program's end is awaited.
+    fn end_of_read(&mut self, now: Instant) {
+        let settle = self.settle_time();
+        if let Some(f) = self.finishing.as_mut()
+            && now >= f.eor_on_board
+            && f.confirm_at.is_none()
+        {
+            f.confirm_at = Some(now + settle);
+        }
+    }
+
+    /// The end of the read stood (its settle time passed, or the board asked for the next
+    /// read with DC1, which no reset or alarm does): the board holds the whole program.
+    fn confirm(&mut self, now: Instant, next_read: bool) {
+        let Some(f) = self.finishing else { return };
+        match f.confirm_at {
+            Some(t) if next_read || now >= t => {}
+            _ => return,
+        }
+        self.finishing = None;
+        // The DC3 came after the EOR's line time: every byte arrived.
+        self.ack_until(f.eor_on_board);
+        let confirmation = if self.cfg.notify_alarm_reset || self.cfg.er_visible {
+            Confirmation::EndOfRead
+        } else {
+            Confirmation::Unverified
+        };
+        tracing::info!(
+            bytes = self.acked,
+            ?confirmation,
+            "program delivered (end of read)"
+        );
+        self.emit(EngineEvent::ProgramDone { confirmation });
+        // The next program goes at the next read request's DC1 (protocol notes 13).
+        self.await_next_read = false;
+        self.flowing = false;
+        self.update_state();
     }
 
     fn update_state(&mut self) {
@@ -346,13 +474,17 @@ impl ProtocolBHost {
     /// Abandons the current program. One the board has part of ends its read request: the
     /// next program waits for a new one.
     fn abort_program(&mut self, reason: AbortReason, cancelled: bool) {
-        if let Some(p) = self.program.take() {
-            tracing::info!(sent = p.sent, %reason, "program aborted");
-            if p.sent > 0 {
-                self.await_next_read = true;
-            }
-            self.emit(EngineEvent::ProgramAborted { reason, cancelled });
+        let started = match (self.program.take(), self.finishing.take()) {
+            (Some(p), _) => p.sent > 0,
+            (None, Some(_)) => true,
+            (None, None) => return,
+        };
+        tracing::info!(acked = self.acked, %reason, "program aborted");
+        if started {
+            self.await_next_read = true;
         }
+        self.marks.clear();
+        self.emit(EngineEvent::ProgramAborted { reason, cancelled });
     }
 
     /// A CNC reset (SYN) or alarm (NAK) notice (§6.1.2, §6.4 (2)).
@@ -375,9 +507,13 @@ impl ProtocolBHost {
         self.await_next_read = false;
     }
 
-    fn on_control(&mut self, b: u8, garbage: &mut usize) {
+    fn on_control(&mut self, now: Instant, b: u8, garbage: &mut usize) {
+        if matches!(CodeSystem::strip(b), DC1 | DC2 | DC3 | DC4 | NAK | SYN) {
+            self.ack_until(now);
+        }
         match CodeSystem::strip(b) {
             DC1 => {
+                self.confirm(now, true);
                 if self.await_next_read {
                     // Flow control of the read whose program already went (protocol notes 13).
                     tracing::trace!("DC1 before the read ended: no new program yet");
@@ -387,8 +523,13 @@ impl ProtocolBHost {
             }
             DC3 => {
                 self.flowing = false;
-                self.await_next_read = false;
                 self.sent_since_dc3 = 0;
+                if self.finishing.is_some() {
+                    // The end of the read, once the EOR can have arrived; before, flow control.
+                    self.end_of_read(now);
+                } else {
+                    self.await_next_read = false;
+                }
             }
             DC2 => {
                 self.rx = Rx::Punch;
@@ -467,7 +608,7 @@ impl Engine for ProtocolBHost {
     type Command = EngineCommand;
     type Event = EngineEvent;
 
-    fn handle_input(&mut self, _now: Instant, bytes: &[u8]) {
+    fn handle_input(&mut self, now: Instant, bytes: &[u8]) {
         if !self.line_up {
             // DR off: nothing on the line is trusted.
             return;
@@ -480,7 +621,7 @@ impl Engine for ProtocolBHost {
                 Rx::Punch => self.on_punch_byte(b, &mut dropped),
                 Rx::Control => {
                     let before = garbage;
-                    self.on_control(b, &mut garbage);
+                    self.on_control(now, b, &mut garbage);
                     if before == 0 && garbage == 1 {
                         first_garbage = b;
                     }
@@ -541,6 +682,8 @@ impl Engine for ProtocolBHost {
                 self.abort_program(AbortReason::Replaced, false);
                 tracing::debug!(?total, "program queued");
                 self.program = Some(Program::new());
+                self.acked = 0;
+                self.marks.clear();
             }
             EngineCommand::ProgramData(data) => match self.program.as_mut() {
                 Some(p) => {
@@ -570,9 +713,11 @@ impl Engine for ProtocolBHost {
         self.update_state();
     }
 
-    fn handle_timeout(&mut self, _now: Instant) {}
+    fn handle_timeout(&mut self, now: Instant) {
+        self.confirm(now, false);
+    }
 
-    fn poll_transmit(&mut self, _now: Instant) -> Option<Vec<u8>> {
+    fn poll_transmit(&mut self, now: Instant) -> Option<Vec<u8>> {
         if !self.line_up || !self.cs {
             return None;
         }
@@ -588,7 +733,9 @@ impl Engine for ProtocolBHost {
             return None;
         }
         let done = program.all_sent();
+        let upto = program.sent;
         self.sent_since_dc3 += piece.len() as u64;
+        self.handed_out(now, piece.len(), upto);
         self.emit(EngineEvent::DataSent {
             bytes: piece.len() as u64,
         });
@@ -596,7 +743,10 @@ impl Engine for ProtocolBHost {
             tracing::debug!("program sent through EOR: waiting for the read to end");
             self.program = None;
             self.await_next_read = true;
-            self.emit(EngineEvent::ProgramDone);
+            self.finishing = Some(Finishing {
+                eor_on_board: self.line_end,
+                confirm_at: None,
+            });
         }
         self.update_state();
         Some(piece)
@@ -612,7 +762,7 @@ impl Engine for ProtocolBHost {
     }
 
     fn poll_timeout(&self) -> Option<Instant> {
-        None
+        self.finishing.and_then(|f| f.confirm_at)
     }
 
     fn modem_out(&self) -> ModemOut {
@@ -651,6 +801,19 @@ mod tests {
     }
 
     /// Everything the host hands out now.
+    /// The board ends the read with DC3, and no notice follows within the settle time.
+    fn end_read(h: &mut ProtocolBHost, now: Instant) -> Vec<EngineEvent> {
+        h.handle_input(now, &[h.config().code.control(DC3)]);
+        let settle = h.poll_timeout().expect("the end of the read settles");
+        h.handle_timeout(settle);
+        events(h)
+    }
+
+    fn done(evs: &[EngineEvent]) -> bool {
+        evs.iter()
+            .any(|e| matches!(e, EngineEvent::ProgramDone { .. }))
+    }
+
     fn drain_tx(h: &mut ProtocolBHost, now: Instant) -> Vec<u8> {
         let mut out = Vec::new();
         while let Some(piece) = h.poll_transmit(now) {
@@ -749,7 +912,8 @@ mod tests {
             h.handle_input(now, &[0x11]);
             sent.extend(drain_tx(&mut h, now));
             assert_eq!(sent, prog);
-            let evs = events(&mut h);
+            let mut evs = events(&mut h);
+            evs.extend(end_read(&mut h, now));
             let total: u64 = evs
                 .iter()
                 .filter_map(|e| match e {
@@ -760,7 +924,7 @@ mod tests {
             assert_eq!(total, prog.len() as u64);
             assert_eq!(
                 evs.iter()
-                    .filter(|e| **e == EngineEvent::ProgramDone)
+                    .filter(|e| matches!(e, EngineEvent::ProgramDone { .. }))
                     .count(),
                 1
             );
@@ -776,16 +940,21 @@ mod tests {
         load(&mut h, now, &first);
         h.handle_input(now, &[0x11]);
         assert_eq!(drain_tx(&mut h, now), first);
-        assert!(events(&mut h).contains(&EngineEvent::ProgramDone));
-        let second = program(20);
-        load(&mut h, now, &second);
-        // Flow-control DC1 of the same read: nothing.
+        assert!(!done(&events(&mut h)));
+        // Flow-control DC1 of the same read: nothing, and the program is not done.
         h.handle_input(now, &[0x11]);
         assert_eq!(h.poll_transmit(now), None);
-        // The CNC ends the read with DC3; nothing until a new DC1.
+        assert!(!done(&events(&mut h)));
+        // The CNC ends the read with DC3; nothing until a new DC1, which also shows that no
+        // reset or alarm followed: the first program is the board's.
         h.handle_input(now, &[0x93]);
         assert_eq!(h.poll_transmit(now), None);
+        assert!(!done(&events(&mut h)));
         h.handle_input(now, &[0x11]);
+        assert!(done(&events(&mut h)));
+        // That DC1 asked for the next program: it goes at once.
+        let second = program(20);
+        load(&mut h, now, &second);
         assert_eq!(drain_tx(&mut h, now), second);
     }
 
@@ -795,7 +964,7 @@ mod tests {
         load(&mut h, now, b"%\nO1\nX1\n");
         h.handle_input(now, &[0x11]);
         assert_eq!(drain_tx(&mut h, now), b"%\nO1\nX1\n%");
-        assert!(events(&mut h).contains(&EngineEvent::ProgramDone));
+        assert!(done(&end_read(&mut h, now)));
     }
 
     #[test]
@@ -814,7 +983,7 @@ mod tests {
         // Late data: the host waits, the board keeps the read open.
         h.handle_command(now, EngineCommand::ProgramData(Bytes::from_static(b"Y%")));
         assert_eq!(drain_tx(&mut h, now), b"Y%");
-        assert!(events(&mut h).contains(&EngineEvent::ProgramDone));
+        assert!(done(&end_read(&mut h, now)));
     }
 
     #[test]
@@ -833,6 +1002,8 @@ mod tests {
             assert_eq!(
                 events(&mut h),
                 vec![
+                    // The piece sent reached the board before its DC3.
+                    EngineEvent::Acked { offset: 64 },
                     EngineEvent::CncReset,
                     EngineEvent::ProgramAborted {
                         reason: AbortReason::ResetNotice,
@@ -859,7 +1030,8 @@ mod tests {
         // Parity-less form accepted defensively with ISO.
         h.handle_input(now, &[0x13, 0x15]);
         let evs = events(&mut h);
-        assert_eq!(evs.first(), Some(&EngineEvent::CncAlarm));
+        assert_eq!(evs.first(), Some(&EngineEvent::Acked { offset: 64 }));
+        assert_eq!(evs.get(1), Some(&EngineEvent::CncAlarm));
         assert!(evs.contains(&EngineEvent::ProgramAborted {
             reason: AbortReason::AlarmNotice,
             cancelled: false

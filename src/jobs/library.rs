@@ -117,7 +117,7 @@ impl ProgramLibrary {
         tokio::fs::create_dir_all(self.dir.as_path()).await
     }
 
-    fn path_of(&self, name: &str) -> Result<PathBuf, LibraryError> {
+    pub(crate) fn path_of(&self, name: &str) -> Result<PathBuf, LibraryError> {
         validate_name(name)?;
         Ok(self.dir.join(name))
     }
@@ -205,7 +205,7 @@ impl ProgramLibrary {
         self.entry(name).await
     }
 
-    async fn entry(&self, name: &str) -> Result<ProgramEntry, LibraryError> {
+    pub(crate) async fn entry(&self, name: &str) -> Result<ProgramEntry, LibraryError> {
         let path = self.path_of(name)?;
         let meta = tokio::fs::metadata(&path)
             .await

@@ -6,15 +6,27 @@
 //!   active job, so the order stays the gateway's to decide until the last moment, and a
 //!   waiting job is cancelled by dropping it. An active job is cancelled with
 //!   [`LinkCommand::Cancel`] and ends when the link confirms.
-//! - Sources ([`source`]): inline bytes, a library program ([`library`]) streamed from its
-//!   file, or bytes fetched from a bus key. Every program is checked before it is queued;
-//!   a bad one is refused with the reason and nothing is queued.
+//! - Journal ([`journal`]): every job is written to the cell's journal before its submit is
+//!   answered, with its program in the journal's store (inline and fetched programs written,
+//!   library programs linked), and every step after. After a restart the waiting jobs run
+//!   with their ids in their order, and the one that was being sent is failed with the offset
+//!   the board acknowledged, or resumed where its request asked for that. A waiting job holds
+//!   no file open: its program is opened when it starts.
+//! - Sources ([`source`]): every program is checked before it is queued; a bad one is refused
+//!   with the reason and nothing is queued.
+//! - Idempotent submits: a request id seen before (among the jobs kept) answers the first
+//!   `JobAccepted` and queues nothing.
+//! - Blocks ([`blocks`]): a job may start at a block (by line or sequence number) with the
+//!   program's header first; a failed or cancelled one names the first block the board did
+//!   not acknowledge whole, where a resume (`resume_job`) starts.
 //! - Punched programs ([`punch`]): a punch-out split into programs and decoded, library
 //!   names for them, and remote requests for a program.
 //! - Job ids: `<machine>-<run>-<n>`, where `<run>` is the time the manager started, in
 //!   seconds since the Unix epoch written in base 36, and `<n>` counts the machine's jobs
 //!   from 1. Unique in the cell as long as the clock does not run backwards across restarts;
 //!   a valid key chunk, since machine names are `[A-Za-z0-9_-]+`.
+//! - Offsets: every offset a job reports is what the board acknowledged (see
+//!   `fanuc::host::Confirmation`); what was handed to the line is reported beside it.
 //! - Progress: the link reports progress at every whole percent (or every 250 ms for a
 //!   program of unknown size). Events are published at most every
 //!   [`PROGRESS_MIN_INTERVAL`], and only once progress has reached a further whole percent
@@ -24,29 +36,34 @@
 //! and the bus routes put them on their keys. It runs in tokio time, so it is tested under
 //! paused time with a stand-in link.
 
+pub mod blocks;
+pub mod journal;
 pub mod library;
 pub mod punch;
 pub mod queue;
 pub mod source;
 
+use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
+use prost::Message;
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 use crate::codes::BusCode;
 use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::host::Confirmation;
 use crate::link::JobId;
-use crate::link::driver::{
-    JobFailure, LinkCommand, LinkEvent, LinkHandle, ProgramJob, ProgramSource,
-};
+use crate::link::driver::{JobFailure, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use crate::pb;
 use crate::pb::job_event::Kind;
+use blocks::{Block, BlockError, StartAt};
+use journal::{JobRecord, JobState, Journal, JournalError, StartPoint};
 use library::{LibraryError, ProgramLibrary};
 use queue::PriorityQueue;
-use source::{PrepareError, ProgramError, ProgramInput, ProgramRules};
+use source::{ProgramError, ProgramInput, ProgramRules};
 
 /// Most jobs waiting on one machine; one more is refused with `ERROR_CODE_QUEUE_FULL`.
 pub const MAX_WAITING: usize = 256;
@@ -54,8 +71,14 @@ pub const MAX_WAITING: usize = 256;
 /// Progress events of one job are at least this far apart.
 pub const PROGRESS_MIN_INTERVAL: Duration = Duration::from_millis(250);
 
+/// Ended jobs each machine keeps by default: their latest event, request id and program.
+pub const KEEP_ENDED: usize = 256;
+
+/// Longest client request id.
+pub const REQUEST_ID_MAX: usize = 128;
+
 /// A request to send a program to the machine.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct JobSubmission {
     pub input: ProgramInput,
     /// Display name; empty: derived from the source.
@@ -64,6 +87,12 @@ pub struct JobSubmission {
     pub priority: i32,
     /// Append `%` to a program without EOR instead of refusing it.
     pub append_eor: bool,
+    /// The client's request id (idempotency); empty: none.
+    pub request_id: String,
+    /// Start at a block, with this many header lines (0: up to the first numbered block).
+    pub start_at: Option<(StartAt, u32)>,
+    /// Resume from the first unacknowledged block if the gateway restarts while sending.
+    pub resume_after_restart: bool,
 }
 
 /// Why a job request or a cancellation was refused.
@@ -90,6 +119,26 @@ pub enum JobError {
     LinkStopped { machine: String },
     #[error("machine {machine}: the job manager has stopped (gateway shutting down)")]
     Stopped { machine: String },
+    #[error("machine {machine}: the job could not be journalled, so it was not accepted: {error}")]
+    Journal {
+        machine: String,
+        #[source]
+        error: JournalError,
+    },
+    #[error("machine {machine}: request id of {len} characters; at most {REQUEST_ID_MAX} are kept")]
+    RequestId { machine: String, len: usize },
+    #[error("machine {machine}: cannot start at that block: {error}")]
+    Start {
+        machine: String,
+        #[source]
+        error: BlockError,
+    },
+    #[error("machine {machine}: job {job} cannot be resumed: {why}")]
+    NotResumable {
+        machine: String,
+        job: String,
+        why: &'static str,
+    },
 }
 
 /// What a cancellation did.
@@ -108,7 +157,7 @@ pub struct JobsSnapshot {
     pub active: Option<String>,
     /// Jobs waiting.
     pub waiting: usize,
-    /// NC bytes the board accepted over every job, as far as published in progress events.
+    /// NC bytes the board acknowledged over every job, as far as published in progress events.
     pub nc_bytes_sent: u64,
     pub jobs_completed: u64,
     pub jobs_failed: u64,
@@ -120,14 +169,17 @@ pub struct JobsHandle {
     machine: Arc<str>,
     rules: ProgramRules,
     library: ProgramLibrary,
+    journal: Journal,
     requests: mpsc::Sender<Request>,
     events: broadcast::Sender<pb::JobEvent>,
     snapshot: watch::Receiver<JobsSnapshot>,
+    /// The latest event of each job kept when the manager started, oldest first.
+    restored: Arc<Vec<pb::JobEvent>>,
 }
 
 enum Request {
     Submit {
-        job: Waiting,
+        record: Box<JobRecord>,
         reply: oneshot::Sender<Result<pb::JobAccepted, JobError>>,
     },
     Cancel {
@@ -136,6 +188,11 @@ enum Request {
     },
     List {
         reply: oneshot::Sender<pb::JobQueue>,
+    },
+    /// The record of a job kept, for a resume.
+    Find {
+        id: String,
+        reply: oneshot::Sender<Option<JobRecord>>,
     },
 }
 
@@ -153,49 +210,248 @@ impl JobsHandle {
         &self.library
     }
 
+    /// The cell's journal.
+    pub fn journal(&self) -> &Journal {
+        &self.journal
+    }
+
+    /// The latest event of each job the journal held when the manager started.
+    pub fn restored_events(&self) -> &[pb::JobEvent] {
+        &self.restored
+    }
+
     fn stopped(&self) -> JobError {
         JobError::Stopped {
             machine: self.machine.to_string(),
         }
     }
 
-    /// Checks the program and queues the job. On success the job's `queued` event is out
-    /// before this returns. The check reads a library program once through; it runs in the
-    /// caller's task.
+    fn program_error(&self, error: ProgramError) -> JobError {
+        JobError::Program {
+            machine: self.machine.to_string(),
+            error,
+        }
+    }
+
+    fn journal_error(&self, error: JournalError) -> JobError {
+        JobError::Journal {
+            machine: self.machine.to_string(),
+            error,
+        }
+    }
+
+    /// Checks the program, writes it and the job to the journal, and queues the job. On
+    /// success the job's `queued` event is out and the job is journalled before this
+    /// returns. The check reads a library program once through; it runs in the caller's task.
     pub async fn submit(&self, submission: JobSubmission) -> Result<pb::JobAccepted, JobError> {
-        let prepared = source::prepare(
-            submission.input,
-            &submission.name,
-            submission.append_eor,
-            self.rules,
-            &self.library,
-        )
-        .await
-        .map_err(|e| match e {
-            PrepareError::Program(error) => JobError::Program {
+        if submission.request_id.len() > REQUEST_ID_MAX {
+            return Err(JobError::RequestId {
                 machine: self.machine.to_string(),
-                error,
-            },
-            PrepareError::Library(error) => JobError::Library {
-                machine: self.machine.to_string(),
-                error,
-            },
-        })?;
-        let job = Waiting {
-            id: String::new(),
-            link_id: 0,
-            name: prepared.name.clone(),
-            priority: submission.priority,
-            size: prepared.size,
-            accepted_unix_ms: unix_ms(),
-            source: prepared.into_source(),
+                len: submission.request_id.len(),
+            });
+        }
+        let seq = self.journal.next_seq().map_err(|e| self.journal_error(e))?;
+        let file = seq.to_string();
+        let record = match self.stage(seq, &file, submission).await {
+            Ok(record) => record,
+            Err(e) => {
+                let _ = std::fs::remove_file(self.journal.file_path(&file));
+                return Err(e);
+            }
         };
         let (reply, answer) = oneshot::channel();
         self.requests
-            .send(Request::Submit { job, reply })
+            .send(Request::Submit {
+                record: Box::new(record),
+                reply,
+            })
             .await
             .map_err(|_| self.stopped())?;
-        answer.await.map_err(|_| self.stopped())?
+        let accepted = answer.await.map_err(|_| self.stopped())?;
+        if accepted.is_err() {
+            let _ = std::fs::remove_file(self.journal.file_path(&file));
+        }
+        accepted
+    }
+
+    /// The program in the journal's store, checked, and the job's record.
+    async fn stage(&self, seq: u64, file: &str, s: JobSubmission) -> Result<JobRecord, JobError> {
+        let mut start = s.start_at;
+        let (default_name, file_len, suffix) = match s.input {
+            ProgramInput::Inline(bytes) => {
+                let report = source::scan(self.rules, &bytes);
+                let suffix = self.checked_suffix(&report, s.append_eor)?;
+                let len = self
+                    .journal
+                    .store_bytes(file, &[&bytes, suffix])
+                    .map_err(|e| self.journal_error(e))?;
+                (report.ok().and_then(|r| r.o_number), len, Vec::new())
+            }
+            ProgramInput::Fetched { key, bytes } => {
+                let suffix =
+                    self.checked_suffix(&source::scan(self.rules, &bytes), s.append_eor)?;
+                let len = self
+                    .journal
+                    .store_bytes(file, &[&bytes, suffix])
+                    .map_err(|e| self.journal_error(e))?;
+                (Some(key), len, Vec::new())
+            }
+            ProgramInput::Library(name) => {
+                // Linked first, checked after: the version checked is the version sent, even
+                // if the library replaces the program meanwhile.
+                let path = self
+                    .library
+                    .path_of(&name)
+                    .map_err(|error| JobError::Library {
+                        machine: self.machine.to_string(),
+                        error,
+                    })?;
+                self.library
+                    .entry(&name)
+                    .await
+                    .map_err(|error| JobError::Library {
+                        machine: self.machine.to_string(),
+                        error,
+                    })?;
+                let len = self
+                    .journal
+                    .store_file(file, &path)
+                    .map_err(|e| self.journal_error(e))?;
+                if len > self.rules.max_size {
+                    return Err(self.program_error(ProgramError::TooLarge {
+                        size: len,
+                        max: self.rules.max_size,
+                    }));
+                }
+                let report = source::scan_file(self.rules, &self.journal.file_path(file))
+                    .await
+                    .map_err(|e| match e {
+                        source::ScanFileError::Program(e) => self.program_error(e),
+                        source::ScanFileError::Io(error) => JobError::Library {
+                            machine: self.machine.to_string(),
+                            error: self.library.io_error(&name, "read", error),
+                        },
+                    })?;
+                let suffix = self.checked_suffix(&Ok(report), s.append_eor)?;
+                (Some(name), len, suffix.to_vec())
+            }
+            ProgramInput::Resume(job) => {
+                let (earlier, next) = self.resumable(&job).await?;
+                let len = self
+                    .journal
+                    .store_file(file, &self.journal.file_path(&earlier.file))
+                    .map_err(|e| self.journal_error(e))?;
+                start.get_or_insert((StartAt::Line(next.line), 0));
+                (Some(earlier.name.clone()), len, earlier.suffix.clone())
+            }
+        };
+        let size = file_len + suffix.len() as u64;
+        if size > self.rules.max_size {
+            return Err(self.program_error(ProgramError::TooLarge {
+                size,
+                max: self.rules.max_size,
+            }));
+        }
+        let start = match start {
+            None => None,
+            Some((at, header_lines)) => {
+                let program = source::open_program(&self.journal.file_path(file), &suffix)
+                    .await
+                    .map_err(|e| JobError::Start {
+                        machine: self.machine.to_string(),
+                        error: BlockError::Read(e.to_string()),
+                    })?;
+                let (header_end, block) = blocks::find_start(program, at, header_lines)
+                    .await
+                    .map_err(|error| JobError::Start {
+                        machine: self.machine.to_string(),
+                        error,
+                    })?;
+                Some(StartPoint {
+                    header_end,
+                    body_start: block.offset,
+                })
+            }
+        };
+        let name = if s.name.is_empty() {
+            default_name.unwrap_or_else(|| "program".to_string())
+        } else {
+            s.name
+        };
+        Ok(JobRecord {
+            seq,
+            id: String::new(),
+            machine: self.machine.to_string(),
+            request_id: s.request_id,
+            name,
+            priority: s.priority,
+            accepted_unix_ms: unix_ms(),
+            file: file.to_string(),
+            file_len,
+            suffix,
+            start,
+            resume_after_restart: s.resume_after_restart,
+            state: JobState::Waiting,
+            acked: 0,
+            last_event: Vec::new(),
+        })
+    }
+
+    /// The EOR to append, or why the program is refused.
+    fn checked_suffix(
+        &self,
+        report: &Result<source::ScanReport, ProgramError>,
+        append_eor: bool,
+    ) -> Result<&'static [u8], JobError> {
+        let report = report.clone().map_err(|e| self.program_error(e))?;
+        let suffix = source::eor_suffix(&report);
+        if !suffix.is_empty() && !append_eor {
+            return Err(self.program_error(ProgramError::MissingEor));
+        }
+        Ok(suffix)
+    }
+
+    /// An earlier job that a resume can start from, and its next block.
+    async fn resumable(&self, job: &str) -> Result<(JobRecord, Block), JobError> {
+        let not = |why| JobError::NotResumable {
+            machine: self.machine.to_string(),
+            job: job.to_string(),
+            why,
+        };
+        let (reply, answer) = oneshot::channel();
+        self.requests
+            .send(Request::Find {
+                id: job.to_string(),
+                reply,
+            })
+            .await
+            .map_err(|_| self.stopped())?;
+        let record =
+            answer
+                .await
+                .map_err(|_| self.stopped())?
+                .ok_or_else(|| JobError::UnknownJob {
+                    machine: self.machine.to_string(),
+                    job: job.to_string(),
+                })?;
+        if record.state != JobState::Ended {
+            return Err(not("it has not ended"));
+        }
+        let event = pb::JobEvent::decode(record.last_event.as_slice())
+            .map_err(|_| not("its last event is unreadable"))?;
+        let next = match event.kind {
+            Some(Kind::Failed(f)) => f.next_block,
+            Some(Kind::Cancelled(c)) => c.next_block,
+            Some(Kind::Completed(_)) => return Err(not("it completed")),
+            _ => None,
+        }
+        .ok_or_else(|| not("no block is known where it stopped"))?;
+        let block = Block {
+            line: next.line,
+            sequence: (!next.sequence_number.is_empty()).then_some(next.sequence_number),
+            offset: next.byte_offset,
+        };
+        Ok((record, block))
     }
 
     /// Cancels a waiting or active job.
@@ -233,27 +489,52 @@ impl JobsHandle {
     }
 }
 
+/// How a machine's job manager is set up.
+#[derive(Debug, Clone)]
+pub struct JobsSettings {
+    pub rules: ProgramRules,
+    pub library: ProgramLibrary,
+    pub journal: Journal,
+    /// The jobs of this machine the journal held at start, in arrival order.
+    pub restored: Vec<JobRecord>,
+    /// Ended jobs kept.
+    pub keep: usize,
+}
+
 /// Starts the job manager of `machine`, which feeds `link`. It ends when `shutdown` is
-/// cancelled or every handle is dropped; jobs still waiting are then reported cancelled, and
-/// the active one failed (the link is asked to cancel it).
+/// cancelled or every handle is dropped. Jobs then stay in the journal as they are: the
+/// waiting ones run after a restart, and the active one is failed or resumed then. Returns
+/// a receiver of the job events subscribed before the manager runs, so that the events of
+/// a restart (a job failed or resumed) are not missed.
 pub fn spawn(
     machine: &str,
-    rules: ProgramRules,
-    library: ProgramLibrary,
+    settings: JobsSettings,
     link: LinkHandle,
     shutdown: CancellationToken,
-) -> (JobsHandle, tokio::task::JoinHandle<()>) {
+) -> (
+    JobsHandle,
+    tokio::task::JoinHandle<()>,
+    broadcast::Receiver<pb::JobEvent>,
+) {
     let (req_tx, req_rx) = mpsc::channel(64);
-    let (ev_tx, _) = broadcast::channel(1024);
+    let (ev_tx, first_rx) = broadcast::channel(1024);
     let (snap_tx, snap_rx) = watch::channel(JobsSnapshot::default());
     let name: Arc<str> = Arc::from(machine);
+    let restored_events = settings
+        .restored
+        .iter()
+        .filter_map(|r| pb::JobEvent::decode(r.last_event.as_slice()).ok())
+        .filter(|e| e.kind.is_some())
+        .collect();
     let handle = JobsHandle {
         machine: name.clone(),
-        rules,
-        library,
+        rules: settings.rules,
+        library: settings.library.clone(),
+        journal: settings.journal.clone(),
         requests: req_tx,
         events: ev_tx.clone(),
         snapshot: snap_rx,
+        restored: Arc::new(restored_events),
     };
     // Subscribed before the task runs, so no link event is missed.
     let link_events = link.subscribe();
@@ -266,20 +547,25 @@ pub fn spawn(
         machine: name.clone(),
         run_stamp,
         next: 1,
+        next_link: 1,
         link,
         link_stopped: false,
         waiting: PriorityQueue::new(),
         active: None,
+        ended: VecDeque::new(),
+        request_ids: HashMap::new(),
+        journal: settings.journal,
+        keep: settings.keep,
         events: ev_tx,
         snapshot: snap_tx,
         totals: JobsSnapshot::default(),
     };
     let span = tracing::info_span!("jobs", machine = %name);
     let task = tokio::spawn(tracing::Instrument::instrument(
-        manager.run(req_rx, link_events, shutdown),
+        manager.run(settings.restored, req_rx, link_events, shutdown),
         span,
     ));
-    (handle, task)
+    (handle, task, first_rx)
 }
 
 /// Milliseconds since the Unix epoch, now.
@@ -309,6 +595,7 @@ fn base36(mut n: u64) -> String {
 pub struct ProgressShaper {
     total: Option<u64>,
     last_at: Instant,
+    last_acked: u64,
     last_sent: u64,
 }
 
@@ -318,51 +605,46 @@ impl ProgressShaper {
         ProgressShaper {
             total,
             last_at: now,
+            last_acked: 0,
             last_sent: 0,
         }
     }
 
-    /// The link reports `sent` bytes at `now`; returns the rate in bytes/s since the last
-    /// published event when this one is to be published.
-    pub fn offer(&mut self, now: Instant, sent: u64) -> Option<u64> {
+    /// The link reports `acked` bytes acknowledged and `sent` handed to the line at `now`;
+    /// returns the rate in bytes/s (of bytes handed out) since the last published event
+    /// when this one is to be published: once either figure reached a further whole percent
+    /// (any further byte when the size is unknown), and no sooner than
+    /// [`PROGRESS_MIN_INTERVAL`] after the last.
+    pub fn offer(&mut self, now: Instant, acked: u64, sent: u64) -> Option<u64> {
         let elapsed = now.saturating_duration_since(self.last_at);
-        if elapsed < PROGRESS_MIN_INTERVAL || sent <= self.last_sent {
+        if elapsed < PROGRESS_MIN_INTERVAL || (acked <= self.last_acked && sent <= self.last_sent) {
             return None;
         }
         if let Some(total) = self.total.filter(|&t| t > 0) {
             let percent = |b: u64| u128::from(b) * 100 / u128::from(total);
-            if percent(sent) <= percent(self.last_sent) {
+            if percent(acked) <= percent(self.last_acked)
+                && percent(sent) <= percent(self.last_sent)
+            {
                 return None;
             }
         }
-        let bytes = sent - self.last_sent;
+        let bytes = sent.saturating_sub(self.last_sent);
         let ms = elapsed.as_millis().max(1);
         let rate = u64::try_from(u128::from(bytes) * 1000 / ms).unwrap_or(u64::MAX);
         self.last_at = now;
-        self.last_sent = sent;
+        self.last_acked = acked.max(self.last_acked);
+        self.last_sent = sent.max(self.last_sent);
         Some(rate)
     }
 }
 
-struct Waiting {
-    id: String,
-    link_id: JobId,
-    name: String,
-    priority: i32,
-    size: u64,
-    accepted_unix_ms: u64,
-    source: ProgramSource,
-}
-
 struct Active {
-    id: String,
+    record: JobRecord,
     link_id: JobId,
-    name: String,
-    priority: i32,
-    size: u64,
-    accepted_unix_ms: u64,
     handed_at: Instant,
     started_at: Option<Instant>,
+    /// Program bytes the board acknowledged, and handed to the line.
+    acked: u64,
     sent: u64,
     shaper: ProgressShaper,
     cancel_requested: bool,
@@ -374,23 +656,51 @@ struct Active {
 struct Manager {
     machine: Arc<str>,
     run_stamp: String,
-    next: JobId,
+    /// The number of the next job id of this run.
+    next: u64,
+    /// The next link job id.
+    next_link: JobId,
     link: LinkHandle,
     link_stopped: bool,
-    waiting: PriorityQueue<Waiting>,
+    waiting: PriorityQueue<JobRecord>,
     active: Option<Active>,
+    /// Ended jobs kept, oldest first.
+    ended: VecDeque<JobRecord>,
+    /// Request ids of the jobs kept, to their job ids.
+    request_ids: HashMap<String, String>,
+    journal: Journal,
+    keep: usize,
     events: broadcast::Sender<pb::JobEvent>,
     snapshot: watch::Sender<JobsSnapshot>,
     totals: JobsSnapshot,
 }
 
+/// How a job ended, as the manager records it.
+enum End {
+    Completed {
+        bytes: u64,
+        duration_ms: u64,
+        confirmation: Confirmation,
+    },
+    Failed {
+        reason: String,
+        alarm: Option<CncAlarm>,
+        code: pb::ErrorCode,
+    },
+    Cancelled {
+        by: &'static str,
+    },
+}
+
 impl Manager {
     async fn run(
         mut self,
+        restored: Vec<JobRecord>,
         mut requests: mpsc::Receiver<Request>,
         mut link_events: broadcast::Receiver<LinkEvent>,
         shutdown: CancellationToken,
     ) {
+        self.restore(restored).await;
         loop {
             self.hand_next().await;
             self.publish_snapshot();
@@ -402,7 +712,7 @@ impl Manager {
                     None => break,
                 },
                 event = link_events.recv() => match event {
-                    Ok(e) => self.on_link_event(e),
+                    Ok(e) => self.on_link_event(e).await,
                     Err(broadcast::error::RecvError::Lagged(n)) => {
                         // Only a stalled manager lags; job ends may have been lost.
                         tracing::error!(missed = n, "job manager fell behind the link's events");
@@ -415,44 +725,191 @@ impl Manager {
         self.shut_down().await;
     }
 
+    /// Takes the machine's jobs from the journal: ended ones are kept, waiting ones queued
+    /// in their order, and the one that was being sent when the gateway stopped is failed
+    /// ("gateway restarted") at what the board acknowledged, or queued first to resume.
+    async fn restore(&mut self, restored: Vec<JobRecord>) {
+        let mut resume = Vec::new();
+        let mut waiting = Vec::new();
+        for mut record in restored {
+            match record.state {
+                JobState::Ended => {
+                    self.remember_request(&record);
+                    self.ended.push_back(record);
+                }
+                JobState::Waiting => waiting.push(record),
+                JobState::Active => {
+                    let next = self.next_block(&record, record.acked).await;
+                    if record.resume_after_restart
+                        && let Some(block) = &next
+                    {
+                        tracing::info!(job = %record.id, line = block.line, "resuming the job that was active at the restart");
+                        record.start = Some(StartPoint {
+                            header_end: self.header_end(&record, block).await,
+                            body_start: block.offset,
+                        });
+                        record.acked = 0;
+                        record.state = JobState::Waiting;
+                        resume.push(record);
+                    } else {
+                        let offset = record.acked;
+                        let end = End::Failed {
+                            reason: "gateway restarted while the job was being sent".to_string(),
+                            alarm: None,
+                            code: pb::ErrorCode::Unavailable,
+                        };
+                        self.totals.jobs_failed += 1;
+                        self.end(record, end, offset, offset, next);
+                    }
+                }
+            }
+        }
+        for record in resume.into_iter().chain(waiting) {
+            self.remember_request(&record);
+            tracing::info!(job = %record.id, "job restored from the journal");
+            self.journal_put(&record);
+            self.waiting.push(record.priority, record);
+        }
+        self.trim();
+    }
+
+    /// The header of a job resumed at `block`: the program's lines before its first numbered
+    /// block, as a new request would have it.
+    async fn header_end(&self, record: &JobRecord, block: &Block) -> u64 {
+        let Ok(program) = self.open_program(record).await else {
+            return 0;
+        };
+        blocks::find_start(program, StartAt::Line(block.line), 0)
+            .await
+            .map_or(0, |(header, _)| header)
+    }
+
+    async fn open_program(
+        &self,
+        record: &JobRecord,
+    ) -> std::io::Result<impl tokio::io::AsyncRead + Unpin + use<>> {
+        source::open_program(&self.journal.file_path(&record.file), &record.suffix).await
+    }
+
+    /// The first block the board does not hold whole once it acknowledged `acked` bytes of
+    /// what the job sent.
+    async fn next_block(&self, record: &JobRecord, acked: u64) -> Option<Block> {
+        let offset = record.program_offset(acked);
+        let program = self.open_program(record).await.ok()?;
+        match blocks::block_at(program, offset).await {
+            Ok(block) => block,
+            Err(e) => {
+                tracing::warn!(job = %record.id, error = %e, "where the job stopped is not known");
+                None
+            }
+        }
+    }
+
+    fn remember_request(&mut self, record: &JobRecord) {
+        if !record.request_id.is_empty() {
+            self.request_ids
+                .insert(record.request_id.clone(), record.id.clone());
+        }
+    }
+
+    /// Writes a record; a journal that fails is logged, the job goes on (it is accepted).
+    fn journal_put(&self, record: &JobRecord) {
+        if let Err(e) = self.journal.put_job(record) {
+            tracing::error!(job = %record.id, error = %e, "job journal write failed");
+        }
+    }
+
+    /// Forgets the oldest ended jobs past the limit, with their programs.
+    fn trim(&mut self) {
+        let mut gone = Vec::new();
+        while self.ended.len() > self.keep {
+            if let Some(r) = self.ended.pop_front() {
+                if !r.request_id.is_empty() {
+                    self.request_ids.remove(&r.request_id);
+                }
+                gone.push(r);
+            }
+        }
+        if let Err(e) = self.journal.remove_jobs(&gone) {
+            tracing::warn!(error = %e, "forgetting old jobs in the journal failed");
+        }
+    }
+
+    /// The active job stays in the journal as it is (state active, its acknowledged offset),
+    /// and so do the waiting ones: a restart fails or resumes the first and runs the others.
     async fn shut_down(&mut self) {
         if let Some(active) = self.active.take() {
             // Best effort: the link may already be stopping with the gateway.
             let cancel = self.link.send(LinkCommand::Cancel(active.link_id));
             let _ = tokio::time::timeout(Duration::from_millis(100), cancel).await;
-            let failed = Kind::Failed(pb::job_event::Failed {
-                reason: "the gateway is shutting down".to_string(),
-                byte_offset: active.sent,
-                alarm_number: String::new(),
-                code: pb::ErrorCode::Unavailable as i32,
-            });
-            self.emit(&active.id, failed);
-        }
-        for job in self.waiting.drain() {
-            self.emit(
-                &job.id,
-                Kind::Cancelled(pb::job_event::Cancelled {
-                    byte_offset: 0,
-                    by: "gateway shutdown".to_string(),
-                }),
-            );
+            let mut record = active.record;
+            record.acked = active.acked;
+            self.journal_put(&record);
+            tracing::info!(job = %record.id, acked = record.acked, "job interrupted by the shutdown; kept in the journal");
         }
         self.publish_snapshot();
     }
 
-    fn emit(&self, id: &str, kind: Kind) {
-        // No subscriber is not an error: nobody is watching this machine's jobs right now.
-        let _ = self.events.send(pb::JobEvent {
+    fn emit(&self, id: &str, kind: Kind) -> pb::JobEvent {
+        let event = pb::JobEvent {
             job_id: id.to_string(),
             machine: self.machine.to_string(),
             unix_ms: unix_ms(),
             kind: Some(kind),
-        });
+        };
+        // No subscriber is not an error: nobody is watching this machine's jobs right now.
+        let _ = self.events.send(event.clone());
+        event
+    }
+
+    /// Ends a job: its last event out, the record ended in the journal with it.
+    fn end(&mut self, mut record: JobRecord, end: End, acked: u64, sent: u64, next: Option<Block>) {
+        let next_block = next.as_ref().map(Block::to_pb);
+        let kind = match end {
+            End::Completed {
+                bytes,
+                duration_ms,
+                confirmation,
+            } => Kind::Completed(pb::job_event::Completed {
+                bytes_sent: bytes,
+                duration_ms,
+                confirmation: confirmation_pb(confirmation) as i32,
+            }),
+            End::Failed {
+                reason,
+                alarm,
+                code,
+            } => Kind::Failed(pb::job_event::Failed {
+                reason,
+                byte_offset: acked,
+                alarm_number: alarm.map(|a| a.number().to_string()).unwrap_or_default(),
+                code: code as i32,
+                bytes_on_line: sent,
+                next_block,
+            }),
+            End::Cancelled { by } => Kind::Cancelled(pb::job_event::Cancelled {
+                byte_offset: acked,
+                by: by.to_string(),
+                bytes_on_line: sent,
+                next_block,
+            }),
+        };
+        let event = self.emit(&record.id, kind);
+        record.state = JobState::Ended;
+        record.acked = acked;
+        record.last_event = event.encode_to_vec();
+        self.journal_put(&record);
+        if matches!(event.kind, Some(Kind::Completed(_))) {
+            // A completed job is never resumed: its program copy can go now.
+            let _ = std::fs::remove_file(self.journal.file_path(&record.file));
+        }
+        self.ended.push_back(record);
+        self.trim();
     }
 
     fn publish_snapshot(&mut self) {
         let snapshot = JobsSnapshot {
-            active: self.active.as_ref().map(|a| a.id.clone()),
+            active: self.active.as_ref().map(|a| a.record.id.clone()),
             waiting: self.waiting.len(),
             ..self.totals.clone()
         };
@@ -468,37 +925,8 @@ impl Manager {
 
     async fn on_request(&mut self, request: Request) {
         match request {
-            Request::Submit { mut job, reply } => {
-                if self.link_stopped {
-                    let _ = reply.send(Err(JobError::LinkStopped {
-                        machine: self.machine.to_string(),
-                    }));
-                    return;
-                }
-                if self.waiting.len() >= MAX_WAITING {
-                    let _ = reply.send(Err(JobError::QueueFull {
-                        machine: self.machine.to_string(),
-                        max: MAX_WAITING,
-                    }));
-                    return;
-                }
-                job.link_id = self.next;
-                job.id = format!("{}-{}-{}", self.machine, self.run_stamp, self.next);
-                self.next += 1;
-                let id = job.id.clone();
-                tracing::info!(job = %id, name = %job.name, size = job.size, priority = job.priority, "job queued");
-                let position =
-                    u32::try_from(self.waiting.push(job.priority, job)).unwrap_or(u32::MAX);
-                self.emit(
-                    &id,
-                    Kind::Queued(pb::job_event::Queued {
-                        queue_position: position,
-                    }),
-                );
-                let _ = reply.send(Ok(pb::JobAccepted {
-                    job_id: id,
-                    queue_position: position,
-                }));
+            Request::Submit { record, reply } => {
+                let _ = reply.send(self.accept(*record));
             }
             Request::Cancel { id, reply } => {
                 let outcome = self.cancel(&id).await;
@@ -507,22 +935,98 @@ impl Manager {
             Request::List { reply } => {
                 let _ = reply.send(self.list());
             }
+            Request::Find { id, reply } => {
+                let found = self
+                    .ended
+                    .iter()
+                    .chain(self.waiting.iter())
+                    .chain(self.active.as_ref().map(|a| &a.record))
+                    .find(|r| r.id == id)
+                    .cloned();
+                let _ = reply.send(found);
+            }
         }
+    }
+
+    /// Queues a staged job, journalled first; or, for a request id seen before, answers the
+    /// first job's acceptance and queues nothing.
+    fn accept(&mut self, mut record: JobRecord) -> Result<pb::JobAccepted, JobError> {
+        if let Some(id) = self.request_ids.get(&record.request_id) {
+            tracing::info!(job = %id, request_id = %record.request_id, "request id seen before: nothing queued");
+            let position = self.position_of(id).unwrap_or(0);
+            // Only the first request's program is kept.
+            let _ = std::fs::remove_file(self.journal.file_path(&record.file));
+            return Ok(pb::JobAccepted {
+                job_id: id.clone(),
+                queue_position: position,
+            });
+        }
+        if self.link_stopped {
+            return Err(JobError::LinkStopped {
+                machine: self.machine.to_string(),
+            });
+        }
+        if self.waiting.len() >= MAX_WAITING {
+            return Err(JobError::QueueFull {
+                machine: self.machine.to_string(),
+                max: MAX_WAITING,
+            });
+        }
+        record.id = format!("{}-{}-{}", self.machine, self.run_stamp, self.next);
+        self.next += 1;
+        let position = u32::try_from(self.waiting.len() + usize::from(self.active.is_some()))
+            .unwrap_or(u32::MAX);
+        let queued = pb::JobEvent {
+            job_id: record.id.clone(),
+            machine: self.machine.to_string(),
+            unix_ms: unix_ms(),
+            kind: Some(Kind::Queued(pb::job_event::Queued {
+                queue_position: position,
+            })),
+        };
+        record.last_event = queued.encode_to_vec();
+        // Journalled before it is answered: an accepted job survives a crash.
+        self.journal
+            .put_job(&record)
+            .map_err(|error| JobError::Journal {
+                machine: self.machine.to_string(),
+                error,
+            })?;
+        let id = record.id.clone();
+        self.remember_request(&record);
+        tracing::info!(job = %id, name = %record.name, size = record.stream_size(), priority = record.priority, "job queued");
+        let position =
+            u32::try_from(self.waiting.push(record.priority, record)).unwrap_or(u32::MAX);
+        let _ = self.events.send(pb::JobEvent {
+            kind: Some(Kind::Queued(pb::job_event::Queued {
+                queue_position: position,
+            })),
+            ..queued
+        });
+        Ok(pb::JobAccepted {
+            job_id: id,
+            queue_position: position,
+        })
+    }
+
+    /// Where job `id` stands: 0 for the active one, else its place among the waiting.
+    fn position_of(&self, id: &str) -> Option<u32> {
+        if self.active.as_ref().is_some_and(|a| a.record.id == id) {
+            return Some(0);
+        }
+        self.waiting
+            .iter()
+            .position(|r| r.id == id)
+            .map(|i| u32::try_from(i + usize::from(self.active.is_some())).unwrap_or(u32::MAX))
     }
 
     async fn cancel(&mut self, id: &str) -> Result<CancelOutcome, JobError> {
         if let Some(job) = self.waiting.remove_first(|j| j.id == id) {
             tracing::info!(job = %id, "waiting job cancelled");
-            self.emit(
-                &job.id,
-                Kind::Cancelled(pb::job_event::Cancelled {
-                    byte_offset: 0,
-                    by: "request".to_string(),
-                }),
-            );
+            self.end(job, End::Cancelled { by: "request" }, 0, 0, None);
             return Ok(CancelOutcome::Dropped);
         }
-        let Some(active) = self.active.as_mut().filter(|a| a.id == id) else {
+        let Some(active) = self.active.as_mut().filter(|a| a.record.id == id) else {
             return Err(JobError::UnknownJob {
                 machine: self.machine.to_string(),
                 job: id.to_string(),
@@ -533,106 +1037,117 @@ impl Manager {
             let link_id = active.link_id;
             tracing::info!(job = %id, "cancelling the active job");
             if self.link.send(LinkCommand::Cancel(link_id)).await.is_err() {
-                self.link_gone("the link is not running");
+                self.link_gone("the link is not running").await;
             }
         }
         Ok(CancelOutcome::Cancelling)
     }
 
     fn list(&self) -> pb::JobQueue {
-        let active = self.active.as_ref().map(|a| pb::QueuedJob {
-            job_id: a.id.clone(),
-            name: a.name.clone(),
-            priority: a.priority,
-            bytes_total: a.size,
-            bytes_sent: a.sent,
-            accepted_unix_ms: a.accepted_unix_ms,
-        });
-        let waiting = self
-            .waiting
-            .iter()
-            .map(|w| pb::QueuedJob {
-                job_id: w.id.clone(),
-                name: w.name.clone(),
-                priority: w.priority,
-                bytes_total: w.size,
-                bytes_sent: 0,
-                accepted_unix_ms: w.accepted_unix_ms,
-            })
-            .collect();
+        let queued = |r: &JobRecord, sent: u64| pb::QueuedJob {
+            job_id: r.id.clone(),
+            name: r.name.clone(),
+            priority: r.priority,
+            bytes_total: r.stream_size(),
+            bytes_sent: sent,
+            accepted_unix_ms: r.accepted_unix_ms,
+        };
         pb::JobQueue {
             machine: self.machine.to_string(),
-            active,
-            waiting,
+            active: self.active.as_ref().map(|a| queued(&a.record, a.acked)),
+            waiting: self.waiting.iter().map(|r| queued(r, 0)).collect(),
         }
     }
 
-    /// Gives the link the next job when it has none.
+    /// Gives the link the next job when it has none. Its program is opened now.
     async fn hand_next(&mut self) {
-        if self.active.is_some() || self.link_stopped {
-            return;
-        }
-        let Some(job) = self.waiting.pop() else {
-            return;
-        };
-        let now = Instant::now();
-        let active = Active {
-            id: job.id,
-            link_id: job.link_id,
-            name: job.name.clone(),
-            priority: job.priority,
-            size: job.size,
-            accepted_unix_ms: job.accepted_unix_ms,
-            handed_at: now,
-            started_at: None,
-            sent: 0,
-            shaper: ProgressShaper::new(now, Some(job.size)),
-            cancel_requested: false,
-            alarm: None,
-            cnc_reset: false,
-        };
-        let command = LinkCommand::Queue(ProgramJob {
-            id: job.link_id,
-            name: job.name,
-            size: Some(job.size),
-            source: job.source,
-        });
-        self.active = Some(active);
-        if self.link.send(command).await.is_err() {
-            self.link_gone("the link is not running");
+        while self.active.is_none() && !self.link_stopped {
+            let Some(mut record) = self.waiting.pop() else {
+                return;
+            };
+            let source = source::open_stream(
+                &self.journal.file_path(&record.file),
+                &record.suffix,
+                record.start,
+            )
+            .await;
+            let source = match source {
+                Ok(s) => s,
+                Err(e) => {
+                    tracing::error!(job = %record.id, error = %e, "the job's program cannot be read");
+                    self.totals.jobs_failed += 1;
+                    let end = End::Failed {
+                        reason: format!("the job's program in the journal cannot be read: {e}"),
+                        alarm: None,
+                        code: pb::ErrorCode::Internal,
+                    };
+                    self.end(record, end, 0, 0, None);
+                    continue;
+                }
+            };
+            let now = Instant::now();
+            let size = record.stream_size();
+            record.state = JobState::Active;
+            record.acked = 0;
+            self.journal_put(&record);
+            let link_id = self.next_link;
+            self.next_link += 1;
+            let command = LinkCommand::Queue(ProgramJob {
+                id: link_id,
+                name: record.name.clone(),
+                size: Some(size),
+                source,
+            });
+            self.active = Some(Active {
+                record,
+                link_id,
+                handed_at: now,
+                started_at: None,
+                acked: 0,
+                sent: 0,
+                shaper: ProgressShaper::new(now, Some(size)),
+                cancel_requested: false,
+                alarm: None,
+                cnc_reset: false,
+            });
+            if self.link.send(command).await.is_err() {
+                self.link_gone("the link is not running").await;
+            }
         }
     }
 
     /// The link stopped for good: the active job fails, the waiting ones cannot run.
-    fn link_gone(&mut self, why: &str) {
+    async fn link_gone(&mut self, why: &str) {
         self.link_stopped = true;
         tracing::warn!(reason = why, "link stopped; failing its jobs");
-        let ended = self.active.take().map(|a| (a.id, a.sent));
-        for (id, offset) in ended
-            .into_iter()
-            .chain(self.waiting.drain().into_iter().map(|w| (w.id, 0)))
-        {
+        let failed = |why: &str| End::Failed {
+            reason: format!("{why}; the job cannot continue"),
+            alarm: None,
+            code: pb::ErrorCode::Unavailable,
+        };
+        if let Some(active) = self.active.take() {
+            let next = self.next_block(&active.record, active.acked).await;
             self.totals.jobs_failed += 1;
-            self.emit(
-                &id,
-                Kind::Failed(pb::job_event::Failed {
-                    reason: format!("{why}; the job cannot continue"),
-                    byte_offset: offset,
-                    alarm_number: String::new(),
-                    code: pb::ErrorCode::Unavailable as i32,
-                }),
-            );
+            self.end(active.record, failed(why), active.acked, active.sent, next);
+        }
+        for record in self.waiting.drain() {
+            self.totals.jobs_failed += 1;
+            self.end(record, failed(why), 0, 0, None);
         }
     }
 
-    fn on_link_event(&mut self, event: LinkEvent) {
+    fn active_for(&mut self, link_id: JobId) -> Option<&mut Active> {
+        self.active.as_mut().filter(|a| a.link_id == link_id)
+    }
+
+    async fn on_link_event(&mut self, event: LinkEvent) {
         match event {
             LinkEvent::Stopped { error } => {
                 let why = match error {
                     Some(e) => format!("the link stopped: {e}"),
                     None => "the link stopped".to_string(),
                 };
-                self.link_gone(&why);
+                self.link_gone(&why).await;
             }
             LinkEvent::Alarm(alarm) => {
                 if let Some(active) = self.active.as_mut() {
@@ -650,37 +1165,63 @@ impl Manager {
                 };
                 let now = Instant::now();
                 active.started_at = Some(now);
-                active.shaper = ProgressShaper::new(now, Some(active.size));
-                let (id, size) = (active.id.clone(), active.size);
+                active.shaper = ProgressShaper::new(now, Some(active.record.stream_size()));
+                let (id, size) = (active.record.id.clone(), active.record.stream_size());
                 tracing::info!(job = %id, "job started");
-                self.emit(
+                let event = self.emit(
                     &id,
                     Kind::Started(pb::job_event::Started {
                         bytes_total: Some(size),
                     }),
                 );
+                if let Some(active) = self.active.as_mut() {
+                    active.record.last_event = event.encode_to_vec();
+                }
             }
-            LinkEvent::Progress { job, sent, .. } => {
+            LinkEvent::Progress {
+                job, acked, sent, ..
+            } => {
                 let Some(active) = self.active_for(job) else {
                     return;
                 };
                 let published = published_bytes(active);
+                active.acked = acked.max(active.acked);
                 active.sent = sent.max(active.sent);
-                let Some(rate) = active.shaper.offer(Instant::now(), active.sent) else {
+                let Some(rate) = active
+                    .shaper
+                    .offer(Instant::now(), active.acked, active.sent)
+                else {
                     return;
                 };
-                let (id, sent, size) = (active.id.clone(), active.sent, active.size);
-                self.totals.nc_bytes_sent += sent.saturating_sub(published);
-                self.emit(
+                let (id, acked, sent, size) = (
+                    active.record.id.clone(),
+                    active.acked,
+                    active.sent,
+                    active.record.stream_size(),
+                );
+                self.totals.nc_bytes_sent += acked.saturating_sub(published);
+                let event = self.emit(
                     &id,
                     Kind::Progress(pb::job_event::Progress {
-                        bytes_sent: sent,
+                        bytes_sent: acked,
                         bytes_total: Some(size),
                         rate_bps: rate,
+                        bytes_on_line: sent,
                     }),
                 );
+                if let Some(active) = self.active.as_mut() {
+                    // The acknowledged offset survives a crash from here on.
+                    active.record.acked = acked;
+                    active.record.last_event = event.encode_to_vec();
+                    let record = active.record.clone();
+                    self.journal_put(&record);
+                }
             }
-            LinkEvent::JobDone { job, bytes } => {
+            LinkEvent::JobDone {
+                job,
+                bytes,
+                confirmation,
+            } => {
                 if self.active_for(job).is_none() {
                     return;
                 }
@@ -691,18 +1232,18 @@ impl Manager {
                 let duration = Instant::now().saturating_duration_since(since);
                 self.totals.jobs_completed += 1;
                 self.totals.nc_bytes_sent += bytes.saturating_sub(published_bytes(&active));
-                tracing::info!(job = %active.id, bytes, "job completed");
-                self.emit(
-                    &active.id,
-                    Kind::Completed(pb::job_event::Completed {
-                        bytes_sent: bytes,
-                        duration_ms: u64::try_from(duration.as_millis()).unwrap_or(u64::MAX),
-                    }),
-                );
+                tracing::info!(job = %active.record.id, bytes, ?confirmation, "job completed");
+                let end = End::Completed {
+                    bytes,
+                    duration_ms: u64::try_from(duration.as_millis()).unwrap_or(u64::MAX),
+                    confirmation,
+                };
+                self.end(active.record, end, bytes, bytes, None);
             }
             LinkEvent::JobFailed {
                 job,
                 offset,
+                sent,
                 reason,
             } => {
                 if self.active_for(job).is_none() {
@@ -712,6 +1253,7 @@ impl Manager {
                     return;
                 };
                 self.totals.nc_bytes_sent += offset.saturating_sub(published_bytes(&active));
+                let next = self.next_block(&active.record, offset).await;
                 let reset = matches!(&reason, JobFailure::Aborted(r) if r.is_reset());
                 if active.cnc_reset || reset || active.cancel_requested {
                     // A CNC reset abandons the program: the proto counts that as a
@@ -721,29 +1263,19 @@ impl Manager {
                     } else {
                         "cnc reset"
                     };
-                    self.emit(
-                        &active.id,
-                        Kind::Cancelled(pb::job_event::Cancelled {
-                            byte_offset: offset,
-                            by: by.to_string(),
-                        }),
-                    );
+                    self.end(active.record, End::Cancelled { by }, offset, sent, next);
                     return;
                 }
                 self.totals.jobs_failed += 1;
-                tracing::warn!(job = %active.id, offset, %reason, "job failed");
-                let alarm = active.alarm.or(reason.cnc_alarm());
-                self.emit(
-                    &active.id,
-                    Kind::Failed(pb::job_event::Failed {
-                        reason: reason.to_string(),
-                        byte_offset: offset,
-                        alarm_number: alarm.map(|a| a.number().to_string()).unwrap_or_default(),
-                        code: reason.code() as i32,
-                    }),
-                );
+                tracing::warn!(job = %active.record.id, offset, %reason, "job failed");
+                let end = End::Failed {
+                    reason: reason.to_string(),
+                    alarm: active.alarm.or(reason.cnc_alarm()),
+                    code: reason.code(),
+                };
+                self.end(active.record, end, offset, sent, next);
             }
-            LinkEvent::JobCancelled { job, offset } => {
+            LinkEvent::JobCancelled { job, offset, sent } => {
                 if self.active_for(job).is_none() {
                     // A waiting job is never on the link, so this is one the link dropped
                     // by itself; nothing of ours.
@@ -760,27 +1292,26 @@ impl Manager {
                 } else {
                     "link"
                 };
-                tracing::info!(job = %active.id, offset, by, "job cancelled");
-                self.emit(
-                    &active.id,
-                    Kind::Cancelled(pb::job_event::Cancelled {
-                        byte_offset: offset,
-                        by: by.to_string(),
-                    }),
-                );
+                tracing::info!(job = %active.record.id, offset, by, "job cancelled");
+                let next = self.next_block(&active.record, offset).await;
+                self.end(active.record, End::Cancelled { by }, offset, sent, next);
             }
             _ => {}
         }
-    }
-
-    fn active_for(&mut self, link_id: JobId) -> Option<&mut Active> {
-        self.active.as_mut().filter(|a| a.link_id == link_id)
     }
 }
 
 /// Bytes of `active` already counted in the totals (through published progress).
 fn published_bytes(active: &Active) -> u64 {
-    active.shaper.last_sent
+    active.shaper.last_acked
+}
+
+fn confirmation_pb(c: Confirmation) -> pb::Confirmation {
+    match c {
+        Confirmation::Acknowledged => pb::Confirmation::Acknowledged,
+        Confirmation::EndOfRead => pb::Confirmation::EndOfRead,
+        Confirmation::Unverified => pb::Confirmation::Unverified,
+    }
 }
 
 #[cfg(test)]

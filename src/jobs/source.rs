@@ -21,11 +21,12 @@
 //!   is refused, or completed with `%` when the request asks for it.
 
 use std::io::Cursor;
+use std::path::Path;
 
 use bytes::Bytes;
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 
-use super::library::{LibraryError, ProgramLibrary};
+use super::journal::StartPoint;
 use crate::fanuc::code::{CR, DC1, DC2, DC3, DC4, EOR, ETX, LF, NAK, SYN, is_significant};
 use crate::fanuc::{EndCode, Protocol};
 use crate::link::driver::ProgramSource;
@@ -291,121 +292,78 @@ pub enum ProgramInput {
     Library(String),
     /// The payload fetched from a bus key.
     Fetched { key: String, bytes: Bytes },
+    /// The program of an earlier job, by its id, from where that job stopped.
+    Resume(String),
 }
 
-/// A program that passed every check, ready to be streamed to a link.
-pub struct PreparedProgram {
-    /// Display name: the requested name, else the library name or key, else the O-number.
-    pub name: String,
-    /// Bytes that will be sent, appended EOR included.
-    pub size: u64,
-    pub report: ScanReport,
-    source: ProgramSource,
-}
-
-impl std::fmt::Debug for PreparedProgram {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("PreparedProgram")
-            .field("name", &self.name)
-            .field("size", &self.size)
-            .field("report", &self.report)
-            .finish_non_exhaustive()
+impl Default for ProgramInput {
+    fn default() -> Self {
+        ProgramInput::Inline(Bytes::new())
     }
 }
 
-impl PreparedProgram {
-    /// The program's bytes, for [`ProgramJob::source`](crate::link::driver::ProgramJob).
-    pub fn into_source(self) -> ProgramSource {
-        self.source
-    }
-}
-
-/// Why a program could not be prepared.
+/// Why a program file could not be checked.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
-pub enum PrepareError {
+pub enum ScanFileError {
     #[error(transparent)]
     Program(#[from] ProgramError),
     #[error(transparent)]
-    Library(#[from] LibraryError),
+    Io(#[from] std::io::Error),
 }
 
-/// Checks `input` against `rules` and readies it for sending. `requested_name` empty: the
-/// name is derived from the source.
-pub async fn prepare(
-    input: ProgramInput,
-    requested_name: &str,
-    append_eor: bool,
-    rules: ProgramRules,
-    library: &ProgramLibrary,
-) -> Result<PreparedProgram, PrepareError> {
-    let (default_name, report, source): (Option<String>, ScanReport, ProgramSource) = match input {
-        ProgramInput::Inline(bytes) => {
-            let report = scan(rules, &bytes)?;
-            (None, report, Box::new(Cursor::new(bytes)))
+/// Checks the program file at `path` against `rules`, streaming through it once.
+pub async fn scan_file(rules: ProgramRules, path: &Path) -> Result<ScanReport, ScanFileError> {
+    let mut file = tokio::fs::File::open(path).await?;
+    let mut scanner = Scanner::new(rules);
+    let mut buf = vec![0u8; 64 * 1024];
+    loop {
+        let n = file.read(&mut buf).await?;
+        if n == 0 {
+            break;
         }
-        ProgramInput::Fetched { key, bytes } => {
-            let report = scan(rules, &bytes)?;
-            (Some(key), report, Box::new(Cursor::new(bytes)))
-        }
-        ProgramInput::Library(name) => {
-            let (mut file, len) = library.open(&name).await?;
-            if len > rules.max_size {
-                return Err(ProgramError::TooLarge {
-                    size: len,
-                    max: rules.max_size,
-                }
-                .into());
-            }
-            let mut scanner = Scanner::new(rules);
-            let mut buf = vec![0u8; 64 * 1024];
-            loop {
-                let n = file
-                    .read(&mut buf)
-                    .await
-                    .map_err(|e| library.io_error(&name, "read", e))?;
-                if n == 0 {
-                    break;
-                }
-                scanner.feed(buf.get(..n).unwrap_or_default())?;
-            }
-            let report = scanner.finish()?;
-            file.rewind()
-                .await
-                .map_err(|e| library.io_error(&name, "rewind", e))?;
-            (Some(name), report, Box::new(file))
-        }
-    };
-    let suffix = eor_suffix(&report);
-    if !suffix.is_empty() && !append_eor {
-        return Err(ProgramError::MissingEor.into());
+        scanner.feed(buf.get(..n).unwrap_or_default())?;
     }
-    let size = report.size + suffix.len() as u64;
-    if size > rules.max_size {
-        return Err(ProgramError::TooLarge {
-            size,
-            max: rules.max_size,
+    Ok(scanner.finish()?)
+}
+
+/// A program as the journal keeps it: its file, then `suffix` (an appended EOR).
+pub async fn open_program(path: &Path, suffix: &[u8]) -> std::io::Result<ProgramSource> {
+    let file = tokio::fs::File::open(path).await?;
+    Ok(Box::new(file.chain(Cursor::new(suffix.to_vec()))))
+}
+
+/// What a job sends of its program: all of it, or its header and the rest from its start
+/// block (`start`), streamed in pieces from the file. The file is opened here, when the job
+/// starts, not while it waits.
+pub async fn open_stream(
+    path: &Path,
+    suffix: &[u8],
+    start: Option<StartPoint>,
+) -> std::io::Result<ProgramSource> {
+    let file_len = tokio::fs::metadata(path).await?.len();
+    let size = file_len + suffix.len() as u64;
+    let ranges = match start {
+        None => vec![(0, size)],
+        Some(s) => vec![(0, s.header_end.min(size)), (s.body_start.min(size), size)],
+    };
+    let mut stream: ProgramSource = Box::new(tokio::io::empty());
+    for (from, to) in ranges {
+        let (f_from, f_to) = (from.min(file_len), to.min(file_len));
+        if f_to > f_from {
+            let mut file = tokio::fs::File::open(path).await?;
+            file.seek(std::io::SeekFrom::Start(f_from)).await?;
+            stream = Box::new(stream.chain(file.take(f_to - f_from)));
         }
-        .into());
+        let (s_from, s_to) = (from.max(file_len) - file_len, to.max(file_len) - file_len);
+        let tail = suffix
+            .get(usize::try_from(s_from).unwrap_or(usize::MAX)..usize::try_from(s_to).unwrap_or(0))
+            .unwrap_or_default();
+        if !tail.is_empty() {
+            stream = Box::new(stream.chain(Cursor::new(tail.to_vec())));
+        }
     }
-    let source: ProgramSource = if suffix.is_empty() {
-        source
-    } else {
-        Box::new(source.chain(Cursor::new(suffix)))
-    };
-    let name = if requested_name.is_empty() {
-        default_name
-            .or_else(|| report.o_number.clone())
-            .unwrap_or_else(|| "program".to_string())
-    } else {
-        requested_name.to_string()
-    };
-    Ok(PreparedProgram {
-        name,
-        size,
-        report,
-        source,
-    })
+    Ok(stream)
 }
 
 #[cfg(test)]
@@ -535,62 +493,63 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn inline_programs_get_their_eor_only_when_asked() {
+    async fn program_files_are_scanned_and_streamed_whole_or_from_a_block() {
         let dir = tempfile::tempdir().unwrap();
-        let lib = ProgramLibrary::new(dir.path(), 1 << 20);
-        let input = || ProgramInput::Inline(Bytes::from_static(b"O7\nG00X0"));
-        let e = prepare(input(), "", false, rules(Protocol::A), &lib)
-            .await
-            .unwrap_err();
-        assert!(matches!(e, PrepareError::Program(ProgramError::MissingEor)));
-        let p = prepare(input(), "", true, rules(Protocol::A), &lib)
-            .await
-            .unwrap();
-        assert_eq!(p.name, "O7");
-        assert_eq!(p.size, 10);
-        let mut out = Vec::new();
-        p.into_source().read_to_end(&mut out).await.unwrap();
-        assert_eq!(out, b"O7\nG00X0\n%");
-    }
-
-    #[tokio::test]
-    async fn library_programs_are_scanned_then_streamed_from_the_start() {
-        let dir = tempfile::tempdir().unwrap();
-        let lib = ProgramLibrary::new(dir.path(), 1 << 20);
+        let path = dir.path().join("p");
         let program: Vec<u8> = b"%\nO1\n"
             .iter()
             .copied()
             .chain(std::iter::repeat_n(b"G01X1\n".iter().copied(), 30_000).flatten())
-            .chain(b"%".iter().copied())
             .collect();
-        lib.store("big", &program).await.unwrap();
-        let p = prepare(
-            ProgramInput::Library("big".into()),
-            "",
-            false,
-            rules(Protocol::A),
-            &lib,
-        )
-        .await
-        .unwrap();
-        assert_eq!(p.name, "big");
-        assert_eq!(p.size, program.len() as u64);
-        let mut out = Vec::new();
-        p.into_source().read_to_end(&mut out).await.unwrap();
-        assert_eq!(out, program);
+        std::fs::write(&path, &program).unwrap();
+        let report = scan_file(rules(Protocol::A), &path).await.unwrap();
+        assert_eq!(report.size, program.len() as u64);
+        assert!(!report.has_eor);
+        assert_eq!(report.o_number.as_deref(), Some("O1"));
 
-        let missing = prepare(
-            ProgramInput::Library("nope".into()),
-            "",
-            false,
-            rules(Protocol::A),
-            &lib,
-        )
-        .await
-        .unwrap_err();
+        let read = |start| {
+            let path = path.clone();
+            async move {
+                let mut out = Vec::new();
+                open_stream(&path, b"%", start)
+                    .await
+                    .unwrap()
+                    .read_to_end(&mut out)
+                    .await
+                    .unwrap();
+                out
+            }
+        };
+        let mut whole = program.clone();
+        whole.push(b'%');
+        assert_eq!(read(None).await, whole);
+        // The header (first two lines), then from the last block on: the suffix follows.
+        let body_start = program.len() as u64 - 6;
+        let out = read(Some(StartPoint {
+            header_end: 5,
+            body_start,
+        }))
+        .await;
+        assert_eq!(out, b"%\nO1\nG01X1\n%");
+        // A start inside the appended suffix itself.
+        let out = read(Some(StartPoint {
+            header_end: 2,
+            body_start: program.len() as u64,
+        }))
+        .await;
+        assert_eq!(out, b"%\n%");
+
+        std::fs::write(&path, b"%\nO1\n\x0d\n%").unwrap();
         assert!(matches!(
-            missing,
-            PrepareError::Library(LibraryError::NotFound { .. })
+            scan_file(rules(Protocol::A), &path).await,
+            Err(ScanFileError::Program(ProgramError::EndCodeInData {
+                offset: 5,
+                ..
+            }))
+        ));
+        assert!(matches!(
+            scan_file(rules(Protocol::A), &dir.path().join("nope")).await,
+            Err(ScanFileError::Io(_))
         ));
     }
 }

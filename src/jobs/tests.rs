@@ -11,6 +11,7 @@ use super::*;
 use crate::config::CellConfig;
 use crate::fanuc::Protocol;
 use crate::fanuc::error::{AbortReason, LinkAlarm};
+use crate::jobs::journal::Journal;
 
 /// What the stand-in link was told, in order.
 type Log = Arc<Mutex<Vec<String>>>;
@@ -72,7 +73,7 @@ impl StandIn {
                 }
                 cmd = self.commands.recv() => match cmd {
                     Some(LinkCommand::Cancel(id)) if id == job.id => {
-                        self.emit(LinkEvent::JobCancelled { job: id, offset: 0 });
+                        self.emit(LinkEvent::JobCancelled { job: id, offset: 0, sent: 0 });
                         return;
                     }
                     Some(other) => self.other(other),
@@ -93,6 +94,7 @@ impl StandIn {
             data.extend_from_slice(&buf[..n]);
             self.emit(LinkEvent::Progress {
                 job: job.id,
+                acked: sent,
                 sent,
                 total: job.size,
             });
@@ -101,7 +103,7 @@ impl StandIn {
                 cmd = self.commands.recv() => match cmd {
                     Some(LinkCommand::Cancel(id)) if id == job.id => {
                         self.log.lock().unwrap().push(format!("cancel {id} at {sent}"));
-                        self.emit(LinkEvent::JobCancelled { job: id, offset: sent });
+                        self.emit(LinkEvent::JobCancelled { job: id, offset: sent, sent });
                         return;
                     }
                     Some(other) => self.other(other),
@@ -117,6 +119,7 @@ impl StandIn {
         self.emit(LinkEvent::JobDone {
             job: job.id,
             bytes: sent,
+            confirmation: Confirmation::Acknowledged,
         });
     }
 }
@@ -128,11 +131,26 @@ struct Rig {
     log: Log,
     release: Arc<Semaphore>,
     library: ProgramLibrary,
-    _dir: tempfile::TempDir,
+    dir: Arc<tempfile::TempDir>,
     shutdown: CancellationToken,
+    task: tokio::task::JoinHandle<()>,
+    protocol: Protocol,
+    chunk: usize,
+    pace: Duration,
 }
 
 fn rig(protocol: Protocol, chunk: usize, pace: Duration) -> Rig {
+    rig_in(
+        Arc::new(tempfile::tempdir().unwrap()),
+        protocol,
+        chunk,
+        pace,
+    )
+}
+
+/// A job manager on a stand-in link, its library in `dir` and its journal in
+/// `dir/.journal`, restoring whatever that journal holds.
+fn rig_in(dir: Arc<tempfile::TempDir>, protocol: Protocol, chunk: usize, pace: Duration) -> Rig {
     let mut machine = CellConfig::embedded_default().machines[0].clone();
     machine.name = "m1".to_string();
     machine.protocol = protocol;
@@ -154,18 +172,18 @@ fn rig(protocol: Protocol, chunk: usize, pace: Duration) -> Rig {
         .run(),
     );
     let link = LinkHandle::from_channels("m1", cmd_tx, ev_tx.clone());
-    let dir = tempfile::tempdir().unwrap();
     let library = ProgramLibrary::new(dir.path(), 1 << 20);
+    let journal = Journal::open(&dir.path().join(".journal")).unwrap();
+    let mut restored = journal.restore().unwrap();
     let shutdown = CancellationToken::new();
-    let rules = machine.program_rules(library.max_size());
-    let (jobs, _task) = spawn(
-        &machine.name,
-        rules,
-        library.clone(),
-        link,
-        shutdown.clone(),
-    );
-    let events = jobs.subscribe();
+    let settings = JobsSettings {
+        rules: machine.program_rules(library.max_size()),
+        library: library.clone(),
+        journal,
+        restored: restored.jobs.remove("m1").unwrap_or_default(),
+        keep: KEEP_ENDED,
+    };
+    let (jobs, task, events) = spawn(&machine.name, settings, link, shutdown.clone());
     Rig {
         jobs,
         events,
@@ -173,17 +191,43 @@ fn rig(protocol: Protocol, chunk: usize, pace: Duration) -> Rig {
         log,
         release,
         library,
-        _dir: dir,
+        dir,
         shutdown,
+        task,
+        protocol,
+        chunk,
+        pace,
+    }
+}
+
+impl Rig {
+    /// Stops the manager as a gateway shutting down does, and starts a new one on the same
+    /// journal and library (a fresh stand-in link).
+    async fn restart(self) -> Rig {
+        let Rig {
+            jobs,
+            events,
+            shutdown,
+            task,
+            dir,
+            protocol,
+            chunk,
+            pace,
+            ..
+        } = self;
+        shutdown.cancel();
+        task.await.unwrap();
+        // The journal closes with its last handle.
+        drop((jobs, events));
+        rig_in(dir, protocol, chunk, pace)
     }
 }
 
 fn inline(program: &'static [u8], priority: i32) -> JobSubmission {
     JobSubmission {
         input: ProgramInput::Inline(Bytes::from_static(program)),
-        name: String::new(),
         priority,
-        append_eor: false,
+        ..JobSubmission::default()
     }
 }
 
@@ -287,7 +331,7 @@ async fn jobs_run_by_priority_then_arrival_one_at_a_time() {
         .collect();
     assert_eq!(
         queued,
-        ["queue 1 O1", "queue 3 O3", "queue 2 O2", "queue 4 O4"]
+        ["queue 1 O1", "queue 2 O3", "queue 3 O2", "queue 4 O4"]
     );
 }
 
@@ -385,14 +429,18 @@ fn the_shaper_keeps_both_rules() {
     let t0 = tokio::time::Instant::now();
     let ms = |n| t0 + Duration::from_millis(n);
     let mut s = ProgressShaper::new(t0, Some(1000));
-    assert_eq!(s.offer(ms(100), 500), None, "too soon");
-    assert_eq!(s.offer(ms(250), 505), Some(2020));
-    assert_eq!(s.offer(ms(600), 509), None, "same whole percent");
-    assert_eq!(s.offer(ms(600), 515), Some(28));
-    assert_eq!(s.offer(ms(700), 900), None, "too soon");
+    assert_eq!(s.offer(ms(100), 500, 500), None, "too soon");
+    assert_eq!(s.offer(ms(250), 505, 505), Some(2020));
+    assert_eq!(s.offer(ms(600), 509, 509), None, "same whole percent");
+    assert_eq!(s.offer(ms(600), 515, 515), Some(28));
+    assert_eq!(s.offer(ms(700), 900, 900), None, "too soon");
+    // Either figure crossing a whole percent counts: the sent one runs ahead of the
+    // acknowledged one in Protocol B.
+    assert_eq!(s.offer(ms(900), 515, 600), Some(283));
+    assert_eq!(s.offer(ms(1200), 700, 600), Some(0));
     let mut unknown = ProgressShaper::new(t0, None);
-    assert_eq!(unknown.offer(ms(300), 1), Some(3));
-    assert_eq!(unknown.offer(ms(600), 1), None, "no further byte");
+    assert_eq!(unknown.offer(ms(300), 1, 1), Some(3));
+    assert_eq!(unknown.offer(ms(600), 1, 1), None, "no further byte");
 }
 
 #[tokio::test(start_paused = true)]
@@ -424,9 +472,7 @@ async fn bad_programs_are_refused_and_nothing_reaches_the_link() {
     }
     let missing = JobSubmission {
         input: ProgramInput::Library("nope".to_string()),
-        name: String::new(),
-        priority: 0,
-        append_eor: false,
+        ..JobSubmission::default()
     };
     let e = r.jobs.submit(missing).await.unwrap_err();
     assert_eq!(e.code(), pb::ErrorCode::NotFound);
@@ -438,8 +484,7 @@ async fn bad_programs_are_refused_and_nothing_reaches_the_link() {
     let ok = JobSubmission {
         input: ProgramInput::Library("ok".to_string()),
         name: "from library".to_string(),
-        priority: 0,
-        append_eor: false,
+        ..JobSubmission::default()
     };
     r.jobs.submit(ok).await.unwrap();
     tokio::time::sleep(Duration::from_millis(10)).await;
@@ -474,6 +519,7 @@ async fn link_alarms_and_resets_end_the_active_job_with_their_reason() {
     let _ = r.link_events.send(LinkEvent::JobFailed {
         job: 1,
         offset: 4,
+        sent: 6,
         reason: failure.clone(),
     });
     let events = until_end(&mut r.events, &a.job_id).await;
@@ -483,6 +529,10 @@ async fn link_alarms_and_resets_end_the_active_job_with_their_reason() {
             assert_eq!(f.byte_offset, 4);
             assert_eq!(f.code(), pb::ErrorCode::LinkFailed);
             assert_eq!(f.reason, failure.to_string());
+            assert_eq!(f.bytes_on_line, 6);
+            // Four bytes of "%\nO1\nG01X1\n%" acknowledged: the first block not whole is line 2.
+            let next = f.next_block.as_ref().unwrap();
+            assert_eq!((next.line, next.byte_offset), (2, 2));
         }
         other => panic!("{other:?}"),
     }
@@ -499,6 +549,7 @@ async fn link_alarms_and_resets_end_the_active_job_with_their_reason() {
     let _ = r.link_events.send(LinkEvent::JobFailed {
         job: 2,
         offset: 2,
+        sent: 2,
         reason: JobFailure::Aborted(AbortReason::CncReset),
     });
     let events = until_end(&mut r.events, &b.job_id).await;
@@ -529,21 +580,261 @@ async fn a_stopped_link_fails_its_jobs_and_refuses_new_ones() {
 }
 
 #[tokio::test(start_paused = true)]
-async fn shutdown_reports_every_job_ended() {
+async fn a_restart_runs_the_waiting_jobs_with_their_ids_and_fails_the_active_one() {
     let mut r = rig(Protocol::A, 2, Duration::from_millis(100));
-    let a = r.jobs.submit(inline(b"%\nO1\n%", 0)).await.unwrap();
-    let b = r.jobs.submit(inline(b"%\nO2\n%", 0)).await.unwrap();
-    r.shutdown.cancel();
-    let mut ends = Vec::new();
-    while ends.len() < 2 {
+    let program = b"%\nO1\nN10 G01 X1\nN20 X2\nN30 X3\n%";
+    let a = r.jobs.submit(inline(program, 0)).await.unwrap();
+    let waiting: Vec<String> = {
+        let mut ids = Vec::new();
+        for (p, prio) in [(&b"%\nO2\n%"[..], 0), (b"%\nO3\n%", 5), (b"%\nO4\n%", 0)] {
+            ids.push(r.jobs.submit(inline(p, prio)).await.unwrap().job_id);
+        }
+        ids
+    };
+    r.release.add_permits(1);
+    // a sends and the board acknowledges some of it.
+    loop {
         let e = next(&mut r.events).await;
-        if matches!(kind_name(&e), "failed" | "cancelled") {
-            ends.push((e.job_id.clone(), kind_name(&e)));
+        if let Some(Kind::Progress(p)) = &e.kind
+            && e.job_id == a.job_id
+            && p.bytes_sent >= 8
+        {
+            break;
         }
     }
-    assert_eq!(ends, [(a.job_id, "failed"), (b.job_id, "cancelled")]);
+    let mut r = r.restart().await;
+    // The active job ends at once, failed at what the board acknowledged, with the block to
+    // resume at; it is never reported twice.
+    let failed = until_end(&mut r.events, &a.job_id).await;
+    let Some(Kind::Failed(f)) = &failed.last().unwrap().kind else {
+        panic!("{failed:?}");
+    };
+    assert!(f.reason.contains("gateway restarted"), "{}", f.reason);
+    assert!(f.byte_offset >= 8, "{}", f.byte_offset);
+    assert!(f.next_block.is_some());
+    // The waiting ones run, in their order (priority first), with their ids.
+    let q = r.jobs.queue().await.unwrap();
+    let ids: Vec<String> = q
+        .active
+        .iter()
+        .chain(q.waiting.iter())
+        .map(|j| j.job_id.clone())
+        .collect();
+    assert_eq!(
+        ids,
+        [waiting[1].clone(), waiting[0].clone(), waiting[2].clone()]
+    );
+    r.release.add_permits(3);
+    until_end(&mut r.events, &waiting[2]).await;
+    let done: Vec<String> = r
+        .log
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|l| l.starts_with("done"))
+        .cloned()
+        .collect();
+    assert_eq!(done.len(), 3, "{done:?}");
+    assert!(done[0].contains("O3") && done[1].contains("O2") && done[2].contains("O4"));
+    // A get by id after the restart still finds the job's last event.
+    assert!(
+        r.jobs
+            .restored_events()
+            .iter()
+            .any(|e| e.job_id == a.job_id)
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_job_that_asked_for_it_resumes_after_a_restart_from_its_next_block() {
+    let mut r = rig(Protocol::A, 4, Duration::from_millis(100));
+    let program: &'static [u8] = b"%\nO7 (PART)\nG90\nN10 X1\nN20 X2\nN30 X3\nN40 X4\n%";
+    let mut s = inline(program, 0);
+    s.resume_after_restart = true;
+    let a = r.jobs.submit(s).await.unwrap();
+    r.release.add_permits(1);
+    // Wait until the board acknowledged into block N20.
+    let n20 = program.windows(3).position(|w| w == b"N20").unwrap() as u64;
+    let acked_before = loop {
+        let e = next(&mut r.events).await;
+        if let Some(Kind::Progress(p)) = &e.kind
+            && p.bytes_sent > n20
+        {
+            break p.bytes_sent;
+        }
+    };
+    let mut r = r.restart().await;
+    let q = r.jobs.queue().await.unwrap();
+    assert_eq!(q.active.unwrap().job_id, a.job_id, "queued again, same id");
+    r.release.add_permits(1);
+    let events = until_end(&mut r.events, &a.job_id).await;
     assert!(matches!(
-        r.jobs.submit(inline(b"%\nO3\n%", 0)).await,
-        Err(JobError::Stopped { .. })
+        events.last().unwrap().kind,
+        Some(Kind::Completed(_))
     ));
+    let log = r.log.lock().unwrap().clone();
+    // The header, then from the block the acknowledgement stopped in: nothing skipped,
+    // and no whole block the board acknowledged sent again.
+    let sent = log.iter().find(|l| l.starts_with("done")).unwrap();
+    let header = "%\nO7 (PART)\nG90\n";
+    let acked = usize::try_from(acked_before).unwrap();
+    let line_start = program[..acked]
+        .iter()
+        .rposition(|&b| b == b'\n')
+        .map_or(0, |i| i + 1);
+    let rest = std::str::from_utf8(&program[line_start..]).unwrap();
+    assert_eq!(sent, &format!("done 1 {header}{rest}"));
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_request_id_seen_before_queues_nothing_even_after_a_restart() {
+    let r = rig(Protocol::A, 64, Duration::from_millis(1));
+    let mut s = inline(b"%\nO1\n%", 0);
+    s.request_id = "mes-4711".to_string();
+    let first = r.jobs.submit(s.clone()).await.unwrap();
+    let again = r.jobs.submit(s.clone()).await.unwrap();
+    assert_eq!(again, first);
+    assert_eq!(r.jobs.queue().await.unwrap().waiting.len(), 0);
+    assert_eq!(
+        r.jobs.snapshot().borrow().active,
+        Some(first.job_id.clone())
+    );
+    let r = r.restart().await;
+    let again = r.jobs.submit(s.clone()).await.unwrap();
+    assert_eq!(again.job_id, first.job_id);
+    // A new id is a new job.
+    s.request_id = "mes-4712".to_string();
+    let other = r.jobs.submit(s).await.unwrap();
+    assert_ne!(other.job_id, first.job_id);
+    let e = r
+        .jobs
+        .submit(JobSubmission {
+            request_id: "x".repeat(REQUEST_ID_MAX + 1),
+            ..inline(b"%\nO1\n%", 0)
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), pb::ErrorCode::InvalidRequest);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_job_starts_at_a_block_with_the_header_first_and_a_failed_one_resumes() {
+    let mut r = rig(Protocol::A, 3, Duration::from_millis(10));
+    let program: &'static [u8] = b"%\nO9\nG90 G54\nN10 X1\nN20 X2\nN30 X3\n%";
+    r.library.store("O9", program).await.unwrap();
+    let from_n20 = JobSubmission {
+        input: ProgramInput::Library("O9".to_string()),
+        start_at: Some((StartAt::Sequence(20), 0)),
+        ..JobSubmission::default()
+    };
+    let a = r.jobs.submit(from_n20).await.unwrap();
+    r.release.add_permits(1);
+    until_end(&mut r.events, &a.job_id).await;
+    assert_eq!(
+        r.log.lock().unwrap()[1],
+        "done 1 %\nO9\nG90 G54\nN20 X2\nN30 X3\n%"
+    );
+
+    // A job that fails within N20 resumes there.
+    let b = r
+        .jobs
+        .submit(JobSubmission {
+            input: ProgramInput::Library("O9".to_string()),
+            ..JobSubmission::default()
+        })
+        .await
+        .unwrap();
+    r.release.add_permits(1);
+    let n20 = program.windows(3).position(|w| w == b"N20").unwrap() as u64;
+    loop {
+        let e = next(&mut r.events).await;
+        if e.job_id == b.job_id && kind_name(&e) == "started" {
+            break;
+        }
+    }
+    let _ = r.link_events.send(LinkEvent::JobFailed {
+        job: 2,
+        offset: n20 + 2,
+        sent: n20 + 5,
+        reason: JobFailure::Aborted(AbortReason::CncAlarm),
+    });
+    let events = until_end(&mut r.events, &b.job_id).await;
+    let Some(Kind::Failed(f)) = &events.last().unwrap().kind else {
+        panic!("{events:?}");
+    };
+    let next_block = f.next_block.clone().unwrap();
+    assert_eq!(
+        (
+            next_block.line,
+            next_block.sequence_number.as_str(),
+            next_block.byte_offset
+        ),
+        (5, "N20", n20)
+    );
+    let c = r
+        .jobs
+        .submit(JobSubmission {
+            input: ProgramInput::Resume(b.job_id.clone()),
+            ..JobSubmission::default()
+        })
+        .await
+        .unwrap();
+    r.release.add_permits(2);
+    until_end(&mut r.events, &c.job_id).await;
+    let log = r.log.lock().unwrap().clone();
+    assert_eq!(
+        log.last().unwrap(),
+        "done 3 %\nO9\nG90 G54\nN20 X2\nN30 X3\n%"
+    );
+    // A completed job, or one unknown, cannot be resumed.
+    for job in [a.job_id.as_str(), "m1-nope-9"] {
+        let e = r
+            .jobs
+            .submit(JobSubmission {
+                input: ProgramInput::Resume(job.to_string()),
+                ..JobSubmission::default()
+            })
+            .await
+            .unwrap_err();
+        assert!(
+            matches!(
+                e,
+                JobError::NotResumable { .. } | JobError::UnknownJob { .. }
+            ),
+            "{e}"
+        );
+    }
+    let e = r
+        .jobs
+        .submit(JobSubmission {
+            start_at: Some((StartAt::Sequence(99), 0)),
+            ..inline(b"%\nO1\nN10 X1\n%", 0)
+        })
+        .await
+        .unwrap_err();
+    assert!(e.to_string().contains("no block N99"), "{e}");
+}
+
+#[tokio::test(start_paused = true)]
+async fn waiting_jobs_hold_no_file_open() {
+    let r = rig(Protocol::A, 64, Duration::from_millis(1));
+    r.library.store("O1", b"%\nO1\n%").await.unwrap();
+    let open_fds = || std::fs::read_dir("/proc/self/fd").map_or(0, |d| d.count());
+    let before = open_fds();
+    for _ in 0..200 {
+        r.jobs
+            .submit(JobSubmission {
+                input: ProgramInput::Library("O1".to_string()),
+                ..JobSubmission::default()
+            })
+            .await
+            .unwrap();
+    }
+    let after = open_fds();
+    // One job is on the stand-in link with its file open; 199 wait.
+    assert!(
+        after <= before + 8,
+        "{before} fds before, {after} after 200 jobs"
+    );
+    assert_eq!(r.jobs.queue().await.unwrap().waiting.len(), 199);
 }

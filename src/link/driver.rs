@@ -17,7 +17,7 @@ use super::JobId;
 use super::pump::{Pump, PumpError, now};
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
-use crate::fanuc::host::{EngineCommand, EngineEvent, HostEngine, LinkState};
+use crate::fanuc::host::{Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState};
 use crate::fanuc::sat::StatusData;
 use crate::transport::Transport;
 
@@ -119,23 +119,30 @@ pub enum LinkEvent {
     JobStarted {
         job: JobId,
     },
+    /// `acked`: program bytes the board acknowledged; `sent`: handed to the line.
     Progress {
         job: JobId,
+        acked: u64,
         sent: u64,
         total: Option<u64>,
     },
+    /// The board acknowledged the whole program, `bytes` long, as `confirmation` says.
     JobDone {
         job: JobId,
         bytes: u64,
+        confirmation: Confirmation,
     },
+    /// `offset`: program bytes the board acknowledged; `sent`: handed to the line.
     JobFailed {
         job: JobId,
         offset: u64,
+        sent: u64,
         reason: JobFailure,
     },
     JobCancelled {
         job: JobId,
         offset: u64,
+        sent: u64,
     },
     /// Punched data from the CNC (Protocol B punch-out, §6.1.1 2), as received, in order. A
     /// piece ends at latest with each program's EOR, so a whole program is the pieces up to
@@ -264,8 +271,12 @@ struct ActiveJob {
     size: Option<u64>,
     /// `None` once the source reached its end (or failed).
     source: Option<ProgramSource>,
+    /// Program bytes handed to the line.
     sent: u64,
-    last_progress: Option<(Instant, u64)>,
+    /// Program bytes the board acknowledged.
+    acked: u64,
+    /// When the last progress event went, and the figures it carried (acked, sent).
+    last_progress: Option<(Instant, u64, u64)>,
     cancelling: bool,
 }
 
@@ -332,9 +343,12 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 Some(e) => JobFailure::LinkStopped(Arc::clone(e)),
                 None => JobFailure::Shutdown,
             };
+            // Interrupted at what the board acknowledged; bytes still under way are not
+            // claimed.
             self.emit(LinkEvent::JobFailed {
                 job: active.id,
-                offset: active.sent,
+                offset: active.acked,
+                sent: active.sent,
                 reason,
             });
         }
@@ -342,6 +356,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             self.emit(LinkEvent::JobCancelled {
                 job: job.id,
                 offset: 0,
+                sent: 0,
             });
         }
         self.emit(LinkEvent::Stopped { error });
@@ -371,7 +386,11 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             LinkCommand::Cancel(id) => {
                 if let Some(i) = self.queue.iter().position(|j| j.id == id) {
                     self.queue.remove(i);
-                    self.emit(LinkEvent::JobCancelled { job: id, offset: 0 });
+                    self.emit(LinkEvent::JobCancelled {
+                        job: id,
+                        offset: 0,
+                        sent: 0,
+                    });
                 } else if let Some(active) = self.active.as_mut().filter(|a| a.id == id) {
                     if !active.cancelling {
                         active.cancelling = true;
@@ -411,7 +430,8 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 if let Some(active) = self.active.take() {
                     self.emit(LinkEvent::JobFailed {
                         job: active.id,
-                        offset: active.sent,
+                        offset: active.acked,
+                        sent: active.sent,
                         reason: JobFailure::Source(Arc::new(e)),
                     });
                 }
@@ -434,6 +454,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             size: job.size,
             source: Some(job.source),
             sent: 0,
+            acked: 0,
             last_progress: None,
             cancelling: false,
         });
@@ -468,16 +489,35 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 LinkEvent::ProtocolError { error, retried }
             }
             EngineEvent::Punched { data } => LinkEvent::Punched { data },
-            EngineEvent::DataSent { bytes } => match self.progress(bytes) {
-                Some(event) => event,
-                None => return,
-            },
-            EngineEvent::ProgramDone => match self.active.take() {
+            EngineEvent::DataSent { bytes } => {
+                let Some(active) = self.active.as_mut() else {
+                    return;
+                };
+                active.sent += bytes;
+                match self.progress() {
+                    Some(event) => event,
+                    None => return,
+                }
+            }
+            EngineEvent::Acked { offset } => {
+                let Some(active) = self.active.as_mut() else {
+                    return;
+                };
+                active.acked = active.acked.max(offset);
+                match self.progress() {
+                    Some(event) => event,
+                    None => return,
+                }
+            }
+            EngineEvent::ProgramDone { confirmation } => match self.active.take() {
                 Some(active) => {
-                    tracing::info!(job = active.id, bytes = active.sent, "program delivered");
+                    // The whole program is acknowledged: its length is what went out.
+                    let bytes = active.sent.max(active.acked);
+                    tracing::info!(job = active.id, bytes, ?confirmation, "program delivered");
                     LinkEvent::JobDone {
                         job: active.id,
-                        bytes: active.sent,
+                        bytes,
+                        confirmation,
                     }
                 }
                 None => return,
@@ -485,13 +525,15 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             EngineEvent::ProgramAborted { reason, cancelled } => match self.active.take() {
                 Some(active) if cancelled || active.cancelling => LinkEvent::JobCancelled {
                     job: active.id,
-                    offset: active.sent,
+                    offset: active.acked,
+                    sent: active.sent,
                 },
                 Some(active) => {
-                    tracing::warn!(job = active.id, offset = active.sent, %reason, "program failed");
+                    tracing::warn!(job = active.id, offset = active.acked, sent = active.sent, %reason, "program failed");
                     LinkEvent::JobFailed {
                         job: active.id,
-                        offset: active.sent,
+                        offset: active.acked,
+                        sent: active.sent,
                         reason: JobFailure::Aborted(reason),
                     }
                 }
@@ -501,25 +543,26 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
         self.emit(event);
     }
 
-    /// Counts sent bytes; returns a progress event when a whole percent was crossed or, for
-    /// programs of unknown size, when [`PROGRESS_INTERVAL`] has passed.
-    fn progress(&mut self, bytes: u64) -> Option<LinkEvent> {
+    /// A progress event when the acknowledged or the sent figure crossed a whole percent or,
+    /// for programs of unknown size, when [`PROGRESS_INTERVAL`] has passed.
+    fn progress(&mut self) -> Option<LinkEvent> {
         let active = self.active.as_mut()?;
-        active.sent += bytes;
         let t = now();
         let due = match (active.last_progress, active.size) {
             (None, _) => true,
-            (Some((_, last)), Some(total)) if total > 0 => {
-                active.sent * 100 / total > last * 100 / total
+            (Some((_, acked, sent)), Some(total)) if total > 0 => {
+                let percent = |b: u64| u128::from(b) * 100 / u128::from(total);
+                percent(active.acked) > percent(acked) || percent(active.sent) > percent(sent)
             }
-            (Some((at, _)), _) => t.duration_since(at) >= PROGRESS_INTERVAL,
+            (Some((at, _, _)), _) => t.duration_since(at) >= PROGRESS_INTERVAL,
         };
         if !due {
             return None;
         }
-        active.last_progress = Some((t, active.sent));
+        active.last_progress = Some((t, active.acked, active.sent));
         Some(LinkEvent::Progress {
             job: active.id,
+            acked: active.acked,
             sent: active.sent,
             total: active.size,
         })

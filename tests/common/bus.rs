@@ -203,6 +203,7 @@ impl RunningCell {
             name: format!("{machine} test"),
             priority: 0,
             append_eor: false,
+            ..Default::default()
         };
         let accepted: pb::JobAccepted = get_one(
             &self.client,

@@ -50,7 +50,10 @@ pub(crate) struct OutPacket {
 pub(crate) struct PacketRun {
     pub n: u8,
     next_slot: u8,
-    history: VecDeque<(u8, Vec<u8>)>,
+    /// The last packets sent: slot, bytes, program bytes sent for the first time in it.
+    history: VecDeque<(u8, Vec<u8>, u64)>,
+    /// Program bytes of packets that left `history`: past any NAK, acknowledged.
+    evicted: u64,
     resend: VecDeque<Vec<u8>>,
     /// DC3 received: hold until the next monitor packet (§5.3 3).
     pub paused: bool,
@@ -75,6 +78,7 @@ impl PacketRun {
             n,
             next_slot: FIRST_PACKET,
             history: VecDeque::with_capacity(HISTORY),
+            evicted: 0,
             resend: VecDeque::new(),
             paused: false,
             stop: false,
@@ -88,7 +92,7 @@ impl PacketRun {
 
     /// Bytes held for retransmission.
     pub(crate) fn held_bytes(&self) -> usize {
-        self.history.iter().map(|(_, b)| b.len()).sum::<usize>()
+        self.history.iter().map(|(_, b, _)| b.len()).sum::<usize>()
             + self.resend.iter().map(Vec::len).sum::<usize>()
     }
 
@@ -125,31 +129,36 @@ impl PacketRun {
                 let i = self
                     .history
                     .iter()
-                    .rposition(|(s, _)| *s == slot)
+                    .rposition(|(s, _, _)| *s == slot)
                     .ok_or(UnknownPacket(no))?;
                 self.resend = self
                     .history
                     .iter()
                     .skip(i)
-                    .map(|(_, b)| b.clone())
+                    .map(|(_, b, _)| b.clone())
                     .collect();
                 Ok(())
             }
         }
     }
 
-    fn record(&mut self, slot: u8, bytes: &[u8], now: Instant) {
-        if self.history.len() == HISTORY {
-            self.history.pop_front();
+    fn record(&mut self, slot: u8, bytes: &[u8], program_bytes: u64, now: Instant) {
+        if self.history.len() == HISTORY
+            && let Some((_, _, acked)) = self.history.pop_front()
+        {
+            // Ten packets later its number is taken again: the board can no longer ask for
+            // it (§5.2 2 b), so it arrived.
+            self.evicted += acked;
         }
-        self.history.push_back((slot, bytes.to_vec()));
+        self.history
+            .push_back((slot, bytes.to_vec(), program_bytes));
         self.next_slot = next_packet_no(slot);
         self.last_packet_at = now;
         self.dummy_due = false;
         self.packets_sent += 1;
     }
 
-    fn packet(&mut self, no: u8, data: &[u8], now: Instant) -> Vec<u8> {
+    fn packet(&mut self, no: u8, data: &[u8], program_bytes: u64, now: Instant) -> Vec<u8> {
         let len = data_len(self.n);
         let mut padded;
         let data = if data.len() < len {
@@ -163,8 +172,19 @@ impl PacketRun {
         let mut bytes = Vec::with_capacity(len + 4);
         encode_data_packet(no, data, &mut bytes);
         let slot = self.next_slot;
-        self.record(slot, &bytes, now);
+        self.record(slot, &bytes, program_bytes, now);
         bytes
+    }
+
+    /// Program bytes past the NAK window since the last call.
+    pub(crate) fn take_evicted(&mut self) -> u64 {
+        std::mem::take(&mut self.evicted)
+    }
+
+    /// Program bytes sent and still within the NAK window (with those evicted and not taken
+    /// yet): what the board's return to Protocol A acknowledges.
+    pub(crate) fn unacked_program_bytes(&self) -> u64 {
+        self.evicted + self.history.iter().map(|(_, _, p)| p).sum::<u64>()
     }
 
     /// Whether a packet can go out now (for the deadline: only late data waits).
@@ -192,7 +212,7 @@ impl PacketRun {
         if self.stop && !self.end_sent {
             // CAN or cancel: finish with an end packet of dummy data (§5.3 1).
             self.resend.clear();
-            let bytes = self.packet(END_PACKET, &[], now);
+            let bytes = self.packet(END_PACKET, &[], 0, now);
             self.end_sent = true;
             return Some(OutPacket {
                 bytes,
@@ -220,7 +240,7 @@ impl PacketRun {
         let program = program?;
         if program.ends_within(len) {
             let data = program.take(len);
-            let bytes = self.packet(END_PACKET, &data, now);
+            let bytes = self.packet(END_PACKET, &data, data.len() as u64, now);
             self.end_sent = true;
             self.outcome = RunOutcome::Delivered;
             return Some(OutPacket {
@@ -232,7 +252,7 @@ impl PacketRun {
         if program.buffered() >= len {
             let data = program.take(len);
             let no = self.next_slot;
-            let bytes = self.packet(no, &data, now);
+            let bytes = self.packet(no, &data, data.len() as u64, now);
             return Some(OutPacket {
                 bytes,
                 program_bytes: data.len(),

@@ -77,7 +77,7 @@ use std::time::{Duration, Instant};
 use crate::engine::{Engine, LineError, ModemIn};
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
-use crate::fanuc::host::{EngineCommand, EngineEvent, HostEngine, LinkState};
+use crate::fanuc::host::{Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState};
 use crate::fanuc::message::{
     Command, Decoder, FrameError, Framing, MAX_DAT_DATA, Message, RTY_CHECKSUM, hex2,
 };
@@ -274,9 +274,10 @@ impl Request {
 /// Why an EOD is owed to the next GTD.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum EodFor {
-    /// The program's last DAT (with EOR) went: EOD completes it.
+    /// The program's last DAT (with EOR) is queued or gone; the program is done once the
+    /// board's next exchange acknowledges it, and EOD then ends the transfer.
     Done,
-    /// Clean-up after an abandoned program (§4.4.1 EOD).
+    /// Clean-up after an abandoned program (§4.4.1 EOD), or the end of a confirmed one.
     Cleanup,
 }
 
@@ -286,6 +287,16 @@ struct Outgoing {
     pos: usize,
     program_bytes: u64,
     do_sent: Option<u8>,
+    /// The DAT carrying the program's EOR.
+    last_of_program: bool,
+}
+
+impl Outgoing {
+    /// A message that carries program data: it is never dropped, since a lost DAT would leave
+    /// a hole in the program.
+    fn carries_program(&self) -> bool {
+        self.program_bytes > 0
+    }
 }
 
 /// SetDo requests kept while the link cannot send them; older ones are dropped past this.
@@ -324,6 +335,14 @@ pub struct ProtocolAHost {
     clb_owed: bool,
     eod_owed: Option<EodFor>,
     program: Option<Program>,
+    /// Program bytes of the current program the board has acknowledged (§4.4: a DAT is
+    /// received once the board's next exchange is not RTY; Expansion A: packets past the
+    /// NAK window, and the rest when the board is back in Protocol A).
+    acked: u64,
+    /// Program bytes in DATs handed out and not acknowledged yet.
+    dat_unacked: u64,
+    /// The DAT carrying the program's EOR has been handed out.
+    final_sent: bool,
     run: Option<PacketRun>,
     /// Last message received or sent (sent: plus its line time).
     last_activity: Instant,
@@ -371,6 +390,9 @@ impl ProtocolAHost {
             clb_owed: false,
             eod_owed: None,
             program: None,
+            acked: 0,
+            dat_unacked: 0,
+            final_sent: false,
             run: None,
             last_activity: now,
             events: VecDeque::from([EngineEvent::State(LinkState::Initialising)]),
@@ -449,19 +471,28 @@ impl ProtocolAHost {
 
     fn queue(&mut self, bytes: Vec<u8>, program_bytes: u64, do_sent: Option<u8>) {
         // The board talks only after the host's answer left; a queue this long means the line
-        // is blocked (CS off) while something keeps talking: keep the newest answers.
+        // is blocked (CS off) while something keeps talking: keep the newest answers, but
+        // never drop a DAT (the program would have a hole) nor one partly on the line.
         if self.tx.len() >= MAX_QUEUED {
-            tracing::warn!(
-                queued = self.tx.len(),
-                "transmit queue full: oldest message dropped"
-            );
-            self.tx.pop_front();
+            let droppable = self
+                .tx
+                .iter()
+                .enumerate()
+                .position(|(i, o)| !o.carries_program() && (i > 0 || o.pos == 0));
+            if let Some(i) = droppable {
+                tracing::warn!(
+                    queued = self.tx.len(),
+                    "transmit queue full: oldest answer without program data dropped"
+                );
+                self.tx.remove(i);
+            }
         }
         self.tx.push_back(Outgoing {
             bytes,
             pos: 0,
             program_bytes,
             do_sent,
+            last_of_program: false,
         });
     }
 
@@ -537,15 +568,10 @@ impl ProtocolAHost {
             if let Some(run) = self.run.as_mut() {
                 run.outcome = RunOutcome::Stopped;
             }
-            if confirms_delivery(&reason) {
-                // The board answered with a valid message rather than RTY: the program was
-                // delivered (a CNC that ends with M30 may reset before the EOD). The EOD is no
-                // longer owed to a reset board.
-                tracing::info!(%reason, "program delivered before the board's notice");
-                self.emit(EngineEvent::ProgramDone);
-            } else {
-                self.program_aborted(&reason, cancelled, cleanup);
-            }
+            // Not acknowledged by the board's next exchange: a reset, an alarm, a CAN or a
+            // link failure before it leaves the end unconfirmed, so the program failed at
+            // what was acknowledged.
+            self.program_aborted(&reason, cancelled, cleanup);
         }
         let Some(program) = &self.program else {
             return;
@@ -571,7 +597,10 @@ impl ProtocolAHost {
     }
 
     fn program_aborted(&mut self, reason: &AbortReason, cancelled: bool, cleanup: bool) {
-        tracing::info!(%reason, cancelled, "program aborted");
+        tracing::info!(%reason, cancelled, acked = self.acked, "program aborted");
+        // What the board had not acknowledged by now is not counted for this program.
+        self.dat_unacked = 0;
+        self.final_sent = false;
         self.emit(EngineEvent::ProgramAborted {
             reason: reason.clone(),
             cancelled,
@@ -656,10 +685,11 @@ impl ProtocolAHost {
             self.retries = 0;
         }
         if let Some(run) = &self.run {
-            if run.end_sent {
+            let notice = matches!(command, Command::Syn | Command::Rst | Command::Alm);
+            if run.end_sent && !notice {
                 // The board is back in Protocol A (§5.2 2 b).
                 self.finish_run();
-            } else if matches!(command, Command::Syn | Command::Rst | Command::Alm) {
+            } else if notice {
                 // The board left the transmission without CAN; its handler aborts the program.
                 tracing::debug!(%command, "packet transmission ended by a Protocol A message");
                 self.run = None;
@@ -729,13 +759,17 @@ impl ProtocolAHost {
                 self.run = None;
             }
             Command::Sat => {
+                // A SAT that reports a new alarm status aborts the program first: what it
+                // acknowledges then belongs to no program.
                 let data = self.on_sat(&msg.data);
+                self.on_exchange();
                 self.owed = Some(Request::Sat {
                     data,
                     after_sdi: false,
                 });
             }
             Command::Gtd => {
+                self.on_exchange();
                 self.owed = Some(Request::Gtd {
                     at: now,
                     after_sdi: false,
@@ -743,6 +777,7 @@ impl ProtocolAHost {
             }
             Command::Sdi => match self.rdi_for.take() {
                 Some(req) => {
+                    self.on_exchange();
                     match parse_di(&msg.data) {
                         Some(v) => self.emit(EngineEvent::Di(v)),
                         None => self.protocol_error(
@@ -865,14 +900,48 @@ impl ProtocolAHost {
         }
     }
 
-    /// The transmission is over: the board spoke Protocol A after the end packet.
+    /// The transmission is over: the board spoke Protocol A after the end packet, so no
+    /// packet can be asked for again (§5.2 2 b): the rest of the program is acknowledged.
     fn finish_run(&mut self) {
         if let Some(run) = self.run.take() {
             tracing::debug!(packets = run.packets_sent, "Expansion A transmission ended");
             if run.outcome == RunOutcome::Delivered {
-                tracing::info!("program delivered (end packet)");
-                self.emit(EngineEvent::ProgramDone);
+                self.ack(run.unacked_program_bytes());
+                tracing::info!(
+                    bytes = self.acked,
+                    "program delivered (end packet acknowledged)"
+                );
+                self.emit(EngineEvent::ProgramDone {
+                    confirmation: Confirmation::Acknowledged,
+                });
             }
+        }
+    }
+
+    /// `bytes` more program bytes are acknowledged.
+    fn ack(&mut self, bytes: u64) {
+        if bytes > 0 {
+            self.acked += bytes;
+            self.emit(EngineEvent::Acked { offset: self.acked });
+        }
+    }
+
+    /// The board's exchange after DATs (SAT, GTD, SDI: not RTY, RST, ALM or SYN) shows that
+    /// they arrived (§4.4.1); the one after the final DAT completes the program.
+    fn on_exchange(&mut self) {
+        let bytes = std::mem::take(&mut self.dat_unacked);
+        self.ack(bytes);
+        if self.final_sent && self.eod_owed == Some(EodFor::Done) {
+            self.final_sent = false;
+            // The EOD still goes to the next GTD, but the program is the board's.
+            self.eod_owed = Some(EodFor::Cleanup);
+            tracing::info!(
+                bytes = self.acked,
+                "program delivered (final DAT acknowledged)"
+            );
+            self.emit(EngineEvent::ProgramDone {
+                confirmation: Confirmation::Acknowledged,
+            });
         }
     }
 
@@ -966,13 +1035,18 @@ impl ProtocolAHost {
                 self.abort_program(AbortReason::Program(e), false, true, false);
             }
         }
-        if let Some(kind) = self.eod_owed.take() {
-            self.send(Command::Eod);
-            if kind == EodFor::Done {
-                tracing::info!("program delivered (EOD)");
-                self.emit(EngineEvent::ProgramDone);
+        match self.eod_owed {
+            Some(EodFor::Cleanup) => {
+                self.eod_owed = None;
+                self.send(Command::Eod);
+                return true;
             }
-            return true;
+            // The final DAT is not acknowledged yet: EOD waits for the exchange that does.
+            Some(EodFor::Done) => {
+                self.send(Command::Wat);
+                return true;
+            }
+            None => {}
         }
         if self.clb_owed {
             // New data waits until the board's buffer has been cleared (CLB at the next SAT).
@@ -1002,6 +1076,9 @@ impl ProtocolAHost {
                 if done {
                     self.program = None;
                     self.eod_owed = Some(EodFor::Done);
+                    if let Some(last) = self.tx.back_mut() {
+                        last.last_of_program = true;
+                    }
                 }
                 return true;
             }
@@ -1033,18 +1110,6 @@ impl ProtocolAHost {
         let t = now + self.line_time(len);
         self.last_activity = self.last_activity.max(t);
     }
-}
-
-/// A notice the board sends with a valid message, which proves that everything the host sent
-/// before it arrived: a program whose last byte had gone out is delivered, not lost.
-fn confirms_delivery(reason: &AbortReason) -> bool {
-    matches!(
-        reason,
-        AbortReason::CncReset
-            | AbortReason::CncAlarm
-            | AbortReason::CncStop
-            | AbortReason::BoardAlarm(_)
-    )
 }
 
 /// The DI image of an SDI: two hex digits (either case).
@@ -1130,6 +1195,9 @@ impl Engine for ProtocolAHost {
                 }
                 tracing::debug!(?total, "program queued");
                 self.program = Some(Program::new());
+                self.acked = 0;
+                self.dat_unacked = 0;
+                self.final_sent = false;
             }
             EngineCommand::ProgramData(data) => {
                 // In Protocol A the program travels in DATs, which cannot carry the end code.
@@ -1200,9 +1268,13 @@ impl Engine for ProtocolAHost {
             {
                 self.sent_at(now, done.bytes.len());
                 if done.program_bytes > 0 {
+                    self.dat_unacked += done.program_bytes;
                     self.emit(EngineEvent::DataSent {
                         bytes: done.program_bytes,
                     });
+                }
+                if done.last_of_program {
+                    self.final_sent = true;
                 }
                 if let Some(v) = done.do_sent {
                     self.emit(EngineEvent::DoSent(v));
@@ -1213,6 +1285,7 @@ impl Engine for ProtocolAHost {
         let run = self.run.as_mut()?;
         let out = run.next(now, self.program.as_mut(), self.cfg.dummy_interval)?;
         let delivered = run.outcome == RunOutcome::Delivered;
+        let evicted = run.take_evicted();
         tracing::trace!(no = out.no, "data packet out");
         if delivered && self.program.as_ref().is_some_and(Program::all_sent) {
             self.program = None;
@@ -1223,6 +1296,7 @@ impl Engine for ProtocolAHost {
                 bytes: out.program_bytes as u64,
             });
         }
+        self.ack(evicted);
         self.update_state();
         Some(out.bytes)
     }
