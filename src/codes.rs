@@ -45,7 +45,10 @@ impl BusCode for AbortReason {
     fn code(&self) -> pb::ErrorCode {
         match self {
             // A reset abandons the program as a cancellation does; it is reported cancelled.
-            AbortReason::CncAlarm | AbortReason::AlarmNotice => pb::ErrorCode::CncAlarm,
+            // CAN: "CNC reset or alarm" (§5.3 1); a reset ends as a cancellation anyway.
+            AbortReason::CncAlarm | AbortReason::AlarmNotice | AbortReason::CncStop => {
+                pb::ErrorCode::CncAlarm
+            }
             _ => pb::ErrorCode::LinkFailed,
         }
     }

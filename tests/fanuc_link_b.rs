@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use cellgate::engine::Engine;
 use cellgate::fanuc::alarm::CncAlarm;
-use cellgate::fanuc::host::EngineEvent;
+use cellgate::fanuc::host::{Confirmation, EngineEvent};
 use cellgate::fanuc::message::Framing;
 use cellgate::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
 use cellgate::fanuc::{CodeSystem, EndCode, Protocol};
@@ -333,6 +333,69 @@ async fn one_mib_protocol_b_over_tcp_through_a_device_server() {
 #[tokio::test(start_paused = true)]
 async fn one_mib_expansion_b_over_tcp_through_a_device_server() {
     over_tcp(true, 86_400, 1 << 20, 200).await;
+}
+
+/// Three 6 KB programs back to back to a Protocol B board behind a TCP device server at
+/// 19 200 baud. For each k, the gateway and the device server are stopped the moment job k is
+/// reported completed, and whatever was still in the device server, the sockets or the
+/// transport's window is lost: program k (and every one before it) must be whole on the board
+/// all the same. Completed is published only once the board holds the program.
+#[tokio::test(start_paused = true)]
+async fn completed_means_the_board_has_it_even_if_everything_stops_at_that_moment() {
+    let baud = 19_200;
+    let line = LineSettings::with_baud(baud);
+    let code = CodeSystem::Iso;
+    let programs: Vec<Vec<u8>> = (0..3).map(|i| program_of_len(6 * 1024, 40 + i)).collect();
+    for k in 1..=programs.len() {
+        let (serial_host_end, device_end, _cable) = sim::line(line);
+        let board = BoardHandle::spawn(
+            board_config(false, code, true, chars_per_sec(baud) / 2),
+            device_end,
+        )
+        .unwrap();
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap().to_string();
+        let server = tokio::spawn(device_server(listener, serial_host_end));
+        let transport = TcpTransport::connect(addr, line, TcpOptions::default())
+            .await
+            .unwrap();
+        let rig = Rig::with_transport(board, host(false, code, true), transport);
+        let mut events = rig.link.subscribe();
+        for (i, p) in programs.iter().enumerate() {
+            rig.queue(i as u64 + 1, p).await;
+        }
+        let k_id = k as u64;
+        next_event(&mut events, HOUR, |ev| match ev {
+            LinkEvent::JobDone {
+                job, confirmation, ..
+            } if *job == k_id => {
+                assert_eq!(*confirmation, Confirmation::EndOfRead);
+                Some(())
+            }
+            LinkEvent::JobFailed { job, reason, .. } => panic!("job {job} failed: {reason}"),
+            _ => None,
+        })
+        .await;
+        // Everything stops now: bytes still under way are lost.
+        server.abort();
+        rig.token.cancel();
+        tokio::time::sleep(Duration::from_secs(60)).await;
+        let snap = rig.board.snapshot();
+        assert!(
+            snap.programs.len() >= k,
+            "job {k} was reported completed, but the CNC has only {} programs whole",
+            snap.programs.len()
+        );
+        for (got, sent) in snap.programs.iter().zip(&programs).take(k) {
+            assert!(
+                got.sha256 == <[u8; 32]>::from(Sha256::digest(sent)),
+                "program {} arrived altered",
+                got.first_line
+            );
+        }
+        let _ = rig.task.await;
+        rig.board.shutdown().await.unwrap();
+    }
 }
 
 /// A CNC alarm in the middle of a transfer fails the job at its byte offset; the CNC resets

@@ -24,6 +24,7 @@ import argparse
 import os
 import queue
 import sys
+import uuid
 
 import zenoh
 
@@ -105,12 +106,20 @@ def main() -> int:
     ap.add_argument("--name", default="", help="the name shown in status and events")
     ap.add_argument("--priority", type=int, default=0)
     ap.add_argument("--append-eor", action="store_true", help="append % if the program lacks it")
+    ap.add_argument("--request-id", default=None, help="idempotency key (default: a new UUID)")
     args = ap.parse_args()
 
     with open(args.file, "rb") as f:
         program = f.read()
+    # A request id makes the submit idempotent: if the reply is lost and this script (or a
+    # retry of it) sends the same request again, the gateway answers the first JobAccepted
+    # and queues nothing twice.
     request = job_pb2.JobRequest(
-        inline=program, name=args.name, priority=args.priority, append_eor=args.append_eor
+        inline=program,
+        name=args.name,
+        priority=args.priority,
+        append_eor=args.append_eor,
+        request_id=args.request_id or uuid.uuid4().hex,
     )
 
     try:

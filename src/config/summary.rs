@@ -69,6 +69,12 @@ impl CellConfig {
                 self.programs.requests.join(" ")
             }
         )?;
+        writeln!(
+            s,
+            "  job journal in {}, {} ended jobs kept per machine",
+            self.programs.journal_dir().display(),
+            self.programs.keep_jobs
+        )?;
         writeln!(s, "machines: {}", self.machines.len())?;
         for m in &self.machines {
             let p = m.protocol;

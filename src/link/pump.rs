@@ -174,6 +174,17 @@ impl<E: Engine, T: Transport> Pump<E, T> {
         };
         if self.modem_in != Some(lines) {
             self.modem_in = Some(lines);
+            if !(lines.dr && lines.cd) && self.tx_pos < self.tx.len() {
+                // The line went down: what the engine handed out and the transport has not
+                // taken is dropped, so that nothing of it goes out when the line is back (the
+                // engine has given it up and counts none of it as acknowledged).
+                tracing::debug!(
+                    dropped = self.tx.len() - self.tx_pos,
+                    "line down: unsent bytes dropped"
+                );
+                self.tx.clear();
+                self.tx_pos = 0;
+            }
             self.engine.handle_modem(now, lines);
             return true;
         }

@@ -2,10 +2,11 @@
 //!
 //! The link must survive the device server going away: [`TcpTransport`] never fails after
 //! construction. It reconnects with bounded exponential backoff after a failed connect, an EOF or
-//! an I/O error, and while disconnected it behaves like an open (cut) line: reads wait, writes are
-//! accepted at line pace and discarded (counted in [`TcpStats::discarded`]), and the modem lines
-//! read off. A protocol engine sees exactly what it would see on a broken cable and raises its
-//! own timeouts and alarms.
+//! an I/O error, and while disconnected it behaves like an open (cut) line: reads wait, the modem
+//! lines read off, and writes wait too — a byte is never taken and thrown away, so what a
+//! protocol engine counts as handed to the line did go to a device server. The engine sees
+//! exactly what it would see on a broken cable and raises its own timeouts and alarms; the link
+//! drops what it had not written yet when the line goes down.
 //!
 //! Writes go through a bounded in-flight window (a [`Pacer`]): the device server buffers about a
 //! kilobyte per port and the sockets more, so without a bound a DC3 from the CNC would be
@@ -66,8 +67,6 @@ pub struct TcpStats {
     pub disconnects: u64,
     /// Failed connection attempts.
     pub connect_failures: u64,
-    /// Bytes accepted while disconnected (or lost in a failed write) and thrown away.
-    pub discarded: u64,
 }
 
 type ConnectFuture = Pin<Box<dyn Future<Output = io::Result<TcpStream>> + Send>>;
@@ -211,7 +210,7 @@ impl TcpTransport {
         matches!(self.state, State::Connected(_))
     }
 
-    /// Connection history and discarded bytes.
+    /// Connection history.
     pub fn stats(&self) -> TcpStats {
         self.stats
     }
@@ -321,13 +320,6 @@ impl TcpTransport {
             }
         }
     }
-
-    /// Accept `n` bytes into the void at line pace (disconnected, or lost in a failed write).
-    fn discard(&mut self, n: usize, now: Instant) -> usize {
-        self.pacer.wrote(n, now.into_std());
-        self.stats.discarded += n as u64;
-        n
-    }
 }
 
 fn connect_future(addr: String, timeout: Duration) -> ConnectFuture {
@@ -378,7 +370,7 @@ impl AsyncRead for TcpTransport {
 
 impl AsyncWrite for TcpTransport {
     /// Writes at most the room left in the in-flight window; waits (a timer, not a busy loop)
-    /// while the window is full. Disconnected, the bytes are accepted and discarded.
+    /// while the window is full, and while the device server is unreachable.
     fn poll_write(
         mut self: Pin<&mut Self>,
         cx: &mut Context<'_>,
@@ -408,26 +400,23 @@ impl AsyncWrite for TcpTransport {
             let n = room.min(buf.len());
             let chunk = buf.get(..n).unwrap_or(buf);
             if !this.poll_connection() {
-                return Poll::Ready(Ok(this.discard(n, now)));
+                // Refused, not discarded: the writer waits for the reconnection (both wakers
+                // are woken then).
+                return Poll::Pending;
             }
             let State::Connected(stream) = &mut this.state else {
                 continue;
             };
-            return match Pin::new(stream).poll_write(cx, chunk) {
-                Poll::Pending => Poll::Pending,
-                Poll::Ready(Ok(0)) => {
-                    this.disconnected(&"the connection accepts no more bytes");
-                    Poll::Ready(Ok(this.discard(n, now)))
-                }
+            match Pin::new(stream).poll_write(cx, chunk) {
+                Poll::Pending => return Poll::Pending,
+                Poll::Ready(Ok(0)) => this.disconnected(&"the connection accepts no more bytes"),
                 Poll::Ready(Ok(k)) => {
                     this.pacer.wrote(k, now.into_std());
-                    Poll::Ready(Ok(k))
+                    return Poll::Ready(Ok(k));
                 }
-                Poll::Ready(Err(e)) => {
-                    this.disconnected(&e);
-                    Poll::Ready(Ok(this.discard(n, now)))
-                }
-            };
+                Poll::Ready(Err(e)) => this.disconnected(&e),
+            }
+            // Disconnected: loop to wait for the reconnection.
         }
     }
 
