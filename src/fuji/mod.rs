@@ -19,4 +19,5 @@
 //! format, not `master`.
 
 pub mod bcc;
+pub mod command;
 pub mod frame;
