@@ -935,7 +935,7 @@ pub fn encode_words(module: Module, values: &[u32]) -> Result<Vec<u8>, RequestEr
 
 /// Two BCD digits of `v` (0–99): RSNO (§5-3).
 pub fn to_bcd(v: u8) -> Option<u8> {
-    (v <= 99).then(|| ((v / 10) << 4) | (v % 10))
+    (v <= 99).then_some(((v / 10) << 4) | (v % 10))
 }
 
 /// The value of two BCD digits, `None` if a nibble is above 9.

@@ -464,6 +464,15 @@ impl ReceiveCounts {
         }
     }
 
+    /// Both sets of counts added up.
+    pub fn merged(mut self, other: &ReceiveCounts) -> ReceiveCounts {
+        for kind in ReceiveErrorKind::ALL {
+            let c = self.slot(kind);
+            *c = c.saturating_add(other.get(kind));
+        }
+        self
+    }
+
     pub fn total(&self) -> u64 {
         ReceiveErrorKind::ALL.iter().map(|k| self.get(*k)).sum()
     }
@@ -780,6 +789,12 @@ impl FrameDecoder {
                 && hex_value(first).is_none()
                 && let Some(q) = scan.iter().position(|&b| b == first)
             {
+                if q == 0 {
+                    // Start code after start code: no text had begun, nothing was lost; the
+                    // later one starts the text.
+                    self.buf.drain(..start_len);
+                    return self.next();
+                }
                 self.buf.drain(..start_len + q);
                 return Some(Err(ReceiveError::TextForm(TextForm::Truncated {
                     after: q,
@@ -966,4 +981,4 @@ fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

@@ -21,3 +21,7 @@
 pub mod bcc;
 pub mod command;
 pub mod frame;
+pub mod master;
+
+#[cfg(test)]
+pub(crate) mod testkit;
