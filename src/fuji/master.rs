@@ -53,6 +53,9 @@ use crate::engine::{Engine, LineError, LineSettings, ModemIn};
 /// The caller's name for a request; it comes back in [`MasterEvent::Done`].
 pub type RequestId = u64;
 
+/// Longest time setting: deadlines are `now` plus settings, and must not overflow.
+pub const MAX_DURATION: Duration = Duration::from_secs(24 * 3600);
+
 /// Most stations on one RS-485 line (§2-2 (1)).
 pub const MAX_STATIONS: usize = 31;
 
@@ -186,6 +189,16 @@ impl MasterSettings {
         if self.reply_timeout.is_zero() {
             p.push(MasterProblem::ZeroReplyTimeout);
         }
+        let bounds = [
+            ("reply_timeout", self.reply_timeout),
+            ("probe_interval", self.probe_interval),
+            ("turnaround", self.turnaround),
+        ];
+        for (name, value) in bounds {
+            if value > MAX_DURATION {
+                p.push(MasterProblem::TooLong { name, value });
+            }
+        }
         if self.down_after == 0 {
             p.push(MasterProblem::ZeroDownAfter);
         }
@@ -227,6 +240,8 @@ pub enum MasterProblem {
         "probe_interval {probe:?} is shorter than the reply time-out {timeout:?}: a dead station would cost every other request a time-out"
     )]
     ProbeInterval { probe: Duration, timeout: Duration },
+    #[error("{name} = {value:?} is longer than a day")]
+    TooLong { name: &'static str, value: Duration },
     #[error(
         "fixed length {n} in {mode}: fixed length is a non-procedure setting of modes 4 and 5 (FFU120B §4-3 item 15)"
     )]
@@ -777,13 +792,31 @@ impl Master {
                 && waiting_request
                     .is_some_and(|r| r.cmnd() == CMND_TRANSFER && r.answered_by(&parsed));
             if !our_ack {
+                // The reply we wait for queues behind the transfer on the line.
+                let delay = self
+                    .settings
+                    .line
+                    .time_for_chars(self.settings.frame.line_len(text.len()) as u64);
+                if let Some(w) = &mut self.waiting {
+                    w.deadline += delay;
+                }
                 self.transfers_received += 1;
                 self.events
                     .push_back(MasterEvent::Transfer { message, data });
                 return;
             }
         }
-        if !waiting_request.is_some_and(|r| r.answered_by(&parsed)) {
+        // Over a two-wire RS-485 line the host may hear its own request; the module's reply
+        // differs from it (STA for RSNO, MODE with its MSB, §5-4), so an exact echo is ignored.
+        let echo = self.settings.mode.is_multi_drop()
+            && self.waiting.as_ref().is_some_and(|w| {
+                w.job
+                    .request
+                    .as_ref()
+                    .and_then(|r| r.encode(w.job.station).ok())
+                    .is_some_and(|t| t == text)
+            });
+        if echo || !waiting_request.is_some_and(|r| r.answered_by(&parsed)) {
             self.unexpected_texts += 1;
             tracing::debug!(
                 cmnd = parsed.cmnd,

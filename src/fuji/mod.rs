@@ -15,8 +15,10 @@
 //!   retries, stations down and probed, transfers, modes 4–5, counters. Imports all of the
 //!   above and [`crate::engine`].
 //!
+//! - `testkit` (tests only): two engines on a simulated line in plain time.
+//!
 //! The simulated module ([`crate::sim::micrex`]) reuses `frame` and `command` for the wire
-//! format, not `master`.
+//! format, and `master` only for [`master::OperationMode`]; none of the logic.
 
 pub mod bcc;
 pub mod command;

@@ -38,6 +38,10 @@ use crate::fuji::master::OperationMode;
 
 /// Most write-protected ranges per station.
 pub const MAX_PROTECTED: usize = 64;
+/// Most replies being processed at once; requests beyond are dropped as receive error 1.
+pub const MAX_PENDING: usize = 16;
+/// Longest processing delay or frame gap.
+pub const MAX_DELAY: Duration = Duration::from_secs(3600);
 /// Most transfers the "PLC" holds for sending.
 pub const MAX_QUEUED_TRANSFERS: usize = 64;
 
@@ -148,6 +152,8 @@ pub enum MicrexConfigError {
     Stations { count: usize },
     #[error("simulated FFU120B: file W{n} is not one of W30–W109 (FFU120B §5-3-3)")]
     File { n: u8 },
+    #[error("simulated FFU120B: processing delay and frame gap must be at most an hour")]
+    Delay,
     #[error(
         "simulated FFU120B: fixed length {n} must be 1–216 in mode 4 or 5 (FFU120B §4-3 item 15)"
     )]
@@ -291,6 +297,9 @@ impl Micrex {
         {
             return Err(MicrexConfigError::File { n });
         }
+        if config.processing_delay > MAX_DELAY || config.frame_gap > MAX_DELAY {
+            return Err(MicrexConfigError::Delay);
+        }
         if let Some(n) = config.fixed_length
             && (config.mode.is_command_set() || !(1..=MAX_NON_PROCEDURE_TEXT).contains(&n))
         {
@@ -391,6 +400,16 @@ impl Micrex {
         let Some(station) = self.addressed(req.second) else {
             return;
         };
+        if self.pending.len() >= MAX_PENDING {
+            // A host that does not wait for replies: the module's buffer is full (§5-6).
+            self.extra_receive.add(ReceiveErrorKind::BufferFull);
+            self.event(MicrexEvent::ReceiveError {
+                error: ReceiveError::BufferFull {
+                    dropped: text.len(),
+                },
+            });
+            return;
+        }
         let mode_out = if self.config.mode.is_multi_drop() {
             req.mode | MODE_MULTI_DROP
         } else {

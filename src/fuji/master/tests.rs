@@ -1063,3 +1063,43 @@ proptest! {
         prop_assert_eq!(s.m.poll_timeout(), None);
     }
 }
+
+#[test]
+fn an_echo_of_the_request_on_a_two_wire_line_is_not_a_reply() {
+    let mut s = Solo::new(settings(OperationMode::Three));
+    s.cmd(read(1, 12, Module::D, 0, 1));
+    let sent = s.take_sent();
+    // Its own request, heard back: RSNO 12h would read as STA 12 if taken for a reply.
+    s.input(&sent[0]);
+    assert!(done(&s.events).is_empty());
+    assert_eq!(s.m.counters().unexpected_texts, 1);
+    s.input(&FrameSettings::default().encode(&[0, 0, 0x80, 5, 7, 0, 0, 2, 0, 1, 0, 9]));
+    assert_eq!(words_of(&done(&s.take_events())[0].1), vec![9]);
+}
+
+#[test]
+fn a_plc_transfer_on_the_line_pushes_the_reply_deadline_back() {
+    let mut s = Solo::new(settings(OperationMode::One));
+    s.cmd(read(1, 0, Module::D, 0, 1));
+    let before = s.m.poll_timeout().unwrap();
+    let transfer = FrameSettings::default().encode(&[0x90, 0, 0, 1, 4, 1, 2, 3, 4]);
+    s.input(&transfer);
+    assert_eq!(
+        s.m.poll_timeout(),
+        Some(before + line().time_for_chars(transfer.len() as u64))
+    );
+}
+
+#[test]
+fn time_settings_are_bounded() {
+    let mut st = settings(OperationMode::One);
+    st.probe_interval = Duration::from_secs(365 * 24 * 3600);
+    let e = Master::new(st).unwrap_err();
+    assert!(matches!(
+        e.problems[..],
+        [MasterProblem::TooLong {
+            name: "probe_interval",
+            ..
+        }]
+    ));
+}

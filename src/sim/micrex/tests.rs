@@ -400,3 +400,16 @@ fn invalid_configurations_are_refused() {
     let e = Micrex::new(c).unwrap_err().to_string();
     assert!(e.contains("F2"), "{e}");
 }
+
+#[test]
+fn a_host_that_does_not_wait_fills_the_buffer() {
+    let mut h = Host::new(mode1());
+    let line = h.frame.encode(&[0, 0, 0, 5, 4, 0, 0, 2, 0]);
+    for _ in 0..MAX_PENDING + 3 {
+        h.plc.handle_input(h.now, &line);
+    }
+    assert_eq!(h.plc.receive_counts().buffer_full, 3);
+    let bytes = h.drain();
+    let mut d = FrameDecoder::command_set(&h.frame);
+    assert_eq!(d.decode(&bytes).len(), MAX_PENDING);
+}
