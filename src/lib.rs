@@ -51,6 +51,7 @@ pub mod codes;
 pub mod config;
 pub mod engine;
 pub mod fanuc;
+pub mod fuji;
 pub mod gateway;
 pub mod jobs;
 pub mod link;

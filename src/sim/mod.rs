@@ -11,6 +11,7 @@
 
 pub mod cnc;
 pub mod fanuc_board;
+pub mod micrex;
 pub mod server;
 
 use std::future::Future;
