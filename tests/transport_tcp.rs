@@ -226,3 +226,75 @@ async fn a_server_that_hangs_up_at_once_is_retried_with_growing_backoff() {
     assert!(gaps[3] >= Duration::from_millis(80), "{gaps:?}");
     assert!(t.stats().disconnects >= 3);
 }
+
+/// A device server that lost power leaves a half-open connection: nothing closes it. When the
+/// protocol hears nothing for longer than it allows it asks for a new connection, and the
+/// transport drops the old one and connects again at once.
+#[tokio::test]
+async fn reconnect_replaces_a_silent_connection() {
+    let (l, addr) = listener().await;
+    let mut t = TcpTransport::connect(addr.clone(), LineSettings::with_baud(9600), quick())
+        .await
+        .unwrap();
+    let (_silent, _) = timeout(LONG, l.accept()).await.unwrap().unwrap();
+    assert!(t.is_connected());
+
+    t.reconnect("no answer for 30 s");
+    assert!(!t.is_connected());
+    let accept = tokio::spawn(async move { l.accept().await.unwrap().0 });
+    let mut b = [0u8; 1];
+    let mut server = loop {
+        let _ = timeout(Duration::from_millis(50), t.read(&mut b)).await;
+        if accept.is_finished() {
+            break accept.await.unwrap();
+        }
+    };
+    t.write_all(b"again").await.unwrap();
+    let mut got = [0u8; 5];
+    timeout(LONG, server.read_exact(&mut got))
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(&got, b"again");
+    assert_eq!(t.stats().connects, 2);
+    assert_eq!(t.stats().disconnects, 1);
+}
+
+/// A device server that stops reading (hung firmware) takes no more bytes once the socket
+/// buffers are full. After the write time-out the connection is dropped and made again, and
+/// the write goes on over the new one.
+#[tokio::test]
+async fn a_server_that_stops_reading_is_replaced_after_the_write_timeout() {
+    let (l, addr) = listener().await;
+    let opts = TcpOptions {
+        window: 1 << 20,
+        write_timeout: Duration::from_millis(300),
+        ..quick()
+    };
+    // A very fast "line" so the socket buffers fill in moments.
+    let mut t = TcpTransport::connect(addr.clone(), LineSettings::with_baud(100_000_000), opts)
+        .await
+        .unwrap();
+    let (_stuck, _) = timeout(LONG, l.accept()).await.unwrap().unwrap();
+    let accept = tokio::spawn(async move { l.accept().await.unwrap().0 });
+    let chunk = vec![0x55u8; 64 * 1024];
+    let started = Instant::now();
+    while !accept.is_finished() {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "no new connection after the write stalled"
+        );
+        let _ = timeout(Duration::from_millis(50), t.write(&chunk)).await;
+    }
+    let mut server = accept.await.unwrap();
+    assert_eq!(t.stats().disconnects, 1, "{:?}", t.stats());
+    t.write_all(b"fresh").await.unwrap();
+    let mut got = vec![0u8; 64 * 1024 + 5];
+    // What the new connection carries ends with the fresh bytes.
+    let mut seen = Vec::new();
+    while !seen.ends_with(b"fresh") {
+        let n = timeout(LONG, server.read(&mut got)).await.unwrap().unwrap();
+        assert!(n > 0);
+        seen.extend_from_slice(&got[..n]);
+    }
+}

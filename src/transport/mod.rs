@@ -77,6 +77,11 @@ pub trait Transport: AsyncRead + AsyncWrite + Send + Unpin {
 
     /// A short human description for logs and status ("serial /dev/ttyS0 19200 8N2").
     fn describe(&self) -> String;
+
+    /// The protocol heard nothing from the peer for longer than it allows: a carrier that can
+    /// (a TCP device server whose end went away without closing, a serial port that stopped
+    /// answering) drops its connection and makes a new one. Others ignore it.
+    fn reconnect(&mut self, _why: &str) {}
 }
 
 impl<T: Transport + ?Sized> Transport for Box<T> {
@@ -91,6 +96,9 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
     }
     fn describe(&self) -> String {
         (**self).describe()
+    }
+    fn reconnect(&mut self, why: &str) {
+        (**self).reconnect(why)
     }
 }
 

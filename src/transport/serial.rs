@@ -254,20 +254,30 @@ fn enable_error_marks(_port: &SerialStream) -> io::Result<()> {
 /// character `c` received with a parity or framing error (`FF 00 00` also a break). Bad
 /// characters are not delivered; their errors are queued in line order.
 #[derive(Debug, Default)]
-struct MarkDecoder {
+pub struct MarkDecoder {
     raw: VecDeque<u8>,
     errors: VecDeque<LineError>,
 }
 
 impl MarkDecoder {
-    fn feed(&mut self, raw: &[u8]) {
+    /// Bytes held: an incomplete mark, or data not decoded yet.
+    pub fn buffered(&self) -> usize {
+        self.raw.len()
+    }
+
+    /// The oldest line error decoded and not taken yet.
+    pub fn take_error(&mut self) -> Option<LineError> {
+        self.errors.pop_front()
+    }
+
+    pub fn feed(&mut self, raw: &[u8]) {
         self.raw.extend(raw.iter().copied());
     }
 
     /// Decode into `out` as far as possible. A read never spans an error: decoding stops at a
     /// mark once `out` has bytes, so an error taken after a read lies before that read's bytes.
     /// An incomplete mark at the end waits for the next bytes. Returns the bytes written.
-    fn decode(&mut self, out: &mut ReadBuf<'_>) -> usize {
+    pub fn decode(&mut self, out: &mut ReadBuf<'_>) -> usize {
         let mut n = 0;
         while out.remaining() > 0 {
             let Some(&b) = self.raw.front() else { break };
@@ -307,7 +317,7 @@ impl MarkDecoder {
     }
 
     /// At end of input, hand over an incomplete mark as data.
-    fn finish(&mut self, out: &mut ReadBuf<'_>) {
+    pub fn finish(&mut self, out: &mut ReadBuf<'_>) {
         while out.remaining() > 0 {
             let Some(b) = self.raw.pop_front() else { break };
             out.put_slice(&[b]);

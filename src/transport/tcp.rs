@@ -45,6 +45,13 @@ pub struct TcpOptions {
     pub backoff_max: Duration,
     /// Give up one connection attempt after this long.
     pub connect_timeout: Duration,
+    /// TCP keepalive: probes start after this long without traffic, every `keepalive / 5`,
+    /// and the connection is dropped after 3 unanswered ones, so a device server that lost
+    /// power (no FIN, no RST: a half-open connection) is noticed. `None`: no keepalive.
+    pub keepalive: Option<Duration>,
+    /// A write the connection has not taken for this long (a device server that stops reading)
+    /// drops the connection, which is then made again; the write is not lost, it waits.
+    pub write_timeout: Duration,
 }
 
 impl Default for TcpOptions {
@@ -54,6 +61,8 @@ impl Default for TcpOptions {
             backoff_min: Duration::from_millis(100),
             backoff_max: Duration::from_secs(5),
             connect_timeout: Duration::from_secs(5),
+            keepalive: Some(Duration::from_secs(10)),
+            write_timeout: Duration::from_secs(10),
         }
     }
 }
@@ -127,6 +136,8 @@ pub struct TcpTransport {
     failures_in_a_row: u64,
     pacer: Pacer,
     write_sleep: Option<Pin<Box<Sleep>>>,
+    /// Since when the connection has not taken a write, and the timer of the write time-out.
+    write_stuck: Option<(Instant, Pin<Box<Sleep>>)>,
     wakers: Arc<Wakers>,
     stats: TcpStats,
     modem_note_logged: bool,
@@ -188,6 +199,7 @@ impl TcpTransport {
             failures_in_a_row: 0,
             pacer: Pacer::new(line, opts.window),
             write_sleep: None,
+            write_stuck: None,
             wakers: Arc::new(Wakers::default()),
             stats: TcpStats::default(),
             modem_note_logged: false,
@@ -227,6 +239,15 @@ impl TcpTransport {
                 // Small writes (a DC3, an ACK) must leave at once.
                 if let Err(e) = stream.set_nodelay(true) {
                     debug!(addr = %self.addr, error = %e, "could not set TCP_NODELAY");
+                }
+                if let Some(idle) = self.opts.keepalive {
+                    let keepalive = socket2::TcpKeepalive::new()
+                        .with_time(idle)
+                        .with_interval((idle / 5).max(Duration::from_secs(1)))
+                        .with_retries(3);
+                    if let Err(e) = socket2::SockRef::from(&stream).set_tcp_keepalive(&keepalive) {
+                        debug!(addr = %self.addr, error = %e, "could not set TCP keepalive");
+                    }
                 }
                 self.stats.connects += 1;
                 info!(
@@ -281,6 +302,7 @@ impl TcpTransport {
             self.backoff = self.opts.backoff_min;
         }
         self.connected_at = None;
+        self.write_stuck = None;
         warn!(
             addr = %self.addr,
             reason = %why,
@@ -408,9 +430,24 @@ impl AsyncWrite for TcpTransport {
                 continue;
             };
             match Pin::new(stream).poll_write(cx, chunk) {
-                Poll::Pending => return Poll::Pending,
+                Poll::Pending => {
+                    // The device server takes nothing: past the write time-out, it is
+                    // dropped and made again (a server that stopped reading never recovers).
+                    let timeout = this.opts.write_timeout;
+                    let (since, sleep) = this.write_stuck.get_or_insert_with(|| {
+                        (now, Box::pin(tokio::time::sleep_until(now + timeout)))
+                    });
+                    if sleep.as_mut().poll(cx).is_pending() {
+                        return Poll::Pending;
+                    }
+                    let waited = since.elapsed();
+                    this.disconnected(&format!(
+                        "write time-out: the device server took nothing for {waited:?}"
+                    ));
+                }
                 Poll::Ready(Ok(0)) => this.disconnected(&"the connection accepts no more bytes"),
                 Poll::Ready(Ok(k)) => {
+                    this.write_stuck = None;
                     this.pacer.wrote(k, now.into_std());
                     return Poll::Ready(Ok(k));
                 }
@@ -477,6 +514,18 @@ impl Transport for TcpTransport {
 
     fn describe(&self) -> String {
         format!("tcp {} (line {})", self.addr, self.line)
+    }
+
+    /// Drops the connection and connects again at once: the protocol heard nothing for longer
+    /// than it allows, so the connection is likely half-open (the device server lost power or
+    /// was replaced) even if TCP has not noticed yet.
+    fn reconnect(&mut self, why: &str) {
+        if self.is_connected() {
+            self.disconnected(&format!("{why}; reconnecting"));
+            self.state =
+                State::Connecting(connect_future(self.addr.clone(), self.opts.connect_timeout));
+            self.wakers.wake_by_ref();
+        }
     }
 }
 
