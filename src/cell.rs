@@ -13,7 +13,7 @@ use crate::fanuc::protocol_b::ProtocolBHost;
 use crate::link::driver::{self, LinkHandle};
 use crate::link::pump::now;
 use crate::sim;
-use crate::transport::serial::SerialTransport;
+use crate::transport::serial::ReopeningSerial;
 use crate::transport::sim::SimLine;
 use crate::transport::tcp::{TcpOptions, TcpTransport};
 use crate::transport::{Transport, TransportError};
@@ -91,14 +91,23 @@ impl Cell {
         let mut board = None;
         let mut sim_line = None;
         let transport: Box<dyn Transport> = match &machine.transport {
-            TransportConfig::Serial { path, line } => {
-                Box::new(SerialTransport::open(path, *line).map_err(|source| {
-                    CellError::Transport {
-                        machine: name.clone(),
-                        source,
-                    }
-                })?)
-            }
+            TransportConfig::Serial {
+                path,
+                line,
+                reconnect_min_ms,
+                reconnect_max_ms,
+            } => Box::new(
+                ReopeningSerial::open(
+                    path.clone(),
+                    *line,
+                    Duration::from_millis(*reconnect_min_ms),
+                    Duration::from_millis(*reconnect_max_ms),
+                )
+                .map_err(|source| CellError::Transport {
+                    machine: name.clone(),
+                    source,
+                })?,
+            ),
             TransportConfig::Tcp {
                 address,
                 line,

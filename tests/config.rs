@@ -49,7 +49,7 @@ fn example_file_loads_with_every_key() {
     assert_eq!(mill1.param_5000_bit3(), 1);
     assert_eq!(mill1.effective_interface(), Interface::Rs232c);
     assert_eq!(mill1.params(), Params::POWER_ON);
-    let TransportConfig::Serial { path, line } = &mill1.transport else {
+    let TransportConfig::Serial { path, line, .. } = &mill1.transport else {
         panic!("mill-1 is on a serial port: {:?}", mill1.transport);
     };
     assert_eq!(path, "/dev/ttyS0");
@@ -350,7 +350,7 @@ fn summary_of_the_example() {
          (REQ O{n}) (PRG={n})",
         "  mill-1: Protocol A, ISO code (5000#2 = 1), RS-232-C",
         "    end code ETX (5000#3 = 1)",
-        "    transport: serial /dev/ttyS0, 9600 8E1",
+        "    transport: serial /dev/ttyS0, 9600 8E1, reopened every 100..5000 ms while away",
         "  mill-2: Expansion Protocol A n = 4 (1024-byte packets), ASCII code (5000#2 = 0), RS-422",
         "  lathe-1: Protocol B, ASCII code (5000#2 = 1), RS-232-C",
         "    reset/alarm notification on (5000#3 = 1)",
@@ -358,7 +358,7 @@ fn summary_of_the_example() {
         "  plc-1: FFU120B mode 2, stations 01, 02",
         "    start code ':', end code CR, code transposition on, reply time-out 2000 ms",
         "    BCC add (set1, high byte first), over start+text+end, as transmission-code",
-        "    transport: serial /dev/ttyS1, 9600 7E1",
+        "    transport: serial /dev/ttyS1, 9600 7E1, reopened every 100..5000 ms while away",
     ] {
         assert!(
             s.lines().any(|l| l == expected),

@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use cellgate::transport::serial::SerialTransport;
+use cellgate::transport::serial::{ReopeningSerial, SerialTransport};
 use cellgate::transport::{LineSettings, ModemIn, ModemOut, Parity, StopBits, Transport};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::time::timeout;
@@ -120,4 +120,86 @@ async fn writes_are_paced_through_the_window() {
     let min = line.time_for_chars(88);
     assert!(t0.elapsed() >= min, "{:?} < {min:?}", t0.elapsed());
     assert_eq!(timeout(LONG, reader).await.unwrap().unwrap(), data);
+}
+
+/// A pseudo-terminal whose slave end is reached through `link` (a stable path, as udev gives a
+/// USB adapter): the master end stands for the device.
+fn device_at(link: &std::path::Path) -> SerialStream {
+    use tokio_serial::SerialPort;
+    let (master, slave) = SerialStream::pair().expect("a pseudo-terminal pair");
+    let pts = slave.name().expect("the slave's path");
+    drop(slave);
+    let _ = std::fs::remove_file(link);
+    std::os::unix::fs::symlink(pts, link).unwrap();
+    master
+}
+
+/// Reads from the transport until `want` bytes came, reading in short slices so that the test
+/// fails on time.
+async fn read_exactly(t: &mut ReopeningSerial, want: usize) -> Vec<u8> {
+    let mut v = vec![0u8; want];
+    timeout(LONG, t.read_exact(&mut v)).await.unwrap().unwrap();
+    v
+}
+
+/// The adapter is pulled (the device end closes: reads fail), the line reads as cut, and when
+/// a port appears at the same path again the transport opens it and bytes flow; a port missing
+/// at start is picked up the same way.
+#[tokio::test]
+async fn a_port_that_goes_away_is_opened_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("ttyCNC");
+    let ms = Duration::from_millis;
+
+    // Missing at start: not an error.
+    let mut t = ReopeningSerial::open(
+        link.to_str().unwrap(),
+        LineSettings::with_baud(19_200),
+        ms(20),
+        ms(100),
+    )
+    .unwrap();
+    assert!(!t.is_open());
+    let cut = ModemIn {
+        dr: false,
+        cs: false,
+        cd: false,
+    };
+    assert_eq!(t.modem().unwrap(), cut);
+    assert_eq!(t.stats().open_failures, 1);
+
+    let mut device = device_at(&link);
+    device.write_all(b"one").await.unwrap();
+    assert_eq!(read_exactly(&mut t, 3).await, b"one");
+    assert!(t.is_open());
+    assert_eq!(t.modem().unwrap(), ModemIn::ALL_ON);
+
+    // Pulled: the device closes and its node goes (as udev removes /dev/ttyUSB0).
+    drop(device);
+    std::fs::remove_file(&link).unwrap();
+    let mut b = [0u8; 1];
+    assert!(
+        timeout(ms(300), t.read(&mut b)).await.is_err(),
+        "a lost port is not end of input"
+    );
+    assert!(!t.is_open());
+    assert_eq!(t.modem().unwrap(), cut);
+    assert_eq!(t.stats().losses, 1);
+    assert!(
+        timeout(ms(200), t.write_all(b"lost")).await.is_err(),
+        "writes wait while the port is away"
+    );
+
+    // Plugged in again (a new pseudo-terminal behind the same path).
+    let mut device = device_at(&link);
+    device.write_all(b"two").await.unwrap();
+    assert_eq!(read_exactly(&mut t, 3).await, b"two");
+    t.write_all(b"three").await.unwrap();
+    let mut got = [0u8; 5];
+    timeout(LONG, device.read_exact(&mut got))
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(&got, b"three");
+    assert_eq!(t.stats().opens, 2);
 }

@@ -16,11 +16,16 @@ use crate::engine::LineSettings;
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase", try_from = "RawTransport")]
 pub enum TransportConfig {
-    /// A serial port of this computer.
+    /// A serial port of this computer. A port that cannot be opened, or goes away (a USB
+    /// adapter pulled), is opened again with backoff; meanwhile the line reads as cut.
     Serial {
         /// Device path, e.g. `/dev/ttyS0` or `COM3`.
         path: String,
         line: LineSettings,
+        /// First wait before opening the port again, ms; doubles on each failure.
+        reconnect_min_ms: u64,
+        /// Longest wait between attempts, ms.
+        reconnect_max_ms: u64,
     },
     /// A raw TCP connection to a serial device server.
     Tcp {
@@ -84,8 +89,14 @@ impl RawTransport {
         ("path", &[TransportKind::Serial]),
         ("address", &[TransportKind::Tcp]),
         ("window", &[TransportKind::Tcp]),
-        ("reconnect_min_ms", &[TransportKind::Tcp]),
-        ("reconnect_max_ms", &[TransportKind::Tcp]),
+        (
+            "reconnect_min_ms",
+            &[TransportKind::Serial, TransportKind::Tcp],
+        ),
+        (
+            "reconnect_max_ms",
+            &[TransportKind::Serial, TransportKind::Tcp],
+        ),
     ];
 
     fn present(&self, key: &str) -> bool {
@@ -124,21 +135,25 @@ impl RawTransport {
             }
         }
         let line = self.line.unwrap_or_default();
+        let reconnect_min_ms = self
+            .reconnect_min_ms
+            .unwrap_or(TransportConfig::DEFAULT_RECONNECT_MIN_MS);
+        let reconnect_max_ms = self
+            .reconnect_max_ms
+            .unwrap_or(TransportConfig::DEFAULT_RECONNECT_MAX_MS);
         let config = match kind {
-            TransportKind::Serial => self
-                .path
-                .clone()
-                .map(|path| TransportConfig::Serial { path, line }),
+            TransportKind::Serial => self.path.clone().map(|path| TransportConfig::Serial {
+                path,
+                line,
+                reconnect_min_ms,
+                reconnect_max_ms,
+            }),
             TransportKind::Tcp => self.address.clone().map(|address| TransportConfig::Tcp {
                 address,
                 line,
                 window: self.window.unwrap_or(TransportConfig::DEFAULT_WINDOW),
-                reconnect_min_ms: self
-                    .reconnect_min_ms
-                    .unwrap_or(TransportConfig::DEFAULT_RECONNECT_MIN_MS),
-                reconnect_max_ms: self
-                    .reconnect_max_ms
-                    .unwrap_or(TransportConfig::DEFAULT_RECONNECT_MAX_MS),
+                reconnect_min_ms,
+                reconnect_max_ms,
             }),
             TransportKind::Sim => Some(TransportConfig::Sim { line }),
         };
@@ -168,10 +183,17 @@ impl RawTransport {
 impl From<&TransportConfig> for RawTransport {
     fn from(t: &TransportConfig) -> Self {
         match t.clone() {
-            TransportConfig::Serial { path, line } => RawTransport {
+            TransportConfig::Serial {
+                path,
+                line,
+                reconnect_min_ms,
+                reconnect_max_ms,
+            } => RawTransport {
                 kind: Some(TransportKind::Serial),
                 path: Some(path),
                 line: Some(line),
+                reconnect_min_ms: Some(reconnect_min_ms),
+                reconnect_max_ms: Some(reconnect_max_ms),
                 ..RawTransport::default()
             },
             TransportConfig::Tcp {
@@ -243,7 +265,15 @@ impl TransportConfig {
     /// One line for logs and `check-config`: "serial /dev/ttyS0, 19200 8N2".
     pub fn describe(&self) -> String {
         match self {
-            TransportConfig::Serial { path, line } => format!("serial {path}, {line}"),
+            TransportConfig::Serial {
+                path,
+                line,
+                reconnect_min_ms,
+                reconnect_max_ms,
+            } => format!(
+                "serial {path}, {line}, reopened every {reconnect_min_ms}..{reconnect_max_ms} ms \
+                 while away"
+            ),
             TransportConfig::Tcp {
                 address,
                 line,
@@ -304,7 +334,12 @@ pub(super) fn transport_of(
 /// Checks common to every transport: the path, the address, the window and the backoff.
 pub(super) fn check_transport(c: &mut Checker, path: &str, t: &TransportConfig) {
     match t {
-        TransportConfig::Serial { path: dev, .. } => {
+        TransportConfig::Serial {
+            path: dev,
+            reconnect_min_ms,
+            reconnect_max_ms,
+            ..
+        } => {
             if dev.trim().is_empty() {
                 c.invalid(
                     format!("{path}.path"),
@@ -313,6 +348,7 @@ pub(super) fn check_transport(c: &mut Checker, path: &str, t: &TransportConfig) 
                     "",
                 );
             }
+            check_backoff(c, path, *reconnect_min_ms, *reconnect_max_ms);
         }
         TransportConfig::Tcp {
             address,
@@ -339,25 +375,29 @@ pub(super) fn check_transport(c: &mut Checker, path: &str, t: &TransportConfig) 
                 " bytes",
                 "",
             );
-            c.range(
-                || format!("{path}.reconnect_min_ms"),
-                *reconnect_min_ms,
-                1,
-                3_600_000,
-                "",
-                "",
-            );
-            c.range(
-                || format!("{path}.reconnect_max_ms"),
-                *reconnect_max_ms,
-                (*reconnect_min_ms).max(1),
-                3_600_000,
-                " (reconnect_min_ms or more)",
-                "",
-            );
+            check_backoff(c, path, *reconnect_min_ms, *reconnect_max_ms);
         }
         TransportConfig::Sim { .. } => {}
     }
+}
+
+fn check_backoff(c: &mut Checker, path: &str, min: u64, max: u64) {
+    c.range(
+        || format!("{path}.reconnect_min_ms"),
+        min,
+        1,
+        3_600_000,
+        "",
+        "",
+    );
+    c.range(
+        || format!("{path}.reconnect_max_ms"),
+        max,
+        min.max(1),
+        3_600_000,
+        " (reconnect_min_ms or more)",
+        "",
+    );
 }
 
 pub(super) fn valid_address(a: &str) -> bool {

@@ -482,6 +482,13 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             EngineEvent::CncAlarm => LinkEvent::CncAlarm,
             EngineEvent::Alarm(alarm) => {
                 tracing::warn!(number = alarm.cnc_alarm().map(CncAlarm::number), %alarm, "link alarm");
+                if let LinkAlarm::TimeOut { waited } = &alarm {
+                    // Silence past the protocol's time-out is how a half-open connection (a
+                    // device server that lost power or was replaced) shows: make a new one. The
+                    // engine has already re-initialised, so nothing in flight is lost by it.
+                    let why = format!("no message from the board for {waited:?}");
+                    self.pump.transport_mut().reconnect(&why);
+                }
                 LinkEvent::Alarm(alarm)
             }
             EngineEvent::ProtocolError { error, retried } => {

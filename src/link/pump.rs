@@ -161,7 +161,13 @@ impl<E: Engine, T: Transport> Pump<E, T> {
             }
             self.modem_out = Some(want);
         }
-        let tick = self.modem_tick.poll_tick(cx).is_ready();
+        // Poll until pending, so that the next tick's wake-up is registered: a tick taken
+        // without a change and nothing else to do would otherwise leave a silent line (a
+        // Protocol B line waiting for DR) unpolled for good.
+        let mut tick = false;
+        while self.modem_tick.poll_tick(cx).is_ready() {
+            tick = true;
+        }
         if !tick && self.modem_in.is_some() {
             return false;
         }
@@ -405,6 +411,104 @@ mod tests {
             elapsed >= Duration::from_secs(3) && elapsed < Duration::from_millis(3100),
             "{elapsed:?}"
         );
+    }
+
+    /// A transport whose input lines the test sets, and that carries nothing.
+    struct Lines(std::sync::Arc<std::sync::Mutex<ModemIn>>);
+
+    impl AsyncRead for Lines {
+        fn poll_read(
+            self: Pin<&mut Self>,
+            _: &mut Context<'_>,
+            _: &mut ReadBuf<'_>,
+        ) -> Poll<io::Result<()>> {
+            Poll::Pending
+        }
+    }
+    impl AsyncWrite for Lines {
+        fn poll_write(
+            self: Pin<&mut Self>,
+            _: &mut Context<'_>,
+            b: &[u8],
+        ) -> Poll<io::Result<usize>> {
+            Poll::Ready(Ok(b.len()))
+        }
+        fn poll_flush(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<io::Result<()>> {
+            Poll::Ready(Ok(()))
+        }
+        fn poll_shutdown(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<io::Result<()>> {
+            Poll::Ready(Ok(()))
+        }
+    }
+    impl Transport for Lines {
+        fn set_modem(&mut self, _: ModemOut) -> io::Result<()> {
+            Ok(())
+        }
+        fn modem(&mut self) -> io::Result<ModemIn> {
+            Ok(*self.0.lock().unwrap())
+        }
+        fn describe(&self) -> String {
+            "lines".into()
+        }
+    }
+
+    /// Records the input lines it is given; no deadlines, nothing to send.
+    #[derive(Default)]
+    struct Watcher(VecDeque<ModemIn>);
+
+    impl Engine for Watcher {
+        type Command = ();
+        type Event = ModemIn;
+        fn handle_input(&mut self, _: Instant, _: &[u8]) {}
+        fn handle_line_error(&mut self, _: Instant, _: LineError) {}
+        fn handle_modem(&mut self, _: Instant, modem: ModemIn) {
+            self.0.push_back(modem);
+        }
+        fn handle_command(&mut self, _: Instant, _: ()) {}
+        fn handle_timeout(&mut self, _: Instant) {}
+        fn poll_transmit(&mut self, _: Instant) -> Option<Vec<u8>> {
+            None
+        }
+        fn poll_event(&mut self) -> Option<ModemIn> {
+            self.0.pop_front()
+        }
+        fn poll_timeout(&self) -> Option<Instant> {
+            None
+        }
+    }
+
+    /// An engine with no deadline on a silent line still hears every change of the input
+    /// lines: the modem polling keeps itself going (it once stopped after a tick that saw no
+    /// change, leaving a Protocol B link down for good after its line came back).
+    #[tokio::test(start_paused = true)]
+    async fn a_silent_line_is_still_polled_for_its_modem_lines() {
+        let lines = std::sync::Arc::new(std::sync::Mutex::new(ModemIn::ALL_ON));
+        let mut pump = Pump::new(Watcher::default(), Lines(lines.clone()));
+        let down = ModemIn {
+            dr: false,
+            cs: false,
+            cd: false,
+        };
+        // The pump runs in a task of its own, so that nothing else's wake-ups poll it.
+        let drive = tokio::spawn(async move {
+            let mut seen = Vec::new();
+            let _ = tokio::time::timeout(Duration::from_secs(10), async {
+                loop {
+                    while let Some(m) = pump.engine_mut().poll_event() {
+                        seen.push(m);
+                    }
+                    pump.step().await.unwrap();
+                }
+            })
+            .await;
+            seen
+        });
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        *lines.lock().unwrap() = down;
+        tokio::time::sleep(Duration::from_secs(5)).await;
+        *lines.lock().unwrap() = ModemIn::ALL_ON;
+        let seen = drive.await.unwrap();
+        assert_eq!(seen, [ModemIn::ALL_ON, down, ModemIn::ALL_ON]);
     }
 
     #[tokio::test(start_paused = true)]

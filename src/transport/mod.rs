@@ -19,6 +19,7 @@
 //! [`Transport::modem`] (alarm SR0855). Neither is an I/O error, and nothing panics on line input.
 
 pub mod pacer;
+mod redial;
 pub mod serial;
 pub mod sim;
 pub mod tcp;

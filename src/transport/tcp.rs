@@ -22,8 +22,8 @@ use std::fmt;
 use std::future::Future;
 use std::io;
 use std::pin::Pin;
-use std::sync::{Arc, Mutex};
-use std::task::{Context, Poll, Wake, Waker};
+use std::sync::Arc;
+use std::task::{Context, Poll, Wake};
 use std::time::Duration;
 
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
@@ -31,6 +31,7 @@ use tokio::net::TcpStream;
 use tokio::time::{Instant, Sleep};
 use tracing::{debug, info, warn};
 
+use super::redial::{Backoff, Wakers};
 use super::{LineSettings, ModemIn, ModemOut, Pacer, Transport, TransportError};
 
 /// Connection and pacing options of a [`TcpTransport`].
@@ -89,51 +90,13 @@ enum State {
     Closed,
 }
 
-/// The wakers of the reading and the writing task. Either one may drive reconnection (poll the
-/// connect future or the backoff timer); whichever does, both are woken on progress, so that a
-/// reader is not left asleep because a writer happened to poll last.
-#[derive(Default)]
-struct Wakers {
-    read: Mutex<Option<Waker>>,
-    write: Mutex<Option<Waker>>,
-}
-
-impl Wakers {
-    fn set(slot: &Mutex<Option<Waker>>, w: &Waker) {
-        let mut g = slot.lock().unwrap_or_else(|e| e.into_inner());
-        match &*g {
-            Some(old) if old.will_wake(w) => {}
-            _ => *g = Some(w.clone()),
-        }
-    }
-}
-
-impl Wake for Wakers {
-    fn wake(self: Arc<Self>) {
-        self.wake_by_ref();
-    }
-
-    fn wake_by_ref(self: &Arc<Self>) {
-        for slot in [&self.read, &self.write] {
-            let w = slot.lock().unwrap_or_else(|e| e.into_inner()).take();
-            if let Some(w) = w {
-                w.wake();
-            }
-        }
-    }
-}
-
 /// A serial line reached through a TCP device server. See the [module docs](self).
 pub struct TcpTransport {
     addr: String,
     line: LineSettings,
     opts: TcpOptions,
     state: State,
-    /// Wait before the next attempt after a failure.
-    backoff: Duration,
-    connected_at: Option<Instant>,
-    /// Failed attempts since the last connection, for quieter logs.
-    failures_in_a_row: u64,
+    backoff: Backoff,
     pacer: Pacer,
     write_sleep: Option<Pin<Box<Sleep>>>,
     /// Since when the connection has not taken a write, and the timer of the write time-out.
@@ -194,9 +157,7 @@ impl TcpTransport {
             state: State::Connecting(connect_future(addr.clone(), opts.connect_timeout)),
             addr,
             line,
-            backoff: opts.backoff_min,
-            connected_at: None,
-            failures_in_a_row: 0,
+            backoff: Backoff::new(opts.backoff_min, opts.backoff_max),
             pacer: Pacer::new(line, opts.window),
             write_sleep: None,
             write_stuck: None,
@@ -249,34 +210,42 @@ impl TcpTransport {
                         debug!(addr = %self.addr, error = %e, "could not set TCP keepalive");
                     }
                 }
+                // Bytes the device server does not acknowledge within the write time-out drop
+                // the connection (a powered-off server never answers, and TCP alone would
+                // retransmit for about 15 minutes).
+                #[cfg(target_os = "linux")]
+                if let Err(e) = socket2::SockRef::from(&stream)
+                    .set_tcp_user_timeout(Some(self.opts.write_timeout))
+                {
+                    debug!(addr = %self.addr, error = %e, "could not set TCP_USER_TIMEOUT");
+                }
                 self.stats.connects += 1;
+                let failed = self.backoff.up();
                 info!(
                     addr = %self.addr,
-                    attempts = self.failures_in_a_row + 1,
+                    attempts = failed + 1,
                     "connected to the device server"
                 );
-                self.failures_in_a_row = 0;
-                self.connected_at = Some(Instant::now());
                 // The device server's buffer starts empty.
                 self.pacer.reset();
                 self.state = State::Connected(stream);
             }
             Err(e) => {
                 self.stats.connect_failures += 1;
-                self.failures_in_a_row += 1;
-                if self.failures_in_a_row == 1 {
+                let attempt = self.backoff.failed();
+                if attempt == 1 {
                     warn!(
                         addr = %self.addr,
                         error = %e,
-                        retry_in = ?self.backoff,
+                        retry_in = ?self.backoff.peek(),
                         "cannot connect to the device server; the line reads as open until it answers"
                     );
                 } else {
                     debug!(
                         addr = %self.addr,
                         error = %e,
-                        attempt = self.failures_in_a_row,
-                        retry_in = ?self.backoff,
+                        attempt,
+                        retry_in = ?self.backoff.peek(),
                         "device server still unreachable"
                     );
                 }
@@ -286,27 +255,18 @@ impl TcpTransport {
     }
 
     fn wait_backoff(&mut self) {
-        let wait = self.backoff;
-        self.backoff = (self.backoff * 2).min(self.opts.backoff_max);
+        let wait = self.backoff.take_wait();
         self.state = State::Backoff(Box::pin(tokio::time::sleep(wait)));
     }
 
     fn disconnected(&mut self, why: &dyn fmt::Display) {
         self.stats.disconnects += 1;
-        // A connection that lasted resets the backoff; one dropped at once (a device server
-        // that accepts and closes) keeps it growing.
-        let lasted = self
-            .connected_at
-            .is_some_and(|t| t.elapsed() >= self.opts.backoff_max);
-        if lasted {
-            self.backoff = self.opts.backoff_min;
-        }
-        self.connected_at = None;
+        self.backoff.lost();
         self.write_stuck = None;
         warn!(
             addr = %self.addr,
             reason = %why,
-            retry_in = ?self.backoff,
+            retry_in = ?self.backoff.peek(),
             "device server connection lost; the line reads as open until it is back"
         );
         self.wait_backoff();
@@ -315,7 +275,7 @@ impl TcpTransport {
 
     /// Drive reconnection as far as it goes without waiting. Returns whether connected.
     fn poll_connection(&mut self) -> bool {
-        let waker = Waker::from(self.wakers.clone());
+        let waker = self.wakers.waker();
         let mut cx = Context::from_waker(&waker);
         loop {
             match &mut self.state {

@@ -2,6 +2,7 @@
 #![allow(dead_code)]
 
 pub mod bus;
+pub mod device_server;
 
 use std::time::Duration;
 
