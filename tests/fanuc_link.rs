@@ -149,13 +149,22 @@ async fn recovers_from_corruption(protocol: &str, packet_n: Option<u8>) {
     let mut events = m.link.subscribe();
     let program = nc_program(64 * 1024, 3);
     queue(&m.link, 1, program.clone()).await;
-    // Corrupt one character whenever the transfer has made progress, five times over.
+    // Corrupt one character whenever the transfer has made progress, five times over. The
+    // next one waits until the last one hit a byte and the transfer moved on twice, so that no
+    // frame takes two hits, which could cancel in the 8-bit sum.
     let mut corrupted = 0;
+    let mut moved_since = 2;
     let done = loop {
         match events.recv().await.unwrap() {
             LinkEvent::Progress { .. } if corrupted < 5 => {
-                line.corrupt_next(Dir::HostToDevice, 0x04);
-                corrupted += 1;
+                if line.counters(Dir::HostToDevice).corrupted == corrupted {
+                    moved_since += 1;
+                }
+                if moved_since > 2 {
+                    line.corrupt_next(Dir::HostToDevice, 0x04);
+                    corrupted += 1;
+                    moved_since = 0;
+                }
             }
             LinkEvent::JobDone { job: 1, bytes, .. } => break bytes,
             LinkEvent::JobFailed { reason, .. } => panic!("job failed: {reason}"),

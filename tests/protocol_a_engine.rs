@@ -453,7 +453,11 @@ fn a_10_kib_program_in_dats_then_eod() {
     assert!(ev.contains(&EngineEvent::ProgramDone {
         confirmation: Confirmation::Acknowledged
     }));
-    // Nothing queued any more: the next GTD waits, then gets WAT.
+    // The CNC may still be reading the program: GTDs get EOD (§8.2)...
+    b.board(Command::Gtd);
+    b.expect(Command::Eod);
+    // ...until a SAT shows the buffer empty. Then, nothing queued: a GTD waits, then WAT.
+    b.sat(board_sat(Params::POWER_ON, 0));
     b.board(Command::Gtd);
     b.expect_silence();
     b.advance(SEC);
@@ -572,6 +576,7 @@ fn eor_is_appended_and_trailing_data_dropped() {
     b.command(EngineCommand::StartProgram { total: None });
     b.data(b"%\nO2;\n%\nafter EOR");
     assert_eq!(b.host.data_wanted(), 0);
+    b.sat(board_sat(Params::POWER_ON, 0));
     b.board(Command::Gtd);
     assert_eq!(b.dat(), b"%\nO2;\n%");
 }
@@ -891,19 +896,60 @@ fn expansion_stop_request_after_the_end_packet_fails_the_program() {
     assert!(done(&ev));
 }
 
-/// Expansion A packets ten packets back are past any NAK: acknowledged while the rest flows.
+/// Expansion A packets get only negative acknowledgements (§5.3): a packet past the NAK window
+/// is not known to be held (the NAK may have been lost, the board may have lost the packet
+/// boundary), so nothing is acknowledged before the board is back in Protocol A, and a
+/// transmission cut in the middle acknowledges nothing.
 #[test]
-fn expansion_packets_past_the_nak_window_are_acknowledged() {
-    let mut b = expansion(1);
+fn expansion_acknowledges_only_at_the_end_of_the_transmission() {
     let program = program_of(256 * 15 + 100);
+    let mut b = expansion(1);
     start(&mut b, &program, true);
     b.board(Command::Gtd);
-    let packets = b.packets(1);
-    assert_eq!(packets.len(), 16);
+    assert_eq!(b.packets(1).len(), 16);
     let ev = b.take_events();
-    // 16 packets sent, the last ten kept: six past the window.
-    assert_eq!(acked(&ev), Some(6 * 256));
+    assert_eq!(acked(&ev), None, "six packets are past the window of ten");
     assert!(!done(&ev));
+    b.sat(board_sat(Params::POWER_ON, 1));
+    let ev = b.take_events();
+    assert_eq!(acked(&ev), Some(program.len() as u64));
+    assert!(done(&ev));
+
+    let mut b = expansion(1);
+    start(&mut b, &program, true);
+    b.board(Command::Gtd);
+    let _ = b.next_packet(1);
+    b.monitor(Monitor::Stop);
+    while b.next_packet(1).is_some() {}
+    b.board(Command::Rst);
+    b.expect(Command::Ars);
+    let ev = b.take_events();
+    assert_eq!(aborted(&ev).len(), 1, "{ev:?}");
+    assert_eq!(acked(&ev), None);
+}
+
+/// The next program waits until the CNC has read the last one: every byte behind an EOR is
+/// ignored (§8.2), so GTDs get EOD while a SAT shows the buffer still holding data.
+#[test]
+fn the_next_program_waits_for_the_buffer_to_drain() {
+    let mut b = expansion(1);
+    start(&mut b, &program_of(600), true);
+    b.board(Command::Gtd);
+    assert_eq!(numbers(&b.packets(1)), [0x30, 0x31, 0xFF]);
+    // The board back in Protocol A asks for more while the CNC still reads: EOD.
+    b.board(Command::Gtd);
+    b.expect(Command::Eod);
+    assert!(done(&b.take_events()));
+    start(&mut b, &program_of(300), true);
+    let mut holding = board_sat(Params::POWER_ON, 1);
+    holding.buffered = Some(120);
+    b.sat(holding);
+    b.board(Command::Gtd);
+    b.expect(Command::Eod);
+    // Empty: the CNC has read the EOR.
+    b.sat(board_sat(Params::POWER_ON, 1));
+    b.board(Command::Gtd);
+    assert_eq!(numbers(&b.packets(1)), [0x30, 0xFF]);
 }
 
 #[test]

@@ -108,7 +108,9 @@ pub enum EngineEvent {
 pub enum Confirmation {
     /// The protocol acknowledged every byte: in Protocol A the board's next exchange after
     /// the DAT (not RTY, RST or ALM), in Expansion Protocol A the board back in Protocol A
-    /// after the end packet, with every packet past the NAK window (§4.4, §5.2).
+    /// after the end packet (§4.4, §5.2). Expansion A packets get only negative
+    /// acknowledgements (NAK, §5.3), so nothing of a transmission is acknowledged before its
+    /// end: a program cut in the middle of one fails at the offset acknowledged before it.
     Acknowledged,
     /// Protocol B: the DC3 that ends the read arrived after the EOR had had its line time,
     /// and no reset or alarm notice (SYN, NAK) or ER off followed it (§6.1.1 (7), §6.4).

@@ -171,6 +171,45 @@ impl Segment {
     }
 }
 
+/// Random faults on every byte of one direction, for fault-matrix tests: each byte is dropped
+/// with probability `drop_ppm` / 10⁶, else hit in one bit with probability `corrupt_ppm` / 10⁶
+/// (reported as a parity error on a line with parity, as for [`SimLine::corrupt_next`]). After
+/// a fault the next `guard` bytes are left alone: with a guard longer than a frame, no frame
+/// takes two hits, which an 8-bit sum could miss (two flips of one bit in opposite directions
+/// cancel). The same `seed` gives the same faults for the same bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Noise {
+    pub corrupt_ppm: u32,
+    pub drop_ppm: u32,
+    pub guard: u32,
+    pub seed: u64,
+}
+
+impl Noise {
+    fn is_quiet(&self) -> bool {
+        self.corrupt_ppm == 0 && self.drop_ppm == 0
+    }
+}
+
+/// A small deterministic generator (xorshift64*): the line's noise needs no crate.
+#[derive(Debug, Clone, Copy)]
+struct Rng(u64);
+
+impl Rng {
+    fn new(seed: u64) -> Self {
+        Rng(seed | 1)
+    }
+
+    fn next(&mut self) -> u64 {
+        let mut x = self.0;
+        x ^= x >> 12;
+        x ^= x << 25;
+        x ^= x >> 27;
+        self.0 = x;
+        x.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+}
+
 #[derive(Debug)]
 struct Direction {
     pacer: Pacer,
@@ -178,6 +217,10 @@ struct Direction {
     /// Receive errors not yet taken by the receiver.
     errors: VecDeque<LineError>,
     faults: VecDeque<ByteFault>,
+    noise: Noise,
+    rng: Rng,
+    /// Bytes still to pass before the noise may hit again.
+    guarded: u32,
     drop_next: u64,
     delay: Duration,
     counters: Counters,
@@ -196,6 +239,9 @@ impl Direction {
             queue: VecDeque::new(),
             errors: VecDeque::new(),
             faults: VecDeque::new(),
+            noise: Noise::default(),
+            rng: Rng::new(0),
+            guarded: 0,
             drop_next: 0,
             delay: Duration::ZERO,
             counters: Counters::default(),
@@ -483,7 +529,7 @@ impl AsyncWrite for SimPort {
             let accepted = buf.get(..n).unwrap_or(buf);
             if cut || d.reader_closed {
                 d.counters.lost += n as u64;
-            } else if d.drop_next == 0 && d.faults.is_empty() {
+            } else if d.drop_next == 0 && d.faults.is_empty() && d.noise.is_quiet() {
                 if mask == 0xFF {
                     d.push(&settings, accepted, run_start, placement.first(), None);
                 } else {
@@ -499,7 +545,25 @@ impl AsyncWrite for SimPort {
                     }
                     let mut byte = byte;
                     let mut error = None;
-                    match d.faults.pop_front() {
+                    let mut fault = d.faults.pop_front();
+                    if fault.is_none() && !d.noise.is_quiet() {
+                        let draw = d.rng.next();
+                        let roll = (draw % 1_000_000) as u32;
+                        if d.guarded > 0 {
+                            d.guarded -= 1;
+                        } else if roll < d.noise.drop_ppm {
+                            d.counters.dropped += 1;
+                            d.guarded = d.noise.guard;
+                            continue;
+                        } else if roll - d.noise.drop_ppm < d.noise.corrupt_ppm {
+                            let bit = 1u8 << ((draw >> 32) % 8);
+                            // A hit outside the data bits would change nothing.
+                            let bit = if bit & mask == 0 { 1 } else { bit };
+                            fault = Some(ByteFault::Corrupt(bit));
+                            d.guarded = d.noise.guard;
+                        }
+                    }
+                    match fault {
                         None => {}
                         Some(ByteFault::Corrupt(m)) => {
                             d.counters.corrupted += 1;
@@ -641,6 +705,15 @@ impl SimLine {
             .dir(dir)
             .faults
             .push_back(ByteFault::Error(error));
+    }
+
+    /// Random faults on every byte written in `dir` from now on; [`Noise::default`] stops them.
+    pub fn set_noise(&self, dir: Dir, noise: Noise) {
+        let mut g = lock(&self.shared);
+        let d = g.dir(dir);
+        d.noise = noise;
+        d.rng = Rng::new(noise.seed);
+        d.guarded = 0;
     }
 
     /// Silently drop the next `n` bytes written in `dir` (adds to any drop still pending).

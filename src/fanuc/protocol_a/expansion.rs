@@ -52,7 +52,10 @@ pub(crate) struct PacketRun {
     next_slot: u8,
     /// The last packets sent: slot, bytes, program bytes sent for the first time in it.
     history: VecDeque<(u8, Vec<u8>, u64)>,
-    /// Program bytes of packets that left `history`: past any NAK, acknowledged.
+    /// Program bytes of packets that left `history`. Past the NAK window, but not acknowledged:
+    /// Expansion A has no positive acknowledgement (§5.3), and a board that lost the packet
+    /// boundary or a NAK that was lost on the line leaves no trace here, so only the end of
+    /// the transmission acknowledges (see `unacked_program_bytes`).
     evicted: u64,
     resend: VecDeque<Vec<u8>>,
     /// DC3 received: hold until the next monitor packet (§5.3 3).
@@ -176,13 +179,8 @@ impl PacketRun {
         bytes
     }
 
-    /// Program bytes past the NAK window since the last call.
-    pub(crate) fn take_evicted(&mut self) -> u64 {
-        std::mem::take(&mut self.evicted)
-    }
-
-    /// Program bytes sent and still within the NAK window (with those evicted and not taken
-    /// yet): what the board's return to Protocol A acknowledges.
+    /// Program bytes sent in this transmission: what the board's return to Protocol A after
+    /// the end packet acknowledges.
     pub(crate) fn unacked_program_bytes(&self) -> u64 {
         self.evicted + self.history.iter().map(|(_, _, p)| p).sum::<u64>()
     }

@@ -68,6 +68,11 @@
 
 mod expansion;
 
+/// Shortest DAT a noisy line brings the host down to (see `dat_len_now`).
+pub const MIN_NOISY_DAT: usize = 128;
+/// DATs taken without an RTY before the DAT length doubles again.
+const CLEAN_DATS_TO_GROW: u8 = 8;
+
 pub use expansion::PAD;
 
 use std::collections::VecDeque;
@@ -328,6 +333,14 @@ pub struct ProtocolAHost {
     /// The packet length n the board uses (0: Protocol A).
     board_n: u8,
     board_in_alarm: bool,
+    /// The last program's EOR is in the board's buffer and the CNC may still be reading it:
+    /// every byte behind an EOR is ignored (§8.2), so the next program waits — GTDs get EOD,
+    /// "the transmission of NC data has been completed" (§4.4.1) — until a SAT shows the
+    /// buffer empty (bytes 5–8), or a CLB has cleared it.
+    drain_wait: bool,
+    /// Longest DAT for now (see [`Self::dat_len_now`]), and DATs taken since it last shrank.
+    dat_limit: usize,
+    clean_dats: u8,
     /// The next SET carries the parameters whatever the SAT says (first after initialisation).
     set_needed: bool,
     read_di: bool,
@@ -384,6 +397,9 @@ impl ProtocolAHost {
             sat: None,
             board_n: 0,
             board_in_alarm: false,
+            drain_wait: false,
+            dat_limit: MAX_DAT_DATA,
+            clean_dats: 0,
             set_needed: true,
             read_di: false,
             set_do: VecDeque::new(),
@@ -441,6 +457,15 @@ impl ProtocolAHost {
     fn dat_len(&self) -> usize {
         let p = self.board_params();
         usize::from(p.nb.saturating_sub(p.no)).clamp(1, MAX_DAT_DATA)
+    }
+
+    /// The DAT length to use now: [`Self::dat_len`], shortened on a noisy line. Each RTY for a
+    /// DAT halves it (down to [`MIN_NOISY_DAT`]); every [`CLEAN_DATS_TO_GROW`] DATs taken
+    /// without one double it again. At an error rate of 1e-3 per byte a 1950-byte DAT gets
+    /// through one time in seven, and the RTYs it costs run into Ne (§4.6 2 (1)); a 240-byte
+    /// one four times in five.
+    fn dat_len_now(&self) -> usize {
+        self.dat_len().min(self.dat_limit)
     }
 
     fn supervision_interval(&self) -> Duration {
@@ -832,11 +857,21 @@ impl ProtocolAHost {
         if let Some(n) = sd.packet_n {
             self.board_n = effective_packet_n(n);
         }
+        // A board that does not report its buffer cannot be waited for.
+        if self.drain_wait && sd.buffered.is_none_or(|b| b == 0) {
+            self.drain_wait = false;
+        }
         if let Some(status) = sd.status {
             let alarm = status == BufferStatus::Alarm;
-            if alarm && !self.board_in_alarm {
+            if alarm {
                 let cause = sd.alarm_cause.unwrap_or(AlarmCause::NcAlarm);
-                self.alarm(LinkAlarm::BoardAlarm { cause });
+                if !self.board_in_alarm {
+                    self.alarm(LinkAlarm::BoardAlarm { cause });
+                }
+                // A board in alarm took nothing it was sent since its last exchange: reception
+                // errors (retry over, command errors) raise SR0945/SR0947/SR0948 and drop the
+                // received data (§4.6 2), so this SAT acknowledges no DAT, and a program under
+                // way cannot go on while the CNC is in alarm.
                 self.abort_program(AbortReason::BoardAlarm(cause), false, false, true);
             }
             self.board_in_alarm = alarm;
@@ -846,6 +881,10 @@ impl ProtocolAHost {
 
     fn on_rty(&mut self, now: Instant, msg: &Message) {
         self.retries = self.retries.saturating_add(1);
+        if self.dat_unacked > 0 {
+            self.dat_limit = (self.dat_len_now() / 2).max(MIN_NOISY_DAT);
+            self.clean_dats = 0;
+        }
         let ne = self.ne();
         if self.retries > ne {
             self.retry_over(now);
@@ -911,6 +950,7 @@ impl ProtocolAHost {
                     bytes = self.acked,
                     "program delivered (end packet acknowledged)"
                 );
+                self.drain_wait = true;
                 self.emit(EngineEvent::ProgramDone {
                     confirmation: Confirmation::Acknowledged,
                 });
@@ -930,6 +970,13 @@ impl ProtocolAHost {
     /// they arrived (§4.4.1); the one after the final DAT completes the program.
     fn on_exchange(&mut self) {
         let bytes = std::mem::take(&mut self.dat_unacked);
+        if bytes > 0 && self.dat_limit < MAX_DAT_DATA {
+            self.clean_dats += 1;
+            if self.clean_dats >= CLEAN_DATS_TO_GROW {
+                self.clean_dats = 0;
+                self.dat_limit = (self.dat_limit * 2).min(MAX_DAT_DATA);
+            }
+        }
         self.ack(bytes);
         if self.final_sent && self.eod_owed == Some(EodFor::Done) {
             self.final_sent = false;
@@ -939,6 +986,7 @@ impl ProtocolAHost {
                 bytes = self.acked,
                 "program delivered (final DAT acknowledged)"
             );
+            self.drain_wait = true;
             self.emit(EngineEvent::ProgramDone {
                 confirmation: Confirmation::Acknowledged,
             });
@@ -964,6 +1012,7 @@ impl ProtocolAHost {
                     self.send_sdo(v);
                 } else if self.clb_owed {
                     self.clb_owed = false;
+                    self.drain_wait = false;
                     self.send(Command::Clb);
                 } else {
                     let msg = self.set_message(data.as_ref());
@@ -1053,6 +1102,10 @@ impl ProtocolAHost {
             self.send(Command::Wat);
             return true;
         }
+        if self.drain_wait {
+            self.send(Command::Eod);
+            return true;
+        }
         let n = self.board_n;
         if n != 0 {
             let ready = self
@@ -1065,7 +1118,7 @@ impl ProtocolAHost {
                 return true;
             }
         } else {
-            let len = self.dat_len();
+            let len = self.dat_len_now();
             if let Some(p) = self.program.as_mut()
                 && (p.can_fill(len) || (grace_over && p.buffered() > 0))
             {
@@ -1285,7 +1338,6 @@ impl Engine for ProtocolAHost {
         let run = self.run.as_mut()?;
         let out = run.next(now, self.program.as_mut(), self.cfg.dummy_interval)?;
         let delivered = run.outcome == RunOutcome::Delivered;
-        let evicted = run.take_evicted();
         tracing::trace!(no = out.no, "data packet out");
         if delivered && self.program.as_ref().is_some_and(Program::all_sent) {
             self.program = None;
@@ -1296,7 +1348,6 @@ impl Engine for ProtocolAHost {
                 bytes: out.program_bytes as u64,
             });
         }
-        self.ack(evicted);
         self.update_state();
         Some(out.bytes)
     }
