@@ -174,7 +174,10 @@ fn a_usage_error_exits_2() {
 fn run_on_an_endpoint_in_use_exits_1() {
     let taken = TcpListener::bind("127.0.0.1:0").unwrap();
     let port = taken.local_addr().unwrap().port();
+    // Its programs directory and journal go in a directory of its own.
+    let dir = tempfile::tempdir().unwrap();
     let mut child = Command::new(BIN)
+        .current_dir(dir.path())
         .args(["run", "--listen", &format!("tcp/127.0.0.1:{port}")])
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
         .env_remove("CELLGATE_CONFIG")
