@@ -1460,6 +1460,12 @@ mod g05 {
         assert_eq!(programs[0].sha256, sha(&tape));
         assert!(rig.alarms().is_empty());
         assert_eq!(rig.board.cnc().g05_stats(), Some(stats));
+        let position = |f: fn(&BoardEvent) -> bool| rig.events.iter().position(|(_, e)| f(e));
+        assert!(
+            position(|e| matches!(e, BoardEvent::G05Ended { .. }))
+                < position(|e| matches!(e, BoardEvent::ProgramReceived(_))),
+            "the session ends before the program"
+        );
     }
 
     #[test]

@@ -521,12 +521,9 @@ impl FanucBoard {
         }
     }
 
-    /// Reports what the CNC did: programs read, binary input operation and its SR0890.
+    /// Reports what the CNC did: binary input operation and its SR0890, programs read. In
+    /// that order: a program read ends the CNC's reading, so nothing it did before can follow.
     fn collect_cnc(&mut self, now: Instant) {
-        while let Some(p) = self.cnc.take_finished() {
-            self.out.event(BoardEvent::ProgramReceived(p));
-            self.out.event(BoardEvent::ReadingStopped);
-        }
         while let Some(notice) = self.cnc.take_g05_notice() {
             match notice {
                 G05Notice::Entered { .. } => {
@@ -561,6 +558,10 @@ impl FanucBoard {
                     self.out.event(BoardEvent::G05Ended { end, stats });
                 }
             }
+        }
+        while let Some(p) = self.cnc.take_finished() {
+            self.out.event(BoardEvent::ProgramReceived(p));
+            self.out.event(BoardEvent::ReadingStopped);
         }
     }
 }
