@@ -703,6 +703,47 @@ proptest! {
     }
 
     #[test]
+    fn decoded_blocks_encode_back(f in any_format(), bytes in prop::collection::vec(any::<u8>(), 0..400)) {
+        // Mostly valid check bytes: fix every block's check byte half of the time.
+        let len = f.block_len();
+        let mut bytes = bytes;
+        for (i, chunk) in bytes.chunks_mut(len).enumerate() {
+            if i % 2 == 0 && chunk.len() == len {
+                let ck = check_byte(&chunk[..len - 1]);
+                chunk[len - 1] = ck;
+            }
+        }
+        let mut d = BlockDecoder::new(f).unwrap();
+        let decoded: Vec<_> = d.decode(&bytes).collect();
+        for (raw, result) in bytes.chunks_exact(len).zip(decoded) {
+            let Ok(block) = result else {
+                prop_assert_ne!(check_byte(&raw[..len - 1]), raw[len - 1]);
+                continue;
+            };
+            prop_assert_eq!(block.is_end(), raw.iter().all(|&b| b == 0));
+            if block.is_end() {
+                continue;
+            }
+            let travels: Vec<i32> = block.travels().iter().map(|&t| i32::from(t)).collect();
+            let mut again = Vec::new();
+            match f.encode_block(1, &travels, block.aux(), &mut again) {
+                Ok(()) => {
+                    if f.data_format == DataFormat::General || raw.iter().all(|&b| b % 2 == 0) {
+                        prop_assert_eq!(&again[..], raw);
+                    }
+                    let back = decode_all(f, &again).remove(0).unwrap();
+                    prop_assert_eq!(back.travels(), block.travels());
+                    prop_assert_eq!(back.aux(), block.aux());
+                }
+                Err(G05EncodeError::ZeroBlock { .. }) => {
+                    prop_assert_eq!(f.data_format, DataFormat::Special);
+                }
+                Err(e) => prop_assert!(false, "{e}"),
+            }
+        }
+    }
+
+    #[test]
     fn travel_words_round_trip(v in -32768i32..=32767) {
         for format in [DataFormat::Special, DataFormat::General] {
             let (min, max) = format.travel_range();
