@@ -622,7 +622,10 @@ fn any_format() -> impl Strategy<Value = G05Format> {
 }
 
 /// A format and valid blocks for it (travels in range, auxiliary value in range).
-fn format_and_blocks() -> impl Strategy<Value = (G05Format, Vec<(Vec<i32>, Option<AuxWord>)>)> {
+/// Travels and auxiliary word of one block.
+type BlockValues = (Vec<i32>, Option<AuxWord>);
+
+fn format_and_blocks() -> impl Strategy<Value = (G05Format, Vec<BlockValues>)> {
     any_format().prop_flat_map(|f| {
         let (min, max) = f.data_format.travel_range();
         let aux = if f.aux.rax() {
