@@ -92,8 +92,9 @@ pub struct G05Stats {
     pub aux_count: u64,
     /// Unit times that found no whole block in the buffer (§9.2), from the `G05` block on.
     pub underruns: u64,
-    /// Fewest whole blocks in the buffer at a unit time (before it took its block), from the
-    /// one that took the first block on; `None` before the first block.
+    /// Fewest whole blocks in the buffer at a unit time (before it took its block; an end
+    /// block waiting counts), from the one that took the first block on; `None` before the
+    /// first block. 0 once a unit time found none after the first block.
     pub min_buffered_blocks: Option<u64>,
     /// How the session ended; `None` while it runs.
     pub end: Option<G05End>,

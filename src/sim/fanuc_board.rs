@@ -22,6 +22,9 @@
 //! SR0856 past the overrun allowance after DC3; DC3 when the read ends at EOR; CNC alarm and
 //! reset posted as NAK / SYN (after DC3 or DC4) or, with notification off, as DC3 and ER off
 //! (§6.4); punch-out on demand as DC2 … DC4 under the host's DC3 / DC1 / DC2 and CS.
+//!
+//! G05 binary input operation (§9) is the CNC's ([`BoardConfig::g05`]): the board reports
+//! its start, underruns and end as [`BoardEvent`]s, and its SR0890 as a CNC alarm.
 
 mod expansion_a;
 mod protocol_a;

@@ -2,7 +2,8 @@
 //! it, speaking the device side of the protocols the gateway speaks as host.
 //!
 //! - [`fanuc_board`]: the board, sans-IO ([`FanucBoard`] implements [`Engine`]);
-//! - [`cnc`]: the CNC model: buffer, consumption at a rate, programs split at EOR, DI/DO;
+//! - [`cnc`]: the CNC model: buffer, consumption at a rate, programs split at EOR, DI/DO,
+//!   G05 binary input operation (one block a unit time, underruns, SR0890);
 //! - [`server`]: the board as a TCP serial device server (`cellgate sim fanuc`).
 //!
 //! [`BoardHandle`] runs a board over any [`Transport`] in a tokio task, and is what tests and
