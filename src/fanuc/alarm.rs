@@ -23,6 +23,10 @@ pub enum CncAlarm {
     /// SR0948 error code detected in Protocol A: end code in a command name, undefined
     /// command, or a command other than the expected one.
     Sr0948BadCommand,
+    /// SR0890 CHECK SUM ERROR (G05): a binary input block's check byte is wrong (§9.1 (9)).
+    Sr0890G05CheckSum,
+    /// SR0891 ILLEGAL COMMAND G05: G05 was issued when it could not be issued (§9.3 2).
+    Sr0891IllegalG05,
 }
 
 impl CncAlarm {
@@ -36,6 +40,8 @@ impl CncAlarm {
             Self::Sr0946FramingOverrun => "SR0946",
             Self::Sr0947InvalidResponse => "SR0947",
             Self::Sr0948BadCommand => "SR0948",
+            Self::Sr0890G05CheckSum => "SR0890",
+            Self::Sr0891IllegalG05 => "SR0891",
         }
     }
 
@@ -51,6 +57,8 @@ impl CncAlarm {
                 "COMMUNICATION ERROR (RMT-BUF): invalid response command in protocol A"
             }
             Self::Sr0948BadCommand => "COMMUNICATION ERROR (RMT-BUF): error code in protocol A",
+            Self::Sr0890G05CheckSum => "CHECK SUM ERROR (G05)",
+            Self::Sr0891IllegalG05 => "ILLEGAL COMMAND G05",
         }
     }
 }

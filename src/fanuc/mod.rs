@@ -15,11 +15,13 @@
 //! - [`protocol_a`]: the sans-IO host engine for Protocol A and Expansion Protocol A (§4, §5);
 //! - [`protocol_b`]: the sans-IO host engine for Protocol B and Expansion Protocol B (§6, §7);
 //! - [`tape`]: punch codes ISO / ASCII / EIA, conversion and recognition (§10 0000#2, #4);
+//! - [`g05`]: G05 binary input operation: settings, block codec, the `G05` block (§9);
 //! - [`alarm`]: the CNC alarm numbers of §11 that a link can raise.
 
 pub mod alarm;
 pub mod code;
 pub mod error;
+pub mod g05;
 pub mod host;
 pub mod message;
 pub mod packet;

@@ -8,6 +8,16 @@
 //! (§8.2; protocol notes 8): the first `%` before any other significant character is the
 //! tape-start mark, the program ends at the next `%`, and the CNC stops reading there; data
 //! after EOR is ignored (dropped from the buffer). A reset loses buffered data (§8.2).
+//!
+//! With G05 settings ([`Cnc::with_g05`]), the CNC enters binary input operation when it reads
+//! the `G05` block (protocol notes 15) and from then on takes one whole block from the buffer
+//! every unit time T (§9.1, §9.2), also computed lazily from `now`: slot i falls at
+//! entry + i·T, counted from the moment the CNC read the end of the `G05` block. A slot that
+//! finds no whole block is an underrun, so the slots between `G05` and the first block that
+//! arrive too late count as underruns too. A block arriving at the very instant of a slot is
+//! too late for it. The all-zero end block leaves binary mode (text is read at the rate again
+//! from that slot on); a wrong check byte raises SR0890 (§11) and leaves it too. Binary
+//! blocks are part of the program the CNC reads (its length and SHA-256 cover them).
 
 use std::collections::VecDeque;
 use std::fmt;
@@ -17,6 +27,7 @@ use bytes::Bytes;
 use sha2::{Digest, Sha256};
 
 use crate::fanuc::code::{EOR, is_eor, is_significant};
+use crate::fanuc::g05::{BlockDecoder, G05DecodeError, G05Entry, G05Format, InvalidG05Format};
 use crate::fanuc::sat::{AlarmCause, BufferStatus};
 
 /// The remote buffer's buffer on the real board: 8 KiB (§12.2).
@@ -28,6 +39,79 @@ pub const DEFAULT_CONSUME_RATE: u32 = 2000;
 /// Default cap on the bytes of one program kept in memory (its length and SHA-256 always
 /// cover all of it).
 pub const DEFAULT_KEEP_PROGRAM_BYTES: usize = 16 << 20;
+
+/// Significant auxiliary values kept per binary session ([`G05Stats::aux`]); the count goes on.
+pub const MAX_AUX_KEPT: usize = 256;
+
+/// Underrun reports come at most this often ([`G05Notice::Underruns`]).
+pub const UNDERRUN_REPORT_INTERVAL: Duration = Duration::from_secs(1);
+
+/// G05 notices kept for the board; older ones are dropped beyond this.
+const MAX_NOTICES: usize = 1024;
+
+/// How a binary input session ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum G05End {
+    /// The all-zero end block (§9.1).
+    EndBlock,
+    /// A wrong check byte: SR0890 (§9.1 (9), §11).
+    CheckSum,
+    /// A CNC reset.
+    Reset,
+    /// A CNC alarm (other than SR0890).
+    Alarm,
+}
+
+impl G05End {
+    pub fn name(self) -> &'static str {
+        match self {
+            G05End::EndBlock => "end-block",
+            G05End::CheckSum => "check-sum",
+            G05End::Reset => "reset",
+            G05End::Alarm => "alarm",
+        }
+    }
+}
+
+/// Binary input operation as the CNC saw it: the current session, or the last one when
+/// [`G05Stats::active`] is false.
+#[derive(Debug, Clone, PartialEq, Eq, Default, serde::Serialize)]
+pub struct G05Stats {
+    /// In binary input operation now.
+    pub active: bool,
+    /// Sessions since power-on (times the CNC read `G05`).
+    pub sessions: u64,
+    /// Blocks taken, the end block not counted.
+    pub blocks: u64,
+    /// Travel received per axis, least input increments, summed over the blocks.
+    pub travel: Vec<i64>,
+    /// Significant auxiliary values received, oldest first, the first [`MAX_AUX_KEPT`].
+    pub aux: Vec<u32>,
+    /// Significant auxiliary values received.
+    pub aux_count: u64,
+    /// Unit times that found no whole block in the buffer (§9.2), from the `G05` block on.
+    pub underruns: u64,
+    /// Fewest whole blocks in the buffer at a unit time (before it took its block; an end
+    /// block waiting counts), from the one that took the first block on; `None` before the
+    /// first block. 0 once a unit time found none after the first block.
+    pub min_buffered_blocks: Option<u64>,
+    /// How the session ended; `None` while it runs.
+    pub end: Option<G05End>,
+}
+
+/// What binary input operation did, for the board to report.
+#[derive(Debug, Clone, PartialEq)]
+pub enum G05Notice {
+    /// The CNC read the `G05` block at `at`.
+    Entered { at: Instant },
+    /// `new` underruns since the last report, `total` this session (at most one a second).
+    Underruns { new: u64, total: u64 },
+    /// A block with a wrong check byte: the CNC raised SR0890 and stopped (a `Left` follows).
+    CheckSum(G05DecodeError),
+    /// Binary input operation ended, with the session's totals.
+    Left { end: G05End, stats: G05Stats },
+}
 
 /// A program the CNC read, from its tape-start `%` (or first significant character) through
 /// the `%` that ended it, byte-exact as it left the buffer (after any SET code conversion).
@@ -187,25 +271,91 @@ pub struct Cnc {
     finished: VecDeque<ReceivedProgram>,
     read_total: u64,
     scan: EndScan,
+    /// G05 binary input operation, when the CNC has the settings for it.
+    g05: Option<Box<G05Cnc>>,
 }
 
-/// Where the `%` ending the current program sits in the buffer, found incrementally as data
-/// arrives (so that deadlines cost nothing per call).
+/// The CNC's side of G05 binary input operation (§9).
+#[derive(Debug)]
+struct G05Cnc {
+    format: G05Format,
+    unit: Duration,
+    len: usize,
+    decoder: BlockDecoder,
+    /// Finds the `G05` block in what the CNC reads as text.
+    entry: G05Entry,
+    /// Set while in binary mode.
+    slots: Option<Slots>,
+    stats: G05Stats,
+    notices: VecDeque<G05Notice>,
+    /// Underruns not reported yet.
+    pending: u64,
+    last_report: Option<Instant>,
+}
+
+/// The unit-time grid of binary mode and the blocks waiting in the buffer.
+#[derive(Debug, Clone, Copy)]
+struct Slots {
+    /// Slot i (i ≥ 1) falls at `base` + i·T.
+    base: Instant,
+    /// Slots handled since `base`.
+    done: u64,
+    /// Whole blocks at the front of the buffer that the CNC will take: through the first end
+    /// block or block with a wrong check byte, after which the bytes are no blocks.
+    blocks: usize,
+    /// Such a last block is among `blocks`.
+    stopped: bool,
+}
+
+impl Slots {
+    fn at(&self, unit: Duration, slot: u64) -> Instant {
+        let nanos = unit.as_nanos().saturating_mul(u128::from(slot));
+        self.base + Duration::from_nanos(u64::try_from(nanos).unwrap_or(u64::MAX))
+    }
+}
+
+/// Where the `%` ending the current program sits in the buffer, or the end of a `G05` block
+/// before it, found incrementally as data arrives (so that deadlines cost nothing per call).
 #[derive(Debug, Clone, Copy, Default)]
 struct EndScan {
     /// Buffer bytes looked at.
     scanned: usize,
     /// The tape reader's state after those bytes.
     in_program: bool,
-    /// Index of the ending `%`, once seen.
-    found: Option<usize>,
+    /// The `G05` block finder's state after those bytes (without G05 settings: none).
+    entry: Option<G05Entry>,
+    found: Option<Found>,
+}
+
+/// What the scan found first.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Found {
+    /// The `%` ending the program, at this index.
+    Eor(usize),
+    /// The end of a `G05` block at this index: binary data follows (the scan stops there).
+    G05(usize),
+}
+
+impl Found {
+    fn index(self) -> usize {
+        match self {
+            Found::Eor(i) | Found::G05(i) => i,
+        }
+    }
+    fn shifted(self, k: usize) -> Option<Found> {
+        Some(match self {
+            Found::Eor(i) => Found::Eor(i.checked_sub(k)?),
+            Found::G05(i) => Found::G05(i.checked_sub(k)?),
+        })
+    }
 }
 
 impl EndScan {
-    fn restart(in_program: bool) -> Self {
+    fn restart(in_program: bool, entry: Option<G05Entry>) -> Self {
         EndScan {
             scanned: 0,
             in_program,
+            entry,
             found: None,
         }
     }
@@ -215,10 +365,17 @@ impl EndScan {
             return;
         }
         for (i, &b) in buffer.iter().enumerate().skip(self.scanned) {
+            // As the reader does: the G05 finder sees every byte, EOR ends the program.
+            let entered = self.entry.as_mut().is_some_and(|e| e.feed(b));
             if !self.in_program {
                 self.in_program = is_significant(b);
             } else if is_eor(b) {
-                self.found = Some(i);
+                self.found = Some(Found::Eor(i));
+                self.scanned = i + 1;
+                return;
+            }
+            if entered {
+                self.found = Some(Found::G05(i));
                 self.scanned = i + 1;
                 return;
             }
@@ -229,8 +386,24 @@ impl EndScan {
     /// `k` bytes left the front of the buffer (without completing a program).
     fn consumed(&mut self, k: usize) {
         self.scanned = self.scanned.saturating_sub(k);
-        self.found = self.found.and_then(|i| i.checked_sub(k));
+        self.found = self.found.and_then(|f| f.shifted(k));
     }
+}
+
+/// Where reading text stopped.
+enum TextStop {
+    /// Budget or buffer exhausted, EOR reached, or not reading.
+    Done,
+    /// The CNC read the end of the `G05` block at this time.
+    G05(Instant),
+}
+
+/// Where binary mode stopped.
+enum BinaryStop {
+    /// Waiting for the next slot, or stopped by SR0890.
+    Done,
+    /// The end block was taken at this time: text follows.
+    Left(Instant),
 }
 
 impl Cnc {
@@ -249,7 +422,29 @@ impl Cnc {
             finished: VecDeque::new(),
             read_total: 0,
             scan: EndScan::default(),
+            g05: None,
         }
+    }
+
+    /// The CNC with G05 binary input operation set up as `format` says (§9, §10.3).
+    pub fn with_g05(mut self, format: G05Format) -> Result<Self, InvalidG05Format> {
+        let decoder = BlockDecoder::new(format)?;
+        let g = G05Cnc {
+            format,
+            unit: format.unit_time_ms.duration(),
+            len: format.block_len(),
+            decoder,
+            entry: G05Entry::default(),
+            slots: None,
+            stats: G05Stats::default(),
+            notices: VecDeque::new(),
+            pending: 0,
+            last_report: None,
+        };
+        self.scan = EndScan::restart(self.tape.in_program, Some(g.entry));
+        self.scan.extend(&self.buffer);
+        self.g05 = Some(Box::new(g));
+        Ok(self)
     }
 
     pub fn capacity(&self) -> usize {
@@ -281,6 +476,23 @@ impl Cnc {
         self.read_total
     }
 
+    /// The G05 settings, when the CNC has binary input operation.
+    pub fn g05_format(&self) -> Option<&G05Format> {
+        self.g05.as_ref().map(|g| &g.format)
+    }
+    /// Binary input operation of the current or last session, when the CNC has it.
+    pub fn g05_stats(&self) -> Option<&G05Stats> {
+        self.g05.as_ref().map(|g| &g.stats)
+    }
+    /// Whether the CNC is in binary input operation.
+    pub fn in_binary(&self) -> bool {
+        self.g05.as_ref().is_some_and(|g| g.slots.is_some())
+    }
+    /// What binary input operation did since the last call, oldest first.
+    pub fn take_g05_notice(&mut self) -> Option<G05Notice> {
+        self.g05.as_mut()?.notices.pop_front()
+    }
+
     /// Byte 2 of SAT (§4.4.2): alarm, operating (reading) or reset.
     pub fn status(&self) -> BufferStatus {
         if self.alarm.is_some() {
@@ -300,20 +512,48 @@ impl Cnc {
         u64::try_from(nanos * u128::from(self.rate) / 1_000_000_000).unwrap_or(u64::MAX)
     }
 
+    /// When the `total`-th byte since the anchor is read.
+    fn consumed_at(&self, total: u64) -> Instant {
+        if self.rate == 0 {
+            return self.anchor;
+        }
+        let nanos = (u128::from(total) * 1_000_000_000).div_ceil(u128::from(self.rate));
+        self.anchor + Duration::from_nanos(u64::try_from(nanos).unwrap_or(u64::MAX))
+    }
+
     fn reanchor(&mut self, now: Instant) {
         self.anchor = now;
         self.anchor_consumed = 0;
     }
 
     /// Lets the CNC read what it could have read by `now`. Programs it completes are queued
-    /// for [`Cnc::take_finished`].
+    /// for [`Cnc::take_finished`], what binary input operation did for
+    /// [`Cnc::take_g05_notice`].
     pub fn advance(&mut self, now: Instant) {
         if !self.reading {
             self.reanchor(now);
             return;
         }
+        // Each turn either ends the call or changes mode at a time not after `now`.
+        loop {
+            if self.in_binary() {
+                match self.advance_binary(now) {
+                    BinaryStop::Done => return,
+                    BinaryStop::Left(at) => self.reanchor(at),
+                }
+            }
+            match self.advance_text(now) {
+                TextStop::Done => return,
+                TextStop::G05(at) => self.enter_binary(at),
+            }
+        }
+    }
+
+    /// Text at the consumption rate, up to EOR or the end of a `G05` block.
+    fn advance_text(&mut self, now: Instant) -> TextStop {
         let mut budget = self.allowed(now).saturating_sub(self.anchor_consumed);
         let mut taken = 0;
+        let mut stop = TextStop::Done;
         while budget > 0 {
             let Some(b) = self.buffer.pop_front() else {
                 break;
@@ -322,20 +562,200 @@ impl Cnc {
             taken += 1;
             self.anchor_consumed += 1;
             self.read_total += 1;
+            let entered = self.g05.as_mut().is_some_and(|g| g.entry.feed(b));
             if let Some(program) = self.tape.feed(b) {
                 // The CNC stops at EOR and ignores everything after it (§8.2).
                 self.finished.push_back(program);
                 self.reading = false;
                 self.buffer.clear();
-                self.scan = EndScan::restart(self.tape.in_program);
+                self.restart_scan();
                 taken = 0;
+                break;
+            }
+            if entered {
+                stop = TextStop::G05(self.consumed_at(self.anchor_consumed));
                 break;
             }
         }
         self.scan.consumed(taken);
-        if self.buffer.is_empty() || !self.reading {
+        if matches!(stop, TextStop::Done) && (self.buffer.is_empty() || !self.reading) {
             self.reanchor(now);
         }
+        stop
+    }
+
+    fn restart_scan(&mut self) {
+        let entry = self.g05.as_ref().map(|g| g.entry);
+        self.scan = EndScan::restart(self.tape.in_program, entry);
+        self.scan.extend(&self.buffer);
+    }
+
+    /// The CNC read the `G05` block at `at` (protocol notes 15): binary mode, slots from `at`.
+    fn enter_binary(&mut self, at: Instant) {
+        let Some(g) = self.g05.as_mut() else {
+            return;
+        };
+        g.decoder.clear();
+        g.pending = 0;
+        g.last_report = None;
+        g.stats = G05Stats {
+            active: true,
+            sessions: g.stats.sessions.saturating_add(1),
+            travel: vec![0; usize::from(g.format.axes)],
+            ..G05Stats::default()
+        };
+        g.slots = Some(Slots {
+            base: at,
+            done: 0,
+            blocks: 0,
+            stopped: false,
+        });
+        notify(&mut g.notices, G05Notice::Entered { at });
+        self.count_blocks();
+    }
+
+    /// Extends the count of whole blocks waiting at the front of the buffer.
+    fn count_blocks(&mut self) {
+        let Some(g) = self.g05.as_mut() else {
+            return;
+        };
+        let len = g.len;
+        let Some(s) = g.slots.as_mut() else {
+            return;
+        };
+        while !s.stopped && len > 0 {
+            let start = s.blocks * len;
+            let end = start + len;
+            if self.buffer.len() < end {
+                break;
+            }
+            let (mut sum, mut ck, mut zero) = (0u8, 0u8, true);
+            for (i, &b) in self.buffer.range(start..end).enumerate() {
+                if i + 1 < len {
+                    sum = sum.wrapping_add(b);
+                } else {
+                    ck = b;
+                }
+                zero &= b == 0;
+            }
+            s.blocks += 1;
+            // The end block, or SR0890: the CNC takes nothing after it as a block.
+            s.stopped = zero || sum != ck;
+        }
+    }
+
+    /// Binary mode: one whole block every unit time, up to `now`.
+    fn advance_binary(&mut self, now: Instant) -> BinaryStop {
+        let Some(g) = self.g05.as_mut() else {
+            return BinaryStop::Done;
+        };
+        let Some(mut s) = g.slots else {
+            return BinaryStop::Done;
+        };
+        let elapsed = now.saturating_duration_since(s.base).as_nanos();
+        let due = u64::try_from(elapsed / g.unit.as_nanos().max(1)).unwrap_or(u64::MAX);
+        let len = g.len;
+        let mut stop = None;
+        while s.done < due {
+            if s.blocks == 0 {
+                // No whole block, and none arrives within this call: every slot up to now
+                // is an underrun.
+                let n = due - s.done;
+                g.stats.underruns = g.stats.underruns.saturating_add(n);
+                g.pending = g.pending.saturating_add(n);
+                if g.stats.blocks > 0 {
+                    g.stats.min_buffered_blocks = Some(0);
+                }
+                s.done = due;
+                break;
+            }
+            let slot = s.done + 1;
+            let at = s.at(g.unit, slot);
+            let whole = s.blocks as u64;
+            s.done = slot;
+            s.blocks -= 1;
+            let mut result = None;
+            for _ in 0..len {
+                let b = self.buffer.pop_front().unwrap_or(0);
+                self.tape.push(b);
+                result = g.decoder.push(b).or(result);
+            }
+            self.read_total = self.read_total.saturating_add(len as u64);
+            match result {
+                Some(Ok(block)) if block.is_end() => {
+                    stop = Some(Ok(at));
+                    break;
+                }
+                Some(Ok(block)) => {
+                    let st = &mut g.stats;
+                    st.blocks = st.blocks.saturating_add(1);
+                    for (sum, &t) in st.travel.iter_mut().zip(block.travels()) {
+                        *sum = sum.saturating_add(i64::from(t));
+                    }
+                    if let Some(aux) = block.aux()
+                        && aux.significant
+                    {
+                        st.aux_count = st.aux_count.saturating_add(1);
+                        if st.aux.len() < MAX_AUX_KEPT {
+                            st.aux.push(aux.value);
+                        }
+                    }
+                    st.min_buffered_blocks =
+                        Some(st.min_buffered_blocks.map_or(whole, |m| m.min(whole)));
+                }
+                Some(Err(e)) => {
+                    stop = Some(Err(e));
+                    break;
+                }
+                // A whole block always completes one.
+                None => {}
+            }
+        }
+        g.slots = Some(s);
+        if g.pending > 0
+            && g.last_report
+                .is_none_or(|t| now >= t + UNDERRUN_REPORT_INTERVAL)
+        {
+            let new = std::mem::take(&mut g.pending);
+            let total = g.stats.underruns;
+            notify(&mut g.notices, G05Notice::Underruns { new, total });
+            g.last_report = Some(now);
+        }
+        match stop {
+            None => BinaryStop::Done,
+            Some(Ok(at)) => {
+                self.leave_binary(G05End::EndBlock);
+                BinaryStop::Left(at)
+            }
+            Some(Err(e)) => {
+                // SR0890: the CNC stops in alarm (§11).
+                if let Some(g) = self.g05.as_mut() {
+                    notify(&mut g.notices, G05Notice::CheckSum(e));
+                }
+                self.leave_binary(G05End::CheckSum);
+                self.reading = false;
+                self.alarm = Some(AlarmCause::NcAlarm);
+                BinaryStop::Done
+            }
+        }
+    }
+
+    /// Ends binary mode (no-op outside it); the CNC reads text again.
+    fn leave_binary(&mut self, end: G05End) {
+        let Some(g) = self.g05.as_mut() else {
+            return;
+        };
+        if g.slots.take().is_none() {
+            return;
+        }
+        g.pending = 0;
+        g.entry.reset();
+        g.decoder.clear();
+        g.stats.active = false;
+        g.stats.end = Some(end);
+        let stats = g.stats.clone();
+        notify(&mut g.notices, G05Notice::Left { end, stats });
+        self.restart_scan();
     }
 
     /// Programs completed since the last call, oldest first.
@@ -343,7 +763,8 @@ impl Cnc {
         self.finished.pop_front()
     }
 
-    /// Cycle start in remote mode. Refused (false) while the CNC is in alarm.
+    /// Cycle start in remote mode. Refused (false) while the CNC is in alarm. In binary mode
+    /// the unit times start again from now (feed hold stops them, §9.3 4).
     pub fn start_reading(&mut self, now: Instant) -> bool {
         self.advance(now);
         if self.alarm.is_some() {
@@ -352,6 +773,10 @@ impl Cnc {
         if !self.reading {
             self.reading = true;
             self.reanchor(now);
+            if let Some(s) = self.g05.as_mut().and_then(|g| g.slots.as_mut()) {
+                s.base = now;
+                s.done = 0;
+            }
         }
         true
     }
@@ -384,7 +809,11 @@ impl Cnc {
             self.reanchor(now);
         }
         self.buffer.extend(data.iter().copied());
-        self.scan.extend(&self.buffer);
+        if self.in_binary() {
+            self.count_blocks();
+        } else {
+            self.scan.extend(&self.buffer);
+        }
         Push::Stored(data.len())
     }
 
@@ -392,27 +821,36 @@ impl Cnc {
     pub fn clear_buffer(&mut self, now: Instant) {
         self.advance(now);
         self.buffer.clear();
-        self.scan = EndScan::restart(self.tape.in_program);
+        if let Some(s) = self.g05.as_mut().and_then(|g| g.slots.as_mut()) {
+            s.blocks = 0;
+            s.stopped = false;
+        }
+        self.restart_scan();
         self.reanchor(now);
     }
 
     /// CNC reset: stops reading, clears the alarm, and loses the buffered data and any partly
-    /// read program (§8.2).
+    /// read program (§8.2); ends binary mode.
     pub fn reset(&mut self, now: Instant) {
         self.advance(now);
         self.buffer.clear();
         self.reading = false;
         self.alarm = None;
         self.tape.reset();
-        self.scan = EndScan::restart(false);
+        self.leave_binary(G05End::Reset);
+        if let Some(g) = self.g05.as_mut() {
+            g.entry.reset();
+        }
+        self.restart_scan();
         self.reanchor(now);
     }
 
-    /// The CNC goes to alarm: it stops reading until it is reset.
+    /// The CNC goes to alarm: it stops reading until it is reset, and leaves binary mode.
     pub fn raise_alarm(&mut self, now: Instant, cause: AlarmCause) {
         self.advance(now);
         self.reading = false;
         self.alarm = Some(cause);
+        self.leave_binary(G05End::Alarm);
     }
 
     pub fn set_di(&mut self, di: u8) {
@@ -422,7 +860,7 @@ impl Cnc {
         self.do_image = image;
     }
 
-    /// When the CNC will have read `k` more bytes, if it is reading.
+    /// When the CNC will have read `k` more bytes of text, if it is reading.
     fn when_consumed(&self, k: usize) -> Option<Instant> {
         if !self.reading || k == 0 {
             return None;
@@ -435,20 +873,75 @@ impl Cnc {
         Some(self.anchor + Duration::from_nanos(u64::try_from(nanos).ok()?))
     }
 
-    /// When the CNC will read the EOR now in its buffer.
+    /// When the CNC will read the EOR now in its buffer. `None` in binary mode, or when a
+    /// `G05` block comes first: the time is known once the binary data has been read.
     pub fn when_program_ends(&self) -> Option<Instant> {
-        if !self.reading {
+        if !self.reading || self.in_binary() {
             return None;
         }
-        self.when_consumed(self.scan.found? + 1)
+        match self.scan.found? {
+            Found::Eor(i) => self.when_consumed(i + 1),
+            Found::G05(_) => None,
+        }
     }
 
     /// When free space will reach `free` bytes, if it is below that now and the CNC reads.
+    /// Past the end of a `G05` block or of the blocks buffered in binary mode, the time the
+    /// CNC gets there: the owner asks again then.
     pub fn when_free_at_least(&self, free: usize) -> Option<Instant> {
         let target = self.capacity.saturating_sub(free);
         let excess = self.buffer.len().checked_sub(target)?;
-        self.when_consumed(excess)
+        if let Some(g) = self.g05.as_ref()
+            && let Some(s) = g.slots
+        {
+            if !self.reading || excess == 0 || g.len == 0 {
+                return None;
+            }
+            let blocks = excess.div_ceil(g.len).min(s.blocks);
+            if blocks == 0 {
+                return None;
+            }
+            return Some(s.at(g.unit, s.done + blocks as u64));
+        }
+        match self.scan.found {
+            Some(found @ Found::G05(_)) if excess > found.index() + 1 => {
+                self.when_consumed(found.index() + 1)
+            }
+            _ => self.when_consumed(excess),
+        }
     }
+
+    /// When binary input operation next needs the CNC's time: the end of a `G05` block in
+    /// the buffer, the next unit time with a whole block waiting, or (while no block waits)
+    /// the next underrun report, at most one a second.
+    pub fn next_g05_deadline(&self) -> Option<Instant> {
+        let g = self.g05.as_ref()?;
+        if !self.reading {
+            return None;
+        }
+        let Some(s) = g.slots else {
+            return match self.scan.found? {
+                Found::G05(i) => self.when_consumed(i + 1),
+                Found::Eor(_) => None,
+            };
+        };
+        let next = s.at(g.unit, s.done.saturating_add(1));
+        if s.blocks > 0 {
+            return Some(next);
+        }
+        Some(match g.last_report {
+            None => next,
+            Some(t) => next.max(t + UNDERRUN_REPORT_INTERVAL),
+        })
+    }
+}
+
+/// Queues a notice for the board, dropping the oldest beyond [`MAX_NOTICES`].
+fn notify(notices: &mut VecDeque<G05Notice>, notice: G05Notice) {
+    if notices.len() >= MAX_NOTICES {
+        notices.pop_front();
+    }
+    notices.push_back(notice);
 }
 
 #[cfg(test)]
@@ -564,5 +1057,423 @@ mod tests {
         cnc.reset(t0);
         assert_eq!(cnc.status(), BufferStatus::Reset);
         assert_eq!(cnc.buffered(), 0);
+    }
+}
+
+#[cfg(test)]
+mod g05_tests {
+    use super::*;
+    use crate::fanuc::g05::{AuxFunction, AuxWord, DataFormat, G05Encoder, UnitTime};
+
+    fn ms(v: f64) -> Duration {
+        Duration::from_secs_f64(v / 1000.0)
+    }
+
+    fn g05_cnc(format: G05Format, rate: u32, t0: Instant) -> Cnc {
+        let mut cnc = Cnc::new(8192, rate, 1 << 20, t0).with_g05(format).unwrap();
+        assert!(cnc.start_reading(t0));
+        cnc
+    }
+
+    /// Blocks for `travels` (and `aux`), each encoded, concatenated.
+    fn blocks(format: G05Format, travels: &[Vec<i32>], aux: &[Option<AuxWord>]) -> Vec<u8> {
+        let mut e = G05Encoder::new(format).unwrap();
+        let mut out = Vec::new();
+        for (i, t) in travels.iter().enumerate() {
+            e.block(t, aux.get(i).copied().flatten(), &mut out).unwrap();
+        }
+        out
+    }
+
+    fn end(format: G05Format) -> Vec<u8> {
+        let mut out = Vec::new();
+        format.encode_end(&mut out);
+        out
+    }
+
+    fn notices(cnc: &mut Cnc) -> Vec<G05Notice> {
+        std::iter::from_fn(|| cnc.take_g05_notice()).collect()
+    }
+
+    fn stats(cnc: &Cnc) -> G05Stats {
+        cnc.g05_stats().unwrap().clone()
+    }
+
+    #[test]
+    fn enters_after_the_g05_block_takes_a_block_per_unit_time_and_ends_at_the_end_block() {
+        let t0 = Instant::now();
+        let f = G05Format::new(2); // 8 ms, special, 5-byte blocks
+        let mut cnc = g05_cnc(f, 1000, t0);
+        let travels: Vec<Vec<i32>> = (1..=5).map(|i| vec![i, -10 * i]).collect();
+        let mut data = b"%\nO1\nG05\n".to_vec();
+        data.extend(blocks(f, &travels, &[]));
+        data.extend(end(f));
+        data.extend_from_slice(b"M30\n%");
+        cnc.push_data(t0, &data);
+        assert_eq!(cnc.when_program_ends(), None, "the G05 block comes first");
+        // The 9 text bytes are read at 1000 B/s: G05 ends at 9 ms.
+        assert_eq!(cnc.next_g05_deadline(), Some(t0 + ms(9.0)));
+        cnc.advance(t0 + ms(9.0) - Duration::from_nanos(1));
+        assert!(!cnc.in_binary());
+        cnc.advance(t0 + ms(9.0));
+        assert!(cnc.in_binary());
+        assert_eq!(notices(&mut cnc), [G05Notice::Entered { at: t0 + ms(9.0) }]);
+        assert_eq!(cnc.buffered(), 6 * 5 + 5);
+        // One block per 8 ms, from 8 ms after G05: at 17, 25, 33, 41, 49 ms.
+        for (i, slot) in [17.0, 25.0, 33.0, 41.0, 49.0].into_iter().enumerate() {
+            assert_eq!(cnc.next_g05_deadline(), Some(t0 + ms(slot)));
+            cnc.advance(t0 + ms(slot) - Duration::from_nanos(1));
+            assert_eq!(cnc.buffered(), (6 - i) * 5 + 5, "before slot {i}");
+            cnc.advance(t0 + ms(slot));
+            assert_eq!(cnc.buffered(), (5 - i) * 5 + 5, "after slot {i}");
+            assert_eq!(stats(&cnc).blocks, i as u64 + 1);
+        }
+        assert!(cnc.in_binary());
+        // Free space grows one block per slot: 10 more bytes free after two more slots.
+        assert_eq!(
+            cnc.when_free_at_least(cnc.free() + 6),
+            Some(t0 + ms(57.0)),
+            "two blocks away, but only the end block remains: its slot"
+        );
+        assert_eq!(cnc.when_free_at_least(cnc.free() + 5), Some(t0 + ms(57.0)));
+        // The end block at 57 ms; "M30\n%" then at 1000 B/s: the program ends at 62 ms.
+        cnc.advance(t0 + ms(57.0));
+        assert!(!cnc.in_binary());
+        let n = notices(&mut cnc);
+        let [G05Notice::Left { end, stats: s }] = &n[..] else {
+            panic!("{n:?}");
+        };
+        assert_eq!(*end, G05End::EndBlock);
+        assert_eq!(s.blocks, 5);
+        assert_eq!(s.travel, [15, -150]);
+        assert_eq!(s.underruns, 0);
+        assert_eq!(s.min_buffered_blocks, Some(2), "block 5 and the end block");
+        assert_eq!(s.sessions, 1);
+        assert!(!s.active);
+        assert_eq!(cnc.when_program_ends(), Some(t0 + ms(62.0)));
+        cnc.advance(t0 + ms(62.0));
+        let p = cnc.take_finished().unwrap();
+        assert_eq!(p.len, data.len() as u64);
+        assert_eq!(
+            &p.data[..],
+            &data[..],
+            "binary blocks are part of the program"
+        );
+        assert!(!cnc.reading());
+        assert_eq!(cnc.read_total(), data.len() as u64);
+    }
+
+    #[test]
+    fn underruns_are_counted_exactly_when_the_buffer_runs_dry() {
+        let t0 = Instant::now();
+        let f = G05Format {
+            unit_time_ms: UnitTime::Ms1,
+            ..G05Format::new(1)
+        };
+        // Rate 0: the CNC reads text as fast as it comes; G05 is read at t0.
+        let mut cnc = g05_cnc(f, 0, t0);
+        cnc.push_data(t0, b"G05\n");
+        cnc.advance(t0);
+        assert!(cnc.in_binary());
+        assert_eq!(cnc.next_g05_deadline(), Some(t0 + ms(1.0)));
+        // Three blocks arrive at 2.5 ms: slots 1 and 2 had none.
+        let three = blocks(f, &[vec![1], vec![2], vec![3]], &[]);
+        cnc.push_data(t0 + ms(2.5), &three);
+        assert_eq!(stats(&cnc).underruns, 2);
+        assert_eq!(stats(&cnc).min_buffered_blocks, None, "not started yet");
+        let n = notices(&mut cnc);
+        assert_eq!(
+            n[1..],
+            [G05Notice::Underruns { new: 2, total: 2 }],
+            "first report at once"
+        );
+        // Slots 3, 4, 5 take them (3, 2, 1 whole blocks waiting); 6..=10 have none.
+        cnc.advance(t0 + ms(10.0));
+        let s = stats(&cnc);
+        assert_eq!(s.blocks, 3);
+        assert_eq!(s.travel, [6]);
+        assert_eq!(s.underruns, 7);
+        assert_eq!(s.min_buffered_blocks, Some(0));
+        assert!(notices(&mut cnc).is_empty(), "at most one report a second");
+        // Starved: the next wake is the report a second after the last one.
+        assert_eq!(cnc.next_g05_deadline(), Some(t0 + ms(1002.5)));
+        cnc.advance(t0 + ms(1002.5));
+        // Slots 1..=1002 are due, 3 took blocks.
+        assert_eq!(stats(&cnc).underruns, 999);
+        assert_eq!(
+            notices(&mut cnc),
+            [G05Notice::Underruns {
+                new: 997,
+                total: 999
+            }]
+        );
+        // The end block at slot 1003.
+        cnc.push_data(t0 + ms(1002.7), &end(f));
+        assert_eq!(cnc.next_g05_deadline(), Some(t0 + ms(1003.0)));
+        cnc.advance(t0 + ms(1003.0));
+        let n = notices(&mut cnc);
+        let [G05Notice::Left { end, stats: s }] = &n[..] else {
+            panic!("{n:?}");
+        };
+        assert_eq!((*end, s.underruns, s.blocks), (G05End::EndBlock, 999, 3));
+        assert_eq!(cnc.next_g05_deadline(), None);
+    }
+
+    #[test]
+    fn blocks_on_time_have_no_underrun() {
+        let t0 = Instant::now();
+        let f = G05Format {
+            unit_time_ms: UnitTime::Ms2,
+            ..G05Format::new(3)
+        };
+        let mut cnc = g05_cnc(f, 0, t0);
+        cnc.push_data(t0, b"G05\n");
+        cnc.advance(t0);
+        // One block every 2 ms, each 1 ms before its slot.
+        for i in 0..100 {
+            let block = blocks(f, &[vec![i, 1, -1]], &[]);
+            cnc.push_data(t0 + ms(2.0 * f64::from(i) + 1.0), &block);
+        }
+        cnc.push_data(t0 + ms(201.0), &end(f));
+        cnc.advance(t0 + ms(202.0));
+        let s = stats(&cnc);
+        assert_eq!(s.underruns, 0);
+        assert_eq!(s.blocks, 100);
+        assert_eq!(s.travel, [(0..100).sum::<i64>(), 100, -100]);
+        assert_eq!(s.min_buffered_blocks, Some(1));
+        assert_eq!(s.end, Some(G05End::EndBlock));
+    }
+
+    #[test]
+    fn a_wrong_check_byte_raises_sr0890_and_leaves_binary_mode() {
+        let t0 = Instant::now();
+        let f = G05Format::new(2);
+        let mut cnc = g05_cnc(f, 0, t0);
+        let mut data = b"N1G05;".to_vec();
+        let good = blocks(f, &[vec![1, 1], vec![2, 2], vec![3, 3]], &[]);
+        data.extend(&good);
+        // Block 2's check byte.
+        data[6 + 9] ^= 0x02;
+        cnc.push_data(t0, &data);
+        cnc.advance(t0 + ms(8.0));
+        assert_eq!(stats(&cnc).blocks, 1);
+        assert!(cnc.reading());
+        cnc.advance(t0 + ms(16.0));
+        assert!(!cnc.reading());
+        assert!(!cnc.in_binary());
+        assert_eq!(cnc.alarm(), Some(AlarmCause::NcAlarm));
+        assert_eq!(cnc.status(), BufferStatus::Alarm);
+        let n = notices(&mut cnc);
+        assert!(matches!(n[0], G05Notice::Entered { .. }), "{n:?}");
+        let G05Notice::CheckSum(e) = &n[1] else {
+            panic!("{n:?}");
+        };
+        assert!(matches!(e, G05DecodeError::CheckByte { block: 2, .. }));
+        let G05Notice::Left { end, stats: s } = &n[2] else {
+            panic!("{n:?}");
+        };
+        assert_eq!((*end, s.blocks), (G05End::CheckSum, 1));
+        // Nothing more is taken until a reset.
+        cnc.advance(t0 + ms(100.0));
+        assert_eq!(cnc.buffered(), 5);
+        assert!(!cnc.start_reading(t0 + ms(100.0)));
+        cnc.reset(t0 + ms(100.0));
+        assert_eq!(cnc.buffered(), 0);
+        assert!(notices(&mut cnc).is_empty());
+    }
+
+    #[test]
+    fn special_and_general_with_and_without_the_auxiliary_word() {
+        for (data_format, aux) in [
+            (DataFormat::Special, AuxFunction::None),
+            (DataFormat::Special, AuxFunction::M),
+            (DataFormat::General, AuxFunction::None),
+            (DataFormat::General, AuxFunction::T),
+        ] {
+            let t0 = Instant::now();
+            let f = G05Format {
+                data_format,
+                aux,
+                aux_order: crate::fanuc::g05::AuxOrder::LowFirst,
+                unit_time_ms: UnitTime::Ms4,
+                ..G05Format::new(3)
+            };
+            let (min, max) = data_format.travel_range();
+            let travels: Vec<Vec<i32>> = (0..40)
+                .map(|i| vec![min + i, max - i, if i % 2 == 0 { 7 } else { -7 }])
+                .collect();
+            let auxes: Vec<Option<AuxWord>> = (0..40u32)
+                .map(|i| match i % 3 {
+                    _ if !aux.rax() => None,
+                    0 => Some(AuxWord::significant(i)),
+                    1 => Some(AuxWord {
+                        value: 99,
+                        significant: false,
+                    }),
+                    _ => None,
+                })
+                .collect();
+            let mut cnc = g05_cnc(f, 0, t0);
+            let mut data = b"G05\n".to_vec();
+            data.extend(blocks(f, &travels, &auxes));
+            data.extend(end(f));
+            data.extend_from_slice(b"M30\n%");
+            cnc.push_data(t0, &data);
+            cnc.advance(t0 + ms(4.0 * 41.0));
+            let p = cnc.take_finished().expect("M30 and EOR read as NC text");
+            assert_eq!(p.len, data.len() as u64);
+            let n = notices(&mut cnc);
+            let Some(G05Notice::Left { end, stats: s }) = n.last() else {
+                panic!("{n:?}");
+            };
+            assert_eq!(*end, G05End::EndBlock, "{f:?}");
+            assert_eq!(s.blocks, 40);
+            let sum = |a: usize| travels.iter().map(|t| i64::from(t[a])).sum::<i64>();
+            assert_eq!(s.travel, [sum(0), sum(1), sum(2)], "{f:?}");
+            let expected: Vec<u32> = if aux.rax() {
+                (0..40).filter(|i| i % 3 == 0).collect()
+            } else {
+                Vec::new()
+            };
+            assert_eq!(s.aux, expected, "{f:?}");
+            assert_eq!(s.aux_count, expected.len() as u64);
+            assert_eq!(s.underruns, 0);
+        }
+    }
+
+    #[test]
+    fn a_second_g05_in_the_same_program_is_a_second_session() {
+        let t0 = Instant::now();
+        let f = G05Format::new(1);
+        let mut cnc = g05_cnc(f, 0, t0);
+        let mut data = b"%\nG05\n".to_vec();
+        data.extend(blocks(f, &[vec![5]], &[]));
+        data.extend(end(f));
+        data.extend_from_slice(b"G01X1.\nG5\n");
+        data.extend(blocks(f, &[vec![-3], vec![-4]], &[]));
+        data.extend(end(f));
+        data.extend_from_slice(b"M30\n%");
+        cnc.push_data(t0, &data);
+        cnc.advance(t0 + ms(15.0));
+        assert_eq!(stats(&cnc).travel, [5]);
+        // The end block at 16 ms; the text after it, and the second G05, are read at once
+        // (rate 0): a new session from 16 ms, its blocks at 24 and 32, its end at 40.
+        cnc.advance(t0 + ms(16.0));
+        assert!(cnc.in_binary());
+        let n = notices(&mut cnc);
+        assert!(
+            matches!(
+                &n[..],
+                [
+                    G05Notice::Entered { .. },
+                    G05Notice::Left { end: G05End::EndBlock, stats: first },
+                    G05Notice::Entered { at },
+                ] if first.travel == [5] && *at == t0 + ms(16.0)
+            ),
+            "{n:?}"
+        );
+        cnc.advance(t0 + ms(40.0));
+        let s = stats(&cnc);
+        assert_eq!((s.sessions, s.blocks, s.travel.clone()), (2, 2, vec![-7]));
+        assert!(cnc.take_finished().is_some());
+    }
+
+    #[test]
+    fn without_g05_settings_g05_is_just_text() {
+        let t0 = Instant::now();
+        let mut cnc = Cnc::new(8192, 0, 1 << 20, t0);
+        cnc.start_reading(t0);
+        cnc.push_data(t0, b"%\nG05\n\x00\x02\x02%");
+        cnc.advance(t0);
+        assert!(!cnc.in_binary());
+        assert_eq!(cnc.g05_stats(), None);
+        assert_eq!(cnc.next_g05_deadline(), None);
+        assert_eq!(cnc.take_finished().unwrap().len, 10);
+    }
+
+    #[test]
+    fn general_format_bytes_are_not_taken_for_eor_or_a_g05_block() {
+        // 0025h is `%` in its low byte and 0A47h holds LF and `G`: as binary data they are
+        // travels, and the program ends at the real EOR only.
+        let t0 = Instant::now();
+        let f = G05Format {
+            data_format: DataFormat::General,
+            ..G05Format::new(1)
+        };
+        let mut cnc = g05_cnc(f, 100, t0);
+        let mut data = b"G05\n".to_vec();
+        data.extend(blocks(f, &[vec![0x25], vec![0x0A47], vec![0x0A25]], &[]));
+        data.extend(end(f));
+        data.extend_from_slice(b"%");
+        cnc.push_data(t0, &data);
+        assert_eq!(cnc.when_program_ends(), None);
+        // G05 read at 40 ms (100 B/s); blocks at 48, 56, 64; end at 72; `%` 10 ms later.
+        cnc.advance(t0 + ms(72.0));
+        assert_eq!(stats(&cnc).travel, [0x25 + 0x0A47 + 0x0A25]);
+        assert_eq!(cnc.when_program_ends(), Some(t0 + ms(82.0)));
+        cnc.advance(t0 + ms(82.0));
+        assert_eq!(cnc.take_finished().unwrap().len, data.len() as u64);
+    }
+
+    #[test]
+    fn feed_hold_pauses_the_unit_times_and_reset_leaves_binary_mode() {
+        let t0 = Instant::now();
+        let f = G05Format::new(1);
+        let mut cnc = g05_cnc(f, 0, t0);
+        let mut data = b"G05\n".to_vec();
+        data.extend(blocks(f, &[vec![1], vec![2], vec![3]], &[]));
+        cnc.push_data(t0, &data);
+        cnc.advance(t0 + ms(8.0));
+        assert_eq!(stats(&cnc).blocks, 1);
+        cnc.stop_reading(t0 + ms(10.0));
+        cnc.advance(t0 + ms(100.0));
+        assert_eq!(stats(&cnc).blocks, 1);
+        assert_eq!(stats(&cnc).underruns, 0);
+        assert_eq!(cnc.next_g05_deadline(), None);
+        // Cycle start again: slots from then on.
+        cnc.start_reading(t0 + ms(100.0));
+        assert_eq!(cnc.next_g05_deadline(), Some(t0 + ms(108.0)));
+        cnc.advance(t0 + ms(108.0));
+        assert_eq!(stats(&cnc).blocks, 2);
+        notices(&mut cnc);
+        cnc.reset(t0 + ms(110.0));
+        assert!(!cnc.in_binary());
+        let n = notices(&mut cnc);
+        assert!(
+            matches!(&n[..], [G05Notice::Left { end: G05End::Reset, stats }] if stats.blocks == 2),
+            "{n:?}"
+        );
+        // After the reset the CNC reads text, and a new G05 starts a new session.
+        cnc.start_reading(t0 + ms(110.0));
+        cnc.push_data(t0 + ms(110.0), b"G05\n");
+        cnc.advance(t0 + ms(110.0));
+        assert!(cnc.in_binary());
+        assert_eq!(stats(&cnc).sessions, 2);
+        assert_eq!(stats(&cnc).blocks, 0);
+        cnc.raise_alarm(t0 + ms(111.0), AlarmCause::NcAlarm);
+        assert!(!cnc.in_binary());
+        assert_eq!(stats(&cnc).end, Some(G05End::Alarm));
+    }
+
+    #[test]
+    fn a_block_split_across_pushes_waits_until_whole() {
+        let t0 = Instant::now();
+        let f = G05Format {
+            aux: AuxFunction::S,
+            ..G05Format::new(2)
+        };
+        let mut cnc = g05_cnc(f, 0, t0);
+        cnc.push_data(t0, b"G05\n");
+        cnc.advance(t0);
+        let b = blocks(f, &[vec![1, 2]], &[Some(AuxWord::significant(1200))]);
+        cnc.push_data(t0 + ms(1.0), &b[..4]);
+        cnc.advance(t0 + ms(8.0));
+        assert_eq!(stats(&cnc).underruns, 1, "half a block is no block");
+        cnc.push_data(t0 + ms(9.0), &b[4..]);
+        cnc.advance(t0 + ms(16.0));
+        let s = stats(&cnc);
+        assert_eq!((s.blocks, s.underruns), (1, 1));
+        assert_eq!(s.aux, [1200]);
+        assert_eq!(s.min_buffered_blocks, Some(1));
     }
 }

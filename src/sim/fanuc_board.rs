@@ -22,6 +22,9 @@
 //! SR0856 past the overrun allowance after DC3; DC3 when the read ends at EOR; CNC alarm and
 //! reset posted as NAK / SYN (after DC3 or DC4) or, with notification off, as DC3 and ER off
 //! (§6.4); punch-out on demand as DC2 … DC4 under the host's DC3 / DC1 / DC2 and CS.
+//!
+//! G05 binary input operation (§9) is the CNC's ([`BoardConfig::g05`]): the board reports
+//! its start, underruns and end as [`BoardEvent`]s, and its SR0890 as a CNC alarm.
 
 mod expansion_a;
 mod protocol_a;
@@ -34,11 +37,13 @@ use crate::engine::Engine;
 use crate::engine::{LineError, ModemIn, ModemOut};
 use crate::fanuc::Protocol;
 use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::g05::{G05Format, InvalidG05Format};
 use crate::fanuc::message::{Command, Framing};
 use crate::fanuc::packet::Monitor;
 use crate::fanuc::sat::{AlarmCause, BufferStatus, ParamRangeError, Params, StatusData};
 use crate::sim::cnc::{
-    Cnc, DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE, DEFAULT_KEEP_PROGRAM_BYTES, ReceivedProgram,
+    Cnc, DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE, DEFAULT_KEEP_PROGRAM_BYTES, G05End, G05Notice,
+    G05Stats, ReceivedProgram,
 };
 
 use protocol_a::ProtocolA;
@@ -85,6 +90,9 @@ pub struct BoardConfig {
     /// Protocol B with notification off: how long ER stays off after an alarm or reset. Longer
     /// than the host's modem-line polling (50 ms in cellgate), so that the host sees DR off.
     pub er_off_time: Duration,
+    /// G05 binary input operation (§9): the CNC's parameters 7635, 7609, 2034 and 7618.
+    /// `None`: the CNC has no binary input operation and reads `G05` as any other block.
+    pub g05: Option<G05Format>,
 }
 
 impl Default for BoardConfig {
@@ -102,6 +110,7 @@ impl Default for BoardConfig {
             keep_program_bytes: DEFAULT_KEEP_PROGRAM_BYTES,
             notify_alarm_reset: true,
             er_off_time: DEFAULT_ER_OFF_TIME,
+            g05: None,
         }
     }
 }
@@ -127,6 +136,8 @@ pub enum BoardConfigError {
         "packet length parameter n = {n} with {protocol:?}: n must be 0, except 0, 1, 2 or 4 for Expansion A (§5.2 1)"
     )]
     PacketN { n: u8, protocol: Protocol },
+    #[error("simulated CNC's G05 settings: {0}")]
+    G05(InvalidG05Format),
 }
 
 fn join(errors: &[ParamRangeError]) -> String {
@@ -165,6 +176,12 @@ impl BoardConfig {
                 n: self.packet_n,
                 protocol: self.protocol,
             });
+        }
+        if let Some(g05) = &self.g05 {
+            let errors = g05.validate_for(self.protocol, None);
+            if !errors.is_empty() {
+                return Err(BoardConfigError::G05(InvalidG05Format { errors }));
+            }
         }
         Ok(())
     }
@@ -340,14 +357,33 @@ pub enum BoardEvent {
     ErSignal {
         on: bool,
     },
-    /// The board raised a CNC alarm of §11 (SR0855, SR0944, SR0945, ...).
+    /// The CNC read the `G05` block: binary input operation, one block every `unit_ms`
+    /// (§9.1; protocol notes 15).
+    G05Started {
+        axes: u8,
+        unit_ms: u32,
+    },
+    /// Unit times that found no whole block in the buffer (§9.2): `new` since the last
+    /// report, `total` this session. At most one report a second; the end carries the total.
+    G05Underruns {
+        new: u64,
+        total: u64,
+    },
+    /// Binary input operation ended (end block, SR0890, reset, alarm), with the session's
+    /// totals.
+    G05Ended {
+        end: G05End,
+        stats: G05Stats,
+    },
+    /// The board raised a CNC alarm of §11 (SR0855, SR0944, SR0945, ...; SR0890 is the
+    /// CNC's own, followed by [`BoardEvent::CncAlarm`]).
     Alarm {
         alarm: CncAlarm,
         cause: AlarmCause,
         detail: String,
     },
-    /// The CNC went to alarm by [`BoardCommand::RaiseAlarm`] (ALM follows; Protocol B: NAK,
-    /// or DC3 and ER off).
+    /// The CNC went to alarm by [`BoardCommand::RaiseAlarm`] or by SR0890 (ALM follows;
+    /// Protocol B: NAK, or DC3 and ER off).
     CncAlarm,
     /// The CNC was reset (RST follows; Protocol B: SYN, or DC3 and ER off).
     CncReset,
@@ -395,12 +431,15 @@ impl FanucBoard {
     /// A board powered on at `now`.
     pub fn new(config: BoardConfig, now: Instant) -> Result<Self, BoardConfigError> {
         config.validate()?;
-        let cnc = Cnc::new(
+        let mut cnc = Cnc::new(
             config.buffer_size,
             config.consume_rate,
             config.keep_program_bytes,
             now,
         );
+        if let Some(format) = config.g05 {
+            cnc = cnc.with_g05(format).map_err(BoardConfigError::G05)?;
+        }
         let variant = if config.protocol.is_a_family() {
             Variant::A(Box::new(ProtocolA::new(&config, now)))
         } else {
@@ -469,12 +508,12 @@ impl FanucBoard {
     /// Runs everything due at `now`, then reports a status change.
     fn step(&mut self, now: Instant) {
         self.cnc.advance(now);
-        self.collect_programs();
+        self.collect_cnc(now);
         match &mut self.variant {
             Variant::A(a) => a.step(now, &mut self.cnc, &mut self.out),
             Variant::B(b) => b.step(now, &mut self.cnc, &mut self.out),
         }
-        self.collect_programs();
+        self.collect_cnc(now);
         let status = (self.cnc.status(), self.cnc.alarm());
         if self.reported_status != Some(status) {
             self.reported_status = Some(status);
@@ -485,7 +524,44 @@ impl FanucBoard {
         }
     }
 
-    fn collect_programs(&mut self) {
+    /// Reports what the CNC did: binary input operation and its SR0890, programs read. In
+    /// that order: a program read ends the CNC's reading, so nothing it did before can follow.
+    fn collect_cnc(&mut self, now: Instant) {
+        while let Some(notice) = self.cnc.take_g05_notice() {
+            match notice {
+                G05Notice::Entered { .. } => {
+                    let (axes, unit_ms) = self
+                        .cnc
+                        .g05_format()
+                        .map_or((0, 0), |f| (f.axes, f.unit_time_ms.ms()));
+                    self.out.event(BoardEvent::G05Started { axes, unit_ms });
+                }
+                G05Notice::Underruns { new, total } => {
+                    self.out.event(BoardEvent::G05Underruns { new, total });
+                }
+                G05Notice::CheckSum(error) => {
+                    let alarm = CncAlarm::Sr0890G05CheckSum;
+                    let detail = error.to_string();
+                    tracing::warn!(alarm = alarm.number(), %detail, "simulated CNC alarm");
+                    self.out.event(BoardEvent::Alarm {
+                        alarm,
+                        cause: AlarmCause::NcAlarm,
+                        detail,
+                    });
+                    // The CNC stopped reading when it found the error.
+                    self.out.event(BoardEvent::ReadingStopped);
+                    // The host hears of it as of any CNC alarm: ALM (CAN during packets);
+                    // Protocol B: NAK, or DC3 and ER off.
+                    match &mut self.variant {
+                        Variant::A(a) => a.cnc_alarm(now, &mut self.cnc, &mut self.out),
+                        Variant::B(b) => b.cnc_alarm(now, &mut self.cnc, &mut self.out),
+                    }
+                }
+                G05Notice::Left { end, stats } => {
+                    self.out.event(BoardEvent::G05Ended { end, stats });
+                }
+            }
+        }
         while let Some(p) = self.cnc.take_finished() {
             self.out.event(BoardEvent::ProgramReceived(p));
             self.out.event(BoardEvent::ReadingStopped);
@@ -499,7 +575,7 @@ impl Engine for FanucBoard {
 
     fn handle_input(&mut self, now: Instant, bytes: &[u8]) {
         self.cnc.advance(now);
-        self.collect_programs();
+        self.collect_cnc(now);
         match &mut self.variant {
             Variant::A(a) => a.handle_input(now, bytes, &mut self.cnc, &mut self.out),
             Variant::B(b) => b.handle_input(now, bytes, &mut self.cnc, &mut self.out),
@@ -525,7 +601,7 @@ impl Engine for FanucBoard {
 
     fn handle_command(&mut self, now: Instant, command: BoardCommand) {
         self.cnc.advance(now);
-        self.collect_programs();
+        self.collect_cnc(now);
         match command {
             BoardCommand::StartReading => {
                 let was = self.cnc.reading();
@@ -595,11 +671,16 @@ impl Engine for FanucBoard {
             Variant::A(a) => a.poll_timeout(&self.cnc),
             Variant::B(b) => b.poll_timeout(&self.cnc),
         };
-        // The CNC reaching EOR is an event of its own (and may restart an autostart CNC).
-        match (protocol, self.cnc.when_program_ends()) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        // The CNC reaching EOR is an event of its own (and may restart an autostart CNC), and
+        // so is every unit time of binary input operation with a block waiting.
+        [
+            protocol,
+            self.cnc.when_program_ends(),
+            self.cnc.next_g05_deadline(),
+        ]
+        .into_iter()
+        .flatten()
+        .min()
     }
 
     fn modem_out(&self) -> ModemOut {

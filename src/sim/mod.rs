@@ -2,7 +2,8 @@
 //! it, speaking the device side of the protocols the gateway speaks as host.
 //!
 //! - [`fanuc_board`]: the board, sans-IO ([`FanucBoard`] implements [`Engine`]);
-//! - [`cnc`]: the CNC model: buffer, consumption at a rate, programs split at EOR, DI/DO;
+//! - [`cnc`]: the CNC model: buffer, consumption at a rate, programs split at EOR, DI/DO,
+//!   G05 binary input operation (one block a unit time, underruns, SR0890);
 //! - [`server`]: the board as a TCP serial device server (`cellgate sim fanuc`).
 //!
 //! [`BoardHandle`] runs a board over any [`Transport`] in a tokio task, and is what tests and
@@ -29,7 +30,7 @@ use crate::fanuc::sat::{Params, StatusData};
 use crate::link::pump::{Pump, PumpError};
 use crate::transport::Transport;
 
-pub use cnc::ReceivedProgram;
+pub use cnc::{G05End, G05Stats, ReceivedProgram};
 pub use fanuc_board::{
     BoardCommand, BoardConfig, BoardConfigError, BoardEvent, BoardLinkState, ControlCode,
     FanucBoard, FlowCounters,
@@ -103,6 +104,9 @@ pub struct BoardSnapshot {
     pub overruns: u64,
     /// Protocol B: punched bytes handed to the line since power-on.
     pub punched: u64,
+    /// G05 binary input operation of the current or last session (§9); `None` when the CNC
+    /// has no G05 settings.
+    pub g05: Option<G05Stats>,
     /// Whether the board's task has ended (line closed or error).
     pub stopped: bool,
 }
@@ -126,6 +130,7 @@ impl BoardSnapshot {
             max_overrun: 0,
             overruns: 0,
             punched: 0,
+            g05: None,
             stopped: false,
         };
         s.refresh(board);
@@ -148,6 +153,11 @@ impl BoardSnapshot {
         self.max_overrun = flow.max_overrun;
         self.overruns = flow.overruns;
         self.punched = flow.punched;
+        if let Some(stats) = cnc.g05_stats()
+            && self.g05.as_ref() != Some(stats)
+        {
+            self.g05 = Some(stats.clone());
+        }
     }
 
     fn record(&mut self, event: &BoardEvent) {

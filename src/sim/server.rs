@@ -14,6 +14,9 @@
 //! {"event":"do","image":165,"hex":"A5"}
 //! {"event":"alarm","alarm":"SR0945","message":"…","cause":"checksum-retry-over","detail":"…"}
 //! {"event":"punch","state":"finished","bytes":4096}
+//! {"event":"g05","state":"started","axes":3,"unit_ms":8}
+//! {"event":"g05","state":"underruns","new":1,"total":1}
+//! {"event":"g05","state":"ended","end":"end-block","blocks":1000,"travel":[7000,-300,0],…}
 //! ```
 //!
 //! Protocol B (`--protocol b|exp-b`): `--punch FILE` punches the file's bytes out, as they are
@@ -21,6 +24,14 @@
 //! turns the CNC reset/alarm notices off (parameter 5003#3 = 0). A raw TCP device server
 //! carries no modem lines, so the ER off that replaces the notices then never reaches the
 //! host: it sees only the DC3.
+//!
+//! G05 binary input operation (§9): `--g05-axes N` gives the CNC binary input operation with N
+//! axes a block (parameter 7635); `--g05-unit-ms` (7618), `--g05-general` (7609#2 RDS = 1),
+//! `--g05-aux` (7609#3 RAX and 2034) and `--g05-aux-low-first` (protocol notes 14) set the
+//! rest. The `g05` events report its start, its underruns (at most one line a second) and
+//! its end with the session's totals: blocks, travel per axis in least input increments,
+//! significant auxiliary values, underruns, and the fewest whole blocks buffered at a unit
+//! time.
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -36,6 +47,7 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio::time::{Instant, Sleep};
 
+use crate::fanuc::g05::{AuxFunction, AuxOrder, DataFormat, G05Format, UnitTime};
 use crate::fanuc::message::Framing;
 use crate::fanuc::sat::Params;
 use crate::fanuc::tape::{self, TapeCode};
@@ -147,6 +159,57 @@ pub struct SimFanucArgs {
     /// ISO with even parity, ASCII, or EIA (parameter 0000#4). `raw`: the file is the tape.
     #[arg(long, value_enum, default_value_t = PunchCode::Raw)]
     pub punch_code: PunchCode,
+    /// G05 binary input operation (§9) with this many axes a block (parameter 7635). Without
+    /// it the CNC has no binary input operation.
+    #[arg(long, value_name = "N")]
+    pub g05_axes: Option<u8>,
+    /// G05 unit time in ms (parameter 7618): 1, 2, 4, 8 or 16. Default 8.
+    #[arg(long, value_name = "T", value_parser = parse_unit_time, requires = "g05_axes")]
+    pub g05_unit_ms: Option<UnitTime>,
+    /// G05 travels and auxiliary word in the general format (parameter 7609#2 RDS = 1);
+    /// Protocol A requires the special one (§9.1 NOTE).
+    #[arg(long, requires = "g05_axes")]
+    pub g05_general: bool,
+    /// G05 auxiliary word and its function (parameters 7609#3 RAX and 2034). Default none.
+    #[arg(long, value_enum, value_name = "KIND", requires = "g05_axes")]
+    pub g05_aux: Option<SimG05Aux>,
+    /// The G05 auxiliary word's low 16 bits travel first (protocol notes 14).
+    #[arg(long, requires = "g05_axes")]
+    pub g05_aux_low_first: bool,
+}
+
+/// `--g05-aux`: parameters 7609#3 RAX and 2034 (§9.1 (6), (7)).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SimG05Aux {
+    /// RAX = 0: no auxiliary word.
+    None,
+    /// Second auxiliary function (2034 = 0).
+    Second,
+    /// Miscellaneous function (2034 = 1).
+    M,
+    /// S function (2034 = 2).
+    S,
+    /// T function (2034 = 3).
+    T,
+}
+
+impl From<SimG05Aux> for AuxFunction {
+    fn from(a: SimG05Aux) -> Self {
+        match a {
+            SimG05Aux::None => AuxFunction::None,
+            SimG05Aux::Second => AuxFunction::Second,
+            SimG05Aux::M => AuxFunction::M,
+            SimG05Aux::S => AuxFunction::S,
+            SimG05Aux::T => AuxFunction::T,
+        }
+    }
+}
+
+fn parse_unit_time(text: &str) -> Result<UnitTime, String> {
+    let ms: u32 = text
+        .parse()
+        .map_err(|_| format!("{text:?} is not a number of ms"))?;
+    UnitTime::try_from(ms).map_err(|e| e.to_string())
 }
 
 /// How the `--punch` file becomes a tape.
@@ -205,6 +268,7 @@ impl SimFanucArgs {
             first_request_delay: Duration::from_millis(self.first_request_delay_ms),
             notify_alarm_reset: !self.no_notify,
             er_off_time: Duration::from_millis(self.er_off_ms),
+            g05: self.g05_format(),
             ..BoardConfig::default()
         };
         config.validate()?;
@@ -240,6 +304,25 @@ impl SimFanucArgs {
             data,
             after: Duration::from_millis(self.punch_after_ms),
         }))
+    }
+
+    /// The CNC's G05 settings, when `--g05-axes` is given.
+    pub fn g05_format(&self) -> Option<G05Format> {
+        Some(G05Format {
+            axes: self.g05_axes?,
+            data_format: if self.g05_general {
+                DataFormat::General
+            } else {
+                DataFormat::Special
+            },
+            aux: self.g05_aux.map_or(AuxFunction::None, AuxFunction::from),
+            unit_time_ms: self.g05_unit_ms.unwrap_or_default(),
+            aux_order: if self.g05_aux_low_first {
+                AuxOrder::LowFirst
+            } else {
+                AuxOrder::HighFirst
+            },
+        })
     }
 
     pub fn line_settings(&self) -> LineSettings {
@@ -307,12 +390,16 @@ pub async fn serve_fanuc_with(
     config.validate()?;
     let punch = punch.map(Arc::new);
     let addr = listener.local_addr().map_err(SimError::Output)?;
-    sink(&json!({
+    let mut listening = json!({
         "event": "listening",
         "addr": addr.to_string(),
         "protocol": config.protocol.name(),
         "baud": settings.baud,
-    }));
+    });
+    if let Some(g05) = &config.g05 {
+        listening["g05"] = serde_json::to_value(g05).unwrap_or(Value::Null);
+    }
+    sink(&listening);
     let mut shutdown = std::pin::pin!(shutdown);
     type Session = Pin<Box<dyn Future<Output = Result<(), SimError>> + Send>>;
     let mut session: Option<(SocketAddr, Session)> = None;
@@ -465,6 +552,24 @@ pub fn event_json(event: &BoardEvent) -> Option<Value> {
         BoardEvent::ProtocolError { detail } => {
             json!({"event": "protocol-error", "detail": detail})
         }
+        BoardEvent::G05Started { axes, unit_ms } => {
+            json!({"event": "g05", "state": "started", "axes": axes, "unit_ms": unit_ms})
+        }
+        BoardEvent::G05Underruns { new, total } => {
+            json!({"event": "g05", "state": "underruns", "new": new, "total": total})
+        }
+        BoardEvent::G05Ended { end, stats } => json!({
+            "event": "g05",
+            "state": "ended",
+            "end": end.name(),
+            "session": stats.sessions,
+            "blocks": stats.blocks,
+            "travel": stats.travel,
+            "aux": stats.aux,
+            "aux_count": stats.aux_count,
+            "underruns": stats.underruns,
+            "min_buffered_blocks": stats.min_buffered_blocks,
+        }),
         _ => return None,
     })
 }
@@ -718,6 +823,190 @@ mod tests {
             }
         };
         assert_eq!(finished["bytes"], tape.len());
+        stop.send(()).unwrap();
+        server.await.unwrap().unwrap();
+    }
+
+    #[test]
+    fn parses_the_g05_options() {
+        let cli = Cli::try_parse_from([
+            "sim",
+            "--protocol",
+            "b",
+            "--g05-axes",
+            "3",
+            "--g05-unit-ms",
+            "2",
+            "--g05-general",
+            "--g05-aux",
+            "m",
+            "--g05-aux-low-first",
+        ])
+        .unwrap();
+        let config = cli.args.board_config().unwrap();
+        assert_eq!(
+            config.g05,
+            Some(G05Format {
+                axes: 3,
+                data_format: DataFormat::General,
+                aux: AuxFunction::M,
+                unit_time_ms: UnitTime::Ms2,
+                aux_order: AuxOrder::LowFirst,
+            })
+        );
+        // Defaults: special, no auxiliary word, 8 ms, high half first.
+        let cli = Cli::try_parse_from(["sim", "--g05-axes", "2"]).unwrap();
+        assert_eq!(
+            cli.args.board_config().unwrap().g05,
+            Some(G05Format::new(2))
+        );
+        let cli = Cli::try_parse_from(["sim"]).unwrap();
+        assert_eq!(cli.args.board_config().unwrap().g05, None);
+        for aux in ["none", "second", "s", "t"] {
+            let cli = Cli::try_parse_from(["sim", "--g05-axes", "1", "--g05-aux", aux]).unwrap();
+            assert_eq!(cli.args.g05_format().unwrap().aux.name(), aux);
+        }
+        // 7618 offers 1, 2, 4, 8 and 16 ms only.
+        let err = Cli::try_parse_from(["sim", "--g05-axes", "1", "--g05-unit-ms", "3"])
+            .err()
+            .unwrap();
+        assert!(err.to_string().contains("7618"), "{err}");
+        // The other options need --g05-axes.
+        assert!(Cli::try_parse_from(["sim", "--g05-general"]).is_err());
+        assert!(Cli::try_parse_from(["sim", "--g05-unit-ms", "2"]).is_err());
+        // Protocol A requires the special format; 0 axes is no format.
+        let cli = Cli::try_parse_from(["sim", "--g05-axes", "1", "--g05-general"]).unwrap();
+        let err = cli.args.board_config().unwrap_err();
+        assert!(err.to_string().contains("§9.1 NOTE"), "{err}");
+        let cli = Cli::try_parse_from(["sim", "--protocol", "b", "--g05-axes", "0"]).unwrap();
+        let err = cli.args.board_config().unwrap_err();
+        assert!(err.to_string().contains("7635"), "{err}");
+    }
+
+    #[test]
+    fn g05_events_as_json() {
+        use crate::sim::{G05End, G05Stats};
+        let v = event_json(&BoardEvent::G05Started {
+            axes: 3,
+            unit_ms: 2,
+        })
+        .unwrap();
+        assert_eq!(
+            v,
+            json!({"event": "g05", "state": "started", "axes": 3, "unit_ms": 2})
+        );
+        let v = event_json(&BoardEvent::G05Underruns { new: 4, total: 9 }).unwrap();
+        assert_eq!(
+            v,
+            json!({"event": "g05", "state": "underruns", "new": 4, "total": 9})
+        );
+        let stats = G05Stats {
+            active: false,
+            sessions: 1,
+            blocks: 10,
+            travel: vec![7000, -300],
+            aux: vec![3, 5],
+            aux_count: 2,
+            underruns: 1,
+            min_buffered_blocks: Some(0),
+            end: Some(G05End::EndBlock),
+        };
+        let v = event_json(&BoardEvent::G05Ended {
+            end: G05End::EndBlock,
+            stats,
+        })
+        .unwrap();
+        assert_eq!(v["end"], "end-block");
+        assert_eq!(v["travel"], json!([7000, -300]));
+        assert_eq!(v["aux"], json!([3, 5]));
+        assert_eq!(v["underruns"], 1);
+        assert_eq!(v["blocks"], 10);
+        assert_eq!(v["min_buffered_blocks"], 0);
+    }
+
+    /// `--g05-axes`: binary data after `G05` over TCP; start and end with totals as JSON.
+    #[tokio::test]
+    async fn g05_session_over_tcp_reported_as_json() {
+        use crate::fanuc::g05::G05Encoder;
+        use tokio::io::AsyncWriteExt;
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let format = G05Format {
+            axes: 2,
+            aux: AuxFunction::T,
+            unit_time_ms: UnitTime::Ms1,
+            ..G05Format::new(2)
+        };
+        let config = BoardConfig {
+            protocol: Protocol::B,
+            autostart: true,
+            consume_rate: 0,
+            g05: Some(format),
+            ..BoardConfig::default()
+        };
+        let (tx, mut json) = mpsc::unbounded_channel();
+        let sink: EventSink = Arc::new(move |v| {
+            let _ = tx.send(v.clone());
+        });
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let server = tokio::spawn(serve_fanuc_on(
+            listener,
+            config,
+            LineSettings::with_baud(115_200),
+            sink,
+            async {
+                let _ = stopped.await;
+            },
+        ));
+        let mut tape = b"%
+O7
+G05
+"
+        .to_vec();
+        let mut e = G05Encoder::new(format).unwrap();
+        for k in 1..=20 {
+            let tool = (k == 10).then_some(crate::fanuc::g05::AuxWord::significant(12));
+            e.block(&[k, -1], tool, &mut tape).unwrap();
+        }
+        e.end(&mut tape);
+        tape.extend_from_slice(
+            b"M30
+%",
+        );
+        let mut stream = TcpStream::connect(addr).await.unwrap();
+        stream.write_all(&tape).await.unwrap();
+        let mut seen = Vec::new();
+        let ended = loop {
+            let v = tokio::time::timeout(Duration::from_secs(10), json.recv())
+                .await
+                .unwrap()
+                .unwrap();
+            if v["event"] == "listening" {
+                assert_eq!(v["g05"]["axes"], 2);
+                assert_eq!(v["g05"]["unit-time-ms"], 1);
+            }
+            if v["event"] == "g05" {
+                seen.push(v["state"].clone());
+                if v["state"] == "ended" {
+                    break v;
+                }
+            }
+        };
+        assert_eq!(seen.first(), Some(&json!("started")));
+        assert_eq!(ended["end"], "end-block");
+        assert_eq!(ended["blocks"], 20);
+        assert_eq!(ended["travel"], json!([210, -20]));
+        assert_eq!(ended["aux"], json!([12]));
+        let program = loop {
+            let v = tokio::time::timeout(Duration::from_secs(10), json.recv())
+                .await
+                .unwrap()
+                .unwrap();
+            if v["event"] == "program" {
+                break v;
+            }
+        };
+        assert_eq!(program["bytes"], tape.len());
         stop.send(()).unwrap();
         server.await.unwrap().unwrap();
     }
