@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
 
+use crate::config::G05Config;
 use crate::config::{CellConfig, MachineConfig, TransportConfig};
 use crate::fanuc::message::Framing;
 use crate::fanuc::protocol_a::ProtocolAHost;
@@ -218,6 +219,7 @@ fn machine_board_config(
         consume_rate: sim.consume_rate,
         autostart: true,
         notify_alarm_reset: machine.effective_notify_alarm_reset(),
+        g05: machine.g05.as_ref().map(G05Config::format),
         ..sim::fanuc_board::BoardConfig::default()
     }
 }

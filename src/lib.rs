@@ -20,6 +20,9 @@
 //! - [`config`]: the cell file, one file per concern, with validation that reports every error.
 //! - [`jobs`]: per-machine job queues, program sources and checks, the program library, and
 //!   punched programs: split at EOR, named for the library, remote requests ([`jobs::punch`]).
+//! - [`g05`]: G05 binary input streams (§9): a producer's blocks through a machine's link,
+//!   with credits, priming and the CNC's estimated buffer ([`g05::stream`] holds the rules,
+//!   sans-IO).
 //! - [`bus`]: the Zenoh session, the cell's key expressions, and one route per kind (status,
 //!   jobs, DI/DO, alarms, punched programs, the program library) ([`bus::serve`]).
 //! - [`codes`]: the one place where typed errors become bus error codes.
@@ -41,6 +44,7 @@
 //!   codecs, its runners `link::pump` and `transport`.
 //! - `jobs` imports `fanuc`, `link` and `pb`; `config` imports `engine`, `fanuc`, `jobs` and
 //!   `telemetry`, never `bus` or `link`.
+//! - `g05` imports `fanuc` (the block codec), `link`, `config` and `engine`; `bus` uses it.
 //! - `bus` may import everything below it; only `cell`, `gateway` and `client` import `bus`.
 //! - `codes` imports the error types it maps; every layer that builds a bus message uses it.
 
@@ -52,6 +56,7 @@ pub mod config;
 pub mod engine;
 pub mod fanuc;
 pub mod fuji;
+pub mod g05;
 pub mod gateway;
 pub mod jobs;
 pub mod link;

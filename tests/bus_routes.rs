@@ -136,7 +136,7 @@ impl FakeLink {
         }
     }
 
-    async fn job(&mut self, mut job: ProgramJob) {
+    async fn job(&mut self, job: ProgramJob) {
         self.log.lock().unwrap().push(format!("queue {}", job.name));
         self.emit(LinkEvent::JobQueued {
             job: job.id,
@@ -166,8 +166,11 @@ impl FakeLink {
         self.emit(LinkEvent::JobStarted { job: job.id });
         let mut data = Vec::new();
         let mut buf = vec![0u8; self.chunk];
+        let cellgate::link::driver::JobSource::Program(mut source) = job.source else {
+            panic!("the job manager hands programs from the journal");
+        };
         loop {
-            let n = job.source.read(&mut buf).await.unwrap();
+            let n = source.read(&mut buf).await.unwrap();
             if n == 0 {
                 break;
             }

@@ -13,7 +13,7 @@ use cellgate::fanuc::host::{Confirmation, EngineEvent};
 use cellgate::fanuc::message::Framing;
 use cellgate::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
 use cellgate::fanuc::{CodeSystem, EndCode, Protocol};
-use cellgate::link::driver::{self, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
+use cellgate::link::driver::{self, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use cellgate::link::pump::{Pump, PumpError, now};
 use cellgate::sim::fanuc_board::protocol_b::overrun_allowance;
 use cellgate::sim::{BoardConfig, BoardEvent, BoardHandle, BoardSnapshot, ControlCode};
@@ -100,7 +100,8 @@ impl Rig {
                 id,
                 name: format!("job-{id}"),
                 size: Some(program.len() as u64),
-                source: Box::new(std::io::Cursor::new(program.to_vec())),
+                source: JobSource::program(std::io::Cursor::new(program.to_vec())),
+                progress_interval: None,
             }))
             .await
             .unwrap();

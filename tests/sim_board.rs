@@ -1236,7 +1236,10 @@ mod cell {
                     id,
                     name: format!("job {id}"),
                     size: Some(prog.len() as u64),
-                    source: Box::new(std::io::Cursor::new(prog.to_vec())),
+                    source: cellgate::link::driver::JobSource::program(std::io::Cursor::new(
+                        prog.to_vec(),
+                    )),
+                    progress_interval: None,
                 }))
                 .await
                 .unwrap();

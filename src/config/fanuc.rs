@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use super::error::ConfigErrors;
 use super::error::{Checker, ConfigError, list_u32, q, toml_name};
+use super::g05::{G05Config, check_g05};
 use super::transport::{
     RawTransport, TransportConfig, built_transport, check_transport, transport_of,
 };
@@ -51,7 +52,7 @@ pub struct BoardSimConfig {
     pub buffer_size: u32,
     /// Bytes per second the CNC takes out of the buffer while it runs a program.
     pub consume_rate: u32,
-    /// Axes of one G05 binary block (parameter 7635, §9).
+    /// Controlled axes of the simulated CNC: a `g05` table may name at most these (§10.3).
     pub axes: u8,
 }
 
@@ -122,6 +123,9 @@ pub struct MachineConfig {
     /// Board simulation settings; only with `transport.kind = "sim"`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sim: Option<BoardSimConfig>,
+    /// G05 binary input (§9); `None`: the machine takes no G05 streams.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub g05: Option<G05Config>,
 }
 
 impl MachineConfig {
@@ -268,6 +272,7 @@ pub(super) struct RawMachine {
     di_poll_ms: Option<u32>,
     transport: Option<RawTransport>,
     sim: Option<BoardSimConfig>,
+    g05: Option<G05Config>,
 }
 
 /// Baud rates of parameters 5073 (RS-422, settings 1–15) and 5083 (RS-232-C, 1–12) (§10.2).
@@ -507,6 +512,13 @@ pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
         }
     }
 
+    if let Some(g) = &m.g05 {
+        // A simulated CNC has the axes of its `sim` table; a real one is not known here.
+        let controlled = matches!(transport, TransportConfig::Sim { .. })
+            .then(|| m.sim.unwrap_or_default().axes);
+        check_g05(c, label, g, protocol, line, controlled);
+    }
+
     // The simulated board.
     match (transport, &m.sim) {
         (TransportConfig::Sim { .. }, Some(sim)) => check_board_sim(c, label, sim),
@@ -583,6 +595,7 @@ impl From<&MachineConfig> for RawMachine {
             di_poll_ms: c.di_poll_ms,
             transport: Some(RawTransport::from(&c.transport)),
             sim: c.sim,
+            g05: c.g05.clone(),
         }
     }
 }
@@ -615,6 +628,7 @@ impl RawMachine {
             di_poll_ms: self.di_poll_ms,
             transport: built_transport(self.transport.as_ref(), label)?,
             sim: self.sim,
+            g05: self.g05,
         })
     }
 }

@@ -21,6 +21,7 @@
 mod bus;
 mod error;
 mod fanuc;
+mod g05;
 mod plc;
 mod programs;
 mod summary;
@@ -37,6 +38,7 @@ use self::error::{Checker, q};
 pub use self::error::{ConfigError, ConfigErrors};
 pub use self::fanuc::{BoardSimConfig, FANUC_BAUD_RATES, Interface, MachineConfig};
 use self::fanuc::{RawMachine, check_machine};
+pub use self::g05::G05Config;
 pub use self::plc::{
     BccCalc, BccCode, BccKind, BccRange, FUJI_BAUD_RATES, FUJI_MAX_STATIONS, PlcConfig, PlcEndCode,
     PlcStartCode,

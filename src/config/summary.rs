@@ -124,6 +124,9 @@ impl CellConfig {
             if p.is_a_family() {
                 writeln!(s, "    parameters: {}", m.params())?;
             }
+            if let Some(g) = &m.g05 {
+                writeln!(s, "    {}", g.describe(m.transport.line()))?;
+            }
         }
         writeln!(s, "plcs: {}", self.plcs.len())?;
         for p in &self.plcs {

@@ -455,3 +455,39 @@ fn every_time_out_of_the_manual_gives_engine_settings_that_run() {
         }
     }
 }
+
+#[test]
+fn g05_rules() {
+    let cell = |protocol: &str, baud: u32, g05: &str| {
+        format!(
+            "cell = \"c1\"\n[[machines]]\nname = \"m1\"\nprotocol = \"{protocol}\"\n\
+             transport = {{ kind = \"sim\", line = {{ baud = {baud} }} }}\n[machines.g05]\n{g05}\n"
+        )
+    };
+    // 3 axes, T = 8 ms: 7-byte blocks, 7 × 11 × 1000 / 8 = 9625 baud (§9.2).
+    let ok = CellConfig::from_toml_str(&cell("a", 19_200, "axes = 3"), "t").unwrap();
+    let g = ok.machines[0].g05.as_ref().unwrap();
+    assert_eq!(g.required_baud(ok.machines[0].transport.line()), 9625);
+    // 125 blocks in a second, raised to the 8 KiB of blocks a DAT needs.
+    assert_eq!((g.window_blocks(), g.prime_blocks()), (1171, 62));
+    assert_eq!(g.before, "G05\n");
+    assert!(ok.summary().contains("G05: 3 axes, special format"));
+
+    let e = errors_of(&cell("a", 9600, "axes = 3"));
+    assert!(
+        e.len() == 1 && e[0].contains("line.baud = 9600") && e[0].contains("9625 baud"),
+        "{e:?}"
+    );
+    let e = errors_of(&cell("a", 19_200, "axes = 3\ndata_format = \"general\""));
+    assert!(e.len() == 1 && e[0].contains("special format"), "{e:?}");
+    assert!(errors_of(&cell("b", 19_200, "axes = 3\ndata_format = \"general\"")).is_empty());
+    // The simulated CNC has 3 axes unless its `sim` table says otherwise.
+    let e = errors_of(&cell("b", 19_200, "axes = 4"));
+    assert!(e.len() == 1 && e[0].contains("controlled axes"), "{e:?}");
+    let e = errors_of(&cell("b", 19_200, "axes = 3\nbefore = \"G01 X1\\n\""));
+    assert!(e.len() == 1 && e[0].contains("g05.before"), "{e:?}");
+    let e = errors_of(&cell("b", 19_200, "axes = 3\nafter = \"M30\\n%\""));
+    assert!(e.len() == 1 && e[0].contains("g05.after"), "{e:?}");
+    let e = errors_of(&cell("b", 19_200, "axes = 3\nunit_time_ms = 3"));
+    assert!(e.len() == 1 && e[0].contains("unit_time_ms"), "{e:?}");
+}

@@ -46,7 +46,7 @@ pub const AUX_SIGNIFICANT: u32 = 1 << 31;
 
 /// Parameter 7618 TM2..TM0: the unit time T in which the CNC takes one block (§9.1 (2),
 /// §10.3). Only the five times the parameter offers can be held. Written as milliseconds
-/// (`unit-time-ms = 8`).
+/// (`unit_time_ms = 8`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
 #[serde(try_from = "u32", into = "u32")]
 pub enum UnitTime {
@@ -270,13 +270,13 @@ pub enum AuxOrder {
 /// ```toml
 /// [machines.g05]
 /// axes = 3
-/// data-format = "special"   # or "general"
+/// data_format = "special"   # or "general"
 /// aux = "m"                 # none, second, m, s, t
-/// unit-time-ms = 2          # 1, 2, 4, 8, 16
-/// aux-order = "high-first"  # or "low-first"
+/// unit_time_ms = 2          # 1, 2, 4, 8, 16
+/// aux_order = "high-first"  # or "low-first"
 /// ```
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+#[serde(deny_unknown_fields)]
 pub struct G05Format {
     /// Parameter 7635: the axes in a block, the first N controlled axes (1..=[`MAX_AXES`]).
     pub axes: u8,

@@ -39,6 +39,13 @@ pub enum EngineCommand {
     StartProgram { total: Option<u64> },
     /// The next bytes of the current program.
     ProgramData(Bytes),
+    /// The next bytes of the current program, passed as they are: G05 binary blocks (§9.1),
+    /// which are not scanned for EOR or checked against the message end code.
+    BinaryData(Bytes),
+    /// The current program is made while it is sent (a G05 stream): what there is goes out
+    /// at once — a short DAT rather than a wait for a full one, since a late block starves the
+    /// CNC (§9.2).
+    Streaming,
     /// The current program's source has no more bytes.
     ProgramEnd,
     /// Abandon the current program: Protocol A answers the next GTD with EOD and clears the

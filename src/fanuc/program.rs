@@ -103,6 +103,19 @@ impl Program {
         Ok(())
     }
 
+    /// Takes bytes that are passed as they are: G05 binary blocks (§9.1), which may hold any
+    /// value, `%` included, and so are not scanned for EOR. They belong to the program's body
+    /// (they follow its `G05` block); after EOR they are dropped like any other byte.
+    pub fn push_binary(&mut self, data: &[u8]) {
+        if self.scan == Scan::Ended {
+            self.ignored += data.len() as u64;
+            return;
+        }
+        self.scan = Scan::Body;
+        self.accepted += data.len() as u64;
+        self.buf.extend(data.iter().copied());
+    }
+
     /// The source has no more bytes: appends EOR if the program has none.
     pub fn end(&mut self) -> Result<(), ProgramError> {
         match self.scan {
@@ -178,6 +191,20 @@ mod tests {
 
     fn all(p: &mut Program) -> Vec<u8> {
         p.take(usize::MAX)
+    }
+
+    #[test]
+    fn binary_bytes_are_not_scanned_for_eor() {
+        let mut p = Program::new();
+        p.push(b"%\nG05\n", None).unwrap();
+        p.push_binary(b"\x25\x25\xA5\x00");
+        assert!(!p.complete(), "a % inside binary data is no EOR");
+        p.push(b"M30\n", None).unwrap();
+        p.end().unwrap();
+        assert_eq!(all(&mut p), b"%\nG05\n\x25\x25\xA5\x00M30\n%");
+        // After EOR, binary bytes are dropped too.
+        p.push_binary(b"\x01");
+        assert_eq!(p.buffered(), 0);
     }
 
     #[test]

@@ -694,6 +694,12 @@ impl Engine for ProtocolBHost {
                 }
                 None => tracing::trace!(len = data.len(), "program data without a program"),
             },
+            // Protocol B sends whatever it has while DC1 is in force: nothing waits anyway.
+            EngineCommand::Streaming => {}
+            EngineCommand::BinaryData(data) => match self.program.as_mut() {
+                Some(p) => p.push_binary(&data),
+                None => tracing::trace!(len = data.len(), "binary data without a program"),
+            },
             EngineCommand::ProgramEnd => {
                 if let Some(Err(e)) = self.program.as_mut().map(Program::end) {
                     self.abort_program(AbortReason::Program(e), false);

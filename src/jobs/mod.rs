@@ -56,7 +56,7 @@ use crate::codes::BusCode;
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::host::Confirmation;
 use crate::link::JobId;
-use crate::link::driver::{JobFailure, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
+use crate::link::driver::{JobFailure, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use crate::pb;
 use crate::pb::job_event::Kind;
 use blocks::{Block, BlockError, StartAt};
@@ -1096,7 +1096,8 @@ impl Manager {
                 id: link_id,
                 name: record.name.clone(),
                 size: Some(size),
-                source,
+                source: JobSource::Program(source),
+                progress_interval: None,
             });
             self.active = Some(Active {
                 record,

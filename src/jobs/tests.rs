@@ -55,7 +55,7 @@ impl StandIn {
         }
     }
 
-    async fn job(&mut self, mut job: ProgramJob) {
+    async fn job(&mut self, job: ProgramJob) {
         self.log
             .lock()
             .unwrap()
@@ -85,8 +85,11 @@ impl StandIn {
         let mut sent = 0u64;
         let mut data = Vec::new();
         let mut buf = vec![0u8; self.chunk];
+        let JobSource::Program(mut source) = job.source else {
+            panic!("the job manager hands programs from the journal");
+        };
         loop {
-            let n = job.source.read(&mut buf).await.unwrap();
+            let n = source.read(&mut buf).await.unwrap();
             if n == 0 {
                 break;
             }

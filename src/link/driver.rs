@@ -24,6 +24,29 @@ use crate::transport::Transport;
 /// Where a program's bytes come from: a file, a bus download, a test vector.
 pub type ProgramSource = Box<dyn AsyncRead + Send + Unpin>;
 
+/// A piece of a program that is made while it is sent (a G05 stream).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Chunk {
+    /// NC text: scanned for EOR like any program.
+    Text(Bytes),
+    /// Binary blocks (G05, §9.1): passed as they are.
+    Binary(Bytes),
+}
+
+/// What a job's program is read from.
+pub enum JobSource {
+    /// A program that exists whole somewhere (file, download, test vector).
+    Program(ProgramSource),
+    /// A program made while it is sent; it ends when the sender is dropped.
+    Chunks(mpsc::Receiver<Chunk>),
+}
+
+impl JobSource {
+    pub fn program(source: impl AsyncRead + Send + Unpin + 'static) -> Self {
+        JobSource::Program(Box::new(source))
+    }
+}
+
 /// A program to send to the machine.
 pub struct ProgramJob {
     pub id: JobId,
@@ -31,7 +54,10 @@ pub struct ProgramJob {
     pub name: String,
     /// Size in bytes when known, for progress.
     pub size: Option<u64>,
-    pub source: ProgramSource,
+    pub source: JobSource,
+    /// How often progress is reported for a program of unknown size (a stream's status wants
+    /// it often); `None`: [`PROGRESS_INTERVAL`].
+    pub progress_interval: Option<Duration>,
 }
 
 impl std::fmt::Debug for ProgramJob {
@@ -270,7 +296,8 @@ struct ActiveJob {
     id: JobId,
     size: Option<u64>,
     /// `None` once the source reached its end (or failed).
-    source: Option<ProgramSource>,
+    source: Option<JobSource>,
+    progress_interval: Duration,
     /// Program bytes handed to the line.
     sent: u64,
     /// Program bytes the board acknowledged.
@@ -294,7 +321,7 @@ struct Driver<E, T> {
 enum Wake {
     Shutdown,
     Command(Option<LinkCommand>),
-    Source(std::io::Result<usize>),
+    Source(Read),
     Pump(Result<(), PumpError>),
 }
 
@@ -408,7 +435,17 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
         }
     }
 
-    fn handle_source(&mut self, read: std::io::Result<usize>, want: usize) {
+    fn handle_source(&mut self, read: Read, want: usize) {
+        let read = match read {
+            Read::Bytes(r) => r,
+            Read::Chunk(Some(Chunk::Text(data))) => {
+                return self.engine_command(EngineCommand::ProgramData(data));
+            }
+            Read::Chunk(Some(Chunk::Binary(data))) => {
+                return self.engine_command(EngineCommand::BinaryData(data));
+            }
+            Read::Chunk(None) => Ok(0),
+        };
         match read {
             Ok(0) if want > 0 => {
                 if let Some(active) = self.active.as_mut() {
@@ -448,11 +485,15 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
         };
         tracing::info!(job = job.id, name = %job.name, "program started");
         self.engine_command(EngineCommand::StartProgram { total: job.size });
+        if matches!(job.source, JobSource::Chunks(_)) {
+            self.engine_command(EngineCommand::Streaming);
+        }
         self.emit(LinkEvent::JobStarted { job: job.id });
         self.active = Some(ActiveJob {
             id: job.id,
             size: job.size,
             source: Some(job.source),
+            progress_interval: job.progress_interval.unwrap_or(PROGRESS_INTERVAL),
             sent: 0,
             acked: 0,
             last_progress: None,
@@ -561,7 +602,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 let percent = |b: u64| u128::from(b) * 100 / u128::from(total);
                 percent(active.acked) > percent(acked) || percent(active.sent) > percent(sent)
             }
-            (Some((at, _, _)), _) => t.duration_since(at) >= PROGRESS_INTERVAL,
+            (Some((at, _, _)), _) => t.duration_since(at) >= active.progress_interval,
         };
         if !due {
             return None;
@@ -576,10 +617,19 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
     }
 }
 
+/// What a job's source gave.
+enum Read {
+    /// Program text read into the buffer (0: the end).
+    Bytes(std::io::Result<usize>),
+    /// A chunk of a stream, or its end.
+    Chunk(Option<Chunk>),
+}
+
 /// Reads into `buf` from `source` (which is present whenever `buf` is not empty).
-async fn read_some(source: Option<&mut ProgramSource>, buf: &mut [u8]) -> std::io::Result<usize> {
+async fn read_some(source: Option<&mut JobSource>, buf: &mut [u8]) -> Read {
     match source {
-        Some(s) => s.read(buf).await,
+        Some(JobSource::Program(s)) => Read::Bytes(s.read(buf).await),
+        Some(JobSource::Chunks(rx)) => Read::Chunk(rx.recv().await),
         None => std::future::pending().await,
     }
 }

@@ -983,7 +983,7 @@ G05
                 .unwrap();
             if v["event"] == "listening" {
                 assert_eq!(v["g05"]["axes"], 2);
-                assert_eq!(v["g05"]["unit-time-ms"], 1);
+                assert_eq!(v["g05"]["unit_time_ms"], 1);
             }
             if v["event"] == "g05" {
                 seen.push(v["state"].clone());

@@ -101,7 +101,8 @@ pub async fn queue(link: &LinkHandle, id: u64, program: Vec<u8>) {
             id,
             name: format!("job-{id}"),
             size: Some(size),
-            source: Box::new(std::io::Cursor::new(program)),
+            source: cellgate::link::driver::JobSource::program(std::io::Cursor::new(program)),
+            progress_interval: None,
         },
     ))
     .await

@@ -413,7 +413,7 @@ fn serde_kebab_case_for_cell_files() {
         g05: G05Format,
     }
     let w: W = toml::from_str(
-        "g05 = { axes = 3, data-format = \"general\", aux = \"m\", unit-time-ms = 2, aux-order = \"low-first\" }",
+        "g05 = { axes = 3, data_format = \"general\", aux = \"m\", unit_time_ms = 2, aux_order = \"low-first\" }",
     )
     .unwrap();
     assert_eq!(
@@ -428,7 +428,7 @@ fn serde_kebab_case_for_cell_files() {
     );
     let w: W = toml::from_str("g05 = { axes = 2 }").unwrap();
     assert_eq!(w.g05, G05Format::new(2));
-    let e = toml::from_str::<W>("g05 = { axes = 2, unit-time-ms = 3 }")
+    let e = toml::from_str::<W>("g05 = { axes = 2, unit_time_ms = 3 }")
         .err()
         .unwrap();
     assert!(e.to_string().contains("7618"), "{e}");
@@ -439,7 +439,7 @@ fn serde_kebab_case_for_cell_files() {
         ..G05Format::new(4)
     })
     .unwrap();
-    assert!(back.contains("unit-time-ms = 8"), "{back}");
+    assert!(back.contains("unit_time_ms = 8"), "{back}");
     assert!(back.contains("aux = \"second\""), "{back}");
 }
 

@@ -338,6 +338,8 @@ pub struct ProtocolAHost {
     /// "the transmission of NC data has been completed" (§4.4.1) — until a SAT shows the
     /// buffer empty (bytes 5–8), or a CLB has cleared it.
     drain_wait: bool,
+    /// The current program is a stream: a GTD gets what there is at once.
+    streaming: bool,
     /// Longest DAT for now (see [`Self::dat_len_now`]), and DATs taken since it last shrank.
     dat_limit: usize,
     clean_dats: u8,
@@ -398,6 +400,7 @@ impl ProtocolAHost {
             board_n: 0,
             board_in_alarm: false,
             drain_wait: false,
+            streaming: false,
             dat_limit: MAX_DAT_DATA,
             clean_dats: 0,
             set_needed: true,
@@ -1073,7 +1076,8 @@ impl ProtocolAHost {
 
     /// The data answer to a GTD; false when it should wait for data a little longer.
     fn answer_gtd(&mut self, now: Instant, at: Instant) -> bool {
-        let grace_over = now >= at + self.cfg.wat_grace;
+        let grace_over = now >= at + self.cfg.wat_grace
+            || (self.streaming && self.program.as_ref().is_some_and(|p| p.buffered() > 0));
         if self.eod_owed.is_none() && !self.clb_owed && self.board_n == 0 {
             // A DAT must not carry the end code (§4.1): refuse the program here too, for
             // programs that were meant for packets.
@@ -1251,7 +1255,9 @@ impl Engine for ProtocolAHost {
                 self.acked = 0;
                 self.dat_unacked = 0;
                 self.final_sent = false;
+                self.streaming = false;
             }
+            EngineCommand::Streaming => self.streaming = true,
             EngineCommand::ProgramData(data) => {
                 // In Protocol A the program travels in DATs, which cannot carry the end code.
                 let forbidden = (effective_packet_n(self.cfg.packet_n) == 0)
@@ -1265,6 +1271,12 @@ impl Engine for ProtocolAHost {
                     None => tracing::trace!(len = data.len(), "program data without a program"),
                 }
             }
+            // G05 blocks in the special format are all even bytes: neither CR nor ETX, nor
+            // EOR, can occur in them (protocol notes 14), so they need no check here.
+            EngineCommand::BinaryData(data) => match self.program.as_mut() {
+                Some(p) => p.push_binary(&data),
+                None => tracing::trace!(len = data.len(), "binary data without a program"),
+            },
             EngineCommand::ProgramEnd => {
                 if let Some(Err(e)) = self.program.as_mut().map(Program::end) {
                     self.abort_program(AbortReason::Program(e), false, true, false);
