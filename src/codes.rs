@@ -3,6 +3,8 @@
 //! [`BusCode`] here; the message people read is the error's own `Display`.
 
 use crate::fanuc::error::AbortReason;
+use crate::g05::G05Error;
+use crate::g05::stream::BatchError;
 use crate::jobs::JobError;
 use crate::jobs::library::LibraryError;
 use crate::link::driver::JobFailure;
@@ -60,6 +62,30 @@ impl BusCode for JobFailure {
             JobFailure::Aborted(reason) => reason.code(),
             JobFailure::Source(_) | JobFailure::LinkStopped(_) => pb::ErrorCode::LinkFailed,
             JobFailure::Shutdown => pb::ErrorCode::Unavailable,
+        }
+    }
+}
+
+impl BusCode for G05Error {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            G05Error::NotConfigured { .. } | G05Error::LineTooSlow { .. } => {
+                pb::ErrorCode::NotSupported
+            }
+            G05Error::Busy { .. } => pb::ErrorCode::Busy,
+            G05Error::LinkStopped { .. } => pb::ErrorCode::Unavailable,
+            G05Error::BadId { .. } => pb::ErrorCode::InvalidRequest,
+            G05Error::StreamEnded { .. } => pb::ErrorCode::NotFound,
+        }
+    }
+}
+
+impl BusCode for BatchError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            BatchError::Credits { .. } => pb::ErrorCode::Busy,
+            BatchError::Ended { .. } => pb::ErrorCode::NotFound,
+            _ => pb::ErrorCode::InvalidRequest,
         }
     }
 }

@@ -59,6 +59,9 @@ enum Command {
     Program(client::ProgramCommand),
     /// Cancel a job, waiting or running.
     Cancel(client::CancelArgs),
+    /// Stream G05 binary blocks from a CSV file (or standard input) to a machine (§9); exit 0
+    /// only if the stream ended cleanly.
+    G05(client::G05Args),
     /// Run a simulated device on its own, for testing any host against it.
     #[command(subcommand)]
     Sim(SimCommand),
@@ -129,6 +132,7 @@ fn main() -> ExitCode {
         Command::Di(ref args) => client_command(&cli, args),
         Command::Program(ref args) => client_command(&cli, args),
         Command::Cancel(ref args) => client_command(&cli, args),
+        Command::G05(ref args) => client_command(&cli, args),
         Command::Sim(SimCommand::Fanuc(ref args)) => sim_fanuc(&cli, args.clone()),
     }
 }

@@ -910,3 +910,76 @@ async fn the_binary_against_cellgate_run() {
     assert!(err.contains("no machine \"nosuch\""), "{err}");
     drop(run);
 }
+
+/// A circle of `n` blocks in XY (Z still), as the CSV `cellgate g05` reads: relative travels.
+fn circle_csv(n: usize, radius: f64) -> (String, [i64; 3]) {
+    let mut csv = String::from("# X, Y, Z travels of a circle\n");
+    let (mut px, mut py) = (radius.round() as i64, 0i64);
+    let mut sums = [0i64; 3];
+    for i in 1..=n {
+        let a = std::f64::consts::TAU * i as f64 / n as f64;
+        let (x, y) = (
+            (radius * a.cos()).round() as i64,
+            (radius * a.sin()).round() as i64,
+        );
+        let (dx, mut dy) = (x - px, y - py);
+        // Never an all-zero block: that would end binary mode.
+        if dx == 0 && dy == 0 {
+            dy = 1;
+        }
+        csv.push_str(&format!("{dx},{dy},0\n"));
+        sums[0] += dx;
+        sums[1] += dy;
+        (px, py) = (px + dx, py + dy);
+    }
+    (csv, sums)
+}
+
+/// `cellgate g05` streams a CSV (from a file, or piped in) to the embedded default cell's
+/// G05 machine and exits 0 once the stream ended cleanly; a bad line and a machine without
+/// G05 exit 2.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_g05_command_streams_a_csv_against_cellgate_run() {
+    let run = RunProcess::start().await;
+    let ep = run.endpoint.as_str();
+    let files = tempfile::tempdir().unwrap();
+    let (csv, _) = circle_csv(1500, 3000.0);
+    let file = write_file(files.path(), "circle.csv", csv.as_bytes());
+    let (code, out, err) = cellgate(&["g05", "-e", ep, "-m", MILL_X, file.to_str().unwrap()]).await;
+    assert_eq!(code, 0, "stdout {out:?}\nstderr {err}");
+    let last: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    assert_eq!(last["state"], "completed", "{out}");
+    assert_eq!(last["received"], 1500, "{out}");
+    assert_eq!(last["end_reason"], "Producer", "{out}");
+    assert!(err.contains("3 axes, T = 2 ms"), "{err}");
+
+    // Piped in on standard input.
+    let mut child = tokio::process::Command::new(BIN)
+        .args(["g05", "-e", ep, "-m", MILL_X, "-"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    {
+        use tokio::io::AsyncWriteExt;
+        let mut stdin = child.stdin.take().unwrap();
+        stdin.write_all(csv.as_bytes()).await.unwrap();
+    }
+    let piped = child.wait_with_output().await.unwrap();
+    assert_eq!(
+        piped.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&piped.stderr)
+    );
+
+    let bad = write_file(files.path(), "bad.csv", b"1,2,3\n4,x,6\n");
+    let (code, _, err) = cellgate(&["g05", "-e", ep, "-m", MILL_X, bad.to_str().unwrap()]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("bad.csv:2") && err.contains("\"x\""), "{err}");
+
+    let (code, _, err) = cellgate(&["g05", "-e", ep, "-m", MILL_A, file.to_str().unwrap()]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("[machines.g05]"), "{err}");
+}

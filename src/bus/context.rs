@@ -111,6 +111,12 @@ pub(crate) enum RequestError {
         job: String,
         kept: usize,
     },
+    #[error(transparent)]
+    G05(#[from] crate::g05::G05Error),
+    #[error(transparent)]
+    Batch(#[from] crate::g05::stream::BatchError),
+    #[error("machine {machine} has no G05 stream {stream:?} open (only the last one is kept)")]
+    NoSuchStream { machine: String, stream: String },
     #[error("program {name}: the payload is not a cellgate.v1.ProgramWrite: {error}")]
     ProgramWritePayload {
         name: String,
@@ -146,7 +152,11 @@ impl BusCode for RequestError {
                 pb::ErrorCode::Unavailable
             }
             RequestError::NoAnswer { .. } => pb::ErrorCode::LinkFailed,
-            RequestError::NoSuchJob { .. } => pb::ErrorCode::NotFound,
+            RequestError::NoSuchJob { .. } | RequestError::NoSuchStream { .. } => {
+                pb::ErrorCode::NotFound
+            }
+            RequestError::G05(e) => e.code(),
+            RequestError::Batch(e) => e.code(),
             RequestError::Job(e) => e.code(),
             RequestError::Library(e) => e.code(),
         }
@@ -224,7 +234,8 @@ impl RouteContext {
             Some(
                 CellKey::Machine { machine }
                 | CellKey::Leaf { machine, .. }
-                | CellKey::JobEvents { machine, .. },
+                | CellKey::JobEvents { machine, .. }
+                | CellKey::G05 { machine, .. },
             ) => machine,
             _ => return Target::Wild,
         };

@@ -14,6 +14,10 @@
 //! | `P/C/machine/M/do` | `DoCommand` |
 //! | `P/C/machine/M/alarm` | `AlarmEvent` |
 //! | `P/C/machine/M/punch` | `PunchedProgram`s the CNC punched out (Protocol B) |
+//! | `P/C/machine/M/g05` | G05 streams are opened here (`G05Open` → `G05Opened`) |
+//! | `P/C/machine/M/g05/S` | a stream's `G05Status`; a delete cancels it |
+//! | `P/C/machine/M/g05/S/blocks` | the stream's `G05Batch`es |
+//! | `P/C/machine/M/g05/S/producer` | the producer's liveliness token |
 //! | `P/C/program/NAME` | the program library |
 //!
 //! zenoh's `kedefine!`/`keformat!` macros would declare these formats at compile time, but
@@ -36,16 +40,18 @@ pub enum MachineLeaf {
     Do,
     Alarm,
     Punch,
+    G05,
 }
 
 impl MachineLeaf {
-    pub const ALL: [MachineLeaf; 6] = [
+    pub const ALL: [MachineLeaf; 7] = [
         MachineLeaf::Status,
         MachineLeaf::Job,
         MachineLeaf::Di,
         MachineLeaf::Do,
         MachineLeaf::Alarm,
         MachineLeaf::Punch,
+        MachineLeaf::G05,
     ];
 
     pub fn chunk(self) -> &'static str {
@@ -56,11 +62,33 @@ impl MachineLeaf {
             MachineLeaf::Do => "do",
             MachineLeaf::Alarm => "alarm",
             MachineLeaf::Punch => "punch",
+            MachineLeaf::G05 => "g05",
         }
     }
 
     fn from_chunk(chunk: &str) -> Option<Self> {
         Self::ALL.into_iter().find(|l| l.chunk() == chunk)
+    }
+}
+
+/// Which key of a G05 stream.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum G05Part {
+    /// `P/C/machine/M/g05/S`: its status.
+    Status,
+    /// `…/S/blocks`: its batches.
+    Blocks,
+    /// `…/S/producer`: its producer's liveliness token.
+    Producer,
+}
+
+impl G05Part {
+    fn suffix(self) -> &'static str {
+        match self {
+            G05Part::Status => "",
+            G05Part::Blocks => "/blocks",
+            G05Part::Producer => "/producer",
+        }
     }
 }
 
@@ -78,6 +106,12 @@ pub enum CellKey<'a> {
     Leaf { machine: &'a str, leaf: MachineLeaf },
     /// `P/C/machine/M/job/ID`
     JobEvents { machine: &'a str, job: &'a str },
+    /// `P/C/machine/M/g05/S`, `…/S/blocks`, `…/S/producer`
+    G05 {
+        machine: &'a str,
+        stream: &'a str,
+        part: G05Part,
+    },
     /// `P/C/program/NAME`
     Program { name: &'a str },
 }
@@ -154,6 +188,20 @@ impl CellKeys {
         format!("{}/machine/{machine}/job/{job}", self.root)
     }
 
+    /// `P/C/machine/M/g05/S`, `…/blocks`, `…/producer`
+    pub fn g05(&self, machine: &str, stream: &str, part: G05Part) -> String {
+        format!(
+            "{}/machine/{machine}/g05/{stream}{}",
+            self.root,
+            part.suffix()
+        )
+    }
+
+    /// `P/C/machine/*/g05/*` (and its `blocks` or `producer`)
+    pub fn any_g05(&self, part: G05Part) -> String {
+        self.g05("*", "*", part)
+    }
+
     /// `P/C/program/NAME`
     pub fn program(&self, name: &str) -> String {
         format!("{}/program/{name}", self.root)
@@ -189,6 +237,16 @@ impl CellKeys {
             ["machine", m, "job", id] => Some(CellKey::JobEvents {
                 machine: m,
                 job: id,
+            }),
+            ["machine", m, "g05", id, rest @ ..] => Some(CellKey::G05 {
+                machine: m,
+                stream: id,
+                part: match rest {
+                    [] => G05Part::Status,
+                    ["blocks"] => G05Part::Blocks,
+                    ["producer"] => G05Part::Producer,
+                    _ => return None,
+                },
             }),
             ["program", name] => Some(CellKey::Program { name }),
             _ => None,
@@ -266,6 +324,22 @@ mod tests {
         );
         assert_eq!(cell_of_admin_key("cellgate", "cellgate/a/b/@admin"), None);
         assert_eq!(cell_of_admin_key("cellgate", "other/line-3/@admin"), None);
+        for part in [G05Part::Status, G05Part::Blocks, G05Part::Producer] {
+            let key = k.g05("m", "s1", part);
+            assert_eq!(
+                k.parse(&key),
+                Some(CellKey::G05 {
+                    machine: "m",
+                    stream: "s1",
+                    part
+                })
+            );
+        }
+        assert_eq!(
+            k.g05("m", "s1", G05Part::Blocks),
+            "cellgate/line-3/machine/m/g05/s1/blocks"
+        );
+        assert_eq!(k.parse("cellgate/line-3/machine/m/g05/s1/other"), None);
         assert_eq!(k.parse("cellgate/line-3/machine/m/nope"), None);
         assert_eq!(k.parse("cellgate/line-30/program/p"), None);
         assert_eq!(k.parse("other/line-3/program/p"), None);

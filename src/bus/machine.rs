@@ -23,6 +23,7 @@ use super::route_status::StatusPublisher;
 use super::{route_alarm, route_io, route_punch};
 use crate::config::MachineConfig;
 use crate::fanuc::host::LinkState;
+use crate::g05::G05Desk;
 use crate::jobs::{self, JobsHandle, JobsSnapshot};
 use crate::link::driver::{LinkCommand, LinkEvent, LinkHandle};
 use crate::pb;
@@ -43,11 +44,17 @@ pub(crate) struct Machine {
     pub config: MachineConfig,
     pub link: LinkHandle,
     pub jobs: JobsHandle,
+    pub g05: Arc<G05Desk>,
     view: Mutex<View>,
 }
 
 impl Machine {
-    pub fn new(config: MachineConfig, link: LinkHandle, jobs: JobsHandle) -> Self {
+    pub fn new(
+        config: MachineConfig,
+        link: LinkHandle,
+        jobs: JobsHandle,
+        g05: Arc<G05Desk>,
+    ) -> Self {
         let status = pb::MachineStatus {
             machine: config.name.clone(),
             protocol: payload::protocol(config.protocol) as i32,
@@ -61,6 +68,7 @@ impl Machine {
             config,
             link,
             jobs,
+            g05,
             view: Mutex::new(View {
                 status,
                 recent_jobs,
@@ -85,6 +93,10 @@ impl Machine {
     pub fn status(&self) -> pb::MachineStatus {
         let mut s = self.view().status.clone();
         s.unix_ms = jobs::unix_ms();
+        s.g05 = self
+            .g05
+            .current()
+            .map(|h| payload::g05_status(&h.status().borrow()));
         s
     }
 

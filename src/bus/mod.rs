@@ -7,7 +7,7 @@
 //! - [`payload`]: the protobuf messages and their encodings, and the link's data as messages;
 //! - `context`: what every route shares, the typed request errors, the reply helpers;
 //! - one route per kind: `route_status`, `route_job`, `route_io` (DI/DO), `route_alarm`,
-//!   `route_punch`, `route_program` (library); each declares its own queryables, subscribers
+//!   `route_punch`, `route_program` (library), `route_g05` (G05 streams); each declares its own queryables, subscribers
 //!   or publishers, and they are undeclared when it is dropped;
 //! - `machine`: a machine's view (its status) and the task that publishes through the
 //!   machine's publishers of each route;
@@ -30,6 +30,7 @@ pub mod keys;
 mod machine;
 pub mod payload;
 mod route_alarm;
+mod route_g05;
 mod route_io;
 mod route_job;
 mod route_program;
@@ -52,12 +53,14 @@ use zenoh::Session;
 use self::context::RouteContext;
 use self::keys::CellKeys;
 use self::machine::{Machine, MachineFeeds, MachineTask};
+use self::route_g05::G05Route;
 use self::route_io::IoRoute;
 use self::route_job::JobRoute;
 use self::route_program::ProgramRoute;
 use self::route_punch::PunchSettings;
 use self::route_status::StatusRoute;
 use crate::config::{CellConfig, MachineConfig};
+use crate::g05::G05Desk;
 use crate::jobs::journal::Journal;
 use crate::jobs::library::ProgramLibrary;
 use crate::jobs::{self, JobsSettings};
@@ -114,7 +117,15 @@ pub async fn serve(
             let _ = task.await;
         });
         let feeds = MachineFeeds::subscribe(&link, &jobs, job_events);
-        let machine = Arc::new(Machine::new(mc, link, jobs));
+        // Streams end (with their end block) when the gateway stops, with the job managers.
+        let g05 = G05Desk::new(
+            &mc.name,
+            link.clone(),
+            mc.g05.clone(),
+            *mc.transport.line(),
+            jobs_stop.clone(),
+        );
+        let machine = Arc::new(Machine::new(mc, link, jobs, g05));
         by_name.insert(machine.name().to_string(), Arc::clone(&machine));
         started.push((machine, feeds));
     }
@@ -144,6 +155,8 @@ pub async fn serve(
         let job = JobRoute::declare(&ctx).await?;
         let io = IoRoute::declare(&ctx).await?;
         let program = ProgramRoute::declare(&ctx).await?;
+        let g05 = G05Route::declare(&ctx).await?;
+        route_tasks.spawn(g05.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(status.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(job.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(io.run(ctx.clone(), routes_stop.clone()));

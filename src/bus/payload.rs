@@ -35,6 +35,10 @@ bus_messages!(
     ProgramInfo,
     ProgramWrite,
     PunchedProgram,
+    G05Open,
+    G05Opened,
+    G05Batch,
+    G05Status,
 );
 
 /// `application/protobuf;<schema>` for `M`.
@@ -120,6 +124,43 @@ pub fn sat(s: &StatusData) -> pb::Sat {
             tw: u32::from(p.tw),
         }),
         packet_n: s.packet_n.map(u32::from),
+    }
+}
+
+/// A G05 stream's status as published.
+pub fn g05_status(s: &crate::g05::StreamStatus) -> pb::G05Status {
+    use crate::g05::stream::{EndReason, StreamState};
+    let f = &s.figures;
+    let state = match f.state {
+        StreamState::Priming => pb::G05State::Priming,
+        StreamState::Streaming => pb::G05State::Streaming,
+        StreamState::Ending => pb::G05State::Ending,
+        StreamState::Completed => pb::G05State::Completed,
+        StreamState::Failed => pb::G05State::Failed,
+    };
+    let end_reason = match f.end_reason {
+        None => pb::G05EndReason::Unspecified,
+        Some(EndReason::Producer) => pb::G05EndReason::Producer,
+        Some(EndReason::Cancelled) => pb::G05EndReason::Cancelled,
+        Some(EndReason::ProducerLost) => pb::G05EndReason::ProducerLost,
+        Some(EndReason::ProducerIdle) => pb::G05EndReason::ProducerIdle,
+    };
+    pb::G05Status {
+        stream_id: s.stream.clone(),
+        machine: s.machine.clone(),
+        state: state as i32,
+        credits: f.credits,
+        received: f.received,
+        on_line: f.on_line,
+        cnc_buffer: f.cnc_buffer,
+        underruns: f.underruns,
+        gaps: f.gaps,
+        repeats: f.repeats,
+        refused: f.refused,
+        next_seq: f.next_seq,
+        last_error: f.last_error.clone().unwrap_or_default(),
+        end_reason: end_reason as i32,
+        unix_ms: crate::jobs::unix_ms(),
     }
 }
 

@@ -24,7 +24,8 @@ use zenoh::query::{ConsolidationMode, Reply};
 use zenoh::sample::{Sample, SampleKind};
 
 use crate::bus::keys::{
-    CellKey, CellKeys, KeyError, MachineLeaf, admin_selector, cell_of_admin_key, is_plain_chunk,
+    CellKey, CellKeys, G05Part, KeyError, MachineLeaf, admin_selector, cell_of_admin_key,
+    is_plain_chunk,
 };
 use crate::bus::payload::{BusMessage, encoding, schema_of};
 use crate::bus::{BusConfig, BusError, BusMode};
@@ -678,6 +679,93 @@ impl Client {
             .await
     }
 
+    // ---- G05 streams -----------------------------------------------------------------------
+
+    /// Opens a G05 stream on `machine` (`stream_id` empty: the gateway names it). With
+    /// `producer_token`, the returned token keeps the stream alive: dropping it (or losing
+    /// the connection) ends the stream with its end block.
+    pub async fn g05_open(
+        &self,
+        machine: &str,
+        stream_id: &str,
+        producer_token: bool,
+    ) -> Result<(pb::G05Opened, Option<zenoh::liveliness::LivelinessToken>), ClientError> {
+        Self::machine_arg(machine)?;
+        let key = self.keys.leaf(machine, MachineLeaf::G05);
+        let request = pb::G05Open {
+            stream_id: stream_id.to_string(),
+            producer_token,
+        };
+        let payload = (request.encode_to_vec(), encoding::<pb::G05Open>());
+        let opened: pb::G05Opened = self
+            .get_one(
+                &format!("G05 stream on {machine}"),
+                &key,
+                Some(payload),
+                self.timeout,
+            )
+            .await?;
+        let token = if producer_token {
+            let key = self.keys.g05(machine, &opened.stream_id, G05Part::Producer);
+            let token = self
+                .session
+                .liveliness()
+                .declare_token(key.as_str())
+                .await
+                .map_err(|source| ClientError::Zenoh {
+                    what: format!("liveliness token {key}"),
+                    source,
+                })?;
+            Some(token)
+        } else {
+            None
+        };
+        Ok((opened, token))
+    }
+
+    /// Sends a batch of a stream (a put: express; errors show in the stream's status).
+    pub async fn g05_batch(
+        &self,
+        machine: &str,
+        stream: &str,
+        batch: &pb::G05Batch,
+    ) -> Result<(), ClientError> {
+        let key = self.keys.g05(machine, stream, G05Part::Blocks);
+        self.session
+            .put(key.as_str(), batch.encode_to_vec())
+            .encoding(encoding::<pb::G05Batch>())
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+            .express(true)
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("put {key}"),
+                source,
+            })
+    }
+
+    /// Follows a stream's status.
+    pub async fn g05_status(
+        &self,
+        machine: &str,
+        stream: &str,
+    ) -> Result<zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<Sample>>, ClientError>
+    {
+        self.subscribe(&self.keys.g05(machine, stream, G05Part::Status))
+            .await
+    }
+
+    /// Cancels a stream: the gateway sends the end block and frees the machine.
+    pub async fn g05_cancel(&self, machine: &str, stream: &str) -> Result<(), ClientError> {
+        let key = self.keys.g05(machine, stream, G05Part::Status);
+        self.session
+            .delete(key.as_str())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("delete {key}"),
+                source,
+            })
+    }
+
     // ---- program library -------------------------------------------------------------------
 
     fn program_arg(name: &str) -> Result<(), ClientError> {
@@ -1080,6 +1168,8 @@ pub enum WatchEvent {
         machine: String,
         job_id: String,
     },
+    /// A G05 stream ended.
+    G05(pb::G05Status),
     /// A program put into the library.
     ProgramPut {
         name: String,
@@ -1170,8 +1260,22 @@ impl Watch {
                         command,
                     })
                 }
-                // Job requests are gets, not puts.
-                MachineLeaf::Job => return None,
+                // Job requests and G05 opens are gets, not puts.
+                MachineLeaf::Job | MachineLeaf::G05 => return None,
+            },
+            // A stream's status comes ten times a second: only its end is shown.
+            CellKey::G05 {
+                part: crate::bus::keys::G05Part::Status,
+                ..
+            } if put => match decode::<pb::G05Status>(key, key, &bytes, enc) {
+                Ok(s)
+                    if s.state() == pb::G05State::Completed
+                        || s.state() == pb::G05State::Failed =>
+                {
+                    Ok(WatchEvent::G05(s))
+                }
+                Ok(_) => return None,
+                Err(e) => Err(e),
             },
             CellKey::JobEvents { .. } if put => decode(key, key, &bytes, enc).map(WatchEvent::Job),
             CellKey::JobEvents { machine, job } => Ok(WatchEvent::CancelRequested {

@@ -547,6 +547,20 @@ impl WatchPrinter {
             WatchEvent::CancelRequested { machine, job_id } => {
                 format!("{} {machine} job {job_id} cancel requested", clock(now_ms))
             }
+            WatchEvent::G05(g) => format!(
+                "{} {} G05 stream {} {}: {} blocks, {} underruns{}",
+                clock(now_ms),
+                g.machine,
+                g.stream_id,
+                g05_state_name(g.state()),
+                g.received,
+                g.underruns,
+                if g.last_error.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({})", g.last_error)
+                }
+            ),
             WatchEvent::ProgramPut { name, size } => {
                 format!("{} program {name} put ({})", clock(now_ms), bytes(*size))
             }
@@ -579,6 +593,7 @@ pub fn watch_machine(event: &WatchEvent) -> Option<&str> {
         WatchEvent::Alarm(a) => Some(&a.machine),
         WatchEvent::Punched(p) => Some(&p.machine),
         WatchEvent::Di(d) => Some(&d.machine),
+        WatchEvent::G05(g) => Some(&g.machine),
         WatchEvent::DoCommand { machine, .. }
         | WatchEvent::CancelRequested { machine, .. }
         | WatchEvent::Link { machine, .. } => Some(machine),
@@ -593,6 +608,7 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
         WatchEvent::Job(e) => json!({ "event": "job", "job": job_event_json(e) }),
         WatchEvent::Alarm(a) => json!({ "event": "alarm", "alarm": alarm_json(a) }),
         WatchEvent::Punched(p) => json!({ "event": "punched", "punched": punched_json(p) }),
+        WatchEvent::G05(g) => json!({ "event": "g05", "g05": g05_json(g) }),
         WatchEvent::Di(d) => json!({ "event": "di", "di": di_json(d) }),
         WatchEvent::DoCommand { machine, command } => json!({
             "event": "do_command", "machine": machine, "unix_ms": now_ms,
@@ -617,6 +633,38 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
             "event": "unexpected", "key": key, "detail": detail, "unix_ms": now_ms,
         }),
     }
+}
+
+/// A G05 stream's state in words.
+pub fn g05_state_name(s: pb::G05State) -> &'static str {
+    match s {
+        pb::G05State::Unspecified => "unknown",
+        pb::G05State::Priming => "priming",
+        pb::G05State::Streaming => "streaming",
+        pb::G05State::Ending => "ending",
+        pb::G05State::Completed => "completed",
+        pb::G05State::Failed => "failed",
+    }
+}
+
+/// A G05 stream's status as JSON.
+pub fn g05_json(g: &pb::G05Status) -> Value {
+    json!({
+        "stream": g.stream_id,
+        "machine": g.machine,
+        "state": g05_state_name(g.state()),
+        "credits": g.credits,
+        "received": g.received,
+        "on_line": g.on_line,
+        "cnc_buffer": g.cnc_buffer,
+        "underruns": g.underruns,
+        "gaps": g.gaps,
+        "repeats": g.repeats,
+        "refused": g.refused,
+        "next_seq": g.next_seq,
+        "last_error": g.last_error,
+        "end_reason": format!("{:?}", g.end_reason()),
+    })
 }
 
 #[cfg(test)]

@@ -336,8 +336,10 @@ impl StreamTask {
                         if let Err(e) = &r {
                             tracing::warn!(stream = %self.id(), error = %e, "G05 batch refused");
                         }
-                        let _ = reply.send(r);
                         self.flush();
+                        // The status the answer's reader sees already holds this batch.
+                        self.publish();
+                        let _ = reply.send(r);
                     }
                     Some(Input::End(reason)) => {
                         tracing::info!(stream = %self.id(), %reason, "G05 stream ending");

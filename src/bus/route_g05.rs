@@ -1,0 +1,359 @@
+//! G05 streams on the bus (§9; the contract is in `proto/cellgate/v1/g05.proto`).
+//!
+//! - `P/C/machine/M/g05`: a get with a `G05Open` opens a stream (`G05Opened` or `ErrorReply`);
+//!   without payload it answers the current (or last) stream's `G05Status`.
+//! - `P/C/machine/M/g05/S`: the stream's `G05Status`, published every
+//!   [`STATUS_INTERVAL`] while it is open (QoS `Drop`: the next one supersedes it) and once,
+//!   reliably, when it is over; a get answers the latest; a delete from another session
+//!   cancels it (the end block goes out).
+//! - `P/C/machine/M/g05/S/blocks`: `G05Batch`es, put (errors show in the status) or sent as a
+//!   get's payload (answered with the status or an `ErrorReply`). Batches are express,
+//!   real-time data: the producer decides their pace through the credits.
+//! - `P/C/machine/M/g05/S/producer`: the producer's liveliness token; its loss ends the
+//!   stream.
+
+use prost::Message;
+use tokio::task::JoinSet;
+use tokio_util::sync::CancellationToken;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::Subscriber;
+use zenoh::qos::{CongestionControl, Priority};
+use zenoh::query::{Query, Queryable};
+use zenoh::sample::{Locality, Sample, SampleKind};
+
+use super::BusError;
+use super::context::{RequestError, RouteContext, Target, reply, reply_err};
+use super::keys::{CellKey, G05Part, MachineLeaf};
+use super::machine::Machine;
+use super::payload::{encoding, g05_status};
+use crate::fanuc::g05::AuxWord;
+use crate::g05::stream::{Batch, BlockIn, EndReason};
+use crate::g05::{STATUS_INTERVAL, StreamHandle};
+use crate::pb;
+
+/// The G05 queryables and subscribers of the cell. Undeclared when dropped.
+pub(crate) struct G05Route {
+    open: Queryable<FifoChannelHandler<Query>>,
+    status: Queryable<FifoChannelHandler<Query>>,
+    blocks: Subscriber<FifoChannelHandler<Sample>>,
+    blocks_get: Queryable<FifoChannelHandler<Query>>,
+    deletes: Subscriber<FifoChannelHandler<Sample>>,
+}
+
+impl G05Route {
+    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+        Ok(G05Route {
+            open: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::G05)).await?,
+            status: ctx.queryable(ctx.keys.any_g05(G05Part::Status)).await?,
+            blocks: ctx
+                .subscriber(ctx.keys.any_g05(G05Part::Blocks), Locality::Any)
+                .await?,
+            blocks_get: ctx.queryable(ctx.keys.any_g05(G05Part::Blocks)).await?,
+            deletes: ctx
+                .subscriber(ctx.keys.any_g05(G05Part::Status), Locality::Remote)
+                .await?,
+        })
+    }
+
+    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+        let mut tasks = JoinSet::new();
+        // One publisher task per stream opened: it ends when the stream is over.
+        let mut streams = JoinSet::new();
+        loop {
+            tokio::select! {
+                () = stop.cancelled() => break,
+                q = self.open.recv_async() => match q {
+                    // Without a payload (browsing the cell): the machines' current streams.
+                    Ok(q) if q.payload().is_none() => current_streams(&ctx, &q).await,
+                    Ok(q) => {
+                        let c = ctx.clone();
+                        let s = stop.clone();
+                        if let Some((machine, handle, token)) = open(&c, &q).await {
+                            streams.spawn(follow(c, machine, handle, token, s));
+                        }
+                    }
+                    Err(_) => break,
+                },
+                q = self.status.recv_async() => match q {
+                    Ok(q) => status(&ctx, &q).await,
+                    Err(_) => break,
+                },
+                s = self.blocks.recv_async() => match s {
+                    Ok(s) => {
+                        // In order, on this loop: batches are numbered and must not overtake
+                        // one another.
+                        if let Err(e) = batch(&ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await {
+                            tracing::warn!(key = %s.key_expr(), error = %e, "G05 batch refused");
+                        }
+                    }
+                    Err(_) => break,
+                },
+                q = self.blocks_get.recv_async() => match q {
+                    // Browsing with wildcards sends no batch anywhere.
+                    Ok(q) if q.key_expr().is_wild() => {}
+                    Ok(q) => {
+                        let payload = q.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
+                        match batch(&ctx, q.key_expr().as_str(), &payload).await {
+                            Ok(status) => reply(&q, q.key_expr().to_string(), &status).await,
+                            Err(e) => reply_err(&q, &e).await,
+                        }
+                    }
+                    Err(_) => break,
+                },
+                s = self.deletes.recv_async() => match s {
+                    Ok(s) if s.kind() == SampleKind::Delete => {
+                        let c = ctx.clone();
+                        ctx.spawn_request(&mut tasks, async move { cancel(&c, &s).await }).await;
+                    }
+                    Ok(_) => {}
+                    Err(_) => break,
+                },
+                Some(_) = tasks.join_next() => {}
+                Some(_) = streams.join_next() => {}
+            }
+        }
+        tasks.shutdown().await;
+        // The streams' own tasks end them (with the end block) as the gateway stops; their
+        // publishers go now.
+        streams.shutdown().await;
+    }
+}
+
+/// A get without payload on `P/C/machine/M/g05`: the status of each matching machine's
+/// current (or last) stream.
+async fn current_streams(ctx: &RouteContext, q: &Query) {
+    for (_, m) in ctx.matching(q, MachineLeaf::G05) {
+        if let Some(h) = m.g05.current() {
+            let msg = g05_status(&h.status().borrow());
+            reply(q, ctx.keys.leaf(m.name(), MachineLeaf::G05), &msg).await;
+        }
+    }
+}
+
+/// A get on `P/C/machine/M/g05`: opens a stream.
+async fn open(
+    ctx: &RouteContext,
+    q: &Query,
+) -> Option<(std::sync::Arc<Machine>, StreamHandle, bool)> {
+    let result = async {
+        let m = ctx.one_machine(q, MachineLeaf::G05, "G05Open")?;
+        let payload = q
+            .payload()
+            .map(|p| p.to_bytes().into_owned())
+            .unwrap_or_default();
+        let request =
+            pb::G05Open::decode(payload.as_slice()).map_err(|error| RequestError::Payload {
+                machine: m.name().to_string(),
+                message: "G05Open",
+                error,
+            })?;
+        let (handle, opened) = m.g05.open(Some(request.stream_id)).await?;
+        let g = m.g05.config().map(|c| c.format());
+        let reply_msg = pb::G05Opened {
+            stream_id: opened.stream.clone(),
+            block_len: opened.block_len,
+            credits: opened.credits,
+            window: opened.window,
+            prime: opened.prime,
+            unit_time_ms: opened.unit_time_ms,
+            axes: g.map(|f| u32::from(f.axes)).unwrap_or_default(),
+            aux: g.is_some_and(|f| f.aux.rax()),
+            required_baud: opened.required_baud,
+            actual_baud: opened.actual_baud,
+        };
+        Ok::<_, RequestError>((m, handle, reply_msg, request.producer_token))
+    }
+    .await;
+    match result {
+        Ok((m, handle, opened, token)) => {
+            reply(q, q.key_expr().to_string(), &opened).await;
+            Some((m, handle, token))
+        }
+        Err(e) => {
+            reply_err(q, &e).await;
+            None
+        }
+    }
+}
+
+/// Publishes a stream's status until it is over, and ends it if its producer's liveliness
+/// token goes away.
+async fn follow(
+    ctx: RouteContext,
+    machine: std::sync::Arc<Machine>,
+    handle: StreamHandle,
+    producer_token: bool,
+    stop: CancellationToken,
+) {
+    let key = ctx.keys.g05(machine.name(), &handle.id, G05Part::Status);
+    let producer_key = ctx.keys.g05(machine.name(), &handle.id, G05Part::Producer);
+    let producer = if producer_token {
+        match ctx
+            .session
+            .liveliness()
+            .declare_subscriber(producer_key.as_str())
+            .history(true)
+            .await
+        {
+            Ok(s) => Some(s),
+            Err(e) => {
+                tracing::warn!(key = %producer_key, error = %e, "cannot watch the G05 producer's token");
+                None
+            }
+        }
+    } else {
+        None
+    };
+    let publisher = ctx
+        .session
+        .declare_publisher(key.clone())
+        .encoding(encoding::<pb::G05Status>())
+        .congestion_control(CongestionControl::Drop)
+        .priority(Priority::InteractiveHigh)
+        .await;
+    let publisher = match publisher {
+        Ok(p) => p,
+        Err(e) => {
+            tracing::warn!(%key, error = %e, "cannot publish the G05 stream's status");
+            return;
+        }
+    };
+    let mut status = handle.status();
+    let mut tick = tokio::time::interval(STATUS_INTERVAL);
+    let mut producer_seen = false;
+    loop {
+        let now = status.borrow_and_update().clone();
+        if now.is_over() {
+            break;
+        }
+        if let Err(e) = publisher.put(g05_status(&now).encode_to_vec()).await {
+            tracing::debug!(%key, error = %e, "G05 status not published");
+        }
+        tokio::select! {
+            () = stop.cancelled() => break,
+            _ = tick.tick() => {}
+            changed = status.changed() => if changed.is_err() { break },
+            s = async {
+                match &producer {
+                    Some(p) => p.recv_async().await.ok(),
+                    None => std::future::pending().await,
+                }
+            } => match s {
+                Some(s) if s.kind() == SampleKind::Put => producer_seen = true,
+                Some(_) if producer_seen => {
+                    tracing::warn!(stream = %handle.id, "G05 producer's token went away");
+                    let _ = handle.end(EndReason::ProducerLost).await;
+                }
+                _ => {}
+            },
+        }
+    }
+    // The last word, reliably.
+    let last = g05_status(&status.borrow().clone());
+    let sent = ctx
+        .session
+        .put(key.as_str(), last.encode_to_vec())
+        .encoding(encoding::<pb::G05Status>())
+        .congestion_control(CongestionControl::Block)
+        .await;
+    if let Err(e) = sent {
+        tracing::warn!(%key, error = %e, "the G05 stream's last status was not published");
+    }
+}
+
+/// The stream a `…/g05/S…` key names, or why none.
+fn stream_of(ctx: &RouteContext, key: &str) -> Result<StreamHandle, RequestError> {
+    let Some(CellKey::G05 {
+        machine, stream, ..
+    }) = ctx.keys.parse(key)
+    else {
+        return Err(RequestError::Invalid {
+            machine: String::new(),
+            what: format!("{key} is not a G05 stream's key"),
+        });
+    };
+    let m = match ctx.target(&zenoh::key_expr::KeyExpr::try_from(key).map_err(|e| {
+        RequestError::Invalid {
+            machine: machine.to_string(),
+            what: e.to_string(),
+        }
+    })?) {
+        Target::One(m) => m,
+        Target::Unknown(m) => return Err(ctx.unknown_machine(&m)),
+        Target::Wild => {
+            return Err(RequestError::Invalid {
+                machine: machine.to_string(),
+                what: "name one machine and one stream, without wildcards".to_string(),
+            });
+        }
+    };
+    m.g05
+        .find(stream)
+        .ok_or_else(|| RequestError::NoSuchStream {
+            machine: machine.to_string(),
+            stream: stream.to_string(),
+        })
+}
+
+/// A batch on `P/C/machine/M/g05/S/blocks`.
+async fn batch(
+    ctx: &RouteContext,
+    key: &str,
+    payload: &[u8],
+) -> Result<pb::G05Status, RequestError> {
+    let handle = stream_of(ctx, key)?;
+    let b = pb::G05Batch::decode(payload).map_err(|error| RequestError::Payload {
+        machine: handle.id.clone(),
+        message: "G05Batch",
+        error,
+    })?;
+    let batch = Batch {
+        seq: b.seq,
+        blocks: b
+            .blocks
+            .into_iter()
+            .map(|blk| BlockIn {
+                travels: blk.travel,
+                aux: blk.aux.map(AuxWord::significant),
+            })
+            .collect(),
+        end: b.end,
+    };
+    handle.batch(batch).await?;
+    Ok(g05_status(&handle.status().borrow()))
+}
+
+/// A get on `P/C/machine/M/g05/S`: the stream's latest status.
+async fn status(ctx: &RouteContext, q: &Query) {
+    if q.key_expr().is_wild() {
+        // Every open (or last) stream the query takes in.
+        for m in ctx.machines.values() {
+            if let Some(h) = m.g05.current() {
+                let key = ctx.keys.g05(m.name(), &h.id, G05Part::Status);
+                if super::keys::intersects(q.key_expr(), &key) {
+                    let msg = g05_status(&h.status().borrow());
+                    reply(q, key, &msg).await;
+                }
+            }
+        }
+        return;
+    }
+    match stream_of(ctx, q.key_expr().as_str()) {
+        Ok(h) => {
+            let msg = g05_status(&h.status().borrow());
+            reply(q, q.key_expr().to_string(), &msg).await;
+        }
+        Err(e) => reply_err(q, &e).await,
+    }
+}
+
+/// A delete on `P/C/machine/M/g05/S` cancels the stream: the end block goes out.
+async fn cancel(ctx: &RouteContext, sample: &Sample) {
+    match stream_of(ctx, sample.key_expr().as_str()) {
+        Ok(h) => {
+            tracing::info!(stream = %h.id, "G05 stream cancelled on the bus");
+            let _ = h.end(EndReason::Cancelled).await;
+        }
+        Err(e) => tracing::warn!(key = %sample.key_expr(), error = %e, "G05 cancel refused"),
+    }
+}
