@@ -7,7 +7,7 @@ use crate::g05::G05Error;
 use crate::g05::stream::BatchError;
 use crate::jobs::JobError;
 use crate::jobs::library::LibraryError;
-use crate::link::driver::JobFailure;
+use crate::link::driver::{JobFailure, LinkError};
 use crate::pb;
 
 /// The bus error code of an error.
@@ -52,6 +52,15 @@ impl BusCode for AbortReason {
                 pb::ErrorCode::CncAlarm
             }
             _ => pb::ErrorCode::LinkFailed,
+        }
+    }
+}
+
+impl BusCode for LinkError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            LinkError::NotRunning { .. } => pb::ErrorCode::Unavailable,
+            LinkError::Busy { .. } => pb::ErrorCode::Busy,
         }
     }
 }

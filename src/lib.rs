@@ -88,6 +88,7 @@ pub mod pb {
                     header_lines: 0,
                 }),
                 resume_after_restart: true,
+                deadline_s: 30,
             };
             let bytes = request.encode_to_vec();
             let decoded = JobRequest::decode(bytes.as_slice()).unwrap();

@@ -198,6 +198,7 @@ fn submit_args(gw: &Gateway, machine: &str) -> SubmitArgs {
         from_block: None,
         header_lines: 0,
         resume_after_restart: false,
+        deadline: 0,
         request_id: None,
     }
 }
@@ -982,4 +983,111 @@ async fn the_g05_command_streams_a_csv_against_cellgate_run() {
     let (code, _, err) = cellgate(&["g05", "-e", ep, "-m", MILL_A, file.to_str().unwrap()]).await;
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("[machines.g05]"), "{err}");
+}
+
+/// Resident memory of process `pid`, bytes (Linux: `VmRSS` of /proc/PID/status).
+fn rss_of(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let kb: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap();
+    kb * 1024
+}
+
+/// The bound on what a flood may add to the gateway's resident memory.
+const FLOOD_RSS_BOUND: u64 = 96 * 1024 * 1024;
+
+/// One client floods `cellgate run` with 10 000 job submits and 10 000 DO puts in a few
+/// seconds: the gateway answers what it can and refuses the rest (`QUEUE_FULL`, `BUSY`), its
+/// memory stays within a bound, and every machine still serves afterwards.
+#[cfg(target_os = "linux")]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_of_requests_leaves_the_gateway_bounded_and_serving() {
+    use bus::keys::MachineLeaf;
+    use prost::Message;
+    let run = RunProcess::start().await;
+    let pid = run.child.id();
+    let before = rss_of(pid);
+    let client = bus::open(&common::bus::client_config(
+        run.endpoint.rsplit(':').next().unwrap().parse().unwrap(),
+    ))
+    .await
+    .unwrap();
+    let keys = CellKeys::new("cellgate", "demo").unwrap();
+    let program = nc_program(2000, 5);
+    let started = std::time::Instant::now();
+    let mut pending = Vec::new();
+    for i in 0..10_000u32 {
+        let machine = if i % 2 == 0 { MILL_A } else { MILL_X };
+        let request = pb::JobRequest {
+            program: Some(pb::job_request::Program::Inline(program.clone())),
+            request_id: format!("flood-{i}"),
+            ..Default::default()
+        };
+        let replies = client
+            .get(keys.leaf(machine, MachineLeaf::Job))
+            .payload(request.encode_to_vec())
+            .timeout(Duration::from_secs(60))
+            .await
+            .unwrap();
+        pending.push(replies);
+    }
+    for i in 0..10_000u32 {
+        let machine = if i % 2 == 0 { MILL_A } else { MILL_X };
+        let cmd = pb::DoCommand {
+            value: i % 256,
+            mask: None,
+        };
+        client
+            .put(keys.leaf(machine, MachineLeaf::Do), cmd.encode_to_vec())
+            .await
+            .unwrap();
+    }
+    let sent_in = started.elapsed();
+    let (mut accepted, mut refused, mut lost) = (0, std::collections::BTreeMap::new(), 0);
+    for replies in pending {
+        match replies.recv_async().await {
+            Ok(r) => match r.result() {
+                Ok(_) => accepted += 1,
+                Err(e) => {
+                    let code = pb::ErrorReply::decode(e.payload().to_bytes().as_ref())
+                        .map(|e| e.code())
+                        .unwrap_or(pb::ErrorCode::Unspecified);
+                    *refused.entry(format!("{code:?}")).or_insert(0) += 1;
+                }
+            },
+            Err(_) => lost += 1,
+        }
+    }
+    let peak = rss_of(pid);
+    eprintln!(
+        "flood: sent in {sent_in:?}; {accepted} accepted, refused {refused:?}, {lost} without \
+         answer; RSS {} MiB before, {} MiB after",
+        before >> 20,
+        peak >> 20
+    );
+    // Each machine takes 256 waiting jobs and the one being sent; the rest are refused.
+    assert!(accepted > 0 && accepted <= 2 * 257, "{accepted} accepted");
+    assert_eq!(lost, 0, "every submit is answered");
+    assert!(
+        peak.saturating_sub(before) < FLOOD_RSS_BOUND,
+        "RSS grew from {before} to {peak} bytes"
+    );
+    // Still serving: status answers for every machine, and DO output works.
+    let (code, out, err) = cellgate(&["status", "-e", &run.endpoint, "--json"]).await;
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(
+        serde_json::from_str::<serde_json::Value>(&out)
+            .unwrap()
+            .as_array()
+            .unwrap()
+            .len(),
+        3
+    );
+    let (code, _, err) = cellgate(&["do", "-e", &run.endpoint, MILL_A, "0x5A"]).await;
+    assert_eq!(code, 0, "{err}");
+    client.close().await.unwrap();
 }

@@ -490,3 +490,76 @@ async fn every_protocol_through_a_cnc_alarm() {
 async fn every_protocol_through_a_cnc_reset() {
     every_protocol(Fault::CncReset).await;
 }
+
+/// A job whose machine cannot take it (here, its cable is cut for good) fails at its
+/// deadline, at what the board acknowledged, and says what the link was waiting for; the
+/// link reports that wait as it starts.
+#[tokio::test(start_paused = true)]
+async fn a_stuck_job_fails_at_its_deadline_saying_what_the_link_waited_for() {
+    use bytes::Bytes;
+    use cellgate::jobs::journal::Journal;
+    use cellgate::jobs::library::ProgramLibrary;
+    use cellgate::jobs::source::ProgramInput;
+    use cellgate::jobs::{self, JobSubmission, JobsSettings};
+    use cellgate::pb;
+
+    let config = common::sim_cell("b", None, 19_200, 2_000);
+    let (cell, token) = start(&config).await;
+    let m = cell.machine("m1").unwrap();
+    let mut link_events = m.link.subscribe();
+    next_event(&mut link_events, HOUR, ready).await;
+    m.line.as_ref().unwrap().cut();
+    let dir = tempfile::tempdir().unwrap();
+    let library = ProgramLibrary::new(dir.path(), 1 << 20);
+    let settings = JobsSettings {
+        rules: m.config.program_rules(library.max_size()),
+        library,
+        journal: Journal::open(&dir.path().join(".journal")).unwrap(),
+        restored: Vec::new(),
+        keep: jobs::KEEP_ENDED,
+    };
+    let (jobs, _task, mut events) =
+        jobs::spawn("m1", settings, m.link.clone(), token.child_token());
+    let started = tokio::time::Instant::now();
+    let accepted = jobs
+        .submit(JobSubmission {
+            input: ProgramInput::Inline(Bytes::from(nc_program(4000, 9))),
+            deadline_s: 30,
+            ..JobSubmission::default()
+        })
+        .await
+        .unwrap();
+    // The job starts waiting for the CNC's DC1, then the cut shows as DR off.
+    let waited = next_event(&mut link_events, HOUR, |ev| match ev {
+        LinkEvent::Waiting { what: Some(w), .. } if w.starts_with("DR") => Some(*w),
+        _ => None,
+    })
+    .await;
+    assert!(waited.contains("line is down"), "{waited}");
+    let failed = tokio::time::timeout(HOUR, async {
+        loop {
+            let e = events.recv().await.unwrap();
+            if e.job_id == accepted.job_id
+                && let Some(pb::job_event::Kind::Failed(f)) = e.kind
+            {
+                return f;
+            }
+        }
+    })
+    .await
+    .expect("the job never failed");
+    let took = started.elapsed();
+    assert!(
+        took >= Duration::from_secs(30) && took < Duration::from_secs(32),
+        "{took:?}"
+    );
+    assert_eq!(failed.code(), pb::ErrorCode::DeadlineExceeded);
+    assert_eq!(failed.byte_offset, 0);
+    assert!(
+        failed.reason.contains("deadline of 30 s") && failed.reason.contains("DR"),
+        "{}",
+        failed.reason
+    );
+    token.cancel();
+    cell.join().await;
+}

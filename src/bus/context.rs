@@ -40,6 +40,8 @@ pub(crate) struct RouteContext {
     pub keys: Arc<CellKeys>,
     pub machines: Arc<BTreeMap<String, Arc<Machine>>>,
     pub library: ProgramLibrary,
+    /// Largest inline program a `JobRequest` may carry (`programs.max_inline`).
+    pub max_inline: u64,
     slots: Arc<Semaphore>,
 }
 
@@ -111,6 +113,10 @@ pub(crate) enum RequestError {
         job: String,
         kept: usize,
     },
+    #[error("the gateway is serving {max} requests already; try again later")]
+    Busy { max: usize },
+    #[error(transparent)]
+    Link(#[from] crate::link::driver::LinkError),
     #[error(transparent)]
     G05(#[from] crate::g05::G05Error),
     #[error(transparent)]
@@ -156,6 +162,8 @@ impl BusCode for RequestError {
                 pb::ErrorCode::NotFound
             }
             RequestError::G05(e) => e.code(),
+            RequestError::Busy { .. } => pb::ErrorCode::Busy,
+            RequestError::Link(e) => e.code(),
             RequestError::Batch(e) => e.code(),
             RequestError::Job(e) => e.code(),
             RequestError::Library(e) => e.code(),
@@ -169,12 +177,14 @@ impl RouteContext {
         keys: Arc<CellKeys>,
         machines: Arc<BTreeMap<String, Arc<Machine>>>,
         library: ProgramLibrary,
+        max_inline: u64,
     ) -> Self {
         RouteContext {
             session,
             keys,
             machines,
             library,
+            max_inline,
             slots: Arc::new(Semaphore::new(MAX_WAITING_REQUESTS)),
         }
     }
@@ -209,20 +219,55 @@ impl RouteContext {
             })
     }
 
-    /// Runs a request that may wait off the route's loop, once a slot is free: one slow
-    /// querier holds up neither its route nor the others.
-    pub async fn spawn_request<F>(&self, tasks: &mut JoinSet<()>, request: F)
+    /// Runs a query that may wait off the route's loop, in one of the
+    /// [`MAX_WAITING_REQUESTS`] slots: one slow querier holds up neither its route nor the
+    /// others. With every slot taken the query is answered `ERROR_CODE_BUSY` at once: a flood
+    /// of requests never becomes an unbounded number of tasks.
+    pub async fn spawn_query<F, Fut>(&self, tasks: &mut JoinSet<()>, q: Query, request: F)
     where
-        F: Future<Output = ()> + Send + 'static,
+        F: FnOnce(Query) -> Fut,
+        Fut: Future<Output = ()> + Send + 'static,
     {
-        // The semaphore is never closed, so acquiring only waits.
-        let Ok(slot) = Arc::clone(&self.slots).acquire_owned().await else {
-            return;
-        };
-        tasks.spawn(async move {
-            request.await;
-            drop(slot);
-        });
+        match Arc::clone(&self.slots).try_acquire_owned() {
+            Ok(slot) => {
+                let run = request(q);
+                tasks.spawn(async move {
+                    run.await;
+                    drop(slot);
+                });
+            }
+            Err(_) => {
+                reply_err(
+                    &q,
+                    &RequestError::Busy {
+                        max: MAX_WAITING_REQUESTS,
+                    },
+                )
+                .await
+            }
+        }
+    }
+
+    /// As [`Self::spawn_query`] for a put or delete, which has no answer: with every slot
+    /// taken it is dropped, and logged.
+    pub fn spawn_sample<F, Fut>(&self, tasks: &mut JoinSet<()>, sample: Sample, request: F)
+    where
+        F: FnOnce(Sample) -> Fut,
+        Fut: Future<Output = ()> + Send + 'static,
+    {
+        match Arc::clone(&self.slots).try_acquire_owned() {
+            Ok(slot) => {
+                let run = request(sample);
+                tasks.spawn(async move {
+                    run.await;
+                    drop(slot);
+                });
+            }
+            Err(_) => tracing::warn!(
+                key = %sample.key_expr(),
+                "request dropped: {MAX_WAITING_REQUESTS} requests are being served already"
+            ),
+        }
     }
 
     /// The machine a concrete key names.

@@ -145,6 +145,14 @@ impl Machine {
                 view.status.do_image = Some(u32::from(*value));
                 None
             }
+            LinkEvent::Waiting {
+                what,
+                since_unix_ms,
+            } => {
+                view.status.waiting_for = what.unwrap_or_default().to_string();
+                view.status.waiting_since_unix_ms = if what.is_some() { *since_unix_ms } else { 0 };
+                None
+            }
             LinkEvent::ProtocolError { error, retried } => {
                 let c = Self::counters(&mut view);
                 c.protocol_errors += 1;

@@ -134,6 +134,7 @@ pub async fn serve(
         Arc::clone(&keys),
         Arc::new(by_name),
         library.clone(),
+        config.programs.max_inline,
     );
 
     let mut machine_tasks = JoinSet::new();

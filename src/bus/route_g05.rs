@@ -103,7 +103,7 @@ impl G05Route {
                 s = self.deletes.recv_async() => match s {
                     Ok(s) if s.kind() == SampleKind::Delete => {
                         let c = ctx.clone();
-                        ctx.spawn_request(&mut tasks, async move { cancel(&c, &s).await }).await;
+                        ctx.spawn_sample(&mut tasks, s, |s| async move { cancel(&c, &s).await });
                     }
                     Ok(_) => {}
                     Err(_) => break,

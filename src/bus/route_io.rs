@@ -52,14 +52,14 @@ impl IoRoute {
                 q = self.di.recv_async() => match q {
                     Ok(q) => {
                         let c = ctx.clone();
-                        ctx.spawn_request(&mut tasks, async move { di_get(&c, &q).await }).await;
+                        ctx.spawn_query(&mut tasks, q, |q| async move { di_get(&c, &q).await }).await;
                     }
                     Err(_) => break,
                 },
                 q = self.do_get.recv_async() => match q {
                     Ok(q) => {
                         let c = ctx.clone();
-                        ctx.spawn_request(&mut tasks, async move { do_get(&c, &q).await }).await;
+                        ctx.spawn_query(&mut tasks, q, |q| async move { do_get(&c, &q).await }).await;
                     }
                     Err(_) => break,
                 },
@@ -201,12 +201,10 @@ async fn do_put(ctx: &RouteContext, sample: &Sample) {
     }
     match do_command(&m, sample.payload().to_bytes().as_ref()) {
         Ok((value, mask)) => {
-            if m.link
-                .send(LinkCommand::SetDo { value, mask })
-                .await
-                .is_err()
-            {
-                tracing::warn!(%key, "DO refused: the link is not running");
+            // Without waiting: a flood of puts is refused past the link's command queue
+            // rather than stalling this route.
+            if let Err(e) = m.link.try_send(LinkCommand::SetDo { value, mask }) {
+                tracing::warn!(%key, "DO refused: {e}");
             }
         }
         Err(e) => tracing::warn!(%key, "DO refused: {e}"),

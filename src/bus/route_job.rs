@@ -67,7 +67,7 @@ impl JobRoute {
                 q = self.requests.recv_async() => match q {
                     Ok(q) => {
                         let c = ctx.clone();
-                        ctx.spawn_request(&mut tasks, async move { job_request(&c, &q).await }).await;
+                        ctx.spawn_query(&mut tasks, q, |q| async move { job_request(&c, &q).await }).await;
                     }
                     Err(_) => break,
                 },
@@ -78,7 +78,7 @@ impl JobRoute {
                 s = self.deletes.recv_async() => match s {
                     Ok(s) => {
                         let c = ctx.clone();
-                        ctx.spawn_request(&mut tasks, async move { job_delete(&c, &s).await }).await;
+                        ctx.spawn_sample(&mut tasks, s, |s| async move { job_delete(&c, &s).await });
                     }
                     Err(_) => break,
                 },
@@ -131,7 +131,20 @@ async fn submit(
                     .to_string(),
             });
         }
-        Some(pb::job_request::Program::Inline(bytes)) => ProgramInput::Inline(bytes.into()),
+        Some(pb::job_request::Program::Inline(bytes)) => {
+            if bytes.len() as u64 > ctx.max_inline {
+                return Err(RequestError::Invalid {
+                    machine: m.name().to_string(),
+                    what: format!(
+                        "an inline program of {} bytes is over programs.max_inline ({} bytes): put \
+                         it in the library (`cellgate program put`) and submit it by name",
+                        bytes.len(),
+                        ctx.max_inline
+                    ),
+                });
+            }
+            ProgramInput::Inline(bytes.into())
+        }
         Some(pb::job_request::Program::Library(name)) => ProgramInput::Library(name),
         Some(pb::job_request::Program::Key(key)) => {
             let bytes = fetch(ctx, &m, &key).await?;
@@ -165,6 +178,7 @@ async fn submit(
         request_id: request.request_id,
         start_at,
         resume_after_restart: request.resume_after_restart,
+        deadline_s: request.deadline_s,
     };
     Ok(m.jobs.submit(submission).await?)
 }

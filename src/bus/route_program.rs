@@ -47,14 +47,14 @@ impl ProgramRoute {
                 q = self.queryable.recv_async() => match q {
                     Ok(q) => {
                         let c = ctx.clone();
-                        ctx.spawn_request(&mut tasks, async move { program_query(&c, &q).await }).await;
+                        ctx.spawn_query(&mut tasks, q, |q| async move { program_query(&c, &q).await }).await;
                     }
                     Err(_) => break,
                 },
                 s = self.subscriber.recv_async() => match s {
                     Ok(s) => {
                         let c = ctx.clone();
-                        ctx.spawn_request(&mut tasks, async move { program_sample(&c, &s).await }).await;
+                        ctx.spawn_sample(&mut tasks, s, |s| async move { program_sample(&c, &s).await });
                     }
                     Err(_) => break,
                 },

@@ -179,6 +179,10 @@ pub struct SubmitArgs {
     /// board did not acknowledge whole instead of failing it.
     #[arg(long)]
     pub resume_after_restart: bool,
+    /// Fail the job if it has not completed this many seconds after it started (a CNC that
+    /// never asks for data): it fails at what the board acknowledged.
+    #[arg(long, value_name = "SECS", default_value_t = 0)]
+    pub deadline: u32,
     /// The request id that makes the submit idempotent (default: a new one for each run):
     /// a retry with the same id queues nothing twice.
     #[arg(long, value_name = "ID")]
@@ -267,6 +271,7 @@ impl SubmitArgs {
             request_id: self.request_id.clone().unwrap_or_else(new_request_id),
             start_at,
             resume_after_restart: self.resume_after_restart,
+            deadline_s: self.deadline,
         })
     }
 }

@@ -14,6 +14,9 @@ pub struct ProgramsConfig {
     pub dir: PathBuf,
     /// Largest program accepted, bytes.
     pub max_size: u64,
+    /// Largest program sent inline in a `JobRequest`, bytes: a larger one goes through the
+    /// library (put once, submitted by name), so that no request holds it whole in memory.
+    pub max_inline: u64,
     /// Store every program a CNC punches out in the library, under a new name
     /// `<machine>-<O-number>-<UTC time>` (Protocol B family).
     pub store_punched: bool,
@@ -34,6 +37,7 @@ pub struct ProgramsConfig {
 
 impl ProgramsConfig {
     pub const DEFAULT_MAX_SIZE: u64 = 512 * 1024 * 1024;
+    pub const DEFAULT_MAX_INLINE: u64 = 16 * 1024 * 1024;
 
     /// The journal's directory in force.
     pub fn journal_dir(&self) -> PathBuf {
@@ -56,6 +60,7 @@ impl Default for ProgramsConfig {
         ProgramsConfig {
             dir: PathBuf::from("programs"),
             max_size: Self::DEFAULT_MAX_SIZE,
+            max_inline: Self::DEFAULT_MAX_INLINE,
             store_punched: true,
             requests: Self::default_requests(),
             journal: None,
@@ -79,6 +84,14 @@ pub(super) fn check_programs(c: &mut Checker, p: &ProgramsConfig) {
         1,
         100_000,
         " jobs",
+        "",
+    );
+    c.range(
+        || "programs.max_inline".to_string(),
+        p.max_inline,
+        1,
+        p.max_size.max(1),
+        " bytes (programs.max_size at most)",
         "",
     );
     if p.max_size == 0 {

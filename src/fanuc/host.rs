@@ -133,4 +133,12 @@ pub trait HostEngine: Engine<Command = EngineCommand, Event = EngineEvent> {
     /// How many more program bytes the engine will take now (bounded buffer).
     #[must_use]
     fn data_wanted(&self) -> usize;
+
+    /// What the link is waiting for from the board, in the manual's words, when progress
+    /// depends on the board (SYN after a re-initialisation, the GTD or DC1 of a CNC that has not
+    /// started reading): status shows it, with since when, so that a stuck link says why.
+    #[must_use]
+    fn waiting_for(&self) -> Option<&'static str> {
+        None
+    }
 }

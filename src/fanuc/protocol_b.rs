@@ -787,6 +787,27 @@ impl HostEngine for ProtocolBHost {
             .as_ref()
             .map_or(0, |p| p.wanted(self.cfg.max_buffer))
     }
+
+    fn waiting_for(&self) -> Option<&'static str> {
+        if !self.line_up {
+            return Some("DR: the board's ER is off or the line is down (§6.4)");
+        }
+        if self.finishing.is_some() {
+            return Some("the DC3 that ends the read (§6.1.1 (7))");
+        }
+        if self.program.is_none() || self.rx == Rx::Punch {
+            return None;
+        }
+        if self.await_next_read {
+            Some("DC3 then DC1: the CNC is ending the last read (protocol notes 13)")
+        } else if self.flowing {
+            None
+        } else if self.program.as_ref().is_some_and(|p| p.sent > 0) {
+            Some("DC1 after DC3: the board's buffer is full (§6.3)")
+        } else {
+            Some("DC1: the CNC has not asked for data (§6.1.1)")
+        }
+    }
 }
 
 #[cfg(test)]
@@ -854,6 +875,41 @@ mod tests {
             })
             .flatten()
             .collect()
+    }
+
+    /// A queued program waits for the CNC's DC1, a paused one for the DC1 after DC3, a
+    /// finished one for the DC3 that ends the read: status says which.
+    #[test]
+    fn says_what_it_waits_for() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        assert_eq!(h.waiting_for(), None);
+        h.handle_command(now, EngineCommand::StartProgram { total: None });
+        h.handle_command(now, EngineCommand::ProgramData(Bytes::from(program(600))));
+        h.handle_command(now, EngineCommand::ProgramEnd);
+        assert!(
+            h.waiting_for()
+                .is_some_and(|w| w.starts_with("DC1: the CNC"))
+        );
+        h.handle_input(now, &[DC1]);
+        assert_eq!(h.waiting_for(), None);
+        let _ = h.poll_transmit(now);
+        h.handle_input(now, &[DC3]);
+        assert!(
+            h.waiting_for()
+                .is_some_and(|w| w.starts_with("DC1 after DC3"))
+        );
+        h.handle_input(now, &[DC1]);
+        drain_tx(&mut h, now);
+        assert!(h.waiting_for().is_some_and(|w| w.contains("ends the read")));
+        h.handle_modem(
+            now,
+            ModemIn {
+                dr: false,
+                cs: false,
+                cd: false,
+            },
+        );
+        assert!(h.waiting_for().is_some_and(|w| w.starts_with("DR")));
     }
 
     #[test]

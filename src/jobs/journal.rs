@@ -99,6 +99,9 @@ pub struct JobRecord {
     pub suffix: Vec<u8>,
     pub start: Option<StartPoint>,
     pub resume_after_restart: bool,
+    /// Seconds the job may take from its start; 0: no deadline.
+    #[serde(default)]
+    pub deadline_s: u32,
     pub state: JobState,
     /// Program bytes the board acknowledged, as last recorded.
     pub acked: u64,
@@ -396,6 +399,7 @@ mod tests {
             suffix: b"%".to_vec(),
             start: None,
             resume_after_restart: false,
+            deadline_s: 0,
             state,
             acked: 0,
             last_event: Vec::new(),

@@ -93,6 +93,8 @@ pub struct JobSubmission {
     pub start_at: Option<(StartAt, u32)>,
     /// Resume from the first unacknowledged block if the gateway restarts while sending.
     pub resume_after_restart: bool,
+    /// Seconds the job may take from its start; 0: no deadline.
+    pub deadline_s: u32,
 }
 
 /// Why a job request or a cancellation was refused.
@@ -391,6 +393,7 @@ impl JobsHandle {
             suffix,
             start,
             resume_after_restart: s.resume_after_restart,
+            deadline_s: s.deadline_s,
             state: JobState::Waiting,
             acked: 0,
             last_event: Vec::new(),
@@ -559,6 +562,7 @@ pub fn spawn(
         events: ev_tx,
         snapshot: snap_tx,
         totals: JobsSnapshot::default(),
+        link_waiting: None,
     };
     let span = tracing::info_span!("jobs", machine = %name);
     let task = tokio::spawn(tracing::Instrument::instrument(
@@ -651,6 +655,9 @@ struct Active {
     /// The link alarm (with its CNC number) seen while this job ran.
     alarm: Option<CncAlarm>,
     cnc_reset: bool,
+    /// When the job's deadline passes (from its start), and whether it has.
+    deadline: Option<Instant>,
+    deadline_passed: bool,
 }
 
 struct Manager {
@@ -673,6 +680,8 @@ struct Manager {
     events: broadcast::Sender<pb::JobEvent>,
     snapshot: watch::Sender<JobsSnapshot>,
     totals: JobsSnapshot,
+    /// What the link waits for from the board, and since when (Unix ms).
+    link_waiting: Option<(&'static str, u64)>,
 }
 
 /// How a job ended, as the manager records it.
@@ -704,9 +713,15 @@ impl Manager {
         loop {
             self.hand_next().await;
             self.publish_snapshot();
+            let deadline = self
+                .active
+                .as_ref()
+                .filter(|a| !a.deadline_passed)
+                .and_then(|a| a.deadline);
             tokio::select! {
                 biased;
                 () = shutdown.cancelled() => break,
+                () = sleep_until_some(deadline) => self.deadline_passed().await,
                 request = requests.recv() => match request {
                     Some(r) => self.on_request(r).await,
                     None => break,
@@ -1110,11 +1125,42 @@ impl Manager {
                 cancel_requested: false,
                 alarm: None,
                 cnc_reset: false,
+                deadline: None,
+                deadline_passed: false,
             });
             if self.link.send(command).await.is_err() {
                 self.link_gone("the link is not running").await;
             }
         }
+    }
+
+    /// The active job's deadline passed: it is stopped on the link, and fails when the link
+    /// reports it stopped, at what the board acknowledged.
+    async fn deadline_passed(&mut self) {
+        let Some(active) = self.active.as_mut() else {
+            return;
+        };
+        active.deadline_passed = true;
+        tracing::warn!(
+            job = %active.record.id,
+            deadline_s = active.record.deadline_s,
+            waiting_for = self.link_waiting.map(|(w, _)| w),
+            "job deadline passed; stopping it"
+        );
+        let link_id = active.link_id;
+        if self.link.send(LinkCommand::Cancel(link_id)).await.is_err() {
+            self.link_gone("the link is not running").await;
+        }
+    }
+
+    /// Why a job whose deadline passed failed: the deadline, and what the link waited for.
+    fn deadline_reason(&self, deadline_s: u32) -> String {
+        let mut why = format!("the job did not complete within its deadline of {deadline_s} s");
+        if let Some((what, since)) = self.link_waiting {
+            let secs = unix_ms().saturating_sub(since) / 1000;
+            why.push_str(&format!("; the link was waiting {secs} s for {what}"));
+        }
+        why
     }
 
     /// The link stopped for good: the active job fails, the waiting ones cannot run.
@@ -1160,12 +1206,22 @@ impl Manager {
                     active.cnc_reset = true;
                 }
             }
+            LinkEvent::Waiting {
+                what,
+                since_unix_ms,
+            } => {
+                self.link_waiting = what.map(|w| (w, since_unix_ms));
+            }
             LinkEvent::JobStarted { job } => {
                 let Some(active) = self.active_for(job) else {
                     return;
                 };
                 let now = Instant::now();
                 active.started_at = Some(now);
+                if active.record.deadline_s > 0 {
+                    active.deadline =
+                        Some(now + Duration::from_secs(u64::from(active.record.deadline_s)));
+                }
                 active.shaper = ProgressShaper::new(now, Some(active.record.stream_size()));
                 let (id, size) = (active.record.id.clone(), active.record.stream_size());
                 tracing::info!(job = %id, "job started");
@@ -1255,6 +1311,16 @@ impl Manager {
                 };
                 self.totals.nc_bytes_sent += offset.saturating_sub(published_bytes(&active));
                 let next = self.next_block(&active.record, offset).await;
+                if active.deadline_passed {
+                    self.totals.jobs_failed += 1;
+                    let end = End::Failed {
+                        reason: self.deadline_reason(active.record.deadline_s),
+                        alarm: active.alarm,
+                        code: pb::ErrorCode::DeadlineExceeded,
+                    };
+                    self.end(active.record, end, offset, sent, next);
+                    return;
+                }
                 let reset = matches!(&reason, JobFailure::Aborted(r) if r.is_reset());
                 if active.cnc_reset || reset || active.cancel_requested {
                     // A CNC reset abandons the program: the proto counts that as a
@@ -1286,6 +1352,18 @@ impl Manager {
                     return;
                 };
                 self.totals.nc_bytes_sent += offset.saturating_sub(published_bytes(&active));
+                if active.deadline_passed {
+                    let next = self.next_block(&active.record, offset).await;
+                    self.totals.jobs_failed += 1;
+                    tracing::warn!(job = %active.record.id, offset, "job failed: deadline passed");
+                    let end = End::Failed {
+                        reason: self.deadline_reason(active.record.deadline_s),
+                        alarm: active.alarm,
+                        code: pb::ErrorCode::DeadlineExceeded,
+                    };
+                    self.end(active.record, end, offset, sent, next);
+                    return;
+                }
                 let by = if active.cancel_requested {
                     "request"
                 } else if active.cnc_reset {
@@ -1299,6 +1377,14 @@ impl Manager {
             }
             _ => {}
         }
+    }
+}
+
+/// Completes at `deadline`, never without one.
+async fn sleep_until_some(deadline: Option<Instant>) {
+    match deadline {
+        Some(at) => tokio::time::sleep_until(at).await,
+        None => std::future::pending().await,
     }
 }
 

@@ -145,6 +145,12 @@ pub enum LinkEvent {
     JobStarted {
         job: JobId,
     },
+    /// What the link now waits for from the board (`None`: nothing), since `since_unix_ms`
+    /// (see [`HostEngine::waiting_for`]).
+    Waiting {
+        what: Option<&'static str>,
+        since_unix_ms: u64,
+    },
     /// `acked`: program bytes the board acknowledged; `sent`: handed to the line.
     Progress {
         job: JobId,
@@ -188,7 +194,12 @@ pub enum LinkEvent {
 pub enum LinkError {
     #[error("link {machine} is not running")]
     NotRunning { machine: String },
+    #[error("link {machine} has {max} commands waiting already; try again later")]
+    Busy { machine: String, max: usize },
 }
+
+/// Commands a link holds waiting; [`LinkHandle::try_send`] refuses more.
+pub const COMMAND_QUEUE: usize = 64;
 
 /// Progress events come at least at every whole percent and at most every this often
 /// otherwise (for programs of unknown size).
@@ -239,6 +250,20 @@ impl LinkHandle {
             })
     }
 
+    /// Gives the link a command without waiting: a flood of commands (DO puts) is refused
+    /// once [`COMMAND_QUEUE`] wait, rather than held up behind one another.
+    pub fn try_send(&self, command: LinkCommand) -> Result<(), LinkError> {
+        self.commands.try_send(command).map_err(|e| match e {
+            mpsc::error::TrySendError::Full(_) => LinkError::Busy {
+                machine: self.machine.clone(),
+                max: COMMAND_QUEUE,
+            },
+            mpsc::error::TrySendError::Closed(_) => LinkError::NotRunning {
+                machine: self.machine.clone(),
+            },
+        })
+    }
+
     /// Events from now on. A receiver that falls more than the channel's capacity behind
     /// loses the oldest events (and is told so by `RecvError::Lagged`).
     pub fn subscribe(&self) -> broadcast::Receiver<LinkEvent> {
@@ -268,7 +293,7 @@ where
     T: Transport + 'static,
 {
     let machine = machine.into();
-    let (cmd_tx, cmd_rx) = mpsc::channel(64);
+    let (cmd_tx, cmd_rx) = mpsc::channel(COMMAND_QUEUE);
     let (ev_tx, _) = broadcast::channel(1024);
     let (state_tx, state_rx) = watch::channel(None);
     let handle = LinkHandle {
@@ -286,7 +311,9 @@ where
         queue: VecDeque::new(),
         active: None,
         do_image: 0,
+        do_wanted: 0,
         buf: vec![0; SOURCE_CHUNK].into_boxed_slice(),
+        waiting: None,
     };
     let task = tokio::spawn(tracing::Instrument::instrument(driver.run(shutdown), span));
     (handle, task)
@@ -315,7 +342,11 @@ struct Driver<E, T> {
     queue: VecDeque<ProgramJob>,
     active: Option<ActiveJob>,
     do_image: u8,
+    /// The DO image last asked for (sent or still pending).
+    do_wanted: u8,
     buf: Box<[u8]>,
+    /// What the engine waits for from the board, as last reported.
+    waiting: Option<&'static str>,
 }
 
 enum Wake {
@@ -427,7 +458,10 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 }
             }
             LinkCommand::SetDo { value, mask } => {
-                let image = (self.do_image & !mask) | (value & mask);
+                // Masked writes compose with the last image asked for, not the last one sent:
+                // two quick writes of different bits both hold.
+                let image = (self.do_wanted & !mask) | (value & mask);
+                self.do_wanted = image;
                 self.engine_command(EngineCommand::SetDo(image));
             }
             LinkCommand::ReadDi => self.engine_command(EngineCommand::ReadDi),
@@ -504,6 +538,14 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
     fn drain_engine_events(&mut self) {
         while let Some(event) = self.pump.engine_mut().poll_event() {
             self.on_engine_event(event);
+        }
+        let waiting = self.pump.engine().waiting_for();
+        if waiting != self.waiting {
+            self.waiting = waiting;
+            self.emit(LinkEvent::Waiting {
+                what: waiting,
+                since_unix_ms: unix_ms(),
+            });
         }
     }
 
@@ -615,6 +657,13 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             total: active.size,
         })
     }
+}
+
+/// Milliseconds since the Unix epoch, for events people read.
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
 }
 
 /// What a job's source gave.

@@ -1401,6 +1401,30 @@ impl HostEngine for ProtocolAHost {
             .as_ref()
             .map_or(0, |p| p.wanted(self.cfg.max_buffer))
     }
+
+    fn waiting_for(&self) -> Option<&'static str> {
+        if !self.line_up {
+            return Some("DR and CD: the line is down (§3.2)");
+        }
+        match self.phase {
+            Phase::SynWait => {
+                return Some("SYN from the board: the link re-initialises (§4.6 1)");
+            }
+            Phase::RdyWait => return Some("RDY from the board (§4.3 (1))"),
+            Phase::Ready => {}
+        }
+        let queued = self
+            .program
+            .as_ref()
+            .is_some_and(|p| p.sent == 0 && self.run.is_none());
+        if queued && self.drain_wait {
+            Some("a SAT with the buffer empty: the CNC still reads the last program (§8.2)")
+        } else if queued {
+            Some("GTD: the CNC has not asked for the program (§4.4.1)")
+        } else {
+            None
+        }
+    }
 }
 
 #[cfg(test)]
