@@ -86,7 +86,9 @@ async fn run(protocol: &str, packet_n: Option<u8>, t_ms: u32, ratio: f64, millis
         if credits == 0 {
             break;
         }
-        x = x.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1442695040888963407);
+        x = x
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1442695040888963407);
         // A burst of up to the credits, then a pause of up to half the window's time.
         let burst = (1 + (x >> 33) % credits).min(blocks - sent);
         let pause = (x >> 13) % (window / 2 + 1) * u64::from(t_ms);

@@ -39,7 +39,18 @@ pub async fn run(
     config: CellConfig,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), GatewayError> {
-    let session = bus::open(&config.bus).await?;
+    let session = bus::open_cell(&config).await?;
+    let security = &config.security;
+    if security.enforces_roles() {
+        tracing::info!(
+            roles = security.roles.len(),
+            tls = security.tls.is_some(),
+            users = security.users_file.is_some(),
+            "access control on: what no role allows is denied"
+        );
+    } else if security.tls.is_none() && security.users_file.is_none() {
+        tracing::info!("no [security]: any session that reaches the gateway may do anything");
+    }
     // Whatever happens from here on, the session is closed before returning.
     let served = serve(&config, &session, shutdown).await;
     let closed = session.close().await.map_err(GatewayError::Close);

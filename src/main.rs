@@ -43,6 +43,10 @@ enum Command {
         /// The cell file (TOML).
         file: PathBuf,
     },
+    /// Print the zenoh access-control section the cell file's roles become (json5): the
+    /// gateway's own, or with --router the one for a zenoh router between the gateway and
+    /// its clients.
+    Acl(AclArgs),
     /// Send an NC program to a machine and follow the job to its end (exit 0 only if the
     /// whole program was delivered).
     Submit(client::SubmitArgs),
@@ -65,6 +69,19 @@ enum Command {
     /// Run a simulated device on its own, for testing any host against it.
     #[command(subcommand)]
     Sim(SimCommand),
+}
+
+#[derive(Debug, Args)]
+struct AclArgs {
+    /// The cell file (TOML).
+    file: PathBuf,
+    /// The section for a zenoh router that the gateway and its clients connect to: the
+    /// roles, enforced there on the clients, and the gateway's own rights.
+    #[arg(long, requires = "gateway_cn")]
+    router: bool,
+    /// With --router: the common name of the gateway's certificate. Repeatable.
+    #[arg(long = "gateway-cn", value_name = "NAME")]
+    gateway_cn: Vec<String>,
 }
 
 #[derive(Debug, Subcommand)]
@@ -124,6 +141,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
         Command::CheckConfig { ref file } => check_config(file),
+        Command::Acl(ref args) => acl(args),
         Command::Run(ref args) => run(&cli, args),
         Command::Submit(ref args) => client_command(&cli, args),
         Command::Status(ref args) => client_command(&cli, args),
@@ -204,12 +222,68 @@ fn sim_fanuc(cli: &Cli, args: cellgate::sim::server::SimFanucArgs) -> ExitCode {
 fn check_config(file: &Path) -> ExitCode {
     match load(file) {
         Ok(config) => {
+            // The zenoh file and the roles' rules, as `run` builds them.
+            if let Err(e) = cellgate::bus::session::cell_zenoh_config(&config) {
+                eprintln!("{}: {e}", file.display());
+                return ExitCode::from(EXIT_CONFIG);
+            }
             println!("{}", config.summary());
             ExitCode::SUCCESS
         }
         Err(errors) => {
             print_errors(&file.display().to_string(), &errors);
             ExitCode::from(EXIT_CONFIG)
+        }
+    }
+}
+
+/// `cellgate acl FILE [--router --gateway-cn NAME]`.
+fn acl(args: &AclArgs) -> ExitCode {
+    let config = match load(&args.file) {
+        Ok(config) => config,
+        Err(errors) => {
+            print_errors(&args.file.display().to_string(), &errors);
+            return ExitCode::from(EXIT_CONFIG);
+        }
+    };
+    let keys = match cellgate::bus::keys::CellKeys::new(&config.bus.prefix, &config.cell) {
+        Ok(keys) => keys,
+        Err(e) => {
+            eprintln!("{}: {e}", args.file.display());
+            return ExitCode::from(EXIT_CONFIG);
+        }
+    };
+    let security = &config.security;
+    if !security.enforces_roles() {
+        eprintln!(
+            "{}: no [[security.roles]]: nothing to enforce",
+            args.file.display()
+        );
+        return ExitCode::from(EXIT_CONFIG);
+    }
+    let section = if args.router {
+        cellgate::bus::acl::router_access_control(
+            security,
+            &keys,
+            &config.bus.prefix,
+            &args.gateway_cn,
+        )
+    } else {
+        match cellgate::bus::acl::access_control(security, &keys, &config.bus.prefix) {
+            Some(section) => section,
+            None => return ExitCode::from(EXIT_CONFIG),
+        }
+    };
+    match serde_json::to_string_pretty(&serde_json::json!({ "access_control": section })) {
+        Ok(text) => {
+            // A closed pipe (`| head`) is not an error worth a panic.
+            use std::io::Write as _;
+            let _ = writeln!(std::io::stdout().lock(), "{text}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("cellgate: {e}");
+            ExitCode::from(EXIT_RUNTIME)
         }
     }
 }
@@ -254,6 +328,12 @@ fn run(cli: &Cli, args: &RunArgs) -> ExitCode {
             print_errors(&format!("{origin} (with command-line options)"), &errors);
             return ExitCode::from(EXIT_CONFIG);
         }
+    }
+    // The zenoh file and the rules the roles become are checked before anything starts: a
+    // configuration zenoh refuses is a configuration error, not a run-time failure.
+    if let Err(e) = cellgate::bus::session::cell_zenoh_config(&config) {
+        eprintln!("{origin}: {e}");
+        return ExitCode::from(EXIT_CONFIG);
     }
 
     // Zenoh needs the multi-thread runtime.
@@ -356,4 +436,17 @@ fn shutdown_signal() -> std::io::Result<impl Future<Output = ()>> {
             _ = interrupt.recv() => tracing::info!("SIGINT received"),
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_command_line_is_consistent() {
+        // Catches, among others, two options of one command with the same name (a flattened
+        // group of options meeting a command's own).
+        use clap::CommandFactory;
+        Cli::command().debug_assert();
+    }
 }

@@ -138,11 +138,18 @@ impl Gateway {
             prefix: "cellgate".to_string(),
             cell: None,
             timeout: 10,
+            tls_ca: None,
+            tls_cert: None,
+            tls_key: None,
+            user: None,
+            password_file: None,
         }
     }
 
     async fn client(&self) -> Client {
-        Client::connect(&self.connect().options()).await.unwrap()
+        Client::connect(&self.connect().options().unwrap())
+            .await
+            .unwrap()
     }
 
     fn board(&self, machine: &str) -> &cellgate::sim::BoardHandle {
@@ -657,7 +664,7 @@ async fn connecting_tells_what_is_wrong() {
     client.close().await;
 
     // A cell that is not there: the answering ones are named.
-    let mut options = gw.connect().options();
+    let mut options = gw.connect().options().unwrap();
     options.cell = Some("line-8".to_string());
     let e = Client::connect(&options).await.unwrap_err();
     assert!(matches!(e, ClientError::NoGateway { .. }), "{e}");
@@ -666,7 +673,7 @@ async fn connecting_tells_what_is_wrong() {
         "{e}"
     );
     // Another prefix: nobody answers.
-    let mut options = gw.connect().options();
+    let mut options = gw.connect().options().unwrap();
     options.prefix = "elsewhere".to_string();
     let e = Client::connect(&options).await.unwrap_err();
     assert!(e.to_string().contains("no gateway answered"), "{e}");
@@ -681,11 +688,13 @@ async fn connecting_tells_what_is_wrong() {
         })
         .await
         .unwrap();
-    let e = Client::connect(&gw.connect().options()).await.unwrap_err();
+    let e = Client::connect(&gw.connect().options().unwrap())
+        .await
+        .unwrap_err();
     assert!(matches!(e, ClientError::SeveralCells { .. }), "{e}");
     assert!(e.to_string().contains("line-7, line-9"), "{e}");
     assert_eq!(e.exit_code(), 2);
-    let mut options = gw.connect().options();
+    let mut options = gw.connect().options().unwrap();
     options.cell = Some(CELL.to_string());
     let client = Client::connect(&options).await.unwrap();
     let served = client.status(None).await.unwrap();
@@ -807,12 +816,19 @@ impl RunProcess {
         let child = std::process::Command::new(BIN)
             .args(["run", "-l", &endpoint])
             .current_dir(dir.path())
-            .env("RUST_LOG", "warn")
+            .env(
+                "RUST_LOG",
+                std::env::var("CELLGATE_TEST_RUST_LOG").unwrap_or("warn".into()),
+            )
             .env_remove("CELLGATE_CONFIG")
             .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
             .stdin(std::process::Stdio::null())
             .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::null())
+            // CELLGATE_TEST_LOG=FILE keeps the gateway's log for a failing test.
+            .stderr(match std::env::var_os("CELLGATE_TEST_LOG") {
+                Some(f) => std::fs::File::create(f).unwrap().into(),
+                None => std::process::Stdio::null(),
+            })
             .spawn()
             .unwrap();
         let run = RunProcess {
@@ -1087,6 +1103,20 @@ async fn a_flood_of_requests_leaves_the_gateway_bounded_and_serving() {
             .len(),
         3
     );
+    // The flood's last puts may still wait at the link (at most 16 DO images wait there, older
+    // ones give way to newer): once the image has settled, a DO must go out and be confirmed.
+    let mut last = None;
+    for _ in 0..60 {
+        let (_, out, _) = cellgate(&["status", "-e", &run.endpoint, "--json", MILL_A]).await;
+        let image = serde_json::from_str::<serde_json::Value>(&out)
+            .ok()
+            .map(|v| v[0]["do_image"].to_string());
+        if image.is_some() && image == last {
+            break;
+        }
+        last = image;
+        tokio::time::sleep(Duration::from_millis(1000)).await;
+    }
     let (code, _, err) = cellgate(&["do", "-e", &run.endpoint, MILL_A, "0x5A"]).await;
     assert_eq!(code, 0, "{err}");
     client.close().await.unwrap();

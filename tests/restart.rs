@@ -68,6 +68,7 @@ async fn connect(port: u16) -> Client {
         prefix: "cellgate".to_string(),
         cell: Some("restart".to_string()),
         timeout: Duration::from_secs(10),
+        ..ConnectOptions::default()
     };
     for _ in 0..120 {
         if let Ok(client) = Client::connect(&options).await {

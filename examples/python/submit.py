@@ -5,7 +5,8 @@ The same contract as `cellgate submit`, with eclipse-zenoh and the classes gen.s
 from proto/cellgate/v1:
 
   1. open a zenoh session: client mode, connect to one endpoint only, no listen endpoint,
-     multicast scouting off;
+     multicast scouting off; on a tls/ endpoint, check the gateway's certificate against
+     --tls-ca and show this client's own (--tls-cert, --tls-key) to a gateway that asks;
   2. find the cell (the only gateway answering P/*/@admin), unless --cell names it;
   3. subscribe to P/C/machine/M/job/* *before* sending the request, so that no event of the
      job is missed (its id is only known from the reply);
@@ -18,9 +19,12 @@ Exit codes: 0 the program was delivered; 1 it failed or was cancelled, or no gat
 answered; 2 the gateway refused the request (the ErrorReply is printed).
 
     ./submit.py --machine mill-1 O1234.nc
+    ./submit.py --machine mill-1 --connect tls/127.0.0.1:7447 --tls-ca tls/ca.pem \
+        --tls-cert tls/mes-1.pem --tls-key tls/mes-1-key.pem O1234.nc
 """
 
 import argparse
+import json
 import os
 import queue
 import sys
@@ -43,12 +47,21 @@ def encoding(message_name: str) -> zenoh.Encoding:
     return zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(f"cellgate.v1.{message_name}")
 
 
-def open_session(endpoint: str) -> zenoh.Session:
+def open_session(endpoint: str, ca=None, cert=None, key=None) -> zenoh.Session:
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", f'["{endpoint}"]')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("listen/endpoints", "[]")
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if ca:
+        # The CA that signed the gateway's certificate; the gateway's certificate must also
+        # name the endpoint's host.
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(ca))
+    if cert and key:
+        # This client's certificate: its common name is what the gateway's roles name.
+        conf.insert_json5("transport/link/tls/enable_mtls", "true")
+        conf.insert_json5("transport/link/tls/connect_certificate", json.dumps(cert))
+        conf.insert_json5("transport/link/tls/connect_private_key", json.dumps(key))
     return zenoh.open(conf)
 
 
@@ -59,6 +72,16 @@ def find_cell(z: zenoh.Session, prefix: str) -> list[str]:
         if reply.ok is not None:
             key = str(reply.ok.key_expr)
             cells.add(key[len(prefix) + 1 : -len("/@admin")])
+    return sorted(cells)
+
+
+def gateway_cells(z: zenoh.Session, prefix: str) -> list[str]:
+    """The cells whose gateways' liveliness tokens P/<cell>/gateway stand."""
+    cells = set()
+    for reply in z.liveliness().get(f"{prefix}/*/gateway", timeout=10):
+        if reply.ok is not None:
+            key = str(reply.ok.key_expr)
+            cells.add(key[len(prefix) + 1 : -len("/gateway")])
     return sorted(cells)
 
 
@@ -107,7 +130,17 @@ def main() -> int:
     ap.add_argument("--priority", type=int, default=0)
     ap.add_argument("--append-eor", action="store_true", help="append % if the program lacks it")
     ap.add_argument("--request-id", default=None, help="idempotency key (default: a new UUID)")
+    ap.add_argument("--tls-ca", default=os.environ.get("CELLGATE_TLS_CA"),
+                    help="the CA that signed the gateway's certificate (PEM), for a tls/ endpoint")
+    ap.add_argument("--tls-cert", default=os.environ.get("CELLGATE_TLS_CERT"),
+                    help="this client's certificate (PEM), for a gateway that requires one")
+    ap.add_argument("--tls-key", default=os.environ.get("CELLGATE_TLS_KEY"),
+                    help="the private key of --tls-cert (PEM)")
     args = ap.parse_args()
+    if args.connect.startswith("tls/") and not args.tls_ca:
+        ap.error("a tls/ endpoint needs --tls-ca, the CA that signed the gateway's certificate")
+    if bool(args.tls_cert) != bool(args.tls_key):
+        ap.error("give both --tls-cert and --tls-key, or neither")
 
     with open(args.file, "rb") as f:
         program = f.read()
@@ -123,14 +156,19 @@ def main() -> int:
     )
 
     try:
-        z = open_session(args.connect)
+        z = open_session(args.connect, args.tls_ca, args.tls_cert, args.tls_key)
     except zenoh.ZError as e:
-        print(f"cannot connect to {args.connect}: is `cellgate run` running there? ({e})", file=sys.stderr)
+        hint = " (over TLS: a gateway that requires client certificates refuses a client " \
+            "without one signed by its CA)" if args.connect.startswith("tls/") else ""
+        print(f"cannot connect to {args.connect}: is `cellgate run` running there?{hint} ({e})",
+              file=sys.stderr)
         return 1
     with z:
         cell = args.cell
         if cell is None:
-            cells = find_cell(z, args.prefix)
+            # A gateway with roles shows @admin only to admin.read; its liveliness token
+            # stands for every role.
+            cells = find_cell(z, args.prefix) or gateway_cells(z, args.prefix)
             if len(cells) != 1:
                 found = ", ".join(cells) if cells else "none"
                 print(f"cells answering at {args.connect}: {found}; name one with --cell", file=sys.stderr)
@@ -157,7 +195,8 @@ def main() -> int:
                 print(f"refused ({error_pb2.ErrorCode.Name(err.code)}): {err.message}", file=sys.stderr)
                 return 2
         if accepted is None:
-            print(f"no gateway answered on {base}/job", file=sys.stderr)
+            print(f"no gateway answered on {base}/job (on a cell with roles, this client's "
+                  "certificate needs job.submit)", file=sys.stderr)
             return 1
         job = accepted.job_id
         print(f"accepted: job {job}, {accepted.queue_position} job(s) ahead")

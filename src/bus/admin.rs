@@ -30,7 +30,7 @@ pub fn admin_document(config: &CellConfig, zid: &str) -> serde_json::Value {
 
 /// The gateway's token and admin queryable. Undeclared when dropped (or explicitly, with
 /// [`AdminRoute::undeclare`], so that peers see the token go at once).
-pub(crate) struct AdminRoute {
+pub struct AdminRoute {
     token: LivelinessToken,
     queryable: Queryable<FifoChannelHandler<Query>>,
     key: String,

@@ -19,6 +19,10 @@
 //! | `P/C/machine/M/g05/S/blocks` | the stream's `G05Batch`es |
 //! | `P/C/machine/M/g05/S/producer` | the producer's liveliness token |
 //! | `P/C/program/NAME` | the program library |
+//! | `P/C/plc/L/{mem,transfer,tag}/...` | a PLC link's memory, transfers and tags (likewise) |
+//!
+//! The patterns that access-control rules name (`any_*`) are built here too, so that a route
+//! and the rules that guard it cannot drift apart.
 //!
 //! zenoh's `kedefine!`/`keformat!` macros would declare these formats at compile time, but
 //! in zenoh 1.10 they live in `zenoh::key_expr::format`, which exists only with zenoh's
@@ -88,6 +92,24 @@ impl G05Part {
             G05Part::Status => "",
             G05Part::Blocks => "/blocks",
             G05Part::Producer => "/producer",
+        }
+    }
+}
+
+/// The areas of a PLC link, `P/C/plc/L/<area>/...`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum PlcArea {
+    Mem,
+    Transfer,
+    Tag,
+}
+
+impl PlcArea {
+    pub fn chunk(self) -> &'static str {
+        match self {
+            PlcArea::Mem => "mem",
+            PlcArea::Transfer => "transfer",
+            PlcArea::Tag => "tag",
         }
     }
 }
@@ -222,6 +244,31 @@ impl CellKeys {
         self.program("*")
     }
 
+    /// `P/C/machine/*`: every machine's liveliness token.
+    pub fn any_machine(&self) -> String {
+        self.machine("*")
+    }
+
+    /// `P/C/machine/*/g05/**`: every machine's G05 keys (`**` also takes in `.../g05`).
+    pub fn every_g05_key(&self) -> String {
+        format!("{}/**", self.leaf("*", MachineLeaf::G05))
+    }
+
+    /// `P/C/plc/L/<area>`
+    pub fn plc_area(&self, link: &str, area: PlcArea) -> String {
+        format!("{}/plc/{link}/{}", self.root, area.chunk())
+    }
+
+    /// `P/C/plc/*/<area>/**`: one area of every PLC link.
+    pub fn any_plc_area(&self, area: PlcArea) -> String {
+        format!("{}/**", self.plc_area("*", area))
+    }
+
+    /// `P/C/plc/**`: everything of the cell's PLC links.
+    pub fn any_plc(&self) -> String {
+        format!("{}/plc/**", self.root)
+    }
+
     /// Reads a key of this cell back; `None` for a key that is not one.
     pub fn parse<'k>(&self, key: &'k str) -> Option<CellKey<'k>> {
         let rest = key.strip_prefix(self.root.as_str())?.strip_prefix('/')?;
@@ -260,6 +307,19 @@ const ADMIN_CHUNK: &str = "@admin";
 /// `P/<cell>/@admin` for discovery, where `cell` may be `*` (any cell under `prefix`).
 pub fn admin_selector(prefix: &str, cell: &str) -> String {
     format!("{prefix}/{cell}/{ADMIN_CHUNK}")
+}
+
+/// `P/<cell>/gateway` for discovery, where `cell` may be `*` (any cell under `prefix`).
+pub fn gateway_selector(prefix: &str, cell: &str) -> String {
+    format!("{prefix}/{cell}/gateway")
+}
+
+/// The cell of a gateway's liveliness token `P/<cell>/gateway` under `prefix`.
+pub fn cell_of_gateway_key<'k>(prefix: &str, key: &'k str) -> Option<&'k str> {
+    key.strip_prefix(prefix)?
+        .strip_prefix('/')?
+        .strip_suffix("/gateway")
+        .filter(|cell| is_plain_chunk(cell))
 }
 
 /// The cell of an admin key `P/<cell>/@admin` under `prefix`.
@@ -359,6 +419,15 @@ mod tests {
             k.gateway(),
             k.admin(),
             k.all(),
+            k.any_machine(),
+            k.leaf("m", MachineLeaf::G05),
+            k.g05("m", "s", G05Part::Blocks),
+            k.any_g05(G05Part::Status),
+            k.every_g05_key(),
+            k.plc_area("plc-1", PlcArea::Tag),
+            k.any_plc_area(PlcArea::Mem),
+            k.any_plc(),
+            gateway_selector("factory/a", "*"),
         ];
         for key in keys {
             assert!(keyexpr::new(key.as_str()).is_ok(), "{key}");
@@ -375,6 +444,37 @@ mod tests {
         assert!(!is_plain_chunk("a/b"));
         assert!(!is_plain_chunk("*"));
         assert!(!is_plain_chunk(""));
+    }
+
+    #[test]
+    fn route_patterns_take_in_their_keys_and_no_others() {
+        let k = CellKeys::new("cellgate", "c").unwrap();
+        let includes = |pattern: &str, key: &str| {
+            keyexpr::new(pattern)
+                .unwrap()
+                .includes(keyexpr::new(key).unwrap())
+        };
+        let g05 = k.every_g05_key();
+        assert!(includes(&g05, &k.leaf("m1", MachineLeaf::G05)));
+        assert!(includes(&g05, &k.g05("m1", "s-7", G05Part::Status)));
+        assert!(includes(&g05, &k.g05("m1", "s-7", G05Part::Blocks)));
+        assert!(includes(&g05, &k.g05("m1", "s-7", G05Part::Producer)));
+        assert!(!includes(&g05, &k.leaf("m1", MachineLeaf::Do)));
+        let tags = k.any_plc_area(PlcArea::Tag);
+        assert!(includes(&tags, "cellgate/c/plc/plc-1/tag/door"));
+        assert!(!includes(&tags, "cellgate/c/plc/plc-1/mem/D/100"));
+        assert!(includes(&k.any_plc(), "cellgate/c/plc/plc-1/mem/D/100"));
+        assert!(includes(&k.any_machine(), &k.machine("m1")));
+        assert!(!includes(
+            &k.any_machine(),
+            &k.leaf("m1", MachineLeaf::Status)
+        ));
+        assert_eq!(gateway_selector("cellgate", "c"), k.gateway());
+        assert_eq!(cell_of_gateway_key("cellgate", &k.gateway()), Some("c"));
+        assert_eq!(
+            cell_of_gateway_key("cellgate", "cellgate/a/b/gateway"),
+            None
+        );
     }
 
     #[test]

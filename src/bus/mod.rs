@@ -2,7 +2,9 @@
 //! queryables, publishers and liveliness tokens, with protobuf payloads.
 //!
 //! One file per concern, as the zenoh bridges do it:
-//! - [`session`]: opening the session from `[bus]` (loopback, multicast scouting off by default);
+//! - [`session`]: opening the session from `[bus]` (loopback, multicast scouting off by default)
+//!   and `[security]` (TLS, user names);
+//! - [`acl`]: the cell file's roles as zenoh access-control rules for the cell's keys;
 //! - [`keys`]: every key expression of the cell, built and parsed in one place;
 //! - [`payload`]: the protobuf messages and their encodings, and the link's data as messages;
 //! - `context`: what every route shares, the typed request errors, the reply helpers;
@@ -24,6 +26,7 @@
 //! alarms and punched programs are published reliable with `Block`; status and DI telemetry
 //! with `Drop`, since the next value supersedes a lost one.
 
+pub mod acl;
 pub mod admin;
 pub mod context;
 pub mod keys;
@@ -39,7 +42,7 @@ mod route_status;
 pub mod session;
 
 pub use route_job::{FETCH_TIMEOUT, RECENT_JOBS};
-pub use session::{BusError, open};
+pub use session::{BusError, open, open_cell};
 
 pub use crate::config::{BusConfig, BusMode};
 
@@ -134,7 +137,7 @@ pub async fn serve(
         Arc::clone(&keys),
         Arc::new(by_name),
         library.clone(),
-        config.programs.max_inline,
+        config.programs.max_inline.min(config.programs.max_size),
     );
 
     let mut machine_tasks = JoinSet::new();

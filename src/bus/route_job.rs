@@ -136,8 +136,9 @@ async fn submit(
                 return Err(RequestError::Invalid {
                     machine: m.name().to_string(),
                     what: format!(
-                        "an inline program of {} bytes is over programs.max_inline ({} bytes): put \
-                         it in the library (`cellgate program put`) and submit it by name",
+                        "an inline program of {} bytes is over the inline limit ({} bytes: \
+                         programs.max_inline, or programs.max_size if smaller): put it in the \
+                         library (`cellgate program put`) and submit it by name",
                         bytes.len(),
                         ctx.max_inline
                     ),

@@ -16,7 +16,10 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use prost::Message;
 
 use super::render::{self, WatchPrinter};
-use super::{Client, ClientError, ConnectOptions, DEFAULT_ENDPOINT, JobOutcome, parse_byte};
+use super::{
+    Client, ClientError, ClientSecurity, ConnectOptions, Credentials, DEFAULT_ENDPOINT, JobOutcome,
+    parse_byte,
+};
 use crate::pb;
 use crate::pb::job_event::Kind;
 
@@ -47,16 +50,81 @@ pub struct ConnectArgs {
     /// Seconds to wait for the answer to an ordinary request (status, program library).
     #[arg(long, value_name = "SECS", default_value_t = 10)]
     pub timeout: u64,
+    /// The CA that signed the gateway's certificate (PEM), for a tls/ endpoint.
+    #[arg(long, value_name = "FILE", env = "CELLGATE_TLS_CA")]
+    pub tls_ca: Option<PathBuf>,
+    /// This client's certificate (PEM), for a gateway that requires client certificates; its
+    /// common name is what the gateway's roles name.
+    #[arg(
+        long,
+        value_name = "FILE",
+        env = "CELLGATE_TLS_CERT",
+        requires = "tls_key"
+    )]
+    pub tls_cert: Option<PathBuf>,
+    /// The private key of --tls-cert (PEM).
+    #[arg(
+        long,
+        value_name = "FILE",
+        env = "CELLGATE_TLS_KEY",
+        requires = "tls_cert"
+    )]
+    pub tls_key: Option<PathBuf>,
+    /// User name, for a gateway with a users file. The password comes from --password-file
+    /// or the environment variable CELLGATE_PASSWORD.
+    #[arg(long, value_name = "NAME", env = "CELLGATE_USER")]
+    pub user: Option<String>,
+    /// A file whose first line is the password of --user.
+    #[arg(long, value_name = "FILE", requires = "user")]
+    pub password_file: Option<PathBuf>,
 }
 
+/// Where a client command takes the password of `--user` from when no file is given.
+pub const PASSWORD_ENV: &str = "CELLGATE_PASSWORD";
+
 impl ConnectArgs {
-    pub fn options(&self) -> ConnectOptions {
-        ConnectOptions {
+    /// The options these arguments give; reads the password file, if any.
+    pub fn options(&self) -> Result<ConnectOptions, ClientError> {
+        let credentials = match &self.user {
+            None => None,
+            Some(user) => {
+                let password = match &self.password_file {
+                    Some(path) => std::fs::read_to_string(path)
+                        .map_err(|source| ClientError::File {
+                            path: path.clone(),
+                            op: "read",
+                            source,
+                        })?
+                        .lines()
+                        .next()
+                        .unwrap_or_default()
+                        .to_string(),
+                    None => std::env::var(PASSWORD_ENV).unwrap_or_default(),
+                };
+                if password.is_empty() {
+                    return Err(ClientError::Security {
+                        what: format!("--user {user}"),
+                        reason: format!("no password: give --password-file or set {PASSWORD_ENV}"),
+                    });
+                }
+                Some(Credentials {
+                    user: user.clone(),
+                    password,
+                })
+            }
+        };
+        Ok(ConnectOptions {
             endpoint: self.connect.clone(),
             prefix: self.prefix.clone(),
             cell: self.cell.clone(),
             timeout: Duration::from_secs(self.timeout.max(1)),
-        }
+            security: ClientSecurity {
+                ca: self.tls_ca.clone(),
+                certificate: self.tls_cert.clone(),
+                private_key: self.tls_key.clone(),
+                credentials,
+            },
+        })
     }
 }
 
@@ -82,7 +150,11 @@ pub trait ClientCommand {
 /// Connects, runs `command`, closes, and returns its exit code; errors are written to
 /// `io.err`, prefixed `cellgate:`.
 pub async fn run_command(command: &impl ClientCommand, io: &mut Io<'_>) -> u8 {
-    let client = match Client::connect(&command.connect_args().options()).await {
+    let options = match command.connect_args().options() {
+        Ok(o) => o,
+        Err(e) => return report(io, &e),
+    };
+    let client = match Client::connect(&options).await {
         Ok(c) => c,
         Err(e) => return report(io, &e),
     };
@@ -410,6 +482,13 @@ impl ClientCommand for StatusArgs {
         } else {
             let _ = write!(io.out, "{}", render::status_table(&statuses));
         }
+        if statuses.is_empty() && client.admin().is_null() {
+            // A gateway that hides @admin enforces roles: no status may be a refusal.
+            let _ = writeln!(
+                io.err,
+                "note: this gateway enforces roles; status needs status.read"
+            );
+        }
         Ok(0)
     }
 }
@@ -642,6 +721,15 @@ impl ClientCommand for ProgramCommand {
                     let _ = writeln!(io.out, "{text}");
                 } else {
                     let _ = write!(io.out, "{}", render::program_table(&list));
+                    if list.is_empty() && client.admin().is_null() {
+                        // A gateway that hides @admin enforces roles: an empty answer may be
+                        // a refusal.
+                        let _ = writeln!(
+                            io.err,
+                            "note: this gateway enforces roles; listing the library needs \
+                             program.write"
+                        );
+                    }
                 }
             }
             ProgramCommand::Rm { name, .. } => {

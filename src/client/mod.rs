@@ -13,6 +13,7 @@ pub mod cli;
 pub mod render;
 
 use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use prost::Message;
@@ -25,7 +26,7 @@ use zenoh::sample::{Sample, SampleKind};
 
 use crate::bus::keys::{
     CellKey, CellKeys, G05Part, KeyError, MachineLeaf, admin_selector, cell_of_admin_key,
-    is_plain_chunk,
+    cell_of_gateway_key, gateway_selector, is_plain_chunk,
 };
 use crate::bus::payload::{BusMessage, encoding, schema_of};
 use crate::bus::{BusConfig, BusError, BusMode};
@@ -67,16 +68,17 @@ pub enum ClientError {
         source: BusError,
     },
     /// Nothing accepted the connection.
-    #[error(
-        "cannot connect to {endpoint}: nothing accepted a zenoh session there. Is `cellgate run` \
-         running and listening there? (it listens on tcp/127.0.0.1:7447 unless told otherwise; \
-         give its endpoint with --connect)"
-    )]
+    #[error("{}", unreachable_message(endpoint, *secured))]
     Unreachable {
         endpoint: String,
+        /// Whether the client used TLS or a user name: the gateway may have refused it.
+        secured: bool,
         #[source]
         source: zenoh::Error,
     },
+    /// The TLS or user-name options do not fit together or with the endpoint.
+    #[error("{what}: {reason}")]
+    Security { what: String, reason: String },
     /// The session opened, but no gateway of the cell (or of any cell) answered its admin
     /// key.
     #[error("{}", no_gateway_message(endpoint, prefix, cell.as_deref(), others))]
@@ -123,6 +125,15 @@ pub enum ClientError {
         key: String,
         timeout: Duration,
     },
+    /// The request ended at once without a reply: nothing that serves the key would take it
+    /// from this client. On a cell with roles, that is a request no role of the client's
+    /// certificate or user name allows.
+    #[error(
+        "{what}: nothing answered on {key}: the request was not taken. On a cell with \
+         [security] roles, your certificate or user name lacks the permission; otherwise the \
+         gateway has stopped"
+    )]
+    NotTaken { what: String, key: String },
     /// The reply could not be read as the message the contract names.
     #[error("{what}: the reply on {key} is not a {expected}: {detail}")]
     BadReply {
@@ -151,6 +162,25 @@ pub enum ClientError {
     },
 }
 
+fn unreachable_message(endpoint: &str, secured: bool) -> String {
+    if secured {
+        format!(
+            "cannot connect to {endpoint}: no zenoh session was accepted there. Is `cellgate run` \
+             listening there, on tls/ if it has [security.tls]? A gateway that requires client \
+             certificates refuses a client without one signed by its CA (--tls-cert, \
+             --tls-key), and the gateway's certificate must be signed by --tls-ca and name the \
+             host of the endpoint; with a users file, --user and the password must match"
+        )
+    } else {
+        format!(
+            "cannot connect to {endpoint}: nothing accepted a zenoh session there. Is `cellgate \
+             run` running and listening there? (it listens on tcp/127.0.0.1:7447 unless told \
+             otherwise; give its endpoint with --connect; a gateway with [security.tls] listens \
+             on tls/ and needs --tls-ca, --tls-cert and --tls-key)"
+        )
+    }
+}
+
 fn no_gateway_message(
     endpoint: &str,
     prefix: &str,
@@ -160,11 +190,13 @@ fn no_gateway_message(
     match cell {
         None => format!(
             "no gateway answered at {endpoint} (on {prefix}/*/@admin): is `cellgate run` running? \
-             (if it serves another key prefix, give it with --prefix)"
+             (if it serves another key prefix, give it with --prefix; a gateway with [security] \
+             roles shows itself only to the certificates and user names its roles name)"
         ),
         Some(cell) if others.is_empty() => format!(
             "no gateway of cell {cell} answered at {endpoint} (on {prefix}/{cell}/@admin): is \
-             `cellgate run` running for that cell?"
+             `cellgate run` running for that cell? (a gateway with [security] roles shows itself \
+             only to the certificates and user names its roles name)"
         ),
         Some(cell) => format!(
             "no gateway of cell {cell} answered at {endpoint}; cells answering there: {}",
@@ -184,6 +216,7 @@ impl ClientError {
             | ClientError::InvalidArgument { .. }
             | ClientError::ProgramName(_)
             | ClientError::Refused { .. }
+            | ClientError::Security { .. }
             | ClientError::File { op: "read", .. } => 2,
             _ => 1,
         }
@@ -209,6 +242,8 @@ pub struct ConnectOptions {
     pub cell: Option<String>,
     /// Timeout of ordinary requests.
     pub timeout: Duration,
+    /// TLS and user name, for a gateway with `[security]`.
+    pub security: ClientSecurity,
 }
 
 impl Default for ConnectOptions {
@@ -218,7 +253,115 @@ impl Default for ConnectOptions {
             prefix: "cellgate".to_string(),
             cell: None,
             timeout: DEFAULT_TIMEOUT,
+            security: ClientSecurity::default(),
         }
+    }
+}
+
+/// How a client proves who it is to a gateway with `[security]`, and checks the gateway.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ClientSecurity {
+    /// The CA that signed the gateway's certificate (PEM); needed for a `tls/` endpoint.
+    pub ca: Option<PathBuf>,
+    /// The client's certificate and private key (PEM), for a gateway that requires client
+    /// certificates: its common name is what the gateway's roles name.
+    pub certificate: Option<PathBuf>,
+    pub private_key: Option<PathBuf>,
+    /// User name and password, for a gateway with a users file.
+    pub credentials: Option<Credentials>,
+}
+
+/// A user name and its password. The password is never shown.
+#[derive(Clone, PartialEq, Eq)]
+pub struct Credentials {
+    pub user: String,
+    pub password: String,
+}
+
+impl std::fmt::Debug for Credentials {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Credentials")
+            .field("user", &self.user)
+            .finish_non_exhaustive()
+    }
+}
+
+impl ClientSecurity {
+    fn is_empty(&self) -> bool {
+        *self == ClientSecurity::default()
+    }
+
+    /// Writes the settings into a client's zenoh configuration, after checking that they fit
+    /// together and with `endpoint`.
+    fn apply(&self, endpoint: &str, config: &mut zenoh::Config) -> Result<(), ClientError> {
+        let bad = |what: &str, reason: &str| ClientError::Security {
+            what: what.to_string(),
+            reason: reason.to_string(),
+        };
+        let tls = endpoint.starts_with("tls/");
+        let any_tls = self.ca.is_some() || self.certificate.is_some() || self.private_key.is_some();
+        if any_tls && !tls {
+            return Err(bad(
+                "--tls-ca/--tls-cert/--tls-key",
+                &format!("they apply to a tls/ endpoint; --connect is {endpoint}"),
+            ));
+        }
+        if tls && self.ca.is_none() {
+            return Err(bad(
+                &format!("--connect {endpoint}"),
+                "a tls/ endpoint needs --tls-ca, the CA that signed the gateway's certificate",
+            ));
+        }
+        if self.certificate.is_some() != self.private_key.is_some() {
+            return Err(bad(
+                "--tls-cert/--tls-key",
+                "give both the certificate and its private key, or neither",
+            ));
+        }
+        let set = |config: &mut zenoh::Config, what: &str, key: &str, value: String| {
+            config
+                .insert_json5(key, &value)
+                .map_err(|e| bad(what, &format!("zenoh refuses it: {e}")))
+        };
+        let path = |what: &str, p: &Path| -> Result<String, ClientError> {
+            p.to_str()
+                .map(|s| serde_json::Value::from(s).to_string())
+                .ok_or_else(|| bad(what, "zenoh takes only UTF-8 paths"))
+        };
+        const TLS: &str = "transport/link/tls";
+        if let Some(ca) = &self.ca {
+            let v = path("--tls-ca", ca)?;
+            set(config, "--tls-ca", &format!("{TLS}/root_ca_certificate"), v)?;
+        }
+        if let (Some(cert), Some(key)) = (&self.certificate, &self.private_key) {
+            let c = path("--tls-cert", cert)?;
+            let k = path("--tls-key", key)?;
+            set(
+                config,
+                "--tls-cert",
+                &format!("{TLS}/connect_certificate"),
+                c,
+            )?;
+            set(
+                config,
+                "--tls-key",
+                &format!("{TLS}/connect_private_key"),
+                k,
+            )?;
+            set(
+                config,
+                "--tls-cert",
+                &format!("{TLS}/enable_mtls"),
+                "true".into(),
+            )?;
+        }
+        if let Some(c) = &self.credentials {
+            let user = serde_json::Value::from(c.user.as_str()).to_string();
+            let password = serde_json::Value::from(c.password.as_str()).to_string();
+            set(config, "--user", "transport/auth/usrpwd/user", user)?;
+            set(config, "--user", "transport/auth/usrpwd/password", password)?;
+        }
+        Ok(())
     }
 }
 
@@ -246,9 +389,13 @@ impl std::fmt::Debug for Client {
 }
 
 /// The zenoh configuration of a client session: client mode, the one endpoint, no listen,
-/// no multicast scouting. In client mode zenoh tries the endpoint once and fails at once if
-/// nothing accepts, which is what a command wants.
-pub fn client_config(endpoint: &str) -> Result<zenoh::Config, ClientError> {
+/// no multicast scouting, and the TLS and user settings of `security`. In client mode zenoh
+/// tries the endpoint once and fails at once if nothing accepts, which is what a command
+/// wants.
+pub fn client_config(
+    endpoint: &str,
+    security: &ClientSecurity,
+) -> Result<zenoh::Config, ClientError> {
     let bus = BusConfig {
         mode: BusMode::Client,
         listen: Vec::new(),
@@ -256,10 +403,13 @@ pub fn client_config(endpoint: &str) -> Result<zenoh::Config, ClientError> {
         multicast_scouting: false,
         ..BusConfig::default()
     };
-    crate::bus::session::zenoh_config(&bus).map_err(|source| ClientError::Endpoint {
-        endpoint: endpoint.to_string(),
-        source,
-    })
+    let mut config =
+        crate::bus::session::zenoh_config(&bus).map_err(|source| ClientError::Endpoint {
+            endpoint: endpoint.to_string(),
+            source,
+        })?;
+    security.apply(endpoint, &mut config)?;
+    Ok(config)
 }
 
 impl Client {
@@ -268,11 +418,12 @@ impl Client {
     pub async fn connect(options: &ConnectOptions) -> Result<Client, ClientError> {
         // Both checked before any connection: a bad prefix or cell is a usage error.
         CellKeys::new(&options.prefix, options.cell.as_deref().unwrap_or("cell"))?;
-        let config = client_config(&options.endpoint)?;
+        let config = client_config(&options.endpoint, &options.security)?;
         let session = zenoh::open(config)
             .await
             .map_err(|source| ClientError::Unreachable {
                 endpoint: options.endpoint.clone(),
+                secured: !options.security.is_empty(),
                 source,
             })?;
         match Self::find_cell(&session, options).await {
@@ -326,8 +477,44 @@ impl Client {
                 found.push((name.to_string(), doc));
             }
         }
+        if found.is_empty() {
+            // A gateway with roles answers @admin only to `admin.read`; its liveliness token
+            // stands for every role.
+            for cell in Self::gateway_tokens(session, prefix, cell, timeout).await? {
+                found.push((cell, serde_json::Value::Null));
+            }
+        }
         found.sort_by(|a, b| a.0.cmp(&b.0));
         Ok(found)
+    }
+
+    /// The cells whose gateways' liveliness tokens `P/<cell>/gateway` stand.
+    async fn gateway_tokens(
+        session: &Session,
+        prefix: &str,
+        cell: &str,
+        timeout: Duration,
+    ) -> Result<Vec<String>, ClientError> {
+        let key = gateway_selector(prefix, cell);
+        let replies = session
+            .liveliness()
+            .get(key.as_str())
+            .timeout(timeout)
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("get the liveliness tokens {key}"),
+                source,
+            })?;
+        let mut cells = Vec::new();
+        while let Ok(reply) = replies.recv_async().await {
+            let Ok(sample) = reply.result() else { continue };
+            if let Some(name) = cell_of_gateway_key(prefix, sample.key_expr().as_str())
+                && !cells.iter().any(|c| c == name)
+            {
+                cells.push(name.to_string());
+            }
+        }
+        Ok(cells)
     }
 
     async fn find_cell(
@@ -386,7 +573,8 @@ impl Client {
             .map_or(self.keys.root(), |(_, c)| c)
     }
 
-    /// The gateway's admin document (`name`, `version`, `cell`, `zid`, `config`).
+    /// The gateway's admin document (`name`, `version`, `cell`, `zid`, `config`); `Null` when
+    /// the gateway does not show it to this client (a cell with roles, without `admin.read`).
     pub fn admin(&self) -> &serde_json::Value {
         &self.admin
     }
@@ -441,16 +629,14 @@ impl Client {
         payload: Option<(Vec<u8>, Encoding)>,
         timeout: Duration,
     ) -> Result<M, ClientError> {
-        self.get_all(what, key, payload, timeout)
+        let asked = std::time::Instant::now();
+        let first = self
+            .get_all(what, key, payload, timeout)
             .await?
             .into_iter()
             .next()
-            .map(|(_, m)| m)
-            .ok_or_else(|| ClientError::NoAnswer {
-                what: what.to_string(),
-                key: key.to_string(),
-                timeout,
-            })
+            .map(|(_, m)| m);
+        first.ok_or_else(|| no_reply(what, key, timeout, asked.elapsed()))
     }
 
     fn machine_arg(machine: &str) -> Result<(), ClientError> {
@@ -481,6 +667,7 @@ impl Client {
             Some(m) => format!("status of {m}"),
             None => "status".to_string(),
         };
+        let asked = std::time::Instant::now();
         let mut all: Vec<pb::MachineStatus> = self
             .get_all(&what, &key, None, self.timeout)
             .await?
@@ -488,11 +675,7 @@ impl Client {
             .map(|(_, s)| s)
             .collect();
         if machine.is_some() && all.is_empty() {
-            return Err(ClientError::NoAnswer {
-                what,
-                key,
-                timeout: self.timeout,
-            });
+            return Err(no_reply(&what, &key, self.timeout, asked.elapsed()));
         }
         all.sort_by(|a, b| a.machine.cmp(&b.machine));
         Ok(all)
@@ -910,6 +1093,23 @@ impl Client {
         });
         watch.pending.extend(standing);
         Ok(watch)
+    }
+}
+
+/// The error for a get that got no reply after `waited`: a get that ended well before its
+/// time-out was not taken (refused by access control, or nothing serves the key any more).
+fn no_reply(what: &str, key: &str, timeout: Duration, waited: Duration) -> ClientError {
+    if waited < timeout / 2 {
+        ClientError::NotTaken {
+            what: what.to_string(),
+            key: key.to_string(),
+        }
+    } else {
+        ClientError::NoAnswer {
+            what: what.to_string(),
+            key: key.to_string(),
+            timeout,
+        }
     }
 }
 
@@ -1346,7 +1546,7 @@ mod tests {
 
     #[test]
     fn the_client_session_connects_only_and_never_scouts() {
-        let c = client_config("tcp/127.0.0.1:7447").unwrap();
+        let c = client_config("tcp/127.0.0.1:7447", &ClientSecurity::default()).unwrap();
         assert_eq!(c.get_json("mode").unwrap(), "\"client\"");
         assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
         assert_eq!(c.get_json("listen/endpoints").unwrap(), "[]");
@@ -1356,9 +1556,42 @@ mod tests {
                 .contains("tcp/127.0.0.1:7447")
         );
         assert!(matches!(
-            client_config("nonsense"),
+            client_config("nonsense", &ClientSecurity::default()),
             Err(ClientError::Endpoint { .. })
         ));
+    }
+
+    #[test]
+    fn tls_options_go_into_the_session_and_must_fit_the_endpoint() {
+        let tls = ClientSecurity {
+            ca: Some("/etc/ca.pem".into()),
+            certificate: Some("/etc/me.pem".into()),
+            private_key: Some("/etc/me-key.pem".into()),
+            credentials: Some(Credentials {
+                user: "mes".to_string(),
+                password: "s3cret".to_string(),
+            }),
+        };
+        let c = client_config("tls/127.0.0.1:7447", &tls).unwrap();
+        let t = |k: &str| c.get_json(&format!("transport/link/tls/{k}")).unwrap();
+        assert_eq!(t("root_ca_certificate"), "\"/etc/ca.pem\"");
+        assert_eq!(t("connect_certificate"), "\"/etc/me.pem\"");
+        assert_eq!(t("connect_private_key"), "\"/etc/me-key.pem\"");
+        assert_eq!(t("enable_mtls"), "true");
+        assert!(!format!("{tls:?}").contains("s3cret"));
+        let bad = |endpoint: &str, s: ClientSecurity| {
+            let e = client_config(endpoint, &s).unwrap_err();
+            assert!(matches!(e, ClientError::Security { .. }), "{e}");
+            assert_eq!(e.exit_code(), 2);
+            e.to_string()
+        };
+        assert!(bad("tcp/127.0.0.1:7447", tls.clone()).contains("tls/"));
+        assert!(bad("tls/127.0.0.1:7447", ClientSecurity::default()).contains("--tls-ca"));
+        let half = ClientSecurity {
+            private_key: None,
+            ..tls
+        };
+        assert!(bad("tls/127.0.0.1:7447", half).contains("both"));
     }
 
     #[test]

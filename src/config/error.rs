@@ -54,6 +54,21 @@ pub enum ConfigError {
         path: String,
         problem: crate::fanuc::protocol_b::ConfigProblem,
     },
+    /// A file the cell file names (a certificate, a key, a user list) that is missing,
+    /// unreadable or not what it should be. Never carries the file's content.
+    #[error("{path} = {}: {problem}", file.display())]
+    File {
+        path: String,
+        file: std::path::PathBuf,
+        problem: String,
+    },
+    /// A role names a permission that does not exist.
+    #[error("{path}: unknown permission {name:?}; the permissions are: {known}")]
+    UnknownPermission {
+        path: String,
+        name: String,
+        known: String,
+    },
     /// Two links with the same name.
     #[error(
         "{path}: {first} and {second} are both named {name:?}; names must be unique in a cell \
@@ -86,7 +101,9 @@ impl ConfigError {
             | ConfigError::NotApplicable { path, .. }
             | ConfigError::ProtocolA { path, .. }
             | ConfigError::ProtocolB { path, .. }
-            | ConfigError::Duplicate { path, .. } => Some(path.clone()),
+            | ConfigError::Duplicate { path, .. }
+            | ConfigError::File { path, .. }
+            | ConfigError::UnknownPermission { path, .. } => Some(path.clone()),
         }
     }
 }

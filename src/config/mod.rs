@@ -16,7 +16,8 @@
 //!
 //! One file per concern: [`bus`] (the session and telemetry sections), [`programs`],
 //! [`transport`] (what carries each link), [`fanuc`] (`[[machines]]`), [`plc`] (`[[plcs]]`),
-//! [`summary`] (what `check-config` prints) and [`error`] (every error, collected at once).
+//! [`security`] (TLS, user names, roles), [`summary`] (what `check-config` prints) and
+//! [`error`] (every error, collected at once).
 
 mod bus;
 mod error;
@@ -24,6 +25,7 @@ mod fanuc;
 mod g05;
 mod plc;
 mod programs;
+mod security;
 mod summary;
 mod transport;
 
@@ -46,6 +48,8 @@ pub use self::plc::{
 use self::plc::{RawPlc, check_plc};
 pub use self::programs::ProgramsConfig;
 use self::programs::check_programs;
+pub use self::security::{Permission, Role, SecurityConfig, TlsConfig};
+use self::security::{RawSecurity, check_security};
 pub use self::transport::{TransportConfig, TransportKind};
 
 use crate::telemetry::TelemetryConfig;
@@ -60,6 +64,9 @@ pub struct CellConfig {
     pub programs: ProgramsConfig,
     pub machines: Vec<MachineConfig>,
     pub plcs: Vec<PlcConfig>,
+    /// TLS, user names and roles; none by default.
+    #[serde(skip_serializing_if = "SecurityConfig::is_empty")]
+    pub security: SecurityConfig,
 }
 
 const DEFAULT_CELL: &str = include_str!("default_cell.toml");
@@ -140,6 +147,8 @@ struct RawCell {
     machines: Vec<RawMachine>,
     #[serde(default)]
     plcs: Vec<RawPlc>,
+    #[serde(default)]
+    security: RawSecurity,
 }
 
 impl From<CellConfig> for RawCell {
@@ -155,6 +164,7 @@ impl From<CellConfig> for RawCell {
                 .map(|m| RawMachine::from(&m))
                 .collect(),
             plcs: c.plcs.into_iter().map(|p| RawPlc::from(&p)).collect(),
+            security: RawSecurity::from(&c.security),
         }
     }
 }
@@ -178,6 +188,7 @@ impl RawCell {
             let label = format!("plcs[{}]", i + 1);
             plcs.push(p.into_config(&label)?);
         }
+        let security = self.security.into_config()?;
         Ok(CellConfig {
             cell,
             bus: self.bus,
@@ -185,6 +196,7 @@ impl RawCell {
             programs: self.programs,
             machines,
             plcs,
+            security,
         })
     }
 }
@@ -207,6 +219,7 @@ fn check(raw: &RawCell) -> Vec<ConfigError> {
     check_bus(&mut c, &raw.bus);
     check_telemetry(&mut c, &raw.telemetry);
     check_programs(&mut c, &raw.programs);
+    check_security(&mut c, &raw.security, &raw.bus);
 
     // Names are unique over machines and PLCs together: both are links of the cell.
     let mut seen: HashMap<&str, String> = HashMap::new();

@@ -16,6 +16,7 @@ pub struct ProgramsConfig {
     pub max_size: u64,
     /// Largest program sent inline in a `JobRequest`, bytes: a larger one goes through the
     /// library (put once, submitted by name), so that no request holds it whole in memory.
+    /// `max_size` bounds inline programs too.
     pub max_inline: u64,
     /// Store every program a CNC punches out in the library, under a new name
     /// `<machine>-<O-number>-<UTC time>` (Protocol B family).
@@ -86,14 +87,15 @@ pub(super) fn check_programs(c: &mut Checker, p: &ProgramsConfig) {
         " jobs",
         "",
     );
-    c.range(
-        || "programs.max_inline".to_string(),
-        p.max_inline,
-        1,
-        p.max_size.max(1),
-        " bytes (programs.max_size at most)",
-        "",
-    );
+    // Above max_size it is harmless: every program is bounded by max_size as well.
+    if p.max_inline == 0 {
+        c.invalid(
+            "programs.max_inline".to_string(),
+            "0".to_string(),
+            "must be at least 1 byte".to_string(),
+            "",
+        );
+    }
     if p.max_size == 0 {
         c.invalid(
             "programs.max_size".to_string(),

@@ -75,6 +75,7 @@ impl CellConfig {
             self.programs.journal_dir().display(),
             self.programs.keep_jobs
         )?;
+        self.write_security(s)?;
         writeln!(s, "machines: {}", self.machines.len())?;
         for m in &self.machines {
             let p = m.protocol;
@@ -164,6 +165,65 @@ impl CellConfig {
                 )?;
             }
             writeln!(s, "    transport: {}", p.transport.describe())?;
+        }
+        Ok(())
+    }
+}
+
+impl CellConfig {
+    fn write_security(&self, s: &mut String) -> fmt::Result {
+        let sec = &self.security;
+        if sec.is_empty() {
+            return writeln!(
+                s,
+                "security: none: any session that reaches the gateway may do anything"
+            );
+        }
+        match &sec.tls {
+            Some(t) => writeln!(
+                s,
+                "security: TLS with CA {}, certificate {}, key {}; client certificates {}; \
+                 router names {}",
+                t.ca.display(),
+                t.certificate.display(),
+                t.private_key.display(),
+                if t.require_client_certificates {
+                    "required"
+                } else {
+                    "not asked for"
+                },
+                if t.verify_name_on_connect {
+                    "verified"
+                } else {
+                    "not verified"
+                },
+            )?,
+            None => writeln!(s, "security: no TLS")?,
+        }
+        if let Some(f) = &sec.users_file {
+            writeln!(s, "  user names and passwords from {}", f.display())?;
+        }
+        if sec.roles.is_empty() {
+            return writeln!(
+                s,
+                "  roles: none: every client that connects may do anything"
+            );
+        }
+        writeln!(
+            s,
+            "  roles ({}; what no role allows is denied):",
+            sec.roles.len()
+        )?;
+        for r in &sec.roles {
+            let mut who = Vec::new();
+            if !r.cert_common_names.is_empty() {
+                who.push(format!("certificates {}", r.cert_common_names.join(", ")));
+            }
+            if !r.usernames.is_empty() {
+                who.push(format!("users {}", r.usernames.join(", ")));
+            }
+            let what: Vec<&str> = r.permissions.iter().map(|p| p.name()).collect();
+            writeln!(s, "    {}: {}: {}", r.name, who.join("; "), what.join(", "))?;
         }
         Ok(())
     }

@@ -491,3 +491,157 @@ fn g05_rules() {
     let e = errors_of(&cell("b", 19_200, "axes = 3\nunit_time_ms = 3"));
     assert!(e.len() == 1 && e[0].contains("unit_time_ms"), "{e:?}");
 }
+
+/// PEM-looking files (validation checks the blocks, zenoh the cryptography) and a cell file
+/// with `security` appended, listening on TLS.
+fn secured(dir: &std::path::Path, security: &str) -> String {
+    let cert = "-----BEGIN CERTIFICATE-----\nMIIB\n-----END CERTIFICATE-----\n";
+    std::fs::write(dir.join("ca.pem"), cert).unwrap();
+    std::fs::write(dir.join("gw.pem"), cert).unwrap();
+    std::fs::write(
+        dir.join("gw-key.pem"),
+        "-----BEGIN PRIVATE KEY-----\nMIIE\n-----END PRIVATE KEY-----\n",
+    )
+    .unwrap();
+    std::fs::write(dir.join("users.txt"), "mes:s3cret\n\nops : also-secret\n").unwrap();
+    format!(
+        "{MINIMAL}\n[bus]\nlisten = [\"tls/127.0.0.1:7447\"]\n{}",
+        security.replace("DIR", &dir.display().to_string())
+    )
+}
+
+const TLS: &str = r#"
+[security.tls]
+ca = "DIR/ca.pem"
+certificate = "DIR/gw.pem"
+private_key = "DIR/gw-key.pem"
+"#;
+
+#[test]
+fn a_secured_cell_loads_round_trips_and_is_summarised_without_secrets() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = secured(
+        dir.path(),
+        &format!(
+            "[security]\nusers_file = \"DIR/users.txt\"\n{TLS}\
+             [[security.roles]]\nname = \"mes\"\ncert_common_names = [\"mes-1\"]\n\
+             usernames = [\"mes\"]\n\
+             permissions = [\"job.submit\", \"program.write\", \"job.submit\"]\n\
+             [[security.roles]]\nname = \"dashboard\"\ncert_common_names = [\"dash\"]\n\
+             permissions = [\"status.read\"]\n"
+        ),
+    );
+    let cfg = CellConfig::from_toml_str(&text, "t").unwrap_or_else(|e| panic!("{e}\n{text}"));
+    let s = &cfg.security;
+    let tls = s.tls.as_ref().unwrap();
+    assert!(tls.require_client_certificates && tls.verify_name_on_connect);
+    assert_eq!(s.roles.len(), 2);
+    assert_eq!(
+        s.roles[0].permissions,
+        [Permission::JobSubmit, Permission::ProgramWrite]
+    );
+    let back = CellConfig::from_toml_str(&cfg.to_toml_string().unwrap(), "t").unwrap();
+    assert_eq!(back, cfg);
+    let summary = cfg.summary();
+    assert!(
+        summary.contains("client certificates required"),
+        "{summary}"
+    );
+    assert!(
+        summary.contains("mes: certificates mes-1; users mes: job.submit, program.write"),
+        "{summary}"
+    );
+    for secret in ["s3cret", "BEGIN", "MIIE"] {
+        assert!(!summary.contains(secret), "{summary}");
+        assert!(!cfg.to_toml_string().unwrap().contains(secret));
+    }
+    assert!(
+        CellConfig::embedded_default()
+            .summary()
+            .contains("security: none")
+    );
+}
+
+#[test]
+fn security_mistakes_are_all_reported_with_their_keys() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path().display().to_string();
+    std::fs::write(dir.path().join("not-a-key.pem"), "hello").unwrap();
+    let text = format!(
+        "{MINIMAL}\n[bus]\nlisten = [\"tcp/127.0.0.1:7447\", \"tls/127.0.0.1:7448\"]\n\
+         [security.tls]\nca = \"{d}/missing-ca.pem\"\ncertificate = \"{d}/not-a-key.pem\"\n\
+         private_key = \"{d}/not-a-key.pem\"\n\
+         [[security.roles]]\nname = \"mes\"\ncert_common_names = [\"mes-1\"]\n\
+         permissions = [\"job.submit\", \"jobs.submit\"]\n\
+         [[security.roles]]\nname = \"ops\"\nusernames = [\"ops\"]\npermissions = [\"io.do\"]\n\
+         [[security.roles]]\nname = \"mes\"\npermissions = []\n"
+    );
+    let e = errors_of(&text);
+    let has = |needle: &[&str]| {
+        assert!(
+            e.iter().any(|m| needle.iter().all(|n| m.contains(n))),
+            "no error with {needle:?} in {e:#?}"
+        )
+    };
+    has(&["bus.listen[1]", "tcp/127.0.0.1:7447", "tls/127.0.0.1:7447"]);
+    has(&["security.tls.ca", "missing-ca.pem", "cannot read it"]);
+    has(&[
+        "security.tls.certificate",
+        "not-a-key.pem",
+        "PEM certificate",
+    ]);
+    has(&["security.tls.private_key", "PEM private key"]);
+    has(&[
+        "security.roles.mes.permissions[2]",
+        "\"jobs.submit\"",
+        "job.submit, job.cancel",
+    ]);
+    has(&["security.roles.ops.usernames", "users_file"]);
+    has(&["security.roles[3].name", "same name"]);
+    has(&["security.roles[3].cert_common_names", "missing"]);
+    has(&["security.roles[3].permissions", "missing"]);
+    assert_eq!(e.len(), 9, "{e:#?}");
+    assert!(
+        !e.iter().any(|m| m.contains("hello")),
+        "file content leaked: {e:#?}"
+    );
+}
+
+#[test]
+fn roles_need_something_that_identifies_clients() {
+    let dir = tempfile::tempdir().unwrap();
+    let role = "[[security.roles]]\nname = \"dash\"\ncert_common_names = [\"d\"]\n\
+                permissions = [\"status.read\"]\n";
+    // No TLS at all.
+    let e = errors_of(&format!("{MINIMAL}\n{role}"));
+    assert_eq!(e.len(), 1, "{e:?}");
+    assert!(e[0].contains("only over TLS"), "{e:?}");
+    // TLS without client certificates.
+    let text = secured(
+        dir.path(),
+        &format!("{TLS}require_client_certificates = false\n{role}"),
+    );
+    let e = errors_of(&text);
+    assert_eq!(e.len(), 1, "{e:?}");
+    assert!(
+        e[0].contains("require_client_certificates = false"),
+        "{e:?}"
+    );
+    // A user the users file lacks; a malformed line, named by number only.
+    std::fs::write(dir.path().join("bad-users.txt"), "mes:pw\nnocolon\n").unwrap();
+    let text = format!(
+        "{MINIMAL}\n[security]\nusers_file = \"{}/bad-users.txt\"\n\
+         [[security.roles]]\nname = \"x\"\nusernames = [\"bob\"]\npermissions = [\"io.do\"]\n",
+        dir.path().display()
+    );
+    let e = errors_of(&text);
+    assert_eq!(e.len(), 2, "{e:?}");
+    assert!(
+        e[0].contains("line 2") && !e[0].contains("nocolon"),
+        "{e:?}"
+    );
+    assert!(
+        e[1].contains("usernames[1]") && e[1].contains("\"bob\""),
+        "{e:?}"
+    );
+}

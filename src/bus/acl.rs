@@ -1,0 +1,750 @@
+//! The cell file's roles as zenoh access-control rules for the cell's own keys, so that nobody
+//! writes ACL rules for cellgate's key space by hand.
+//!
+//! How zenoh applies them (zenoh 1.10, `net/routing/interceptor/access_control.rs`): each
+//! transport of the gateway's session gets an *ingress* filter for what the remote end sends
+//! (queries, puts, deletes, subscriber, queryable and liveliness declarations, liveliness
+//! queries) and an *egress* filter for what the gateway sends it (replies, publications, its
+//! own declarations and liveliness tokens), both chosen by the remote end's identity: the
+//! common name of its TLS certificate, its user name. A message passes when a rule of a
+//! subject the transport matches *includes* the message's key expression: a rule on
+//! `P/C/machine/*/status` lets a get on `P/C/machine/m1/status` or `P/C/machine/*/status`
+//! through, not one on `P/C/**`. Anything else is denied (`default_permission = deny`). A
+//! refused query is answered at once with no reply; a refused put or delete vanishes. The
+//! gateway's own session talking to itself passes no transport and is never filtered.
+//!
+//! Zenoh's rules see operations and keys, never payloads. A get on `P/C/machine/M/job` lists
+//! the queue *and* submits a job, so only `job.submit` grants it; a get on
+//! `P/C/program/NAME` reads a program *and*, carrying a `ProgramWrite`, writes one, so only
+//! `program.write` grants it; likewise the PLC and G05 keys, where gets with a payload write.
+//!
+//! Behind a router the gateway has one transport, the router's, and cannot tell the router's
+//! clients apart: the router must hold a role with every permission, and the router enforces
+//! the roles on its clients with the rules [`router_access_control`] gives.
+
+use serde_json::{Value, json};
+
+use super::keys::{CellKeys, MachineLeaf, PlcArea, admin_selector, gateway_selector};
+use crate::config::{Permission, SecurityConfig};
+
+/// The id prefix of every rule, subject and policy cellgate generates; a zenoh file's own
+/// access-control entries may not use it.
+pub const ID_PREFIX: &str = "cellgate/";
+
+/// Why the generated rules cannot be merged into the zenoh configuration.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum AclError {
+    /// The zenoh file turns access control on with `default_permission = allow`: cellgate's
+    /// keys would then be open to anyone no rule names.
+    #[error(
+        "access_control.default_permission = \"allow\" in the zenoh configuration file: with \
+         [[security.roles]] everything no role or rule allows must be denied; set it to \"deny\" \
+         and add allow rules for your own keys"
+    )]
+    DefaultAllow,
+    /// An entry of the zenoh file uses an id cellgate keeps for its own.
+    #[error(
+        "access_control.{list}: id {id:?} in the zenoh configuration file starts with \
+         {ID_PREFIX:?}, which cellgate keeps for the rules it generates; rename it"
+    )]
+    ReservedId { list: &'static str, id: String },
+    /// The zenoh file's access_control section is not what zenoh documents.
+    #[error("access_control in the zenoh configuration file: {0}")]
+    Malformed(String),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Flow {
+    /// What the remote end sends to the gateway.
+    Ingress,
+    /// What the gateway sends to the remote end.
+    Egress,
+}
+
+impl Flow {
+    fn name(self) -> &'static str {
+        match self {
+            Flow::Ingress => "ingress",
+            Flow::Egress => "egress",
+        }
+    }
+
+    fn mirror(self) -> Flow {
+        match self {
+            Flow::Ingress => Flow::Egress,
+            Flow::Egress => Flow::Ingress,
+        }
+    }
+}
+
+/// One allow rule: these messages, in this direction, on keys these patterns include.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Grant {
+    flow: Flow,
+    messages: &'static [&'static str],
+    keys: Vec<String>,
+}
+
+const QUERY: &[&str] = &["query"];
+const REPLY_AND_QUERYABLE: &[&str] = &["reply", "declare_queryable"];
+const WRITE: &[&str] = &["query", "put", "delete"];
+const SERVED_WRITE: &[&str] = &["reply", "declare_queryable", "declare_subscriber"];
+
+fn grant(flow: Flow, messages: &'static [&'static str], keys: Vec<String>) -> Grant {
+    Grant {
+        flow,
+        messages,
+        keys,
+    }
+}
+
+/// What every role gets: the gateway's and the machines' liveliness tokens (and the PLC
+/// stations', once they exist), so that a client can tell the cell is there. Liveliness gets
+/// and subscriptions may name any key of the cell, and `P/*/gateway` for discovery; what
+/// comes back is filtered by the egress rule, so only this cell's tokens do.
+fn presence(keys: &CellKeys, prefix: &str) -> Vec<Grant> {
+    vec![
+        grant(
+            Flow::Ingress,
+            &["liveliness_query", "declare_liveliness_subscriber"],
+            vec![keys.all(), gateway_selector(prefix, "*")],
+        ),
+        grant(
+            Flow::Egress,
+            &["liveliness_token"],
+            vec![keys.gateway(), keys.any_machine(), keys.any_plc()],
+        ),
+    ]
+}
+
+/// Following jobs: their events published, a get for the latest one, cancels seen.
+fn job_events(keys: &CellKeys) -> Vec<Grant> {
+    let events = vec![keys.any_job_events()];
+    vec![
+        grant(Flow::Ingress, QUERY, events.clone()),
+        grant(Flow::Egress, REPLY_AND_QUERYABLE, events.clone()),
+        grant(Flow::Ingress, &["declare_subscriber"], events.clone()),
+        grant(Flow::Egress, &["put", "delete"], events),
+    ]
+}
+
+/// A route a permission writes on: gets, puts and deletes in; replies and the gateway's
+/// queryable and subscriber declarations out.
+fn writes(keys: Vec<String>) -> Vec<Grant> {
+    vec![
+        grant(Flow::Ingress, WRITE, keys.clone()),
+        grant(Flow::Egress, SERVED_WRITE, keys),
+    ]
+}
+
+/// The rules of one permission.
+fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
+    let leaf = |l: MachineLeaf| keys.any_leaf(l);
+    match p {
+        Permission::StatusRead => {
+            // Gets on status, DI and a job's latest event change nothing.
+            let answered = vec![
+                leaf(MachineLeaf::Status),
+                leaf(MachineLeaf::Di),
+                keys.any_job_events(),
+            ];
+            vec![
+                grant(Flow::Ingress, QUERY, answered.clone()),
+                grant(Flow::Egress, REPLY_AND_QUERYABLE, answered),
+                // Any subscription in the cell; the egress rule below picks what reaches it.
+                grant(Flow::Ingress, &["declare_subscriber"], vec![keys.all()]),
+                grant(
+                    Flow::Egress,
+                    &["put"],
+                    vec![
+                        leaf(MachineLeaf::Status),
+                        leaf(MachineLeaf::Di),
+                        leaf(MachineLeaf::Alarm),
+                        leaf(MachineLeaf::Punch),
+                        leaf(MachineLeaf::Do),
+                        keys.any_job_events(),
+                        keys.every_g05_key(),
+                        keys.any_plc(),
+                    ],
+                ),
+                grant(Flow::Egress, &["delete"], vec![keys.any_job_events()]),
+            ]
+        }
+        Permission::JobSubmit => {
+            let mut g = vec![
+                grant(Flow::Ingress, QUERY, vec![leaf(MachineLeaf::Job)]),
+                grant(
+                    Flow::Egress,
+                    REPLY_AND_QUERYABLE,
+                    vec![leaf(MachineLeaf::Job)],
+                ),
+            ];
+            g.extend(job_events(keys));
+            g
+        }
+        Permission::JobCancel => {
+            let mut g = vec![
+                grant(Flow::Ingress, &["delete"], vec![keys.any_job_events()]),
+                grant(
+                    Flow::Egress,
+                    &["declare_subscriber"],
+                    vec![keys.any_job_events()],
+                ),
+            ];
+            g.extend(job_events(keys));
+            g
+        }
+        Permission::ProgramWrite => writes(vec![keys.any_program()]),
+        Permission::IoDo => vec![
+            grant(
+                Flow::Ingress,
+                &["query", "put"],
+                vec![leaf(MachineLeaf::Do)],
+            ),
+            grant(Flow::Egress, SERVED_WRITE, vec![leaf(MachineLeaf::Do)]),
+        ],
+        Permission::PlcTag => writes(vec![keys.any_plc_area(PlcArea::Tag)]),
+        Permission::PlcMem => writes(vec![keys.any_plc_area(PlcArea::Mem)]),
+        Permission::PlcTransfer => writes(vec![keys.any_plc_area(PlcArea::Transfer)]),
+        Permission::G05Stream => {
+            let mut g = writes(vec![keys.every_g05_key()]);
+            // A stream's credits and state come back as publications.
+            g.push(grant(
+                Flow::Ingress,
+                &["declare_subscriber"],
+                vec![keys.every_g05_key()],
+            ));
+            g.push(grant(Flow::Egress, &["put"], vec![keys.every_g05_key()]));
+            // The producer's liveliness token, which the gateway watches to end a stream
+            // whose producer went away.
+            g.push(grant(
+                Flow::Ingress,
+                &["liveliness_token"],
+                vec![keys.every_g05_key()],
+            ));
+            g.push(grant(
+                Flow::Egress,
+                &["declare_liveliness_subscriber"],
+                vec![keys.every_g05_key()],
+            ));
+            g
+        }
+        Permission::AdminRead => vec![
+            grant(
+                Flow::Ingress,
+                QUERY,
+                vec![keys.admin(), admin_selector(prefix, "*")],
+            ),
+            grant(Flow::Egress, REPLY_AND_QUERYABLE, vec![keys.admin()]),
+        ],
+    }
+}
+
+fn rule_json(id: String, g: &Grant) -> Value {
+    json!({
+        "id": id,
+        "messages": g.messages,
+        "flows": [g.flow.name()],
+        "permission": "allow",
+        "key_exprs": g.keys,
+    })
+}
+
+/// The rules, subjects and policies of the roles; `subjects` of a role are one zenoh subject
+/// per kind of name (a zenoh subject with both would require both at once).
+struct Generated {
+    rules: Vec<Value>,
+    subjects: Vec<Value>,
+    policies: Vec<Value>,
+}
+
+fn generate(
+    security: &SecurityConfig,
+    keys: &CellKeys,
+    prefix: &str,
+    flows: impl Fn(Flow) -> Flow,
+    id_prefix: &str,
+) -> Generated {
+    let mut rules = Vec::new();
+    let mut rule_ids_of = |name: &str, grants: Vec<Grant>| -> Vec<String> {
+        let mut ids = Vec::new();
+        for (i, g) in grants.iter().enumerate() {
+            let id = format!("{id_prefix}{name}/{}", i + 1);
+            let g = Grant {
+                flow: flows(g.flow),
+                ..g.clone()
+            };
+            rules.push(rule_json(id.clone(), &g));
+            ids.push(id);
+        }
+        ids
+    };
+    let presence_ids = rule_ids_of("presence", presence(keys, prefix));
+    let permission_ids: Vec<(Permission, Vec<String>)> = Permission::ALL
+        .into_iter()
+        .filter(|p| security.roles.iter().any(|r| r.permissions.contains(p)))
+        .map(|p| (p, rule_ids_of(p.name(), grants(p, keys, prefix))))
+        .collect();
+
+    let mut subjects = Vec::new();
+    let mut policies = Vec::new();
+    for role in &security.roles {
+        let mut ids = Vec::new();
+        if !role.cert_common_names.is_empty() {
+            let id = format!("{id_prefix}role/{}/certificates", role.name);
+            subjects.push(json!({ "id": id, "cert_common_names": role.cert_common_names }));
+            ids.push(id);
+        }
+        if !role.usernames.is_empty() {
+            let id = format!("{id_prefix}role/{}/users", role.name);
+            subjects.push(json!({ "id": id, "usernames": role.usernames }));
+            ids.push(id);
+        }
+        let mut rules = presence_ids.clone();
+        for (p, r) in &permission_ids {
+            if role.permissions.contains(p) {
+                rules.extend(r.iter().cloned());
+            }
+        }
+        policies.push(json!({
+            "id": format!("{id_prefix}role/{}", role.name),
+            "rules": rules,
+            "subjects": ids,
+        }));
+    }
+    Generated {
+        rules,
+        subjects,
+        policies,
+    }
+}
+
+/// The `access_control` section that enforces the roles on the gateway's own transports, or
+/// `None` without roles.
+pub fn access_control(security: &SecurityConfig, keys: &CellKeys, prefix: &str) -> Option<Value> {
+    if !security.enforces_roles() {
+        return None;
+    }
+    let g = generate(security, keys, prefix, |f| f, ID_PREFIX);
+    Some(section(g))
+}
+
+/// The `access_control` section for a zenoh router the gateway and its clients connect to:
+/// the roles, enforced on the clients' transports there, and `gateway`, the gateway's own
+/// certificate common names, allowed what the gateway does (the roles' rules, mirrored). Give
+/// the router's certificate common name a role with every permission in the cell file.
+pub fn router_access_control(
+    security: &SecurityConfig,
+    keys: &CellKeys,
+    prefix: &str,
+    gateway: &[String],
+) -> Value {
+    let mut clients = generate(security, keys, prefix, |f| f, ID_PREFIX);
+    let everything = SecurityConfig {
+        roles: vec![crate::config::Role {
+            name: "gateway".to_string(),
+            cert_common_names: gateway.to_vec(),
+            usernames: Vec::new(),
+            permissions: Permission::ALL.to_vec(),
+        }],
+        ..SecurityConfig::default()
+    };
+    // The router sees the gateway send what the gateway's clients receive, and the other way
+    // round; the ids must not collide with the clients' (role names are the user's).
+    let own = generate(
+        &everything,
+        keys,
+        prefix,
+        Flow::mirror,
+        &format!("{ID_PREFIX}gateway/"),
+    );
+    clients.rules.extend(own.rules);
+    clients.subjects.extend(own.subjects);
+    clients.policies.extend(own.policies);
+    section(clients)
+}
+
+fn section(g: Generated) -> Value {
+    json!({
+        "enabled": true,
+        "default_permission": "deny",
+        "rules": g.rules,
+        "subjects": g.subjects,
+        "policies": g.policies,
+    })
+}
+
+/// `ours` added to the access_control section a zenoh file already has (`theirs`, as zenoh's
+/// `get_json` gives it): the file's rules for other keys stay, cellgate's are appended, access
+/// control is on and denies by default.
+pub fn merge(theirs: &Value, ours: Value) -> Result<Value, AclError> {
+    let mut merged = ours;
+    if theirs.is_null() {
+        return Ok(merged);
+    }
+    let enabled = theirs.get("enabled").and_then(Value::as_bool) == Some(true);
+    if enabled && theirs.get("default_permission").and_then(Value::as_str) == Some("allow") {
+        return Err(AclError::DefaultAllow);
+    }
+    for list in ["rules", "subjects", "policies"] {
+        let entries = match theirs.get(list) {
+            None | Some(Value::Null) => continue,
+            Some(Value::Array(entries)) => entries,
+            Some(other) => {
+                return Err(AclError::Malformed(format!(
+                    "{list} is not a list: {other}"
+                )));
+            }
+        };
+        for entry in entries {
+            if let Some(id) = entry.get("id").and_then(Value::as_str)
+                && id.starts_with(ID_PREFIX)
+            {
+                return Err(AclError::ReservedId {
+                    list,
+                    id: id.to_string(),
+                });
+            }
+        }
+        if let Some(Value::Array(ours)) = merged.get_mut(list) {
+            let mut all = entries.clone();
+            all.append(ours);
+            *ours = all;
+        }
+    }
+    Ok(merged)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Role;
+    use zenoh::key_expr::keyexpr;
+
+    fn role(name: &str, cn: &str, permissions: &[Permission]) -> Role {
+        Role {
+            name: name.to_string(),
+            cert_common_names: vec![cn.to_string()],
+            usernames: Vec::new(),
+            permissions: permissions.to_vec(),
+        }
+    }
+
+    fn security(roles: Vec<Role>) -> SecurityConfig {
+        SecurityConfig {
+            roles,
+            ..SecurityConfig::default()
+        }
+    }
+
+    /// Whether `acl` lets the holder of `cn` send (`Ingress`) or receive (`Egress`) `message`
+    /// on `key`, by zenoh's rule: some allow rule of the subject's policies includes the key.
+    fn allows(acl: &Value, cn: &str, flow: Flow, message: &str, key: &str) -> bool {
+        let key = keyexpr::new(key).unwrap();
+        let subjects: Vec<&str> = acl["subjects"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|s| {
+                s["cert_common_names"]
+                    .as_array()
+                    .is_some_and(|c| c.iter().any(|c| c == cn))
+            })
+            .map(|s| s["id"].as_str().unwrap())
+            .collect();
+        let rule_ids: Vec<&str> = acl["policies"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|p| {
+                p["subjects"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|s| subjects.contains(&s.as_str().unwrap()))
+            })
+            .flat_map(|p| p["rules"].as_array().unwrap().iter())
+            .map(|r| r.as_str().unwrap())
+            .collect();
+        acl["rules"].as_array().unwrap().iter().any(|r| {
+            rule_ids.contains(&r["id"].as_str().unwrap())
+                && r["flows"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|f| f == flow.name())
+                && r["messages"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|m| m == message)
+                && r["key_exprs"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|k| keyexpr::new(k.as_str().unwrap()).unwrap().includes(key))
+        })
+    }
+
+    fn cell_acl() -> (Value, CellKeys) {
+        let keys = CellKeys::new("cellgate", "c").unwrap();
+        let sec = security(vec![
+            role("dashboard", "dash", &[Permission::StatusRead]),
+            role(
+                "mes",
+                "mes",
+                &[Permission::JobSubmit, Permission::ProgramWrite],
+            ),
+            role(
+                "operator",
+                "op",
+                &[Permission::IoDo, Permission::JobCancel, Permission::PlcTag],
+            ),
+            role("admin", "adm", &[Permission::AdminRead]),
+        ]);
+        (access_control(&sec, &keys, "cellgate").unwrap(), keys)
+    }
+
+    #[test]
+    fn no_roles_no_access_control() {
+        let keys = CellKeys::new("cellgate", "c").unwrap();
+        assert!(access_control(&SecurityConfig::default(), &keys, "cellgate").is_none());
+    }
+
+    #[test]
+    fn the_generated_section_is_one_zenoh_accepts() {
+        let (acl, _) = cell_acl();
+        let mut config = zenoh::Config::default();
+        config
+            .insert_json5("access_control", &acl.to_string())
+            .unwrap();
+        assert_eq!(
+            config
+                .get_json("access_control/default_permission")
+                .unwrap(),
+            "\"deny\""
+        );
+    }
+
+    #[test]
+    fn a_dashboard_reads_and_writes_nothing() {
+        let (acl, k) = cell_acl();
+        let status = k.leaf("m1", MachineLeaf::Status);
+        assert!(allows(&acl, "dash", Flow::Ingress, "query", &status));
+        assert!(allows(&acl, "dash", Flow::Egress, "reply", &status));
+        assert!(allows(
+            &acl,
+            "dash",
+            Flow::Ingress,
+            "query",
+            &k.any_leaf(MachineLeaf::Status)
+        ));
+        assert!(allows(
+            &acl,
+            "dash",
+            Flow::Ingress,
+            "declare_subscriber",
+            &k.all()
+        ));
+        assert!(allows(
+            &acl,
+            "dash",
+            Flow::Egress,
+            "put",
+            &k.job_events("m1", "j")
+        ));
+        assert!(allows(
+            &acl,
+            "dash",
+            Flow::Egress,
+            "liveliness_token",
+            &k.gateway()
+        ));
+        for (message, key) in [
+            ("query", k.leaf("m1", MachineLeaf::Job)),
+            ("query", k.leaf("m1", MachineLeaf::Do)),
+            ("put", k.leaf("m1", MachineLeaf::Do)),
+            ("query", k.program("O1")),
+            ("put", k.program("O1")),
+            ("delete", k.program("O1")),
+            ("delete", k.job_events("m1", "j")),
+            ("query", k.admin()),
+            ("query", k.all()),
+            ("put", "cellgate/c/plc/plc-1/tag/door".to_string()),
+        ] {
+            assert!(
+                !allows(&acl, "dash", Flow::Ingress, message, &key),
+                "{message} on {key}"
+            );
+        }
+        // The gateway does not announce the routes a dashboard may not use.
+        assert!(!allows(
+            &acl,
+            "dash",
+            Flow::Egress,
+            "declare_queryable",
+            &k.leaf("m1", MachineLeaf::Job)
+        ));
+    }
+
+    #[test]
+    fn each_role_gets_its_routes_only() {
+        let (acl, k) = cell_acl();
+        let job = k.leaf("m1", MachineLeaf::Job);
+        assert!(allows(&acl, "mes", Flow::Ingress, "query", &job));
+        assert!(allows(
+            &acl,
+            "mes",
+            Flow::Ingress,
+            "query",
+            &k.program("O1")
+        ));
+        assert!(allows(&acl, "mes", Flow::Ingress, "put", &k.program("O1")));
+        assert!(allows(
+            &acl,
+            "mes",
+            Flow::Ingress,
+            "declare_subscriber",
+            &k.job_events("m1", "*")
+        ));
+        assert!(!allows(
+            &acl,
+            "mes",
+            Flow::Ingress,
+            "put",
+            &k.leaf("m1", MachineLeaf::Do)
+        ));
+        assert!(!allows(
+            &acl,
+            "mes",
+            Flow::Ingress,
+            "delete",
+            &k.job_events("m1", "j")
+        ));
+        assert!(allows(
+            &acl,
+            "op",
+            Flow::Ingress,
+            "put",
+            &k.leaf("m1", MachineLeaf::Do)
+        ));
+        assert!(allows(
+            &acl,
+            "op",
+            Flow::Ingress,
+            "delete",
+            &k.job_events("m1", "j")
+        ));
+        assert!(allows(
+            &acl,
+            "op",
+            Flow::Ingress,
+            "put",
+            "cellgate/c/plc/plc-1/tag/door"
+        ));
+        assert!(!allows(
+            &acl,
+            "op",
+            Flow::Ingress,
+            "put",
+            "cellgate/c/plc/plc-1/mem/D/1"
+        ));
+        assert!(!allows(&acl, "op", Flow::Ingress, "query", &job));
+        assert!(allows(&acl, "adm", Flow::Ingress, "query", &k.admin()));
+        assert!(allows(
+            &acl,
+            "adm",
+            Flow::Ingress,
+            "query",
+            "cellgate/*/@admin"
+        ));
+        assert!(allows(&acl, "adm", Flow::Egress, "reply", &k.admin()));
+        assert!(!allows(
+            &acl,
+            "adm",
+            Flow::Egress,
+            "reply",
+            "cellgate/other/@admin"
+        ));
+        assert!(!allows(
+            &acl,
+            "nobody",
+            Flow::Ingress,
+            "query",
+            &k.leaf("m1", MachineLeaf::Status)
+        ));
+    }
+
+    #[test]
+    fn a_router_lets_the_gateway_do_the_mirror_of_its_clients() {
+        let keys = CellKeys::new("cellgate", "c").unwrap();
+        let sec = security(vec![role("dashboard", "dash", &[Permission::StatusRead])]);
+        let acl = router_access_control(&sec, &keys, "cellgate", &["gw".to_string()]);
+        let status = keys.leaf("m1", MachineLeaf::Status);
+        assert!(allows(
+            &acl,
+            "gw",
+            Flow::Ingress,
+            "declare_queryable",
+            &status
+        ));
+        assert!(allows(&acl, "gw", Flow::Ingress, "reply", &status));
+        assert!(allows(&acl, "gw", Flow::Egress, "query", &status));
+        assert!(allows(
+            &acl,
+            "gw",
+            Flow::Egress,
+            "put",
+            &keys.leaf("m1", MachineLeaf::Do)
+        ));
+        assert!(allows(
+            &acl,
+            "gw",
+            Flow::Ingress,
+            "liveliness_token",
+            &keys.gateway()
+        ));
+        assert!(allows(&acl, "dash", Flow::Ingress, "query", &status));
+        let mut config = zenoh::Config::default();
+        config
+            .insert_json5("access_control", &acl.to_string())
+            .unwrap();
+    }
+
+    #[test]
+    fn merging_keeps_the_files_rules_and_refuses_what_would_open_the_cell() {
+        let (ours, _) = cell_acl();
+        let theirs = json!({
+            "enabled": true,
+            "default_permission": "deny",
+            "rules": [{ "id": "mine", "messages": ["put"], "flows": ["ingress"],
+                        "permission": "allow", "key_exprs": ["plant/**"] }],
+            "subjects": [{ "id": "everyone" }],
+            "policies": [{ "rules": ["mine"], "subjects": ["everyone"] }],
+        });
+        let merged = merge(&theirs, ours.clone()).unwrap();
+        assert_eq!(merged["rules"][0]["id"], "mine");
+        assert_eq!(
+            merged["rules"].as_array().unwrap().len(),
+            ours["rules"].as_array().unwrap().len() + 1
+        );
+        assert_eq!(merged["default_permission"], "deny");
+
+        let mut open = theirs.clone();
+        open["default_permission"] = json!("allow");
+        assert_eq!(merge(&open, ours.clone()), Err(AclError::DefaultAllow));
+        let mut clash = theirs;
+        clash["subjects"][0]["id"] = json!("cellgate/role/x");
+        assert!(matches!(
+            merge(&clash, ours.clone()),
+            Err(AclError::ReservedId {
+                list: "subjects",
+                ..
+            })
+        ));
+        let disabled = json!({ "enabled": false, "default_permission": "allow",
+                               "rules": null, "subjects": null, "policies": null });
+        assert_eq!(merge(&disabled, ours.clone()).unwrap(), ours);
+    }
+}
