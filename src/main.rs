@@ -69,6 +69,26 @@ enum Command {
     /// Run a simulated device on its own, for testing any host against it.
     #[command(subcommand)]
     Sim(SimCommand),
+    /// Exit 0 if the gateway at the endpoint answers and every link is up; 1 otherwise,
+    /// saying what is down. The probe of containers and service managers.
+    Health(client::HealthArgs),
+    /// Run a zenoh router for the cell's gateways and clients until SIGINT or SIGTERM: the
+    /// zenoh runtime in router mode, as zenohd runs it, without its plugins.
+    Router(RouterArgs),
+}
+
+#[derive(Debug, Args)]
+struct RouterArgs {
+    /// A zenoh json5 configuration file (TLS, access control, ...); the options below
+    /// override its endpoints.
+    #[arg(short, long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Endpoint to listen on. Repeatable. Default: the file's, else tcp/127.0.0.1:7447.
+    #[arg(short, long = "listen", value_name = "ENDPOINT")]
+    listen: Vec<String>,
+    /// Endpoint of another router to connect to. Repeatable.
+    #[arg(short = 'e', long = "connect", value_name = "ENDPOINT")]
+    connect: Vec<String>,
 }
 
 #[derive(Debug, Args)]
@@ -152,7 +172,90 @@ fn main() -> ExitCode {
         Command::Cancel(ref args) => client_command(&cli, args),
         Command::G05(ref args) => client_command(&cli, args),
         Command::Sim(SimCommand::Fanuc(ref args)) => sim_fanuc(&cli, args.clone()),
+        Command::Health(ref args) => client_command(&cli, args),
+        Command::Router(ref args) => router(&cli, args),
     }
+}
+
+/// `cellgate router`: a zenoh router with multicast scouting off, until SIGINT or SIGTERM.
+fn router(cli: &Cli, args: &RouterArgs) -> ExitCode {
+    let mut config = match &args.config {
+        Some(path) => match zenoh::Config::from_file(path) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("cellgate: {}: {e}", path.display());
+                return ExitCode::from(EXIT_CONFIG);
+            }
+        },
+        None => zenoh::Config::default(),
+    };
+    let listen = if args.listen.is_empty() && args.config.is_none() {
+        vec!["tcp/127.0.0.1:7447".to_string()]
+    } else {
+        args.listen.clone()
+    };
+    let mut settings = vec![
+        ("mode", "\"router\"".to_string()),
+        ("scouting/multicast/enabled", "false".to_string()),
+    ];
+    if !listen.is_empty() {
+        settings.push(("listen/endpoints", json_list(&listen)));
+    }
+    if !args.connect.is_empty() {
+        settings.push(("connect/endpoints", json_list(&args.connect)));
+    }
+    for (key, value) in settings {
+        if let Err(e) = config.insert_json5(key, &value) {
+            eprintln!("cellgate: router setting {key} = {value}: {e}");
+            return ExitCode::from(EXIT_CONFIG);
+        }
+    }
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
+            return ExitCode::from(EXIT_RUNTIME);
+        }
+    };
+    let mut telemetry = cellgate::telemetry::TelemetryConfig::default();
+    if let Some(format) = cli.log_format {
+        telemetry.log_format = format.into();
+    }
+    runtime.block_on(async move {
+        let _guard = match telemetry::init(&telemetry) {
+            Ok(guard) => guard,
+            Err(e) => {
+                eprintln!("cellgate: {e}");
+                return ExitCode::from(EXIT_CONFIG);
+            }
+        };
+        let stop = match shutdown_signal() {
+            Ok(s) => s,
+            Err(e) => {
+                eprintln!("cellgate: cannot watch for signals: {e}");
+                return ExitCode::from(EXIT_RUNTIME);
+            }
+        };
+        let session = match zenoh::open(config).await {
+            Ok(s) => s,
+            Err(e) => {
+                eprintln!("cellgate: the zenoh router did not start: {e}");
+                return ExitCode::from(EXIT_RUNTIME);
+            }
+        };
+        tracing::info!(zid = %session.zid(), ?listen, "zenoh router running");
+        stop.await;
+        let _ = session.close().await;
+        tracing::info!("zenoh router stopped");
+        ExitCode::SUCCESS
+    })
+}
+
+fn json_list(items: &[String]) -> String {
+    serde_json::to_string(items).unwrap_or_else(|_| "[]".to_string())
 }
 
 /// `cellgate submit`, `status`, `watch`, `do`, `di`, `program`, `cancel`: a zenoh client

@@ -1121,3 +1121,166 @@ async fn a_flood_of_requests_leaves_the_gateway_bounded_and_serving() {
     assert_eq!(code, 0, "{err}");
     client.close().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_says_what_is_down_and_fails_when_the_gateway_is_gone() {
+    // The embedded default cell, its links initialised: healthy.
+    let run = RunProcess::start().await;
+    let (code, out, err) = cellgate(&["health", "-e", &run.endpoint]).await;
+    assert_eq!(code, 0, "{out}{err}");
+    assert!(out.contains("3 link(s) are up"), "{out}");
+    drop(run);
+
+    // A machine behind a device server that is not there: its link stays down.
+    let dir = tempfile::tempdir().unwrap();
+    let nobody = free_port();
+    let cell = dir.path().join("cell.toml");
+    std::fs::write(
+        &cell,
+        format!(
+            r#"cell = "demo"
+[bus]
+multicast_scouting = false
+[programs]
+dir = "{programs}"
+[[machines]]
+name = "mill-1"
+protocol = "a"
+transport = {{ kind = "sim", line = {{ baud = 19200 }} }}
+[[machines]]
+name = "mill-9"
+protocol = "a"
+transport = {{ kind = "tcp", address = "127.0.0.1:{nobody}", line = {{ baud = 19200 }} }}
+"#,
+            programs = dir.path().join("programs").display()
+        ),
+    )
+    .unwrap();
+    let port = free_port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let mut child = std::process::Command::new(BIN)
+        .args(["run", "--config", cell.to_str().unwrap(), "-l", &endpoint])
+        .env("RUST_LOG", "error")
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut last = (0, String::new(), String::new());
+    for _ in 0..60 {
+        last = cellgate(&["health", "-e", &endpoint]).await;
+        // Until mill-1 is initialised, both are down.
+        if last.0 == 1 && last.1.contains("1 of 2") {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    let (code, out, err) = last;
+    assert_eq!(code, 1, "{out}{err}");
+    assert!(out.contains("1 of 2 link(s) down: mill-9 (down)"), "{out}");
+    // A liveness probe does not care about the links.
+    let (code, out, err) = cellgate(&["health", "-e", &endpoint, "--gateway-only"]).await;
+    assert_eq!(code, 0, "{out}{err}");
+
+    // Stopped: nothing answers.
+    // SAFETY: kill(2) on the pid of a child this process spawned and has not reaped.
+    unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
+    assert!(child.wait().unwrap().success());
+    let (code, _, err) = cellgate(&["health", "-e", &endpoint, "--gateway-only"]).await;
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("cannot connect"), "{err}");
+}
+
+/// Spawns `cellgate` with `args`, its output thrown away, stopped (SIGTERM) when dropped.
+struct Spawned(std::process::Child);
+
+impl Spawned {
+    fn new(args: &[&str], dir: &std::path::Path) -> Spawned {
+        Spawned(
+            std::process::Command::new(BIN)
+                .args(args)
+                .current_dir(dir)
+                .env("RUST_LOG", "error")
+                .env_remove("CELLGATE_CONFIG")
+                .stdin(std::process::Stdio::null())
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .spawn()
+                .unwrap(),
+        )
+    }
+
+    /// SIGTERM, then the exit status (killed after 10 s).
+    fn stop(&mut self) -> std::process::ExitStatus {
+        // SAFETY: kill(2) on the pid of a child this process spawned and has not reaped.
+        unsafe { libc::kill(self.0.id() as libc::pid_t, libc::SIGTERM) };
+        for _ in 0..200 {
+            if let Ok(Some(status)) = self.0.try_wait() {
+                return status;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let _ = self.0.kill();
+        self.0.wait().unwrap()
+    }
+}
+
+impl Drop for Spawned {
+    fn drop(&mut self) {
+        if matches!(self.0.try_wait(), Ok(None)) {
+            self.stop();
+        }
+    }
+}
+
+/// Polls `cellgate health` through `endpoint` until it exits 0 (at most `secs`).
+async fn healthy_within(endpoint: &str, secs: u64) -> Result<Duration, String> {
+    let started = std::time::Instant::now();
+    let mut last = String::new();
+    while started.elapsed() < Duration::from_secs(secs) {
+        let (code, out, err) = cellgate(&["health", "-e", endpoint]).await;
+        if code == 0 {
+            return Ok(started.elapsed());
+        }
+        last = format!("{out}{err}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    Err(last)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_gateway_serves_again_after_its_router_restarts() {
+    let dir = tempfile::tempdir().unwrap();
+    let router_ep = format!("tcp/127.0.0.1:{}", free_port());
+    let gateway_ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mut router = Spawned::new(&["router", "-l", &router_ep], dir.path());
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    // A peer connected to the router: it keeps retrying the router when it goes away.
+    let _gateway = Spawned::new(
+        &["run", "--mode", "peer", "-l", &gateway_ep, "-e", &router_ep],
+        dir.path(),
+    );
+    healthy_within(&router_ep, 60).await.unwrap();
+    let (code, out, err) = cellgate(&["status", "-e", &router_ep, "mill-1"]).await;
+    assert_eq!(code, 0, "{out}{err}");
+
+    assert!(router.stop().success(), "the router stops cleanly");
+    let (code, _, _) = cellgate(&["health", "-e", &router_ep, "--timeout", "2"]).await;
+    assert_eq!(code, 1, "no router, no answer through it");
+    let _router = Spawned::new(&["router", "-l", &router_ep], dir.path());
+    let back = healthy_within(&router_ep, 30).await.unwrap();
+    eprintln!("serving through the new router after {back:?}");
+    // A job goes through the new router end to end.
+    let program = nc_program(1500, 42);
+    let file = write_file(dir.path(), "O0042.nc", &program);
+    let (code, out, err) = cellgate(&[
+        "submit",
+        "-e",
+        &router_ep,
+        "-m",
+        "mill-1",
+        file.to_str().unwrap(),
+    ])
+    .await;
+    assert_eq!(code, 0, "{out}{err}");
+}

@@ -455,6 +455,64 @@ fn show_progress(bar: &ProgressBar, io: &mut Io<'_>, event: &pb::JobEvent) {
 
 // ---- status ----------------------------------------------------------------------------------
 
+/// `cellgate health`: the probe of containers and service managers.
+#[derive(Debug, Clone, Args)]
+pub struct HealthArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// Healthy when the gateway answers, whatever its links do: for a liveness probe, which
+    /// should not restart a gateway because a CNC is switched off.
+    #[arg(long)]
+    pub gateway_only: bool,
+}
+
+impl ClientCommand for HealthArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    /// Connecting already proved that the gateway answers its admin key; then every link
+    /// must have its transport open and its device answering.
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        if self.gateway_only {
+            let _ = writeln!(io.out, "ok: the gateway answers");
+            return Ok(0);
+        }
+        let statuses = client.status(None).await?;
+        let down: Vec<String> = statuses
+            .iter()
+            .filter_map(|s| {
+                let state = pb::LinkState::try_from(s.link_state).unwrap_or_default();
+                match state {
+                    pb::LinkState::Down
+                    | pb::LinkState::Connecting
+                    | pb::LinkState::Unspecified => {
+                        Some(format!("{} ({})", s.machine, render::link_text(state)))
+                    }
+                    _ => None,
+                }
+            })
+            .collect();
+        if down.is_empty() {
+            let _ = writeln!(
+                io.out,
+                "ok: the gateway answers and its {} link(s) are up",
+                statuses.len()
+            );
+            Ok(0)
+        } else {
+            let _ = writeln!(
+                io.out,
+                "unhealthy: {} of {} link(s) down: {}",
+                down.len(),
+                statuses.len(),
+                down.join(", ")
+            );
+            Ok(1)
+        }
+    }
+}
+
 /// `cellgate status`.
 #[derive(Debug, Clone, Args)]
 pub struct StatusArgs {
