@@ -330,7 +330,9 @@ fn check_config(file: &Path) -> ExitCode {
                 eprintln!("{}: {e}", file.display());
                 return ExitCode::from(EXIT_CONFIG);
             }
-            println!("{}", config.summary());
+            // A closed pipe (`| head`) is no error worth a panic.
+            use std::io::Write as _;
+            let _ = writeln!(std::io::stdout().lock(), "{}", config.summary());
             ExitCode::SUCCESS
         }
         Err(errors) => {
