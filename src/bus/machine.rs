@@ -431,6 +431,9 @@ impl MachineTask {
             }
             return;
         }
+        if let LinkEvent::PunchDamaged { cause } = &event {
+            return self.desk.damaged(cause);
+        }
         let was_receiving = machine.view().link_state == Some(LinkState::Receiving);
         match machine.on_link_event(&event) {
             Some(Extra::Di(di)) => self.di.publish(&di).await,

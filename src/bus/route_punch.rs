@@ -96,6 +96,12 @@ impl PunchDesk {
         out
     }
 
+    /// The punch-out was damaged here: the program in progress is not good.
+    pub fn damaged(&mut self, cause: impl std::fmt::Display) {
+        tracing::warn!(machine = %self.machine, %cause, "punch-out damaged");
+        self.assembler.damaged(cause);
+    }
+
     /// The punch-out has ended (the link left the receiving state): a program without EOR
     /// is reported and dropped.
     pub fn finish(&mut self) -> Option<Outcome> {
@@ -158,9 +164,25 @@ impl PunchDesk {
             library_name: String::new(),
             unix_ms,
             request: None,
+            damaged: program.damage.is_some(),
+            damage: program.damage.clone().unwrap_or_default(),
         };
         let mut alarm = None;
-        if let Some(request) = request {
+        if let Some(damage) = &program.damage {
+            // Stored, it would be taken for the program the CNC holds; as a request, it could
+            // ask for the wrong program.
+            alarm = Some((
+                format!(
+                    "punched program {} damaged ({damage}): not stored; punch it again",
+                    if punched.name.is_empty() {
+                        "without a name"
+                    } else {
+                        &punched.name
+                    }
+                ),
+                pb::AlarmKind::LinkAlarm,
+            ));
+        } else if let Some(request) = request {
             let answer = self.request(&request, jobs).await;
             if !answer.error.is_empty() {
                 alarm = Some((

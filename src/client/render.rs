@@ -420,6 +420,8 @@ pub fn punched_json(p: &pb::PunchedProgram) -> Value {
         "size": p.program.len(),
         "library_name": p.library_name,
         "unix_ms": p.unix_ms,
+        "damaged": p.damaged,
+        "damage": p.damage,
         "request": p.request.as_ref().map(|r| json!({
             "program": r.program,
             "library_name": r.library_name,
@@ -513,7 +515,7 @@ impl WatchPrinter {
             ),
             WatchEvent::Alarm(a) => format!("{} ALARM {}", a.machine, alarm_text(a)),
             WatchEvent::Punched(p) => format!(
-                "{} {} punched {} ({} bytes, {}){}{}",
+                "{} {} punched {} ({} bytes, {}){}{}{}",
                 clock(p.unix_ms),
                 p.machine,
                 if p.name.is_empty() {
@@ -529,6 +531,11 @@ impl WatchPrinter {
                     format!(" stored as {}", p.library_name)
                 },
                 p.request.as_ref().map(request_text).unwrap_or_default(),
+                if p.damaged {
+                    format!(" DAMAGED ({}): not stored, punch it again", p.damage)
+                } else {
+                    String::new()
+                },
             ),
             WatchEvent::Di(d) => format!(
                 "{} {} DI {}",
@@ -758,6 +765,8 @@ mod tests {
             library_name: "lathe-1-O1234-20261122T061500Z".to_string(),
             unix_ms: 0,
             request: None,
+            damaged: false,
+            damage: String::new(),
         };
         let mut printer = WatchPrinter::new();
         let line = printer
@@ -782,6 +791,22 @@ mod tests {
             .unwrap();
         assert!(
             line.ends_with("remote request for O12 refused: no program O12"),
+            "{line}"
+        );
+        let damaged = pb::PunchedProgram {
+            damaged: true,
+            damage: "parity error in a received character during the punch-out".to_string(),
+            library_name: String::new(),
+            ..p.clone()
+        };
+        let line = printer
+            .line(&WatchEvent::Punched(Box::new(damaged)), 0)
+            .unwrap();
+        assert!(
+            line.ends_with(
+                "DAMAGED (parity error in a received character during the punch-out): not \
+                 stored, punch it again"
+            ),
             "{line}"
         );
         let j = watch_json(&WatchEvent::Punched(Box::new(p)), 0);

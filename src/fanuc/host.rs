@@ -12,7 +12,7 @@ use serde::Serialize;
 
 use super::error::{AbortReason, LinkAlarm, ProtocolError};
 use super::sat::StatusData;
-use crate::engine::Engine;
+use crate::engine::{Engine, LineError};
 
 /// The state of a link as users see it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -107,6 +107,24 @@ pub enum EngineEvent {
     Punched {
         data: Bytes,
     },
+    /// The punch-out was damaged here, after the `Punched` pieces received before it: the
+    /// program being punched has a character wrong or missing and must not be taken as good.
+    PunchDamaged {
+        cause: PunchDamage,
+    },
+}
+
+/// How a punch-out was damaged.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error, Serialize)]
+#[non_exhaustive]
+pub enum PunchDamage {
+    /// The UART reported a character in error (§4.6 line errors).
+    #[error("{0} during the punch-out")]
+    Line(LineError),
+    /// Characters arrived with the engine's buffer full and were dropped (the board did not
+    /// stop at DC3 within its overrun allowance, §6.3).
+    #[error("punched characters dropped: the board did not stop at DC3 (§6.3)")]
+    Dropped,
 }
 
 /// How the board showed that it holds a program (and, for offsets, its first bytes).

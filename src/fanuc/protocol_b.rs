@@ -67,7 +67,9 @@ use bytes::Bytes;
 use crate::engine::{Engine, LineError, ModemIn, ModemOut};
 use crate::fanuc::code::{DC1, DC2, DC3, DC4, EOR, NAK, SYN, is_significant};
 use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
-use crate::fanuc::host::{Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState};
+use crate::fanuc::host::{
+    Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState, PunchDamage,
+};
 use crate::fanuc::program::Program;
 use crate::fanuc::{CodeSystem, Protocol};
 
@@ -562,6 +564,13 @@ impl ProtocolBHost {
             return;
         }
         if self.punch_held() >= self.cfg.max_buffer {
+            if *dropped == 0 {
+                // The program being punched has a hole from here on.
+                self.flush_punch();
+                self.emit(EngineEvent::PunchDamaged {
+                    cause: PunchDamage::Dropped,
+                });
+            }
             *dropped += 1;
             return;
         }
@@ -644,10 +653,15 @@ impl Engine for ProtocolBHost {
         if !self.line_up {
             return;
         }
-        self.protocol_error(ProtocolError::LineB {
-            error,
-            punching: self.rx == Rx::Punch,
-        });
+        let punching = self.rx == Rx::Punch;
+        if punching {
+            // What came before the bad character is intact; the program it belongs to is not.
+            self.flush_punch();
+            self.emit(EngineEvent::PunchDamaged {
+                cause: PunchDamage::Line(error),
+            });
+        }
+        self.protocol_error(ProtocolError::LineB { error, punching });
     }
 
     fn handle_modem(&mut self, _now: Instant, modem: ModemIn) {
@@ -1320,6 +1334,39 @@ mod tests {
         assert_eq!(
             pieces,
             vec![b"\n%\nO1\nX1\n%".to_vec(), b"\nO2\nX2\n%".to_vec()]
+        );
+    }
+
+    #[test]
+    fn a_line_error_while_punching_marks_the_punch_out_damaged_where_it_fell() {
+        let (mut h, now) = host(CodeSystem::Ascii, false, true);
+        h.handle_input(now, b"\x12\n%\nO1\nX1");
+        h.handle_line_error(now, LineError::Parity);
+        h.handle_input(now, b"\n%\x14");
+        let evs: Vec<EngineEvent> = events(&mut h)
+            .into_iter()
+            .filter(|e| !matches!(e, EngineEvent::State(_)))
+            .collect();
+        assert!(
+            matches!(
+                evs.as_slice(),
+                [
+                    EngineEvent::Punched { data: before },
+                    EngineEvent::PunchDamaged {
+                        cause: PunchDamage::Line(LineError::Parity)
+                    },
+                    EngineEvent::ProtocolError { .. },
+                    EngineEvent::Punched { data: after },
+                ] if before.as_ref() == b"\n%\nO1\nX1" && after.as_ref() == b"\n%"
+            ),
+            "{evs:?}"
+        );
+        // Outside a punch-out a line error damages nothing.
+        h.handle_line_error(now, LineError::Framing);
+        assert!(
+            !events(&mut h)
+                .iter()
+                .any(|e| matches!(e, EngineEvent::PunchDamaged { .. }))
         );
     }
 

@@ -62,6 +62,9 @@ pub struct PunchedText {
     /// The first comment of the program number's block (of the first block when there is no
     /// program number), trimmed: a display name.
     pub comment: Option<String>,
+    /// Why the program is not good, when the punch-out was damaged while it was punched (a
+    /// line error, characters dropped): it has a character wrong or missing.
+    pub damage: Option<String>,
 }
 
 impl PunchedText {
@@ -73,6 +76,7 @@ impl PunchedText {
             text,
             o_number,
             comment,
+            damage: None,
         }
     }
 }
@@ -145,6 +149,9 @@ pub struct PunchAssembler {
     eia: bool,
     /// Significant bytes outside any program: (offset, length).
     outside: Option<(u64, u64)>,
+    /// The punch-out was damaged since the last program ended: the program in progress (or,
+    /// between programs, the next one, whose tape-start may be what was lost) is not good.
+    damage: Option<String>,
 }
 
 impl PunchAssembler {
@@ -159,6 +166,14 @@ impl PunchAssembler {
             offset: 0,
             eia: false,
             outside: None,
+            damage: None,
+        }
+    }
+
+    /// The punch-out was damaged at this point (see [`PunchedText::damage`]).
+    pub fn damaged(&mut self, cause: impl std::fmt::Display) {
+        if self.damage.is_none() {
+            self.damage = Some(cause.to_string());
         }
     }
 
@@ -282,6 +297,7 @@ impl PunchAssembler {
             max: self.max_program,
         }));
         self.raw = Vec::new();
+        self.damage = None;
         self.state = if class == Class::Mark {
             State::Leader
         } else {
@@ -292,6 +308,7 @@ impl PunchAssembler {
     /// The program held, decoded.
     fn program(&mut self) -> Result<PunchedText, PunchError> {
         let raw = std::mem::take(&mut self.raw);
+        let damage = self.damage.take();
         let decoded = match self.family {
             Family::Eia => tape::decode_as(&raw, TapeCode::Eia).map(|t| (TapeCode::Eia, t)),
             // All odd parity with EIA marks, yet started by `%`: no ISO or ASCII tape.
@@ -304,7 +321,9 @@ impl PunchAssembler {
             offset: self.start,
             error,
         })?;
-        Ok(PunchedText::from_text(code, single_lf_eob(text)))
+        let mut program = PunchedText::from_text(code, single_lf_eob(text));
+        program.damage = damage;
+        Ok(program)
     }
 }
 
@@ -691,6 +710,37 @@ mod tests {
             assert_eq!(asm.pending(), 0);
             assert_eq!(asm.finish(), None);
         }
+    }
+
+    #[test]
+    fn damage_marks_the_program_it_falls_in_and_no_other() {
+        let tape = punch(TapeCode::Ascii, &[P1, P2, P3]);
+        // The characters as punched carry a parity bit.
+        let plain: Vec<u8> = tape.iter().map(|b| b & 0x7F).collect();
+        let second = plain.windows(3).position(|w| w == b"SEC").unwrap();
+        let mut asm = PunchAssembler::new(1 << 20);
+        let mut got = asm.feed(&tape[..second + 3]);
+        asm.damaged("parity error in a received character during the punch-out");
+        got.extend(asm.feed(&tape[second + 3..]));
+        let got: Vec<PunchedText> = got.into_iter().map(Result::unwrap).collect();
+        assert_eq!(got.len(), 3);
+        assert_eq!(got[0].damage, None);
+        assert_eq!(
+            got[1].damage.as_deref(),
+            Some("parity error in a received character during the punch-out")
+        );
+        assert_eq!(got[2].damage, None, "the damage ends with its program");
+
+        // Between programs: the next program may have lost its tape-start, it is suspect.
+        let mut asm = PunchAssembler::new(1 << 20);
+        let mut got = asm.feed(&punch(TapeCode::Ascii, &[P1]));
+        asm.damaged("framing error");
+        got.extend(asm.feed(&punch(TapeCode::Ascii, &[P2, P3])));
+        let got: Vec<PunchedText> = got.into_iter().map(Result::unwrap).collect();
+        assert_eq!(got.len(), 3);
+        assert_eq!(got[0].damage, None);
+        assert_eq!(got[1].damage.as_deref(), Some("framing error"));
+        assert_eq!(got[2].damage, None);
     }
 
     #[test]

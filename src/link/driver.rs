@@ -17,7 +17,9 @@ use super::JobId;
 use super::pump::{Pump, PumpError, now};
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
-use crate::fanuc::host::{Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState};
+use crate::fanuc::host::{
+    Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState, PunchDamage,
+};
 use crate::fanuc::sat::StatusData;
 use crate::transport::Transport;
 
@@ -181,6 +183,11 @@ pub enum LinkEvent {
     /// and including one that ends with its `%`.
     Punched {
         data: Bytes,
+    },
+    /// The punch-out was damaged after the `Punched` pieces before it: the program being
+    /// punched is not good.
+    PunchDamaged {
+        cause: PunchDamage,
     },
     /// The link task ended (shutdown, or the line closed for good).
     Stopped {
@@ -579,6 +586,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 LinkEvent::ProtocolError { error, retried }
             }
             EngineEvent::Punched { data } => LinkEvent::Punched { data },
+            EngineEvent::PunchDamaged { cause } => LinkEvent::PunchDamaged { cause },
             EngineEvent::DataSent { bytes } => {
                 let Some(active) = self.active.as_mut() else {
                     return;
