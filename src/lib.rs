@@ -45,6 +45,7 @@
 //! - `jobs` imports `fanuc`, `link` and `pb`; `config` imports `engine`, `fanuc`, `jobs` and
 //!   `telemetry`, never `bus` or `link`.
 //! - `g05` imports `fanuc` (the block codec), `link`, `config` and `engine`; `bus` uses it.
+//!   Its rules, `g05::stream`, are sans-IO like the engines: `fanuc` and `config` only.
 //! - `bus` may import everything below it; only `cell`, `gateway` and `client` import `bus`.
 //! - `codes` imports the error types it maps; every layer that builds a bus message uses it.
 

@@ -59,6 +59,16 @@ pub enum EngineCommand {
     ClearBuffer,
 }
 
+/// A piece of a program that is made while it is sent (a G05 stream): what the sans-IO G05
+/// stream produces and the link hands to the engine as `ProgramData` or `BinaryData`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Chunk {
+    /// NC text: scanned for EOR like any program.
+    Text(Bytes),
+    /// Binary blocks (G05, §9.1): passed as they are.
+    Binary(Bytes),
+}
+
 /// What a host engine reports.
 #[derive(Debug, Clone, PartialEq)]
 #[non_exhaustive]

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 
 use crate::fanuc::g05::{AuxWord, G05EncodeError, G05Format};
-use crate::link::driver::Chunk;
+use crate::fanuc::host::Chunk;
 
 /// How far behind `now` a status tick judges the CNC's slots (see [`Stream::tick`]): a few
 /// of the link's progress steps.

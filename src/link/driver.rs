@@ -26,14 +26,7 @@ use crate::transport::Transport;
 /// Where a program's bytes come from: a file, a bus download, a test vector.
 pub type ProgramSource = Box<dyn AsyncRead + Send + Unpin>;
 
-/// A piece of a program that is made while it is sent (a G05 stream).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Chunk {
-    /// NC text: scanned for EOR like any program.
-    Text(Bytes),
-    /// Binary blocks (G05, §9.1): passed as they are.
-    Binary(Bytes),
-}
+pub use crate::fanuc::host::Chunk;
 
 /// What a job's program is read from.
 pub enum JobSource {
