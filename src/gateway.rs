@@ -64,16 +64,43 @@ async fn serve(
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), GatewayError> {
     let keys = CellKeys::new(&config.bus.prefix, &config.cell).map_err(BusError::from)?;
-    let admin = AdminRoute::declare(session, &keys, config).await?;
 
     // The links run until the routes have stopped, so that every job's end is reported.
     let links_stop = CancellationToken::new();
     let cell = Cell::start(config, &links_stop).await?;
     let machines = cell.machine_links();
     let routes_stop = CancellationToken::new();
-    let routes = bus::serve(session, config, machines, routes_stop.clone());
+    let (ready_tx, ready) = tokio::sync::oneshot::channel();
+    let routes = bus::serve_announced(
+        session,
+        config,
+        machines,
+        routes_stop.clone(),
+        Some(ready_tx),
+    );
     tokio::pin!(routes);
     let mut routes_result = None;
+
+    // The cell is announced (admin key, liveliness token) once its routes answer: a client
+    // that finds the gateway finds every route.
+    let admin = tokio::select! {
+        Ok(()) = ready => AdminRoute::declare(session, &keys, config).await,
+        result = &mut routes => {
+            links_stop.cancel();
+            cell.join().await;
+            return result.map_err(GatewayError::from);
+        }
+    };
+    let admin = match admin {
+        Ok(a) => a,
+        Err(e) => {
+            routes_stop.cancel();
+            let _ = routes.await;
+            links_stop.cancel();
+            cell.join().await;
+            return Err(e.into());
+        }
+    };
 
     // Zenoh's own list of bound locators is an unstable API; the configured endpoints
     // are what the session bound, since opening fails otherwise.

@@ -248,6 +248,7 @@ async fn start_cell(pace: Duration) -> Cell {
 
     let gateway = bus::open(&config.bus).await.unwrap();
     let stop = CancellationToken::new();
+    let (ready_tx, ready) = tokio::sync::oneshot::channel();
     let served = {
         let (gw, cfg, stop) = (gateway.clone(), config.clone(), stop.clone());
         let machines = vec![
@@ -260,8 +261,12 @@ async fn start_cell(pace: Duration) -> Cell {
                 link: lathe_link,
             },
         ];
-        tokio::spawn(async move { bus::serve(&gw, &cfg, machines, stop).await })
+        tokio::spawn(async move {
+            bus::serve_announced(&gw, &cfg, machines, stop, Some(ready_tx)).await
+        })
     };
+    // Announced once every route is declared, as `gateway::run` does.
+    ready.await.expect("the routes are declared");
     let client = bus::open(&client_config(port)).await.unwrap();
     let cell = Cell {
         gateway,

@@ -76,10 +76,15 @@ async fn start_gateway() -> Gateway {
     let cell = Cell::start(&config, &links_stop).await.unwrap();
     let machines = cell.machine_links();
     let stop = CancellationToken::new();
+    let (ready_tx, ready) = tokio::sync::oneshot::channel();
     let served = {
         let (s, c, stop) = (session.clone(), config.clone(), stop.clone());
-        tokio::spawn(async move { bus::serve(&s, &c, machines, stop).await })
+        tokio::spawn(
+            async move { bus::serve_announced(&s, &c, machines, stop, Some(ready_tx)).await },
+        )
     };
+    // Announced once every route is declared, as `gateway::run` does.
+    ready.await.expect("the routes are declared");
     let admin = {
         let keys = CellKeys::new(&config.bus.prefix, &config.cell).unwrap();
         let key = keys.admin();

@@ -222,10 +222,16 @@ async fn start_gateway(config: CellConfig) -> Gateway {
     let cell = Cell::start(&config, &links_stop).await.unwrap();
     let machines = cell.machine_links();
     let stop = CancellationToken::new();
+    let (ready_tx, ready) = tokio::sync::oneshot::channel();
     let served = {
         let (s, c, stop) = (session.clone(), config.clone(), stop.clone());
-        tokio::spawn(async move { bus::serve(&s, &c, machines, stop).await })
+        tokio::spawn(
+            async move { bus::serve_announced(&s, &c, machines, stop, Some(ready_tx)).await },
+        )
     };
+    // As `gateway::run` does: the cell is announced once every route is declared, so a
+    // client that found the gateway gets answers from every route.
+    ready.await.expect("the routes are declared");
     let admin = {
         let route = AdminRoute::declare(&session, &keys, &config).await.unwrap();
         let stop = stop.clone();

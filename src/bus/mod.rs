@@ -90,6 +90,19 @@ pub async fn serve(
     machines: Vec<MachineLink>,
     shutdown: CancellationToken,
 ) -> Result<(), BusError> {
+    serve_announced(session, config, machines, shutdown, None).await
+}
+
+/// [`serve`], sending on `ready` once every route is declared: announce the cell (its admin
+/// key, its liveliness token) only then, or a client that found it may ask a route that is
+/// not there yet and get no answer at all.
+pub async fn serve_announced(
+    session: &Session,
+    config: &CellConfig,
+    machines: Vec<MachineLink>,
+    shutdown: CancellationToken,
+    ready: Option<tokio::sync::oneshot::Sender<()>>,
+) -> Result<(), BusError> {
     let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
     let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size);
     let journal = Journal::open(&config.programs.journal_dir())?;
@@ -166,6 +179,9 @@ pub async fn serve(
         route_tasks.spawn(io.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(program.run(ctx.clone(), routes_stop.clone()));
         tracing::info!(root = %keys.root(), machines = ctx.machines.len(), "cell routes declared");
+        if let Some(ready) = ready {
+            let _ = ready.send(());
+        }
         // A route ends early only when the session closed under it.
         tokio::select! {
             () = shutdown.cancelled() => {}

@@ -149,10 +149,15 @@ impl RunningCell {
         }
         let machines = cell.machine_links();
         let routes_stop = tokio_util::sync::CancellationToken::new();
+        let (ready_tx, ready) = tokio::sync::oneshot::channel();
         let served = {
             let (gw, cfg, stop) = (gateway.clone(), config.clone(), routes_stop.clone());
-            tokio::spawn(async move { cellgate::bus::serve(&gw, &cfg, machines, stop).await })
+            tokio::spawn(async move {
+                cellgate::bus::serve_announced(&gw, &cfg, machines, stop, Some(ready_tx)).await
+            })
         };
+        // Announced once every route is declared, as `gateway::run` does.
+        ready.await.expect("the routes are declared");
         let client = cellgate::bus::open(&client_config(port)).await.unwrap();
         let keys = cellgate::bus::keys::CellKeys::new(&config.bus.prefix, &config.cell).unwrap();
         // Every link comes up with its board (Protocol A: ≈2 s power-on delay, §4.3 (1)).
