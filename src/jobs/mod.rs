@@ -774,6 +774,9 @@ impl Manager {
                             code: pb::ErrorCode::Unavailable,
                         };
                         self.totals.jobs_failed += 1;
+                        // Its request id still names it: the same request sent again after
+                        // the restart answers this job, not a new one.
+                        self.remember_request(&record);
                         self.end(record, end, offset, offset, next);
                     }
                 }
