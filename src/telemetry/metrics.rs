@@ -7,11 +7,11 @@
 //! reaches them without a handle threaded through its arguments, and a link started again
 //! under the same name keeps counting up (counters must be monotonic).
 //!
-//! [`install`] builds a meter provider whose observable instruments read those atomics at
-//! collection time (an OTLP export every `OTEL_EXPORTER_OTLP_ENDPOINT` interval, a Prometheus
-//! scrape), so the cost of exporting is paid by the exporter, not by the line. Job durations
-//! are the one synchronous instrument: a histogram cannot be observed, and it is recorded
-//! once per job.
+//! [`super::install_metrics`] builds a meter provider whose observable instruments read
+//! those atomics at collection time (an OTLP export every `OTEL_METRIC_EXPORT_INTERVAL`, a
+//! Prometheus scrape), so the cost of exporting is paid by the exporter, not by the line.
+//! Job durations are the one synchronous instrument: a histogram cannot be observed, and it
+//! is recorded once per job.
 //!
 //! | instrument | kind | attributes |
 //! |---|---|---|
