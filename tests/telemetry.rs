@@ -190,6 +190,7 @@ struct Running {
 
 async fn start_gateway(config: CellConfig, port: u16) -> Running {
     let cell = config.cell.clone();
+    let machine = config.machines[0].name.clone();
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let gateway = tokio::spawn(cellgate::gateway::run(config, async {
         let _ = stopped.await;
@@ -210,8 +211,11 @@ async fn start_gateway(config: CellConfig, port: u16) -> Running {
             Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
         }
     }
+    let client = client.expect("the gateway never answered");
+    // The machine's routes are declared once its token is up.
+    common::bus::wait_token(client.session(), &client.keys().machine(&machine), true).await;
     Running {
-        client: client.expect("the gateway never answered"),
+        client,
         stop,
         gateway,
     }
@@ -464,4 +468,115 @@ async fn the_prometheus_endpoint_serves_the_counters_after_a_job() {
         closed,
         "the endpoint still accepts connections after shutdown"
     );
+}
+
+/// The link's counters against what the simulated line carried and what the link reported:
+/// bytes as the line counted them, and every retry, checksum error, line error and alarm the
+/// link's events showed. A line error before a job, then checksum noise both ways during it.
+/// Virtual time, no bus.
+#[tokio::test(start_paused = true)]
+async fn the_link_counters_follow_the_line_and_the_link_events() {
+    use cellgate::engine::LineError;
+    use cellgate::fanuc::error::LinkAlarm;
+    use cellgate::fanuc::host::LinkState;
+    use cellgate::link::driver::LinkEvent;
+    use cellgate::telemetry::metrics;
+    use cellgate::transport::sim::{Dir, Noise};
+
+    const MACHINE: &str = "counted-a";
+    const HOUR: Duration = Duration::from_secs(3600);
+    let mut config = common::sim_cell("a", None, 19_200, 960);
+    config.machines[0].name = MACHINE.to_string();
+    // DATs of Nb - No = 250 bytes, so that a frame fits the noise's guard.
+    config.machines[0].nb = Some(300);
+    config.machines[0].no = Some(50);
+    let (cell, token) = common::start(&config).await;
+    let m = cell.machine(MACHINE).unwrap();
+    let line = m.line.as_ref().unwrap().clone();
+    let mut events = m.link.subscribe();
+    let ready = |ev: &LinkEvent| {
+        matches!(
+            ev,
+            LinkEvent::State {
+                state: LinkState::Ready
+            }
+        )
+        .then_some(())
+    };
+    common::next_event(&mut events, HOUR, ready).await;
+    assert_eq!(metrics::link(MACHINE).counts().sessions, 1);
+
+    // A framing error from the board: a line alarm, the link re-initialises.
+    let mut seen = metrics::LinkCounts::default();
+    line.error_next(Dir::DeviceToHost, LineError::Framing);
+    common::next_event(&mut events, HOUR, |ev| {
+        matches!(ev, LinkEvent::Alarm(LinkAlarm::Line(_))).then_some(())
+    })
+    .await;
+    seen.alarms += 1;
+    seen.line_errors += 1;
+    common::next_event(&mut events, HOUR, ready).await;
+
+    for (dir, seed) in [(Dir::HostToDevice, 7), (Dir::DeviceToHost, 11)] {
+        line.set_noise(
+            dir,
+            Noise {
+                corrupt_ppm: 500,
+                drop_ppm: 0,
+                guard: 300,
+                seed,
+            },
+        );
+    }
+    let program = common::nc_program(16 * 1024, 21);
+    common::queue(&m.link, 1, program).await;
+    let ended = tokio::time::timeout(HOUR, async {
+        loop {
+            match events.recv().await {
+                Ok(LinkEvent::ProtocolError { error, retried }) => {
+                    seen.retries += u64::from(retried);
+                    seen.checksum_errors += u64::from(error.is_checksum());
+                }
+                Ok(LinkEvent::Alarm(alarm)) => {
+                    seen.alarms += 1;
+                    seen.line_errors += u64::from(matches!(
+                        alarm,
+                        LinkAlarm::Line(_) | LinkAlarm::FrameParity { .. }
+                    ));
+                }
+                Ok(LinkEvent::JobDone { job: 1, .. }) => return true,
+                Ok(LinkEvent::JobFailed { job: 1, .. }) => return false,
+                Ok(_) => {}
+                Err(e) => panic!("link events: {e}"),
+            }
+        }
+    })
+    .await
+    .expect("the job did not end within an hour");
+    assert!(ended, "the job failed under light noise");
+    for dir in [Dir::HostToDevice, Dir::DeviceToHost] {
+        line.set_noise(dir, Noise::default());
+    }
+    // Stopping the link counts what it moved last.
+    token.cancel();
+    cell.join().await;
+
+    let c = metrics::link(MACHINE).counts();
+    assert_eq!(c.bytes_out, line.counters(Dir::HostToDevice).written);
+    assert_eq!(c.bytes_in, line.counters(Dir::DeviceToHost).delivered);
+    assert!(
+        seen.checksum_errors > 0 && seen.retries > 0,
+        "the noise made no checksum error: {seen:?}"
+    );
+    assert_eq!(c.checksum_errors, seen.checksum_errors, "{c:?}");
+    assert_eq!(c.retries, seen.retries, "{c:?}");
+    assert_eq!(c.alarms, seen.alarms, "{c:?}");
+    assert_eq!(c.line_errors, seen.line_errors, "{c:?}");
+    assert!(
+        c.sessions >= 2,
+        "up, then up again after the line alarm: {c:?}"
+    );
+    // Every DAT of the program is a frame out; every SAT, GTD and the like a frame in.
+    assert!(c.frames_out > (16 * 1024 / 250) as u64, "{c:?}");
+    assert!(c.frames_in > 0, "{c:?}");
 }

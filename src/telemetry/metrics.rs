@@ -112,6 +112,35 @@ impl LinkMetrics {
     pub fn bytes(&self) -> (u64, u64) {
         (self.bytes_in.load(Relaxed), self.bytes_out.load(Relaxed))
     }
+
+    /// Every counter now.
+    pub fn counts(&self) -> LinkCounts {
+        LinkCounts {
+            bytes_in: self.bytes_in.load(Relaxed),
+            bytes_out: self.bytes_out.load(Relaxed),
+            frames_in: self.frames_in.load(Relaxed),
+            frames_out: self.frames_out.load(Relaxed),
+            retries: self.retries.load(Relaxed),
+            checksum_errors: self.checksum_errors.load(Relaxed),
+            line_errors: self.line_errors.load(Relaxed),
+            alarms: self.alarms.load(Relaxed),
+            sessions: self.sessions.load(Relaxed),
+        }
+    }
+}
+
+/// A link's counters at one moment.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct LinkCounts {
+    pub bytes_in: u64,
+    pub bytes_out: u64,
+    pub frames_in: u64,
+    pub frames_out: u64,
+    pub retries: u64,
+    pub checksum_errors: u64,
+    pub line_errors: u64,
+    pub alarms: u64,
+    pub sessions: u64,
 }
 
 /// How a job ended.
