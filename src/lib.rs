@@ -31,7 +31,8 @@
 //!   cleanly when the shutdown future completes.
 //! - [`client`]: a client of the bus contract: the library side of `cellgate submit`,
 //!   `status`, `watch`, `do`, `di`, `program` and `cancel`.
-//! - [`telemetry`]: tracing subscriber and the optional OpenTelemetry export.
+//! - [`telemetry`]: tracing subscriber, the counters links and jobs keep ([`telemetry::metrics`]),
+//!   and the optional OTLP export of spans and metrics and Prometheus endpoint.
 //! - [`pb`]: the protobuf messages of `proto/cellgate/v1`, the bus's public contract.
 //!
 //! # Who imports whom
@@ -48,6 +49,8 @@
 //!   Its rules, `g05::stream`, are sans-IO like the engines: `fanuc` and `config` only.
 //! - `bus` may import everything below it; only `cell`, `gateway` and `client` import `bus`.
 //! - `codes` imports the error types it maps; every layer that builds a bus message uses it.
+//! - `telemetry` imports nothing of the crate; `link`, `jobs` and `g05` count into
+//!   [`telemetry::metrics`] and open their spans themselves.
 
 pub mod bus;
 pub mod cell;

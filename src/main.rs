@@ -503,7 +503,10 @@ async fn run_async(config: CellConfig, origin: String) -> ExitCode {
         Err(e) => {
             eprintln!("cellgate: {e}");
             return ExitCode::from(match e {
-                TelemetryError::Filter { .. } | TelemetryError::Exporter { .. } => EXIT_CONFIG,
+                TelemetryError::Filter { .. }
+                | TelemetryError::Exporter { .. }
+                | TelemetryError::PrometheusAddress { .. }
+                | TelemetryError::PrometheusBind { .. } => EXIT_CONFIG,
                 _ => EXIT_RUNTIME,
             });
         }

@@ -100,6 +100,18 @@ pub(super) fn check_telemetry(c: &mut Checker, t: &TelemetryConfig) {
             "",
         );
     }
+    if let Some(addr) = &t.prometheus
+        && crate::telemetry::prometheus::parse_addr(addr).is_err()
+    {
+        c.invalid(
+            "telemetry.prometheus".to_string(),
+            q(addr),
+            "the Prometheus endpoint is an IP address and port, e.g. \"127.0.0.1:9464\" \
+             (a host name is not resolved)"
+                .to_string(),
+            "",
+        );
+    }
     if t.service_name.trim().is_empty() {
         c.invalid(
             "telemetry.service_name".to_string(),

@@ -45,13 +45,16 @@ impl CellConfig {
         let t = &self.telemetry;
         writeln!(
             s,
-            "telemetry: {} logs, filter {:?}, OTLP export {}",
+            "telemetry: {} logs, filter {:?}, OTLP export {}, Prometheus endpoint {}",
             plain_name(&t.log_format),
             t.log_filter,
             t.otlp_endpoint.as_deref().map_or_else(
                 || "off".to_string(),
                 |e| format!("to {e} as {:?}", t.service_name)
             ),
+            t.prometheus
+                .as_deref()
+                .map_or_else(|| "off".to_string(), |a| format!("on {a}/metrics")),
         )?;
         writeln!(
             s,

@@ -396,12 +396,24 @@ fn plc_baud_rates() {
 #[test]
 fn bus_and_telemetry_checks() {
     let text = "cell = \"c\"\n[bus]\nprefix = \"a//b\"\nlisten = [\"127.0.0.1:7447\"]\n\
-                [telemetry]\notlp_endpoint = \"127.0.0.1:4317\"\n";
+                [telemetry]\notlp_endpoint = \"127.0.0.1:4317\"\nprometheus = \"localhost:9464\"\n";
     let e = errors_of(text);
-    assert_eq!(e.len(), 3, "{e:?}");
+    assert_eq!(e.len(), 4, "{e:?}");
     assert!(e[0].starts_with("bus.prefix = \"a//b\""));
     assert!(e[1].starts_with("bus.listen[1] = \"127.0.0.1:7447\""));
     assert!(e[2].starts_with("telemetry.otlp_endpoint"));
+    assert!(
+        e[3].starts_with("telemetry.prometheus = \"localhost:9464\""),
+        "{}",
+        e[3]
+    );
+    assert!(e[3].contains("IP address and port"), "{}", e[3]);
+    let ok = "cell = \"c\"\n[telemetry]\nprometheus = \"127.0.0.1:9464\"\n";
+    let config = CellConfig::from_toml_str(ok, "ok").unwrap();
+    assert_eq!(
+        config.telemetry.prometheus.as_deref(),
+        Some("127.0.0.1:9464")
+    );
 }
 
 #[test]

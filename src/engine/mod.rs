@@ -16,6 +16,15 @@ use std::time::Instant;
 
 pub use line::{LineError, LineSettings, ModemIn, ModemOut};
 
+/// Protocol frames an engine has received and sent so far, for the link's counters. What a
+/// frame is depends on the protocol (a message, a packet, a control code); running totals, so
+/// that reading them costs the engine nothing.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct FrameCounts {
+    pub received: u64,
+    pub sent: u64,
+}
+
 /// A sans-IO protocol engine: the host side of a link, or the device side of a simulated board.
 ///
 /// Every method is synchronous and cheap; `now` is the only clock. Inputs may arrive in any
@@ -48,5 +57,10 @@ pub trait Engine: Send {
     #[must_use]
     fn modem_out(&self) -> ModemOut {
         ModemOut::ALL_ON
+    }
+    /// Frames received and sent so far; an engine that does not count them reports none.
+    #[must_use]
+    fn frames(&self) -> FrameCounts {
+        FrameCounts::default()
     }
 }

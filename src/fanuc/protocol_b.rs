@@ -64,7 +64,7 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 
-use crate::engine::{Engine, LineError, ModemIn, ModemOut};
+use crate::engine::{Engine, FrameCounts, LineError, ModemIn, ModemOut};
 use crate::fanuc::code::{DC1, DC2, DC3, DC4, EOR, NAK, SYN, is_significant};
 use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
 use crate::fanuc::host::{
@@ -234,6 +234,9 @@ enum Rx {
 
 /// The host side of a Protocol B / Expansion Protocol B link.
 pub struct ProtocolBHost {
+    /// Control codes received and sent: Protocol B has no frames, its control codes are what
+    /// passes for them; punched and NC data are counted as bytes only.
+    frames: FrameCounts,
     cfg: ProtocolBConfig,
     events: VecDeque<EngineEvent>,
     state: LinkState,
@@ -310,6 +313,7 @@ impl ProtocolBHost {
             return Err(InvalidConfig { problems });
         }
         Ok(ProtocolBHost {
+            frames: FrameCounts::default(),
             cfg: config,
             events: VecDeque::from([EngineEvent::State(LinkState::Ready)]),
             state: LinkState::Ready,
@@ -631,6 +635,9 @@ impl Engine for ProtocolBHost {
                 Rx::Control => {
                     let before = garbage;
                     self.on_control(now, b, &mut garbage);
+                    if garbage == before {
+                        self.frames.received += 1;
+                    }
                     if before == 0 && garbage == 1 {
                         first_garbage = b;
                     }
@@ -742,6 +749,7 @@ impl Engine for ProtocolBHost {
             return None;
         }
         if let Some(code) = self.ctl_out.take() {
+            self.frames.sent += 1;
             return Some(vec![code]);
         }
         if !self.flowing || self.await_next_read {
@@ -792,6 +800,10 @@ impl Engine for ProtocolBHost {
             // with it covers boards that ignore CS.
             rs: !(self.cfg.rs_flow && self.punch_paused),
         }
+    }
+
+    fn frames(&self) -> FrameCounts {
+        self.frames
     }
 }
 

@@ -286,6 +286,8 @@ impl G05Desk {
         }
         tracing::info!(machine = %self.machine, stream = %id, "G05 stream opened");
         let task = StreamTask {
+            metrics: crate::telemetry::metrics::machine(&self.machine),
+            underruns_counted: 0,
             stream,
             job,
             chunks: Some(chunks),
@@ -307,6 +309,9 @@ impl G05Desk {
 }
 
 struct StreamTask {
+    metrics: std::sync::Arc<crate::telemetry::metrics::MachineMetrics>,
+    /// The stream's underruns already in the machine's counter.
+    underruns_counted: u64,
     stream: Stream,
     job: JobId,
     /// The link's source; dropped when the stream closes, which ends the program.
@@ -438,8 +443,11 @@ impl StreamTask {
         }
     }
 
-    fn publish(&self) {
+    fn publish(&mut self) {
         let figures = self.stream.figures();
+        self.metrics
+            .add_g05_underruns(figures.underruns.saturating_sub(self.underruns_counted));
+        self.underruns_counted = self.underruns_counted.max(figures.underruns);
         self.status.send_if_modified(|s| {
             let changed = s.figures != figures;
             s.figures = figures;

@@ -59,6 +59,8 @@ use crate::link::JobId;
 use crate::link::driver::{JobFailure, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use crate::pb;
 use crate::pb::job_event::Kind;
+use crate::telemetry::metrics::{self, MachineMetrics, Outcome};
+use crate::telemetry::span_count;
 use blocks::{Block, BlockError, StartAt};
 use journal::{JobRecord, JobState, Journal, JournalError, StartPoint};
 use library::{LibraryError, ProgramLibrary};
@@ -563,6 +565,8 @@ pub fn spawn(
         snapshot: snap_tx,
         totals: JobsSnapshot::default(),
         link_waiting: None,
+        metrics: metrics::machine(&name),
+        traces: HashMap::new(),
     };
     let span = tracing::info_span!("jobs", machine = %name);
     let task = tokio::spawn(tracing::Instrument::instrument(
@@ -682,6 +686,15 @@ struct Manager {
     totals: JobsSnapshot,
     /// What the link waits for from the board, and since when (Unix ms).
     link_waiting: Option<(&'static str, u64)>,
+    metrics: Arc<MachineMetrics>,
+    /// The span of every job not ended yet, by job id.
+    traces: HashMap<String, JobTrace>,
+}
+
+/// A job's span, from queued to ended, and when it started on the link.
+struct JobTrace {
+    span: tracing::Span,
+    started_at: Option<Instant>,
 }
 
 /// How a job ended, as the manager records it.
@@ -774,6 +787,9 @@ impl Manager {
                             code: pb::ErrorCode::Unavailable,
                         };
                         self.totals.jobs_failed += 1;
+                        // Its request id still names it: the same request sent again after
+                        // the restart answers this job, not a new one.
+                        self.remember_request(&record);
                         self.end(record, end, offset, offset, next);
                     }
                 }
@@ -781,6 +797,7 @@ impl Manager {
         }
         for record in resume.into_iter().chain(waiting) {
             self.remember_request(&record);
+            self.open_trace(&record, "journal");
             tracing::info!(job = %record.id, "job restored from the journal");
             self.journal_put(&record);
             self.waiting.push(record.priority, record);
@@ -862,7 +879,73 @@ impl Manager {
             self.journal_put(&record);
             tracing::info!(job = %record.id, acked = record.acked, "job interrupted by the shutdown; kept in the journal");
         }
+        // The spans of jobs not ended close here; the jobs themselves go on after a restart.
+        for (_, trace) in self.traces.drain() {
+            tracing::info!(parent: &trace.span, "gateway stopped; the job stays in the journal");
+        }
         self.publish_snapshot();
+    }
+
+    /// Opens a job's span: its own trace, from queued (`how`: a request, the journal) to
+    /// ended. Machine, id, name and size now; outcome and bytes when it ends.
+    fn open_trace(&mut self, record: &JobRecord, how: &'static str) -> &tracing::Span {
+        let span = tracing::info_span!(
+            parent: None,
+            "job",
+            machine = %self.machine,
+            job.id = %record.id,
+            job.name = %record.name,
+            job.bytes = span_count(record.stream_size()),
+            job.priority = record.priority,
+            job.outcome = tracing::field::Empty,
+            job.bytes_acked = tracing::field::Empty,
+            job.bytes_on_line = tracing::field::Empty,
+            job.error = tracing::field::Empty,
+            otel.status_code = tracing::field::Empty,
+        );
+        tracing::info!(parent: &span, how, "queued");
+        let trace = self.traces.entry(record.id.clone()).or_insert(JobTrace {
+            span,
+            started_at: None,
+        });
+        &trace.span
+    }
+
+    /// The job is on the link now.
+    fn trace_started(&mut self, id: &str) {
+        if let Some(trace) = self.traces.get_mut(id) {
+            trace.started_at = Some(Instant::now());
+            tracing::info!(parent: &trace.span, "started");
+        }
+    }
+
+    /// Closes the job's span with its outcome, and counts the job.
+    fn trace_end(&mut self, record: &JobRecord, kind: &Kind, acked: u64, sent: u64) {
+        let (outcome, error) = match kind {
+            Kind::Completed(_) => (Outcome::Completed, None),
+            Kind::Failed(f) => (Outcome::Failed, Some(f.reason.as_str())),
+            _ => (Outcome::Cancelled, None),
+        };
+        // A job ended as the journal is read never had a span: it gets a short one.
+        if !self.traces.contains_key(&record.id) {
+            self.open_trace(record, "journal");
+        }
+        let Some(trace) = self.traces.remove(&record.id) else {
+            return;
+        };
+        let span = trace.span;
+        span.record("job.outcome", outcome.as_str());
+        span.record("job.bytes_acked", span_count(acked));
+        span.record("job.bytes_on_line", span_count(sent));
+        if let Some(error) = error {
+            span.record("job.error", error);
+            span.record("otel.status_code", "ERROR");
+        }
+        tracing::info!(parent: &span, outcome = outcome.as_str(), acked = span_count(acked), "ended");
+        let sending = trace
+            .started_at
+            .map(|at| Instant::now().saturating_duration_since(at));
+        self.metrics.job_ended(outcome, sending);
     }
 
     fn emit(&self, id: &str, kind: Kind) -> pb::JobEvent {
@@ -909,6 +992,7 @@ impl Manager {
                 next_block,
             }),
         };
+        self.trace_end(&record, &kind, acked, sent);
         let event = self.emit(&record.id, kind);
         record.state = JobState::Ended;
         record.acked = acked;
@@ -923,6 +1007,7 @@ impl Manager {
     }
 
     fn publish_snapshot(&mut self) {
+        self.metrics.set_queue_depth(self.waiting.len());
         let snapshot = JobsSnapshot {
             active: self.active.as_ref().map(|a| a.record.id.clone()),
             waiting: self.waiting.len(),
@@ -1009,6 +1094,7 @@ impl Manager {
             })?;
         let id = record.id.clone();
         self.remember_request(&record);
+        self.open_trace(&record, "request");
         tracing::info!(job = %id, name = %record.name, size = record.stream_size(), priority = record.priority, "job queued");
         let position =
             u32::try_from(self.waiting.push(record.priority, record)).unwrap_or(u32::MAX);
@@ -1225,6 +1311,7 @@ impl Manager {
                 active.shaper = ProgressShaper::new(now, Some(active.record.stream_size()));
                 let (id, size) = (active.record.id.clone(), active.record.stream_size());
                 tracing::info!(job = %id, "job started");
+                self.trace_started(&id);
                 let event = self.emit(
                     &id,
                     Kind::Started(pb::job_event::Started {

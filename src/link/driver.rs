@@ -21,6 +21,8 @@ use crate::fanuc::host::{
     Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState, PunchDamage,
 };
 use crate::fanuc::sat::StatusData;
+use crate::telemetry::metrics::{self, LinkMetrics};
+use crate::telemetry::span_count;
 use crate::transport::Transport;
 
 /// Where a program's bytes come from: a file, a bus download, a test vector.
@@ -302,8 +304,14 @@ where
         events: ev_tx.clone(),
         state: state_rx,
     };
-    let span = tracing::info_span!("link", machine = %machine, line = %transport.describe());
+    let line = transport.describe();
+    let span = tracing::info_span!("link", machine = %machine, line = %line);
     let driver = Driver {
+        metrics: metrics::link(&machine),
+        counted: Counted::default(),
+        session: None,
+        machine,
+        line,
         pump: Pump::new(engine, transport),
         commands: cmd_rx,
         events: ev_tx,
@@ -334,7 +342,27 @@ struct ActiveJob {
     cancelling: bool,
 }
 
+/// What of the pump's running totals is already in the link's counters.
+#[derive(Default)]
+struct Counted {
+    bytes: (u64, u64),
+    frames: (u64, u64),
+}
+
+/// The span of the link's current session (from the link up to its next re-initialisation,
+/// line down or stop), and the byte totals it started at.
+struct Session {
+    span: tracing::Span,
+    bytes_at_start: (u64, u64),
+}
+
 struct Driver<E, T> {
+    machine: String,
+    /// The transport as described in logs.
+    line: String,
+    metrics: Arc<LinkMetrics>,
+    counted: Counted,
+    session: Option<Session>,
     pump: Pump<E, T>,
     commands: mpsc::Receiver<LinkCommand>,
     events: broadcast::Sender<LinkEvent>,
@@ -380,6 +408,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                     r = self.pump.step() => Wake::Pump(r),
                 }
             };
+            self.count_line();
             match wake {
                 Wake::Shutdown | Wake::Command(None) => break Ok(()),
                 Wake::Command(Some(cmd)) => self.handle_command(cmd),
@@ -389,6 +418,12 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             }
         };
         self.drain_engine_events();
+        self.count_line();
+        self.end_session(if result.is_ok() {
+            "stopped"
+        } else {
+            "line failed"
+        });
         let (result, error) = match result {
             Ok(()) => (Ok(()), None),
             Err(e) => {
@@ -424,6 +459,117 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
     fn emit(&self, event: LinkEvent) {
         // No subscriber is not an error: nobody is watching this link right now.
         let _ = self.events.send(event);
+    }
+
+    /// Adds what the pump moved since the last call to the link's counters: a subtraction
+    /// and at most four atomic adds per wake-up, nothing per byte.
+    fn count_line(&mut self) {
+        let bytes = self.pump.counters();
+        let frames = self.pump.engine().frames();
+        let frames = (frames.received, frames.sent);
+        let c = &mut self.counted;
+        self.metrics.add_bytes(
+            bytes.0.saturating_sub(c.bytes.0),
+            bytes.1.saturating_sub(c.bytes.1),
+        );
+        self.metrics.add_frames(
+            frames.0.saturating_sub(c.frames.0),
+            frames.1.saturating_sub(c.frames.1),
+        );
+        c.bytes = bytes;
+        c.frames = frames;
+    }
+
+    /// The span link events belong to: the session's, else the link task's.
+    fn event_parent(&self) -> Option<tracing::Id> {
+        match &self.session {
+            Some(s) => s.span.id(),
+            None => tracing::Span::current().id(),
+        }
+    }
+
+    /// A link session starts when the link is up with its board and ends when it goes back
+    /// to initialising or the line goes down. Its own trace: a link runs for months.
+    fn on_state(&mut self, state: LinkState) {
+        match state {
+            LinkState::Ready | LinkState::Sending | LinkState::Receiving => {
+                if self.session.is_none() {
+                    self.metrics.session();
+                    let span = tracing::info_span!(
+                        parent: None,
+                        "link session",
+                        link = %self.machine,
+                        line = %self.line,
+                        bytes_in = tracing::field::Empty,
+                        bytes_out = tracing::field::Empty,
+                        ended = tracing::field::Empty,
+                    );
+                    span.follows_from(tracing::Span::current());
+                    tracing::info!(parent: &span, "link up");
+                    self.session = Some(Session {
+                        span,
+                        bytes_at_start: self.pump.counters(),
+                    });
+                }
+            }
+            LinkState::Initialising => self.end_session("re-initialised"),
+            LinkState::LineDown => self.end_session("line down"),
+        }
+    }
+
+    fn end_session(&mut self, why: &'static str) {
+        let Some(session) = self.session.take() else {
+            return;
+        };
+        let (rx, tx) = self.pump.counters();
+        let span = session.span;
+        span.record(
+            "bytes_in",
+            span_count(rx.saturating_sub(session.bytes_at_start.0)),
+        );
+        span.record(
+            "bytes_out",
+            span_count(tx.saturating_sub(session.bytes_at_start.1)),
+        );
+        span.record("ended", why);
+        tracing::info!(parent: &span, why, "link session over");
+    }
+
+    /// Counts a protocol error and notes it in the session's span.
+    fn on_protocol_error(&self, error: &ProtocolError, retried: bool) {
+        if retried {
+            self.metrics.retry();
+        }
+        let checksum = error.is_checksum();
+        if checksum {
+            self.metrics.checksum_error();
+        }
+        let line = matches!(error, ProtocolError::LineB { .. });
+        if line {
+            self.metrics.line_error();
+        }
+        let parent = self.event_parent();
+        if line {
+            tracing::warn!(parent: parent, %error, "line fault");
+        } else if checksum {
+            tracing::info!(parent: parent, %error, retried, "checksum error");
+        } else if retried {
+            tracing::info!(parent: parent, %error, "retry");
+        } else {
+            tracing::debug!(parent: parent, %error, "protocol error");
+        }
+    }
+
+    /// Counts a link alarm and notes it in the session's span (before the session ends with
+    /// the re-initialisation the alarm brings).
+    fn on_alarm(&self, alarm: &LinkAlarm) {
+        self.metrics.alarm();
+        let line = matches!(alarm, LinkAlarm::Line(_) | LinkAlarm::FrameParity { .. });
+        if line {
+            self.metrics.line_error();
+        }
+        let number = alarm.cnc_alarm().map(CncAlarm::number);
+        tracing::warn!(parent: self.event_parent(), number, line_fault = line, %alarm, "link alarm");
     }
 
     fn engine_command(&mut self, command: EngineCommand) {
@@ -553,6 +699,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
         let event = match event {
             EngineEvent::State(state) => {
                 self.state.send_replace(Some(state));
+                self.on_state(state);
                 LinkEvent::State { state }
             }
             EngineEvent::Status(status) => LinkEvent::Status { status },
@@ -564,7 +711,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             EngineEvent::CncReset => LinkEvent::CncReset,
             EngineEvent::CncAlarm => LinkEvent::CncAlarm,
             EngineEvent::Alarm(alarm) => {
-                tracing::warn!(number = alarm.cnc_alarm().map(CncAlarm::number), %alarm, "link alarm");
+                self.on_alarm(&alarm);
                 if let LinkAlarm::TimeOut { waited } = &alarm {
                     // Silence past the protocol's time-out is how a half-open connection (a
                     // device server that lost power or was replaced) shows: make a new one. The
@@ -575,7 +722,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 LinkEvent::Alarm(alarm)
             }
             EngineEvent::ProtocolError { error, retried } => {
-                tracing::debug!(%error, retried, "protocol error");
+                self.on_protocol_error(&error, retried);
                 LinkEvent::ProtocolError { error, retried }
             }
             EngineEvent::Punched { data } => LinkEvent::Punched { data },

@@ -79,7 +79,7 @@ use std::collections::VecDeque;
 use std::fmt;
 use std::time::{Duration, Instant};
 
-use crate::engine::{Engine, LineError, ModemIn};
+use crate::engine::{Engine, FrameCounts, LineError, ModemIn};
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
 use crate::fanuc::host::{Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState};
@@ -363,6 +363,8 @@ pub struct ProtocolAHost {
     last_activity: Instant,
     events: VecDeque<EngineEvent>,
     state: LinkState,
+    /// Messages and packets received (good or not) and sent whole.
+    frames: FrameCounts,
 }
 
 impl fmt::Debug for ProtocolAHost {
@@ -416,6 +418,7 @@ impl ProtocolAHost {
             last_activity: now,
             events: VecDeque::from([EngineEvent::State(LinkState::Initialising)]),
             state: LinkState::Initialising,
+            frames: FrameCounts::default(),
         })
     }
 
@@ -1199,6 +1202,7 @@ impl Engine for ProtocolAHost {
                 rest = tail;
                 if let Ok(packet) = <[u8; MONITOR_LEN]>::try_from(self.monitor_buf.as_slice()) {
                     self.monitor_buf.clear();
+                    self.frames.received += 1;
                     self.on_monitor(now, packet);
                     self.try_answer(now);
                 }
@@ -1212,6 +1216,7 @@ impl Engine for ProtocolAHost {
             self.decoder.push(head);
             rest = tail;
             while let Some(frame) = self.decoder.next_message() {
+                self.frames.received += 1;
                 self.on_frame(now, frame);
                 // Answer before the next message: a GTD may start packets that a monitor
                 // packet right behind it acts on.
@@ -1331,6 +1336,7 @@ impl Engine for ProtocolAHost {
             if out.pos >= out.bytes.len()
                 && let Some(done) = self.tx.pop_front()
             {
+                self.frames.sent += 1;
                 self.sent_at(now, done.bytes.len());
                 if done.program_bytes > 0 {
                     self.dat_unacked += done.program_bytes;
@@ -1366,6 +1372,10 @@ impl Engine for ProtocolAHost {
 
     fn poll_event(&mut self) -> Option<EngineEvent> {
         self.events.pop_front()
+    }
+
+    fn frames(&self) -> FrameCounts {
+        self.frames
     }
 
     fn poll_timeout(&self) -> Option<Instant> {

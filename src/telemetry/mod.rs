@@ -1,0 +1,452 @@
+//! Logs, traces and metrics: a tracing subscriber with env-filter, human or JSON output; an
+//! optional OpenTelemetry OTLP export of spans and metrics; an optional Prometheus text
+//! endpoint. Both exports are off by default: nothing is contacted and no port opened.
+//!
+//! - [`metrics`]: the gateway's counters (plain atomics the links and job managers count
+//!   into) and the instruments that read them;
+//! - [`prometheus`]: `GET /metrics` in the Prometheus text format.
+//!
+//! Spans: every job is a root span `job` from queued to ended (machine, job id, bytes,
+//! outcome), every time a link is up a root span `link session`; retries, checksum errors,
+//! line faults and alarms are events in the link's session span.
+
+pub mod metrics;
+pub mod prometheus;
+
+use std::io::IsTerminal as _;
+use std::net::SocketAddr;
+
+use serde::{Deserialize, Serialize};
+use tracing_subscriber::{
+    EnvFilter, Layer as _, fmt, layer::SubscriberExt as _, util::SubscriberInitExt as _,
+};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    #[default]
+    Human,
+    Json,
+}
+
+/// `[telemetry]` of the cell file.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TelemetryConfig {
+    pub log_format: LogFormat,
+    /// An env-filter directive such as `info,cellgate=debug`; `RUST_LOG` overrides it.
+    pub log_filter: String,
+    /// OTLP/gRPC endpoint, e.g. `http://127.0.0.1:4317`. `None` (the default) exports nothing,
+    /// unless `OTEL_EXPORTER_OTLP_ENDPOINT` is set.
+    pub otlp_endpoint: Option<String>,
+    /// `service.name` of exported spans and metrics.
+    pub service_name: String,
+    /// Address (IP and port) of the Prometheus text endpoint, e.g. `127.0.0.1:9464`. `None`
+    /// (the default) opens no port.
+    pub prometheus: Option<String>,
+}
+
+impl Default for TelemetryConfig {
+    fn default() -> Self {
+        TelemetryConfig {
+            log_format: LogFormat::Human,
+            log_filter: "info".to_string(),
+            otlp_endpoint: None,
+            service_name: "cellgate".to_string(),
+            prometheus: None,
+        }
+    }
+}
+
+/// A count as a span field: tracing-opentelemetry exports `u64` fields as strings (they may
+/// not fit an OTLP integer), so counts go in as `i64`, which every real one fits.
+pub fn span_count(n: u64) -> i64 {
+    i64::try_from(n).unwrap_or(i64::MAX)
+}
+
+/// The environment variable that overrides `log_filter`.
+pub const RUST_LOG: &str = "RUST_LOG";
+/// The standard OpenTelemetry variable that turns the OTLP export on when
+/// `otlp_endpoint` is not set.
+pub const OTEL_EXPORTER_OTLP_ENDPOINT: &str = "OTEL_EXPORTER_OTLP_ENDPOINT";
+
+/// Why telemetry could not be set up or shut down.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum TelemetryError {
+    /// The log filter is not a valid env-filter directive.
+    #[error("log filter {filter:?} from {origin} is not valid: {source}")]
+    Filter {
+        filter: String,
+        /// `RUST_LOG` or `telemetry.log_filter`.
+        origin: &'static str,
+        #[source]
+        source: tracing_subscriber::filter::ParseError,
+    },
+    /// The OTLP span or metric exporter could not be built (e.g. a malformed endpoint).
+    #[error("OTLP exporter for {endpoint}: {source}")]
+    Exporter {
+        endpoint: String,
+        #[source]
+        source: opentelemetry_otlp::ExporterBuildError,
+    },
+    /// `telemetry.prometheus` is not an IP address and port.
+    #[error(
+        "telemetry.prometheus {addr:?} is not an IP address and port like \"127.0.0.1:9464\": {source}"
+    )]
+    PrometheusAddress {
+        addr: String,
+        #[source]
+        source: std::net::AddrParseError,
+    },
+    /// The Prometheus endpoint's address could not be bound (in use, not local, ...).
+    #[error("Prometheus endpoint on {addr}: {source}")]
+    PrometheusBind {
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Prometheus(#[from] prometheus::PrometheusError),
+    /// An export was asked for outside a Tokio runtime (the gRPC channel and the endpoint
+    /// live there).
+    #[error("telemetry exports need a Tokio runtime: {0}")]
+    NoRuntime(#[source] tokio::runtime::TryCurrentError),
+    /// A global subscriber was already installed in this process.
+    #[error("a tracing subscriber is already installed: {0}")]
+    AlreadyInitialised(#[source] tracing_subscriber::util::TryInitError),
+    /// Flushing or shutting down an exporter failed (spans or metrics may be lost).
+    #[error("shutting down the OTLP exporter: {0}")]
+    Shutdown(#[source] opentelemetry_sdk::error::OTelSdkError),
+}
+
+/// Keeps the metrics pipeline alive: the meter provider (OTLP export, Prometheus reader) and
+/// the Prometheus endpoint. Dropping it (or [`shutdown`](Self::shutdown)) exports what is
+/// left and closes the endpoint.
+#[derive(Debug, Default)]
+#[must_use = "dropping the guard stops the metrics export at once"]
+pub struct MetricsGuard {
+    provider: Option<opentelemetry_sdk::metrics::SdkMeterProvider>,
+    instruments: Option<metrics::Instruments>,
+    prometheus: Option<(SocketAddr, tokio_util::sync::CancellationToken)>,
+}
+
+impl MetricsGuard {
+    /// Whether metrics are collected for an exporter (OTLP or Prometheus).
+    pub fn active(&self) -> bool {
+        self.provider.is_some()
+    }
+
+    /// The address the Prometheus endpoint listens on (the port bound when 0 was asked).
+    pub fn prometheus_addr(&self) -> Option<SocketAddr> {
+        self.prometheus.as_ref().map(|(a, _)| *a)
+    }
+
+    /// Exports the metrics now (OTLP); the Prometheus endpoint always serves current ones.
+    pub fn force_flush(&self) -> Result<(), TelemetryError> {
+        match &self.provider {
+            Some(p) => p.force_flush().map_err(TelemetryError::Shutdown),
+            None => Ok(()),
+        }
+    }
+
+    /// Exports what is left, stops the exporters and closes the endpoint. Later calls do
+    /// nothing.
+    pub fn shutdown(&mut self) -> Result<(), TelemetryError> {
+        if let Some((_, stop)) = self.prometheus.take() {
+            stop.cancel();
+        }
+        self.instruments = None;
+        match self.provider.take() {
+            Some(provider) => provider.shutdown().map_err(TelemetryError::Shutdown),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for MetricsGuard {
+    fn drop(&mut self) {
+        if let Err(e) = self.shutdown() {
+            eprintln!("cellgate: {e}");
+        }
+    }
+}
+
+/// Builds the metrics pipeline `cfg` asks for: an OTLP/gRPC metric exporter when an
+/// endpoint is configured (see [`otlp_endpoint`]; every `OTEL_METRIC_EXPORT_INTERVAL` ms,
+/// default 60 s, and at shutdown), and the Prometheus endpoint when `prometheus` is set.
+/// Neither: nothing is built, nothing contacted, no port opened. The counters are counted
+/// either way ([`metrics`]).
+///
+/// Call it inside the Tokio runtime when anything is exported. The provider is not made
+/// global; [`init`] does that.
+pub fn install_metrics(
+    cfg: &TelemetryConfig,
+    endpoint: Option<&str>,
+) -> Result<MetricsGuard, TelemetryError> {
+    let prometheus_addr = match &cfg.prometheus {
+        Some(text) => Some(prometheus::parse_addr(text).map_err(|source| {
+            TelemetryError::PrometheusAddress {
+                addr: text.clone(),
+                source,
+            }
+        })?),
+        None => None,
+    };
+    if endpoint.is_none() && prometheus_addr.is_none() {
+        return Ok(MetricsGuard::default());
+    }
+    let runtime = tokio::runtime::Handle::try_current().map_err(TelemetryError::NoRuntime)?;
+    let mut builder =
+        opentelemetry_sdk::metrics::SdkMeterProvider::builder().with_resource(resource(cfg));
+    if let Some(endpoint) = endpoint {
+        use opentelemetry_otlp::WithExportConfig as _;
+        let exporter = opentelemetry_otlp::MetricExporter::builder()
+            .with_tonic()
+            .with_endpoint(endpoint)
+            .build()
+            .map_err(|source| TelemetryError::Exporter {
+                endpoint: endpoint.to_string(),
+                source,
+            })?;
+        builder = builder.with_periodic_exporter(exporter);
+    }
+    let mut prometheus = None;
+    if let Some(addr) = prometheus_addr {
+        let (exposition, reader) = prometheus::Exposition::new()?;
+        let bind = |addr| -> std::io::Result<tokio::net::TcpListener> {
+            let listener = std::net::TcpListener::bind(addr)?;
+            listener.set_nonblocking(true)?;
+            let _entered = runtime.enter();
+            tokio::net::TcpListener::from_std(listener)
+        };
+        let listener =
+            bind(addr).map_err(|source| TelemetryError::PrometheusBind { addr, source })?;
+        let bound = listener
+            .local_addr()
+            .map_err(|source| TelemetryError::PrometheusBind { addr, source })?;
+        let stop = tokio_util::sync::CancellationToken::new();
+        runtime.spawn(prometheus::serve(listener, exposition, stop.clone()));
+        tracing::info!(addr = %bound, "serving Prometheus metrics on /metrics");
+        prometheus = Some((bound, stop));
+        builder = builder.with_reader(reader);
+    }
+    let provider = builder.build();
+    let instruments = metrics::register(&provider);
+    if let Some(endpoint) = endpoint {
+        tracing::info!(%endpoint, "exporting metrics over OTLP/gRPC");
+    }
+    Ok(MetricsGuard {
+        provider: Some(provider),
+        instruments: Some(instruments),
+        prometheus,
+    })
+}
+
+fn resource(cfg: &TelemetryConfig) -> opentelemetry_sdk::Resource {
+    opentelemetry_sdk::Resource::builder()
+        .with_service_name(cfg.service_name.clone())
+        .build()
+}
+
+/// Keeps the OpenTelemetry pipeline alive. Dropping it (or calling
+/// [`shutdown`](Self::shutdown)) flushes pending spans and stops the exporter. Keep it
+/// until the end of the async main, inside the Tokio runtime: the gRPC exporter needs it.
+#[derive(Debug, Default)]
+#[must_use = "dropping the guard shuts the span exporter down at once"]
+pub struct TelemetryGuard {
+    provider: Option<opentelemetry_sdk::trace::SdkTracerProvider>,
+    metrics: MetricsGuard,
+}
+
+impl TelemetryGuard {
+    /// Whether spans are exported over OTLP.
+    pub fn exporting(&self) -> bool {
+        self.provider.is_some()
+    }
+
+    /// The metrics pipeline (Prometheus address, flush).
+    pub fn metrics(&self) -> &MetricsGuard {
+        &self.metrics
+    }
+
+    /// Flushes pending spans and metrics and shuts the exporters down. Later calls do
+    /// nothing.
+    pub fn shutdown(&mut self) -> Result<(), TelemetryError> {
+        let metrics = self.metrics.shutdown();
+        let spans = match self.provider.take() {
+            Some(provider) => {
+                // A failed flush is reported, but the provider is still shut down.
+                let flushed = provider.force_flush();
+                let shut = provider.shutdown();
+                flushed.and(shut).map_err(TelemetryError::Shutdown)
+            }
+            None => Ok(()),
+        };
+        spans.and(metrics)
+    }
+}
+
+impl Drop for TelemetryGuard {
+    fn drop(&mut self) {
+        if let Err(e) = self.shutdown() {
+            eprintln!("cellgate: {e}");
+        }
+    }
+}
+
+/// The filter to log with: `RUST_LOG` when set (non-empty), else `log_filter`.
+pub fn filter(log_filter: &str, rust_log: Option<&str>) -> Result<EnvFilter, TelemetryError> {
+    let (directives, origin) = match rust_log {
+        Some(s) if !s.trim().is_empty() => (s, RUST_LOG),
+        _ => (log_filter, "telemetry.log_filter"),
+    };
+    EnvFilter::builder()
+        .parse(directives)
+        .map_err(|source| TelemetryError::Filter {
+            filter: directives.to_string(),
+            origin,
+            source,
+        })
+}
+
+/// The OTLP endpoint to export to, if any: `otlp_endpoint` from the cell file, else
+/// `OTEL_EXPORTER_OTLP_ENDPOINT` (non-empty). `None`: no export.
+pub fn otlp_endpoint(cfg: &TelemetryConfig, env_endpoint: Option<&str>) -> Option<String> {
+    cfg.otlp_endpoint
+        .clone()
+        .or_else(|| env_endpoint.map(str::to_string))
+        .filter(|e| !e.trim().is_empty())
+}
+
+/// Installs the global tracing subscriber: env-filter, human or JSON lines on stderr, and
+/// an OTLP/gRPC span exporter when an endpoint is configured (see [`otlp_endpoint`]); and
+/// the metrics pipeline ([`install_metrics`]), whose meter provider becomes the global one.
+///
+/// With OTLP or Prometheus on, call it from inside the Tokio runtime (the gRPC channel and
+/// the endpoint live there). Without either nothing is contacted and no port opened.
+pub fn init(cfg: &TelemetryConfig) -> Result<TelemetryGuard, TelemetryError> {
+    let env_filter = filter(&cfg.log_filter, std::env::var(RUST_LOG).ok().as_deref())?;
+    let endpoint = otlp_endpoint(
+        cfg,
+        std::env::var(OTEL_EXPORTER_OTLP_ENDPOINT).ok().as_deref(),
+    );
+
+    let provider = match &endpoint {
+        Some(endpoint) => Some(tracer_provider(endpoint, cfg)?),
+        None => None,
+    };
+    let otel_layer = provider.as_ref().map(|p| {
+        use opentelemetry::trace::TracerProvider as _;
+        tracing_opentelemetry::layer().with_tracer(p.tracer("cellgate"))
+    });
+
+    let ansi = std::io::stderr().is_terminal();
+    let fmt_layer = match cfg.log_format {
+        LogFormat::Human => fmt::layer()
+            .with_writer(std::io::stderr)
+            .with_ansi(ansi)
+            .boxed(),
+        LogFormat::Json => fmt::layer()
+            .json()
+            .with_writer(std::io::stderr)
+            .with_current_span(true)
+            .boxed(),
+    };
+
+    tracing_subscriber::registry()
+        .with(env_filter)
+        .with(fmt_layer)
+        .with(otel_layer)
+        .try_init()
+        .map_err(TelemetryError::AlreadyInitialised)?;
+
+    if let Some(provider) = &provider {
+        opentelemetry::global::set_tracer_provider(provider.clone());
+    }
+    if let Some(endpoint) = &endpoint {
+        tracing::info!(%endpoint, service = %cfg.service_name, "exporting spans over OTLP/gRPC");
+    }
+    // Built after the subscriber, so that its own messages are logged.
+    let metrics = install_metrics(cfg, endpoint.as_deref())?;
+    if let Some(p) = &metrics.provider {
+        opentelemetry::global::set_meter_provider(p.clone());
+    }
+    Ok(TelemetryGuard { provider, metrics })
+}
+
+fn tracer_provider(
+    endpoint: &str,
+    cfg: &TelemetryConfig,
+) -> Result<opentelemetry_sdk::trace::SdkTracerProvider, TelemetryError> {
+    use opentelemetry_otlp::WithExportConfig as _;
+    let exporter = opentelemetry_otlp::SpanExporter::builder()
+        .with_tonic()
+        .with_endpoint(endpoint)
+        .build()
+        .map_err(|source| TelemetryError::Exporter {
+            endpoint: endpoint.to_string(),
+            source,
+        })?;
+    Ok(opentelemetry_sdk::trace::SdkTracerProvider::builder()
+        .with_batch_exporter(exporter)
+        .with_resource(resource(cfg))
+        .build())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rust_log_overrides_the_cell_file() {
+        let f = filter("info", Some("cellgate=trace")).unwrap();
+        assert_eq!(f.to_string(), "cellgate=trace");
+        let f = filter("warn,cellgate=debug", None).unwrap();
+        assert!(f.to_string().contains("cellgate=debug"), "{f}");
+        // An empty RUST_LOG is treated as unset.
+        let f = filter("warn", Some("  ")).unwrap();
+        assert_eq!(f.to_string(), "warn");
+    }
+
+    #[test]
+    fn a_bad_filter_names_where_it_came_from() {
+        match filter("info", Some("cellgate=loud")) {
+            Err(TelemetryError::Filter { origin, .. }) => assert_eq!(origin, RUST_LOG),
+            other => panic!("expected a filter error, got {other:?}"),
+        }
+        match filter("cellgate=loud", None) {
+            Err(TelemetryError::Filter { origin, .. }) => {
+                assert_eq!(origin, "telemetry.log_filter")
+            }
+            other => panic!("expected a filter error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn otlp_is_off_unless_an_endpoint_is_given() {
+        let cfg = TelemetryConfig::default();
+        assert_eq!(otlp_endpoint(&cfg, None), None);
+        assert_eq!(otlp_endpoint(&cfg, Some("")), None);
+        assert_eq!(
+            otlp_endpoint(&cfg, Some("http://127.0.0.1:4317")).as_deref(),
+            Some("http://127.0.0.1:4317")
+        );
+        let cfg = TelemetryConfig {
+            otlp_endpoint: Some("http://127.0.0.1:14317".to_string()),
+            ..TelemetryConfig::default()
+        };
+        assert_eq!(
+            otlp_endpoint(&cfg, Some("http://127.0.0.1:4317")).as_deref(),
+            Some("http://127.0.0.1:14317")
+        );
+    }
+
+    #[test]
+    fn a_guard_without_exporter_shuts_down_quietly() {
+        let mut guard = TelemetryGuard::default();
+        assert!(!guard.exporting());
+        guard.shutdown().unwrap();
+        guard.shutdown().unwrap();
+    }
+}
