@@ -1072,8 +1072,15 @@ impl Manager {
                 max: MAX_WAITING,
             });
         }
-        record.id = format!("{}-{}-{}", self.machine, self.run_stamp, self.next);
-        self.next += 1;
+        // A restart within the same second gives the same run stamp: skip the ids the journal
+        // brought back, so an id never names two jobs.
+        loop {
+            record.id = format!("{}-{}-{}", self.machine, self.run_stamp, self.next);
+            self.next += 1;
+            if !self.id_known(&record.id) {
+                break;
+            }
+        }
         let position = u32::try_from(self.waiting.len() + usize::from(self.active.is_some()))
             .unwrap_or(u32::MAX);
         let queued = pb::JobEvent {
@@ -1108,6 +1115,11 @@ impl Manager {
             job_id: id,
             queue_position: position,
         })
+    }
+
+    /// Whether `id` names a job this machine holds: waiting, active or ended.
+    fn id_known(&self, id: &str) -> bool {
+        self.position_of(id).is_some() || self.ended.iter().any(|r| r.id == id)
     }
 
     /// Where job `id` stands: 0 for the active one, else its place among the waiting.
