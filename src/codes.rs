@@ -22,6 +22,7 @@ impl BusCode for LibraryError {
             LibraryError::InvalidName { .. }
             | LibraryError::TooLarge { .. }
             | LibraryError::Exists { .. } => pb::ErrorCode::InvalidRequest,
+            LibraryError::QuotaExceeded { .. } => pb::ErrorCode::QuotaExceeded,
             LibraryError::Io { .. } => pb::ErrorCode::Internal,
         }
     }

@@ -104,7 +104,12 @@ pub async fn serve_announced(
     ready: Option<tokio::sync::oneshot::Sender<()>>,
 ) -> Result<(), BusError> {
     let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
-    let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size);
+    let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size).with_quota(
+        crate::jobs::library::Quota {
+            bytes: config.programs.quota_bytes,
+            files: config.programs.quota_files,
+        },
+    );
     let journal = Journal::open(&config.programs.journal_dir())?;
     let mut restored = journal.restore()?;
     let jobs_stop = shutdown.child_token();

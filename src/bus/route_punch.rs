@@ -26,7 +26,8 @@ use crate::config::ProgramsConfig;
 use crate::fanuc::tape::TapeCode;
 use crate::jobs::library::LibraryError;
 use crate::jobs::punch::{
-    PunchAssembler, PunchError, PunchedText, RemoteRequest, RequestPatterns, library_name,
+    PunchAssembler, PunchError, PunchedText, RemoteRequest, RequestPatterns, is_punched_name,
+    library_name,
 };
 use crate::jobs::source::ProgramInput;
 use crate::jobs::{self, JobError, JobSubmission, JobsHandle};
@@ -40,6 +41,8 @@ pub(crate) struct PunchSettings {
     /// Largest punched program kept, bytes (`programs.max_size`, at most 64 MiB: a punched
     /// program is held whole until its EOR).
     pub max_program: usize,
+    /// Punched programs older than this are removed when the next one is stored.
+    pub retention: Option<std::time::Duration>,
 }
 
 /// Most bytes of one punched program held in memory.
@@ -57,6 +60,9 @@ impl PunchSettings {
             }),
             max_program: usize::try_from(programs.max_size.min(MAX_PUNCHED_PROGRAM))
                 .unwrap_or(usize::MAX),
+            retention: programs
+                .punched_retention_days
+                .map(|d| std::time::Duration::from_secs(u64::from(d) * 86_400)),
         }
     }
 }
@@ -232,9 +238,36 @@ impl PunchDesk {
                 });
             };
             match jobs.library().store_new(&name, &program.text).await {
-                Ok(entry) => return Ok(entry.name),
+                Ok(entry) => {
+                    self.expire(unix_ms, jobs).await;
+                    return Ok(entry.name);
+                }
                 Err(LibraryError::Exists { .. }) => taken.push(name),
                 Err(e) => return Err(e),
+            }
+        }
+    }
+
+    /// Removes this machine's punched programs stored longer ago than the retention.
+    async fn expire(&self, now_ms: u64, jobs: &JobsHandle) {
+        let Some(retention) = self.settings.retention else {
+            return;
+        };
+        let cutoff =
+            now_ms.saturating_sub(u64::try_from(retention.as_millis()).unwrap_or(u64::MAX));
+        let Ok(entries) = jobs.library().list().await else {
+            return;
+        };
+        for e in entries {
+            if e.modified_unix_ms < cutoff && is_punched_name(&self.machine, &e.name) {
+                match jobs.library().remove(&e.name).await {
+                    Ok(_) => {
+                        tracing::info!(machine = %self.machine, program = %e.name, "punched program past its retention removed")
+                    }
+                    Err(err) => {
+                        tracing::warn!(machine = %self.machine, program = %e.name, error = %err, "punched program past its retention not removed")
+                    }
+                }
             }
         }
     }

@@ -34,6 +34,16 @@ pub struct ProgramsConfig {
     /// id, their request id makes a retried submit idempotent, their program lets a failed
     /// job resume.
     pub keep_jobs: usize,
+    /// Most bytes the library may hold in all; a store past it is refused. None: unbounded.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub quota_bytes: Option<u64>,
+    /// Most programs the library may hold; a store past it is refused. None: unbounded.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub quota_files: Option<u64>,
+    /// Punched programs stored more than this many days ago are removed when the machine
+    /// punches the next one. None: kept until removed by hand.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub punched_retention_days: Option<u32>,
 }
 
 impl ProgramsConfig {
@@ -66,6 +76,9 @@ impl Default for ProgramsConfig {
             requests: Self::default_requests(),
             journal: None,
             keep_jobs: crate::jobs::KEEP_ENDED,
+            quota_bytes: None,
+            quota_files: None,
+            punched_retention_days: None,
         }
     }
 }
@@ -87,6 +100,23 @@ pub(super) fn check_programs(c: &mut Checker, p: &ProgramsConfig) {
         " jobs",
         "",
     );
+    for (key, value) in [
+        ("quota_bytes", p.quota_bytes),
+        ("quota_files", p.quota_files),
+        (
+            "punched_retention_days",
+            p.punched_retention_days.map(u64::from),
+        ),
+    ] {
+        if value == Some(0) {
+            c.invalid(
+                format!("programs.{key}"),
+                "0".to_string(),
+                "must be at least 1 (leave it out for no bound)".to_string(),
+                "",
+            );
+        }
+    }
     // Above max_size it is harmless: every program is bounded by max_size as well.
     if p.max_inline == 0 {
         c.invalid(

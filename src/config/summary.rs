@@ -78,6 +78,23 @@ impl CellConfig {
             self.programs.journal_dir().display(),
             self.programs.keep_jobs
         )?;
+        let p = &self.programs;
+        if p.quota_bytes.is_some() || p.quota_files.is_some() || p.punched_retention_days.is_some()
+        {
+            writeln!(
+                s,
+                "  quota: {}, {}; punched programs kept {}",
+                p.quota_bytes
+                    .map_or("bytes unbounded".to_string(), |b| format!(
+                        "{} in all",
+                        show_size(b)
+                    )),
+                p.quota_files
+                    .map_or("files unbounded".to_string(), |f| format!("{f} programs")),
+                p.punched_retention_days
+                    .map_or("until removed".to_string(), |d| format!("{d} days")),
+            )?;
+        }
         self.write_security(s)?;
         writeln!(s, "machines: {}", self.machines.len())?;
         for m in &self.machines {

@@ -7,7 +7,11 @@
 //!
 //! A program is stored by writing a hidden temporary file and renaming it over the old one,
 //! so a reader (a job streaming the program) keeps the complete old or new version, never a
-//! mix.
+//! mix. The file is synced before the rename and the directory after it, so a power cut
+//! leaves the old program or the new one, never an empty name. Temporary files a crash left
+//! behind are removed when the gateway starts ([`ProgramLibrary::create_dir`]).
+//!
+//! Optional quotas bound the library's bytes and files ([`Quota`]).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -31,6 +35,18 @@ pub enum LibraryError {
     Exists { name: String },
     #[error("program {name:?} is {size} bytes; programs.max_size allows {max}")]
     TooLarge { name: String, size: u64, max: u64 },
+    /// Storing the program would take the library past `programs.quota_bytes` or
+    /// `programs.quota_files`.
+    #[error(
+        "program {name:?} not stored: the library would hold {would} {what}, over \
+         programs.quota_{what} = {limit}; remove programs first (`cellgate program rm`)"
+    )]
+    QuotaExceeded {
+        name: String,
+        what: &'static str,
+        would: u64,
+        limit: u64,
+    },
     #[error("program {name:?}: cannot {op} {}: {source}", path.display())]
     Io {
         name: String,
@@ -57,11 +73,19 @@ enum Place {
     New,
 }
 
+/// Bounds on the whole library; `None` is unbounded.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Quota {
+    pub bytes: Option<u64>,
+    pub files: Option<u64>,
+}
+
 /// The program library. Cheap to clone.
 #[derive(Debug, Clone)]
 pub struct ProgramLibrary {
     dir: Arc<PathBuf>,
     max_size: u64,
+    quota: Quota,
 }
 
 static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
@@ -101,7 +125,14 @@ impl ProgramLibrary {
         ProgramLibrary {
             dir: Arc::new(dir.into()),
             max_size,
+            quota: Quota::default(),
         }
+    }
+
+    /// The same library, bounded by `quota`.
+    pub fn with_quota(mut self, quota: Quota) -> Self {
+        self.quota = quota;
+        self
     }
 
     pub fn dir(&self) -> &Path {
@@ -112,9 +143,71 @@ impl ProgramLibrary {
         self.max_size
     }
 
-    /// Creates the directory if it does not exist.
+    /// Creates the directory if it does not exist, and removes the temporary files a crash
+    /// left in it (those of this process, which has written nothing yet, excepted).
     pub async fn create_dir(&self) -> std::io::Result<()> {
-        tokio::fs::create_dir_all(self.dir.as_path()).await
+        tokio::fs::create_dir_all(self.dir.as_path()).await?;
+        let mut dir = tokio::fs::read_dir(self.dir.as_path()).await?;
+        let own = format!(".{}.", std::process::id());
+        while let Some(item) = dir.next_entry().await? {
+            let Ok(name) = item.file_name().into_string() else {
+                continue;
+            };
+            if name.starts_with('.') && name.ends_with(".tmp") && !name.contains(&own) {
+                match tokio::fs::remove_file(item.path()).await {
+                    Ok(()) => {
+                        tracing::info!(file = %name, "temporary file of an earlier run removed")
+                    }
+                    Err(e) => {
+                        tracing::warn!(file = %name, error = %e, "temporary file not removed")
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Makes the directory's entries (a rename, a link, a removal) durable.
+    async fn sync_dir(&self) -> std::io::Result<()> {
+        tokio::fs::File::open(self.dir.as_path())
+            .await?
+            .sync_all()
+            .await
+    }
+
+    /// Refuses a store of `size` bytes under `name` that would break the quota.
+    async fn check_quota(&self, name: &str, size: u64) -> Result<(), LibraryError> {
+        if self.quota == Quota::default() {
+            return Ok(());
+        }
+        // The program it replaces does not count.
+        let others: Vec<ProgramEntry> = self
+            .list()
+            .await?
+            .into_iter()
+            .filter(|e| e.name != name)
+            .collect();
+        let checks = [
+            (
+                "bytes",
+                self.quota.bytes,
+                others.iter().map(|e| e.size).sum::<u64>() + size,
+            ),
+            ("files", self.quota.files, others.len() as u64 + 1),
+        ];
+        for (what, limit, would) in checks {
+            if let Some(limit) = limit
+                && would > limit
+            {
+                return Err(LibraryError::QuotaExceeded {
+                    name: name.to_string(),
+                    what,
+                    would,
+                    limit,
+                });
+            }
+        }
+        Ok(())
     }
 
     pub(crate) fn path_of(&self, name: &str) -> Result<PathBuf, LibraryError> {
@@ -167,6 +260,7 @@ impl ProgramLibrary {
                 max: self.max_size,
             });
         }
+        self.check_quota(name, size).await?;
         // Hidden (leading '.'), so never a valid name and never listed.
         let temp = self.dir.join(format!(
             ".{name}.{}.{}.tmp",
@@ -185,7 +279,8 @@ impl ProgramLibrary {
                     let _ = tokio::fs::remove_file(&temp).await;
                     linked
                 }
-            }
+            }?;
+            self.sync_dir().await
         }
         .await;
         if let Err(e) = written {
@@ -265,6 +360,9 @@ impl ProgramLibrary {
         tokio::fs::remove_file(&path)
             .await
             .map_err(|e| self.io_error(name, "remove", e))?;
+        self.sync_dir()
+            .await
+            .map_err(|e| self.io_error(name, "sync the directory after removing", e))?;
         Ok(entry)
     }
 
@@ -418,5 +516,72 @@ mod tests {
             .collect();
         files.sort();
         assert_eq!(files, ["m-O1", "m-O2"]);
+    }
+
+    #[tokio::test]
+    async fn quotas_refuse_what_would_go_past_them_and_a_replaced_program_does_not_count() {
+        let dir = tempfile::tempdir().unwrap();
+        let lib = ProgramLibrary::new(dir.path(), 100).with_quota(Quota {
+            bytes: Some(100),
+            files: Some(2),
+        });
+        lib.store("A", &[b'x'; 60]).await.unwrap();
+        // Replacing A: only the new size counts.
+        lib.store("A", &[b'x'; 70]).await.unwrap();
+        let e = lib.store("B", &[b'y'; 31]).await.unwrap_err();
+        assert!(
+            matches!(
+                e,
+                LibraryError::QuotaExceeded {
+                    what: "bytes",
+                    would: 101,
+                    limit: 100,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("programs.quota_bytes = 100"), "{e}");
+        lib.store("B", &[b'y'; 29]).await.unwrap();
+        let e = lib.store_new("C", b"z").await.unwrap_err();
+        assert!(
+            matches!(
+                e,
+                LibraryError::QuotaExceeded {
+                    what: "files",
+                    would: 3,
+                    limit: 2,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        // Nothing of the refused stores is left.
+        let names: Vec<String> = lib
+            .list()
+            .await
+            .unwrap()
+            .into_iter()
+            .map(|e| e.name)
+            .collect();
+        assert_eq!(names, ["A", "B"]);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+    }
+
+    #[tokio::test]
+    async fn temporary_files_of_an_earlier_run_are_removed_at_start() {
+        let dir = tempfile::tempdir().unwrap();
+        let lib = ProgramLibrary::new(dir.path(), 100);
+        lib.store("KEEP", b"%\nO1\n%").await.unwrap();
+        // What a crash between write and rename leaves, from another process id.
+        let stale = dir.path().join(".O1234.999999999.3.tmp");
+        std::fs::write(&stale, b"half a prog").unwrap();
+        // A hidden file that is not a temporary file of the library stays.
+        let other = dir.path().join(".keepme");
+        std::fs::write(&other, b"").unwrap();
+        lib.create_dir().await.unwrap();
+        assert!(!stale.exists());
+        assert!(other.exists());
+        assert_eq!(lib.read("KEEP").await.unwrap(), b"%\nO1\n%");
     }
 }

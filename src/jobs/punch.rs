@@ -447,6 +447,38 @@ pub fn library_name(
         .find(|name| !exists(name))
 }
 
+/// Whether `name` is one [`library_name`] gives a program `machine` punched:
+/// `<machine>-<O-number or punch>-<YYYYMMDDTHHMMSSZ>`, maybe with `-<n>`.
+pub fn is_punched_name(machine: &str, name: &str) -> bool {
+    let machine = name_part(machine, MACHINE_PART_MAX);
+    let Some(rest) = name
+        .strip_prefix(machine.as_str())
+        .and_then(|r| r.strip_prefix('-'))
+    else {
+        return false;
+    };
+    let is_stamp = |s: &str| {
+        let b = s.as_bytes();
+        b.len() == 16
+            && b[8] == b'T'
+            && b[15] == b'Z'
+            && b[..8].iter().chain(&b[9..15]).all(u8::is_ascii_digit)
+    };
+    // `<program>-<stamp>` or `<program>-<stamp>-<n>`; the program part is the O-number or
+    // `punch`, so a machine whose name starts another's (`lathe`, `lathe-1`) takes only its own.
+    let parts: Vec<&str> = rest.split('-').collect();
+    let (program, stamp) = match parts.as_slice() {
+        [program, stamp] => (*program, *stamp),
+        [program, stamp, n] if n.parse::<u32>().is_ok() => (*program, *stamp),
+        _ => return false,
+    };
+    let program_ok = program == "punch"
+        || program
+            .strip_prefix('O')
+            .is_some_and(|d| !d.is_empty() && d.bytes().all(|b| b.is_ascii_digit()));
+    program_ok && is_stamp(stamp)
+}
+
 /// `s` in library name characters, starting with a letter or digit, at most `max` long.
 fn name_part(s: &str, max: usize) -> String {
     s.chars()
@@ -709,6 +741,32 @@ mod tests {
             assert_eq!(got[2].comment.as_deref(), Some("NO NUMBER"));
             assert_eq!(asm.pending(), 0);
             assert_eq!(asm.finish(), None);
+        }
+    }
+
+    #[test]
+    fn punched_names_are_recognised_for_their_machine_only() {
+        let name =
+            |o: Option<&str>| library_name("lathe-1", o, 1_795_000_000_000, |_| false).unwrap();
+        let plain = name(Some("O1234"));
+        assert!(is_punched_name("lathe-1", &plain));
+        assert!(is_punched_name("lathe-1", &format!("{plain}-7")));
+        assert!(is_punched_name("lathe-1", &name(None)));
+        assert!(!is_punched_name("lathe-2", &plain));
+        // A machine whose name starts another's takes only its own.
+        assert!(!is_punched_name("lathe", &plain));
+        assert!(is_punched_name(
+            "lathe",
+            &library_name("lathe", Some("O1"), 0, |_| false).unwrap()
+        ));
+        for other in [
+            "lathe-1",
+            "lathe-1-O1234",
+            "O1234",
+            "lathe-1-O1-2026112T061500Z",
+            "lathe-1-x",
+        ] {
+            assert!(!is_punched_name("lathe-1", other), "{other}");
         }
     }
 
