@@ -60,6 +60,7 @@ pub mod g05;
 pub mod gateway;
 pub mod jobs;
 pub mod link;
+pub mod plc;
 pub mod sim;
 pub mod telemetry;
 pub mod transport;

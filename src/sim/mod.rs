@@ -13,6 +13,7 @@
 pub mod cnc;
 pub mod fanuc_board;
 pub mod micrex;
+pub mod micrex_handle;
 pub mod server;
 
 use std::future::Future;
