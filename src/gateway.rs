@@ -71,7 +71,14 @@ async fn serve(
     let cell = Cell::start(config, &links_stop).await?;
     let machines = cell.machine_links();
     let routes_stop = CancellationToken::new();
-    let routes = bus::serve(session, config, machines, routes_stop.clone());
+    let plcs = cell.plc_links();
+    let routes = async {
+        let (machines, plcs) = tokio::join!(
+            bus::serve(session, config, machines, routes_stop.clone()),
+            bus::serve_plcs(session, config, plcs, routes_stop.clone()),
+        );
+        machines.and(plcs)
+    };
     tokio::pin!(routes);
     let mut routes_result = None;
 

@@ -66,6 +66,12 @@ enum Command {
     /// Stream G05 binary blocks from a CSV file (or standard input) to a machine (§9); exit 0
     /// only if the stream ended cleanly.
     G05(client::G05Args),
+    /// The cell PLC's memory and transfers: read, write, clear, send, status.
+    #[command(subcommand)]
+    Plc(cellgate::client::plc::PlcCommand),
+    /// The cell PLC's named tags: get, set.
+    #[command(subcommand)]
+    Tag(cellgate::client::plc::TagCommand),
     /// Run a simulated device on its own, for testing any host against it.
     #[command(subcommand)]
     Sim(SimCommand),
@@ -151,6 +157,8 @@ fn main() -> ExitCode {
         Command::Program(ref args) => client_command(&cli, args),
         Command::Cancel(ref args) => client_command(&cli, args),
         Command::G05(ref args) => client_command(&cli, args),
+        Command::Plc(ref args) => client_command(&cli, args),
+        Command::Tag(ref args) => client_command(&cli, args),
         Command::Sim(SimCommand::Fanuc(ref args)) => sim_fanuc(&cli, args.clone()),
     }
 }

@@ -174,6 +174,7 @@ pub struct PlcConfig {
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub tags: Vec<TagConfig>,
     /// What the simulated PLC does by itself (`[plcs.sim]`, sim transport only).
+    #[serde(skip_serializing_if = "PlcSimConfig::is_empty")]
     pub sim: PlcSimConfig,
 }
 
@@ -510,8 +511,9 @@ pub struct TagConfig {
     pub address: u16,
     #[serde(rename = "type")]
     pub kind: TagType,
-    /// The bit of a `bit` tag.
-    pub bit: u8,
+    /// The bit of a `bit` tag (0 = least significant).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bit: Option<u8>,
     /// Value = raw × scale (a write divides by it).
     pub scale: Real,
     /// The poll group: tags with the same interval are read together, ms.
@@ -554,6 +556,12 @@ pub struct PlcSimConfig {
     /// Words the simulated sequence program changes periodically.
     #[serde(default, rename = "tick")]
     pub ticks: Vec<SimTick>,
+}
+
+impl PlcSimConfig {
+    pub fn is_empty(&self) -> bool {
+        *self == PlcSimConfig::default()
+    }
 }
 
 /// One word the simulated PLC changes every `every_ms`: adds `add` (wrapping at the word
@@ -763,7 +771,7 @@ impl RawTag {
             kind: self
                 .kind
                 .ok_or_else(|| missing(format!("{label}.tags.{name}.type")))?,
-            bit: self.bit.unwrap_or(0),
+            bit: self.bit,
             scale: Real(self.scale.unwrap_or(1.0)),
             poll_ms: self.poll_ms.unwrap_or(TagConfig::DEFAULT_POLL_MS),
             deadband: Real(self.deadband.unwrap_or(0.0)),
@@ -781,7 +789,7 @@ impl From<&TagConfig> for RawTag {
             module: Some(t.module.to_string()),
             address: Some(t.address),
             kind: Some(t.kind),
-            bit: (t.kind == TagType::Bit).then_some(t.bit),
+            bit: t.bit,
             scale: Some(t.scale.0),
             poll_ms: Some(t.poll_ms),
             deadband: Some(t.deadband.0),

@@ -292,7 +292,7 @@ impl TagTable {
         let raw = raw as i64;
         let op = if c.kind == TagType::Bit {
             WriteOp::Bit {
-                bit: c.bit,
+                bit: c.bit.unwrap_or(0),
                 on: raw != 0,
             }
         } else {
@@ -327,7 +327,7 @@ impl TagTable {
                 decode(
                     t.config.kind,
                     t.config.module,
-                    t.config.bit,
+                    t.config.bit.unwrap_or(0),
                     w.get(offset..)?,
                 )
             });

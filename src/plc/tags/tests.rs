@@ -10,7 +10,7 @@ fn tag(name: &str, module: Module, address: u16, kind: TagType) -> TagConfig {
         module,
         address,
         kind,
-        bit: 0,
+        bit: None,
         scale: Real(1.0),
         poll_ms: 100,
         deadband: Real(0.0),
@@ -125,7 +125,7 @@ fn writes_undo_the_scale_check_the_range_and_refuse_read_only_tags() {
     w.scale = Real(0.5);
     w.writable = true;
     let mut bit = tag("lamp", Module::M, 1, TagType::Bit);
-    bit.bit = 5;
+    bit.bit = Some(5);
     bit.writable = true;
     let ro = tag("count", Module::D, 0, TagType::U16);
     let table = TagTable::new("plc", &[w, bit, ro]);
