@@ -196,6 +196,21 @@ pub enum MicrexCommand {
 #[derive(Debug, Clone, PartialEq, Eq)]
 #[non_exhaustive]
 pub enum MicrexEvent {
+    /// A command-set request addressed to one of this engine's stations: its text (header and
+    /// body, as decoded from the line).
+    Request {
+        station: u8,
+        cmnd: u8,
+        mode: u8,
+        moln: u8,
+        text: Vec<u8>,
+    },
+    /// A reply went onto the line: its STA and its size on the line (start code to BCC).
+    Replied {
+        station: u8,
+        sta: u8,
+        line_bytes: usize,
+    },
     Read {
         station: u8,
         module: Module,
@@ -400,6 +415,13 @@ impl Micrex {
         let Some(station) = self.addressed(req.second) else {
             return;
         };
+        self.event(MicrexEvent::Request {
+            station,
+            cmnd: req.cmnd,
+            mode: req.mode,
+            moln: req.moln,
+            text: text.to_vec(),
+        });
         if self.pending.len() >= MAX_PENDING {
             // A host that does not wait for replies: the module's buffer is full (§5-6).
             self.extra_receive.add(ReceiveErrorKind::BufferFull);
@@ -604,6 +626,11 @@ impl Micrex {
             if let Some(what) = fault {
                 self.event(MicrexEvent::Fault { station, what });
             }
+            self.event(MicrexEvent::Replied {
+                station,
+                sta: text.get(1).copied().unwrap_or(0),
+                line_bytes: line.len(),
+            });
             self.tx.push_back(line);
         }
         // The PLC's own transfers go out between exchanges.

@@ -44,9 +44,19 @@ impl MicrexHandle {
         ticks: Vec<SimTick>,
         line: T,
     ) -> Result<MicrexHandle, MicrexConfigError> {
+        Self::spawn_subscribed(config, ticks, line).map(|(handle, _)| handle)
+    }
+
+    /// [`MicrexHandle::spawn`], with a subscription to its events made before the module
+    /// starts, so that none is missed.
+    pub fn spawn_subscribed<T: Transport + 'static>(
+        config: MicrexConfig,
+        ticks: Vec<SimTick>,
+        line: T,
+    ) -> Result<(MicrexHandle, broadcast::Receiver<MicrexEvent>), MicrexConfigError> {
         let engine = Micrex::new(config)?;
         let (cmd_tx, mut cmd_rx) = mpsc::unbounded_channel();
-        let (events, _) = broadcast::channel(4096);
+        let (events, first) = broadcast::channel(4096);
         let ev = events.clone();
         let task = tokio::spawn(async move {
             let mut pump = Pump::new(engine, line);
@@ -85,11 +95,14 @@ impl MicrexHandle {
                 }
             }
         });
-        Ok(MicrexHandle {
-            commands: cmd_tx,
-            events,
-            task,
-        })
+        Ok((
+            MicrexHandle {
+                commands: cmd_tx,
+                events,
+                task,
+            },
+            first,
+        ))
     }
 
     /// Sends a command to the module (ignored once it has stopped).
@@ -120,6 +133,15 @@ impl MicrexHandle {
 
     pub fn subscribe(&self) -> broadcast::Receiver<MicrexEvent> {
         self.events.subscribe()
+    }
+
+    /// Waits until the module's line ends (the transport closed or failed), keeping it
+    /// running until then.
+    pub async fn finished(self) -> Result<(), PumpError> {
+        let MicrexHandle { commands, task, .. } = self;
+        let result = task.await;
+        drop(commands);
+        result.unwrap_or(Ok(()))
     }
 
     /// Stops the module and waits for its task.

@@ -12,6 +12,7 @@
 
 pub mod cnc;
 pub mod fanuc_board;
+pub mod fuji_server;
 pub mod micrex;
 pub mod micrex_handle;
 pub mod server;
