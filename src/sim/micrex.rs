@@ -18,7 +18,8 @@
 //! - mode 1: transfers the "PLC" sends ([`MicrexCommand::QueueTransfer`]) go out between
 //!   exchanges as `90 00 00 MSGNO BYTEN data`, unanswered (notes 8);
 //! - modes 4–5: messages in both directions, fixed length or variable with end code (§5-5);
-//! - fault hooks: corrupt the next BCC, stay silent, drop bytes of the next reply.
+//! - fault hooks: corrupt the next BCC, stay silent, drop bytes of the next reply, refuse the
+//!   next request with a given STA.
 //!
 //! With start code "none" a silence of [`MicrexConfig::frame_gap`] ends any partial text.
 
@@ -190,6 +191,10 @@ pub enum MicrexCommand {
     CorruptNextBcc { station: u8 },
     /// The station's next reply goes out without its last `count` bytes.
     DropReplyBytes { station: u8, count: usize },
+    /// The station refuses its next request for MOLN `moln` (a module or message number)
+    /// with this STA, whatever it asks: for codes a correct host cannot provoke (20 undefined
+    /// command, 21 parameter error, unlisted codes). 00 is ignored.
+    ForceNextSta { station: u8, moln: u8, sta: u8 },
 }
 
 /// What the simulated module saw and did.
@@ -274,6 +279,7 @@ struct StationState {
     silent: bool,
     corrupt_next: bool,
     drop_next: usize,
+    force_sta: Option<(u8, Sta)>,
 }
 
 /// A simulated FFU120B + MICREX-F (sans-IO).
@@ -437,7 +443,18 @@ impl Micrex {
         } else {
             req.mode
         };
-        let (sta, body) = match self.process(station, &req) {
+        let forced = self.stations.get_mut(&station).and_then(|st| {
+            let (moln, sta) = st.force_sta?;
+            (moln == req.moln).then(|| {
+                st.force_sta = None;
+                sta
+            })
+        });
+        let processed = match forced {
+            Some(sta) => Err(sta),
+            None => self.process(station, &req),
+        };
+        let (sta, body) = match processed {
             Ok(body) => (0, body),
             Err(sta) => {
                 self.event(MicrexEvent::Refused {
@@ -793,6 +810,11 @@ impl Engine for Micrex {
             MicrexCommand::CorruptNextBcc { station } => {
                 if let Some(st) = self.station_mut(station) {
                     st.corrupt_next = true;
+                }
+            }
+            MicrexCommand::ForceNextSta { station, moln, sta } => {
+                if let Some(st) = self.station_mut(station) {
+                    st.force_sta = Sta::from_code(sta).map(|s| (moln, s));
                 }
             }
             MicrexCommand::DropReplyBytes { station, count } => {
