@@ -1,19 +1,23 @@
 //! The cell's machine links, built from the cell file: for each `[[machines]]` entry a
 //! transport (serial port, TCP device server, or a simulated line with a simulated board on its
-//! far end), a host engine for its protocol, and a link task ([`link::driver`]).
+//! far end), a host engine for its protocol, and a link task ([`link::driver`]); likewise for
+//! each `[[plcs]]` entry, with the FFU120B master and a PLC link task ([`crate::plc::link`]).
 
 use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
 
 use crate::config::G05Config;
-use crate::config::{CellConfig, MachineConfig, TransportConfig};
+use crate::config::{CellConfig, MachineConfig, PlcConfig, TransportConfig};
 use crate::fanuc::message::Framing;
 use crate::fanuc::protocol_a::ProtocolAHost;
 use crate::fanuc::protocol_b::ProtocolBHost;
+use crate::fuji::master::Master;
 use crate::link::driver::{self, LinkHandle};
 use crate::link::pump::now;
+use crate::plc::{PlcHandle, TagTable};
 use crate::sim;
+use crate::sim::micrex_handle::MicrexHandle;
 use crate::transport::serial::ReopeningSerial;
 use crate::transport::sim::SimLine;
 use crate::transport::tcp::{TcpOptions, TcpTransport};
@@ -25,6 +29,16 @@ pub struct MachineRuntime {
     pub link: LinkHandle,
     /// The simulated board on the far end of a `sim` transport.
     pub board: Option<sim::BoardHandle>,
+    /// The simulated line of a `sim` transport: fault injection and counters.
+    pub line: Option<SimLine>,
+}
+
+/// One PLC of the running cell.
+pub struct PlcRuntime {
+    pub config: PlcConfig,
+    pub link: PlcHandle,
+    /// The simulated MICREX-F on the far end of a `sim` transport.
+    pub sim: Option<MicrexHandle>,
     /// The simulated line of a `sim` transport: fault injection and counters.
     pub line: Option<SimLine>,
 }
@@ -51,6 +65,18 @@ pub enum CellError {
         #[source]
         source: crate::fanuc::protocol_b::InvalidConfig,
     },
+    #[error("PLC {plc}: {source}")]
+    Master {
+        plc: String,
+        #[source]
+        source: crate::fuji::master::InvalidSettings,
+    },
+    #[error("PLC {plc}: {source}")]
+    Micrex {
+        plc: String,
+        #[source]
+        source: crate::sim::micrex::MicrexConfigError,
+    },
     #[error("machine {machine}: simulated board: {source}")]
     Board {
         machine: String,
@@ -62,6 +88,7 @@ pub enum CellError {
 /// The links of a cell, running.
 pub struct Cell {
     pub machines: Vec<MachineRuntime>,
+    pub plcs: Vec<PlcRuntime>,
     tasks: tokio::task::JoinSet<()>,
 }
 
@@ -73,13 +100,84 @@ impl Cell {
     ) -> Result<Self, CellError> {
         let mut cell = Cell {
             machines: Vec::new(),
+            plcs: Vec::new(),
             tasks: tokio::task::JoinSet::new(),
         };
         for machine in &config.machines {
             let runtime = cell.start_machine(machine, shutdown).await?;
             cell.machines.push(runtime);
         }
+        for plc in &config.plcs {
+            let runtime = cell.start_plc(plc, shutdown).await?;
+            cell.plcs.push(runtime);
+        }
         Ok(cell)
+    }
+
+    /// Starts the link of a `[[plcs]]` entry; a `sim` transport gets a simulated MICREX-F
+    /// with every station of the entry on its far end.
+    async fn start_plc(
+        &mut self,
+        plc: &PlcConfig,
+        shutdown: &CancellationToken,
+    ) -> Result<PlcRuntime, CellError> {
+        let name = plc.name.clone();
+        let master =
+            Master::new(crate::plc::master_settings(plc)).map_err(|source| CellError::Master {
+                plc: name.clone(),
+                source,
+            })?;
+        let mut micrex = None;
+        let mut sim_line = None;
+        let transport: Box<dyn Transport> = match &plc.transport {
+            TransportConfig::Sim { line } => {
+                let (host, device, control) = crate::transport::sim::line(*line);
+                let handle = MicrexHandle::spawn(
+                    crate::plc::micrex_config(plc),
+                    plc.sim.ticks.clone(),
+                    device,
+                )
+                .map_err(|source| CellError::Micrex {
+                    plc: name.clone(),
+                    source,
+                })?;
+                micrex = Some(handle);
+                sim_line = Some(control);
+                Box::new(host)
+            }
+            other => open_transport(&name, other).await?,
+        };
+        let tags = TagTable::new(&name, &plc.tags);
+        let (link, task) =
+            crate::plc::link::spawn(name.clone(), master, tags, transport, shutdown.clone());
+        self.tasks.spawn(async move {
+            match task.await {
+                Ok(Ok(())) => tracing::info!(plc = %name, "PLC link stopped"),
+                Ok(Err(e)) => tracing::error!(plc = %name, error = %e, "PLC link ended"),
+                Err(e) => tracing::error!(plc = %name, error = %e, "PLC link task failed"),
+            }
+        });
+        Ok(PlcRuntime {
+            config: plc.clone(),
+            link,
+            sim: micrex,
+            line: sim_line,
+        })
+    }
+
+    pub fn plc(&self, name: &str) -> Option<&PlcRuntime> {
+        self.plcs.iter().find(|p| p.config.name == name)
+    }
+
+    /// The PLC links as the bus routes take them.
+    pub fn plc_links(&self) -> Vec<crate::bus::PlcLink> {
+        self.plcs
+            .iter()
+            .map(|p| crate::bus::PlcLink {
+                config: p.config.clone(),
+                link: p.link.clone(),
+            })
+            .collect()
     }
 
     async fn start_machine(
@@ -92,45 +190,6 @@ impl Cell {
         let mut board = None;
         let mut sim_line = None;
         let transport: Box<dyn Transport> = match &machine.transport {
-            TransportConfig::Serial {
-                path,
-                line,
-                reconnect_min_ms,
-                reconnect_max_ms,
-            } => Box::new(
-                ReopeningSerial::open(
-                    path.clone(),
-                    *line,
-                    Duration::from_millis(*reconnect_min_ms),
-                    Duration::from_millis(*reconnect_max_ms),
-                )
-                .map_err(|source| CellError::Transport {
-                    machine: name.clone(),
-                    source,
-                })?,
-            ),
-            TransportConfig::Tcp {
-                address,
-                line,
-                window,
-                reconnect_min_ms,
-                reconnect_max_ms,
-            } => {
-                let opts = TcpOptions {
-                    window: *window as usize,
-                    backoff_min: Duration::from_millis(*reconnect_min_ms),
-                    backoff_max: Duration::from_millis(*reconnect_max_ms),
-                    ..TcpOptions::default()
-                };
-                Box::new(
-                    TcpTransport::connect(address.clone(), *line, opts)
-                        .await
-                        .map_err(|source| CellError::Transport {
-                            machine: name.clone(),
-                            source,
-                        })?,
-                )
-            }
             TransportConfig::Sim { line } => {
                 let (host, device, control) = crate::transport::sim::line(*line);
                 let handle =
@@ -143,6 +202,7 @@ impl Cell {
                 sim_line = Some(control);
                 Box::new(host)
             }
+            other => open_transport(&name, other).await?,
         };
         let (link, task) = if let Some(b) = machine.protocol_b_config() {
             let engine = ProtocolBHost::new(b, now()).map_err(|source| CellError::ProtocolB {
@@ -199,7 +259,60 @@ impl Cell {
                 }
             }
         }
+        for plc in self.plcs {
+            if let Some(sim) = plc.sim {
+                sim.shutdown().await;
+            }
+        }
     }
+}
+
+/// Opens a serial port or connects to a device server (not a `sim` transport, whose far end
+/// the caller builds).
+async fn open_transport(
+    name: &str,
+    config: &TransportConfig,
+) -> Result<Box<dyn Transport>, CellError> {
+    let err = |source| CellError::Transport {
+        machine: name.to_string(),
+        source,
+    };
+    Ok(match config {
+        TransportConfig::Serial {
+            path,
+            line,
+            reconnect_min_ms,
+            reconnect_max_ms,
+        } => Box::new(
+            ReopeningSerial::open(
+                path.clone(),
+                *line,
+                Duration::from_millis(*reconnect_min_ms),
+                Duration::from_millis(*reconnect_max_ms),
+            )
+            .map_err(err)?,
+        ),
+        TransportConfig::Tcp {
+            address,
+            line,
+            window,
+            reconnect_min_ms,
+            reconnect_max_ms,
+        } => {
+            let opts = TcpOptions {
+                window: *window as usize,
+                backoff_min: Duration::from_millis(*reconnect_min_ms),
+                backoff_max: Duration::from_millis(*reconnect_max_ms),
+                ..TcpOptions::default()
+            };
+            Box::new(
+                TcpTransport::connect(address.clone(), *line, opts)
+                    .await
+                    .map_err(err)?,
+            )
+        }
+        TransportConfig::Sim { line } => Box::new(crate::transport::sim::line(*line).0),
+    })
 }
 
 /// The simulated board for a `sim` machine. It powers on with the machine's configured §4.5

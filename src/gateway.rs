@@ -71,13 +71,20 @@ async fn serve(
     let machines = cell.machine_links();
     let routes_stop = CancellationToken::new();
     let (ready_tx, ready) = tokio::sync::oneshot::channel();
-    let routes = bus::serve_announced(
-        session,
-        config,
-        machines,
-        routes_stop.clone(),
-        Some(ready_tx),
-    );
+    let plcs = cell.plc_links();
+    let routes = async {
+        let (machines, plcs) = tokio::join!(
+            bus::serve_announced(
+                session,
+                config,
+                machines,
+                routes_stop.clone(),
+                Some(ready_tx),
+            ),
+            bus::serve_plcs(session, config, plcs, routes_stop.clone()),
+        );
+        machines.and(plcs)
+    };
     tokio::pin!(routes);
     let mut routes_result = None;
 

@@ -11,11 +11,16 @@
 //! - [`fanuc`]: FANUC remote-buffer protocols (A, Expansion A, B, Expansion B), sans-IO: the
 //!   codecs, the host engines, their contract ([`fanuc::host`]) and typed errors
 //!   ([`fanuc::error`]); the tape codes of punched programs ([`fanuc::tape`]).
+//! - [`fuji`]: the Fuji FFU120B command set and non-procedure modes, sans-IO: BCC, framing,
+//!   commands, the host engine ([`fuji::master::Master`]).
 //! - [`transport`]: what carries a link's bytes: serial port, TCP device server, simulated line.
 //! - [`link`]: the async side: [`link::pump`] runs any engine over any transport in tokio
 //!   time; [`link::driver`] is a FANUC link's task (program queue, streamed sources, typed
 //!   commands and events).
-//! - [`sim`]: simulated devices (a remote-buffer board with a CNC behind it) that speak the
+//! - [`plc`]: the cell's PLCs: named tags (poll plan, decoding, publish on change, writes;
+//!   sans-IO, [`plc::tags`]) and the PLC link task running the FFU120B master ([`plc::link`]).
+//! - [`sim`]: simulated devices (a remote-buffer board with a CNC behind it, an FFU120B with a
+//!   MICREX-F behind it) that speak the
 //!   device side of the same protocols, for tests, CI and laptops.
 //! - [`config`]: the cell file, one file per concern, with validation that reports every error.
 //! - [`jobs`]: per-machine job queues, program sources and checks, the program library, and
@@ -24,7 +29,8 @@
 //!   with credits, priming and the CNC's estimated buffer ([`g05::stream`] holds the rules,
 //!   sans-IO).
 //! - [`bus`]: the Zenoh session, the cell's key expressions, and one route per kind (status,
-//!   jobs, DI/DO, alarms, punched programs, the program library) ([`bus::serve`]).
+//!   jobs, DI/DO, alarms, punched programs, the program library) ([`bus::serve`]); PLC memory,
+//!   transfers, status and tags ([`bus::serve_plcs`]).
 //! - [`codes`]: the one place where typed errors become bus error codes.
 //! - [`cell`]: the cell's links, built from the cell file.
 //! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves it, and stops
@@ -43,8 +49,9 @@
 //! - `transport` imports `engine` (the line's data) and tokio; `link` imports `engine`, the
 //!   protocol engines and `transport`; `sim`'s device engines import `engine` and the
 //!   codecs, its runners `link::pump` and `transport`.
-//! - `jobs` imports `fanuc`, `link` and `pb`; `config` imports `engine`, `fanuc`, `jobs` and
-//!   `telemetry`, never `bus` or `link`.
+//! - `jobs` imports `fanuc`, `link` and `pb`; `config` imports `engine`, `fanuc`, `fuji` (the
+//!   module table), `jobs` and `telemetry`, never `bus` or `link`.
+//! - `plc` imports `fuji`, `config`, `link::pump` and `transport`; `bus` uses it.
 //! - `g05` imports `fanuc` (the block codec), `link`, `config` and `engine`; `bus` uses it.
 //!   Its rules, `g05::stream`, are sans-IO like the engines: `fanuc` and `config` only.
 //! - `bus` may import everything below it; only `cell`, `gateway` and `client` import `bus`.
@@ -64,6 +71,7 @@ pub mod g05;
 pub mod gateway;
 pub mod jobs;
 pub mod link;
+pub mod plc;
 pub mod sim;
 pub mod telemetry;
 pub mod transport;

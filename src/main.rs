@@ -66,6 +66,12 @@ enum Command {
     /// Stream G05 binary blocks from a CSV file (or standard input) to a machine (§9); exit 0
     /// only if the stream ended cleanly.
     G05(client::G05Args),
+    /// The cell PLC's memory and transfers: read, write, clear, send, status.
+    #[command(subcommand)]
+    Plc(cellgate::client::plc::PlcCommand),
+    /// The cell PLC's named tags: get, set.
+    #[command(subcommand)]
+    Tag(cellgate::client::plc::TagCommand),
     /// Run a simulated device on its own, for testing any host against it.
     #[command(subcommand)]
     Sim(SimCommand),
@@ -109,6 +115,9 @@ enum SimCommand {
     /// A FANUC remote-buffer board with a CNC behind it, served as a TCP serial device
     /// server; prints one JSON object per line for each event.
     Fanuc(cellgate::sim::server::SimFanucArgs),
+    /// A Fuji FFU120B general interface module with a MICREX-F behind it, served as a TCP
+    /// serial device server; prints one JSON object per line for each event.
+    Fuji(cellgate::sim::fuji_server::SimFujiArgs),
 }
 
 #[derive(Debug, Args)]
@@ -171,7 +180,10 @@ fn main() -> ExitCode {
         Command::Program(ref args) => client_command(&cli, args),
         Command::Cancel(ref args) => client_command(&cli, args),
         Command::G05(ref args) => client_command(&cli, args),
+        Command::Plc(ref args) => client_command(&cli, args),
+        Command::Tag(ref args) => client_command(&cli, args),
         Command::Sim(SimCommand::Fanuc(ref args)) => sim_fanuc(&cli, args.clone()),
+        Command::Sim(SimCommand::Fuji(ref args)) => sim_fuji(&cli, args.clone()),
         Command::Health(ref args) => client_command(&cli, args),
         Command::Router(ref args) => router(&cli, args),
     }
@@ -306,6 +318,50 @@ fn sim_fanuc(cli: &Cli, args: cellgate::sim::server::SimFanucArgs) -> ExitCode {
                 Ok(()) => ExitCode::SUCCESS,
                 Err(e) => {
                     eprintln!("cellgate sim fanuc: {e}");
+                    ExitCode::from(EXIT_CONFIG)
+                }
+            },
+            Err(e) => {
+                eprintln!("cellgate: cannot install the SIGINT/SIGTERM handlers: {e}");
+                ExitCode::from(EXIT_RUNTIME)
+            }
+        };
+        if let Err(e) = guard.shutdown() {
+            eprintln!("cellgate: {e}");
+        }
+        code
+    })
+}
+
+/// `cellgate sim fuji ...`: logs go to stderr, events as JSON lines to stdout.
+fn sim_fuji(cli: &Cli, args: cellgate::sim::fuji_server::SimFujiArgs) -> ExitCode {
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
+            return ExitCode::from(EXIT_RUNTIME);
+        }
+    };
+    let mut telemetry = cellgate::telemetry::TelemetryConfig::default();
+    if let Some(format) = cli.log_format {
+        telemetry.log_format = format.into();
+    }
+    runtime.block_on(async move {
+        let mut guard = match telemetry::init(&telemetry) {
+            Ok(guard) => guard,
+            Err(e) => {
+                eprintln!("cellgate: {e}");
+                return ExitCode::from(EXIT_CONFIG);
+            }
+        };
+        let code = match shutdown_signal() {
+            Ok(shutdown) => match cellgate::sim::fuji_server::serve_fuji(args, shutdown).await {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("cellgate sim fuji: {e}");
                     ExitCode::from(EXIT_CONFIG)
                 }
             },

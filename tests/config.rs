@@ -127,7 +127,14 @@ fn embedded_default_is_the_demo_cell() {
             ("lathe-1", Protocol::B, 19_200, 0),
         ]
     );
-    assert!(cfg.plcs.is_empty());
+    // One simulated PLC whose tags move by themselves (its [plcs.sim] ticks).
+    assert_eq!(cfg.plcs.len(), 1);
+    let plc = &cfg.plcs[0];
+    assert_eq!(
+        (plc.name.as_str(), plc.mode, plc.tags.len()),
+        ("plc-1", 1, 4)
+    );
+    assert_eq!(plc.sim.ticks.len(), 2);
 }
 
 #[test]

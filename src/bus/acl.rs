@@ -143,10 +143,13 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
     let leaf = |l: MachineLeaf| keys.any_leaf(l);
     match p {
         Permission::StatusRead => {
-            // Gets on status, DI and a job's latest event change nothing.
+            // Gets on status, DI, a job's latest event and a PLC link's status change
+            // nothing. (Tag reads are not here: a get with a payload on a tag key writes the
+            // tag, and the rules see keys, not payloads.)
             let answered = vec![
                 leaf(MachineLeaf::Status),
                 leaf(MachineLeaf::Di),
+                keys.any_plc_status(),
                 keys.any_job_events(),
             ];
             vec![
@@ -576,6 +579,35 @@ mod tests {
             assert!(
                 !allows(&acl, "dash", Flow::Ingress, message, &key),
                 "{message} on {key}"
+            );
+        }
+        // A PLC link's status may be read; its memory and tags may not be queried, since a
+        // get with a payload there writes.
+        let plc_status = k.plc_status("plc-1");
+        assert!(allows(&acl, "dash", Flow::Ingress, "query", &plc_status));
+        assert!(allows(&acl, "dash", Flow::Egress, "reply", &plc_status));
+        assert!(allows(
+            &acl,
+            "dash",
+            Flow::Egress,
+            "declare_queryable",
+            &plc_status
+        ));
+        assert!(allows(
+            &acl,
+            "dash",
+            Flow::Ingress,
+            "query",
+            &k.any_plc_status()
+        ));
+        for key in [
+            k.plc_tag("plc-1", "door"),
+            k.plc_mem("plc-1", 0, "D", Some(0)),
+            k.plc_transfer("plc-1", 1),
+        ] {
+            assert!(
+                !allows(&acl, "dash", Flow::Ingress, "query", &key),
+                "query on {key}"
             );
         }
         // The gateway does not announce the routes a dashboard may not use.

@@ -361,8 +361,10 @@ pub(crate) async fn reply_err(q: &Query, error: &(impl BusCode + std::fmt::Displ
     let code = error.code();
     let message = error.to_string();
     tracing::info!(selector = %q.selector(), ?code, %message, "request refused");
+    let mut payload = error_reply(code, message);
+    payload.sta = error.sta().map(u32::from);
     let sent = q
-        .reply_err(error_reply(code, message).encode_to_vec())
+        .reply_err(payload.encode_to_vec())
         .encoding(encoding::<pb::ErrorReply>())
         .await;
     if let Err(e) = sent {

@@ -19,7 +19,12 @@
 //! | `P/C/machine/M/g05/S/blocks` | the stream's `G05Batch`es |
 //! | `P/C/machine/M/g05/S/producer` | the producer's liveliness token |
 //! | `P/C/program/NAME` | the program library |
-//! | `P/C/plc/L/{mem,transfer,tag}/...` | a PLC link's memory, transfers and tags (likewise) |
+//! | `P/C/plc/L/status` | `PlcStatus` of a PLC link: its stations, counters, tags |
+//! | `P/C/plc/L/station/S` | liveliness token while station S answers |
+//! | `P/C/plc/L/mem/S/MODULE/ADDR` | words of a module at station S (`PlcWords`; `PlcWrite` writes) |
+//! | `P/C/plc/L/mem/S/MODULE` | `PlcWrite { clear }` clears the module |
+//! | `P/C/plc/L/transfer/MSGNO` | `PlcTransfer`s from the PLC; one sent to it |
+//! | `P/C/plc/L/tag/NAME` | a tag's `TagValue` on change; `TagWrite` writes it |
 //!
 //! The patterns that access-control rules name (`any_*`) are built here too, so that a route
 //! and the rules that guard it cannot drift apart.
@@ -110,6 +115,44 @@ impl PlcArea {
             PlcArea::Mem => "mem",
             PlcArea::Transfer => "transfer",
             PlcArea::Tag => "tag",
+        }
+    }
+}
+
+/// A key under `P/C/plc/`, read back; chunks as they appear (numbers still text).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PlcKey<'a> {
+    Status {
+        plc: &'a str,
+    },
+    Station {
+        plc: &'a str,
+        station: &'a str,
+    },
+    Mem {
+        plc: &'a str,
+        station: &'a str,
+        module: &'a str,
+        address: Option<&'a str>,
+    },
+    Transfer {
+        plc: &'a str,
+        message: &'a str,
+    },
+    Tag {
+        plc: &'a str,
+        name: &'a str,
+    },
+}
+
+impl PlcKey<'_> {
+    pub fn plc(&self) -> &str {
+        match self {
+            PlcKey::Status { plc }
+            | PlcKey::Station { plc, .. }
+            | PlcKey::Mem { plc, .. }
+            | PlcKey::Transfer { plc, .. }
+            | PlcKey::Tag { plc, .. } => plc,
         }
     }
 }
@@ -257,6 +300,67 @@ impl CellKeys {
     /// `P/C/plc/L/<area>`
     pub fn plc_area(&self, link: &str, area: PlcArea) -> String {
         format!("{}/plc/{link}/{}", self.root, area.chunk())
+    }
+
+    /// `P/C/plc/L/status`
+    pub fn plc_status(&self, link: &str) -> String {
+        format!("{}/plc/{link}/status", self.root)
+    }
+
+    /// `P/C/plc/*/status`
+    pub fn any_plc_status(&self) -> String {
+        self.plc_status("*")
+    }
+
+    /// `P/C/plc/L/station/S`: the station's liveliness token.
+    pub fn plc_station(&self, link: &str, station: u8) -> String {
+        format!("{}/plc/{link}/station/{station}", self.root)
+    }
+
+    /// `P/C/plc/L/mem/S/MODULE[/ADDR]`
+    pub fn plc_mem(&self, link: &str, station: u8, module: &str, address: Option<u16>) -> String {
+        let base = format!("{}/{station}/{module}", self.plc_area(link, PlcArea::Mem));
+        match address {
+            Some(a) => format!("{base}/{a}"),
+            None => base,
+        }
+    }
+
+    /// `P/C/plc/L/transfer/MSGNO`
+    pub fn plc_transfer(&self, link: &str, message: u8) -> String {
+        format!("{}/{message}", self.plc_area(link, PlcArea::Transfer))
+    }
+
+    /// `P/C/plc/L/tag/NAME`
+    pub fn plc_tag(&self, link: &str, name: &str) -> String {
+        format!("{}/{name}", self.plc_area(link, PlcArea::Tag))
+    }
+
+    /// Reads a key under `P/C/plc/` back.
+    pub fn parse_plc<'k>(&self, key: &'k str) -> Option<PlcKey<'k>> {
+        let rest = key
+            .strip_prefix(self.root.as_str())?
+            .strip_prefix("/plc/")?;
+        let chunks: Vec<&str> = rest.split('/').collect();
+        match chunks.as_slice() {
+            [plc, "status"] => Some(PlcKey::Status { plc }),
+            [plc, "station", s] => Some(PlcKey::Station { plc, station: s }),
+            [plc, "mem", s, m] => Some(PlcKey::Mem {
+                plc,
+                station: s,
+                module: m,
+                address: None,
+            }),
+            [plc, "mem", s, m, a] => Some(PlcKey::Mem {
+                plc,
+                station: s,
+                module: m,
+                address: Some(a),
+            }),
+            [plc, "transfer", n] => Some(PlcKey::Transfer { plc, message: n }),
+            [plc, "tag", n] => Some(PlcKey::Tag { plc, name: n }),
+            _ => None,
+        }
     }
 
     /// `P/C/plc/*/<area>/**`: one area of every PLC link.

@@ -9,7 +9,8 @@
 //! - [`payload`]: the protobuf messages and their encodings, and the link's data as messages;
 //! - `context`: what every route shares, the typed request errors, the reply helpers;
 //! - one route per kind: `route_status`, `route_job`, `route_io` (DI/DO), `route_alarm`,
-//!   `route_punch`, `route_program` (library), `route_g05` (G05 streams); each declares its own queryables, subscribers
+//!   `route_punch`, `route_program` (library), `route_g05` (G05 streams), `route_plc` (PLC
+//!   memory, transfers, status), `route_tag` (PLC tags); each declares its own queryables, subscribers
 //!   or publishers, and they are undeclared when it is dropped;
 //! - `machine`: a machine's view (its status) and the task that publishes through the
 //!   machine's publishers of each route;
@@ -36,12 +37,15 @@ mod route_alarm;
 mod route_g05;
 mod route_io;
 mod route_job;
+mod route_plc;
 mod route_program;
 mod route_punch;
 mod route_status;
+mod route_tag;
 pub mod session;
 
 pub use route_job::{FETCH_TIMEOUT, RECENT_JOBS};
+pub use route_plc::{PlcLink, STATUS_EVERY as PLC_STATUS_EVERY};
 pub use session::{BusError, open, open_cell};
 
 pub use crate::config::{BusConfig, BusMode};
@@ -205,4 +209,52 @@ pub async fn serve_announced(
     machines_stop.cancel();
     while machine_tasks.join_next().await.is_some() {}
     served
+}
+
+/// Serves the cell's PLC links ([`PlcLink`]: memory, transfers, status, station liveliness,
+/// tags) on `session` until `shutdown` is cancelled, then undeclares everything. The links
+/// are left running: they belong to the caller. Must run on a multi-thread Tokio runtime.
+pub async fn serve_plcs(
+    session: &Session,
+    config: &CellConfig,
+    plcs: Vec<PlcLink>,
+    shutdown: CancellationToken,
+) -> Result<(), BusError> {
+    let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
+    let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size);
+    let route = RouteContext::new(
+        session.clone(),
+        Arc::clone(&keys),
+        Arc::new(BTreeMap::new()),
+        library,
+        config.programs.max_inline.min(config.programs.max_size),
+    );
+    let ctx = route_plc::PlcContext {
+        route,
+        plcs: Arc::new(
+            plcs.into_iter()
+                .map(|p| (p.config.name.clone(), p))
+                .collect(),
+        ),
+    };
+    let mut tasks = JoinSet::new();
+    for link in ctx.plcs.values() {
+        tasks.spawn(route_plc::publish_link(
+            ctx.clone(),
+            link.clone(),
+            shutdown.clone(),
+        ));
+        tasks.spawn(route_tag::publish_tags(
+            ctx.clone(),
+            link.clone(),
+            shutdown.clone(),
+        ));
+    }
+    let plc = route_plc::PlcRoute::declare(&ctx).await?;
+    let tag = route_tag::TagRoute::declare(&ctx).await?;
+    tasks.spawn(plc.run(ctx.clone(), shutdown.clone()));
+    tasks.spawn(tag.run(ctx.clone(), shutdown.clone()));
+    tracing::info!(root = %keys.root(), plcs = ctx.plcs.len(), "PLC routes declared");
+    while tasks.join_next().await.is_some() {}
+    Ok(())
 }

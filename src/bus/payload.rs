@@ -39,6 +39,16 @@ bus_messages!(
     G05Opened,
     G05Batch,
     G05Status,
+    PlcWords,
+    PlcWrite,
+    PlcWritten,
+    PlcTransfer,
+    PlcTransferred,
+    TagValue,
+    TagWrite,
+    TagWritten,
+    PlcStatus,
+    PlcStation,
 );
 
 /// `application/protobuf;<schema>` for `M`.
@@ -61,6 +71,7 @@ pub fn error_reply(code: pb::ErrorCode, message: impl Into<String>) -> pb::Error
     pb::ErrorReply {
         code: code as i32,
         message: message.into(),
+        sta: None,
     }
 }
 

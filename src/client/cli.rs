@@ -540,6 +540,11 @@ impl ClientCommand for StatusArgs {
         } else {
             let _ = write!(io.out, "{}", render::status_table(&statuses));
         }
+        // The PLC stations, when no one machine was asked for.
+        if self.machine.is_none() && !self.json {
+            let plcs = client.plc_status(None).await.unwrap_or_default();
+            let _ = write!(io.out, "{}", super::plc::status_text(&plcs));
+        }
         if statuses.is_empty() && client.admin().is_null() {
             // A gateway that hides @admin enforces roles: no status may be a refusal.
             let _ = writeln!(

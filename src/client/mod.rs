@@ -10,6 +10,7 @@
 //! formats their results for people (text) and programs (JSON).
 
 pub mod cli;
+pub mod plc;
 pub mod render;
 
 use std::collections::VecDeque;
@@ -245,6 +246,9 @@ pub struct ConnectOptions {
     /// TLS and user name, for a gateway with `[security]`.
     pub security: ClientSecurity,
 }
+
+/// How long a client keeps asking for a gateway that does not answer yet.
+const DISCOVERY_GRACE: Duration = Duration::from_secs(3);
 
 impl Default for ConnectOptions {
     fn default() -> Self {
@@ -517,7 +521,26 @@ impl Client {
         Ok(cells)
     }
 
+    /// [`Self::find_cell_once`], asked again for a short while when no gateway answered: a
+    /// gateway that is starting shows itself once its routes are declared, and a session that
+    /// has just opened may not have heard of the gateway's declarations yet.
     async fn find_cell(
+        session: &Session,
+        options: &ConnectOptions,
+    ) -> Result<(String, serde_json::Value), ClientError> {
+        let grace = options.timeout.min(DISCOVERY_GRACE);
+        let started = tokio::time::Instant::now();
+        loop {
+            match Self::find_cell_once(session, options).await {
+                Err(ClientError::NoGateway { .. }) if started.elapsed() < grace => {
+                    tokio::time::sleep(Duration::from_millis(200)).await;
+                }
+                found => return found,
+            }
+        }
+    }
+
+    async fn find_cell_once(
         session: &Session,
         options: &ConnectOptions,
     ) -> Result<(String, serde_json::Value), ClientError> {
@@ -637,6 +660,26 @@ impl Client {
             .next()
             .map(|(_, m)| m);
         first.ok_or_else(|| no_reply(what, key, timeout, asked.elapsed()))
+    }
+
+    /// [`Self::get_one`] with the PLC time-out, for `client::plc`.
+    pub(crate) async fn get_one_pub<M: BusMessage>(
+        &self,
+        what: &str,
+        key: &str,
+        payload: Option<(Vec<u8>, Encoding)>,
+    ) -> Result<M, ClientError> {
+        self.get_one(what, key, payload, plc::PLC_TIMEOUT).await
+    }
+
+    /// [`Self::get_all`] with the ordinary time-out, for `client::plc`.
+    pub(crate) async fn get_all_pub<M: BusMessage>(
+        &self,
+        what: &str,
+        key: &str,
+        payload: Option<(Vec<u8>, Encoding)>,
+    ) -> Result<Vec<(String, M)>, ClientError> {
+        self.get_all(what, key, payload, self.timeout).await
     }
 
     fn machine_arg(machine: &str) -> Result<(), ClientError> {
@@ -1388,6 +1431,16 @@ pub enum WatchEvent {
     Gateway {
         up: bool,
     },
+    /// A PLC tag changed.
+    Tag(pb::TagValue),
+    /// A transfer: from the PLC (published by the gateway), or one a client put to it.
+    Transfer(pb::PlcTransfer),
+    /// A PLC station's liveliness token: it answers (`up`) or was marked down.
+    PlcStation {
+        plc: String,
+        station: String,
+        up: bool,
+    },
     /// A sample on the cell's keys that is not what the contract puts there.
     Unexpected {
         key: String,
@@ -1428,6 +1481,13 @@ impl Watch {
     fn token_event(&self, sample: &Sample) -> Option<WatchEvent> {
         let up = sample.kind() == SampleKind::Put;
         let key = sample.key_expr().as_str();
+        if let Some(crate::bus::keys::PlcKey::Station { plc, station }) = self.keys.parse_plc(key) {
+            return Some(WatchEvent::PlcStation {
+                plc: plc.to_string(),
+                station: station.to_string(),
+                up,
+            });
+        }
         match self.keys.parse(key) {
             Some(CellKey::Gateway) => Some(WatchEvent::Gateway { up }),
             Some(CellKey::Machine { machine }) => Some(WatchEvent::Link {
@@ -1443,6 +1503,26 @@ impl Watch {
         let bytes = sample.payload().to_bytes();
         let enc = sample.encoding();
         let put = sample.kind() == SampleKind::Put;
+        if let Some(plc_key) = self.keys.parse_plc(key) {
+            use crate::bus::keys::PlcKey;
+            let schema = schema_of(enc);
+            let event = match plc_key {
+                PlcKey::Tag { .. } if put && schema.as_deref() == Some(pb::TagValue::SCHEMA) => {
+                    decode(key, key, &bytes, enc).map(WatchEvent::Tag)
+                }
+                PlcKey::Transfer { .. }
+                    if put && schema.as_deref() == Some(pb::PlcTransfer::SCHEMA) =>
+                {
+                    decode(key, key, &bytes, enc).map(WatchEvent::Transfer)
+                }
+                // Status every few seconds, writes by other clients: not shown.
+                _ => return None,
+            };
+            return Some(event.unwrap_or_else(|e| WatchEvent::Unexpected {
+                key: key.to_string(),
+                detail: e.to_string(),
+            }));
+        }
         let parsed = self.keys.parse(key)?;
         let event = match parsed {
             CellKey::Leaf { leaf, machine } if put => match leaf {
@@ -1599,6 +1679,7 @@ mod tests {
         let e = pb::ErrorReply {
             code: pb::ErrorCode::UnknownMachine as i32,
             message: "cell x has no machine \"m\"".to_string(),
+            sta: None,
         };
         let err = refusal("status", &e.encode_to_vec(), &encoding::<pb::ErrorReply>());
         assert_eq!(err.refusal(), Some(pb::ErrorCode::UnknownMachine));

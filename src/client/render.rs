@@ -584,6 +584,21 @@ impl WatchPrinter {
                 clock(now_ms),
                 if *up { "up" } else { "gone" }
             ),
+            WatchEvent::Tag(t) => format!("{} {}", clock(now_ms), super::plc::tag_text(t)),
+            WatchEvent::Transfer(t) => format!(
+                "{} {} transfer {} {} {} bytes: {}",
+                clock(now_ms),
+                t.plc,
+                t.message,
+                if t.from_plc { "from PLC" } else { "to PLC" },
+                t.data.len(),
+                hex::encode_upper(&t.data)
+            ),
+            WatchEvent::PlcStation { plc, station, up } => format!(
+                "{} {plc} station {station} {}",
+                clock(now_ms),
+                if *up { "up" } else { "down" }
+            ),
             WatchEvent::Unexpected { key, detail } => {
                 format!("{} {key}: unexpected sample: {detail}", clock(now_ms))
             }
@@ -635,6 +650,15 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
         }),
         WatchEvent::Gateway { up } => json!({
             "event": if *up { "gateway_up" } else { "gateway_gone" }, "unix_ms": now_ms,
+        }),
+        WatchEvent::Tag(t) => json!({ "event": "tag", "tag": super::plc::tag_json(t) }),
+        WatchEvent::Transfer(t) => json!({
+            "event": "transfer", "plc": t.plc, "message": t.message, "from_plc": t.from_plc,
+            "data": hex::encode_upper(&t.data), "unix_ms": t.unix_ms,
+        }),
+        WatchEvent::PlcStation { plc, station, up } => json!({
+            "event": if *up { "plc_station_up" } else { "plc_station_down" },
+            "plc": plc, "station": station, "unix_ms": now_ms,
         }),
         WatchEvent::Unexpected { key, detail } => json!({
             "event": "unexpected", "key": key, "detail": detail, "unix_ms": now_ms,

@@ -43,7 +43,7 @@ use self::fanuc::{RawMachine, check_machine};
 pub use self::g05::G05Config;
 pub use self::plc::{
     BccCalc, BccCode, BccKind, BccRange, FUJI_BAUD_RATES, FUJI_MAX_STATIONS, PlcConfig, PlcEndCode,
-    PlcStartCode,
+    PlcSimConfig, PlcStartCode, Real, SimTick, TagConfig, TagType,
 };
 use self::plc::{RawPlc, check_plc};
 pub use self::programs::ProgramsConfig;

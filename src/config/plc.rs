@@ -4,10 +4,11 @@
 use serde::{Deserialize, Serialize};
 
 use super::error::ConfigErrors;
-use super::error::{Checker, ConfigError, list_u32, toml_name};
+use super::error::{Checker, ConfigError, list_u32, q, toml_name};
 use super::transport::{
     RawTransport, TransportConfig, built_transport, check_transport, transport_of,
 };
+use crate::fuji::command::Module;
 
 /// Start code of a text (FFU120B §4-3 item 16).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
@@ -169,6 +170,12 @@ pub struct PlcConfig {
     /// How long the host waits for a reply after its request has been sent, ms.
     pub timeout_ms: u32,
     pub transport: TransportConfig,
+    /// Named values polled from the PLC (`[[plcs.tags]]`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub tags: Vec<TagConfig>,
+    /// What the simulated PLC does by itself (`[plcs.sim]`, sim transport only).
+    #[serde(skip_serializing_if = "PlcSimConfig::is_empty")]
+    pub sim: PlcSimConfig,
 }
 
 impl PlcConfig {
@@ -204,6 +211,9 @@ pub(super) struct RawPlc {
     #[serde(default = "default_timeout_ms")]
     timeout_ms: u32,
     transport: Option<RawTransport>,
+    #[serde(default)]
+    tags: Vec<RawTag>,
+    sim: Option<PlcSimConfig>,
 }
 
 pub(super) fn default_mode() -> u8 {
@@ -378,6 +388,8 @@ pub(super) fn check_plc(c: &mut Checker, label: &str, p: &RawPlc) {
         );
     }
 
+    check_tags(c, label, p);
+
     c.range(
         || format!("{label}.timeout_ms"),
         p.timeout_ms,
@@ -405,6 +417,8 @@ impl From<&PlcConfig> for RawPlc {
             transposition: c.transposition,
             timeout_ms: c.timeout_ms,
             transport: Some(RawTransport::from(&c.transport)),
+            tags: c.tags.iter().map(RawTag::from).collect(),
+            sim: (c.sim != PlcSimConfig::default()).then(|| c.sim.clone()),
         }
     }
 }
@@ -416,6 +430,7 @@ impl RawPlc {
             path,
             hint: "required".to_string(),
         };
+        let first = self.stations.first().copied().unwrap_or(0);
         Ok(PlcConfig {
             name: self.name.ok_or_else(|| missing(format!("{label}.name")))?,
             mode: self.mode,
@@ -431,6 +446,354 @@ impl RawPlc {
             transposition: self.transposition,
             timeout_ms: self.timeout_ms,
             transport: built_transport(self.transport.as_ref(), label)?,
+            tags: {
+                let mut tags = Vec::with_capacity(self.tags.len());
+                for t in self.tags {
+                    tags.push(t.into_config(label, first)?);
+                }
+                tags
+            },
+            sim: self.sim.unwrap_or_default(),
         })
+    }
+}
+
+/// A real number of the cell file (a tag's scale, deadband). Compared bit for bit, so that
+/// the configuration stays `Eq`.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, Default)]
+#[serde(transparent)]
+pub struct Real(pub f64);
+
+impl PartialEq for Real {
+    fn eq(&self, other: &Self) -> bool {
+        self.0.to_bits() == other.0.to_bits()
+    }
+}
+
+impl Eq for Real {}
+
+/// How a tag reads its word(s) (`type` of `[[plcs.tags]]`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TagType {
+    /// One bit (`bit` = 0–15 of a 16-bit word, 0–31 of a 32-bit one).
+    Bit,
+    U16,
+    I16,
+    /// In a 16-bit area: two words, the low word at `address` (the MICREX-F's 32-bit data
+    /// layout); in a 32-bit area: one word.
+    U32,
+    I32,
+    /// Binary-coded decimal: 4 digits of a 16-bit word, 8 digits of a 32-bit one.
+    Bcd,
+}
+
+impl TagType {
+    /// Words of `module` the tag takes.
+    pub fn words(self, module: Module) -> u16 {
+        match self {
+            TagType::U32 | TagType::I32 if module.word_bytes() == 2 => 2,
+            _ => 1,
+        }
+    }
+}
+
+/// A named value of the PLC (`[[plcs.tags]]`): where it lives, how it reads, how often it is
+/// polled and when a change is worth publishing.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct TagConfig {
+    /// `[A-Za-z0-9_-]+`, unique in its PLC: the key chunk of `P/C/plc/L/tag/NAME`.
+    pub name: String,
+    /// The station (RSNO) it lives at; default the PLC's first station.
+    pub station: u8,
+    pub module: Module,
+    /// Relative address: words of the module (protocol notes 3).
+    pub address: u16,
+    #[serde(rename = "type")]
+    pub kind: TagType,
+    /// The bit of a `bit` tag (0 = least significant).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bit: Option<u8>,
+    /// Value = raw × scale (a write divides by it).
+    pub scale: Real,
+    /// The poll group: tags with the same interval are read together, ms.
+    pub poll_ms: u32,
+    /// A change smaller than this (after scaling) is not published.
+    pub deadband: Real,
+    /// Whether a put may write it.
+    pub writable: bool,
+}
+
+impl TagConfig {
+    pub const DEFAULT_POLL_MS: u32 = 1000;
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawTag {
+    name: Option<String>,
+    station: Option<u8>,
+    module: Option<String>,
+    address: Option<u16>,
+    #[serde(rename = "type")]
+    kind: Option<TagType>,
+    bit: Option<u8>,
+    scale: Option<f64>,
+    poll_ms: Option<u32>,
+    deadband: Option<f64>,
+    #[serde(default)]
+    writable: bool,
+}
+
+/// What the simulated PLC of a `transport.kind = "sim"` link does by itself (`[plcs.sim]`),
+/// so that its tags change without an operator.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct PlcSimConfig {
+    /// Message numbers registered for transfers from the PC (others get STA A7, §5-3-5).
+    #[serde(default)]
+    pub messages: Vec<u8>,
+    /// Words the simulated sequence program changes periodically.
+    #[serde(default, rename = "tick")]
+    pub ticks: Vec<SimTick>,
+}
+
+impl PlcSimConfig {
+    pub fn is_empty(&self) -> bool {
+        *self == PlcSimConfig::default()
+    }
+}
+
+/// One word the simulated PLC changes every `every_ms`: adds `add` (wrapping at the word
+/// size) and/or flips the bits of `xor`. Not a MICREX-F feature: the simulator's stand-in for
+/// a sequence program.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimTick {
+    #[serde(default)]
+    pub station: u8,
+    pub module: Module,
+    pub address: u16,
+    pub every_ms: u32,
+    #[serde(default)]
+    pub add: u32,
+    #[serde(default)]
+    pub xor: u32,
+}
+
+fn check_tags(c: &mut Checker, label: &str, p: &RawPlc) {
+    let mut seen = std::collections::HashSet::new();
+    for (i, t) in p.tags.iter().enumerate() {
+        let tl = match &t.name {
+            Some(n) => format!("{label}.tags.{n}"),
+            None => format!("{label}.tags[{}]", i + 1),
+        };
+        match &t.name {
+            None => c.missing(format!("{tl}.name"), "every [[plcs.tags]] needs a name"),
+            Some(n) => {
+                if !super::valid_name(n) {
+                    c.invalid(
+                        format!("{tl}.name"),
+                        q(n),
+                        "use only letters, digits, '_' and '-' (the name becomes a Zenoh key chunk)"
+                            .to_string(),
+                        "",
+                    );
+                }
+                if !seen.insert(n.as_str()) {
+                    c.invalid(
+                        format!("{tl}.name"),
+                        q(n),
+                        "each tag name may appear once in its PLC".to_string(),
+                        "",
+                    );
+                }
+            }
+        }
+        if let Some(s) = t.station
+            && !p.stations.contains(&s)
+        {
+            c.invalid(
+                format!("{tl}.station"),
+                s.to_string(),
+                "not one of the PLC's stations".to_string(),
+                "FFU120B §5-3 RSNO",
+            );
+        }
+        let module = match &t.module {
+            None => {
+                c.missing(
+                    format!("{tl}.module"),
+                    "e.g. module = \"D\" (FFU120B §5-3-3)",
+                );
+                None
+            }
+            Some(m) => match Module::by_name(m) {
+                Some(m) => Some(m),
+                None => {
+                    c.invalid(
+                        format!("{tl}.module"),
+                        q(m),
+                        "no such module in the module table (B, M, K, F, A, D, W9, TS, TR, CS, CR, BD, WL, W21–W24, W30–W109, W120–W123)".to_string(),
+                        "FFU120B §5-3-3",
+                    );
+                    None
+                }
+            },
+        };
+        if t.address.is_none() {
+            c.missing(
+                format!("{tl}.address"),
+                "the relative word address (FFU120B §5-4)",
+            );
+        }
+        let Some(kind) = t.kind else {
+            c.missing(
+                format!("{tl}.type"),
+                "one of \"bit\", \"u16\", \"i16\", \"u32\", \"i32\", \"bcd\"",
+            );
+            continue;
+        };
+        if let Some(m) = module {
+            let bits = m.word_bytes() * 8;
+            match (kind, t.bit) {
+                (TagType::Bit, None) => c.missing(
+                    format!("{tl}.bit"),
+                    "the bit of the word, 0 = least significant",
+                ),
+                (TagType::Bit, Some(b)) if usize::from(b) >= bits => c.invalid(
+                    format!("{tl}.bit"),
+                    b.to_string(),
+                    format!("a word of module {m} has {bits} bits: 0..={}", bits - 1),
+                    "FFU120B §5-3-3",
+                ),
+                (TagType::Bit, _) => {}
+                (_, Some(_)) => c.not_applicable(
+                    format!("{tl}.bit"),
+                    "used only with type = \"bit\"".to_string(),
+                    "",
+                ),
+                (_, None) => {}
+            }
+            if matches!(kind, TagType::U16 | TagType::I16) && bits == 32 {
+                c.invalid(
+                    format!("{tl}.type"),
+                    toml_name(&kind),
+                    format!("module {m} has 32-bit words: use u32, i32, bcd or bit"),
+                    "FFU120B §5-3-3",
+                );
+            }
+            if let Some(a) = t.address
+                && u32::from(a) + u32::from(kind.words(m)) > 0x1_0000
+            {
+                c.invalid(
+                    format!("{tl}.address"),
+                    a.to_string(),
+                    "the tag's words lie beyond relative address 65535".to_string(),
+                    "FFU120B §5-4",
+                );
+            }
+        }
+        if let Some(s) = t.scale
+            && (!s.is_finite() || s == 0.0)
+        {
+            c.invalid(
+                format!("{tl}.scale"),
+                s.to_string(),
+                "must be a finite number other than 0".to_string(),
+                "",
+            );
+        }
+        if let Some(d) = t.deadband
+            && (!d.is_finite() || d < 0.0)
+        {
+            c.invalid(
+                format!("{tl}.deadband"),
+                d.to_string(),
+                "must be a finite number ≥ 0".to_string(),
+                "",
+            );
+        }
+        if let Some(ms) = t.poll_ms {
+            c.range(|| format!("{tl}.poll_ms"), ms, 10, 3_600_000, " ms", "");
+        }
+    }
+    let is_sim = p.transport.as_ref().is_some_and(RawTransport::is_sim);
+    if let Some(sim) = &p.sim {
+        if !is_sim {
+            c.not_applicable(
+                format!("{label}.sim"),
+                "used only with transport.kind = \"sim\"; remove the table".to_string(),
+                "",
+            );
+        }
+        for (i, t) in sim.ticks.iter().enumerate() {
+            let path = format!("{label}.sim.tick[{}]", i + 1);
+            if !p.stations.contains(&t.station) {
+                c.invalid(
+                    format!("{path}.station"),
+                    t.station.to_string(),
+                    "not one of the PLC's stations".to_string(),
+                    "",
+                );
+            }
+            c.range(
+                || format!("{path}.every_ms"),
+                t.every_ms,
+                10,
+                3_600_000,
+                " ms",
+                "",
+            );
+        }
+    }
+}
+
+impl RawTag {
+    fn into_config(self, label: &str, first_station: u8) -> Result<TagConfig, ConfigErrors> {
+        let missing = |path: String| ConfigError::Missing {
+            path,
+            hint: "required".to_string(),
+        };
+        let name = self
+            .name
+            .ok_or_else(|| missing(format!("{label}.tags.name")))?;
+        let module_name = self
+            .module
+            .ok_or_else(|| missing(format!("{label}.tags.{name}.module")))?;
+        Ok(TagConfig {
+            station: self.station.unwrap_or(first_station),
+            module: Module::by_name(&module_name)
+                .ok_or_else(|| missing(format!("{label}.tags.{name}.module")))?,
+            address: self
+                .address
+                .ok_or_else(|| missing(format!("{label}.tags.{name}.address")))?,
+            kind: self
+                .kind
+                .ok_or_else(|| missing(format!("{label}.tags.{name}.type")))?,
+            bit: self.bit,
+            scale: Real(self.scale.unwrap_or(1.0)),
+            poll_ms: self.poll_ms.unwrap_or(TagConfig::DEFAULT_POLL_MS),
+            deadband: Real(self.deadband.unwrap_or(0.0)),
+            writable: self.writable,
+            name,
+        })
+    }
+}
+
+impl From<&TagConfig> for RawTag {
+    fn from(t: &TagConfig) -> Self {
+        RawTag {
+            name: Some(t.name.clone()),
+            station: Some(t.station),
+            module: Some(t.module.to_string()),
+            address: Some(t.address),
+            kind: Some(t.kind),
+            bit: t.bit,
+            scale: Some(t.scale.0),
+            poll_ms: Some(t.poll_ms),
+            deadband: Some(t.deadband.0),
+            writable: t.writable,
+        }
     }
 }

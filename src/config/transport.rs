@@ -62,6 +62,13 @@ impl TransportKind {
     }
 }
 
+impl RawTransport {
+    /// `kind = "sim"`.
+    pub(super) fn is_sim(&self) -> bool {
+        self.kind == Some(TransportKind::Sim)
+    }
+}
+
 /// A transport table as written: every key optional, whatever the kind.
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]

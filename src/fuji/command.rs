@@ -388,8 +388,8 @@ impl fmt::Display for Sta {
 /// An error reply: the module processed the request and refused it (§5-3-5).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(
-    "{sta}; station {station:02}, command {cmnd:02X}/{mode:02X}, module {}{}",
-    module_name(*.module),
+    "{sta}; station {station:02}, command {cmnd:02X}/{mode:02X}, {}{}",
+    moln_name(*.cmnd, *.module),
     address.map(|a| format!(", address {a}")).unwrap_or_default()
 )]
 pub struct StaError {
@@ -400,6 +400,15 @@ pub struct StaError {
     /// MOLN: the module, or the message number of a transfer.
     pub module: u8,
     pub address: Option<u16>,
+}
+
+/// What MOLN names: the message number of a transfer, else the module.
+fn moln_name(cmnd: u8, moln: u8) -> String {
+    if cmnd == CMND_TRANSFER {
+        format!("message {moln}")
+    } else {
+        format!("module {}", module_name(moln))
+    }
 }
 
 fn module_name(moln: u8) -> String {

@@ -18,7 +18,8 @@
 //! - mode 1: transfers the "PLC" sends ([`MicrexCommand::QueueTransfer`]) go out between
 //!   exchanges as `90 00 00 MSGNO BYTEN data`, unanswered (notes 8);
 //! - modes 4–5: messages in both directions, fixed length or variable with end code (§5-5);
-//! - fault hooks: corrupt the next BCC, stay silent, drop bytes of the next reply.
+//! - fault hooks: corrupt the next BCC, stay silent, drop bytes of the next reply, refuse the
+//!   next request with a given STA.
 //!
 //! With start code "none" a silence of [`MicrexConfig::frame_gap`] ends any partial text.
 
@@ -190,12 +191,31 @@ pub enum MicrexCommand {
     CorruptNextBcc { station: u8 },
     /// The station's next reply goes out without its last `count` bytes.
     DropReplyBytes { station: u8, count: usize },
+    /// The station refuses its next request for MOLN `moln` (a module or message number)
+    /// with this STA, whatever it asks: for codes a correct host cannot provoke (20 undefined
+    /// command, 21 parameter error, unlisted codes). 00 is ignored.
+    ForceNextSta { station: u8, moln: u8, sta: u8 },
 }
 
 /// What the simulated module saw and did.
 #[derive(Debug, Clone, PartialEq, Eq)]
 #[non_exhaustive]
 pub enum MicrexEvent {
+    /// A command-set request addressed to one of this engine's stations: its text (header and
+    /// body, as decoded from the line).
+    Request {
+        station: u8,
+        cmnd: u8,
+        mode: u8,
+        moln: u8,
+        text: Vec<u8>,
+    },
+    /// A reply went onto the line: its STA and its size on the line (start code to BCC).
+    Replied {
+        station: u8,
+        sta: u8,
+        line_bytes: usize,
+    },
     Read {
         station: u8,
         module: Module,
@@ -259,6 +279,7 @@ struct StationState {
     silent: bool,
     corrupt_next: bool,
     drop_next: usize,
+    force_sta: Option<(u8, Sta)>,
 }
 
 /// A simulated FFU120B + MICREX-F (sans-IO).
@@ -400,6 +421,13 @@ impl Micrex {
         let Some(station) = self.addressed(req.second) else {
             return;
         };
+        self.event(MicrexEvent::Request {
+            station,
+            cmnd: req.cmnd,
+            mode: req.mode,
+            moln: req.moln,
+            text: text.to_vec(),
+        });
         if self.pending.len() >= MAX_PENDING {
             // A host that does not wait for replies: the module's buffer is full (§5-6).
             self.extra_receive.add(ReceiveErrorKind::BufferFull);
@@ -415,7 +443,18 @@ impl Micrex {
         } else {
             req.mode
         };
-        let (sta, body) = match self.process(station, &req) {
+        let forced = self.stations.get_mut(&station).and_then(|st| {
+            let (moln, sta) = st.force_sta?;
+            (moln == req.moln).then(|| {
+                st.force_sta = None;
+                sta
+            })
+        });
+        let processed = match forced {
+            Some(sta) => Err(sta),
+            None => self.process(station, &req),
+        };
+        let (sta, body) = match processed {
             Ok(body) => (0, body),
             Err(sta) => {
                 self.event(MicrexEvent::Refused {
@@ -604,6 +643,11 @@ impl Micrex {
             if let Some(what) = fault {
                 self.event(MicrexEvent::Fault { station, what });
             }
+            self.event(MicrexEvent::Replied {
+                station,
+                sta: text.get(1).copied().unwrap_or(0),
+                line_bytes: line.len(),
+            });
             self.tx.push_back(line);
         }
         // The PLC's own transfers go out between exchanges.
@@ -766,6 +810,11 @@ impl Engine for Micrex {
             MicrexCommand::CorruptNextBcc { station } => {
                 if let Some(st) = self.station_mut(station) {
                     st.corrupt_next = true;
+                }
+            }
+            MicrexCommand::ForceNextSta { station, moln, sta } => {
+                if let Some(st) = self.station_mut(station) {
+                    st.force_sta = Sta::from_code(sta).map(|s| (moln, s));
                 }
             }
             MicrexCommand::DropReplyBytes { station, count } => {

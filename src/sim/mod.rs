@@ -12,7 +12,9 @@
 
 pub mod cnc;
 pub mod fanuc_board;
+pub mod fuji_server;
 pub mod micrex;
+pub mod micrex_handle;
 pub mod server;
 
 use std::future::Future;

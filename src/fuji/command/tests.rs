@@ -363,3 +363,29 @@ fn malformed_and_foreign_replies() {
     );
     assert!(CommandText::parse(&[0, 0, 0]).is_err());
 }
+
+#[test]
+fn an_sta_error_names_a_message_for_a_transfer_and_a_module_otherwise() {
+    let transfer = StaError {
+        sta: Sta::Transfer,
+        station: 0,
+        cmnd: CMND_TRANSFER,
+        mode: MODE_ADDRESS,
+        module: 5,
+        address: None,
+    }
+    .to_string();
+    assert!(transfer.contains("STA A7"), "{transfer}");
+    assert!(transfer.contains("message 5"), "{transfer}");
+    assert!(!transfer.contains("module D"), "{transfer}");
+    let read = StaError {
+        sta: Sta::OverMemorySize,
+        station: 2,
+        cmnd: CMND_READ,
+        mode: MODE_ADDRESS,
+        module: 5,
+        address: Some(65000),
+    }
+    .to_string();
+    assert!(read.contains("module D (05h), address 65000"), "{read}");
+}

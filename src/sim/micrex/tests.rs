@@ -81,12 +81,26 @@ fn the_reply_leaves_after_the_processing_delay() {
     assert_eq!(h.plc.poll_timeout(), None);
     assert_eq!(
         h.events(),
-        vec![MicrexEvent::Read {
-            station: 0,
-            module: Module::M,
-            address: 0,
-            bytes: 2
-        }]
+        vec![
+            MicrexEvent::Request {
+                station: 0,
+                cmnd: 0,
+                mode: 0,
+                moln: 1,
+                text: vec![0, 0, 0, 1, 4, 0, 0, 2, 0],
+            },
+            MicrexEvent::Read {
+                station: 0,
+                module: Module::M,
+                address: 0,
+                bytes: 2
+            },
+            MicrexEvent::Replied {
+                station: 0,
+                sta: 0,
+                line_bytes: 26,
+            },
+        ]
     );
 }
 

@@ -1,0 +1,670 @@
+//! The cell's PLC links on the bus (FFU120B command set, §5-3): memory, transfers, status.
+//!
+//! - `P/C/plc/L/mem/S/MODULE/ADDR[?count=N]`: a get reads N words (default 1) of MODULE at
+//!   station S and answers `PlcWords`; a get with a `PlcWrite` writes them and answers
+//!   `PlcWritten` once the module confirmed; a put with a `PlcWrite` writes without answer.
+//!   `P/C/plc/L/mem/S/MODULE` with `PlcWrite { clear: true }` clears the module (01/05).
+//! - `P/C/plc/L/transfer/MSGNO`: transfers the PLC sends are published here (`PlcTransfer`,
+//!   reliable, `Block`: each is a message, none supersedes another); a get with a
+//!   `PlcTransfer` sends one to the PLC and answers `PlcTransferred`, a put sends it unanswered.
+//! - `P/C/plc/L/status`: `PlcStatus` on a get; published (`Drop`: the next supersedes a lost
+//!   one) when a station goes up or down and every [`STATUS_EVERY`].
+//! - `P/C/plc/L/station/S`: a liveliness token while station S answers.
+//!
+//! A refusal of the module comes back as an `ErrorReply` whose code names the STA
+//! (`ERROR_CODE_PLC_*`) and whose `sta` carries it (`crate::codes`).
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use tokio::sync::broadcast::error::RecvError;
+use tokio::task::JoinSet;
+use tokio_util::sync::CancellationToken;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::Subscriber;
+use zenoh::qos::CongestionControl;
+use zenoh::query::{Query, Queryable};
+use zenoh::sample::{Locality, Sample, SampleKind};
+
+use super::BusError;
+use super::context::{RouteContext, reply, reply_err};
+use super::keys::{PlcArea, PlcKey};
+use super::payload::{BusMessage, encoding, schema_of};
+use crate::codes::BusCode;
+use crate::config::PlcConfig;
+use crate::fuji::command::{Module, Reply, Request, RequestError as FujiRequestError};
+use crate::fuji::master::MasterError;
+use crate::pb;
+use crate::plc::{PlcEvent, PlcHandle, PlcLinkError, PlcSnapshot, TagError, TagWriteError};
+
+/// How often a PLC link's status is published when nothing changes.
+pub const STATUS_EVERY: Duration = Duration::from_secs(5);
+
+/// A PLC of the cell and its running link.
+#[derive(Debug, Clone)]
+pub struct PlcLink {
+    pub config: PlcConfig,
+    pub link: PlcHandle,
+}
+
+/// What the PLC routes share.
+#[derive(Clone)]
+pub(crate) struct PlcContext {
+    pub route: RouteContext,
+    pub plcs: Arc<BTreeMap<String, PlcLink>>,
+}
+
+/// Why a PLC request was refused.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub(crate) enum PlcRequestError {
+    #[error("cell {cell} has no PLC {plc:?}; its PLCs are: {known}")]
+    UnknownPlc {
+        cell: String,
+        plc: String,
+        known: String,
+    },
+    #[error("{key}: {what}; expected {expected}")]
+    BadKey {
+        key: String,
+        what: String,
+        expected: &'static str,
+    },
+    #[error("PLC {plc}: the payload is not a cellgate.v1.{message}: {error}")]
+    Payload {
+        plc: String,
+        message: &'static str,
+        error: prost::DecodeError,
+    },
+    #[error("PLC {plc}: {error}")]
+    Request {
+        plc: String,
+        #[source]
+        error: FujiRequestError,
+    },
+    #[error("PLC {plc}: {error}")]
+    Plc {
+        plc: String,
+        #[source]
+        error: MasterError,
+    },
+    #[error(transparent)]
+    Tag(#[from] TagError),
+    #[error("PLC {plc}: {error}")]
+    TagWrite {
+        plc: String,
+        #[source]
+        error: TagWriteError,
+    },
+    #[error(transparent)]
+    Link(#[from] PlcLinkError),
+}
+
+impl BusCode for PlcRequestError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            PlcRequestError::UnknownPlc { .. } => pb::ErrorCode::UnknownMachine,
+            PlcRequestError::BadKey { .. }
+            | PlcRequestError::Payload { .. }
+            | PlcRequestError::Request { .. } => pb::ErrorCode::InvalidRequest,
+            PlcRequestError::Plc { error, .. } => error.code(),
+            PlcRequestError::Tag(e) => e.code(),
+            PlcRequestError::TagWrite { error, .. } => error.code(),
+            PlcRequestError::Link(e) => e.code(),
+        }
+    }
+    fn sta(&self) -> Option<u8> {
+        match self {
+            PlcRequestError::Plc { error, .. } => error.sta(),
+            PlcRequestError::TagWrite { error, .. } => error.sta(),
+            _ => None,
+        }
+    }
+}
+
+pub(crate) fn unix_ms(t: SystemTime) -> u64 {
+    t.duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+impl PlcContext {
+    /// The PLC a key names.
+    pub fn plc(&self, name: &str) -> Result<&PlcLink, PlcRequestError> {
+        self.plcs
+            .get(name)
+            .ok_or_else(|| PlcRequestError::UnknownPlc {
+                cell: self.route.keys.root().to_string(),
+                plc: name.to_string(),
+                known: if self.plcs.is_empty() {
+                    "none".to_string()
+                } else {
+                    self.plcs.keys().cloned().collect::<Vec<_>>().join(", ")
+                },
+            })
+    }
+
+    /// Publishes `message` on `key`.
+    pub async fn publish<M: BusMessage>(&self, key: String, message: &M, cc: CongestionControl) {
+        let sent = self
+            .route
+            .session
+            .put(key.clone(), message.encode_to_vec())
+            .encoding(encoding::<M>())
+            .congestion_control(cc)
+            .await;
+        if let Err(e) = sent {
+            tracing::warn!(%key, error = %e, "publish failed");
+        }
+    }
+}
+
+fn decode_payload<M: BusMessage>(plc: &str, bytes: &[u8]) -> Result<M, PlcRequestError> {
+    M::decode(bytes).map_err(|error| PlcRequestError::Payload {
+        plc: plc.to_string(),
+        message: M::SCHEMA.trim_start_matches("cellgate.v1."),
+        error,
+    })
+}
+
+/// The memory, transfer and status queryables, and the subscriber for puts. Undeclared
+/// when dropped.
+pub(crate) struct PlcRoute {
+    mem: Queryable<FifoChannelHandler<Query>>,
+    transfer: Queryable<FifoChannelHandler<Query>>,
+    status: Queryable<FifoChannelHandler<Query>>,
+    puts: Subscriber<FifoChannelHandler<Sample>>,
+}
+
+impl PlcRoute {
+    pub async fn declare(ctx: &PlcContext) -> Result<Self, BusError> {
+        let k = &ctx.route.keys;
+        Ok(PlcRoute {
+            mem: ctx.route.queryable(k.any_plc_area(PlcArea::Mem)).await?,
+            transfer: ctx
+                .route
+                .queryable(k.any_plc_area(PlcArea::Transfer))
+                .await?,
+            status: ctx.route.queryable(k.any_plc_status()).await?,
+            // Remote only: the gateway's own transfer publications are not requests.
+            puts: ctx
+                .route
+                .subscriber(k.any_plc_area(PlcArea::Mem), Locality::Remote)
+                .await?,
+        })
+    }
+
+    pub async fn run(self, ctx: PlcContext, stop: CancellationToken) {
+        let transfer_puts = match ctx
+            .route
+            .subscriber(
+                ctx.route.keys.any_plc_area(PlcArea::Transfer),
+                Locality::Remote,
+            )
+            .await
+        {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::error!(error = %e, "PLC transfer subscriber");
+                return;
+            }
+        };
+        let mut tasks = JoinSet::new();
+        loop {
+            tokio::select! {
+                () = stop.cancelled() => break,
+                q = self.mem.recv_async() => match q {
+                    Ok(q) => {
+                        let c = ctx.clone();
+                        ctx.route.spawn_query(&mut tasks, q, |q| async move { mem_query(&c, &q).await }).await;
+                    }
+                    Err(_) => break,
+                },
+                q = self.transfer.recv_async() => match q {
+                    Ok(q) => {
+                        let c = ctx.clone();
+                        ctx.route.spawn_query(&mut tasks, q, |q| async move { transfer_query(&c, &q).await }).await;
+                    }
+                    Err(_) => break,
+                },
+                q = self.status.recv_async() => match q {
+                    Ok(q) => {
+                        let c = ctx.clone();
+                        ctx.route.spawn_query(&mut tasks, q, |q| async move { status_query(&c, &q).await }).await;
+                    }
+                    Err(_) => break,
+                },
+                s = self.puts.recv_async() => match s {
+                    Ok(s) => {
+                        let c = ctx.clone();
+                        ctx.route.spawn_sample(&mut tasks, s, |s| async move {
+                            if let Err(e) = mem_put(&c, &s).await {
+                                tracing::warn!(key = %s.key_expr(), error = %e, "PLC memory put refused");
+                            }
+                        });
+                    }
+                    Err(_) => break,
+                },
+                s = transfer_puts.recv_async() => match s {
+                    Ok(s) => {
+                        let c = ctx.clone();
+                        ctx.route.spawn_sample(&mut tasks, s, |s| async move {
+                            if let Err(e) = transfer_put(&c, &s).await {
+                                tracing::warn!(key = %s.key_expr(), error = %e, "PLC transfer put refused");
+                            }
+                        });
+                    }
+                    Err(_) => break,
+                },
+                Some(_) = tasks.join_next() => {}
+            }
+        }
+        tasks.shutdown().await;
+    }
+}
+
+/// A memory key read back: the PLC, station, module and address.
+struct MemTarget {
+    plc: String,
+    station: u8,
+    module: Module,
+    address: Option<u16>,
+}
+
+const MEM_KEY: &str = "P/C/plc/L/mem/STATION/MODULE/ADDRESS (e.g. …/mem/0/D/100)";
+
+fn mem_target(ctx: &PlcContext, key: &str) -> Result<MemTarget, PlcRequestError> {
+    let bad = |what: String| PlcRequestError::BadKey {
+        key: key.to_string(),
+        what,
+        expected: MEM_KEY,
+    };
+    let Some(PlcKey::Mem {
+        plc,
+        station,
+        module,
+        address,
+    }) = ctx.route.keys.parse_plc(key)
+    else {
+        return Err(bad("not a memory key".to_string()));
+    };
+    let link = ctx.plc(plc)?;
+    let station: u8 = station
+        .parse()
+        .map_err(|_| bad(format!("station {station:?} is not a number")))?;
+    if !link.config.stations.contains(&station) {
+        return Err(bad(format!(
+            "station {station} is not one of PLC {plc}'s stations {:?}",
+            link.config.stations
+        )));
+    }
+    let module = Module::by_name(module).ok_or_else(|| PlcRequestError::Request {
+        plc: plc.to_string(),
+        error: FujiRequestError::UnknownModule {
+            name: module.to_string(),
+        },
+    })?;
+    let address = match address {
+        None => None,
+        Some(a) => Some(
+            a.parse::<u16>()
+                .map_err(|_| bad(format!("address {a:?} is not 0..=65535")))?,
+        ),
+    };
+    Ok(MemTarget {
+        plc: plc.to_string(),
+        station,
+        module,
+        address,
+    })
+}
+
+/// Sends `request` and waits for the module's reply.
+async fn exchange(
+    ctx: &PlcContext,
+    plc: &str,
+    station: u8,
+    request: Request,
+) -> Result<Reply, PlcRequestError> {
+    let link = ctx.plc(plc)?;
+    link.link
+        .request(station, request)
+        .await?
+        .map_err(|error| PlcRequestError::Plc {
+            plc: plc.to_string(),
+            error,
+        })
+}
+
+/// A read, or (with a `PlcWrite` payload) a write or clear.
+async fn mem_request(
+    ctx: &PlcContext,
+    key: &str,
+    count: usize,
+    payload: Option<&[u8]>,
+) -> Result<Answer, PlcRequestError> {
+    let t = mem_target(ctx, key)?;
+    let req_err = |error| PlcRequestError::Request {
+        plc: t.plc.clone(),
+        error,
+    };
+    match payload {
+        None => {
+            let address = t.address.ok_or_else(|| PlcRequestError::BadKey {
+                key: key.to_string(),
+                what: "a read names an address".to_string(),
+                expected: MEM_KEY,
+            })?;
+            let request = Request::read_words(t.module, address, count).map_err(req_err)?;
+            let reply = exchange(ctx, &t.plc, t.station, request).await?;
+            let words = match reply {
+                Reply::Read { words, .. } => words,
+                _ => Vec::new(),
+            };
+            Ok(Answer::Words(pb::PlcWords {
+                plc: t.plc.clone(),
+                station: u32::from(t.station),
+                module: t.module.to_string(),
+                address: u32::from(address),
+                words,
+                attribute: u32::from(t.module.attribute().code()),
+                unix_ms: unix_ms(SystemTime::now()),
+            }))
+        }
+        Some(bytes) => {
+            let w: pb::PlcWrite = decode_payload(&t.plc, bytes)?;
+            let (request, words) = if w.clear {
+                (Request::Clear { module: t.module }, 0)
+            } else {
+                let address = t.address.ok_or_else(|| PlcRequestError::BadKey {
+                    key: key.to_string(),
+                    what: "a write names an address (a clear does not)".to_string(),
+                    expected: MEM_KEY,
+                })?;
+                (
+                    Request::write_words(t.module, address, &w.words).map_err(req_err)?,
+                    w.words.len() as u32,
+                )
+            };
+            exchange(ctx, &t.plc, t.station, request).await?;
+            Ok(Answer::Written(pb::PlcWritten {
+                plc: t.plc.clone(),
+                station: u32::from(t.station),
+                module: t.module.to_string(),
+                address: u32::from(t.address.unwrap_or(0)),
+                words,
+                cleared: w.clear,
+            }))
+        }
+    }
+}
+
+enum Answer {
+    Words(pb::PlcWords),
+    Written(pb::PlcWritten),
+}
+
+fn count_of(q: &Query) -> Result<usize, PlcRequestError> {
+    match q.parameters().get("count") {
+        None => Ok(1),
+        Some(c) => c.parse().map_err(|_| PlcRequestError::BadKey {
+            key: q.selector().to_string(),
+            what: format!("count={c} is not a number"),
+            expected: "?count=N, N words",
+        }),
+    }
+}
+
+async fn mem_query(ctx: &PlcContext, q: &Query) {
+    let key = q.key_expr().to_string();
+    let payload = q.payload().map(|p| p.to_bytes().to_vec());
+    let result = match count_of(q) {
+        Ok(count) => mem_request(ctx, &key, count, payload.as_deref()).await,
+        Err(e) => Err(e),
+    };
+    match result {
+        Ok(Answer::Words(w)) => reply(q, key, &w).await,
+        Ok(Answer::Written(w)) => reply(q, key, &w).await,
+        Err(e) => reply_err(q, &e).await,
+    }
+}
+
+async fn mem_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
+    if s.kind() != SampleKind::Put
+        || schema_of(s.encoding()).as_deref() != Some(pb::PlcWrite::SCHEMA)
+    {
+        return Ok(());
+    }
+    let bytes = s.payload().to_bytes();
+    mem_request(ctx, s.key_expr().as_str(), 1, Some(&bytes))
+        .await
+        .map(|_| ())
+}
+
+fn transfer_target(ctx: &PlcContext, key: &str) -> Result<(String, u8), PlcRequestError> {
+    let bad = |what: String| PlcRequestError::BadKey {
+        key: key.to_string(),
+        what,
+        expected: "P/C/plc/L/transfer/MSGNO (0..=255)",
+    };
+    let Some(PlcKey::Transfer { plc, message }) = ctx.route.keys.parse_plc(key) else {
+        return Err(bad("not a transfer key".to_string()));
+    };
+    ctx.plc(plc)?;
+    let message = message
+        .parse()
+        .map_err(|_| bad(format!("message number {message:?} is not 0..=255")))?;
+    Ok((plc.to_string(), message))
+}
+
+async fn send_transfer(
+    ctx: &PlcContext,
+    key: &str,
+    bytes: &[u8],
+) -> Result<pb::PlcTransferred, PlcRequestError> {
+    let (plc, message) = transfer_target(ctx, key)?;
+    let t: pb::PlcTransfer = decode_payload(&plc, bytes)?;
+    let n = t.data.len() as u32;
+    // Transfers work in mode 1 only, to station 00 (§5-3-2, §5-4 iii): the master refuses
+    // them otherwise.
+    exchange(
+        ctx,
+        &plc,
+        0,
+        Request::Transfer {
+            message,
+            data: t.data,
+        },
+    )
+    .await?;
+    Ok(pb::PlcTransferred {
+        plc,
+        message: u32::from(message),
+        bytes: n,
+    })
+}
+
+async fn transfer_query(ctx: &PlcContext, q: &Query) {
+    let key = q.key_expr().to_string();
+    let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) else {
+        let e = PlcRequestError::BadKey {
+            key,
+            what: "a get here sends a transfer and needs a PlcTransfer payload".to_string(),
+            expected: "subscribe to P/C/plc/L/transfer/** for the PLC's transfers",
+        };
+        reply_err(q, &e).await;
+        return;
+    };
+    match send_transfer(ctx, &key, &payload).await {
+        Ok(t) => reply(q, key, &t).await,
+        Err(e) => reply_err(q, &e).await,
+    }
+}
+
+async fn transfer_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
+    if s.kind() != SampleKind::Put
+        || schema_of(s.encoding()).as_deref() != Some(pb::PlcTransfer::SCHEMA)
+    {
+        return Ok(());
+    }
+    send_transfer(ctx, s.key_expr().as_str(), &s.payload().to_bytes())
+        .await
+        .map(|_| ())
+}
+
+/// The `PlcStatus` of a link.
+pub(crate) fn status_message(link: &PlcLink, snap: &PlcSnapshot) -> pb::PlcStatus {
+    let plc = link.config.name.clone();
+    let c = &snap.counters;
+    let r = &c.receive_errors;
+    pb::PlcStatus {
+        plc: plc.clone(),
+        mode: u32::from(link.config.mode),
+        line: snap.line.clone(),
+        stations: link
+            .config
+            .stations
+            .iter()
+            .map(|&n| {
+                let s = c.stations.get(&n).cloned().unwrap_or_else(|| {
+                    crate::fuji::master::StationCounters {
+                        up: true,
+                        ..Default::default()
+                    }
+                });
+                pb::PlcStation {
+                    plc: plc.clone(),
+                    station: u32::from(n),
+                    up: s.up,
+                    requests: s.requests,
+                    replies: s.replies,
+                    timeouts: s.timeouts,
+                    retries: s.retries,
+                    bcc_errors: s.bcc_errors,
+                    corrupted_replies: s.corrupted_replies,
+                    error_replies: s
+                        .error_replies
+                        .iter()
+                        .map(|(k, v)| (u32::from(*k), *v))
+                        .collect(),
+                    refused_down: s.refused_down,
+                    last_error: s.last_error.map(|e| e.to_string()).unwrap_or_default(),
+                }
+            })
+            .collect(),
+        bytes_in: snap.bytes.0,
+        bytes_out: snap.bytes.1,
+        transfers_received: c.transfers_received,
+        unexpected_texts: c.unexpected_texts,
+        receive_errors: [
+            ("buffer_full", r.buffer_full),
+            ("start_code", r.start_code),
+            ("bcc", r.bcc),
+            ("too_long", r.too_long),
+            ("text_form", r.text_form),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect(),
+        tags: snap
+            .tags
+            .iter()
+            .map(|t| super::route_tag::tag_message(&plc, t))
+            .collect(),
+    }
+}
+
+async fn status_query(ctx: &PlcContext, q: &Query) {
+    let key = q.key_expr().to_string();
+    if !key.contains('*') {
+        let name = match ctx.route.keys.parse_plc(&key) {
+            Some(PlcKey::Status { plc }) => plc.to_string(),
+            _ => return,
+        };
+        let link = match ctx.plc(&name) {
+            Ok(l) => l,
+            Err(e) => return reply_err(q, &e).await,
+        };
+        match link.link.snapshot().await {
+            Ok(s) => reply(q, key, &status_message(link, &s)).await,
+            Err(e) => reply_err(q, &PlcRequestError::from(e)).await,
+        }
+        return;
+    }
+    for link in ctx.plcs.values() {
+        let k = ctx.route.keys.plc_status(&link.config.name);
+        if !super::keys::intersects(q.key_expr(), &k) {
+            continue;
+        }
+        if let Ok(s) = link.link.snapshot().await {
+            reply(q, k, &status_message(link, &s)).await;
+        }
+    }
+}
+
+/// Publishes a PLC link's transfers and status, and holds its stations' liveliness tokens,
+/// until `stop`.
+pub(crate) async fn publish_link(ctx: PlcContext, link: PlcLink, stop: CancellationToken) {
+    let mut events = link.link.subscribe();
+    let name = link.config.name.clone();
+    let keys = Arc::clone(&ctx.route.keys);
+    let mut tokens: BTreeMap<u8, LivelinessToken> = BTreeMap::new();
+    for &s in &link.config.stations {
+        // A station is presumed up until the master marks it down.
+        match ctx
+            .route
+            .session
+            .liveliness()
+            .declare_token(keys.plc_station(&name, s))
+            .await
+        {
+            Ok(t) => {
+                tokens.insert(s, t);
+            }
+            Err(e) => tracing::warn!(plc = %name, station = s, error = %e, "liveliness token"),
+        }
+    }
+    let mut tick = tokio::time::interval(STATUS_EVERY);
+    let status = |ctx: PlcContext, link: PlcLink| async move {
+        if let Ok(s) = link.link.snapshot().await {
+            let k = ctx.route.keys.plc_status(&link.config.name);
+            ctx.publish(k, &status_message(&link, &s), CongestionControl::Drop)
+                .await;
+        }
+    };
+    loop {
+        tokio::select! {
+            () = stop.cancelled() => break,
+            _ = tick.tick() => status(ctx.clone(), link.clone()).await,
+            ev = events.recv() => match ev {
+                Ok(PlcEvent::Transfer { message, data, time }) => {
+                    let t = pb::PlcTransfer {
+                        plc: name.clone(),
+                        message: u32::from(message),
+                        data,
+                        from_plc: true,
+                        unix_ms: unix_ms(time),
+                    };
+                    ctx.publish(keys.plc_transfer(&name, message), &t, CongestionControl::Block).await;
+                }
+                Ok(PlcEvent::Station { station, up }) => {
+                    if up {
+                        if let Ok(t) = ctx.route.session.liveliness().declare_token(keys.plc_station(&name, station)).await {
+                            tokens.insert(station, t);
+                        }
+                    } else if let Some(t) = tokens.remove(&station) {
+                        let _ = t.undeclare().await;
+                    }
+                    status(ctx.clone(), link.clone()).await;
+                }
+                Ok(PlcEvent::Stopped { .. }) | Err(RecvError::Closed) => break,
+                Ok(_) => {}
+                Err(RecvError::Lagged(n)) => tracing::warn!(plc = %name, missed = n, "PLC events lagged"),
+            }
+        }
+    }
+    for (_, t) in tokens {
+        let _ = t.undeclare().await;
+    }
+}

@@ -1,0 +1,500 @@
+//! The PLC link task: a [`Master`] run by a [`Pump`] over any [`Transport`], the tag poll
+//! groups on their intervals, and the requests of the bus. Thin: every protocol decision is
+//! the master's, every tag decision the [`TagTable`]'s; this file only moves commands, bytes,
+//! events and time between them. All time is `tokio::time`, so it runs in paused time.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::SystemTime;
+
+use tokio::sync::{broadcast, mpsc, oneshot};
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+
+use super::tags::{TagError, TagTable, TagValue, TagWrite, WriteOp};
+use crate::engine::Engine;
+use crate::fuji::command::{Reply, Request};
+use crate::fuji::master::{Counters, Master, MasterCommand, MasterError, MasterEvent, RequestId};
+use crate::link::pump::{Pump, PumpError};
+use crate::transport::Transport;
+
+/// Commands a PLC link holds waiting; [`PlcHandle`] refuses more (`Busy`).
+pub const COMMAND_QUEUE: usize = 256;
+
+/// The answer to a memory or transfer request.
+pub type RequestResult = Result<Reply, MasterError>;
+
+/// What the bus (or a test) asks of a PLC link.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum PlcCommand {
+    /// A command-set request to `station`; the module's reply (or the error) comes back.
+    Request {
+        station: u8,
+        request: Request,
+        reply: oneshot::Sender<RequestResult>,
+    },
+    /// Writes a tag (scale undone, range checked; a read-only tag is refused here).
+    WriteTag {
+        name: String,
+        value: f64,
+        reply: oneshot::Sender<Result<TagWrite, TagWriteError>>,
+    },
+    /// The latest value of a tag.
+    GetTag {
+        name: String,
+        reply: oneshot::Sender<Result<TagValue, TagError>>,
+    },
+    /// Counters and tag values now.
+    Snapshot { reply: oneshot::Sender<PlcSnapshot> },
+}
+
+/// Why a tag write failed.
+#[derive(Debug, Clone, thiserror::Error)]
+#[non_exhaustive]
+pub enum TagWriteError {
+    #[error(transparent)]
+    Tag(#[from] TagError),
+    #[error("{0}")]
+    Plc(#[from] MasterError),
+}
+
+/// What a PLC link reports.
+#[derive(Debug, Clone)]
+#[non_exhaustive]
+pub enum PlcEvent {
+    /// A tag changed (value beyond its deadband, or quality).
+    Tag(TagValue),
+    /// A transfer the PLC sent (mode 1, §5-4 iv).
+    Transfer {
+        message: u8,
+        data: Vec<u8>,
+        time: SystemTime,
+    },
+    /// A station was marked down or answers again.
+    Station { station: u8, up: bool },
+    /// A poll group's reads all ended (`group` index, when its round started).
+    PollDone { group: usize, started: Instant },
+    /// The link task ended.
+    Stopped { error: Option<Arc<PumpError>> },
+}
+
+/// The link's state at one moment.
+#[derive(Debug, Clone)]
+pub struct PlcSnapshot {
+    pub counters: Counters,
+    pub tags: Vec<TagValue>,
+    /// The transport, as it describes itself.
+    pub line: String,
+    /// Bytes received and sent on the line.
+    pub bytes: (u64, u64),
+}
+
+/// Why a command could not be given to the link.
+#[derive(Debug, Clone, thiserror::Error)]
+#[non_exhaustive]
+pub enum PlcLinkError {
+    #[error("PLC link {plc} is not running")]
+    NotRunning { plc: String },
+    #[error("PLC link {plc} has {max} commands waiting already; try again later")]
+    Busy { plc: String, max: usize },
+}
+
+/// Talks to a running PLC link. Cheap to clone.
+#[derive(Debug, Clone)]
+pub struct PlcHandle {
+    name: String,
+    commands: mpsc::Sender<PlcCommand>,
+    events: broadcast::Sender<PlcEvent>,
+}
+
+impl PlcHandle {
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    pub fn subscribe(&self) -> broadcast::Receiver<PlcEvent> {
+        self.events.subscribe()
+    }
+
+    fn send(&self, command: PlcCommand) -> Result<(), PlcLinkError> {
+        self.commands.try_send(command).map_err(|e| match e {
+            mpsc::error::TrySendError::Full(_) => PlcLinkError::Busy {
+                plc: self.name.clone(),
+                max: COMMAND_QUEUE,
+            },
+            mpsc::error::TrySendError::Closed(_) => self.not_running(),
+        })
+    }
+
+    fn not_running(&self) -> PlcLinkError {
+        PlcLinkError::NotRunning {
+            plc: self.name.clone(),
+        }
+    }
+
+    /// Sends a command-set request and waits for its end.
+    pub async fn request(
+        &self,
+        station: u8,
+        request: Request,
+    ) -> Result<RequestResult, PlcLinkError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(PlcCommand::Request {
+            station,
+            request,
+            reply: tx,
+        })?;
+        rx.await.map_err(|_| self.not_running())
+    }
+
+    pub async fn write_tag(
+        &self,
+        name: &str,
+        value: f64,
+    ) -> Result<Result<TagWrite, TagWriteError>, PlcLinkError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(PlcCommand::WriteTag {
+            name: name.to_string(),
+            value,
+            reply: tx,
+        })?;
+        rx.await.map_err(|_| self.not_running())
+    }
+
+    pub async fn get_tag(&self, name: &str) -> Result<Result<TagValue, TagError>, PlcLinkError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(PlcCommand::GetTag {
+            name: name.to_string(),
+            reply: tx,
+        })?;
+        rx.await.map_err(|_| self.not_running())
+    }
+
+    pub async fn snapshot(&self) -> Result<PlcSnapshot, PlcLinkError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(PlcCommand::Snapshot { reply: tx })?;
+        rx.await.map_err(|_| self.not_running())
+    }
+}
+
+/// Starts the link task of PLC `name`. It ends when `shutdown` is cancelled, when every
+/// handle is dropped, or when the transport closes for good.
+pub fn spawn<T: Transport + 'static>(
+    name: impl Into<String>,
+    master: Master,
+    tags: TagTable,
+    transport: T,
+    shutdown: CancellationToken,
+) -> (
+    PlcHandle,
+    tokio::task::JoinHandle<Result<(), Arc<PumpError>>>,
+) {
+    let name = name.into();
+    let (cmd_tx, cmd_rx) = mpsc::channel(COMMAND_QUEUE);
+    let (ev_tx, _) = broadcast::channel(4096);
+    let handle = PlcHandle {
+        name: name.clone(),
+        commands: cmd_tx,
+        events: ev_tx.clone(),
+    };
+    let span = tracing::info_span!("plc", plc = %name, line = %transport.describe());
+    let start = Instant::now();
+    let groups = tags
+        .groups()
+        .iter()
+        .map(|_| GroupState {
+            due: start,
+            started: start,
+            outstanding: 0,
+        })
+        .collect();
+    let driver = Driver {
+        pump: Pump::new(master, transport),
+        commands: cmd_rx,
+        events: ev_tx,
+        tags,
+        groups,
+        pending: HashMap::new(),
+        next_id: 1,
+    };
+    let task = tokio::spawn(tracing::Instrument::instrument(driver.run(shutdown), span));
+    (handle, task)
+}
+
+/// Who waits for a request's end.
+enum Pending {
+    Caller(oneshot::Sender<RequestResult>),
+    Poll {
+        group: usize,
+        read: usize,
+    },
+    /// The word of a bit tag was read; the bit is changed and the word written back.
+    BitRead {
+        write: TagWrite,
+        reply: oneshot::Sender<Result<TagWrite, TagWriteError>>,
+    },
+    TagWrite {
+        write: TagWrite,
+        reply: oneshot::Sender<Result<TagWrite, TagWriteError>>,
+    },
+}
+
+struct GroupState {
+    due: Instant,
+    started: Instant,
+    /// Reads of the current round not ended yet.
+    outstanding: usize,
+}
+
+struct Driver<T> {
+    pump: Pump<Master, T>,
+    commands: mpsc::Receiver<PlcCommand>,
+    events: broadcast::Sender<PlcEvent>,
+    tags: TagTable,
+    groups: Vec<GroupState>,
+    pending: HashMap<RequestId, Pending>,
+    next_id: RequestId,
+}
+
+enum Wake {
+    Shutdown,
+    Command(Option<PlcCommand>),
+    Poll,
+    Pump(Result<(), PumpError>),
+}
+
+impl<T: Transport> Driver<T> {
+    async fn run(mut self, shutdown: CancellationToken) -> Result<(), Arc<PumpError>> {
+        let result = loop {
+            self.drain();
+            let due = self
+                .groups
+                .iter()
+                .filter(|g| g.outstanding == 0)
+                .map(|g| g.due)
+                .min();
+            let wake = tokio::select! {
+                biased;
+                () = shutdown.cancelled() => Wake::Shutdown,
+                cmd = self.commands.recv() => Wake::Command(cmd),
+                () = sleep_until(due) => Wake::Poll,
+                r = self.pump.step() => Wake::Pump(r),
+            };
+            match wake {
+                Wake::Shutdown | Wake::Command(None) => break Ok(()),
+                Wake::Command(Some(cmd)) => self.command(cmd),
+                Wake::Poll => self.poll_due(),
+                Wake::Pump(Ok(())) => {}
+                Wake::Pump(Err(e)) => break Err(Arc::new(e)),
+            }
+        };
+        self.drain();
+        let error = result.as_ref().err().cloned();
+        if let Some(e) = &error {
+            tracing::error!(error = %e, "PLC link stopped");
+        }
+        let _ = self.events.send(PlcEvent::Stopped { error });
+        result
+    }
+
+    fn emit(&self, event: PlcEvent) {
+        // No subscriber is not an error: nobody is watching this link right now.
+        let _ = self.events.send(event);
+    }
+
+    fn submit(&mut self, station: u8, request: Request, pending: Pending) {
+        let id = self.next_id;
+        self.next_id += 1;
+        self.pending.insert(id, pending);
+        self.pump.command(MasterCommand::Request {
+            id,
+            station,
+            request,
+        });
+    }
+
+    fn command(&mut self, command: PlcCommand) {
+        match command {
+            PlcCommand::Request {
+                station,
+                request,
+                reply,
+            } => self.submit(station, request, Pending::Caller(reply)),
+            PlcCommand::GetTag { name, reply } => {
+                let _ = reply.send(self.tags.value(&name).cloned());
+            }
+            PlcCommand::Snapshot { reply } => {
+                let _ = reply.send(PlcSnapshot {
+                    counters: self.pump.engine().counters(),
+                    tags: self.tags.values(),
+                    line: self.pump.transport().describe(),
+                    bytes: self.pump.counters(),
+                });
+            }
+            PlcCommand::WriteTag { name, value, reply } => {
+                let write = match self.tags.plan_write(&name, value) {
+                    Ok(w) => w,
+                    Err(e) => {
+                        let _ = reply.send(Err(e.into()));
+                        return;
+                    }
+                };
+                match &write.op {
+                    WriteOp::Words(words) => {
+                        match Request::write_words(write.module, write.address, words) {
+                            Ok(req) => {
+                                let station = write.station;
+                                self.submit(station, req, Pending::TagWrite { write, reply });
+                            }
+                            Err(e) => {
+                                let _ = reply.send(Err(MasterError::from(e).into()));
+                            }
+                        }
+                    }
+                    WriteOp::Bit { .. } => {
+                        match Request::read_words(write.module, write.address, 1) {
+                            Ok(req) => {
+                                let station = write.station;
+                                self.submit(station, req, Pending::BitRead { write, reply });
+                            }
+                            Err(e) => {
+                                let _ = reply.send(Err(MasterError::from(e).into()));
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Starts the round of every poll group that is due and not still reading.
+    fn poll_due(&mut self) {
+        let now = Instant::now();
+        for g in 0..self.groups.len() {
+            let state = &self.groups[g];
+            if state.outstanding > 0 || state.due > now {
+                continue;
+            }
+            let group = &self.tags.groups()[g];
+            let interval = group.interval;
+            let reads: Vec<_> = group
+                .reads
+                .iter()
+                .map(|r| (r.station, r.module, r.address, r.words))
+                .collect();
+            let state = &mut self.groups[g];
+            state.started = now;
+            // Fixed rate; a round that overran starts the next one at once, never in a burst.
+            state.due = (state.due + interval).max(now);
+            state.outstanding = reads.len();
+            for (read, (station, module, address, words)) in reads.into_iter().enumerate() {
+                match Request::read_words(module, address, usize::from(words)) {
+                    Ok(req) => self.submit(station, req, Pending::Poll { group: g, read }),
+                    Err(e) => {
+                        tracing::warn!(error = %e, "tag read cannot be sent");
+                        self.read_done(g, read, None);
+                    }
+                }
+            }
+        }
+    }
+
+    fn read_done(&mut self, group: usize, read: usize, words: Option<&[u32]>) {
+        for v in self.tags.apply_read(group, read, words, SystemTime::now()) {
+            self.emit(PlcEvent::Tag(v));
+        }
+        if let Some(state) = self.groups.get_mut(group) {
+            state.outstanding = state.outstanding.saturating_sub(1);
+            if state.outstanding == 0 {
+                let started = state.started;
+                self.emit(PlcEvent::PollDone { group, started });
+            }
+        }
+    }
+
+    /// Hands on everything the master reported.
+    fn drain(&mut self) {
+        while let Some(event) = self.pump.engine_mut().poll_event() {
+            match event {
+                MasterEvent::Done { id, result, .. } => self.done(id, result),
+                MasterEvent::Transfer { message, data } => self.emit(PlcEvent::Transfer {
+                    message,
+                    data,
+                    time: SystemTime::now(),
+                }),
+                MasterEvent::StationDown { station, .. } => {
+                    for v in self.tags.station_down(station) {
+                        self.emit(PlcEvent::Tag(v));
+                    }
+                    self.emit(PlcEvent::Station { station, up: false });
+                }
+                MasterEvent::StationUp { station } => {
+                    self.emit(PlcEvent::Station { station, up: true })
+                }
+                other => tracing::debug!(?other, "PLC link event ignored"),
+            }
+        }
+    }
+
+    fn done(&mut self, id: RequestId, result: RequestResult) {
+        let Some(pending) = self.pending.remove(&id) else {
+            return;
+        };
+        match pending {
+            Pending::Caller(reply) => {
+                let _ = reply.send(result);
+            }
+            Pending::Poll { group, read } => match &result {
+                Ok(Reply::Read { words, .. }) => self.read_done(group, read, Some(words)),
+                _ => self.read_done(group, read, None),
+            },
+            Pending::BitRead { write, reply } => {
+                let word = match result {
+                    Ok(Reply::Read { words, .. }) => words.first().copied().unwrap_or(0),
+                    Ok(_) => 0,
+                    Err(e) => {
+                        let _ = reply.send(Err(e.into()));
+                        return;
+                    }
+                };
+                let WriteOp::Bit { bit, on } = write.op else {
+                    return;
+                };
+                let word = if on {
+                    word | (1 << bit)
+                } else {
+                    word & !(1 << bit)
+                };
+                match Request::write_words(write.module, write.address, &[word]) {
+                    Ok(req) => {
+                        let station = write.station;
+                        self.submit(station, req, Pending::TagWrite { write, reply });
+                    }
+                    Err(e) => {
+                        let _ = reply.send(Err(MasterError::from(e).into()));
+                    }
+                }
+            }
+            Pending::TagWrite { write, reply } => {
+                let ok = result.is_ok();
+                let _ = reply.send(result.map(|_| write).map_err(TagWriteError::from));
+                if ok {
+                    // Read the groups of what was written at once, so its new value is
+                    // published without waiting for the next round.
+                    let now = Instant::now();
+                    for g in &mut self.groups {
+                        g.due = g.due.min(now);
+                    }
+                }
+            }
+        }
+    }
+}
+
+async fn sleep_until(due: Option<Instant>) {
+    match due {
+        Some(t) => tokio::time::sleep_until(t).await,
+        None => std::future::pending().await,
+    }
+}
