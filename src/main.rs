@@ -222,47 +222,16 @@ fn router(cli: &Cli, args: &RouterArgs) -> ExitCode {
             return ExitCode::from(EXIT_CONFIG);
         }
     }
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-    {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
-            return ExitCode::from(EXIT_RUNTIME);
-        }
-    };
-    let mut telemetry = cellgate::telemetry::TelemetryConfig::default();
-    if let Some(format) = cli.log_format {
-        telemetry.log_format = format.into();
-    }
-    runtime.block_on(async move {
-        let _guard = match telemetry::init(&telemetry) {
-            Ok(guard) => guard,
-            Err(e) => {
-                eprintln!("cellgate: {e}");
-                return ExitCode::from(EXIT_CONFIG);
-            }
-        };
-        let stop = match shutdown_signal() {
-            Ok(s) => s,
-            Err(e) => {
-                eprintln!("cellgate: cannot watch for signals: {e}");
-                return ExitCode::from(EXIT_RUNTIME);
-            }
-        };
-        let session = match zenoh::open(config).await {
-            Ok(s) => s,
-            Err(e) => {
-                eprintln!("cellgate: the zenoh router did not start: {e}");
-                return ExitCode::from(EXIT_RUNTIME);
-            }
-        };
+    let name = "cellgate router";
+    service(cli, name, |stop| async move {
+        let session = zenoh::open(config)
+            .await
+            .map_err(|e| format!("the zenoh router did not start: {e}"))?;
         tracing::info!(zid = %session.zid(), ?listen, "zenoh router running");
         stop.await;
         let _ = session.close().await;
         tracing::info!("zenoh router stopped");
-        ExitCode::SUCCESS
+        Ok(())
     })
 }
 
@@ -291,50 +260,30 @@ fn client_command(cli: &Cli, command: &impl client::ClientCommand) -> ExitCode {
 
 /// `cellgate sim fanuc ...`: logs go to stderr, events as JSON lines to stdout.
 fn sim_fanuc(cli: &Cli, args: cellgate::sim::server::SimFanucArgs) -> ExitCode {
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-    {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
-            return ExitCode::from(EXIT_RUNTIME);
-        }
-    };
-    let mut telemetry = cellgate::telemetry::TelemetryConfig::default();
-    if let Some(format) = cli.log_format {
-        telemetry.log_format = format.into();
-    }
-    runtime.block_on(async move {
-        let mut guard = match telemetry::init(&telemetry) {
-            Ok(guard) => guard,
-            Err(e) => {
-                eprintln!("cellgate: {e}");
-                return ExitCode::from(EXIT_CONFIG);
-            }
-        };
-        let code = match shutdown_signal() {
-            Ok(shutdown) => match cellgate::sim::server::serve_fanuc(args, shutdown).await {
-                Ok(()) => ExitCode::SUCCESS,
-                Err(e) => {
-                    eprintln!("cellgate sim fanuc: {e}");
-                    ExitCode::from(EXIT_CONFIG)
-                }
-            },
-            Err(e) => {
-                eprintln!("cellgate: cannot install the SIGINT/SIGTERM handlers: {e}");
-                ExitCode::from(EXIT_RUNTIME)
-            }
-        };
-        if let Err(e) = guard.shutdown() {
-            eprintln!("cellgate: {e}");
-        }
-        code
+    service(cli, "cellgate sim fanuc", |stop| async move {
+        cellgate::sim::server::serve_fanuc(args, stop)
+            .await
+            .map_err(|e| e.to_string())
     })
 }
 
 /// `cellgate sim fuji ...`: logs go to stderr, events as JSON lines to stdout.
 fn sim_fuji(cli: &Cli, args: cellgate::sim::fuji_server::SimFujiArgs) -> ExitCode {
+    service(cli, "cellgate sim fuji", |stop| async move {
+        cellgate::sim::fuji_server::serve_fuji(args, stop)
+            .await
+            .map_err(|e| e.to_string())
+    })
+}
+
+/// Runs `body` until it ends or SIGINT / SIGTERM, on the multi-thread runtime zenoh needs,
+/// with logs on stderr in the chosen format: the frame of `router` and the simulators. An
+/// error `body` returns is printed after `name` and exits with code 2.
+fn service<F, Fut>(cli: &Cli, name: &str, body: F) -> ExitCode
+where
+    F: FnOnce(std::pin::Pin<Box<dyn Future<Output = ()> + Send>>) -> Fut,
+    Fut: Future<Output = Result<(), String>>,
+{
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -358,10 +307,10 @@ fn sim_fuji(cli: &Cli, args: cellgate::sim::fuji_server::SimFujiArgs) -> ExitCod
             }
         };
         let code = match shutdown_signal() {
-            Ok(shutdown) => match cellgate::sim::fuji_server::serve_fuji(args, shutdown).await {
+            Ok(stop) => match body(Box::pin(stop)).await {
                 Ok(()) => ExitCode::SUCCESS,
                 Err(e) => {
-                    eprintln!("cellgate sim fuji: {e}");
+                    eprintln!("{name}: {e}");
                     ExitCode::from(EXIT_CONFIG)
                 }
             },
