@@ -62,6 +62,17 @@ pub enum SimError {
         "simulator listen address {addr} is not loopback: simulators bind 127.0.0.1 or ::1 only"
     )]
     NotLoopback { addr: std::net::SocketAddr },
+    #[error(
+        "{boards} boards need {boards} consecutive ports from {addr}: give a port from 1 to \
+         {}",
+        65536 - u32::from(*boards)
+    )]
+    Ports {
+        addr: std::net::SocketAddr,
+        boards: u16,
+    },
+    #[error("a simulated board stopped: {0}")]
+    Board(String),
     #[error("simulator cannot listen on {addr}: {source}")]
     Bind {
         addr: std::net::SocketAddr,

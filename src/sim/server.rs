@@ -88,9 +88,14 @@ pub enum SimEndCode {
 /// `cellgate sim fanuc`: a simulated remote-buffer board with its CNC, served over TCP.
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimFanucArgs {
-    /// Address to listen on; loopback only.
+    /// Address to listen on; loopback only. With --boards N, the first of N consecutive ports.
     #[arg(long, default_value = "127.0.0.1:4001")]
     pub listen: SocketAddr,
+    /// Independent boards (each with its CNC) served from this one process, on N consecutive
+    /// ports from --listen, all with the options given; every event line carries `"board"`,
+    /// the board's index from 0. For many links against one gateway.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=4096))]
+    pub boards: u16,
     /// Remote-buffer protocol.
     #[arg(long, value_enum, default_value_t = SimProtocol::A)]
     pub protocol: SimProtocol,
@@ -344,27 +349,79 @@ pub async fn serve_fanuc(
     if !args.listen.ip().is_loopback() {
         return Err(SimError::NotLoopback { addr: args.listen });
     }
-    let listener = TcpListener::bind(args.listen)
-        .await
-        .map_err(|source| SimError::Bind {
-            addr: args.listen,
-            source,
-        })?;
-    let sink: EventSink = Arc::new(|v: &Value| {
+    let stdout: EventSink = Arc::new(|v: &Value| {
         use std::io::Write;
         let mut out = std::io::stdout().lock();
         // A closed stdout must not stop the simulator.
         let _ = writeln!(out, "{v}").and_then(|()| out.flush());
     });
-    serve_fanuc_with(
-        listener,
-        config,
-        args.line_settings(),
-        punch,
-        sink,
-        shutdown,
-    )
-    .await
+    // Every port is bound before any board runs: a port in use fails the whole command.
+    let mut listeners = Vec::with_capacity(usize::from(args.boards));
+    for i in 0..args.boards {
+        let port = args
+            .listen
+            .port()
+            .checked_add(i)
+            .filter(|_| args.listen.port() != 0);
+        let addr = match port {
+            Some(port) => SocketAddr::new(args.listen.ip(), port),
+            None if args.boards == 1 => args.listen,
+            None => {
+                return Err(SimError::Ports {
+                    addr: args.listen,
+                    boards: args.boards,
+                });
+            }
+        };
+        let listener = TcpListener::bind(addr)
+            .await
+            .map_err(|source| SimError::Bind { addr, source })?;
+        listeners.push(listener);
+    }
+    if args.boards == 1 {
+        let listener = listeners.pop().expect("one listener was bound");
+        let settings = args.line_settings();
+        return serve_fanuc_with(listener, config, settings, punch, stdout, shutdown).await;
+    }
+    let stop = tokio_util::sync::CancellationToken::new();
+    let mut boards = tokio::task::JoinSet::new();
+    for (i, listener) in listeners.into_iter().enumerate() {
+        let out = stdout.clone();
+        let sink: EventSink = Arc::new(move |v: &Value| {
+            let mut v = v.clone();
+            v["board"] = json!(i);
+            out(&v);
+        });
+        let (config, settings, punch) = (config.clone(), args.line_settings(), punch.clone());
+        let stop = stop.clone();
+        boards.spawn(async move {
+            serve_fanuc_with(
+                listener,
+                config,
+                settings,
+                punch,
+                sink,
+                stop.cancelled_owned(),
+            )
+            .await
+        });
+    }
+    let mut shutdown = std::pin::pin!(shutdown);
+    let mut result = Ok(());
+    loop {
+        tokio::select! {
+            () = &mut shutdown => break,
+            ended = boards.join_next() => match ended {
+                None => break,
+                Some(Ok(Ok(()))) => {}
+                Some(Ok(Err(e))) => { result = Err(e); break; }
+                Some(Err(e)) => { result = Err(SimError::Board(e.to_string())); break; }
+            },
+        }
+    }
+    stop.cancel();
+    while boards.join_next().await.is_some() {}
+    result
 }
 
 /// Serves the board on a bound listener (tests bind port 0), sending JSON events to `sink`.
