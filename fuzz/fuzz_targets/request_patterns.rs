@@ -21,6 +21,7 @@ fuzz_target!(|data: &[u8]| {
         code: TapeCode::Iso,
         o_number: None,
         comment: None,
+        damage: None,
     };
     if let Some(request) = patterns.match_program(&program) {
         assert!(request.program.starts_with('O'));
