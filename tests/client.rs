@@ -1130,10 +1130,13 @@ async fn a_flood_of_requests_leaves_the_gateway_bounded_and_serving() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_says_what_is_down_and_fails_when_the_gateway_is_gone() {
     // The embedded default cell, its links initialised: healthy.
+    // Three CNCs and the PLC's station, once the station has answered its first poll.
     let run = RunProcess::start().await;
+    let healthy = healthy_within(&run.endpoint, 30).await;
+    assert!(healthy.is_ok(), "{healthy:?}");
     let (code, out, err) = cellgate(&["health", "-e", &run.endpoint]).await;
     assert_eq!(code, 0, "{out}{err}");
-    assert!(out.contains("3 link(s) are up"), "{out}");
+    assert!(out.contains("its 4 link(s) are up"), "{out}");
     drop(run);
 
     // A machine behind a device server that is not there: its link stays down.
@@ -1156,6 +1159,16 @@ transport = {{ kind = "sim", line = {{ baud = 19200 }} }}
 name = "mill-9"
 protocol = "a"
 transport = {{ kind = "tcp", address = "127.0.0.1:{nobody}", line = {{ baud = 19200 }} }}
+[[plcs]]
+name = "plc-9"
+mode = 1
+transport = {{ kind = "tcp", address = "127.0.0.1:{nobody}", line = {{ baud = 19200 }} }}
+[[plcs.tags]]
+name = "parts"
+module = "D"
+address = 0
+type = "u16"
+poll_ms = 200
 "#,
             programs = dir.path().join("programs").display()
         ),
@@ -1174,15 +1187,18 @@ transport = {{ kind = "tcp", address = "127.0.0.1:{nobody}", line = {{ baud = 19
     let mut last = (0, String::new(), String::new());
     for _ in 0..60 {
         last = cellgate(&["health", "-e", &endpoint]).await;
-        // Until mill-1 is initialised, both are down.
-        if last.0 == 1 && last.1.contains("1 of 2") {
+        // Until mill-1 is initialised, it is down too.
+        if last.0 == 1 && last.1.contains("2 of 3") && !last.1.contains("mill-1") {
             break;
         }
         tokio::time::sleep(Duration::from_millis(250)).await;
     }
     let (code, out, err) = last;
     assert_eq!(code, 1, "{out}{err}");
-    assert!(out.contains("1 of 2 link(s) down: mill-9 (down)"), "{out}");
+    assert!(
+        out.contains("2 of 3 link(s) down: mill-9 (down), plc-9 station 0 (down)"),
+        "{out}"
+    );
     // A liveness probe does not care about the links.
     let (code, out, err) = cellgate(&["health", "-e", &endpoint, "--gateway-only"]).await;
     assert_eq!(code, 0, "{out}{err}");

@@ -479,7 +479,9 @@ impl ClientCommand for HealthArgs {
             return Ok(0);
         }
         let statuses = client.status(None).await?;
-        let down: Vec<String> = statuses
+        let plcs = client.plc_status(None).await?;
+        let stations: Vec<&pb::PlcStation> = plcs.iter().flat_map(|p| &p.stations).collect();
+        let mut down: Vec<String> = statuses
             .iter()
             .filter_map(|s| {
                 let state = pb::LinkState::try_from(s.link_state).unwrap_or_default();
@@ -493,19 +495,25 @@ impl ClientCommand for HealthArgs {
                 }
             })
             .collect();
+        // A PLC station counts as a link: the gateway cannot read or write it while down.
+        down.extend(
+            stations
+                .iter()
+                .filter(|s| !s.up)
+                .map(|s| format!("{} station {} (down)", s.plc, s.station)),
+        );
+        let links = statuses.len() + stations.len();
         if down.is_empty() {
             let _ = writeln!(
                 io.out,
-                "ok: the gateway answers and its {} link(s) are up",
-                statuses.len()
+                "ok: the gateway answers and its {links} link(s) are up"
             );
             Ok(0)
         } else {
             let _ = writeln!(
                 io.out,
-                "unhealthy: {} of {} link(s) down: {}",
+                "unhealthy: {} of {links} link(s) down: {}",
                 down.len(),
-                statuses.len(),
                 down.join(", ")
             );
             Ok(1)

@@ -438,6 +438,8 @@ pub struct Master {
     /// No request before this instant (turnaround after a reply).
     quiet_until: Option<Instant>,
     cs: bool,
+    /// DR and CD on: the line can carry a reply at all (a TCP device server is connected).
+    line_up: bool,
     line_errors: LineErrorCounts,
     transfers_received: u64,
     messages_received: u64,
@@ -467,6 +469,7 @@ impl Master {
             stations: BTreeMap::new(),
             quiet_until: None,
             cs: true,
+            line_up: true,
             line_errors: LineErrorCounts::default(),
             transfers_received: 0,
             messages_received: 0,
@@ -626,14 +629,25 @@ impl Master {
             ),
             Ok(mut job) => {
                 job.id = id;
-                if job.request.is_some() {
-                    self.stations.entry(station).or_insert_with(|| Station {
-                        counters: StationCounters {
-                            up: true,
-                            ..StationCounters::default()
+                if job.request.is_some() && !self.stations.contains_key(&station) {
+                    // Over a line that is down no station answers: it starts down.
+                    let up = self.line_up;
+                    self.stations.insert(
+                        station,
+                        Station {
+                            counters: StationCounters {
+                                up,
+                                ..StationCounters::default()
+                            },
+                            next_probe: None,
                         },
-                        next_probe: None,
-                    });
+                    );
+                    if !up {
+                        self.events.push_back(MasterEvent::StationDown {
+                            station,
+                            timeouts: 0,
+                        });
+                    }
                 }
                 self.queue.push_back(job);
             }
@@ -933,6 +947,24 @@ impl Engine for Master {
 
     fn handle_modem(&mut self, now: Instant, modem: ModemIn) {
         self.cs = modem.cs;
+        let up = modem.dr && modem.cd;
+        if !up && self.line_up {
+            // With the line down (DR or CD off: a device server unreachable) no station can
+            // answer. Say so now: held back by CS, its requests would never time out. Each
+            // station comes up again with its next reply (a probe once the line is back).
+            tracing::warn!("FFU120B line down: every station marked down");
+            for (&station, st) in &mut self.stations {
+                if st.counters.up {
+                    st.counters.up = false;
+                    st.next_probe = None;
+                    self.events.push_back(MasterEvent::StationDown {
+                        station,
+                        timeouts: st.counters.consecutive_timeouts,
+                    });
+                }
+            }
+        }
+        self.line_up = up;
         self.drive(now);
     }
 

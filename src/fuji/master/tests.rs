@@ -1103,3 +1103,58 @@ fn time_settings_are_bounded() {
         }]
     ));
 }
+
+#[test]
+fn a_line_that_goes_down_marks_its_stations_down_until_they_answer_again() {
+    let mut s = Solo::new(settings(OperationMode::One));
+    s.cmd(read(1, 0, Module::M, 0, 1));
+    s.input(b":0000000107000002000112AB\r");
+    s.take_events();
+    s.take_sent();
+    // The device server goes away: DR, CS and CD off.
+    let down = ModemIn {
+        dr: false,
+        cs: false,
+        cd: false,
+    };
+    s.m.handle_modem(s.now, down);
+    s.pump();
+    assert_eq!(
+        s.take_events(),
+        vec![MasterEvent::StationDown {
+            station: 0,
+            timeouts: 0
+        }]
+    );
+    assert!(s.m.is_down(0));
+    // Back: the next request goes out as a probe, its reply marks the station up.
+    s.m.handle_modem(s.now, ModemIn::ALL_ON);
+    s.cmd(read(2, 0, Module::M, 0, 1));
+    assert_eq!(s.take_sent(), vec![b":000000010400000200\r".to_vec()]);
+    s.input(b":0000000107000002000112AB\r");
+    let ev = s.take_events();
+    assert!(
+        ev.contains(&MasterEvent::StationUp { station: 0 }),
+        "{ev:?}"
+    );
+    assert!(!s.m.is_down(0));
+}
+
+#[test]
+fn a_station_first_asked_over_a_line_that_is_down_starts_down() {
+    let mut s = Solo::new(settings(OperationMode::One));
+    s.m.handle_modem(
+        s.now,
+        ModemIn {
+            dr: false,
+            cs: false,
+            cd: false,
+        },
+    );
+    s.cmd(read(1, 0, Module::M, 0, 1));
+    assert!(s.m.is_down(0));
+    assert!(s.take_events().contains(&MasterEvent::StationDown {
+        station: 0,
+        timeouts: 0
+    }));
+}
