@@ -373,6 +373,17 @@ async fn open(pki: &Pki, endpoint: &str, mode: &str, who: Option<&str>) -> zenoh
             tokio::time::sleep(Duration::from_millis(25)).await;
         }
     }
+    // A session that has just opened may not have heard of the gateway's queryables yet: a
+    // get then finds nothing to ask. Wait (3 s at most: a role may not see it) until the
+    // gateway's liveliness token, declared after its routes, is visible.
+    for _ in 0..30 {
+        if let Ok(replies) = session.liveliness().get("cellgate/*/gateway").await
+            && replies.recv_async().await.is_ok()
+        {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
     Ok(session)
 }
 

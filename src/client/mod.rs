@@ -247,6 +247,9 @@ pub struct ConnectOptions {
     pub security: ClientSecurity,
 }
 
+/// How many times a request that nothing took is sent (see `Client::get_one`).
+const NOT_TAKEN_ATTEMPTS: u32 = 3;
+
 /// How long a client keeps asking for a gateway that does not answer yet.
 const DISCOVERY_GRACE: Duration = Duration::from_secs(3);
 
@@ -653,13 +656,27 @@ impl Client {
         timeout: Duration,
     ) -> Result<M, ClientError> {
         let asked = std::time::Instant::now();
-        let first = self
-            .get_all(what, key, payload, timeout)
-            .await?
-            .into_iter()
-            .next()
-            .map(|(_, m)| m);
-        first.ok_or_else(|| no_reply(what, key, timeout, asked.elapsed()))
+        let mut attempts = 0;
+        loop {
+            attempts += 1;
+            let first = self
+                .get_all(what, key, payload.clone(), timeout)
+                .await?
+                .into_iter()
+                .next()
+                .map(|(_, m)| m);
+            match first {
+                Some(m) => return Ok(m),
+                // Ended at once with no reply: nothing took it. A session that has just
+                // opened may not know the gateway's queryable yet, so ask again twice; a
+                // request the access rules refuse stays refused. Asking again is harmless:
+                // what was not taken did nothing.
+                None if attempts < NOT_TAKEN_ATTEMPTS && asked.elapsed() < timeout / 2 => {
+                    tokio::time::sleep(Duration::from_millis(300)).await;
+                }
+                None => return Err(no_reply(what, key, timeout, asked.elapsed())),
+            }
+        }
     }
 
     /// [`Self::get_one`] with the PLC time-out, for `client::plc`.
@@ -1321,13 +1338,20 @@ impl JobFollower {
                         what: format!("following job {}", self.job_id),
                     });
                 }
-                Err(_) => {
-                    let latest = self.latest().await?;
-                    if is_end(&latest) {
+                Err(_) => match self.latest().await {
+                    Ok(latest) if is_end(&latest) => {
                         self.ended = true;
                         return Ok(Some(latest));
                     }
-                }
+                    Ok(_) => {}
+                    // The question was only a check for a lost end: a gateway slow to answer
+                    // it (or a reply lost on the way) is no reason to stop following a job
+                    // whose events still come.
+                    Err(e @ ClientError::NoAnswer { .. }) => {
+                        tracing::debug!(error = %e, "the job's latest event did not come; following on");
+                    }
+                    Err(e) => return Err(e),
+                },
             }
         }
     }
