@@ -250,6 +250,9 @@ pub struct ProtocolBHost {
     await_next_read: bool,
     /// Program bytes handed out since the last DC3 arrived.
     sent_since_dc3: u64,
+    /// The board stopped the current program with DC3 (its buffer filled) at least once: a
+    /// CNC that reads slower than the line, whose DC3 near the EOR may be flow control.
+    stopped_this_program: bool,
     /// The punch-out flow-control code the host owes the board (DC3, or DC1 / DC2 to resume);
     /// only the latest instruction matters.
     ctl_out: Option<u8>,
@@ -323,6 +326,7 @@ impl ProtocolBHost {
             flowing: false,
             await_next_read: false,
             sent_since_dc3: 0,
+            stopped_this_program: false,
             ctl_out: None,
             rx: Rx::Control,
             punch: Vec::new(),
@@ -422,14 +426,42 @@ impl ProtocolBHost {
         }
     }
 
+    /// How much earlier than the host's estimate the EOR may reach the board: a device server
+    /// whose UART runs a little fast, or one that passes bytes on as they come, empties the
+    /// transport's window (at most the overrun allowance) sooner than the nominal line rate
+    /// says, and the last piece was handed out with it.
+    fn early_arrival(&self) -> Duration {
+        let chars = self.cfg.overrun_allowance + self.cfg.tx_piece;
+        self.cfg
+            .char_time
+            .saturating_mul(u32::try_from(chars).unwrap_or(u32::MAX))
+    }
+
     /// A DC3 arrived while the program's end is awaited.
+    ///
+    /// After the EOR's estimated arrival it ends the read. Before, it is flow control if the
+    /// board stopped this program before (a CNC reading slower than the line keeps its buffer
+    /// full, and taking its stop for the end would send the next program into a read that
+    /// ignores it: protocol notes 13); a board that never stopped it ends the read when its
+    /// DC3 comes within [`early_arrival`](Self::early_arrival) of the estimate. Otherwise a
+    /// CNC that reads at line speed behind a fast device server would be waited for forever.
     fn end_of_read(&mut self, now: Instant) {
         let settle = self.settle_time();
-        if let Some(f) = self.finishing.as_mut()
-            && now >= f.eor_on_board
-            && f.confirm_at.is_none()
-        {
+        let early = if self.stopped_this_program {
+            Duration::ZERO
+        } else {
+            self.early_arrival()
+        };
+        let Some(f) = self.finishing.as_mut() else {
+            return;
+        };
+        if f.confirm_at.is_some() {
+            return;
+        }
+        if now + early >= f.eor_on_board {
             f.confirm_at = Some(now + settle);
+        } else {
+            self.stopped_this_program = true;
         }
     }
 
@@ -534,6 +566,9 @@ impl ProtocolBHost {
                     // The end of the read, once the EOR can have arrived; before, flow control.
                     self.end_of_read(now);
                 } else {
+                    if self.program.is_some() {
+                        self.stopped_this_program = true;
+                    }
                     self.await_next_read = false;
                 }
             }
@@ -705,6 +740,7 @@ impl Engine for ProtocolBHost {
                 self.program = Some(Program::new());
                 self.acked = 0;
                 self.marks.clear();
+                self.stopped_this_program = false;
             }
             EngineCommand::ProgramData(data) => match self.program.as_mut() {
                 Some(p) => {
@@ -936,6 +972,69 @@ mod tests {
             },
         );
         assert!(h.waiting_for().is_some_and(|w| w.starts_with("DR")));
+    }
+
+    /// A host at 19200 baud (11 bits a character), notices on.
+    fn timed_host() -> (ProtocolBHost, Instant, Duration) {
+        let ct = Duration::from_nanos(11 * 1_000_000_000 / 19_200);
+        let cfg = ProtocolBConfig {
+            char_time: ct,
+            ..ProtocolBConfig::new(CodeSystem::Ascii, false, true)
+        };
+        let now = Instant::now();
+        let mut h = ProtocolBHost::new(cfg, now).unwrap();
+        events(&mut h);
+        (h, now, ct)
+    }
+
+    /// A CNC that reads at line speed behind a device server that delivered sooner than the
+    /// nominal rate ends the read before the host's estimate of the EOR's arrival: that DC3
+    /// ends the read all the same, and the program is done.
+    #[test]
+    fn an_end_of_read_a_little_before_the_estimate_ends_the_read() {
+        let (mut h, t0, ct) = timed_host();
+        let prog = program(4000);
+        load(&mut h, t0, &prog);
+        h.handle_input(t0, &[DC1]);
+        assert_eq!(drain_tx(&mut h, t0), prog);
+        let estimate = t0 + ct * prog.len() as u32;
+        let early = estimate - ct * 300;
+        assert!(done(&end_read(&mut h, early)));
+        assert_eq!(h.poll_transmit(early), None);
+        // Far before the estimate, a DC3 cannot end the read: the EOR is not there yet.
+        let (mut h, t0, ct) = timed_host();
+        load(&mut h, t0, &prog);
+        h.handle_input(t0, &[DC1]);
+        drain_tx(&mut h, t0);
+        let too_early = t0 + ct * (prog.len() as u32 / 2);
+        h.handle_input(too_early, &[DC3]);
+        h.handle_timeout(too_early + Duration::from_secs(1));
+        assert!(!done(&events(&mut h)));
+    }
+
+    /// A board that stopped the program with DC3 before (a CNC slower than the line) may stop
+    /// it again just before the EOR arrives: that DC3 stays flow control, the DC1 after it
+    /// sends nothing, and only the DC3 after the EOR's arrival ends the read.
+    #[test]
+    fn a_board_that_stopped_the_program_is_not_taken_early() {
+        let (mut h, t0, ct) = timed_host();
+        let prog = program(4000);
+        load(&mut h, t0, &prog);
+        h.handle_input(t0, &[DC1]);
+        let first = h.poll_transmit(t0).unwrap();
+        h.handle_input(t0, &[DC3]);
+        h.handle_input(t0, &[DC1]);
+        let mut sent = first;
+        sent.extend(drain_tx(&mut h, t0));
+        assert_eq!(sent, prog);
+        let estimate = t0 + ct * prog.len() as u32;
+        let near = estimate - ct * 300;
+        h.handle_input(near, &[DC3]);
+        assert_eq!(h.poll_timeout(), None, "no end of read to settle");
+        h.handle_input(near, &[DC1]);
+        assert!(!done(&events(&mut h)));
+        assert!(h.waiting_for().is_some_and(|w| w.contains("ends the read")));
+        assert!(done(&end_read(&mut h, estimate + ct)));
     }
 
     #[test]
