@@ -53,7 +53,8 @@ pub struct Pump<E, T> {
     rx: Box<[u8]>,
     sleep: Pin<Box<Sleep>>,
     sleep_at: Option<Instant>,
-    modem_tick: Interval,
+    /// Polls the input lines, unless the transport wakes the reader on their changes.
+    modem_tick: Option<Interval>,
     modem_in: Option<ModemIn>,
     modem_out: Option<ModemOut>,
     bytes_in: u64,
@@ -62,8 +63,11 @@ pub struct Pump<E, T> {
 
 impl<E: Engine, T: Transport> Pump<E, T> {
     pub fn new(engine: E, transport: T) -> Self {
-        let mut modem_tick = tokio::time::interval(MODEM_POLL);
-        modem_tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+        let modem_tick = (!transport.modem_wakes_reader()).then(|| {
+            let mut tick = tokio::time::interval(MODEM_POLL);
+            tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+            tick
+        });
         Pump {
             engine,
             transport,
@@ -164,9 +168,13 @@ impl<E: Engine, T: Transport> Pump<E, T> {
         // Poll until pending, so that the next tick's wake-up is registered: a tick taken
         // without a change and nothing else to do would otherwise leave a silent line (a
         // Protocol B line waiting for DR) unpolled for good.
-        let mut tick = false;
-        while self.modem_tick.poll_tick(cx).is_ready() {
-            tick = true;
+        // A transport that wakes the reader on changes is read at every step: a cheap
+        // look at its state, and no timer for an idle line.
+        let mut tick = self.modem_tick.is_none();
+        if let Some(modem_tick) = &mut self.modem_tick {
+            while modem_tick.poll_tick(cx).is_ready() {
+                tick = true;
+            }
         }
         if !tick && self.modem_in.is_some() {
             return false;

@@ -672,13 +672,13 @@ impl<S: AsyncWrite + Unpin> AsyncWrite for PacedLine<S> {
     ) -> Poll<std::io::Result<usize>> {
         let this = &mut *self;
         let mut now = Instant::now().into_std();
-        if this.pacer.writable(now) == 0 {
-            let at = Instant::from_std(this.pacer.next_writable_at(now));
+        if this.pacer.batch(now, buf.len()) == 0 {
+            let at = Instant::from_std(this.pacer.batch_at(now, buf.len()));
             this.sleep.as_mut().reset(at);
             ready!(this.sleep.as_mut().poll(cx));
             now = Instant::now().into_std();
         }
-        let room = this.pacer.writable(now).max(1);
+        let room = this.pacer.batch(now, buf.len()).max(1);
         let n = ready!(Pin::new(&mut this.stream).poll_write(cx, &buf[..buf.len().min(room)]))?;
         this.pacer.wrote(n, now);
         Poll::Ready(Ok(n))

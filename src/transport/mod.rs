@@ -79,6 +79,13 @@ pub trait Transport: AsyncRead + AsyncWrite + Send + Unpin {
     /// A short human description for logs and status ("serial /dev/ttyS0 19200 8N2").
     fn describe(&self) -> String;
 
+    /// Whether the carrier wakes its reader whenever its input lines change (a TCP device
+    /// server: they follow the connection, which the reader drives), so that they need not be
+    /// polled. The others are read on a timer, which an idle link then pays for.
+    fn modem_wakes_reader(&self) -> bool {
+        false
+    }
+
     /// The protocol heard nothing from the peer for longer than it allows: a carrier that can
     /// (a TCP device server whose end went away without closing, a serial port that stopped
     /// answering) drops its connection and makes a new one. Others ignore it.
@@ -97,6 +104,9 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
     }
     fn describe(&self) -> String {
         (**self).describe()
+    }
+    fn modem_wakes_reader(&self) -> bool {
+        (**self).modem_wakes_reader()
     }
     fn reconnect(&mut self, why: &str) {
         (**self).reconnect(why)

@@ -127,6 +127,43 @@ impl Pacer {
         start + self.line.time_for_chars(needed)
     }
 
+    /// The fewest characters worth a write for a writer holding `want`: all of them, or half
+    /// the window if they are more.
+    pub fn low_water(&self, want: usize) -> usize {
+        want.clamp(1, (self.window() / 2).max(1))
+    }
+
+    /// How many of `want` characters to write at `now`: all that fit once the window has room
+    /// for [`low_water`](Self::low_water) of them, else none. A writer at line rate then
+    /// writes a few large pieces a window instead of the characters freed since its last
+    /// write (a system call and a timer each), and the line never starves: half a window is
+    /// still queued when it refills.
+    pub fn batch(&self, now: Instant, want: usize) -> usize {
+        let room = self.writable(now);
+        if room >= self.low_water(want) {
+            room.min(want)
+        } else {
+            0
+        }
+    }
+
+    /// The earliest time at which [`batch`](Self::batch) is not 0.
+    pub fn batch_at(&self, now: Instant, want: usize) -> Instant {
+        let need = u64::try_from(self.low_water(want)).unwrap_or(u64::MAX);
+        if self.window.saturating_sub(self.unsent(now)) >= need {
+            return now;
+        }
+        let Some(start) = self.run_start else {
+            return now;
+        };
+        // writable >= need  <=>  unsent <= window - need  <=>  drained >= run_len - window + need
+        let drained = self
+            .run_len
+            .saturating_add(need)
+            .saturating_sub(self.window);
+        start + self.line.time_for_chars(drained)
+    }
+
     /// The moment the last written character has fully left the line (`None` if never written).
     pub fn idle_at(&self) -> Option<Instant> {
         self.run_start
@@ -169,6 +206,38 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn batches_wait_for_half_a_window() {
+        let line = LineSettings::with_baud(9600);
+        let mut p = Pacer::new(line, 8);
+        let t0 = Instant::now();
+        assert_eq!(p.batch(t0, 100), 8);
+        p.wrote(8, t0);
+        // One character out: one free, but a writer holding more waits for four (half the
+        // window), and not a nanosecond less.
+        let one = t0 + line.time_for_chars(1);
+        assert_eq!(p.writable(one), 1);
+        assert_eq!(p.batch(one, 100), 0);
+        let four = p.batch_at(one, 100);
+        assert_eq!(four, t0 + line.time_for_chars(4));
+        assert_eq!(p.batch(four - Duration::from_nanos(1), 100), 0);
+        assert_eq!(p.batch(four, 100), 4);
+        // A short message goes as soon as it fits whole.
+        assert_eq!(p.batch(one, 1), 1);
+        assert_eq!(p.batch_at(one, 1), one);
+        assert_eq!(p.batch_at(t0, 2), t0 + line.time_for_chars(2));
+        // Written back to back, the run goes on: the line never fell idle.
+        let pl = p.wrote(4, four);
+        assert_eq!(pl.run_start(), t0);
+        assert_eq!(pl.first(), 8);
+        // An idle line takes everything at once.
+        let later = t0 + line.time_for_chars(100);
+        assert_eq!(p.batch(later, 3), 3);
+        assert_eq!(p.batch_at(later, 3), later);
+        assert_eq!(Pacer::new(line, 1).low_water(10), 1);
+        assert_eq!(Pacer::new(line, 256).low_water(0), 1);
     }
 
     #[test]

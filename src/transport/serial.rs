@@ -377,11 +377,13 @@ impl AsyncWrite for SerialTransport {
             let paced = this.pacer.unsent(now.into_std());
             let kernel = this.kernel_unsent().unwrap_or(0);
             let unsent = paced.max(kernel);
-            if unsent >= window {
-                let at = if paced >= window {
-                    Instant::from_std(this.pacer.next_writable_at(now.into_std()))
+            // In batches of half a window at line rate (see `Pacer::batch`).
+            let need = this.pacer.low_water(buf.len()) as u64;
+            if unsent + need > window {
+                let at = if paced + need > window {
+                    Instant::from_std(this.pacer.batch_at(now.into_std(), buf.len()))
                 } else {
-                    now + this.line.time_for_chars(kernel - window + 1)
+                    now + this.line.time_for_chars(kernel + need - window)
                 };
                 match super::poll_sleep(&mut this.write_sleep, at, cx) {
                     Poll::Ready(()) => continue,

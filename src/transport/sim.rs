@@ -511,9 +511,10 @@ impl AsyncWrite for SimPort {
             let settings = guard.settings;
             let cut = guard.cut;
             let d = guard.dir(this.end.tx());
-            let room = d.pacer.writable(now.into_std());
+            // In batches of half the FIFO, as a driver refills a UART (see `Pacer::batch`).
+            let room = d.pacer.batch(now.into_std(), buf.len());
             if room == 0 {
-                let at = Instant::from_std(d.pacer.next_writable_at(now.into_std()));
+                let at = Instant::from_std(d.pacer.batch_at(now.into_std(), buf.len()));
                 drop(guard);
                 match super::poll_sleep(&mut this.write_sleep, at, cx) {
                     Poll::Ready(()) => continue,

@@ -371,9 +371,11 @@ impl AsyncWrite for TcpTransport {
         Wakers::set(&this.wakers.write, cx.waker());
         loop {
             let now = Instant::now();
-            let room = this.pacer.writable(now.into_std());
+            // In batches of half a window at line rate, not the few characters freed since
+            // the last write: a system call and a timer each cost more than the line's time.
+            let room = this.pacer.batch(now.into_std(), buf.len());
             if room == 0 {
-                let at = Instant::from_std(this.pacer.next_writable_at(now.into_std()));
+                let at = Instant::from_std(this.pacer.batch_at(now.into_std(), buf.len()));
                 match super::poll_sleep(&mut this.write_sleep, at, cx) {
                     Poll::Ready(()) => continue,
                     Poll::Pending => return Poll::Pending,
@@ -474,6 +476,11 @@ impl Transport for TcpTransport {
 
     fn describe(&self) -> String {
         format!("tcp {} (line {})", self.addr, self.line)
+    }
+
+    /// The lines follow the connection, and every connect and disconnect wakes the reader.
+    fn modem_wakes_reader(&self) -> bool {
+        true
     }
 
     /// Drops the connection and connects again at once: the protocol heard nothing for longer
