@@ -260,6 +260,8 @@ fn client_command(cli: &Cli, command: &impl client::ClientCommand) -> ExitCode {
 
 /// `cellgate sim fanuc ...`: logs go to stderr, events as JSON lines to stdout.
 fn sim_fanuc(cli: &Cli, args: cellgate::sim::server::SimFanucArgs) -> ExitCode {
+    // A listener and a connection a board: --boards 1024 needs over 2048 descriptors.
+    let _ = raise_open_file_limit();
     service(cli, "cellgate sim fanuc", |stop| async move {
         cellgate::sim::server::serve_fanuc(args, stop)
             .await
@@ -446,6 +448,8 @@ fn run(cli: &Cli, args: &RunArgs) -> ExitCode {
         return ExitCode::from(EXIT_CONFIG);
     }
 
+    let open_files = raise_open_file_limit();
+
     // Zenoh needs the multi-thread runtime.
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -458,7 +462,7 @@ fn run(cli: &Cli, args: &RunArgs) -> ExitCode {
             return ExitCode::from(EXIT_RUNTIME);
         }
     };
-    let code = runtime.block_on(run_async(config, origin));
+    let code = runtime.block_on(run_async(config, origin, open_files));
     // Everything that matters was closed above; do not wait on stray blocking tasks.
     runtime.shutdown_timeout(Duration::from_secs(2));
     code
@@ -502,7 +506,33 @@ fn apply_overrides(config: &mut CellConfig, cli: &Cli, args: &RunArgs) -> bool {
     any
 }
 
-async fn run_async(config: CellConfig, origin: String) -> ExitCode {
+/// Raises the soft limit on open files to the hard one and returns the limit in force. Each
+/// link holds a descriptor (a TCP socket or a serial port), the bus and the library a few
+/// more; a systemd service starts with a soft limit of 1024, too few for a plant's links.
+fn raise_open_file_limit() -> Option<u64> {
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit and setrlimit only read or write the struct they are given.
+    unsafe {
+        if libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) != 0 {
+            return None;
+        }
+        if limit.rlim_cur < limit.rlim_max {
+            let raised = libc::rlimit {
+                rlim_cur: limit.rlim_max,
+                rlim_max: limit.rlim_max,
+            };
+            if libc::setrlimit(libc::RLIMIT_NOFILE, &raised) == 0 {
+                return Some(limit.rlim_max);
+            }
+        }
+    }
+    Some(limit.rlim_cur)
+}
+
+async fn run_async(config: CellConfig, origin: String, open_files: Option<u64>) -> ExitCode {
     let mut guard = match telemetry::init(&config.telemetry) {
         Ok(guard) => guard,
         Err(e) => {
@@ -517,6 +547,16 @@ async fn run_async(config: CellConfig, origin: String) -> ExitCode {
         }
     };
     tracing::info!(version = cellgate::gateway::VERSION, config = %origin, "starting cellgate");
+    // Two descriptors a link leaves room for reconnections; the rest is the bus's and the
+    // library's.
+    let wanted = 2 * (config.machines.len() + config.plcs.len()) as u64 + 256;
+    if let Some(limit) = open_files.filter(|&l| l < wanted) {
+        tracing::warn!(
+            limit,
+            wanted,
+            "the limit on open files is low for this cell's links; raise it (LimitNOFILE=, ulimit -n)"
+        );
+    }
 
     let code = match shutdown_signal() {
         Ok(shutdown) => match cellgate::gateway::run(config, shutdown).await {

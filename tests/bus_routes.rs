@@ -102,7 +102,7 @@ impl FakeLink {
     fn other(&mut self, cmd: LinkCommand) {
         match cmd {
             LinkCommand::Queue(job) => self.pending.push_back(job),
-            LinkCommand::SetDo { value, mask } => {
+            LinkCommand::SetDo { value, mask, .. } => {
                 self.log
                     .lock()
                     .unwrap()

@@ -4,6 +4,7 @@
 
 mod common;
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -19,7 +20,7 @@ use tokio::sync::broadcast;
 
 const HOUR: Duration = Duration::from_secs(3600);
 
-async fn until_end(events: &mut broadcast::Receiver<pb::JobEvent>, id: &str) -> pb::JobEvent {
+async fn until_end(events: &mut broadcast::Receiver<Arc<pb::JobEvent>>, id: &str) -> pb::JobEvent {
     tokio::time::timeout(HOUR, async {
         loop {
             let e = events.recv().await.unwrap();
@@ -29,7 +30,7 @@ async fn until_end(events: &mut broadcast::Receiver<pb::JobEvent>, id: &str) -> 
                     Some(Kind::Completed(_) | Kind::Failed(_) | Kind::Cancelled(_))
                 )
             {
-                return e;
+                return Arc::unwrap_or_clone(e);
             }
         }
     })

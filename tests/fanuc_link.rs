@@ -87,6 +87,7 @@ async fn do_and_di_round_trip() {
         .send(LinkCommand::SetDo {
             value: 0xA5,
             mask: 0xFF,
+            asked: std::time::SystemTime::now(),
         })
         .await
         .unwrap();
@@ -100,6 +101,7 @@ async fn do_and_di_round_trip() {
         .send(LinkCommand::SetDo {
             value: 0x00,
             mask: 0x0F,
+            asked: std::time::SystemTime::now(),
         })
         .await
         .unwrap();

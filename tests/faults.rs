@@ -540,9 +540,9 @@ async fn a_stuck_job_fails_at_its_deadline_saying_what_the_link_waited_for() {
         loop {
             let e = events.recv().await.unwrap();
             if e.job_id == accepted.job_id
-                && let Some(pb::job_event::Kind::Failed(f)) = e.kind
+                && let Some(pb::job_event::Kind::Failed(f)) = &e.kind
             {
-                return f;
+                return f.clone();
             }
         }
     })

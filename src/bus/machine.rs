@@ -299,7 +299,7 @@ pub(crate) struct MachineTask {
     desk: PunchDesk,
     token: Option<LivelinessToken>,
     link_events: broadcast::Receiver<LinkEvent>,
-    job_events: broadcast::Receiver<pb::JobEvent>,
+    job_events: broadcast::Receiver<Arc<pb::JobEvent>>,
     snapshot: watch::Receiver<JobsSnapshot>,
 }
 
@@ -307,7 +307,7 @@ pub(crate) struct MachineTask {
 /// event of a running link is missed.
 pub(crate) struct MachineFeeds {
     pub link_events: broadcast::Receiver<LinkEvent>,
-    pub job_events: broadcast::Receiver<pb::JobEvent>,
+    pub job_events: broadcast::Receiver<Arc<pb::JobEvent>>,
     pub snapshot: watch::Receiver<JobsSnapshot>,
 }
 
@@ -316,7 +316,7 @@ impl MachineFeeds {
     pub fn subscribe(
         link: &LinkHandle,
         jobs: &JobsHandle,
-        job_events: broadcast::Receiver<pb::JobEvent>,
+        job_events: broadcast::Receiver<Arc<pb::JobEvent>>,
     ) -> Self {
         MachineFeeds {
             link_events: link.subscribe(),

@@ -9,6 +9,8 @@
 //! The board speaks at its next SAT or GTD, so a read or an output waits up to
 //! [`Machine::exchange_timeout`]; it runs off the route's loop.
 
+use std::time::SystemTime;
+
 use prost::Message;
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
@@ -203,7 +205,11 @@ async fn do_put(ctx: &RouteContext, sample: &Sample) {
         Ok((value, mask)) => {
             // Without waiting: a flood of puts is refused past the link's command queue
             // rather than stalling this route.
-            if let Err(e) = m.link.try_send(LinkCommand::SetDo { value, mask }) {
+            // The client's timestamp, when it set one, so that the delay counts the bus too.
+            let asked = sample
+                .timestamp()
+                .map_or_else(SystemTime::now, |t| t.get_time().to_system_time());
+            if let Err(e) = m.link.try_send(LinkCommand::SetDo { value, mask, asked }) {
                 tracing::warn!(%key, "DO refused: {e}");
             }
         }
@@ -244,7 +250,11 @@ async fn do_get(ctx: &RouteContext, q: &Query) {
     }
     let sent = exchange(
         &m,
-        LinkCommand::SetDo { value, mask },
+        LinkCommand::SetDo {
+            value,
+            mask,
+            asked: SystemTime::now(),
+        },
         "SDO went out",
         |e| match e {
             LinkEvent::Do { value: out } if out & mask == value & mask => Some(()),

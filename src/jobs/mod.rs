@@ -70,6 +70,12 @@ use source::{ProgramError, ProgramInput, ProgramRules};
 /// Most jobs waiting on one machine; one more is refused with `ERROR_CODE_QUEUE_FULL`.
 pub const MAX_WAITING: usize = 256;
 
+/// Job events kept for a subscriber that fell behind (the machine's bus task, followers):
+/// room for a full queue's `queued` events at once, and more. Every slot is allocated up
+/// front in each of a thousand machines, so events travel as `Arc`s (a slot of 40 bytes, not
+/// 192).
+pub const JOB_EVENTS: usize = 1024;
+
 /// Progress events of one job are at least this far apart.
 pub const PROGRESS_MIN_INTERVAL: Duration = Duration::from_millis(250);
 
@@ -175,7 +181,7 @@ pub struct JobsHandle {
     library: ProgramLibrary,
     journal: Journal,
     requests: mpsc::Sender<Request>,
-    events: broadcast::Sender<pb::JobEvent>,
+    events: broadcast::Sender<Arc<pb::JobEvent>>,
     snapshot: watch::Receiver<JobsSnapshot>,
     /// The latest event of each job kept when the manager started, oldest first.
     restored: Arc<Vec<pb::JobEvent>>,
@@ -483,7 +489,7 @@ impl JobsHandle {
     }
 
     /// Job events from now on.
-    pub fn subscribe(&self) -> broadcast::Receiver<pb::JobEvent> {
+    pub fn subscribe(&self) -> broadcast::Receiver<Arc<pb::JobEvent>> {
         self.events.subscribe()
     }
 
@@ -519,10 +525,10 @@ pub fn spawn(
 ) -> (
     JobsHandle,
     tokio::task::JoinHandle<()>,
-    broadcast::Receiver<pb::JobEvent>,
+    broadcast::Receiver<Arc<pb::JobEvent>>,
 ) {
     let (req_tx, req_rx) = mpsc::channel(64);
-    let (ev_tx, first_rx) = broadcast::channel(1024);
+    let (ev_tx, first_rx) = broadcast::channel(JOB_EVENTS);
     let (snap_tx, snap_rx) = watch::channel(JobsSnapshot::default());
     let name: Arc<str> = Arc::from(machine);
     let restored_events = settings
@@ -681,7 +687,7 @@ struct Manager {
     request_ids: HashMap<String, String>,
     journal: Journal,
     keep: usize,
-    events: broadcast::Sender<pb::JobEvent>,
+    events: broadcast::Sender<Arc<pb::JobEvent>>,
     snapshot: watch::Sender<JobsSnapshot>,
     totals: JobsSnapshot,
     /// What the link waits for from the board, and since when (Unix ms).
@@ -956,7 +962,7 @@ impl Manager {
             kind: Some(kind),
         };
         // No subscriber is not an error: nobody is watching this machine's jobs right now.
-        let _ = self.events.send(event.clone());
+        let _ = self.events.send(Arc::new(event.clone()));
         event
     }
 
@@ -1105,12 +1111,12 @@ impl Manager {
         tracing::info!(job = %id, name = %record.name, size = record.stream_size(), priority = record.priority, "job queued");
         let position =
             u32::try_from(self.waiting.push(record.priority, record)).unwrap_or(u32::MAX);
-        let _ = self.events.send(pb::JobEvent {
+        let _ = self.events.send(Arc::new(pb::JobEvent {
             kind: Some(Kind::Queued(pb::job_event::Queued {
                 queue_position: position,
             })),
             ..queued
-        });
+        }));
         Ok(pb::JobAccepted {
             job_id: id,
             queue_position: position,

@@ -129,7 +129,7 @@ impl StandIn {
 
 struct Rig {
     jobs: JobsHandle,
-    events: broadcast::Receiver<pb::JobEvent>,
+    events: broadcast::Receiver<Arc<pb::JobEvent>>,
     link_events: broadcast::Sender<LinkEvent>,
     log: Log,
     release: Arc<Semaphore>,
@@ -235,15 +235,16 @@ fn inline(program: &'static [u8], priority: i32) -> JobSubmission {
 }
 
 /// The next event, within a (virtual) minute.
-async fn next(rx: &mut broadcast::Receiver<pb::JobEvent>) -> pb::JobEvent {
-    tokio::time::timeout(Duration::from_secs(60), rx.recv())
+async fn next(rx: &mut broadcast::Receiver<Arc<pb::JobEvent>>) -> pb::JobEvent {
+    let e = tokio::time::timeout(Duration::from_secs(60), rx.recv())
         .await
         .expect("no job event")
-        .unwrap()
+        .unwrap();
+    Arc::unwrap_or_clone(e)
 }
 
 /// Events until the job `id` ends, inclusive.
-async fn until_end(rx: &mut broadcast::Receiver<pb::JobEvent>, id: &str) -> Vec<pb::JobEvent> {
+async fn until_end(rx: &mut broadcast::Receiver<Arc<pb::JobEvent>>, id: &str) -> Vec<pb::JobEvent> {
     let mut seen = Vec::new();
     loop {
         let e = next(rx).await;

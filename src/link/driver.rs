@@ -4,7 +4,7 @@
 //! into [`LinkEvent`]s with job ids and byte offsets.
 
 use std::collections::VecDeque;
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime};
 
 use std::sync::Arc;
 
@@ -75,8 +75,13 @@ pub enum LinkCommand {
     Queue(ProgramJob),
     /// Cancel a queued or active job.
     Cancel(JobId),
-    /// Set the DO bits selected by `mask` to `value` (SDO, §4.4.1).
-    SetDo { value: u8, mask: u8 },
+    /// Set the DO bits selected by `mask` to `value` (SDO, §4.4.1). `asked` is when the
+    /// command was given (for the `cellgate.do.delay` histogram).
+    SetDo {
+        value: u8,
+        mask: u8,
+        asked: SystemTime,
+    },
     /// Read the DI image (RDI → SDI, §4.4.1).
     ReadDi,
     /// Clear the board's buffer (CLB, §4.4.1).
@@ -207,6 +212,12 @@ pub const COMMAND_QUEUE: usize = 64;
 /// otherwise (for programs of unknown size).
 pub const PROGRESS_INTERVAL: Duration = Duration::from_millis(250);
 
+/// Link events kept for a subscriber that fell behind. Every slot is allocated up front, a
+/// thousand links each hold them: 256 is a minute of a busy link's events (progress comes at
+/// most every 250 ms, status at each SAT), while the subscribers (the machine's bus task,
+/// its job manager) take them within milliseconds.
+pub const LINK_EVENTS: usize = 256;
+
 /// The largest piece read from a program source at once.
 const SOURCE_CHUNK: usize = 16 * 1024;
 
@@ -296,7 +307,7 @@ where
 {
     let machine = machine.into();
     let (cmd_tx, cmd_rx) = mpsc::channel(COMMAND_QUEUE);
-    let (ev_tx, _) = broadcast::channel(1024);
+    let (ev_tx, _) = broadcast::channel(LINK_EVENTS);
     let (state_tx, state_rx) = watch::channel(None);
     let handle = LinkHandle {
         machine: machine.clone(),
@@ -320,7 +331,7 @@ where
         active: None,
         do_image: 0,
         do_wanted: 0,
-        buf: vec![0; SOURCE_CHUNK].into_boxed_slice(),
+        buf: Box::default(),
         waiting: None,
     };
     let task = tokio::spawn(tracing::Instrument::instrument(driver.run(shutdown), span));
@@ -397,6 +408,13 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 }) => self.pump.engine().data_wanted().min(SOURCE_CHUNK),
                 _ => 0,
             };
+            // The read buffer exists only while a program is being read: an idle link of a
+            // thousand does not hold 16 KiB.
+            if want > 0 && self.buf.is_empty() {
+                self.buf = vec![0; SOURCE_CHUNK].into_boxed_slice();
+            } else if self.active.is_none() && !self.buf.is_empty() {
+                self.buf = Box::default();
+            }
             let wake = {
                 let source = self.active.as_mut().and_then(|a| a.source.as_mut());
                 let buf = &mut self.buf[..want];
@@ -603,7 +621,9 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                     }
                 }
             }
-            LinkCommand::SetDo { value, mask } => {
+            LinkCommand::SetDo { value, mask, asked } => {
+                self.metrics
+                    .do_delay(SystemTime::now().duration_since(asked).unwrap_or_default());
                 // Masked writes compose with the last image asked for, not the last one sent:
                 // two quick writes of different bits both hold.
                 let image = (self.do_wanted & !mask) | (value & mask);

@@ -10,8 +10,8 @@
 //! [`super::install_metrics`] builds a meter provider whose observable instruments read
 //! those atomics at collection time (an OTLP export every `OTEL_METRIC_EXPORT_INTERVAL`, a
 //! Prometheus scrape), so the cost of exporting is paid by the exporter, not by the line.
-//! Job durations are the one synchronous instrument: a histogram cannot be observed, and it
-//! is recorded once per job.
+//! Job durations and DO delays are the synchronous instruments: a histogram cannot be
+//! observed, and each is recorded once per job or per DO command.
 //!
 //! | instrument | kind | attributes |
 //! |---|---|---|
@@ -25,6 +25,7 @@
 //! | `cellgate.jobs.queue_depth` | gauge | `machine` |
 //! | `cellgate.jobs.ended` | counter | `machine`, `outcome` (`completed`/`failed`/`cancelled`) |
 //! | `cellgate.job.duration` (s) | histogram | `machine`, `outcome` |
+//! | `cellgate.do.delay` (s) | histogram | `link` |
 //! | `cellgate.g05.underruns` | counter | `machine` |
 //! | `cellgate.plc.station_timeouts` | counter | `plc`, `station` |
 
@@ -106,6 +107,15 @@ impl LinkMetrics {
     /// The link came up (a new session with the device).
     pub fn session(&self) {
         add(&self.sessions, 1);
+    }
+
+    /// A DO command reached the host engine `delay` after it was asked for: from the put's
+    /// zenoh timestamp (the client's clock) or, without one, its arrival at the gateway. The
+    /// wait for the board's next SAT or GTD (§4.4.1) comes after and is not in it.
+    pub fn do_delay(&self, delay: Duration) {
+        for (_, h) in lock(&registry().histograms).iter() {
+            h.do_delay.record(delay.as_secs_f64(), &self.attrs);
+        }
     }
 
     /// Bytes received and sent so far (for tests and status).
@@ -201,8 +211,8 @@ impl MachineMetrics {
         add(&self.ended[outcome as usize], 1);
         if let Some(d) = sending {
             let attrs = &self.outcome_attrs[outcome as usize];
-            for (_, h) in lock(&registry().durations).iter() {
-                h.record(d.as_secs_f64(), attrs);
+            for (_, h) in lock(&registry().histograms).iter() {
+                h.job_duration.record(d.as_secs_f64(), attrs);
             }
         }
     }
@@ -222,14 +232,21 @@ impl MachineMetrics {
     }
 }
 
+/// The synchronous instruments of one meter provider.
+#[derive(Debug)]
+struct Histograms {
+    job_duration: Histogram<f64>,
+    do_delay: Histogram<f64>,
+}
+
 #[derive(Debug, Default)]
 struct Registry {
     links: Mutex<BTreeMap<String, Arc<LinkMetrics>>>,
     machines: Mutex<BTreeMap<String, Arc<MachineMetrics>>>,
     /// (PLC, station) → time-outs.
     plc_timeouts: Mutex<BTreeMap<(String, u8), u64>>,
-    /// The job-duration histogram of every installed provider, by install number.
-    durations: Mutex<Vec<(u64, Histogram<f64>)>>,
+    /// The histograms of every installed provider, by install number.
+    histograms: Mutex<Vec<(u64, Histograms)>>,
     installs: AtomicU64,
 }
 
@@ -287,7 +304,7 @@ pub fn plc_station_timeouts(plc: &str, station: u8) -> u64 {
 }
 
 /// Instruments registered on one meter provider; dropping it stops recording job durations
-/// into that provider.
+/// and DO delays into that provider.
 #[derive(Debug)]
 pub struct Instruments {
     install: u64,
@@ -295,7 +312,7 @@ pub struct Instruments {
 
 impl Drop for Instruments {
     fn drop(&mut self) {
-        lock(&registry().durations).retain(|(n, _)| *n != self.install);
+        lock(&registry().histograms).retain(|(n, _)| *n != self.install);
     }
 }
 
@@ -328,9 +345,26 @@ pub fn register(provider: &SdkMeterProvider) -> Instruments {
             0.1, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0, 1800.0, 3600.0,
         ])
         .build();
+    let do_delay = meter
+        .f64_histogram("cellgate.do.delay")
+        .with_unit("s")
+        .with_description(
+            "From a DO command's put (its timestamp, else its arrival) to the host engine",
+        )
+        // Fine at the low end: the gateway's own share is milliseconds at most.
+        .with_boundaries(vec![
+            0.0005, 0.001, 0.002, 0.003, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 5.0,
+        ])
+        .build();
     let r = registry();
     let install = r.installs.fetch_add(1, Relaxed);
-    lock(&r.durations).push((install, durations));
+    lock(&r.histograms).push((
+        install,
+        Histograms {
+            job_duration: durations,
+            do_delay,
+        },
+    ));
     Instruments { install }
 }
 
