@@ -1375,8 +1375,10 @@ impl Manager {
                     // The acknowledged offset survives a crash from here on.
                     active.record.acked = acked;
                     active.record.last_event = event.encode_to_vec();
-                    let record = active.record.clone();
-                    self.journal_put(&record);
+                    // Durable at most every second for the whole cell (`put_progress`).
+                    if let Err(e) = self.journal.put_progress(&active.record) {
+                        tracing::error!(job = %active.record.id, error = %e, "job journal write failed");
+                    }
                 }
             }
             LinkEvent::JobDone {

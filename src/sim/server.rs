@@ -3,7 +3,8 @@
 //! One connection at a time is the serial line: each new connection powers a fresh board on
 //! (line up again) and replaces the previous connection. The board's output is paced at the
 //! configured baud rate (11 bit times a character at 8N2, protocol notes 2), as a device
-//! server's serial side would deliver it; the host's input is taken as it comes. Every event
+//! server's serial side would deliver it, and the host's input reaches the board at that rate
+//! too, however fast it came over TCP. Every event
 //! of interest goes to stdout as one JSON object per line:
 //!
 //! ```text
@@ -33,6 +34,7 @@
 //! significant auxiliary values, underruns, and the fewest whole blocks buffered at a unit
 //! time.
 
+use std::collections::VecDeque;
 use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -632,16 +634,26 @@ pub fn event_json(event: &BoardEvent) -> Option<Value> {
 }
 
 /// A TCP connection as the board's serial line: output paced at the baud rate through a
-/// UART-sized window ([`Pacer`]), all modem lines on.
+/// UART-sized window ([`Pacer`]), input delivered at the baud rate however fast it came (the
+/// device server's serial side), all modem lines on.
 pub struct PacedLine<S> {
     stream: S,
     pacer: Pacer,
     sleep: Pin<Box<Sleep>>,
+    /// The host's characters on their way down the line, back to back at the baud rate
+    /// from their arrival over TCP: pieces and when each has wholly reached the board.
+    rx_line: Pacer,
+    rx_queue: VecDeque<(std::time::Instant, Vec<u8>)>,
+    rx_sleep: Pin<Box<Sleep>>,
+    rx_eof: bool,
     name: String,
 }
 
 /// Characters the simulated UART holds beyond the one being sent (a 16-byte FIFO).
 const UART_FIFO: usize = 16;
+
+/// The host's characters reach the board in pieces of this many, each when its last has.
+const RX_PIECE: usize = 32;
 
 impl<S> PacedLine<S> {
     pub fn new(stream: S, settings: LineSettings, name: String) -> Self {
@@ -649,6 +661,10 @@ impl<S> PacedLine<S> {
             stream,
             pacer: Pacer::new(settings, UART_FIFO),
             sleep: Box::pin(tokio::time::sleep_until(Instant::now())),
+            rx_line: Pacer::new(settings, usize::MAX),
+            rx_queue: VecDeque::new(),
+            rx_sleep: Box::pin(tokio::time::sleep_until(Instant::now())),
+            rx_eof: false,
             name,
         }
     }
@@ -660,7 +676,54 @@ impl<S: AsyncRead + Unpin> AsyncRead for PacedLine<S> {
         cx: &mut Context<'_>,
         buf: &mut ReadBuf<'_>,
     ) -> Poll<std::io::Result<()>> {
-        Pin::new(&mut self.stream).poll_read(cx, buf)
+        let this = &mut *self;
+        // Everything TCP has goes onto the line at once, timed from its arrival, so that the
+        // line stays busy while earlier pieces are still on their way.
+        while !this.rx_eof {
+            let mut chunk = [0u8; 4096];
+            let mut read = ReadBuf::new(&mut chunk);
+            match Pin::new(&mut this.stream).poll_read(cx, &mut read) {
+                Poll::Pending => break,
+                Poll::Ready(Err(e)) => {
+                    if this.rx_queue.is_empty() {
+                        return Poll::Ready(Err(e));
+                    }
+                    this.rx_eof = true;
+                }
+                Poll::Ready(Ok(())) if read.filled().is_empty() => this.rx_eof = true,
+                Poll::Ready(Ok(())) => {
+                    let got = read.filled();
+                    let placement = this.rx_line.wrote(got.len(), Instant::now().into_std());
+                    for (i, piece) in got.chunks(RX_PIECE).enumerate() {
+                        let last = (i * RX_PIECE + piece.len() - 1) as u64;
+                        this.rx_queue
+                            .push_back((placement.done_at(last), piece.to_vec()));
+                    }
+                }
+            }
+        }
+        let Some((at, _)) = this.rx_queue.front() else {
+            // Nothing on the way: EOF once TCP said so, else wait for TCP.
+            return if this.rx_eof {
+                Poll::Ready(Ok(()))
+            } else {
+                Poll::Pending
+            };
+        };
+        if Instant::now().into_std() < *at {
+            this.rx_sleep.as_mut().reset(Instant::from_std(*at));
+            ready!(this.rx_sleep.as_mut().poll(cx));
+        }
+        let Some((_, mut piece)) = this.rx_queue.pop_front() else {
+            return Poll::Pending;
+        };
+        let n = piece.len().min(buf.remaining());
+        buf.put_slice(&piece[..n]);
+        if n < piece.len() {
+            let at = Instant::now().into_std();
+            this.rx_queue.push_front((at, piece.split_off(n)));
+        }
+        Poll::Ready(Ok(()))
     }
 }
 
