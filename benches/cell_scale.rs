@@ -186,16 +186,7 @@ fn cpu_seconds() -> f64 {
 
 /// (resident now, peak resident) in KiB, from /proc/self/status.
 fn memory_kib() -> (u64, u64) {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    let field = |name: &str| {
-        status
-            .lines()
-            .find(|l| l.starts_with(name))
-            .and_then(|l| l.split_whitespace().nth(1))
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(0)
-    };
-    (field("VmRSS:"), field("VmHWM:"))
+    common::memory_kib("self")
 }
 
 async fn scale(machines: usize, program_size: usize) {

@@ -144,32 +144,7 @@ fn cpu_of(pid: u32) -> f64 {
 
 /// (VmRSS, VmHWM) of process `pid`, KiB.
 fn memory_of(pid: u32) -> (u64, u64) {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    let field = |name: &str| {
-        status
-            .lines()
-            .find(|l| l.starts_with(name))
-            .and_then(|l| l.split_whitespace().nth(1))
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(0)
-    };
-    (field("VmRSS:"), field("VmHWM:"))
-}
-
-/// A first port with `n - 1` free ports after it (checked by binding them all), below the
-/// ephemeral range (32768 and up on Linux), where a thousand in a row are rarely all free.
-fn free_ports(n: u16) -> u16 {
-    let mut first = 10_000;
-    while first + n < 32_768 {
-        let bound: Vec<_> = (0..n)
-            .map_while(|i| std::net::TcpListener::bind(("127.0.0.1", first + i)).ok())
-            .collect();
-        if bound.len() == usize::from(n) {
-            return first;
-        }
-        first += bound.len() as u16 + 1;
-    }
-    panic!("no {n} consecutive free ports below 32768");
+    common::memory_kib(&pid.to_string())
 }
 
 /// Kills the child when dropped, so that a failed run leaves no process behind.
@@ -345,7 +320,7 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
 
 async fn run(case: &Case) {
     let n = usize::from(case.machines);
-    let first = free_ports(case.machines);
+    let first = common::bus::free_ports(case.machines);
     let (bus_port, prom_port) = (common::bus::free_port(), common::bus::free_port());
     let dir = tempfile::tempdir().expect("tempdir");
     let chars_per_s = f64::from(case.baud) / 11.0;

@@ -8,26 +8,9 @@ use std::net::TcpStream;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::bus::free_port;
+use common::bus::free_ports;
 
 const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
-
-/// A first port with `n - 1` free ports after it (checked by binding them all).
-fn free_ports(n: u16) -> u16 {
-    for _ in 0..50 {
-        let first = free_port();
-        if first > u16::MAX - n {
-            continue;
-        }
-        let bound: Vec<_> = (0..n)
-            .map_while(|i| std::net::TcpListener::bind(("127.0.0.1", first + i)).ok())
-            .collect();
-        if bound.len() == usize::from(n) {
-            return first;
-        }
-    }
-    panic!("no {n} consecutive free ports");
-}
 
 #[test]
 fn boards_listen_on_consecutive_ports_and_tag_their_events() {

@@ -16,6 +16,22 @@ pub fn free_port() -> u16 {
 }
 
 /// A client session connecting to a gateway on `tcp/127.0.0.1:port`, multicast scouting off.
+/// A first port with `n - 1` free ports after it (checked by binding them all), below the
+/// ephemeral range (32768 and up on Linux), where many in a row are rarely all free.
+pub fn free_ports(n: u16) -> u16 {
+    let mut first = 10_000;
+    while first + n < 32_768 {
+        let bound: Vec<_> = (0..n)
+            .map_while(|i| std::net::TcpListener::bind(("127.0.0.1", first + i)).ok())
+            .collect();
+        if bound.len() == usize::from(n) {
+            return first;
+        }
+        first += bound.len() as u16 + 1;
+    }
+    panic!("no {n} consecutive free ports below 32768");
+}
+
 pub fn client_config(port: u16) -> cellgate::bus::BusConfig {
     cellgate::bus::BusConfig {
         mode: cellgate::bus::BusMode::Client,

@@ -108,3 +108,17 @@ pub async fn queue(link: &LinkHandle, id: u64, program: Vec<u8>) {
     .await
     .expect("link accepts the job");
 }
+
+/// (VmRSS, VmHWM) in KiB of process `pid` ("self" for this one), from /proc/PID/status.
+pub fn memory_kib(pid: &str) -> (u64, u64) {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    let field = |name: &str| {
+        status
+            .lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0)
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}
