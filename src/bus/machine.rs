@@ -17,7 +17,7 @@ use super::BusError;
 use super::context::RouteContext;
 use super::keys::MachineLeaf;
 use super::payload::{self, BusMessage, encoding};
-use super::route_job::publish_job_event;
+use super::route_job::JobEventPublisher;
 use super::route_punch::{Outcome, PunchDesk, PunchSettings};
 use super::route_status::StatusPublisher;
 use super::{route_alarm, route_io, route_punch};
@@ -293,6 +293,7 @@ pub(crate) struct MachineTask {
     machine: Arc<Machine>,
     ctx: RouteContext,
     status: StatusPublisher,
+    job_publisher: JobEventPublisher,
     di: MachinePublisher<pb::DiImage>,
     alarm: MachinePublisher<pb::AlarmEvent>,
     punch: MachinePublisher<pb::PunchedProgram>,
@@ -337,6 +338,7 @@ impl MachineTask {
         let name = machine.name().to_string();
         Ok(MachineTask {
             status: StatusPublisher::declare(ctx, &name).await?,
+            job_publisher: JobEventPublisher::default(),
             di: route_io::declare_di_publisher(ctx, &name).await?,
             alarm: route_alarm::declare_publisher(ctx, &name).await?,
             punch: route_punch::declare_publisher(ctx, &name).await?,
@@ -387,7 +389,7 @@ impl MachineTask {
                     Err(broadcast::error::RecvError::Closed) => break,
                 },
                 event = self.job_events.recv() => match event {
-                    Ok(event) => publish_job_event(&self.ctx, &machine, &event).await,
+                    Ok(event) => self.job_publisher.publish(&self.ctx, &machine, &event).await,
                     Err(broadcast::error::RecvError::Lagged(n)) => {
                         tracing::warn!(machine = %machine.name(), missed = n, "the bus fell behind this machine's job events");
                     }
@@ -413,7 +415,9 @@ impl MachineTask {
         }
         // The job manager stopped first: publish the ends it reported.
         while let Ok(event) = self.job_events.try_recv() {
-            publish_job_event(&self.ctx, &machine, &event).await;
+            self.job_publisher
+                .publish(&self.ctx, &machine, &event)
+                .await;
         }
         let s = self.snapshot.borrow().clone();
         machine.on_jobs_snapshot(&s);

@@ -287,17 +287,69 @@ async fn job_delete(ctx: &RouteContext, sample: &Sample) {
     }
 }
 
+/// Job keys a machine keeps declared: the running job and the latest ones accepted behind it.
+const DECLARED_JOB_KEYS: usize = 4;
+
 /// Publishes one machine's job events, and keeps the latest event of its recent jobs.
-pub(crate) async fn publish_job_event(ctx: &RouteContext, machine: &Machine, event: &pb::JobEvent) {
-    machine.remember_job_event(event, RECENT_JOBS);
-    let key = ctx.keys.job_events(machine.name(), &event.job_id);
-    let sent = ctx
-        .session
-        .put(key.as_str(), event.encode_to_vec())
-        .encoding(encoding::<pb::JobEvent>())
-        .congestion_control(CongestionControl::Block)
-        .await;
-    if let Err(e) = sent {
-        tracing::warn!(%key, error = %e, "publishing a job event failed");
+///
+/// Each job has its own key. A put on a key no one declared makes zenoh's router match it
+/// against every subscriber and queryable of the session, on every put: with a thousand
+/// machines that was the gateway's largest single cost (a job sends up to four progress events
+/// a second). A declared key keeps its route cached, so the keys of the last few jobs stay
+/// declared; a key dropped from the list is undeclared.
+#[derive(Default)]
+pub(crate) struct JobEventPublisher {
+    declared: std::collections::VecDeque<(String, KeyExpr<'static>)>,
+}
+
+impl JobEventPublisher {
+    pub async fn publish(&mut self, ctx: &RouteContext, machine: &Machine, event: &pb::JobEvent) {
+        machine.remember_job_event(event, RECENT_JOBS);
+        let bytes = event.encode_to_vec();
+        let sent = match self.key(ctx, machine, &event.job_id).await {
+            Ok(key) => {
+                ctx.session
+                    .put(key, bytes)
+                    .encoding(encoding::<pb::JobEvent>())
+                    .congestion_control(CongestionControl::Block)
+                    .await
+            }
+            Err(key) => {
+                ctx.session
+                    .put(key, bytes)
+                    .encoding(encoding::<pb::JobEvent>())
+                    .congestion_control(CongestionControl::Block)
+                    .await
+            }
+        };
+        if let Err(e) = sent {
+            tracing::warn!(machine = %machine.name(), job = %event.job_id, error = %e, "publishing a job event failed");
+        }
+    }
+
+    /// The job's key, declared; `Err` with the key as text when it could not be declared.
+    async fn key(
+        &mut self,
+        ctx: &RouteContext,
+        machine: &Machine,
+        job: &str,
+    ) -> Result<KeyExpr<'static>, String> {
+        if let Some((_, key)) = self.declared.iter().find(|(id, _)| id == job) {
+            return Ok(key.clone());
+        }
+        let key = ctx.keys.job_events(machine.name(), job);
+        let declared = match ctx.session.declare_keyexpr(key.clone()).await {
+            Ok(k) => k,
+            Err(e) => {
+                tracing::debug!(%key, error = %e, "job key not declared");
+                return Err(key);
+            }
+        };
+        if self.declared.len() >= DECLARED_JOB_KEYS {
+            // Dropping the last clone of a declared key undeclares it.
+            self.declared.pop_front();
+        }
+        self.declared.push_back((job.to_string(), declared.clone()));
+        Ok(declared)
     }
 }
