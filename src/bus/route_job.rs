@@ -305,35 +305,31 @@ pub(crate) struct JobEventPublisher {
 impl JobEventPublisher {
     pub async fn publish(&mut self, ctx: &RouteContext, machine: &Machine, event: &pb::JobEvent) {
         machine.remember_job_event(event, RECENT_JOBS);
-        let bytes = event.encode_to_vec();
-        let sent = match self.key(ctx, machine, &event.job_id).await {
-            Ok(key) => {
-                ctx.session
-                    .put(key, bytes)
-                    .encoding(encoding::<pb::JobEvent>())
-                    .congestion_control(CongestionControl::Block)
-                    .await
-            }
-            Err(key) => {
-                ctx.session
-                    .put(key, bytes)
-                    .encoding(encoding::<pb::JobEvent>())
-                    .congestion_control(CongestionControl::Block)
-                    .await
+        let key = match self.key(ctx, machine, &event.job_id).await {
+            Ok(key) => key,
+            Err(e) => {
+                tracing::warn!(machine = %machine.name(), job = %event.job_id, error = %e, "a job event has no valid key");
+                return;
             }
         };
+        let sent = ctx
+            .session
+            .put(key, event.encode_to_vec())
+            .encoding(encoding::<pb::JobEvent>())
+            .congestion_control(CongestionControl::Block)
+            .await;
         if let Err(e) = sent {
             tracing::warn!(machine = %machine.name(), job = %event.job_id, error = %e, "publishing a job event failed");
         }
     }
 
-    /// The job's key, declared; `Err` with the key as text when it could not be declared.
+    /// The job's key, declared if zenoh takes the declaration (else put as it is).
     async fn key(
         &mut self,
         ctx: &RouteContext,
         machine: &Machine,
         job: &str,
-    ) -> Result<KeyExpr<'static>, String> {
+    ) -> zenoh::Result<KeyExpr<'static>> {
         if let Some((_, key)) = self.declared.iter().find(|(id, _)| id == job) {
             return Ok(key.clone());
         }
@@ -342,7 +338,7 @@ impl JobEventPublisher {
             Ok(k) => k,
             Err(e) => {
                 tracing::debug!(%key, error = %e, "job key not declared");
-                return Err(key);
+                return KeyExpr::try_from(key);
             }
         };
         if self.declared.len() >= DECLARED_JOB_KEYS {
