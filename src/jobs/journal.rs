@@ -155,16 +155,79 @@ pub struct Restored {
 /// The journal of one cell. Cheap to clone; every clone writes to the same database.
 #[derive(Clone)]
 pub struct Journal {
-    db: std::sync::Arc<Database>,
+    inner: std::sync::Arc<Inner>,
     path: PathBuf,
     store: PathBuf,
-    /// When the last durable commit began: every commit before it is on disk.
-    last_durable: std::sync::Arc<std::sync::Mutex<std::time::Instant>>,
 }
 
-/// Progress checkpoints ([`Journal::put_progress`]) are made durable at least this often for
-/// the whole cell: a crash loses at most this much of the acknowledged offsets, never more,
-/// and a thousand busy links cost one disk sync a second instead of thousands.
+struct Inner {
+    db: Database,
+    /// Taken for every write transaction, so that checkpoints reach the database in the order
+    /// they were made.
+    pending: std::sync::Mutex<Pending>,
+}
+
+/// Progress checkpoints not yet in the database: the latest record of each running job.
+struct Pending {
+    records: BTreeMap<u64, Vec<u8>>,
+    /// When the last commit began: every checkpoint before it is on disk.
+    last_durable: std::time::Instant,
+}
+
+impl Inner {
+    fn pending(&self) -> std::sync::MutexGuard<'_, Pending> {
+        self.pending
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Runs `f` in one durable write transaction that first writes the pending checkpoints,
+    /// so that what `f` writes or removes supersedes them.
+    fn commit<T>(
+        &self,
+        pending: &mut Pending,
+        f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
+    ) -> Result<T, redb::Error> {
+        pending.last_durable = std::time::Instant::now();
+        let tx = self.db.begin_write()?;
+        if !pending.records.is_empty() {
+            let mut jobs = tx.open_table(JOBS)?;
+            for (seq, bytes) in &pending.records {
+                jobs.insert(*seq, bytes.as_slice())?;
+            }
+        }
+        let out = f(&tx)?;
+        tx.commit()?;
+        // Only once they are on disk: a failed commit keeps them for the next one.
+        pending.records.clear();
+        Ok(out)
+    }
+}
+
+impl Drop for Inner {
+    /// A gateway that stops writes the checkpoints it still holds.
+    fn drop(&mut self) {
+        let mut pending = std::mem::replace(
+            self.pending
+                .get_mut()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
+            Pending {
+                records: BTreeMap::new(),
+                last_durable: std::time::Instant::now(),
+            },
+        );
+        if !pending.records.is_empty()
+            && let Err(e) = self.commit(&mut pending, |_| Ok(()))
+        {
+            tracing::error!(error = %e, "job journal: last progress checkpoints not written");
+        }
+    }
+}
+
+/// Progress checkpoints ([`Journal::put_progress`]) reach the disk at least this often for the
+/// whole cell, in one commit: a crash loses at most this much of the acknowledged offsets,
+/// never more, and a thousand busy links cost one transaction and one disk sync a second
+/// instead of thousands.
 pub const PROGRESS_DURABLE_EVERY: std::time::Duration = std::time::Duration::from_secs(1);
 
 impl std::fmt::Debug for Journal {
@@ -196,10 +259,15 @@ impl Journal {
             source: Box::new(e.into()),
         })?;
         let journal = Journal {
-            db: std::sync::Arc::new(db),
+            inner: std::sync::Arc::new(Inner {
+                db,
+                pending: std::sync::Mutex::new(Pending {
+                    records: BTreeMap::new(),
+                    last_durable: std::time::Instant::now(),
+                }),
+            }),
             path,
             store,
-            last_durable: std::sync::Arc::new(std::sync::Mutex::new(std::time::Instant::now())),
         };
         // Tables exist from the first write on, so that reads never miss them.
         journal.write(|tx| {
@@ -227,33 +295,15 @@ impl Journal {
         }
     }
 
-    /// Runs `f` in one durable write transaction.
+    /// Runs `f` in one durable write transaction, with the pending progress checkpoints.
     fn write<T>(
         &self,
         f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
     ) -> Result<T, JournalError> {
-        self.write_with(true, f)
-    }
-
-    /// Runs `f` in one write transaction, durable (on disk when it returns, with every
-    /// commit before it) or not (on disk with the next durable one).
-    fn write_with<T>(
-        &self,
-        durable: bool,
-        f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
-    ) -> Result<T, JournalError> {
-        let mut tx = self.db.begin_write().map_err(|e| self.db_error(e))?;
-        if durable {
-            *self
-                .last_durable
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner) = std::time::Instant::now();
-        } else {
-            tx.set_durability(redb::Durability::None);
-        }
-        let out = f(&tx).map_err(|e| self.db_error(e))?;
-        tx.commit().map_err(|e| self.db_error(e))?;
-        Ok(out)
+        let mut pending = self.inner.pending();
+        self.inner
+            .commit(&mut pending, f)
+            .map_err(|e| self.db_error(e))
     }
 
     /// The next sequence number, taken durably.
@@ -321,31 +371,34 @@ impl Journal {
 
     /// Writes (inserts or replaces) a job record, durably.
     pub fn put_job(&self, record: &JobRecord) -> Result<(), JournalError> {
-        self.put_record(true, record)
+        let bytes = self.encode(record)?;
+        self.write(|tx| {
+            tx.open_table(JOBS)?.insert(record.seq, bytes.as_slice())?;
+            Ok(())
+        })
     }
 
-    /// Writes a running job's acknowledged offset: durably when the cell's last durable
-    /// commit is [`PROGRESS_DURABLE_EVERY`] old, else with the next durable commit. The offset
-    /// on disk is never ahead of what the board acknowledged, and at most that far behind.
+    /// Checkpoints a running job's acknowledged offset. It is held in memory and reaches the
+    /// disk with the next commit, which is made here once the last one is
+    /// [`PROGRESS_DURABLE_EVERY`] old. The offset on disk is never ahead of what the board
+    /// acknowledged, and at most that far behind while the job makes progress.
     pub fn put_progress(&self, record: &JobRecord) -> Result<(), JournalError> {
-        let durable = self
-            .last_durable
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .elapsed()
-            >= PROGRESS_DURABLE_EVERY;
-        self.put_record(durable, record)
+        let bytes = self.encode(record)?;
+        let mut pending = self.inner.pending();
+        pending.records.insert(record.seq, bytes);
+        if pending.last_durable.elapsed() < PROGRESS_DURABLE_EVERY {
+            return Ok(());
+        }
+        self.inner
+            .commit(&mut pending, |_| Ok(()))
+            .map_err(|e| self.db_error(e))
     }
 
-    fn put_record(&self, durable: bool, record: &JobRecord) -> Result<(), JournalError> {
-        let bytes = serde_json::to_vec(record).map_err(|source| JournalError::Record {
+    fn encode(&self, record: &JobRecord) -> Result<Vec<u8>, JournalError> {
+        serde_json::to_vec(record).map_err(|source| JournalError::Record {
             path: self.path.clone(),
             seq: record.seq,
             source,
-        })?;
-        self.write_with(durable, |tx| {
-            tx.open_table(JOBS)?.insert(record.seq, bytes.as_slice())?;
-            Ok(())
         })
     }
 
@@ -390,7 +443,9 @@ impl Journal {
 
     /// Everything the journal holds, jobs grouped by machine in arrival order.
     pub fn restore(&self) -> Result<Restored, JournalError> {
-        let tx = self.db.begin_read().map_err(|e| self.db_error(e))?;
+        // The checkpoints held in memory first, so that what is read is what was written.
+        self.write(|_| Ok(()))?;
+        let tx = self.inner.db.begin_read().map_err(|e| self.db_error(e))?;
         let mut restored = Restored::default();
         let jobs = tx.open_table(JOBS).map_err(|e| self.db_error(e))?;
         for entry in jobs.iter().map_err(|e| self.db_error(e))? {
@@ -492,35 +547,73 @@ mod tests {
         assert!(!j.file_path("1").exists());
     }
 
-    /// Progress checkpoints between durable commits are read back at once and reach the disk
-    /// with the next durable commit; one is made durable itself once the last is a second old.
+    /// The acknowledged offset of job `seq` as the database holds it, without the
+    /// checkpoints held in memory.
+    fn stored_acked(j: &Journal, seq: u64) -> u64 {
+        let tx = j.inner.db.begin_read().unwrap();
+        let table = tx.open_table(JOBS).unwrap();
+        let bytes = table.get(seq).unwrap().unwrap();
+        serde_json::from_slice::<JobRecord>(bytes.value())
+            .unwrap()
+            .acked
+    }
+
+    /// Progress checkpoints are held in memory and reach the disk with the next commit, made
+    /// by a checkpoint itself once the last commit is a second old; a gateway that stops
+    /// writes what it holds.
     #[test]
-    fn progress_checkpoints_are_durable_at_a_bounded_rate() {
+    fn progress_checkpoints_reach_the_disk_at_a_bounded_rate() {
         let dir = tempfile::tempdir().unwrap();
         let j = Journal::open(dir.path()).unwrap();
         let mut a = record(1, "m1", JobState::Active);
         j.put_job(&a).unwrap();
         a.acked = 100;
         j.put_progress(&a).unwrap();
-        assert!(
-            j.last_durable.lock().unwrap().elapsed() < PROGRESS_DURABLE_EVERY,
-            "just after a durable commit, progress is not synced"
-        );
-        assert_eq!(j.restore().unwrap().jobs["m1"][0].acked, 100);
-        // A durable commit of another record carries it to disk.
+        assert_eq!(stored_acked(&j, 1), 0, "just after a commit, progress is held");
+        // The commit of another record carries it to disk.
         j.put_job(&record(2, "m2", JobState::Waiting)).unwrap();
-        drop(j);
-        let j = Journal::open(dir.path()).unwrap();
-        assert_eq!(j.restore().unwrap().jobs["m1"][0].acked, 100);
-        // Past the interval, a checkpoint is a durable commit of its own.
-        *j.last_durable.lock().unwrap() -= PROGRESS_DURABLE_EVERY;
-        let before = *j.last_durable.lock().unwrap();
+        assert_eq!(stored_acked(&j, 1), 100);
+        // Past the interval, a checkpoint is a commit of its own.
+        j.inner.pending().last_durable -= PROGRESS_DURABLE_EVERY;
         a.acked = 200;
         j.put_progress(&a).unwrap();
-        assert!(*j.last_durable.lock().unwrap() > before);
+        assert_eq!(stored_acked(&j, 1), 200);
+        // Held again, then written when the journal closes.
+        a.acked = 300;
+        j.put_progress(&a).unwrap();
+        assert_eq!(stored_acked(&j, 1), 200);
         drop(j);
         let j = Journal::open(dir.path()).unwrap();
-        assert_eq!(j.restore().unwrap().jobs["m1"][0].acked, 200);
+        assert_eq!(stored_acked(&j, 1), 300);
+        // Restoring reads what was written, held checkpoints included.
+        a.acked = 400;
+        j.put_progress(&a).unwrap();
+        assert_eq!(j.restore().unwrap().jobs["m1"][0].acked, 400);
+    }
+
+    /// A held checkpoint never overwrites what the job's own later write says, nor brings back
+    /// a job that was removed.
+    #[test]
+    fn a_held_checkpoint_does_not_undo_a_later_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let j = Journal::open(dir.path()).unwrap();
+        let mut a = record(1, "m1", JobState::Active);
+        let b = record(2, "m2", JobState::Active);
+        j.put_job(&a).unwrap();
+        j.put_job(&b).unwrap();
+        a.acked = 100;
+        j.put_progress(&a).unwrap();
+        j.put_progress(&b).unwrap();
+        a.state = JobState::Ended;
+        a.acked = 120;
+        j.put_job(&a).unwrap();
+        j.remove_jobs(std::slice::from_ref(&b)).unwrap();
+        drop(j);
+        let j = Journal::open(dir.path()).unwrap();
+        let r = j.restore().unwrap();
+        assert_eq!(r.jobs["m1"][0].state, JobState::Ended);
+        assert_eq!(r.jobs["m1"][0].acked, 120);
+        assert!(!r.jobs.contains_key("m2"));
     }
 
     #[test]
