@@ -158,7 +158,8 @@ pub enum Confirmation {
 
 /// A host-side engine (Protocol A family or Protocol B family).
 pub trait HostEngine: Engine<Command = EngineCommand, Event = EngineEvent> {
-    /// How many more program bytes the engine will take now (bounded buffer).
+    /// How many more program bytes the engine will take now (bounded buffer). Zero while it
+    /// holds more than half its buffer: the source is read in a few large pieces.
     #[must_use]
     fn data_wanted(&self) -> usize;
 

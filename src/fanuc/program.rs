@@ -174,13 +174,16 @@ impl Program {
         out
     }
 
-    /// How many more bytes the program takes now, within `limit` bytes of buffer. None after
-    /// EOR: what follows it would only be dropped.
+    /// How many more bytes the program takes now, within `limit` bytes of buffer: none while
+    /// it holds more than half the limit, so that its source is read in large pieces, not a
+    /// packet's worth at a time (each read of a file is a trip to a blocking thread, and a
+    /// thousand links each reading 1 KiB eight times a second cost more than their lines).
+    /// None after EOR: what follows it would only be dropped.
     pub fn wanted(&self, limit: usize) -> usize {
-        if self.complete() {
+        if self.complete() || self.buf.len() > limit / 2 {
             0
         } else {
-            limit.saturating_sub(self.buf.len())
+            limit - self.buf.len()
         }
     }
 }
@@ -255,7 +258,21 @@ mod tests {
         let mut p = Program::new();
         p.push(b"%\nG0", None).unwrap();
         p.push(b"1\n", None).unwrap();
-        assert_eq!(p.wanted(8), 2);
+        assert_eq!(p.wanted(12), 6);
+        assert_eq!(p.wanted(8), 0, "more than half the limit is held: refilled later");
+        assert_eq!(p.take(2), b"%\n");
+        assert_eq!(p.wanted(8), 4);
+        assert!(p.can_fill(4));
+        assert!(!p.can_fill(5));
+        assert_eq!(p.take(3), b"G01");
+        assert_eq!(p.sent, 5);
+    }
+
+    #[test]
+    fn split_input_is_buffered_whole() {
+        let mut p = Program::new();
+        p.push(b"%\nG0", None).unwrap();
+        p.push(b"1\n", None).unwrap();
         assert!(p.can_fill(6));
         assert!(!p.can_fill(7));
         assert_eq!(p.take(3), b"%\nG");
