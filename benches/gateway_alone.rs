@@ -19,7 +19,8 @@
 //! `cargo bench --bench gateway_alone` runs N = 64, 256, 1024 at 19 200 and 86 400 baud for
 //! Protocol A, Expansion A (n = 4) and Protocol B (19 200 only: §2.2 allows no more). Pick
 //! with `-- --machines 1024 --baud 86400 --protocol exp-a --job-seconds 20`; `--no-do` leaves
-//! the DO puts out. Under
+//! the DO puts out, and `--undeclared-do` puts them on keys the client did not declare.
+//! `CELLGATE_GATEWAY_BIN=path` measures another gateway binary against the same boards. Under
 //! `cargo test` a smoke pass (4 machines, short jobs) checks that the benchmark still works.
 
 #[path = "../tests/common/mod.rs"]
@@ -42,6 +43,12 @@ use prost::Message;
 use zenoh::Session;
 
 const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
+
+/// The gateway binary measured: this build's, or another one named by `CELLGATE_GATEWAY_BIN`
+/// (an older build, to compare on the same machine; the boards stay this build's).
+fn gateway_bin() -> String {
+    std::env::var("CELLGATE_GATEWAY_BIN").unwrap_or_else(|_| BIN.to_string())
+}
 const PROGRAM: &str = "O1000";
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -107,6 +114,8 @@ struct Case {
     idle_seconds: u64,
     /// A DO put per machine a second while the jobs run.
     dos: bool,
+    /// The DO puts go out on keys the client did not declare.
+    undeclared_do: bool,
 }
 
 /// What the boards' process said, with when this program read it.
@@ -351,7 +360,7 @@ async fn run(case: &Case) {
     }
     let gateway_log = std::fs::File::create(dir.path().join("gateway.log")).unwrap();
     let gateway = Reaped(
-        Command::new(BIN)
+        Command::new(gateway_bin())
             .args(["run", "--config"])
             .arg(&cell)
             .current_dir(dir.path())
@@ -435,7 +444,20 @@ async fn run(case: &Case) {
     let puts: Arc<Mutex<Vec<Put>>> = Arc::default();
     let do_task = (case.dos && case.proto != Proto::B).then(|| {
         let (client, keys, puts) = (client.clone(), keys.clone(), puts.clone());
+        let declare_do = !case.undeclared_do;
         tokio::spawn(async move {
+            // Declared once, as a client that puts to the same machines again and again
+            // would: the gateway then routes each put by the key's id instead of matching
+            // its text against every declaration (README, "A thousand links").
+            let mut do_keys = Vec::with_capacity(n);
+            for i in 0..n {
+                let key = keys.leaf(&format!("m{i}"), MachineLeaf::Do);
+                do_keys.push(if declare_do {
+                    client.declare_keyexpr(key).await.unwrap()
+                } else {
+                    zenoh::key_expr::KeyExpr::try_from(key).unwrap()
+                });
+            }
             let mut tick = tokio::time::interval(Duration::from_secs(1));
             for second in 1u64.. {
                 tick.tick().await;
@@ -449,10 +471,7 @@ async fn run(case: &Case) {
                     };
                     let at = Instant::now();
                     let _ = client
-                        .put(
-                            keys.leaf(&format!("m{i}"), MachineLeaf::Do),
-                            cmd.encode_to_vec(),
-                        )
+                        .put(do_keys[i].clone(), cmd.encode_to_vec())
                         .timestamp(client.new_timestamp())
                         .await;
                     puts.lock().unwrap().push(((i as u64, image), at));
@@ -618,6 +637,7 @@ fn main() {
                     job_seconds,
                     idle_seconds,
                     dos: !args.iter().any(|a| a == "--no-do"),
+                    undeclared_do: args.iter().any(|a| a == "--undeclared-do"),
                 };
                 rt.block_on(run(&case));
             }
