@@ -1372,10 +1372,11 @@ impl Manager {
                     }),
                 );
                 if let Some(active) = self.active.as_mut() {
-                    // The acknowledged offset survives a crash from here on.
+                    // The acknowledged offset survives a crash once the checkpoint is written.
                     active.record.acked = acked;
                     active.record.last_event = event.encode_to_vec();
-                    // Durable at most every second for the whole cell (`put_progress`).
+                    // Held, and written with the cell's next commit, at least once a second
+                    // (`put_progress`).
                     if let Err(e) = self.journal.put_progress(&active.record) {
                         tracing::error!(job = %active.record.id, error = %e, "job journal write failed");
                     }
