@@ -249,7 +249,7 @@ mod tests {
                 .collect();
             let forbidden = [None, Some(0x0D), Some(0x03)][case % 3];
             let (buf, ignored, result, ended) = reference(&data, forbidden);
-            // Whole, and split in two at every place.
+            // Whole, and split in two at each of the first eight places.
             for split in [data.len()]
                 .into_iter()
                 .chain(0..data.len().min(8))
