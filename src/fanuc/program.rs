@@ -250,10 +250,7 @@ mod tests {
             let forbidden = [None, Some(0x0D), Some(0x03)][case % 3];
             let (buf, ignored, result, ended) = reference(&data, forbidden);
             // Whole, and split in two at each of the first eight places.
-            for split in [data.len()]
-                .into_iter()
-                .chain(0..data.len().min(8))
-            {
+            for split in [data.len()].into_iter().chain(0..data.len().min(8)) {
                 let mut p = Program::new();
                 let got = p
                     .push(&data[..split], forbidden)
@@ -335,7 +332,11 @@ mod tests {
         p.push(b"%\nG0", None).unwrap();
         p.push(b"1\n", None).unwrap();
         assert_eq!(p.wanted(12), 6);
-        assert_eq!(p.wanted(8), 0, "more than half the limit is held: refilled later");
+        assert_eq!(
+            p.wanted(8),
+            0,
+            "more than half the limit is held: refilled later"
+        );
         assert_eq!(p.take(2), b"%\n");
         assert_eq!(p.wanted(8), 4);
         assert!(p.can_fill(4));

@@ -569,7 +569,11 @@ mod tests {
         j.put_job(&a).unwrap();
         a.acked = 100;
         j.put_progress(&a).unwrap();
-        assert_eq!(stored_acked(&j, 1), 0, "just after a commit, progress is held");
+        assert_eq!(
+            stored_acked(&j, 1),
+            0,
+            "just after a commit, progress is held"
+        );
         // The commit of another record carries it to disk.
         j.put_job(&record(2, "m2", JobState::Waiting)).unwrap();
         assert_eq!(stored_acked(&j, 1), 100);
