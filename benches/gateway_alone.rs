@@ -463,7 +463,7 @@ async fn run(case: &Case) {
                 tick.tick().await;
                 // Spread over the second, as independent clients would.
                 let gap = Duration::from_secs(1) / u32::try_from(n).unwrap_or(1);
-                for i in 0..n {
+                for (i, key) in do_keys.iter().enumerate() {
                     let image = (second * 7 + i as u64) % 256;
                     let cmd = pb::DoCommand {
                         value: image as u32,
@@ -471,7 +471,7 @@ async fn run(case: &Case) {
                     };
                     let at = Instant::now();
                     let _ = client
-                        .put(do_keys[i].clone(), cmd.encode_to_vec())
+                        .put(key.clone(), cmd.encode_to_vec())
                         .timestamp(client.new_timestamp())
                         .await;
                     puts.lock().unwrap().push(((i as u64, image), at));
