@@ -180,44 +180,39 @@ impl Inner {
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
+}
 
-    /// Runs `f` in one durable write transaction that first writes the pending checkpoints,
-    /// so that what `f` writes or removes supersedes them.
-    fn commit<T>(
-        &self,
-        pending: &mut Pending,
-        f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
-    ) -> Result<T, redb::Error> {
-        pending.last_durable = std::time::Instant::now();
-        let tx = self.db.begin_write()?;
-        if !pending.records.is_empty() {
-            let mut jobs = tx.open_table(JOBS)?;
-            for (seq, bytes) in &pending.records {
-                jobs.insert(*seq, bytes.as_slice())?;
-            }
+/// Runs `f` in one durable write transaction that first writes the pending checkpoints, so
+/// that what `f` writes or removes supersedes them.
+fn commit<T>(
+    db: &Database,
+    pending: &mut Pending,
+    f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
+) -> Result<T, redb::Error> {
+    pending.last_durable = std::time::Instant::now();
+    let tx = db.begin_write()?;
+    if !pending.records.is_empty() {
+        let mut jobs = tx.open_table(JOBS)?;
+        for (seq, bytes) in &pending.records {
+            jobs.insert(*seq, bytes.as_slice())?;
         }
-        let out = f(&tx)?;
-        tx.commit()?;
-        // Only once they are on disk: a failed commit keeps them for the next one.
-        pending.records.clear();
-        Ok(out)
     }
+    let out = f(&tx)?;
+    tx.commit()?;
+    // Only once they are on disk: a failed commit keeps them for the next one.
+    pending.records.clear();
+    Ok(out)
 }
 
 impl Drop for Inner {
     /// A gateway that stops writes the checkpoints it still holds.
     fn drop(&mut self) {
-        let mut pending = std::mem::replace(
-            self.pending
-                .get_mut()
-                .unwrap_or_else(std::sync::PoisonError::into_inner),
-            Pending {
-                records: BTreeMap::new(),
-                last_durable: std::time::Instant::now(),
-            },
-        );
+        let Inner { db, pending } = self;
+        let pending = pending
+            .get_mut()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         if !pending.records.is_empty()
-            && let Err(e) = self.commit(&mut pending, |_| Ok(()))
+            && let Err(e) = commit(db, pending, |_| Ok(()))
         {
             tracing::error!(error = %e, "job journal: last progress checkpoints not written");
         }
@@ -301,9 +296,7 @@ impl Journal {
         f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
     ) -> Result<T, JournalError> {
         let mut pending = self.inner.pending();
-        self.inner
-            .commit(&mut pending, f)
-            .map_err(|e| self.db_error(e))
+        commit(&self.inner.db, &mut pending, f).map_err(|e| self.db_error(e))
     }
 
     /// The next sequence number, taken durably.
@@ -389,9 +382,7 @@ impl Journal {
         if pending.last_durable.elapsed() < PROGRESS_DURABLE_EVERY {
             return Ok(());
         }
-        self.inner
-            .commit(&mut pending, |_| Ok(()))
-            .map_err(|e| self.db_error(e))
+        commit(&self.inner.db, &mut pending, |_| Ok(())).map_err(|e| self.db_error(e))
     }
 
     fn encode(&self, record: &JobRecord) -> Result<Vec<u8>, JournalError> {
