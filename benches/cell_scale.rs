@@ -17,15 +17,16 @@ use std::time::{Duration, Instant};
 use cellgate::bus::keys::{CellKeys, MachineLeaf};
 use cellgate::bus::{self, MachineLink};
 use cellgate::cell::Cell;
-use cellgate::config::CellConfig;
-use cellgate::engine::Engine;
-use cellgate::fanuc::host::{EngineCommand, HostEngine};
-use cellgate::fanuc::message::Framing;
-use cellgate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
 use cellgate::link::driver;
-use cellgate::pb;
-use cellgate::sim::{BoardHandle, fanuc_board::BoardConfig};
+use cellgate::sim::BoardHandle;
 use cellgate::transport::{LineError, LineSettings, ModemIn, ModemOut, sim};
+use cellgate_core::config::CellConfig;
+use cellgate_core::engine::Engine;
+use cellgate_core::fanuc::host::{EngineCommand, HostEngine};
+use cellgate_core::fanuc::message::Framing;
+use cellgate_core::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
+use cellgate_core::pb;
+use cellgate_core::sim::fanuc_board::BoardConfig;
 use prost::Message;
 use tokio_util::sync::CancellationToken;
 
@@ -37,7 +38,7 @@ struct Timed {
 
 impl Engine for Timed {
     type Command = EngineCommand;
-    type Event = cellgate::fanuc::host::EngineEvent;
+    type Event = cellgate_core::fanuc::host::EngineEvent;
     fn handle_input(&mut self, now: Instant, bytes: &[u8]) {
         self.inner.handle_input(now, bytes)
     }
@@ -121,6 +122,7 @@ async fn do_latency(puts: usize) {
         let machines = vec![MachineLink {
             config: machine,
             link,
+            sim: None,
         }];
         tokio::spawn(async move { bus::serve(&gw, &cfg, machines, rs).await })
     };
@@ -242,7 +244,7 @@ async fn scale(machines: usize, program_size: usize) {
         };
         let accepted: pb::JobAccepted = common::bus::get_one(
             &client,
-            &keys.leaf(&m.config.name, MachineLeaf::Job),
+            &keys.leaf(&m.config.name, MachineLeaf::Submit),
             Some(request.encode_to_vec()),
         )
         .await;

@@ -13,10 +13,10 @@ mod common;
 
 use std::time::Duration;
 
-use cellgate::config::{CellConfig, TransportConfig};
-use cellgate::fanuc::g05::G05Format;
-use cellgate::g05::G05Desk;
-use cellgate::g05::stream::{Batch, BlockIn};
+use cellgate::link::g05::G05Desk;
+use cellgate_core::config::{CellConfig, TransportConfig};
+use cellgate_core::fanuc::g05::G05Format;
+use cellgate_core::fanuc::g05::stream::{Batch, BlockIn};
 
 struct Row {
     label: String,
@@ -34,10 +34,10 @@ struct Row {
 async fn run(protocol: &str, packet_n: Option<u8>, t_ms: u32, ratio: f64, millis: u64) -> Row {
     let format = {
         let mut f = G05Format::new(3);
-        f.unit_time_ms = cellgate::fanuc::g05::UnitTime::from_ms(t_ms).expect("a unit time");
+        f.unit_time_ms = cellgate_core::fanuc::g05::UnitTime::from_ms(t_ms).expect("a unit time");
         f
     };
-    let required = cellgate::fanuc::g05::required_baud(&format, 11.0);
+    let required = cellgate_core::fanuc::g05::required_baud(&format, 11.0);
     let baud = (f64::from(required) * ratio).round() as u32;
     let n = packet_n
         .map(|n| format!("packet_n = {n}\n"))
@@ -178,10 +178,11 @@ fn virtual_time(millis: u64, ratios: &[f64], times: &[u32]) {
                 let format = {
                     let mut f = G05Format::new(3);
                     f.unit_time_ms =
-                        cellgate::fanuc::g05::UnitTime::from_ms(t).expect("a unit time");
+                        cellgate_core::fanuc::g05::UnitTime::from_ms(t).expect("a unit time");
                     f
                 };
-                let needed = f64::from(cellgate::fanuc::g05::required_baud(&format, 11.0)) * ratio;
+                let needed =
+                    f64::from(cellgate_core::fanuc::g05::required_baud(&format, 11.0)) * ratio;
                 if protocol == "b" && needed > 19_200.0 {
                     // Protocol B runs at 19200 baud at most (§2.2): no line is fast enough.
                     println!(

@@ -19,7 +19,9 @@
 //! `cargo bench --bench gateway_alone` runs N = 64, 256, 1024 at 19 200 and 86 400 baud for
 //! Protocol A, Expansion A (n = 4) and Protocol B (19 200 only: §2.2 allows no more). Pick
 //! with `-- --machines 1024 --baud 86400 --protocol exp-a --job-seconds 20`; `--no-do` leaves
-//! the DO puts out, and `--undeclared-do` puts them on keys the client did not declare.
+//! the DO puts out, and `--undeclared-do` puts them on keys the client did not declare;
+//! `--no-history` turns the cell's history off; `--console-pages N` serves the console and
+//! opens N pages (each its first load, then its event stream) while the jobs run.
 //! `CELLGATE_GATEWAY_BIN=path` measures another gateway binary against the same boards. Under
 //! `cargo test` a smoke pass (4 machines, short jobs) checks that the benchmark still works.
 
@@ -34,10 +36,10 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use cellgate::bus::keys::{CellKeys, MachineLeaf};
-use cellgate::fanuc::message::MAX_DAT_DATA;
-use cellgate::fanuc::packet;
-use cellgate::fanuc::sat::Params;
-use cellgate::pb;
+use cellgate_core::fanuc::message::MAX_DAT_DATA;
+use cellgate_core::fanuc::packet;
+use cellgate_core::fanuc::sat::Params;
+use cellgate_core::pb;
 use futures::StreamExt;
 use prost::Message;
 use zenoh::Session;
@@ -116,6 +118,10 @@ struct Case {
     dos: bool,
     /// The DO puts go out on keys the client did not declare.
     undeclared_do: bool,
+    /// The cell's history (and audit trail) kept.
+    history: bool,
+    /// Console pages open while the jobs run (each its event stream); 0: no console.
+    console_pages: usize,
 }
 
 /// What the boards' process said, with when this program read it.
@@ -202,13 +208,26 @@ fn start_boards(case: &Case, first: u16, log: Arc<Mutex<SimLog>>) -> Reaped {
     Reaped(child)
 }
 
-fn cell_file(case: &Case, first: u16, bus_port: u16, prom_port: u16, dir: &Path) -> String {
+fn cell_file(
+    case: &Case,
+    first: u16,
+    (bus_port, prom_port, console_port): (u16, u16, u16),
+    dir: &Path,
+) -> String {
     let mut text = format!(
         "cell = \"scale\"\n[bus]\nlisten = [\"tcp/127.0.0.1:{bus_port}\"]\n\
          [telemetry]\nprometheus = \"127.0.0.1:{prom_port}\"\n\
          [programs]\ndir = {:?}\n",
         dir.join("programs")
     );
+    if !case.history {
+        text.push_str("[history]\nenabled = false\n");
+    }
+    if case.console_pages > 0 {
+        text.push_str(&format!(
+            "[console]\nlisten = \"127.0.0.1:{console_port}\"\n"
+        ));
+    }
     for i in 0..case.machines {
         text.push_str(&format!(
             "[[machines]]\nname = \"m{i}\"\n{}\
@@ -330,7 +349,11 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
 async fn run(case: &Case) {
     let n = usize::from(case.machines);
     let first = common::bus::free_ports(case.machines);
-    let (bus_port, prom_port) = (common::bus::free_port(), common::bus::free_port());
+    let (bus_port, prom_port, console_port) = (
+        common::bus::free_port(),
+        common::bus::free_port(),
+        common::bus::free_port(),
+    );
     let dir = tempfile::tempdir().expect("tempdir");
     let chars_per_s = f64::from(case.baud) / 11.0;
     let bound = case.proto.bound(chars_per_s);
@@ -344,7 +367,7 @@ async fn run(case: &Case) {
     let cell = dir.path().join("cell.toml");
     std::fs::write(
         &cell,
-        cell_file(case, first, bus_port, prom_port, dir.path()),
+        cell_file(case, first, (bus_port, prom_port, console_port), dir.path()),
     )
     .unwrap();
 
@@ -414,6 +437,43 @@ async fn run(case: &Case) {
     let idle_sim = (cpu_of(spid) - s0) / idle_wall;
     let (idle_rss, _) = memory_of(gpid);
 
+    // The console's pages: each loads the overview, then follows the cell's events.
+    let console = format!("http://127.0.0.1:{console_port}");
+    let mut first_loads = Vec::new();
+    let mut pages = Vec::new();
+    let events_seen = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    for _ in 0..case.console_pages {
+        let http = reqwest::Client::builder()
+            .cookie_store(true)
+            .build()
+            .unwrap();
+        http.get(format!("{console}/api/v1/me"))
+            .send()
+            .await
+            .unwrap();
+        let t = Instant::now();
+        for path in [
+            "/",
+            "/assets/app.js",
+            "/api/v1/cells",
+            "/api/v1/cells/scale/overview",
+        ] {
+            let r = http.get(format!("{console}{path}")).send().await.unwrap();
+            assert!(r.status().is_success(), "{path}: {}", r.status());
+            r.bytes().await.unwrap();
+        }
+        first_loads.push(t.elapsed());
+        let seen = events_seen.clone();
+        let url = format!("{console}/api/v1/cells/scale/events");
+        pages.push(tokio::spawn(async move {
+            let mut r = http.get(url).send().await.unwrap();
+            while let Ok(Some(chunk)) = r.chunk().await {
+                let n = chunk.windows(6).filter(|w| w == b"event:").count();
+                seen.fetch_add(n as u64, std::sync::atomic::Ordering::Relaxed);
+            }
+        }));
+    }
+
     // Busy: a job per machine, a DO put per machine a second.
     let events = client
         .declare_subscriber(keys.job_events("*", "*"))
@@ -432,7 +492,7 @@ async fn run(case: &Case) {
         .map(|i| {
             let (client, key, request) = (
                 client.clone(),
-                keys.leaf(&format!("m{i}"), MachineLeaf::Job),
+                keys.leaf(&format!("m{i}"), MachineLeaf::Submit),
                 request.clone(),
             );
             async move { submit(&client, &key, request).await }
@@ -533,6 +593,9 @@ async fn run(case: &Case) {
     if let Some(t) = do_task {
         t.abort();
     }
+    for p in pages {
+        p.abort();
+    }
     let metrics = scrape(prom_port).await;
     let delay = histogram_percentiles(&metrics, "cellgate_do_delay_seconds");
     let mut to_board: Vec<f64> = {
@@ -585,6 +648,19 @@ async fn run(case: &Case) {
     if failed + unmeasured > 0 {
         println!("  ({failed} of {n} jobs failed, {unmeasured} too short to measure)");
     }
+    if case.console_pages > 0 {
+        first_loads.sort();
+        println!(
+            "  ({} console pages: first load (page, script, cells, overview of {n} machines) {:.0} ms median, {:.0} ms slowest; {:.0} events a second per page)",
+            case.console_pages,
+            ms(first_loads[first_loads.len() / 2].as_secs_f64()),
+            ms(first_loads.last().map_or(0.0, Duration::as_secs_f64)),
+            events_seen.load(std::sync::atomic::Ordering::Relaxed) as f64
+                / busy_wall
+                / case.console_pages as f64
+        );
+    }
+    println!("  (history {})", if case.history { "on" } else { "off" });
 }
 
 fn list<T>(args: &[String], flag: &str, default: &str, parse: impl Fn(&str) -> T) -> Vec<T> {
@@ -597,6 +673,8 @@ fn list<T>(args: &[String], flag: &str, default: &str, parse: impl Fn(&str) -> T
 }
 
 fn main() {
+    // The console's pages are read with reqwest, built without a crypto provider.
+    let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
     let args: Vec<String> = std::env::args().collect();
     let full = args.iter().any(|a| a == "--bench");
     let (machines, bauds, protos, job_seconds, idle_seconds) = if full {
@@ -638,6 +716,10 @@ fn main() {
                     idle_seconds,
                     dos: !args.iter().any(|a| a == "--no-do"),
                     undeclared_do: args.iter().any(|a| a == "--undeclared-do"),
+                    history: !args.iter().any(|a| a == "--no-history"),
+                    console_pages: list(&args, "--console-pages", "0", |s| {
+                        s.parse::<usize>().unwrap()
+                    })[0],
                 };
                 rt.block_on(run(&case));
             }

@@ -18,11 +18,11 @@ mod common;
 
 use std::time::Duration;
 
-use cellgate::fanuc::message::MAX_DAT_DATA;
-use cellgate::fanuc::packet;
-use cellgate::fanuc::sat::Params;
 use cellgate::link::driver::LinkEvent;
 use cellgate::transport::LineSettings;
+use cellgate_core::fanuc::message::MAX_DAT_DATA;
+use cellgate_core::fanuc::packet;
+use cellgate_core::fanuc::sat::Params;
 
 struct Case {
     protocol: &'static str,

@@ -32,16 +32,16 @@
 
 use std::time::Duration;
 
-use cellgate::config::{Real, TagConfig, TagType};
-use cellgate::fuji::command::{Module, Request};
-use cellgate::fuji::frame::{BccKind, FrameSettings};
-use cellgate::fuji::master::{Master, MasterSettings, OperationMode};
 use cellgate::plc::TagTable;
 use cellgate::plc::link::{PlcEvent, spawn};
-use cellgate::sim::micrex::MicrexConfig;
 use cellgate::sim::micrex_handle::MicrexHandle;
 use cellgate::transport::LineSettings;
 use cellgate::transport::sim::Dir;
+use cellgate_core::config::{Real, TagConfig, TagType};
+use cellgate_core::fuji::command::{Module, Request};
+use cellgate_core::fuji::frame::{BccKind, FrameSettings};
+use cellgate_core::fuji::master::{Master, MasterSettings, OperationMode};
+use cellgate_core::sim::micrex::MicrexConfig;
 use tokio_util::sync::CancellationToken;
 
 /// As fast as the line allows: far below the line time of any round here.
@@ -81,6 +81,7 @@ fn tag(station: u8, name: &str, module: Module, address: u16, kind: TagType) -> 
         poll_ms: SATURATE_MS,
         deadband: Real(0.0),
         writable: false,
+        history: false,
     }
 }
 
@@ -120,7 +121,7 @@ struct Row {
 }
 
 /// Line bytes of one read: the request as the master frames it, the reply as the module does
-/// (address, count, ATTR and the data: BYTEN = 5 + N, protocol notes 2).
+/// (address, count, ATTR and the data: BYTEN = 5 + N, FFU120B notes 2).
 fn read_bytes(
     frame: &FrameSettings,
     station: u8,

@@ -69,7 +69,7 @@ program="$(mktemp)"
     echo "M30"
     echo "%"
 } > "$program"
-"$cellgate" submit -e "$endpoint" --cell cell-a -m mill-1 "$program" \
+"$cellgate" submit -e "$endpoint" --cell cell-a mill-1 "$program" \
     || fail "the job did not complete"
 rm -f "$program"
 

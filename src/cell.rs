@@ -7,12 +7,6 @@ use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
 
-use crate::config::G05Config;
-use crate::config::{CellConfig, MachineConfig, PlcConfig, TransportConfig};
-use crate::fanuc::message::Framing;
-use crate::fanuc::protocol_a::ProtocolAHost;
-use crate::fanuc::protocol_b::ProtocolBHost;
-use crate::fuji::master::Master;
 use crate::link::driver::{self, LinkHandle};
 use crate::link::pump::now;
 use crate::plc::{PlcHandle, TagTable};
@@ -22,6 +16,12 @@ use crate::transport::serial::ReopeningSerial;
 use crate::transport::sim::SimLine;
 use crate::transport::tcp::{TcpOptions, TcpTransport};
 use crate::transport::{Transport, TransportError};
+use cellgate_core::config::G05Config;
+use cellgate_core::config::{CellConfig, MachineConfig, PlcConfig, TransportConfig};
+use cellgate_core::fanuc::message::Framing;
+use cellgate_core::fanuc::protocol_a::ProtocolAHost;
+use cellgate_core::fanuc::protocol_b::ProtocolBHost;
+use cellgate_core::fuji::master::Master;
 
 /// One machine of the running cell.
 pub struct MachineRuntime {
@@ -57,25 +57,25 @@ pub enum CellError {
     ProtocolA {
         machine: String,
         #[source]
-        source: crate::fanuc::protocol_a::InvalidConfig,
+        source: cellgate_core::fanuc::protocol_a::InvalidConfig,
     },
     #[error("machine {machine}: {source}")]
     ProtocolB {
         machine: String,
         #[source]
-        source: crate::fanuc::protocol_b::InvalidConfig,
+        source: cellgate_core::fanuc::protocol_b::InvalidConfig,
     },
     #[error("PLC {plc}: {source}")]
     Master {
         plc: String,
         #[source]
-        source: crate::fuji::master::InvalidSettings,
+        source: cellgate_core::fuji::master::InvalidSettings,
     },
     #[error("PLC {plc}: {source}")]
     Micrex {
         plc: String,
         #[source]
-        source: crate::sim::micrex::MicrexConfigError,
+        source: cellgate_core::sim::micrex::MicrexConfigError,
     },
     #[error("machine {machine}: simulated board: {source}")]
     Board {
@@ -122,18 +122,17 @@ impl Cell {
         shutdown: &CancellationToken,
     ) -> Result<PlcRuntime, CellError> {
         let name = plc.name.clone();
-        let master =
-            Master::new(crate::plc::master_settings(plc)).map_err(|source| CellError::Master {
-                plc: name.clone(),
-                source,
-            })?;
+        let master = Master::new(plc.master_settings()).map_err(|source| CellError::Master {
+            plc: name.clone(),
+            source,
+        })?;
         let mut micrex = None;
         let mut sim_line = None;
         let transport: Box<dyn Transport> = match &plc.transport {
             TransportConfig::Sim { line } => {
                 let (host, device, control) = crate::transport::sim::line(*line);
                 let handle = MicrexHandle::spawn(
-                    crate::plc::micrex_config(plc),
+                    cellgate_core::sim::micrex::MicrexConfig::for_plc(plc),
                     plc.sim.ticks.clone(),
                     device,
                 )
@@ -240,6 +239,7 @@ impl Cell {
             .map(|m| crate::bus::MachineLink {
                 config: m.config.clone(),
                 link: m.link.clone(),
+                sim: m.board.as_ref().map(sim::BoardHandle::control),
             })
             .collect()
     }
@@ -322,9 +322,9 @@ async fn open_transport(
 fn machine_board_config(
     machine: &MachineConfig,
     framing: Framing,
-) -> sim::fanuc_board::BoardConfig {
+) -> cellgate_core::sim::fanuc_board::BoardConfig {
     let sim = machine.board_sim();
-    sim::fanuc_board::BoardConfig {
+    cellgate_core::sim::fanuc_board::BoardConfig {
         protocol: machine.protocol,
         framing,
         params: machine.params(),
@@ -333,6 +333,6 @@ fn machine_board_config(
         autostart: true,
         notify_alarm_reset: machine.effective_notify_alarm_reset(),
         g05: machine.g05.as_ref().map(G05Config::format),
-        ..sim::fanuc_board::BoardConfig::default()
+        ..cellgate_core::sim::fanuc_board::BoardConfig::default()
     }
 }

@@ -16,7 +16,15 @@ pub use crate::bus::admin::{VERSION, admin_document};
 use crate::bus::keys::CellKeys;
 use crate::bus::{self, BusError};
 use crate::cell::Cell;
-use crate::config::CellConfig;
+use crate::history::{History, HistoryError};
+use cellgate_core::config::CellConfig;
+
+/// What a running gateway tells whoever started it, once it serves.
+#[derive(Debug, Clone, Default)]
+pub struct Ready {
+    /// The console's URL, when it serves one.
+    pub console: Option<String>,
+}
 
 /// Why the gateway stopped with an error.
 #[derive(Debug, thiserror::Error)]
@@ -27,6 +35,12 @@ pub enum GatewayError {
     /// A machine link could not be started.
     #[error(transparent)]
     Cell(#[from] crate::cell::CellError),
+    /// The history store could not be opened.
+    #[error(transparent)]
+    History(#[from] HistoryError),
+    /// The console (`[console]`) could not be served.
+    #[error(transparent)]
+    Console(#[from] crate::console::ConsoleError),
     /// The session did not close cleanly.
     #[error("closing the zenoh session: {0}")]
     Close(#[source] zenoh::Error),
@@ -39,6 +53,18 @@ pub async fn run(
     config: CellConfig,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), GatewayError> {
+    run_ready(config, shutdown, None).await
+}
+
+/// [`run`], sending on `ready` once the gateway serves its cell (its routes answer, it is
+/// announced): what `cellgate run` waits for before it prints what the cell offers.
+pub async fn run_ready(
+    config: CellConfig,
+    shutdown: impl Future<Output = ()>,
+    ready: Option<tokio::sync::oneshot::Sender<Ready>>,
+) -> Result<(), GatewayError> {
+    // The uptime `cellgate status` shows counts from here.
+    crate::bus::admin::started_unix_ms();
     let session = bus::open_cell(&config).await?;
     let security = &config.security;
     if security.enforces_roles() {
@@ -52,7 +78,7 @@ pub async fn run(
         tracing::info!("no [security]: any session that reaches the gateway may do anything");
     }
     // Whatever happens from here on, the session is closed before returning.
-    let served = serve(&config, &session, shutdown).await;
+    let served = serve(&config, &session, shutdown, ready).await;
     let closed = session.close().await.map_err(GatewayError::Close);
     tracing::info!(cell = %config.cell, "cellgate stopped");
     served.and(closed)
@@ -62,9 +88,37 @@ async fn serve(
     config: &CellConfig,
     session: &Session,
     shutdown: impl Future<Output = ()>,
+    serving: Option<tokio::sync::oneshot::Sender<Ready>>,
 ) -> Result<(), GatewayError> {
     let keys = CellKeys::new(&config.bus.prefix, &config.cell).map_err(BusError::from)?;
 
+    // The history first: its writer outlives the routes, so that what they record at the end
+    // (the last job events, the stop) is written.
+    let history_stop = CancellationToken::new();
+    let (history, history_writer) = if config.history.enabled {
+        let dir = config.history.dir_in(&config.programs.dir);
+        let (h, w) = History::open(&dir, &config.history, history_stop.clone()).await?;
+        tracing::info!(store = %dir.display(), "history on");
+        (h, Some(w))
+    } else {
+        (History::disabled(), None)
+    };
+    let served = serve_with(config, session, shutdown, &keys, history, serving).await;
+    history_stop.cancel();
+    if let Some(w) = history_writer {
+        let _ = w.await;
+    }
+    served
+}
+
+async fn serve_with(
+    config: &CellConfig,
+    session: &Session,
+    shutdown: impl Future<Output = ()>,
+    keys: &CellKeys,
+    history: History,
+    serving: Option<tokio::sync::oneshot::Sender<Ready>>,
+) -> Result<(), GatewayError> {
     // The links run until the routes have stopped, so that every job's end is reported.
     let links_stop = CancellationToken::new();
     let cell = Cell::start(config, &links_stop).await?;
@@ -72,27 +126,41 @@ async fn serve(
     let routes_stop = CancellationToken::new();
     let (ready_tx, ready) = tokio::sync::oneshot::channel();
     let plcs = cell.plc_links();
+    // Either half failing (a journal that cannot be opened, a route zenoh refuses) ends both:
+    // the gateway stops at once with the error rather than serving half a cell.
     let routes = async {
-        let (machines, plcs) = tokio::join!(
-            bus::serve_announced(
+        tokio::try_join!(
+            bus::serve_recorded(
                 session,
                 config,
                 machines,
                 routes_stop.clone(),
                 Some(ready_tx),
+                history.clone(),
             ),
-            bus::serve_plcs(session, config, plcs, routes_stop.clone()),
-        );
-        machines.and(plcs)
+            bus::serve_plcs_recorded(session, config, plcs, routes_stop.clone(), history.clone()),
+        )
+        .map(|_| ())
     };
     tokio::pin!(routes);
+    tokio::pin!(shutdown);
     let mut routes_result = None;
 
     // The cell is announced (admin key, liveliness token) once its routes answer: a client
     // that finds the gateway finds every route.
     let admin = tokio::select! {
-        Ok(()) = ready => AdminRoute::declare(session, &keys, config).await,
+        Ok(()) = ready => AdminRoute::declare(session, keys, config)
+            .await
+            .map(|a| a.with_history(history.clone())),
         result = &mut routes => {
+            links_stop.cancel();
+            cell.join().await;
+            return result.map_err(GatewayError::from);
+        }
+        () = &mut shutdown => {
+            tracing::info!(cell = %config.cell, "shutdown requested while starting");
+            routes_stop.cancel();
+            let result = routes.await;
             links_stop.cancel();
             cell.join().await;
             return result.map_err(GatewayError::from);
@@ -126,8 +194,42 @@ async fn serve(
         listening,
     );
 
+    // The console, a client of the routes just announced, on this session.
+    let console_stop = CancellationToken::new();
+    let console = match &config.console {
+        None => None,
+        Some(c) => {
+            let settings = crate::console::ConsoleSettings {
+                console: c.clone(),
+                prefix: config.bus.prefix.clone(),
+                cell: Some(config.cell.clone()),
+                security: config.security.clone(),
+            };
+            match crate::console::serve(session.clone(), settings, None, console_stop.clone()).await
+            {
+                Ok(served) => {
+                    tracing::info!(url = %served.url, "console at {}", served.url);
+                    Some(served)
+                }
+                Err(e) => {
+                    routes_stop.cancel();
+                    let _ = routes.await;
+                    links_stop.cancel();
+                    cell.join().await;
+                    admin.undeclare().await;
+                    return Err(e.into());
+                }
+            }
+        }
+    };
+
+    if let Some(serving) = serving {
+        let _ = serving.send(Ready {
+            console: console.as_ref().map(|c| c.url.clone()),
+        });
+    }
+
     let admin_stop = CancellationToken::new();
-    tokio::pin!(shutdown);
     tokio::select! {
         () = &mut shutdown => tracing::info!(cell = %config.cell, "shutdown requested"),
         () = admin.run(&admin_stop) => {}
@@ -140,6 +242,10 @@ async fn serve(
         }
     }
 
+    console_stop.cancel();
+    if let Some(c) = console {
+        c.join().await;
+    }
     routes_stop.cancel();
     let routes_result = match routes_result {
         Some(r) => r,

@@ -11,8 +11,8 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 
 use cellgate::bus::BusMode;
 use cellgate::client::cli as client;
-use cellgate::config::{CellConfig, ConfigErrors};
 use cellgate::telemetry::{self, LogFormat, TelemetryError};
+use cellgate_core::config::{CellConfig, ConfigErrors};
 
 const EXIT_RUNTIME: u8 = 1;
 const EXIT_CONFIG: u8 = 2;
@@ -58,11 +58,27 @@ enum Command {
     Do(client::DoArgs),
     /// Read the DI image of a machine now (RDI → SDI).
     Di(client::DiArgs),
-    /// The cell's program library: put, get, ls, rm.
+    /// The cell's program library: put, get, ls, rm, and revisions: history, diff, release,
+    /// lock, adopt.
     #[command(subcommand)]
     Program(client::ProgramCommand),
-    /// Cancel a job, waiting or running.
+    /// Cancel a job, waiting or running, by its id.
     Cancel(client::CancelArgs),
+    /// The cell's history: jobs (with the revision each sent), alarms, link and CNC states,
+    /// PLC stations, G05 streams, tag values.
+    History(cellgate::client::records::HistoryCommand),
+    /// The audit trail: every write the gateway took, who asked, and what came of it.
+    Audit(cellgate::client::records::AuditCommand),
+    /// Time shares per machine and hour or shift: reading, idle, alarm, link down; parts.
+    Utilisation(cellgate::client::records::UtilisationArgs),
+    /// Serve the web console for every cell behind an endpoint (a site view) until SIGINT or
+    /// SIGTERM; a gateway serves its own cell's with `[console]` in its cell file.
+    Console(cellgate::console::SiteArgs),
+    /// The jobs of the cell's machines: the one being sent and the ones waiting (with --all,
+    /// the ones that ended too).
+    Jobs(client::JobsArgs),
+    /// One job: its latest event, or with --follow its events until it ends.
+    Job(client::JobArgs),
     /// Stream G05 binary blocks from a CSV file (or standard input) to a machine (§9); exit 0
     /// only if the stream ended cleanly.
     G05(client::G05Args),
@@ -72,7 +88,8 @@ enum Command {
     /// The cell PLC's named tags: get, set.
     #[command(subcommand)]
     Tag(cellgate::client::plc::TagCommand),
-    /// Run a simulated device on its own, for testing any host against it.
+    /// Simulated machines: drive those of a running cell (state, di, alarm, reset, read,
+    /// hold, auto, punch), or run a simulated device on its own (fanuc, fuji).
     #[command(subcommand)]
     Sim(SimCommand),
     /// Exit 0 if the gateway at the endpoint answers and every link is up; 1 otherwise,
@@ -118,6 +135,8 @@ enum SimCommand {
     /// A Fuji FFU120B general interface module with a MICREX-F behind it, served as a TCP
     /// serial device server; prints one JSON object per line for each event.
     Fuji(cellgate::sim::fuji_server::SimFujiArgs),
+    #[command(flatten)]
+    Control(cellgate::client::sim::SimControl),
 }
 
 #[derive(Debug, Args)]
@@ -142,6 +161,10 @@ struct RunArgs {
     /// Key prefix of every key the gateway serves (overrides bus.prefix).
     #[arg(long)]
     prefix: Option<String>,
+    /// Where the web console listens, ADDRESS:PORT (overrides console.listen; port 0 takes
+    /// a free one), or `off` for no console.
+    #[arg(long, value_name = "ADDR|off")]
+    console: Option<String>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -166,8 +189,65 @@ enum ModeArg {
     Router,
 }
 
+/// Words people try for a subcommand, and the subcommand they mean where it exists.
+const SYNONYMS: &[(&str, &str)] = &[
+    ("list", "ls"),
+    ("delete", "rm"),
+    ("del", "rm"),
+    ("remove", "rm"),
+    ("queue", "jobs"),
+    ("show", "get"),
+];
+
+/// The subcommand a word of `args` that is none means, if [`SYNONYMS`] knows it and it exists
+/// where the word stands (`program delete` → `rm`).
+fn synonym_of(args: &[String]) -> Option<&'static str> {
+    use clap::CommandFactory;
+    let mut cmd = Cli::command();
+    for arg in args.iter().skip(1) {
+        if arg.starts_with('-') {
+            continue;
+        }
+        // A command without subcommands takes no more of them.
+        cmd.get_subcommands().next()?;
+        let next = cmd.find_subcommand(arg).cloned();
+        match next {
+            Some(sub) => cmd = sub,
+            None => {
+                let (_, meant) = SYNONYMS.iter().find(|(word, _)| word == arg)?;
+                return cmd.find_subcommand(meant).map(|_| *meant);
+            }
+        }
+    }
+    None
+}
+
+/// The command line, parsed; on an unknown subcommand that is a usual synonym (`list` →
+/// `ls`, `delete` → `rm`), the one it means, before any near miss clap finds by spelling
+/// (`delete` is nearer `release` than `rm`).
+fn parse_cli() -> Cli {
+    use clap::error::{ContextKind, ContextValue, ErrorKind};
+    match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(mut e) => {
+            if e.kind() == ErrorKind::InvalidSubcommand {
+                let args: Vec<String> = std::env::args_os()
+                    .map(|a| a.to_string_lossy().into_owned())
+                    .collect();
+                if let Some(meant) = synonym_of(&args) {
+                    e.insert(
+                        ContextKind::SuggestedSubcommand,
+                        ContextValue::String(meant.to_string()),
+                    );
+                }
+            }
+            e.exit()
+        }
+    }
+}
+
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = parse_cli();
     match cli.command {
         Command::CheckConfig { ref file } => check_config(file),
         Command::Acl(ref args) => acl(args),
@@ -179,11 +259,18 @@ fn main() -> ExitCode {
         Command::Di(ref args) => client_command(&cli, args),
         Command::Program(ref args) => client_command(&cli, args),
         Command::Cancel(ref args) => client_command(&cli, args),
+        Command::History(ref args) => client_command(&cli, args),
+        Command::Audit(ref args) => client_command(&cli, args),
+        Command::Utilisation(ref args) => client_command(&cli, args),
+        Command::Console(ref args) => site_console(args),
+        Command::Jobs(ref args) => client_command(&cli, args),
+        Command::Job(ref args) => client_command(&cli, args),
         Command::G05(ref args) => client_command(&cli, args),
         Command::Plc(ref args) => client_command(&cli, args),
         Command::Tag(ref args) => client_command(&cli, args),
         Command::Sim(SimCommand::Fanuc(ref args)) => sim_fanuc(&cli, args.clone()),
         Command::Sim(SimCommand::Fuji(ref args)) => sim_fuji(&cli, args.clone()),
+        Command::Sim(SimCommand::Control(ref args)) => client_command(&cli, args),
         Command::Health(ref args) => client_command(&cli, args),
         Command::Router(ref args) => router(&cli, args),
     }
@@ -337,6 +424,9 @@ fn check_config(file: &Path) -> ExitCode {
                 eprintln!("{}: {e}", file.display());
                 return ExitCode::from(EXIT_CONFIG);
             }
+            for w in config.warnings() {
+                eprintln!("{}: warning: {w}", file.display());
+            }
             // A closed pipe (`| head`) is no error worth a panic.
             use std::io::Write as _;
             let _ = writeln!(std::io::stdout().lock(), "{}", config.summary());
@@ -351,7 +441,18 @@ fn check_config(file: &Path) -> ExitCode {
 
 /// `cellgate acl FILE [--router --gateway-cn NAME]`.
 fn acl(args: &AclArgs) -> ExitCode {
-    let config = match load(&args.file) {
+    // The rules need the roles, not the certificates: they may not exist yet.
+    let loaded = std::fs::read_to_string(&args.file)
+        .map_err(|e| {
+            ConfigErrors(vec![cellgate_core::config::ConfigError::Read {
+                origin: args.file.display().to_string(),
+                reason: e.to_string(),
+            }])
+        })
+        .and_then(|text| {
+            CellConfig::from_toml_str_without_files(&text, &args.file.display().to_string())
+        });
+    let config = match loaded {
         Ok(config) => config,
         Err(errors) => {
             print_errors(&args.file.display().to_string(), &errors);
@@ -494,6 +595,14 @@ fn apply_overrides(config: &mut CellConfig, cli: &Cli, args: &RunArgs) -> bool {
         config.bus.prefix = prefix.clone();
         any = true;
     }
+    match args.console.as_deref() {
+        None => {}
+        Some("off") => config.console = None,
+        Some(addr) => {
+            config.console.get_or_insert_with(Default::default).listen = addr.to_string();
+            any = true;
+        }
+    }
     if let Some(format) = cli.log_format {
         config.telemetry.log_format = format.into();
     }
@@ -547,6 +656,9 @@ async fn run_async(config: CellConfig, origin: String, open_files: Option<u64>) 
         }
     };
     tracing::info!(version = cellgate::gateway::VERSION, config = %origin, "starting cellgate");
+    for w in config.warnings() {
+        tracing::warn!("{w}");
+    }
     // Two descriptors a link leaves room for reconnections; the rest is the bus's and the
     // library's.
     let wanted = 2 * (config.machines.len() + config.plcs.len()) as u64 + 256;
@@ -558,8 +670,23 @@ async fn run_async(config: CellConfig, origin: String, open_files: Option<u64>) 
         );
     }
 
+    // Once it serves, what the cell offers and where, for whoever started it by hand.
+    let (serving, served) = tokio::sync::oneshot::channel();
+    let overview = serving_text(&config);
+    let announce = tokio::spawn(async move {
+        if let Ok(ready) = served.await {
+            use std::io::Write as _;
+            let ready: cellgate::gateway::Ready = ready;
+            let console = ready
+                .console
+                .map(|url| format!("console: {url}\n"))
+                .unwrap_or_default();
+            // A closed stdout (a service manager's) is no reason to stop.
+            let _ = write!(std::io::stdout().lock(), "{overview}{console}");
+        }
+    });
     let code = match shutdown_signal() {
-        Ok(shutdown) => match cellgate::gateway::run(config, shutdown).await {
+        Ok(shutdown) => match cellgate::gateway::run_ready(config, shutdown, Some(serving)).await {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => {
                 tracing::error!("cellgate failed: {e}");
@@ -571,9 +698,82 @@ async fn run_async(config: CellConfig, origin: String, open_files: Option<u64>) 
             ExitCode::from(EXIT_RUNTIME)
         }
     };
+    announce.abort();
     if let Err(e) = guard.shutdown() {
         eprintln!("cellgate: {e}");
     }
+    code
+}
+
+/// Machines and PLCs listed when `cellgate run` serves; a larger cell gets a count.
+const OVERVIEW_LINES: usize = 32;
+
+/// What `cellgate run` prints once it serves: where clients reach it, what each machine and
+/// PLC takes, and the first command to try.
+fn serving_text(config: &CellConfig) -> String {
+    let listen = config.bus.listen.first().cloned();
+    let mut t = format!(
+        "cellgate {} serves cell {} on {} (Ctrl-C stops it)\n",
+        cellgate::gateway::VERSION,
+        config.cell,
+        if config.bus.listen.is_empty() {
+            "no endpoint of its own".to_string()
+        } else {
+            config.bus.listen.join(", ")
+        }
+    );
+    t.push_str(&config.overview(OVERVIEW_LINES));
+    let connect = match listen.as_deref() {
+        Some(ep) if ep == cellgate::client::DEFAULT_ENDPOINT => String::new(),
+        Some(ep) => format!(" -e {ep}"),
+        None => " -e ENDPOINT".to_string(),
+    };
+    t.push_str(&format!(
+        "try: cellgate status{connect}   (every command: cellgate --help)\n"
+    ));
+    t
+}
+
+/// `cellgate console`: the site view until SIGINT or SIGTERM.
+fn site_console(args: &cellgate::console::SiteArgs) -> ExitCode {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
+            return ExitCode::from(EXIT_RUNTIME);
+        }
+    };
+    let code = runtime.block_on(async {
+        let shutdown = match shutdown_signal() {
+            Ok(s) => s,
+            Err(e) => {
+                eprintln!("cellgate: cannot watch for signals: {e}");
+                return ExitCode::from(EXIT_RUNTIME);
+            }
+        };
+        match cellgate::console::site(args, shutdown).await {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(cellgate::console::SiteError::Config(e)) => {
+                eprintln!("cellgate: {e}");
+                ExitCode::from(EXIT_CONFIG)
+            }
+            Err(e) => {
+                eprintln!("cellgate: {e}");
+                ExitCode::from(EXIT_RUNTIME)
+            }
+        }
+    });
+    runtime.shutdown_timeout(Duration::from_secs(2));
     code
 }
 
@@ -601,5 +801,75 @@ mod tests {
         // group of options meeting a command's own).
         use clap::CommandFactory;
         Cli::command().debug_assert();
+    }
+
+    /// Every command below the root, with its path (`program get`).
+    fn commands() -> Vec<(String, clap::Command)> {
+        use clap::CommandFactory;
+        let mut out = Vec::new();
+        let mut stack = vec![(String::new(), Cli::command())];
+        while let Some((path, c)) = stack.pop() {
+            for sub in c.get_subcommands() {
+                let p = format!("{path} {}", sub.get_name()).trim().to_string();
+                stack.push((p, sub.clone()));
+            }
+            out.push((path, c));
+        }
+        out
+    }
+
+    #[test]
+    fn usual_synonyms_point_to_the_subcommand() {
+        let args = |line: &str| -> Vec<String> { line.split(' ').map(String::from).collect() };
+        assert_eq!(synonym_of(&args("cellgate program delete x")), Some("rm"));
+        assert_eq!(synonym_of(&args("cellgate program remove x")), Some("rm"));
+        assert_eq!(synonym_of(&args("cellgate program list")), Some("ls"));
+        assert_eq!(synonym_of(&args("cellgate -v program list")), Some("ls"));
+        // Only where the subcommand exists.
+        assert_eq!(synonym_of(&args("cellgate tag delete x")), None);
+        assert_eq!(synonym_of(&args("cellgate program frobnicate")), None);
+    }
+
+    #[test]
+    fn every_argument_has_help() {
+        let mut missing = Vec::new();
+        for (path, c) in commands() {
+            for a in c.get_arguments() {
+                let id = a.get_id().as_str();
+                if id == "help" || id == "version" {
+                    continue;
+                }
+                if a.get_help().is_none() && a.get_long_help().is_none() {
+                    missing.push(format!("{path}: {id}"));
+                }
+            }
+            // An empty default says nothing: say what happens without the option instead.
+            let help = c.clone().render_long_help().to_string();
+            assert!(!help.contains("[default: ]"), "{path}:\n{help}");
+            assert!(!help.contains("[default: \"\"]"), "{path}:\n{help}");
+        }
+        assert!(missing.is_empty(), "arguments without help: {missing:#?}");
+    }
+
+    /// One convention for output: every client command (one that connects to a gateway)
+    /// prints JSON with --json.
+    #[test]
+    fn every_client_command_has_json() {
+        let mut missing = Vec::new();
+        for (path, c) in commands() {
+            let client = c.get_arguments().any(|a| a.get_id() == "connect")
+                && c.get_subcommands().next().is_none()
+                && path != "router"
+                && path != "run"
+                // A server: it prints its URL, and serves JSON over HTTP.
+                && path != "console";
+            if client && !c.get_arguments().any(|a| a.get_id() == "json") {
+                missing.push(path);
+            }
+        }
+        assert!(
+            missing.is_empty(),
+            "client commands without --json: {missing:?}"
+        );
     }
 }

@@ -10,14 +10,14 @@ use std::time::Duration;
 
 use cellgate::bus::keys::{CellKeys, MachineLeaf};
 use cellgate::bus::{self, MachineLink};
-use cellgate::config::CellConfig;
-use cellgate::fanuc::error::{LinkAlarm, ProtocolError};
-use cellgate::fanuc::host::LinkState;
-use cellgate::fanuc::message::{Command, FrameError};
-use cellgate::fanuc::sat::{BufferStatus, Params, StatusData};
 use cellgate::link::driver::{LinkCommand, LinkEvent, LinkHandle, ProgramJob};
-use cellgate::pb;
-use cellgate::pb::job_event::Kind;
+use cellgate_core::config::CellConfig;
+use cellgate_core::fanuc::error::{LinkAlarm, ProtocolError};
+use cellgate_core::fanuc::host::LinkState;
+use cellgate_core::fanuc::message::{Command, FrameError};
+use cellgate_core::fanuc::sat::{BufferStatus, Params, StatusData};
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
 use prost::Message;
 use tokio::io::AsyncReadExt;
 use tokio::sync::{Semaphore, broadcast, mpsc};
@@ -204,7 +204,7 @@ impl FakeLink {
         self.emit(LinkEvent::JobDone {
             job: job.id,
             bytes,
-            confirmation: cellgate::fanuc::host::Confirmation::Acknowledged,
+            confirmation: cellgate_core::fanuc::host::Confirmation::Acknowledged,
         });
         self.emit(LinkEvent::State {
             state: LinkState::Ready,
@@ -240,6 +240,7 @@ async fn start_cell(pace: Duration) -> Cell {
     config.bus.connect = Vec::new();
     config.programs.dir = dir.path().join("programs");
     config.programs.max_size = MAX_SIZE;
+    config.programs.fetch_prefixes = vec!["elsewhere/programs".to_string()];
     let mill_cfg = config.machine(MILL).unwrap().clone();
     let lathe_cfg = config.machine(LATHE).unwrap().clone();
     let (mill_link, mill) = fake_link(MILL, 256, pace);
@@ -255,10 +256,12 @@ async fn start_cell(pace: Duration) -> Cell {
             MachineLink {
                 config: mill_cfg,
                 link: mill_link,
+                sim: None,
             },
             MachineLink {
                 config: lathe_cfg,
                 link: lathe_link,
+                sim: None,
             },
         ];
         tokio::spawn(async move {
@@ -411,7 +414,7 @@ async fn a_job_is_accepted_and_its_events_arrive_in_order() {
     cell.mill.release.add_permits(10);
 
     let program = program_of(40_000);
-    let job_key = cell.keys.leaf(MILL, MachineLeaf::Job);
+    let job_key = cell.keys.leaf(MILL, MachineLeaf::Submit);
     let replies = get(
         &cell.client,
         &job_key,
@@ -482,7 +485,7 @@ async fn library_and_key_sources_are_streamed() {
 
     // A program in the library, put on the bus.
     let stored = program_of(5_000);
-    let lib_key = cell.keys.program("O4711.nc");
+    let lib_key = cell.keys.program_write("O4711.nc");
     cell.client
         .put(lib_key.clone(), stored.clone())
         .await
@@ -504,7 +507,7 @@ async fn library_and_key_sources_are_streamed() {
         }
     });
 
-    let job_key = cell.keys.leaf(MILL, MachineLeaf::Job);
+    let job_key = cell.keys.leaf(MILL, MachineLeaf::Submit);
     let mut from_library = request(pb::job_request::Program::Library("O4711.nc".into()));
     from_library.name = "from library".to_string();
     let a: pb::JobAccepted =
@@ -530,10 +533,10 @@ async fn every_kind_of_bad_request_gets_an_error_reply_and_nothing_is_queued() {
     use pb::ErrorCode as C;
     use pb::job_request::Program as P;
     let cell = start_cell(Duration::from_millis(1)).await;
-    let mill = cell.keys.leaf(MILL, MachineLeaf::Job);
-    let lathe = cell.keys.leaf(LATHE, MachineLeaf::Job);
-    let nosuch = cell.keys.leaf("nosuch", MachineLeaf::Job);
-    let wild = cell.keys.any_leaf(MachineLeaf::Job);
+    let mill = cell.keys.leaf(MILL, MachineLeaf::Submit);
+    let lathe = cell.keys.leaf(LATHE, MachineLeaf::Submit);
+    let nosuch = cell.keys.leaf("nosuch", MachineLeaf::Submit);
+    let wild = cell.keys.any_leaf(MachineLeaf::Submit);
     let mut no_eor = inline(b"%\nO1\nG00X0\n");
     let too_big = inline(&program_of(MAX_SIZE as usize + 100));
     let ok = inline(b"%\nO1\n%").encode_to_vec();
@@ -632,9 +635,30 @@ async fn every_kind_of_bad_request_gets_an_error_reply_and_nothing_is_queued() {
         (
             "key nobody serves",
             &mill,
-            request(P::Key("nobody/home".into())).encode_to_vec(),
+            request(P::Key("elsewhere/programs/nobody".into())).encode_to_vec(),
             C::FetchFailed,
-            "nobody/home",
+            "elsewhere/programs/nobody",
+        ),
+        (
+            "key outside programs.fetch_prefixes",
+            &mill,
+            request(P::Key("nobody/home".into())).encode_to_vec(),
+            C::NotPermitted,
+            "programs.fetch_prefixes",
+        ),
+        (
+            "the gateway's own admin key",
+            &mill,
+            request(P::Key("cellgate/test/@admin".into())).encode_to_vec(),
+            C::NotPermitted,
+            "own authority",
+        ),
+        (
+            "a wildcard key under an allowed prefix",
+            &mill,
+            request(P::Key("elsewhere/programs/*".into())).encode_to_vec(),
+            C::NotPermitted,
+            "without wildcards",
         ),
     ];
     for (what, key, payload, code, words) in cases {
@@ -659,7 +683,8 @@ async fn every_kind_of_bad_request_gets_an_error_reply_and_nothing_is_queued() {
     // Nothing but the good job ever reached a link.
     assert_eq!(cell.mill.log(), ["queue O1", "done O1"]);
     assert!(cell.lathe.log().is_empty(), "{:?}", cell.lathe.log());
-    let queue: pb::JobQueue = get_one(&cell.client, &lathe, None).await;
+    let queue: pb::JobQueue =
+        get_one(&cell.client, &cell.keys.leaf(LATHE, MachineLeaf::Job), None).await;
     assert_eq!(queue.machine, LATHE);
     assert!(queue.active.is_none() && queue.waiting.is_empty());
     cell.stop().await;
@@ -675,7 +700,7 @@ async fn a_delete_on_the_job_key_cancels_it() {
         .unwrap();
     cell.wait_subscribed(&cell.keys.job_events(MILL, "probe"))
         .await;
-    let job_key = cell.keys.leaf(MILL, MachineLeaf::Job);
+    let job_key = cell.keys.leaf(MILL, MachineLeaf::Submit);
     let program = program_of(20_000);
     let a: pb::JobAccepted = get_one(
         &cell.client,
@@ -690,7 +715,8 @@ async fn a_delete_on_the_job_key_cancels_it() {
     )
     .await;
     assert_eq!(b.queue_position, 0);
-    let queue: pb::JobQueue = get_one(&cell.client, &job_key, None).await;
+    let queue: pb::JobQueue =
+        get_one(&cell.client, &cell.keys.leaf(MILL, MachineLeaf::Job), None).await;
     assert_eq!(queue.active.unwrap().job_id, a.job_id);
     assert_eq!(queue.waiting.len(), 1);
 
@@ -863,7 +889,7 @@ async fn a_request_that_waits_holds_up_no_other_route() {
     assert_eq!(status.machine, MILL);
     let accepted: pb::JobAccepted = get_one(
         &cell.client,
-        &cell.keys.leaf(LATHE, MachineLeaf::Job),
+        &cell.keys.leaf(LATHE, MachineLeaf::Submit),
         Some(inline(b"%\nO1\nG01X1\n%").encode_to_vec()),
     )
     .await;
@@ -1033,16 +1059,19 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
     let o100 = cell.keys.program("O100");
     let o200 = cell.keys.program("O200.nc");
     cell.client
-        .put(o100.clone(), b"%\nO100\n%".to_vec())
+        .put(cell.keys.program_write("O100"), b"%\nO100\n%".to_vec())
         .await
         .unwrap();
     cell.client
-        .put(o200.clone(), b"%\nO200\nM30\n%".to_vec())
+        .put(
+            cell.keys.program_write("O200.nc"),
+            b"%\nO200\nM30\n%".to_vec(),
+        )
         .await
         .unwrap();
     // Not a library name: refused, nothing stored.
     cell.client
-        .put(cell.keys.program("-x"), b"x".to_vec())
+        .put(cell.keys.program_write("-x"), b"x".to_vec())
         .await
         .unwrap();
     let mut got = Vec::new();
@@ -1079,7 +1108,10 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
         ]
     );
 
-    cell.client.delete(o100.clone()).await.unwrap();
+    cell.client
+        .delete(cell.keys.program_write("O100"))
+        .await
+        .unwrap();
     for _ in 0..100 {
         if get(&cell.client, &o100, None)
             .await
@@ -1097,7 +1129,7 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
     let names: Vec<_> = std::fs::read_dir(cell.dir.path().join("programs"))
         .unwrap()
         .map(|e| e.unwrap().file_name().into_string().unwrap())
-        .filter(|n| n != ".journal")
+        .filter(|n| n != ".journal" && n != ".revisions")
         .collect();
     assert_eq!(names, ["O200.nc"]);
     cell.stop().await;
@@ -1106,15 +1138,17 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_get_with_a_program_write_stores_and_removes_with_a_reply() {
     let cell = start_cell(Duration::from_millis(1)).await;
-    let key = cell.keys.program("O300");
+    let key = cell.keys.program_write("O300");
     let store = |bytes: &[u8]| {
         pb::ProgramWrite {
             op: Some(pb::program_write::Op::Store(bytes.to_vec())),
+            comment: String::new(),
         }
         .encode_to_vec()
     };
     let remove = pb::ProgramWrite {
         op: Some(pb::program_write::Op::Remove(pb::program_write::Remove {})),
+        comment: String::new(),
     }
     .encode_to_vec();
     let path = cell.dir.path().join("programs").join("O300");
@@ -1142,7 +1176,7 @@ async fn a_get_with_a_program_write_stores_and_removes_with_a_reply() {
     assert!(e.message.contains("names no operation"), "{}", e.message);
     let e = get_err(
         &cell.client,
-        &cell.keys.program("-bad"),
+        &cell.keys.program_write("-bad"),
         Some(store(b"%\n%")),
     )
     .await;

@@ -8,11 +8,11 @@ mod common;
 use std::time::Duration;
 
 use cellgate::bus::keys::MachineLeaf;
-use cellgate::config::CellConfig;
-use cellgate::fanuc::message::Command;
-use cellgate::pb;
-use cellgate::pb::job_event::Kind;
-use cellgate::sim::fanuc_board::BoardEvent;
+use cellgate_core::config::CellConfig;
+use cellgate_core::fanuc::message::Command;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
+use cellgate_core::sim::fanuc_board::BoardEvent;
 use common::bus::{RunningCell, eventually, follow, get, get_err, get_one};
 use prost::Message;
 use sha2::{Digest, Sha256};
@@ -213,7 +213,7 @@ async fn do_di_alarm_and_status_through_the_bus() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_requests_get_an_error_reply_and_nothing_is_queued() {
     let cell = start().await;
-    let job_key = cell.keys.leaf("m2", MachineLeaf::Job);
+    let job_key = cell.keys.leaf("m2", MachineLeaf::Submit);
     let bad = |bytes: &[u8]| {
         pb::JobRequest {
             program: Some(pb::job_request::Program::Inline(bytes.to_vec())),
@@ -236,13 +236,13 @@ async fn bad_requests_get_an_error_reply_and_nothing_is_queued() {
     }
     let unknown = get_err(
         &cell.client,
-        &cell.keys.leaf("no-such-machine", MachineLeaf::Job),
+        &cell.keys.leaf("no-such-machine", MachineLeaf::Submit),
         Some(bad(b"%\nO1\n%")),
     )
     .await;
     assert!(unknown.message.contains("no-such-machine"), "{unknown:?}");
     // Nothing was queued: the queue is empty and the CNC received nothing.
-    let replies = get(&cell.client, &job_key, None).await;
+    let replies = get(&cell.client, &cell.keys.leaf("m2", MachineLeaf::Job), None).await;
     let queue = match replies.as_slice() {
         [Ok((_, bytes, _))] => pb::JobQueue::decode(bytes.as_slice()).unwrap(),
         other => panic!("queue get: {other:?}"),

@@ -4,38 +4,16 @@ mod common;
 
 use common::bus::free_port;
 
-use std::io::Read;
 use std::net::{TcpListener, TcpStream};
-use std::process::{Child, Command, ExitStatus, Stdio};
-use std::thread::{self, JoinHandle};
+use std::process::{Command, Stdio};
+use std::thread::{self};
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
-
-/// Collects a child's stderr on a thread so the pipe never fills up.
-fn collect_stderr(child: &mut Child) -> JoinHandle<String> {
-    let mut stderr = child.stderr.take().unwrap();
-    thread::spawn(move || {
-        let mut text = String::new();
-        let _ = stderr.read_to_string(&mut text);
-        text
-    })
-}
-
-fn wait_with_deadline(child: &mut Child, limit: Duration) -> Option<ExitStatus> {
-    let deadline = Instant::now() + limit;
-    while Instant::now() < deadline {
-        if let Some(status) = child.try_wait().unwrap() {
-            return Some(status);
-        }
-        thread::sleep(Duration::from_millis(20));
-    }
-    None
-}
+use common::cli::{collect_stderr, wait_with_deadline};
 
 #[test]
 fn version_prints_the_crate_version() {
-    let out = Command::new(BIN).arg("--version").output().unwrap();
+    let out = common::cli::bin().arg("--version").output().unwrap();
     assert!(out.status.success());
     let stdout = String::from_utf8(out.stdout).unwrap();
     assert_eq!(
@@ -44,16 +22,23 @@ fn version_prints_the_crate_version() {
     );
 }
 
-/// Starts `cellgate run` on a free loopback port, waits until the port accepts, sends
+/// Starts `cellgate run` on a free loopback port, waits until it runs, sends
 /// `signal`, and expects a clean exit 0 within a few seconds.
 fn run_then_signal(signal: &str) {
     let port = free_port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
     // The embedded cell keeps its programs and journal under the working directory.
     let dir = tempfile::tempdir().unwrap();
-    let mut child = Command::new(BIN)
+    let mut child = common::cli::bin()
         .current_dir(dir.path())
-        .args(["run", "--listen", &endpoint, "--no-multicast-scouting"])
+        .args([
+            "run",
+            "--listen",
+            &endpoint,
+            "--no-multicast-scouting",
+            "--console",
+            "127.0.0.1:0",
+        ])
         .env("RUST_LOG", "info")
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
         .env_remove("CELLGATE_CONFIG")
@@ -85,6 +70,13 @@ fn run_then_signal(signal: &str) {
             "cellgate never listened on {endpoint}:\n{}",
             stderr.join().unwrap()
         );
+    }
+
+    // The port accepts before the cell is served; the signal goes once the gateway says it
+    // runs (a signal while it starts is tests/hostile.rs's).
+    if !stderr.wait_for("running, listening on", Duration::from_secs(30)) {
+        let _ = child.kill();
+        panic!("cellgate never said it runs:\n{}", stderr.join().unwrap());
     }
 
     let killed = Command::new("kill")
@@ -121,7 +113,7 @@ fn check_config_rejects_a_bad_file_with_exit_code_2() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("bad-cell.toml");
     std::fs::write(&path, "cell = \n[bus\nlisten = 7\n").unwrap();
-    let out = Command::new(BIN)
+    let out = common::cli::bin()
         .args(["check-config", path.to_str().unwrap()])
         .output()
         .unwrap();
@@ -140,7 +132,7 @@ fn check_config_rejects_a_bad_file_with_exit_code_2() {
 
 #[test]
 fn check_config_on_a_missing_file_exits_2() {
-    let out = Command::new(BIN)
+    let out = common::cli::bin()
         .args(["check-config", "/nonexistent/cell.toml"])
         .output()
         .unwrap();
@@ -152,7 +144,7 @@ fn run_with_a_bad_file_exits_2_without_starting() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("cell.toml");
     std::fs::write(&path, "this is not a cell file").unwrap();
-    let out = Command::new(BIN)
+    let out = common::cli::bin()
         .args(["run", "--config", path.to_str().unwrap()])
         .output()
         .unwrap();
@@ -161,9 +153,9 @@ fn run_with_a_bad_file_exits_2_without_starting() {
 
 #[test]
 fn a_usage_error_exits_2() {
-    let out = Command::new(BIN).arg("no-such-command").output().unwrap();
+    let out = common::cli::bin().arg("no-such-command").output().unwrap();
     assert_eq!(out.status.code(), Some(2));
-    let out = Command::new(BIN)
+    let out = common::cli::bin()
         .args(["run", "--mode", "satellite"])
         .output()
         .unwrap();
@@ -176,9 +168,15 @@ fn run_on_an_endpoint_in_use_exits_1() {
     let port = taken.local_addr().unwrap().port();
     // Its programs directory and journal go in a directory of its own.
     let dir = tempfile::tempdir().unwrap();
-    let mut child = Command::new(BIN)
+    let mut child = common::cli::bin()
         .current_dir(dir.path())
-        .args(["run", "--listen", &format!("tcp/127.0.0.1:{port}")])
+        .args([
+            "run",
+            "--listen",
+            &format!("tcp/127.0.0.1:{port}"),
+            "--console",
+            "off",
+        ])
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
         .env_remove("CELLGATE_CONFIG")
         .stdin(Stdio::null())

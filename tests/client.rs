@@ -20,9 +20,9 @@ use cellgate::client::cli::{
     SubmitArgs, WatchArgs,
 };
 use cellgate::client::{Client, ClientError, ConnectOptions, WatchEvent};
-use cellgate::config::CellConfig;
 use cellgate::gateway;
-use cellgate::pb;
+use cellgate_core::config::CellConfig;
+use cellgate_core::pb;
 use sha2::{Digest, Sha256};
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
@@ -30,7 +30,7 @@ use zenoh::Session;
 const CELL: &str = "line-7";
 const MILL_A: &str = "mill-1";
 const MILL_X: &str = "mill-2";
-const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
+use common::cli::{BIN, cellgate};
 
 /// A plain NC program of about `size` bytes: `%`, an O number, G01 blocks, M30, EOR `%`.
 fn nc_program(size: usize, number: u32) -> Vec<u8> {
@@ -61,6 +61,11 @@ struct Gateway {
 }
 
 async fn start_gateway() -> Gateway {
+    start_gateway_with(|_| {}).await
+}
+
+/// [`start_gateway`], with the machine links changed by `links` before they are served.
+async fn start_gateway_with(links: impl FnOnce(&mut Vec<bus::MachineLink>)) -> Gateway {
     let port = free_port();
     let dir = tempfile::tempdir().unwrap();
     let mut config = CellConfig::embedded_default();
@@ -74,7 +79,8 @@ async fn start_gateway() -> Gateway {
 
     let links_stop = CancellationToken::new();
     let cell = Cell::start(&config, &links_stop).await.unwrap();
-    let machines = cell.machine_links();
+    let mut machines = cell.machine_links();
+    links(&mut machines);
     let stop = CancellationToken::new();
     let (ready_tx, ready) = tokio::sync::oneshot::channel();
     let served = {
@@ -148,6 +154,7 @@ impl Gateway {
             tls_key: None,
             user: None,
             password_file: None,
+            as_user: Some("tester".to_string()),
         }
     }
 
@@ -201,6 +208,7 @@ fn submit_args(gw: &Gateway, machine: &str) -> SubmitArgs {
         machine: machine.to_string(),
         file: None,
         library: None,
+        revision: None,
         key: None,
         priority: 0,
         name: None,
@@ -212,6 +220,7 @@ fn submit_args(gw: &Gateway, machine: &str) -> SubmitArgs {
         resume_after_restart: false,
         deadline: 0,
         request_id: None,
+        json: false,
     }
 }
 
@@ -222,7 +231,7 @@ fn write_file(dir: &Path, name: &str, data: &[u8]) -> std::path::PathBuf {
 }
 
 /// Waits until the board's CNC has received `n` programs; returns the last.
-async fn received(gw: &Gateway, machine: &str, n: usize) -> cellgate::sim::ReceivedProgram {
+async fn received(gw: &Gateway, machine: &str, n: usize) -> cellgate_core::sim::ReceivedProgram {
     let board = gw.board(machine);
     let snap = tokio::time::timeout(
         Duration::from_secs(30),
@@ -398,6 +407,7 @@ async fn do_and_di_round_trip_through_the_board() {
         value: 0xA5,
         mask: None,
         no_wait: false,
+        json: false,
     };
     let (code, out, err) = run(&args).await;
     assert_eq!(code, 0, "{err}");
@@ -456,10 +466,14 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
         connect: gw.connect(),
         name: "O0815.nc".to_string(),
         file: file.clone(),
+        comment: None,
+        json: true,
     };
-    let (code, _, err) = run(&put).await;
+    let (code, out, err) = run(&put).await;
     assert_eq!(code, 0, "{err}");
     assert!(err.contains("O0815.nc: stored"), "{err}");
+    let stored: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(stored["size"], program.len(), "{out}");
 
     let ls = ProgramCommand::Ls {
         connect: gw.connect(),
@@ -476,6 +490,7 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
         connect: gw.connect(),
         name: "O0815.nc".to_string(),
         output: Some(copy.clone()),
+        json: false,
     };
     let (code, _, err) = run(&get).await;
     assert_eq!(code, 0, "{err}");
@@ -492,6 +507,7 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
     let rm = ProgramCommand::Rm {
         connect: gw.connect(),
         name: "O0815.nc".to_string(),
+        json: false,
     };
     let (code, _, err) = run(&rm).await;
     assert_eq!(code, 0, "{err}");
@@ -508,6 +524,8 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
         connect: gw.connect(),
         name: "../etc".to_string(),
         file,
+        comment: None,
+        json: false,
     };
     let (code, _, err) = run(&bad).await;
     assert_eq!(code, 2, "{err}");
@@ -535,10 +553,12 @@ async fn a_running_job_is_cancelled_and_watch_sees_it() {
             break;
         }
     }
+    // The job id names the machine.
     let args = CancelArgs {
         connect: gw.connect(),
-        machine: MILL_A.to_string(),
         job_id: job.clone(),
+        legacy_job_id: None,
+        json: false,
     };
     let (code, _, err) = run(&args).await;
     assert_eq!(code, 0, "{err}");
@@ -601,6 +621,7 @@ async fn watch_prints_lines_and_json() {
     let args = WatchArgs {
         connect: gw.connect(),
         machine: Some(MILL_X.to_string()),
+        tags: None,
         json: true,
         count: Some(2),
     };
@@ -713,24 +734,6 @@ async fn connecting_tells_what_is_wrong() {
 // The binary
 // ---------------------------------------------------------------------------------------------
 
-async fn cellgate(args: &[&str]) -> (i32, String, String) {
-    let out = tokio::process::Command::new(BIN)
-        .args(args)
-        .env_remove("RUST_LOG")
-        .env_remove("CELLGATE_CONNECT")
-        .env_remove("CELLGATE_CELL")
-        .env_remove("CELLGATE_PREFIX")
-        .stdin(std::process::Stdio::null())
-        .output()
-        .await
-        .unwrap();
-    (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_binary_submits_and_shows_status() {
     let gw = start_gateway().await;
@@ -740,7 +743,7 @@ async fn the_binary_submits_and_shows_status() {
     let file = file.to_str().unwrap();
     let ep = gw.endpoint.as_str();
 
-    let (code, out, err) = cellgate(&["submit", "-e", ep, "--machine", MILL_X, file]).await;
+    let (code, out, err) = cellgate(&["submit", "-e", ep, MILL_X, file]).await;
     assert_eq!(code, 0, "stdout {out:?}\nstderr {err}");
     assert!(out.trim().starts_with("mill-2-"), "{out:?}");
     assert!(err.contains("completed"), "{err}");
@@ -778,8 +781,7 @@ async fn the_binary_submits_and_shows_status() {
     // Refused (no EOR): exit 2 with the gateway's message; a DO value out of range never
     // leaves the command line.
     let bad = write_file(files.path(), "bad.nc", b"%\nO1\n");
-    let (code, out, err) =
-        cellgate(&["submit", "-e", ep, "-m", MILL_A, bad.to_str().unwrap()]).await;
+    let (code, out, err) = cellgate(&["submit", "-e", ep, MILL_A, bad.to_str().unwrap()]).await;
     assert_eq!(code, 2, "{out}{err}");
     assert!(err.contains("no EOR"), "{err}");
     let (code, _, err) = cellgate(&["do", "-e", ep, MILL_A, "0x100"]).await;
@@ -818,8 +820,8 @@ impl RunProcess {
         let port = free_port();
         let endpoint = format!("tcp/127.0.0.1:{port}");
         let dir = tempfile::tempdir().unwrap();
-        let child = std::process::Command::new(BIN)
-            .args(["run", "-l", &endpoint])
+        let child = common::cli::bin()
+            .args(["run", "-l", &endpoint, "--console", "off"])
             .current_dir(dir.path())
             .env(
                 "RUST_LOG",
@@ -903,7 +905,7 @@ async fn the_binary_against_cellgate_run() {
 
     for machine in [MILL_A, MILL_X] {
         let (code, out, err) =
-            cellgate(&["submit", "-e", ep, "-m", machine, file.to_str().unwrap()]).await;
+            cellgate(&["submit", "-e", ep, machine, file.to_str().unwrap()]).await;
         assert_eq!(code, 0, "{machine}: stdout {out:?}\nstderr {err}");
         let job = out.trim();
         assert!(job.starts_with(&format!("{machine}-")), "{out:?}");
@@ -926,8 +928,7 @@ async fn the_binary_against_cellgate_run() {
     }
 
     // A refused submit: exit 2 with the gateway's message.
-    let (code, _, err) =
-        cellgate(&["submit", "-e", ep, "-m", "nosuch", file.to_str().unwrap()]).await;
+    let (code, _, err) = cellgate(&["submit", "-e", ep, "nosuch", file.to_str().unwrap()]).await;
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("no machine \"nosuch\""), "{err}");
     drop(run);
@@ -967,7 +968,8 @@ async fn the_g05_command_streams_a_csv_against_cellgate_run() {
     let files = tempfile::tempdir().unwrap();
     let (csv, _) = circle_csv(1500, 3000.0);
     let file = write_file(files.path(), "circle.csv", csv.as_bytes());
-    let (code, out, err) = cellgate(&["g05", "-e", ep, "-m", MILL_X, file.to_str().unwrap()]).await;
+    let (code, out, err) =
+        cellgate(&["g05", "-e", ep, MILL_X, file.to_str().unwrap(), "--json"]).await;
     assert_eq!(code, 0, "stdout {out:?}\nstderr {err}");
     let last: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
     assert_eq!(last["state"], "completed", "{out}");
@@ -977,7 +979,7 @@ async fn the_g05_command_streams_a_csv_against_cellgate_run() {
 
     // Piped in on standard input.
     let mut child = tokio::process::Command::new(BIN)
-        .args(["g05", "-e", ep, "-m", MILL_X, "-"])
+        .args(["g05", "-e", ep, MILL_X, "-"])
         .stdin(std::process::Stdio::piped())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
@@ -989,6 +991,12 @@ async fn the_g05_command_streams_a_csv_against_cellgate_run() {
         stdin.write_all(csv.as_bytes()).await.unwrap();
     }
     let piped = child.wait_with_output().await.unwrap();
+    // Without --json the last status is a line of text.
+    let summary = String::from_utf8_lossy(&piped.stdout);
+    assert!(
+        summary.starts_with("G05 stream ") && summary.contains("completed: 1500 blocks"),
+        "{summary}"
+    );
     assert_eq!(
         piped.status.code(),
         Some(0),
@@ -997,11 +1005,11 @@ async fn the_g05_command_streams_a_csv_against_cellgate_run() {
     );
 
     let bad = write_file(files.path(), "bad.csv", b"1,2,3\n4,x,6\n");
-    let (code, _, err) = cellgate(&["g05", "-e", ep, "-m", MILL_X, bad.to_str().unwrap()]).await;
+    let (code, _, err) = cellgate(&["g05", "-e", ep, MILL_X, bad.to_str().unwrap()]).await;
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("bad.csv:2") && err.contains("\"x\""), "{err}");
 
-    let (code, _, err) = cellgate(&["g05", "-e", ep, "-m", MILL_A, file.to_str().unwrap()]).await;
+    let (code, _, err) = cellgate(&["g05", "-e", ep, MILL_A, file.to_str().unwrap()]).await;
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("[machines.g05]"), "{err}");
 }
@@ -1049,7 +1057,7 @@ async fn a_flood_of_requests_leaves_the_gateway_bounded_and_serving() {
             ..Default::default()
         };
         let replies = client
-            .get(keys.leaf(machine, MachineLeaf::Job))
+            .get(keys.leaf(machine, MachineLeaf::Submit))
             .payload(request.encode_to_vec())
             .timeout(Duration::from_secs(60))
             .await
@@ -1191,7 +1199,7 @@ poll_ms = 200
     .unwrap();
     let port = free_port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let mut child = std::process::Command::new(BIN)
+    let mut child = common::cli::bin()
         .args(["run", "--config", cell.to_str().unwrap(), "-l", &endpoint])
         .env("RUST_LOG", "error")
         .stdin(std::process::Stdio::null())
@@ -1233,7 +1241,7 @@ struct Spawned(std::process::Child);
 impl Spawned {
     fn new(args: &[&str], dir: &std::path::Path) -> Spawned {
         Spawned(
-            std::process::Command::new(BIN)
+            common::cli::bin()
                 .args(args)
                 .current_dir(dir)
                 .env("RUST_LOG", "error")
@@ -1293,7 +1301,17 @@ async fn a_gateway_serves_again_after_its_router_restarts() {
     tokio::time::sleep(Duration::from_millis(500)).await;
     // A peer connected to the router: it keeps retrying the router when it goes away.
     let _gateway = Spawned::new(
-        &["run", "--mode", "peer", "-l", &gateway_ep, "-e", &router_ep],
+        &[
+            "run",
+            "--mode",
+            "peer",
+            "-l",
+            &gateway_ep,
+            "-e",
+            &router_ep,
+            "--console",
+            "off",
+        ],
         dir.path(),
     );
     healthy_within(&router_ep, 60).await.unwrap();
@@ -1309,14 +1327,314 @@ async fn a_gateway_serves_again_after_its_router_restarts() {
     // A job goes through the new router end to end.
     let program = nc_program(1500, 42);
     let file = write_file(dir.path(), "O0042.nc", &program);
-    let (code, out, err) = cellgate(&[
-        "submit",
-        "-e",
-        &router_ep,
-        "-m",
-        "mill-1",
-        file.to_str().unwrap(),
-    ])
-    .await;
+    let (code, out, err) =
+        cellgate(&["submit", "-e", &router_ep, "mill-1", file.to_str().unwrap()]).await;
     assert_eq!(code, 0, "{out}{err}");
+}
+
+/// What status and a job's end say is what happened: the bytes after a program's EOR are
+/// named as not sent, the line counters are there, a job the CNC never asks for shows as
+/// waiting for the CNC (not an idle link), and cancelled it says it never started.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn status_and_job_ends_say_what_happened() {
+    let gw = start_gateway().await;
+    let files = tempfile::tempdir().unwrap();
+    // A program file as editors write it: a line end after the EOR.
+    let program = b"%\nO0042\nN10 G00 X0 Y0\nN20 M30\n%\n";
+    let file = write_file(files.path(), "O0042.nc", program);
+    let mut args = submit_args(&gw, MILL_A);
+    args.file = Some(file);
+    let (code, _, err) = run(&args).await;
+    assert_eq!(code, 0, "{err}");
+    let sent = cellgate::client::render::bytes(program.len() as u64 - 1);
+    assert!(
+        err.contains(&format!("completed: {sent} sent"))
+            && err.contains("the 1 B after the EOR % not sent"),
+        "{err}"
+    );
+
+    let client = gw.client().await;
+    let s = &client.status(Some(MILL_A)).await.unwrap()[0];
+    let c = s.counters.unwrap();
+    assert!(
+        c.bytes_sent.is_some_and(|b| b > program.len() as u64),
+        "{c:?}"
+    );
+    assert!(c.bytes_received.is_some_and(|b| b > 0), "{c:?}");
+    assert!(c.frames.is_some_and(|f| f > 0), "{c:?}");
+
+    // The operator stops starting reads: the next job waits for the CNC.
+    let board = gw.board(MILL_A);
+    board.command(cellgate_core::sim::BoardCommand::SetAutostart(false));
+    board.command(cellgate_core::sim::BoardCommand::StopReading);
+    tokio::time::timeout(Duration::from_secs(10), board.wait_for(|s| !s.reading))
+        .await
+        .unwrap();
+    let request = pb::JobRequest {
+        program: Some(pb::job_request::Program::Inline(program.to_vec())),
+        ..pb::JobRequest::default()
+    };
+    let (accepted, follower) = client.submit(MILL_A, &request).await.unwrap();
+    let job = accepted.job_id.clone();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    loop {
+        let s = client.status(Some(MILL_A)).await.unwrap().remove(0);
+        if s.current_job_id == job && !s.waiting_for.is_empty() {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the job never showed as waiting: {s:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let status = StatusArgs {
+        connect: gw.connect(),
+        machine: Some(MILL_A.to_string()),
+        json: false,
+    };
+    let (code, out, err) = run(&status).await;
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("waiting for CNC"), "{out}");
+    assert!(
+        out.contains(&format!("job {job} waits")) && out.contains("for the CNC to read it"),
+        "{out}"
+    );
+
+    // The older form, machine first, still works.
+    let cancel = CancelArgs {
+        connect: gw.connect(),
+        job_id: MILL_A.to_string(),
+        legacy_job_id: Some(job.clone()),
+        json: false,
+    };
+    let (code, _, err) = run(&cancel).await;
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        err.contains("cancelled by request before the CNC read any of it: nothing was sent"),
+        "{err}"
+    );
+    assert!(!err.contains("resumes"), "{err}");
+    follower.close().await;
+    // Nothing to resume: it says why.
+    let mut resume = submit_args(&gw, MILL_A);
+    resume.resume = Some(job);
+    let (code, _, err) = run(&resume).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("nothing of it went to the board"), "{err}");
+    client.close().await;
+    gw.stop().await;
+}
+
+/// One convention for the command line on `cellgate run`: an unknown machine fails at once
+/// naming the cell's, a bad endpoint says what one looks like, `watch` is not drowned by a
+/// counter tag unless asked, and the usual synonyms point to the subcommand.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_command_line_follows_one_convention() {
+    let run = RunProcess::start().await;
+    let ep = run.endpoint.as_str();
+
+    let started = std::time::Instant::now();
+    let (code, _, err) = cellgate(&["watch", "-e", ep, "mill-9"]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(started.elapsed() < Duration::from_secs(15), "watch waited");
+    assert!(
+        err.contains("no machine or PLC \"mill-9\"")
+            && err.contains("lathe-1, mill-1, mill-2")
+            && err.contains("plc-1"),
+        "{err}"
+    );
+
+    // Without --tags, the part counter (a change a second) stays out of the watch.
+    let child = tokio::process::Command::new(BIN)
+        .args(["watch", "-e", ep])
+        .env_remove("CELLGATE_CONNECT")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .unwrap();
+    let pid = child.id().unwrap() as libc::pid_t;
+    let killer = tokio::spawn(async move {
+        tokio::time::sleep(Duration::from_secs(4)).await;
+        // SAFETY: kill(2) on the pid of a child this test spawned and has not reaped.
+        unsafe {
+            libc::kill(pid, libc::SIGINT);
+        }
+    });
+    let out = child.wait_with_output().await.unwrap();
+    killer.await.unwrap();
+    let lines = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(lines.contains("mill-1 link up"), "{lines}");
+    assert!(!lines.contains("plc-1/parts"), "{lines}");
+    // Asked for, it is there; and watching the PLC shows its tags.
+    let (code, out, err) = cellgate(&["watch", "-e", ep, "--tags=parts", "--count", "7"]).await;
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("plc-1/parts = "), "{out}");
+    assert!(!out.contains("plc-1/door-open"), "{out}");
+    let (code, out, err) = cellgate(&["watch", "-e", ep, "plc-1", "--count", "2"]).await;
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("plc-1 station 0 up"), "{out}");
+    assert!(!out.contains("mill-1"), "{out}");
+
+    let (code, _, err) = cellgate(&["status", "-e", "127.0.0.1:7447"]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("endpoints look like tcp/127.0.0.1:7447"),
+        "{err}"
+    );
+    assert!(!err.contains("Json5") && !err.contains(".cargo"), "{err}");
+
+    for (line, meant) in [
+        ("program delete O1", "'rm'"),
+        ("program remove O1", "'rm'"),
+        ("program list", "'ls'"),
+    ] {
+        let args: Vec<&str> = line.split(' ').collect();
+        let (code, _, err) = cellgate(&args).await;
+        assert_eq!(code, 2, "{err}");
+        assert!(err.contains(meant), "{line}: {err}");
+    }
+    let (code, _, err) = cellgate(&["cancel", "-e", ep, "mill-1"]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("not a job id"), "{err}");
+    drop(run);
+}
+
+/// `jobs` shows a machine's queue in run order (and with --all the jobs that ended), `job`
+/// a job's latest event or, following it, its events to its end; `status` names the
+/// gateway's version and uptime.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn jobs_and_job_show_the_queue_and_a_jobs_events() {
+    let gw = start_gateway().await;
+    let ep = gw.endpoint.clone();
+    let files = tempfile::tempdir().unwrap();
+    // About 20 s at 19200 baud: the second job waits behind it.
+    let long = write_file(files.path(), "long.nc", &nc_program(40_000, 7));
+    let short = write_file(files.path(), "short.nc", &nc_program(600, 8));
+    let submit = |file: &Path| {
+        let ep = ep.clone();
+        let file = file.to_str().unwrap().to_string();
+        async move {
+            let (code, out, err) =
+                cellgate(&["submit", "-e", &ep, MILL_A, &file, "--detach"]).await;
+            assert_eq!(code, 0, "{err}");
+            out.trim().to_string()
+        }
+    };
+    let first = submit(&long).await;
+    let second = submit(&short).await;
+
+    let (code, out, err) = cellgate(&["jobs", "-e", &ep, MILL_A]).await;
+    assert_eq!(code, 0, "{err}");
+    let rows: Vec<&str> = out.lines().skip(1).collect();
+    assert!(
+        rows[0].contains(&first) && rows[0].contains("active"),
+        "{out}"
+    );
+    assert!(
+        rows[1].contains(&second) && rows[1].contains("waiting, 0 ahead"),
+        "{out}"
+    );
+    let (code, out, err) = cellgate(&["job", "-e", &ep, &second]).await;
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        out.contains(&format!("{second} on {MILL_A}: queued")),
+        "{out}"
+    );
+    let (code, _, err) = cellgate(&["jobs", "-e", &ep, "mill-9"]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("mill-1, mill-2"), "{err}");
+
+    // The first is cancelled; following the second shows it run to its end, exit 0.
+    let (code, _, err) = cellgate(&["cancel", "-e", &ep, &first]).await;
+    assert_eq!(code, 0, "{err}");
+    let (code, out, err) = cellgate(&["job", "-e", &ep, &second, "--follow"]).await;
+    assert_eq!(code, 0, "{err}");
+    let steps: Vec<&str> = out.lines().collect();
+    assert!(steps.last().unwrap().contains(": completed: "), "{out}");
+    assert!(
+        !out.contains(" sent 0 B"),
+        "no progress lines as text: {out}"
+    );
+
+    let (code, out, err) = cellgate(&["jobs", "-e", &ep, MILL_A, "--all", "--json"]).await;
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(v[0]["active"], serde_json::Value::Null, "{v}");
+    let ended: Vec<&str> = v[0]["ended"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["job_id"].as_str().unwrap())
+        .collect();
+    assert_eq!(ended, [first.as_str(), second.as_str()], "{v}");
+
+    let (code, out, err) = cellgate(&["status", "-e", &ep]).await;
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        out.contains(&format!(
+            "gateway: cellgate {}, cell {CELL}, up ",
+            env!("CARGO_PKG_VERSION")
+        )),
+        "{out}"
+    );
+    gw.stop().await;
+}
+
+/// The simulation controls drive simulated machines only, and each what it can: a machine
+/// without a simulated board, a punch on Protocol A and a cycle start in alarm are refused,
+/// saying why.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn simulation_controls_refuse_what_the_machine_cannot_take() {
+    // mill-2 as if it were a real machine: no simulated board to drive.
+    let gw = start_gateway_with(|links| {
+        for l in links.iter_mut().filter(|l| l.config.name == MILL_X) {
+            l.sim = None;
+        }
+    })
+    .await;
+    let ep = gw.endpoint.clone();
+    let (code, _, err) = cellgate(&["sim", "alarm", "-e", &ep, MILL_X]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("ERROR_CODE_NOT_SUPPORTED") && err.contains("not simulated"),
+        "{err}"
+    );
+    let (code, _, err) = cellgate(&["sim", "reset", "-e", &ep, "mill-9"]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("ERROR_CODE_UNKNOWN_MACHINE"), "{err}");
+    let (code, out, err) = cellgate(&["sim", "state", "-e", &ep, "--json"]).await;
+    assert_eq!(code, 0, "{err}");
+    let all: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let names: Vec<&str> = all
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["machine"].as_str().unwrap())
+        .collect();
+    assert!(names.contains(&MILL_A) && !names.contains(&MILL_X), "{out}");
+
+    let files = tempfile::tempdir().unwrap();
+    let program = write_file(files.path(), "p.nc", b"%\nO0001\nM30\n%\n");
+    let (code, _, err) =
+        cellgate(&["sim", "punch", "-e", &ep, MILL_A, program.to_str().unwrap()]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("Protocol B function"), "{err}");
+
+    let (code, _, err) = cellgate(&["sim", "auto", "-e", &ep, MILL_A, "off"]).await;
+    assert_eq!(code, 0, "{err}");
+    let (code, out, err) = cellgate(&["sim", "alarm", "-e", &ep, MILL_A, "--json"]).await;
+    assert_eq!(code, 0, "{err}");
+    let state: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(state["alarm"], true, "{out}");
+    assert_eq!(state["autostart"], false, "{out}");
+    let (code, _, err) = cellgate(&["sim", "read", "-e", &ep, MILL_A]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("reset it first"), "{err}");
+    let (code, out, err) = cellgate(&["sim", "reset", "-e", &ep, MILL_A]).await;
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("no alarm"), "{out}");
+    assert!(!gw.board(MILL_A).snapshot().alarm);
+    gw.stop().await;
 }

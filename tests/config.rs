@@ -4,13 +4,11 @@
 
 use std::path::Path;
 
-use cellgate::config::{
-    BccCalc, BccCode, BccKind, BccRange, CellConfig, ConfigError, ConfigErrors, Interface,
-    PlcEndCode, PlcStartCode, TransportConfig,
-};
-use cellgate::fanuc::sat::Params;
-use cellgate::fanuc::{CodeSystem, EndCode, Protocol};
 use cellgate::transport::{Parity, StopBits};
+use cellgate_core::config::{CellConfig, ConfigError, ConfigErrors, Interface, TransportConfig};
+use cellgate_core::fanuc::sat::Params;
+use cellgate_core::fanuc::{CodeSystem, EndCode, Protocol};
+use cellgate_core::fuji::frame::{self, BccCalc, BccCode, BccKind, BccRange};
 
 fn example_path() -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/cell.toml")
@@ -75,10 +73,15 @@ fn example_file_loads_with_every_key() {
 
     let plc = cfg.plc("plc-1").unwrap();
     assert_eq!((plc.mode, plc.stations.as_slice()), (2, &[1u8, 2][..]));
-    assert_eq!(plc.start_code, PlcStartCode::Colon);
-    assert_eq!(plc.end_code, PlcEndCode::Cr);
+    assert_eq!(plc.frame.start_code, frame::StartCode::Colon);
+    assert_eq!(plc.frame.end_code, frame::EndCode::Cr);
     assert_eq!(
-        (plc.bcc, plc.bcc_range, plc.bcc_calc, plc.bcc_code),
+        (
+            plc.frame.bcc,
+            plc.frame.bcc_range,
+            plc.frame.bcc_calc,
+            plc.frame.bcc_code
+        ),
         (
             BccKind::Set1,
             BccRange::StartTextEnd,
@@ -160,11 +163,11 @@ fn unknown_key_is_named_with_its_line() {
     assert_eq!(e.len(), 1);
     let text = e.to_string();
     assert!(
-        text.starts_with("cell.toml: TOML parse error at line 6"),
+        text.starts_with("cell.toml:6: unknown key `polling`"),
         "{text}"
     );
-    assert!(text.contains("unknown field `polling`"), "{text}");
-    assert!(matches!(e.0[0], ConfigError::Parse { .. }));
+    assert!(text.contains("`tp`"), "the keys the table takes: {text}");
+    assert!(matches!(e.0[0], ConfigError::Unknown { line: 6, .. }));
 
     // Inside the transport table too, at the key's own line.
     let text = errors(
@@ -172,8 +175,7 @@ fn unknown_key_is_named_with_its_line() {
          kind = \"serial\"\npath = \"/dev/ttyS0\"\nbaud = 9600\n",
     )
     .to_string();
-    assert!(text.contains("line 8"), "{text}");
-    assert!(text.contains("unknown field `baud`"), "{text}");
+    assert!(text.contains("cell.toml:8: unknown key `baud`"), "{text}");
 }
 
 #[test]
@@ -294,10 +296,11 @@ transport = { kind = "serial", path = "/dev/ttyS1", line = { baud = 57600 } }
          9600, 19200 (FFU120B §3-2, §4-3 item 4)",
         "plcs.plc-1.stations = [3]: mode 1 is a 1:1 link and addresses station 00 only: use \
          stations = [0] (FFU120B §5-3 RSNO)",
-        "plcs.plc-1.bcc_range = \"text\": a CRC-16 BCC (initial error F2) must follow the end \
-         code: use \"text+end\" or \"start+text+end\" (FFU120B §4-3 item 23, §4-7)",
-        "plcs.plc-1.bcc_code = \"transmission-code\": a CRC-16 BCC travels in binary: set \
-         bcc_code = \"binary\" (initial error F3) (FFU120B §4-3 item 23, §4-7)",
+        "plcs.plc-1.bcc_range = \"text\": a CRC-16 BCC (item 22; initial error F2) must follow \
+         the end code: use \"text+end\" or \"start+text+end\" (item 21) (FFU120B §4-3 items \
+         21, 22, §4-7)",
+        "plcs.plc-1.bcc_code = \"transmission-code\": a CRC-16 BCC (item 22) travels in binary: \
+         set bcc_code = \"binary\" (item 23; initial error F3) (FFU120B §4-3 items 22, 23, §4-7)",
     ];
     for (i, (g, x)) in got.iter().zip(expected.iter()).enumerate() {
         assert_eq!(g, x, "error {i}");
@@ -342,8 +345,13 @@ fn load_names_the_file() {
     let bad = dir.path().join("bad.toml");
     std::fs::write(&bad, "cell = \"c\"\n[bus]\nmulticast = true\n").unwrap();
     let text = CellConfig::load(&bad).unwrap_err().to_string();
-    assert!(text.starts_with(&format!("{}: TOML parse error at line 3", bad.display())));
-    assert!(text.contains("unknown field `multicast`"), "{text}");
+    assert!(
+        text.starts_with(&format!(
+            "{}:3: unknown key `multicast` (did you mean `multicast_scouting`?)",
+            bad.display()
+        )),
+        "{text}"
+    );
 }
 
 #[test]

@@ -12,8 +12,8 @@ use cellgate::jobs::journal::Journal;
 use cellgate::jobs::library::ProgramLibrary;
 use cellgate::jobs::source::ProgramInput;
 use cellgate::jobs::{self, JobSubmission, JobsSettings};
-use cellgate::pb;
-use cellgate::pb::job_event::Kind;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
 use common::{nc_program, sim_cell, start};
 use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
@@ -57,6 +57,7 @@ async fn resume_after_an_alarm(protocol: &str, packet_n: Option<u8>, baud: u32, 
         journal,
         restored: Vec::new(),
         keep: jobs::KEEP_ENDED,
+        accept: Default::default(),
     };
     let (jobs, _task, mut events) =
         jobs::spawn("m1", settings, m.link.clone(), token.child_token());

@@ -5,10 +5,10 @@ mod common;
 
 use std::time::Duration;
 
-use cellgate::fanuc::alarm::CncAlarm;
-use cellgate::fanuc::sat::AlarmCause;
 use cellgate::link::driver::{LinkCommand, LinkEvent};
 use cellgate::transport::sim::Dir;
+use cellgate_core::fanuc::alarm::CncAlarm;
+use cellgate_core::fanuc::sat::AlarmCause;
 use common::*;
 use sha2::{Digest, Sha256};
 
@@ -66,7 +66,7 @@ async fn wait_ready(events: &mut tokio::sync::broadcast::Receiver<LinkEvent>) {
         matches!(
             ev,
             LinkEvent::State {
-                state: cellgate::fanuc::host::LinkState::Ready
+                state: cellgate_core::fanuc::host::LinkState::Ready
             }
         )
         .then_some(())
@@ -209,8 +209,8 @@ async fn retry_over_raises_alarm_cause_1_and_sr0945() {
     // up: Ne = 10 retries (§4.5), then a reception error with alarm cause 1 (§4.4.2, §4.6 2 (1)).
     // One character is armed each time the board sends SAT or RTY, so the host's answer to it
     // is what gets corrupted.
-    use cellgate::fanuc::message::Command;
-    use cellgate::sim::fanuc_board::BoardEvent;
+    use cellgate_core::fanuc::message::Command;
+    use cellgate_core::sim::fanuc_board::BoardEvent;
     let mut board_events = board.subscribe();
     let watch = async {
         loop {

@@ -7,19 +7,20 @@ mod common;
 
 use std::time::Duration;
 
-use cellgate::engine::Engine;
-use cellgate::fanuc::alarm::CncAlarm;
-use cellgate::fanuc::host::{Confirmation, EngineEvent};
-use cellgate::fanuc::message::Framing;
-use cellgate::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
-use cellgate::fanuc::{CodeSystem, EndCode, Protocol};
 use cellgate::link::driver::{self, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use cellgate::link::pump::{Pump, PumpError, now};
-use cellgate::sim::fanuc_board::protocol_b::overrun_allowance;
-use cellgate::sim::{BoardConfig, BoardEvent, BoardHandle, BoardSnapshot, ControlCode};
+use cellgate::sim::{BoardHandle, BoardSnapshot};
 use cellgate::transport::sim::{self, SimPort};
 use cellgate::transport::tcp::{TcpOptions, TcpTransport};
 use cellgate::transport::{LineSettings, Transport};
+use cellgate_core::engine::Engine;
+use cellgate_core::fanuc::alarm::CncAlarm;
+use cellgate_core::fanuc::host::{Confirmation, EngineEvent};
+use cellgate_core::fanuc::message::Framing;
+use cellgate_core::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
+use cellgate_core::fanuc::{CodeSystem, EndCode, Protocol};
+use cellgate_core::sim::fanuc_board::protocol_b::overrun_allowance;
+use cellgate_core::sim::{BoardConfig, BoardEvent, ControlCode};
 use common::{nc_program, next_event};
 use sha2::{Digest, Sha256};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

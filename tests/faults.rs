@@ -7,14 +7,15 @@ mod common;
 
 use std::time::Duration;
 
-use cellgate::config::CellConfig;
-use cellgate::fanuc::error::LinkAlarm;
-use cellgate::fanuc::host::LinkState;
-use cellgate::fanuc::message::Framing;
 use cellgate::link::driver::LinkEvent;
-use cellgate::sim::{BoardHandle, fanuc_board::BoardConfig};
+use cellgate::sim::BoardHandle;
 use cellgate::transport::LineSettings;
 use cellgate::transport::sim;
+use cellgate_core::config::CellConfig;
+use cellgate_core::fanuc::error::LinkAlarm;
+use cellgate_core::fanuc::host::LinkState;
+use cellgate_core::fanuc::message::Framing;
+use cellgate_core::sim::fanuc_board::BoardConfig;
 use common::device_server::DeviceServer;
 use common::{nc_program, next_event, queue, start};
 
@@ -31,7 +32,7 @@ fn ready(ev: &LinkEvent) -> Option<()> {
 }
 
 /// The board's CNC read `program` whole (compared by digest: no dump of a program on failure).
-fn assert_whole(got: &cellgate::sim::ReceivedProgram, program: &[u8]) {
+fn assert_whole(got: &cellgate_core::sim::ReceivedProgram, program: &[u8]) {
     use sha2::{Digest, Sha256};
     assert_eq!(
         got.len,
@@ -501,7 +502,7 @@ async fn a_stuck_job_fails_at_its_deadline_saying_what_the_link_waited_for() {
     use cellgate::jobs::library::ProgramLibrary;
     use cellgate::jobs::source::ProgramInput;
     use cellgate::jobs::{self, JobSubmission, JobsSettings};
-    use cellgate::pb;
+    use cellgate_core::pb;
 
     let config = common::sim_cell("b", None, 19_200, 2_000);
     let (cell, token) = start(&config).await;
@@ -517,6 +518,7 @@ async fn a_stuck_job_fails_at_its_deadline_saying_what_the_link_waited_for() {
         journal: Journal::open(&dir.path().join(".journal")).unwrap(),
         restored: Vec::new(),
         keep: jobs::KEEP_ENDED,
+        accept: Default::default(),
     };
     let (jobs, _task, mut events) =
         jobs::spawn("m1", settings, m.link.clone(), token.child_token());

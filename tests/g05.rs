@@ -5,13 +5,15 @@ mod common;
 
 use std::time::Duration;
 
-use cellgate::config::CellConfig;
-use cellgate::fanuc::g05::AuxWord;
-use cellgate::fanuc::host::LinkState;
-use cellgate::g05::stream::{Batch, BatchError, BlockIn, EndReason, Offered, StreamState};
-use cellgate::g05::{G05Desk, StreamHandle};
 use cellgate::link::driver::LinkEvent;
-use cellgate::sim::cnc::G05End;
+use cellgate::link::g05::{G05Desk, StreamHandle};
+use cellgate_core::config::CellConfig;
+use cellgate_core::fanuc::g05::AuxWord;
+use cellgate_core::fanuc::g05::stream::{
+    Batch, BatchError, BlockIn, EndReason, Offered, StreamState,
+};
+use cellgate_core::fanuc::host::LinkState;
+use cellgate_core::sim::cnc::G05End;
 use common::{next_event, start};
 
 const HOUR: Duration = Duration::from_secs(3600);
@@ -77,8 +79,8 @@ enum Producer {
 }
 
 struct Outcome {
-    stats: cellgate::sim::cnc::G05Stats,
-    figures: cellgate::g05::stream::StreamFigures,
+    stats: cellgate_core::sim::cnc::G05Stats,
+    figures: cellgate_core::fanuc::g05::stream::StreamFigures,
     sums: Vec<i64>,
 }
 
@@ -111,8 +113,8 @@ async fn stream(config: &CellConfig, blocks: u64, producer: Producer) -> Outcome
     assert_eq!(opened.window, g.window_blocks());
     let axes = usize::from(g.axes);
     let range = match g.data_format {
-        cellgate::fanuc::g05::DataFormat::Special => 8191,
-        cellgate::fanuc::g05::DataFormat::General => 32767,
+        cellgate_core::fanuc::g05::DataFormat::Special => 8191,
+        cellgate_core::fanuc::g05::DataFormat::General => 32767,
     };
     let mut path = Path {
         x: 7,
@@ -185,7 +187,7 @@ async fn wait_credits(handle: &StreamHandle, at_least: u32) -> u32 {
     .expect("credits never came back")
 }
 
-async fn wait_over(handle: &StreamHandle) -> cellgate::g05::stream::StreamFigures {
+async fn wait_over(handle: &StreamHandle) -> cellgate_core::fanuc::g05::stream::StreamFigures {
     let mut status = handle.status();
     tokio::time::timeout(HOUR, async {
         loop {
@@ -317,7 +319,7 @@ fn simple(n: usize) -> Vec<BlockIn> {
         .collect()
 }
 
-async fn cnc_end(cell: &cellgate::cell::Cell) -> cellgate::sim::cnc::G05Stats {
+async fn cnc_end(cell: &cellgate::cell::Cell) -> cellgate_core::sim::cnc::G05Stats {
     let board = cell.machine("m1").unwrap().board.as_ref().unwrap();
     let snap = tokio::time::timeout(
         HOUR,

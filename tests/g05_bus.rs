@@ -6,9 +6,9 @@ mod common;
 use std::time::Duration;
 
 use cellgate::bus::keys::{G05Part, MachineLeaf};
-use cellgate::config::CellConfig;
-use cellgate::pb;
-use cellgate::sim::cnc::G05End;
+use cellgate_core::config::CellConfig;
+use cellgate_core::pb;
+use cellgate_core::sim::cnc::G05End;
 use common::bus::{RunningCell, get_err, get_one};
 use prost::Message;
 
@@ -203,5 +203,66 @@ async fn a_producer_that_goes_away_ends_the_stream_cleanly() {
         .g05
         .unwrap();
     assert_eq!((g.blocks, g.end), (750, Some(G05End::EndBlock)));
+    cell.stop().await;
+}
+
+/// A producer that sends one batch and falls silent: the CNC runs dry, which raises an
+/// `AlarmEvent` (kind G05) saying the stream starves it, and after `idle_ms` the stream ends
+/// with `PRODUCER_IDLE`, which raises another. Both are the machine's alarms, not only fields
+/// of the stream's status.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn starvation_and_an_idle_end_raise_alarm_events() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let alarms = cell
+        .subscribe(cell.keys.leaf("b1", MachineLeaf::Alarm))
+        .await;
+    open(&cell, "b1", "dry", false).await;
+    let sub = cell
+        .subscribe(cell.keys.g05("b1", "dry", G05Part::Status))
+        .await;
+    let blocks_key = cell.keys.g05("b1", "dry", G05Part::Blocks);
+    let b = pb::G05Batch {
+        seq: 0,
+        blocks: blocks(300),
+        end: false,
+    };
+    let st: pb::G05Status = get_one(&cell.client, &blocks_key, Some(b.encode_to_vec())).await;
+    assert_eq!(st.received, 300);
+    let last = last_status(&sub).await;
+    assert_eq!(
+        last.end_reason(),
+        pb::G05EndReason::ProducerIdle,
+        "{last:?}"
+    );
+    assert!(last.underruns > 0, "{last:?}");
+    let mut seen = Vec::new();
+    let got = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            let s = alarms.recv_async().await.unwrap();
+            let a = pb::AlarmEvent::decode(s.payload().to_bytes().as_ref()).unwrap();
+            if a.kind() == pb::AlarmKind::G05 {
+                seen.push(a.message.clone());
+            }
+            if seen.iter().any(|m| m.contains("starving"))
+                && seen.iter().any(|m| m.contains("ended"))
+            {
+                return;
+            }
+        }
+    })
+    .await;
+    assert!(got.is_ok(), "G05 alarms seen: {seen:?}");
+    assert!(
+        seen[0].contains("starving") && seen[0].contains("stream dry"),
+        "{seen:?}"
+    );
+    let ms: pb::MachineStatus = get_one(
+        &cell.client,
+        &cell.keys.leaf("b1", MachineLeaf::Status),
+        None,
+    )
+    .await;
+    let last_alarm = ms.last_alarm.expect("the machine's last alarm");
+    assert_eq!(last_alarm.kind(), pb::AlarmKind::G05);
     cell.stop().await;
 }

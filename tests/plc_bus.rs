@@ -8,13 +8,13 @@ mod common;
 use std::time::Duration;
 
 use cellgate::bus::{self, PlcLink};
-use cellgate::config::{CellConfig, TransportConfig};
-use cellgate::fuji::command::{FileType, Module};
-use cellgate::fuji::master::Master;
-use cellgate::pb;
 use cellgate::plc::TagTable;
-use cellgate::sim::micrex::{MicrexCommand, MicrexEvent};
 use cellgate::sim::micrex_handle::MicrexHandle;
+use cellgate_core::config::{CellConfig, TransportConfig};
+use cellgate_core::fuji::command::{FileType, Module};
+use cellgate_core::fuji::master::Master;
+use cellgate_core::pb;
+use cellgate_core::sim::micrex::{MicrexCommand, MicrexEvent};
 use common::bus::{client_config, free_port, get_err, get_one};
 use prost::Message;
 use tokio_util::sync::CancellationToken;
@@ -75,7 +75,7 @@ async fn start() -> Rig {
         panic!("a sim transport");
     };
     // The module of the entry, with files of every type: W30 DI, W31 SI, W32 BD.
-    let mut mc = cellgate::plc::micrex_config(&plc);
+    let mut mc = cellgate_core::sim::micrex::MicrexConfig::for_plc(&plc);
     mc.files = vec![
         (30, FileType::Di, 64),
         (31, FileType::Si, 64),
@@ -86,7 +86,7 @@ async fn start() -> Rig {
     let stop = CancellationToken::new();
     let (link, _task) = cellgate::plc::link::spawn(
         PLC,
-        Master::new(cellgate::plc::master_settings(&plc)).unwrap(),
+        Master::new(plc.master_settings()).unwrap(),
         TagTable::new(PLC, &plc.tags),
         host,
         stop.clone(),
@@ -130,6 +130,10 @@ impl Rig {
         self.keys.plc_mem(PLC, 0, module, address)
     }
 
+    fn mem_write(&self, module: &str, address: Option<u16>) -> String {
+        self.keys.plc_mem_write(PLC, 0, module, address)
+    }
+
     async fn read(&self, module: &str, address: u16, count: usize) -> pb::PlcWords {
         let key = format!("{}?count={count}", self.mem(module, Some(address)));
         get_one(&self.client, &key, None).await
@@ -142,7 +146,7 @@ impl Rig {
         };
         get_one(
             &self.client,
-            &self.mem(module, Some(address)),
+            &self.mem_write(module, Some(address)),
             Some(w.encode_to_vec()),
         )
         .await
@@ -187,7 +191,7 @@ async fn every_sta_code_is_typed_on_the_bus() {
     };
     let e = get_err(
         &rig.client,
-        &rig.mem("D", Some(41)),
+        &rig.mem_write("D", Some(41)),
         Some(w.encode_to_vec()),
     )
     .await;
@@ -253,7 +257,7 @@ async fn every_sta_code_is_typed_on_the_bus() {
     };
     let e = get_err(
         &rig.client,
-        &rig.keys.plc_transfer(PLC, 2),
+        &rig.keys.plc_transfer_send(PLC, 2),
         Some(t.encode_to_vec()),
     )
     .await;
@@ -301,7 +305,7 @@ async fn every_attribute_is_read_and_written_in_its_byte_order() {
     let rig = start().await;
     let mut events = rig.sim.subscribe();
     let cases: [Case; 5] = [
-        // 16-bit area: high byte first (protocol notes 4).
+        // 16-bit area: high byte first (FFU120B notes 4).
         (
             "D",
             Module::D,

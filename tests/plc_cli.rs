@@ -1,23 +1,18 @@
 //! `cellgate plc …` and `cellgate tag …` against `cellgate run` on the embedded default cell
 //! (its simulated PLC, plc-1).
 
-use std::net::{TcpListener, TcpStream};
-use std::process::{Command, Output, Stdio};
+use std::net::TcpStream;
+use std::process::{Output, Stdio};
 use std::thread;
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
+mod common;
 
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
+use common::bus::free_port;
+use common::cli::text;
 
 fn cli(endpoint: &str, args: &[&str]) -> Output {
-    Command::new(BIN)
+    common::cli::bin()
         .args(args)
         .args(["--connect", endpoint])
         .env_remove("CELLGATE_CONFIG")
@@ -25,22 +20,21 @@ fn cli(endpoint: &str, args: &[&str]) -> Output {
         .unwrap()
 }
 
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
-
 #[test]
 fn plc_and_tag_commands_work_against_the_default_cell() {
     let port = free_port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let dir = tempfile::tempdir().unwrap();
-    let mut child = Command::new(BIN)
+    let mut child = common::cli::bin()
         .current_dir(dir.path())
-        .args(["run", "--listen", &endpoint, "--no-multicast-scouting"])
+        .args([
+            "run",
+            "--listen",
+            &endpoint,
+            "--no-multicast-scouting",
+            "--console",
+            "127.0.0.1:0",
+        ])
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
         .env_remove("CELLGATE_CONFIG")
         .stdin(Stdio::null())
@@ -81,6 +75,23 @@ fn plc_and_tag_commands_work_against_the_default_cell() {
     let o = run(&["plc", "send", "plc-1", "2", "00"]);
     assert!(!o.status.success());
     assert!(text(&o).contains("ERROR_CODE_PLC_TRANSFER"), "{}", text(&o));
+    // The refusal is counted under its STA as the manual writes it, and its age is shown.
+    let o = run(&["plc", "status", "--json"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let station = &v[0]["stations"][0];
+    assert_eq!(station["error_replies"]["A7"], 1, "{station}");
+    let now = cellgate_core::pb::unix_ms(std::time::SystemTime::now());
+    let at = station["last_error_unix_ms"].as_u64().unwrap();
+    assert!(at <= now && now - at < 60_000, "{station}");
+    let o = run(&["plc", "status"]);
+    assert!(text(&o).contains(" s ago: "), "{}", text(&o));
+
+    // A tag reads what was written as soon as the write is confirmed.
+    let o = run(&["tag", "set", "recipe", "42"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = run(&["tag", "get", "recipe"]);
+    assert!(text(&o).contains("plc-1/recipe = 42 "), "{}", text(&o));
 
     // Tags: a writable one is written (scale undone) and reads back; a read-only one is
     // refused by the gateway.
@@ -116,6 +127,12 @@ fn plc_and_tag_commands_work_against_the_default_cell() {
 
     let o = run(&["status"]);
     assert!(text(&o).contains("plc-1"), "{}", text(&o));
+    // Each poll group's achieved round time is in the PLC's status.
+    assert!(
+        text(&o).contains("poll group 0 every") && text(&o).contains("achieved interval"),
+        "{}",
+        text(&o)
+    );
 
     let _ = child.kill();
     let _ = child.wait();

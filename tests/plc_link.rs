@@ -2,14 +2,14 @@
 
 use std::time::Duration;
 
-use cellgate::config::{Real, TagConfig, TagType};
-use cellgate::fuji::command::{Module, Request};
-use cellgate::fuji::master::{Master, MasterError, MasterSettings, OperationMode};
 use cellgate::plc::TagTable;
 use cellgate::plc::link::{PlcEvent, spawn};
-use cellgate::sim::micrex::{MicrexCommand, MicrexConfig};
 use cellgate::sim::micrex_handle::MicrexHandle;
 use cellgate::transport::LineSettings;
+use cellgate_core::config::{Real, TagConfig, TagType};
+use cellgate_core::fuji::command::{Module, Reply, Request};
+use cellgate_core::fuji::master::{Master, MasterError, MasterSettings, OperationMode};
+use cellgate_core::sim::micrex::{MicrexCommand, MicrexConfig, MicrexEvent};
 use tokio_util::sync::CancellationToken;
 
 fn tag(name: &str, station: u8, address: u16) -> TagConfig {
@@ -24,6 +24,7 @@ fn tag(name: &str, station: u8, address: u16) -> TagConfig {
         poll_ms: 500,
         deadband: Real(0.0),
         writable: false,
+        history: false,
     }
 }
 
@@ -38,7 +39,7 @@ async fn a_silent_station_does_not_stop_the_live_ones_and_a_bad_bcc_is_retried()
     mc.line = line;
     mc.stations = stations.clone();
     // A BCC on both ends (add, Set 1, §4-3 items 20–23), so a spoilt reply is a BCC error.
-    mc.frame.bcc = cellgate::fuji::frame::BccKind::Set1;
+    mc.frame.bcc = cellgate_core::fuji::frame::BccKind::Set1;
     let mc_frame = mc.frame.clone();
     let (host, device, _control) = cellgate::transport::sim::line(line);
     let sim = MicrexHandle::spawn(mc, Vec::new(), device).unwrap();
@@ -88,6 +89,24 @@ async fn a_silent_station_does_not_stop_the_live_ones_and_a_bad_bcc_is_retried()
     assert!(max < 600.0, "rounds slowed down: {gaps:?}");
     let snap = plc.snapshot().await.unwrap();
     assert!(!snap.counters.stations[&4].up);
+    // The group's round times as the link measured them (PlcStatus.poll_groups).
+    let g = &snap.groups[0];
+    println!(
+        "poll group: {} rounds, last {:?}, mean {:?}, max {:?}, achieved interval {:?}, {} overruns",
+        g.rounds, g.last_round, g.mean_round, g.max_round, g.achieved_interval, g.overruns
+    );
+    assert_eq!((g.interval, g.reads), (Duration::from_millis(500), 4));
+    assert!(g.rounds >= 40, "{g:?}");
+    assert_eq!(g.achieved_interval, Duration::from_millis(500), "{g:?}");
+    // The first round waits out the silent station's time-out and retries (200 ms each)
+    // until the station is marked down: it overruns the interval; none after it does.
+    assert!(g.max_round > Duration::from_millis(500), "{g:?}");
+    assert_eq!(g.overruns, 1, "{g:?}");
+    assert!(g.last_round < Duration::from_millis(200), "{g:?}");
+    assert!(
+        g.mean_round > Duration::ZERO && g.mean_round < g.max_round,
+        "{g:?}"
+    );
     for s in 1..=3 {
         assert!(snap.counters.stations[&s].up);
         assert!(snap.counters.stations[&s].replies >= 39);
@@ -123,5 +142,132 @@ async fn a_silent_station_does_not_stop_the_live_ones_and_a_bad_bcc_is_retried()
         matches!(&r, Err(MasterError::Sta(e)) if e.sta.code() == 0x32),
         "{r:?}"
     );
+    stop.cancel();
+}
+
+/// Mode 5 (non-procedure, RS-485, FFU120B §5-5): the gateway is the module's external device.
+/// A message the gateway sends reaches the module's receive message number; the messages the
+/// PLC sends come out as events, in order; one spoilt on the line fails its BCC and is dropped
+/// and counted (receive error 5), and the next one still arrives. With the manual's BCC (add,
+/// Set 1).
+#[tokio::test(start_paused = true)]
+async fn mode_5_messages_both_ways_and_a_spoilt_one_is_dropped() {
+    let line = LineSettings {
+        baud: 9600,
+        ..LineSettings::default()
+    };
+    let mut mc = MicrexConfig::new(OperationMode::Five);
+    mc.line = line;
+    mc.frame.bcc = cellgate_core::fuji::frame::BccKind::Set1;
+    mc.receive_message = 7;
+    let frame = mc.frame.clone();
+    let (host, device, control) = cellgate::transport::sim::line(line);
+    let (sim, mut sim_events) = MicrexHandle::spawn_subscribed(mc, Vec::new(), device).unwrap();
+    let mut ms = MasterSettings::new(OperationMode::Five);
+    ms.line = line;
+    ms.frame = frame;
+    let stop = CancellationToken::new();
+    let (plc, _task) = spawn(
+        "plc",
+        Master::new(ms).unwrap(),
+        TagTable::new("plc", &[]),
+        host,
+        stop.clone(),
+    );
+    let mut events = plc.subscribe();
+    let r = plc.send_message(b"LOT 4711".to_vec()).await.unwrap();
+    // ':' + 16 hex characters + 2 BCC characters + CR.
+    assert_eq!(r, Ok(Reply::Sent { bytes: 20 }));
+    let got = tokio::time::timeout(Duration::from_secs(5), async {
+        loop {
+            if let Ok(MicrexEvent::TransferReceived { message, data, .. }) = sim_events.recv().await
+            {
+                return (message, data);
+            }
+        }
+    })
+    .await
+    .expect("the module received the message");
+    assert_eq!(got, (7, b"LOT 4711".to_vec()));
+
+    let mut received = Vec::new();
+    for data in [b"FIRST".to_vec(), b"SECOND".to_vec(), b"THIRD".to_vec()] {
+        if data == b"SECOND" {
+            // Its second character (the first of the text) is hit on the line: ':' goes
+            // through, '5' arrives as '4'.
+            let dir = cellgate::transport::sim::End::Device.tx();
+            control.corrupt_next(dir, 0);
+            control.corrupt_next(dir, 0x01);
+        }
+        sim.command(MicrexCommand::QueueTransfer { message: 0, data });
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    while received.len() < 2 {
+        match tokio::time::timeout(Duration::from_secs(10), events.recv()).await {
+            Ok(Ok(PlcEvent::Message { data, .. })) => received.push(data),
+            Ok(Ok(_)) => {}
+            other => panic!("no message from the PLC: {other:?}"),
+        }
+    }
+    assert_eq!(received, [b"FIRST".to_vec(), b"THIRD".to_vec()]);
+    let c = plc.snapshot().await.unwrap().counters;
+    assert_eq!((c.messages_sent, c.messages_received), (1, 2));
+    assert_eq!(c.receive_errors.bcc, 1, "{:?}", c.receive_errors);
+    // The command set is refused in mode 5.
+    let r = plc
+        .request(0, Request::read_words(Module::D, 0, 1).unwrap())
+        .await
+        .unwrap();
+    assert!(matches!(&r, Err(MasterError::Refused(_))), "{r:?}");
+    stop.cancel();
+}
+
+/// A confirmed tag write is the tag's value at once: a get right after it answers what was
+/// written, not the value of the last poll, and the change is published.
+#[tokio::test(start_paused = true)]
+async fn a_tag_reads_what_was_written_right_after_the_write() {
+    let line = LineSettings {
+        baud: 19200,
+        ..LineSettings::default()
+    };
+    let mut mc = MicrexConfig::new(OperationMode::One);
+    mc.line = line;
+    mc.stations = vec![0];
+    let frame = mc.frame.clone();
+    let (host, device, _control) = cellgate::transport::sim::line(line);
+    let _sim = MicrexHandle::spawn(mc, Vec::new(), device).unwrap();
+    let mut ms = MasterSettings::new(OperationMode::One);
+    ms.line = line;
+    ms.frame = frame;
+    let mut recipe = tag("recipe", 0, 1);
+    recipe.writable = true;
+    // A slow poll: the next round is far away when the get comes.
+    recipe.poll_ms = 10_000;
+    let stop = CancellationToken::new();
+    let (plc, _task) = spawn(
+        "plc",
+        Master::new(ms).unwrap(),
+        TagTable::new("plc", &[recipe]),
+        host,
+        stop.clone(),
+    );
+    let mut events = plc.subscribe();
+    // The first round reads 0.
+    loop {
+        if let Ok(PlcEvent::Tag(v)) = events.recv().await {
+            assert_eq!(v.value, Some(0.0));
+            break;
+        }
+    }
+    plc.write_tag("recipe", 42.0).await.unwrap().unwrap();
+    let v = plc.get_tag("recipe").await.unwrap().unwrap();
+    assert_eq!(v.value, Some(42.0), "{v:?}");
+    assert_eq!(v.raw, Some(42));
+    let published = loop {
+        if let Ok(PlcEvent::Tag(v)) = events.recv().await {
+            break v;
+        }
+    };
+    assert_eq!(published.value, Some(42.0));
     stop.cancel();
 }

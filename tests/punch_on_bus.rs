@@ -9,10 +9,10 @@ mod common;
 use std::time::Duration;
 
 use cellgate::bus::keys::MachineLeaf;
-use cellgate::config::CellConfig;
-use cellgate::fanuc::tape::{self, TapeCode};
-use cellgate::pb;
-use cellgate::pb::job_event::Kind;
+use cellgate_core::config::CellConfig;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
+use cellgate_core::program::tape::{self, TapeCode};
 use common::bus::{RunningCell, Sub, follow, get, get_one};
 use prost::Message;
 use sha2::{Digest, Sha256};
@@ -56,7 +56,7 @@ impl RunningCell {
     /// Puts a program into the library and waits until the library has it.
     async fn put_program(&self, name: &str, program: &[u8]) {
         self.client
-            .put(self.keys.program(name), program.to_vec())
+            .put(self.keys.program_write(name), program.to_vec())
             .await
             .unwrap();
         // A put has no reply: read the library back until it has the program.
@@ -134,6 +134,61 @@ async fn punched_programs_round_trip_in_iso_ascii_and_eia() {
     )
     .await;
     assert_eq!(status.counters.unwrap().programs_punched, 3);
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_punched_program_is_compared_with_the_library_and_adopted_as_a_revision() {
+    let cell = start().await;
+    let punched = cell
+        .subscribe(cell.keys.leaf("lathe-1", MachineLeaf::Punch))
+        .await;
+    // Nothing in the library yet: no comparison.
+    cell.board("lathe-1")
+        .punch(tape::encode(PART, TapeCode::Iso).unwrap());
+    let p: pb::PunchedProgram = next(&punched, "punched program").await;
+    assert!(p.comparison.is_none(), "{:?}", p.comparison);
+    // The library's O1234 has the same blocks (blanks aside): the same.
+    let spaced = b"%\nO1234(SHAFT 7)\nG00 X10. Y2.5\nG01 Z-1. F100\nM30\n%";
+    cell.put_program("O1234", spaced).await;
+    cell.board("lathe-1")
+        .punch(tape::encode(PART, TapeCode::Iso).unwrap());
+    let p: pb::PunchedProgram = next(&punched, "punched program").await;
+    let c = p.comparison.expect("compared");
+    assert_eq!((c.library_name.as_str(), c.revision), ("O1234", 1));
+    assert!(c.same, "{c:?}");
+    // The operator changed a feed at the machine: one block changed.
+    let edited = b"%\nO1234(SHAFT 7)\nG00X10.Y2.5\nG01Z-1.F80\nM30\n%";
+    cell.board("lathe-1")
+        .punch(tape::encode(edited, TapeCode::Iso).unwrap());
+    let p: pb::PunchedProgram = next(&punched, "punched program").await;
+    let c = p.comparison.expect("compared");
+    assert!(!c.same);
+    assert_eq!(
+        (c.blocks_changed, c.blocks_added, c.blocks_removed),
+        (1, 0, 0),
+        "{c:?}"
+    );
+    // One request makes it O1234's next revision, saying where it came from.
+    let adopt = pb::ProgramWrite {
+        op: Some(pb::program_write::Op::Adopt(pb::program_write::Adopt {
+            from: p.library_name.clone(),
+            revision: String::new(),
+        })),
+        comment: "feed as proven on the machine".to_string(),
+    };
+    let info: pb::ProgramInfo = get_one(
+        &cell.client,
+        &cell.keys.program_write("O1234"),
+        Some(adopt.encode_to_vec()),
+    )
+    .await;
+    let r = info.latest.unwrap();
+    assert_eq!(r.number, 2);
+    assert_eq!(r.adopted_from, p.library_name);
+    assert_eq!(r.comment, "feed as proven on the machine");
+    let now = get(&cell.client, &cell.keys.program("O1234"), None).await;
+    assert_eq!(now[0].as_ref().unwrap().1, edited);
     cell.stop().await;
 }
 

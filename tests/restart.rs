@@ -7,16 +7,15 @@
 mod common;
 
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Stdio};
 use std::time::Duration;
 
 use cellgate::client::{Client, ConnectOptions};
-use cellgate::pb;
-use cellgate::pb::job_event::Kind;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
 use common::bus::free_port;
 use common::nc_program;
 
-const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
 const MILL: &str = "mill-1";
 
 /// One Protocol A machine on a simulated line at 4800 baud: an 8 KB program takes long
@@ -50,7 +49,7 @@ line = {{ baud = 4800 }}
 }
 
 fn start(config: &Path) -> Child {
-    Command::new(BIN)
+    common::cli::bin()
         .args(["run", "--config"])
         .arg(config)
         .env("RUST_LOG", "warn")

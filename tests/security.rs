@@ -16,110 +16,18 @@ use cellgate::bus::keys::{CellKeys, MachineLeaf};
 use cellgate::bus::{self, BusError};
 use cellgate::cell::Cell;
 use cellgate::client::{Client, ClientError, ClientSecurity, ConnectOptions, Credentials};
-use cellgate::config::CellConfig;
-use cellgate::pb;
+use cellgate_core::config::CellConfig;
+use cellgate_core::pb;
 use common::bus::free_port;
 use prost::Message;
-use rcgen::{
-    BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer, KeyPair,
-    KeyUsagePurpose,
-};
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
-const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
+use common::cli::cellgate;
 const CELL: &str = "secure";
 const MACHINE: &str = "m1";
 
-// ---- a CA and certificates --------------------------------------------------------------------
-
-/// A CA and the certificates of the gateway, a router and the clients, as PEM files in a
-/// temporary directory: `<name>.pem` and `<name>-key.pem`.
-struct Pki {
-    dir: tempfile::TempDir,
-}
-
-fn ca_params(cn: &str) -> CertificateParams {
-    let mut p = CertificateParams::new(Vec::<String>::new()).unwrap();
-    p.distinguished_name.push(DnType::CommonName, cn);
-    p.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    p.key_usages = vec![
-        KeyUsagePurpose::KeyCertSign,
-        KeyUsagePurpose::CrlSign,
-        KeyUsagePurpose::DigitalSignature,
-    ];
-    p
-}
-
-impl Pki {
-    /// Signed by the CA: the gateway `cellgate-gw` and the router `router` (both for
-    /// 127.0.0.1 and localhost), the clients `dash`, `mes`, `op`, `adm` and `nobody` (in no
-    /// role). `forged-dash` has the common name `dash` but is signed by another CA.
-    fn new() -> Pki {
-        let pki = Pki {
-            dir: tempfile::tempdir().unwrap(),
-        };
-        let ca_key = KeyPair::generate().unwrap();
-        let ca = ca_params("cellgate test CA");
-        std::fs::write(pki.path("ca.pem"), ca.self_signed(&ca_key).unwrap().pem()).unwrap();
-        let issuer = Issuer::new(ca, ca_key);
-        let hosts = || vec!["127.0.0.1".to_string(), "localhost".to_string()];
-        for (name, cn, sans) in [
-            ("gateway", "cellgate-gw", hosts()),
-            ("router", "router", hosts()),
-            ("dash", "dash", vec![]),
-            ("mes", "mes", vec![]),
-            ("op", "op", vec![]),
-            ("adm", "adm", vec![]),
-            ("nobody", "nobody", vec![]),
-        ] {
-            pki.leaf(&issuer, name, cn, sans);
-        }
-        let other_key = KeyPair::generate().unwrap();
-        let other = Issuer::new(ca_params("some other CA"), other_key);
-        pki.leaf(&other, "forged-dash", "dash", vec![]);
-        pki
-    }
-
-    fn leaf(&self, issuer: &Issuer<'_, KeyPair>, name: &str, cn: &str, sans: Vec<String>) {
-        let key = KeyPair::generate().unwrap();
-        let mut p = CertificateParams::new(sans).unwrap();
-        p.distinguished_name.push(DnType::CommonName, cn);
-        p.extended_key_usages = vec![
-            ExtendedKeyUsagePurpose::ServerAuth,
-            ExtendedKeyUsagePurpose::ClientAuth,
-        ];
-        let cert = p.signed_by(&key, issuer).unwrap();
-        std::fs::write(self.path(&format!("{name}.pem")), cert.pem()).unwrap();
-        std::fs::write(self.path(&format!("{name}-key.pem")), key.serialize_pem()).unwrap();
-    }
-
-    fn path(&self, file: &str) -> PathBuf {
-        self.dir.path().join(file)
-    }
-
-    fn ca(&self) -> PathBuf {
-        self.path("ca.pem")
-    }
-
-    fn cert(&self, name: &str) -> PathBuf {
-        self.path(&format!("{name}.pem"))
-    }
-
-    fn key(&self, name: &str) -> PathBuf {
-        self.path(&format!("{name}-key.pem"))
-    }
-
-    /// What a client holding `name`'s certificate gives `Client::connect`.
-    fn client(&self, name: &str) -> ClientSecurity {
-        ClientSecurity {
-            ca: Some(self.ca()),
-            certificate: Some(self.cert(name)),
-            private_key: Some(self.key(name)),
-            credentials: None,
-        }
-    }
-}
+use common::pki::Pki;
 
 /// The roles of the examples: a dashboard that reads, an MES that submits and keeps the
 /// library, an operator who outputs DO, cancels and writes tags, an administrator.
@@ -137,7 +45,7 @@ permissions = ["job.submit", "program.write"]
 [[security.roles]]
 name = "operator"
 cert_common_names = ["op"]
-permissions = ["status.read", "io.do", "job.cancel", "plc.tag"]
+permissions = ["status.read", "io.do", "job.cancel", "plc.tag", "sim.control"]
 
 [[security.roles]]
 name = "admin"
@@ -440,7 +348,7 @@ async fn try_every_write(s: &Session, k: &CellKeys, job: &str, program: &str) ->
         request_id: "intruder-1".to_string(),
         ..Default::default()
     };
-    let job_key = k.leaf(MACHINE, MachineLeaf::Job);
+    let job_key = k.leaf(MACHINE, MachineLeaf::Submit);
     replies[0] = get(
         s,
         &job_key,
@@ -463,21 +371,22 @@ async fn try_every_write(s: &Session, k: &CellKeys, job: &str, program: &str) ->
     )
     .await
     .len();
-    s.put(k.program("PUT-BY-INTRUDER"), small_program(1))
+    s.put(k.program_write("PUT-BY-INTRUDER"), small_program(1))
         .await
         .unwrap();
     let write = pb::ProgramWrite {
         op: Some(pb::program_write::Op::Store(small_program(2))),
+        comment: String::new(),
     };
     replies[2] = get(
         s,
-        &k.program("GET-BY-INTRUDER"),
+        &k.program_write("GET-BY-INTRUDER"),
         Some(write.encode_to_vec()),
         Duration::from_secs(15),
     )
     .await
     .len();
-    s.delete(k.program(program)).await.unwrap();
+    s.delete(k.program_write(program)).await.unwrap();
     s.delete(k.job_events(MACHINE, job)).await.unwrap();
     replies
 }
@@ -806,7 +715,7 @@ async fn a_router_enforces_the_roles_on_its_clients() {
     let roles = format!(
         "{ROLES}\n[[security.roles]]\nname = \"router\"\ncert_common_names = [\"router\"]\n\
          permissions = [{}]\n",
-        cellgate::config::Permission::ALL
+        cellgate_core::config::Permission::ALL
             .iter()
             .map(|p| format!("\"{p}\""))
             .collect::<Vec<_>>()
@@ -964,29 +873,6 @@ permissions = ["status.read"]
 
 // ---- the binary --------------------------------------------------------------------------------------
 
-/// Runs the binary with `args`; returns (exit code, stdout, stderr).
-async fn cellgate(args: Vec<String>) -> (i32, String, String) {
-    tokio::task::spawn_blocking(move || {
-        let out = std::process::Command::new(BIN)
-            .args(&args)
-            .env_remove("CELLGATE_CONNECT")
-            .env_remove("CELLGATE_CELL")
-            .env_remove("CELLGATE_TLS_CA")
-            .env_remove("CELLGATE_TLS_CERT")
-            .env_remove("CELLGATE_TLS_KEY")
-            .env_remove("RUST_LOG")
-            .output()
-            .unwrap();
-        (
-            out.status.code().unwrap_or(-1),
-            String::from_utf8_lossy(&out.stdout).into_owned(),
-            String::from_utf8_lossy(&out.stderr).into_owned(),
-        )
-    })
-    .await
-    .unwrap()
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_cli_connects_with_the_certificate_it_is_given() {
     let pki = Pki::new();
@@ -1028,6 +914,15 @@ async fn the_cli_connects_with_the_certificate_it_is_given() {
     let (code, out, err) = cellgate(with("op", &["do", MACHINE, "0x0F"])).await;
     assert_eq!(code, 0, "{out}\n{err}");
     eventually("the board outputs DO", || gw.board().do_image() == 0x0F).await;
+    // The simulated board's controls are sim.control's.
+    let (code, _, err) = cellgate(with("dash", &["sim", "di", MACHINE, "0x21"])).await;
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("lacks the permission"), "{err}");
+    assert_eq!(gw.board().snapshot().di_image, 0);
+    let (code, out, err) = cellgate(with("op", &["sim", "di", MACHINE, "0x21"])).await;
+    assert_eq!(code, 0, "{out}\n{err}");
+    assert!(out.contains("DI 0x21"), "{out}");
+    assert_eq!(gw.board().snapshot().di_image, 0x21);
     // No certificate: no connection, and the message says what to give.
     let (code, _, err) = cellgate(vec![
         "status".to_string(),

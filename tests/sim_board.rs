@@ -4,16 +4,16 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-use cellgate::engine::Engine;
-use cellgate::fanuc::alarm::CncAlarm;
-use cellgate::fanuc::message::{Command, Framing, Message};
-use cellgate::fanuc::packet::{self, Monitor};
-use cellgate::fanuc::sat::{AlarmCause, BufferStatus, Params, StatusData};
-use cellgate::fanuc::{CodeSystem, EndCode, Protocol};
-use cellgate::sim::{
+use cellgate::transport::ModemIn;
+use cellgate_core::engine::Engine;
+use cellgate_core::fanuc::alarm::CncAlarm;
+use cellgate_core::fanuc::message::{Command, Framing, Message};
+use cellgate_core::fanuc::packet::{self, Monitor};
+use cellgate_core::fanuc::sat::{AlarmCause, BufferStatus, Params, StatusData};
+use cellgate_core::fanuc::{CodeSystem, EndCode, Protocol};
+use cellgate_core::sim::{
     BoardCommand, BoardConfig, BoardEvent, BoardLinkState, FanucBoard, ReceivedProgram,
 };
-use cellgate::transport::ModemIn;
 use sha2::{Digest, Sha256};
 
 fn ms(v: u64) -> Duration {
@@ -470,11 +470,11 @@ fn rdi_answered_with_sdi_then_the_owed_answer() {
     rig.send_cmd(Command::Rdi);
     let (_, m) = rig.expect(Command::Sdi, s(1));
     assert_eq!(m.data, b"A5");
-    // SDO for the SDI; the answer to the SAT is still owed.
+    // After SDI the host owes the SAT's answer (§4.4.1 SDI); SDO is one (§4.4.1 SDO): the
+    // exchange is complete, and the next SAT comes Tp later.
     rig.send(Message::with_data(Command::Sdo, "0F"));
-    rig.silent_for(s(3));
-    rig.send(Message::new(Command::Set));
     let answered = rig.at();
+    assert_eq!(rig.board.cnc().do_image(), 0x0F);
     let (t, _) = rig.expect(Command::Sat, s(10));
     assert_eq!(t - answered, s(5));
     // RDI in answer to GTD, then DAT for the GTD.
@@ -1181,11 +1181,11 @@ mod live {
 
 mod cell {
     use super::*;
-    use cellgate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
     use cellgate::link::driver::{self, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
     use cellgate::sim::{BoardHandle, BoardSnapshot};
     use cellgate::transport::LineSettings;
     use cellgate::transport::sim::{self, End, SimLine};
+    use cellgate_core::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
     use tokio::sync::broadcast;
     use tokio_util::sync::CancellationToken;
 
@@ -1363,8 +1363,10 @@ mod cell {
 
 mod g05 {
     use super::*;
-    use cellgate::fanuc::g05::{AuxFunction, AuxWord, DataFormat, G05Encoder, G05Format, UnitTime};
-    use cellgate::sim::{BoardConfigError, G05End, G05Stats};
+    use cellgate_core::fanuc::g05::{
+        AuxFunction, AuxWord, DataFormat, G05Encoder, G05Format, UnitTime,
+    };
+    use cellgate_core::sim::{BoardConfigError, G05End, G05Stats};
 
     /// `n` blocks of `f`: travels (k, -k, 2k, ...) for block k = 1..=n, an M code on every
     /// tenth block when the format has an auxiliary word; and the per-axis sums.

@@ -5,17 +5,15 @@ mod common;
 
 use std::io::{BufRead, BufReader};
 use std::net::TcpStream;
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use common::bus::free_ports;
 
-const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
-
 #[test]
 fn boards_listen_on_consecutive_ports_and_tag_their_events() {
     let first = free_ports(3);
-    let mut child = Command::new(BIN)
+    let mut child = common::cli::bin()
         .args([
             "sim",
             "fanuc",
@@ -80,7 +78,7 @@ fn boards_listen_on_consecutive_ports_and_tag_their_events() {
 
 #[test]
 fn boards_past_the_last_port_are_refused() {
-    let out = Command::new(BIN)
+    let out = common::cli::bin()
         .args([
             "sim",
             "fanuc",

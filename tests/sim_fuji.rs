@@ -3,41 +3,18 @@
 //! Loopback only.
 
 use std::io::{BufRead, BufReader};
-use std::net::{TcpListener, TcpStream};
-use std::process::{Child, Command, Output, Stdio};
+use std::net::TcpStream;
+use std::process::Stdio;
 use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
+mod common;
 
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
-
-/// Kills a child process when the test ends, however it ends.
-struct Reaper(Child);
-
-impl Drop for Reaper {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
+use common::bus::free_port;
+use common::cli::{Reaper, text};
 
 /// The simulator's JSON event lines, collected by a thread.
 #[derive(Clone, Default)]
@@ -68,7 +45,7 @@ impl Events {
 #[test]
 fn the_gateway_polls_writes_and_is_refused_through_sim_fuji() {
     let sim_port = free_port();
-    let mut sim = Command::new(BIN)
+    let mut sim = common::cli::bin()
         .args([
             "sim",
             "fuji",
@@ -145,7 +122,7 @@ poll_ms = 200
         ),
     )
     .unwrap();
-    let gateway = Command::new(BIN)
+    let gateway = common::cli::bin()
         .current_dir(dir.path())
         .args([
             "run",
@@ -169,7 +146,7 @@ poll_ms = 200
         thread::sleep(Duration::from_millis(50));
     }
     let run = |args: &[&str]| {
-        Command::new(BIN)
+        common::cli::bin()
             .args(args)
             .args(["--connect", &endpoint])
             .env_remove("CELLGATE_CONFIG")

@@ -12,9 +12,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use cellgate::client::{Client, ConnectOptions};
-use cellgate::config::CellConfig;
-use cellgate::pb;
 use cellgate::telemetry;
+use cellgate_core::config::CellConfig;
+use cellgate_core::pb;
 use common::bus::free_port;
 use opentelemetry_proto::tonic::collector::metrics::v1::metrics_service_server::{
     MetricsService, MetricsServiceServer,
@@ -171,6 +171,8 @@ async fn start_receiver() -> (SocketAddr, Received, tokio::sync::oneshot::Sender
 fn cell(name: &str, machine: &str, dir: &std::path::Path) -> (CellConfig, u16) {
     let port = free_port();
     let mut config = CellConfig::embedded_default();
+    // Its console would take a fixed port; this test does not look at it.
+    config.console = None;
     config.cell = name.to_string();
     config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
     config.bus.connect = Vec::new();
@@ -253,7 +255,9 @@ impl Running {
 async fn http_get(addr: SocketAddr, path: &str) -> (String, String) {
     let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
     stream
-        .write_all(format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
+        .write_all(
+            format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").as_bytes(),
+        )
         .await
         .unwrap();
     let mut response = String::new();
@@ -476,12 +480,12 @@ async fn the_prometheus_endpoint_serves_the_counters_after_a_job() {
 /// Virtual time, no bus.
 #[tokio::test(start_paused = true)]
 async fn the_link_counters_follow_the_line_and_the_link_events() {
-    use cellgate::engine::LineError;
-    use cellgate::fanuc::error::LinkAlarm;
-    use cellgate::fanuc::host::LinkState;
     use cellgate::link::driver::LinkEvent;
     use cellgate::telemetry::metrics;
     use cellgate::transport::sim::{Dir, Noise};
+    use cellgate_core::engine::LineError;
+    use cellgate_core::fanuc::error::LinkAlarm;
+    use cellgate_core::fanuc::host::LinkState;
 
     const MACHINE: &str = "counted-a";
     const HOUR: Duration = Duration::from_secs(3600);

@@ -21,22 +21,13 @@ Exit codes: 0 the stream completed; 1 it failed or no gateway answered; 2 refuse
 
 import argparse
 import math
-import os
 import queue
 import sys
 
-import zenoh
-
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "gen"))
-try:
-    from cellgate.v1 import error_pb2, g05_pb2
-except ImportError:
-    sys.exit("the generated classes are missing: run ./gen.sh first")
-
-from submit import encoding, find_cell, open_session  # noqa: E402
+import submit
+from submit import encoding, find_cell, open_session
 
 BATCH = 200
-DONE = (g05_pb2.G05_STATE_COMPLETED, g05_pb2.G05_STATE_FAILED)
 
 
 def circle(blocks: int, radius: float, axes: int):
@@ -54,13 +45,21 @@ def circle(blocks: int, radius: float, axes: int):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("-m", "--machine", required=True)
-    ap.add_argument("-e", "--connect", default="tcp/127.0.0.1:7447")
-    ap.add_argument("--prefix", default="cellgate")
-    ap.add_argument("--cell")
+    ap.add_argument("-m", "--machine", required=True, help="a machine with [machines.g05]")
+    ap.add_argument("-e", "--connect", default="tcp/127.0.0.1:7447", help="the gateway's zenoh endpoint")
+    ap.add_argument("--prefix", default="cellgate", help="the gateway's key prefix (bus.prefix)")
+    ap.add_argument("--cell", help="the cell (default: the only one answering)")
     ap.add_argument("--blocks", type=int, default=3000, help="blocks of the circle")
     ap.add_argument("--radius", type=float, default=2000.0, help="in least input increments")
     args = ap.parse_args()
+    # After the arguments, so that --help works before `pip install` and ./gen.sh.
+    submit.load_dependencies()
+    zenoh, error_pb2 = submit.zenoh, submit.error_pb2
+    try:
+        from cellgate.v1 import g05_pb2
+    except ImportError:
+        sys.exit("the generated classes are missing: run ./gen.sh first")
+    done = (g05_pb2.G05_STATE_COMPLETED, g05_pb2.G05_STATE_FAILED)
 
     try:
         z = open_session(args.connect)
@@ -123,9 +122,9 @@ def main() -> int:
             # No credits left: wait for the next status.
             sample = statuses.get(timeout=30)
             latest = g05_pb2.G05Status.FromString(sample.payload.to_bytes())
-            if latest.state in DONE:
+            if latest.state in done:
                 break
-        while latest.state not in DONE:
+        while latest.state not in done:
             sample = statuses.get(timeout=120)
             latest = g05_pb2.G05Status.FromString(sample.payload.to_bytes())
         sub.undeclare()

@@ -10,7 +10,7 @@ from proto/cellgate/v1:
   2. find the cell (the only gateway answering P/*/@admin), unless --cell names it;
   3. subscribe to P/C/machine/M/job/* *before* sending the request, so that no event of the
      job is missed (its id is only known from the reply);
-  4. get on P/C/machine/M/job with a JobRequest: the reply is JobAccepted, or an ErrorReply;
+  4. get on P/C/machine/M/submit with a JobRequest: the reply is JobAccepted, or an ErrorReply;
   5. print the job's events until it completes, fails or is cancelled. When nothing arrives
      for a while (a job waiting in the queue is silent), ask for its latest event with a get
      on P/C/machine/M/job/ID.
@@ -18,10 +18,12 @@ from proto/cellgate/v1:
 Exit codes: 0 the program was delivered; 1 it failed or was cancelled, or no gateway
 answered; 2 the gateway refused the request (the ErrorReply is printed).
 
-    ./submit.py --machine mill-1 O1234.nc
+    ./submit.py --machine mill-1 ../programs/O1234.nc
     ./submit.py --machine mill-1 --connect tls/127.0.0.1:7447 --tls-ca tls/ca.pem \
-        --tls-cert tls/mes-1.pem --tls-key tls/mes-1-key.pem O1234.nc
+        --tls-cert ../tls/mes-1.pem --tls-key ../tls/mes-1-key.pem ../programs/O1234.nc
 """
+
+from __future__ import annotations
 
 import argparse
 import json
@@ -30,16 +32,30 @@ import queue
 import sys
 import uuid
 
-import zenoh
-
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "gen"))
-try:
-    from cellgate.v1 import error_pb2, job_pb2
-except ImportError:
-    sys.exit("the generated classes are missing: run ./gen.sh first")
+# Imported by load_dependencies() once the arguments are parsed, so that --help works before
+# `pip install` and ./gen.sh.
+zenoh = None
+error_pb2 = None
+job_pb2 = None
 
 SILENCE_S = 5.0
 SUBMIT_TIMEOUT_S = 60.0
+
+
+def load_dependencies() -> None:
+    """Imports eclipse-zenoh and the classes gen.sh generates, or exits saying what is missing."""
+    global zenoh, error_pb2, job_pb2
+    try:
+        import zenoh as zenoh_module
+    except ImportError:
+        sys.exit("the eclipse-zenoh package is missing: pip install -r requirements.txt")
+    zenoh = zenoh_module
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "gen"))
+    try:
+        from cellgate.v1 import error_pb2 as error_module, job_pb2 as job_module
+    except ImportError:
+        sys.exit("the generated classes are missing: run ./gen.sh first")
+    error_pb2, job_pb2 = error_module, job_module
 
 
 def encoding(message_name: str) -> zenoh.Encoding:
@@ -85,7 +101,7 @@ def gateway_cells(z: zenoh.Session, prefix: str) -> list[str]:
     return sorted(cells)
 
 
-def describe(event: job_pb2.JobEvent) -> str:
+def describe(event) -> str:
     kind = event.WhichOneof("kind")
     if kind == "queued":
         return f"queued ({event.queued.queue_position} ahead)"
@@ -99,7 +115,11 @@ def describe(event: job_pb2.JobEvent) -> str:
         return f"sent {p.bytes_sent} of {total or '?'} bytes{percent}, {p.rate_bps} B/s"
     if kind == "completed":
         c = event.completed
-        return f"completed: {c.bytes_sent} bytes in {c.duration_ms / 1000:.1f} s"
+        text = f"completed: {c.bytes_sent} bytes in {c.duration_ms / 1000:.1f} s"
+        if c.bytes_after_eor:
+            # A line end after the last %: the CNC ignores it, so it is not sent.
+            text += f"; {c.bytes_after_eor} byte after the EOR % not sent (the CNC ignores it)"
+        return text
     if kind == "failed":
         f = event.failed
         alarm = f" [{f.alarm_number}]" if f.alarm_number else ""
@@ -127,8 +147,8 @@ def main() -> int:
     ap.add_argument("--prefix", default="cellgate", help="the gateway's key prefix (bus.prefix)")
     ap.add_argument("--cell", help="the cell (default: the only one answering)")
     ap.add_argument("--name", default="", help="the name shown in status and events")
-    ap.add_argument("--priority", type=int, default=0)
-    ap.add_argument("--append-eor", action="store_true", help="append % if the program lacks it")
+    ap.add_argument("--priority", type=int, default=0, help="higher runs first (default 0)")
+    ap.add_argument("--append-eor", action="store_true", help="append %% (EOR) if the program lacks it")
     ap.add_argument("--request-id", default=None, help="idempotency key (default: a new UUID)")
     ap.add_argument("--tls-ca", default=os.environ.get("CELLGATE_TLS_CA"),
                     help="the CA that signed the gateway's certificate (PEM), for a tls/ endpoint")
@@ -141,6 +161,7 @@ def main() -> int:
         ap.error("a tls/ endpoint needs --tls-ca, the CA that signed the gateway's certificate")
     if bool(args.tls_cert) != bool(args.tls_key):
         ap.error("give both --tls-cert and --tls-key, or neither")
+    load_dependencies()
 
     with open(args.file, "rb") as f:
         program = f.read()
@@ -183,7 +204,7 @@ def main() -> int:
 
         accepted = None
         for reply in z.get(
-            f"{base}/job",
+            f"{base}/submit",
             payload=request.SerializeToString(),
             encoding=encoding("JobRequest"),
             timeout=SUBMIT_TIMEOUT_S,
@@ -195,7 +216,7 @@ def main() -> int:
                 print(f"refused ({error_pb2.ErrorCode.Name(err.code)}): {err.message}", file=sys.stderr)
                 return 2
         if accepted is None:
-            print(f"no gateway answered on {base}/job (on a cell with roles, this client's "
+            print(f"no gateway answered on {base}/submit (on a cell with roles, this client's "
                   "certificate needs job.submit)", file=sys.stderr)
             return 1
         job = accepted.job_id

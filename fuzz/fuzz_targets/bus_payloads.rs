@@ -3,8 +3,8 @@
 //! a chunk of what was given.
 #![no_main]
 
-use cellgate::bus::keys::{CellKey, CellKeys, cell_of_admin_key, is_plain_chunk};
-use cellgate::pb;
+use cellgate_core::keys::{CellKey, CellKeys, cell_of_admin_key, is_plain_chunk};
+use cellgate_core::pb;
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
 

@@ -2,7 +2,7 @@
 //! out, and reads back the same.
 #![no_main]
 
-use cellgate::config::CellConfig;
+use cellgate_core::config::CellConfig;
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

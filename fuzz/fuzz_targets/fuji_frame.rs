@@ -5,9 +5,10 @@
 //! fit the bounds it was given.
 #![no_main]
 
-use cellgate::fuji::frame::{
+use cellgate_core::fuji::frame::{
     BccCalc, BccCode, BccKind, BccRange, Crc16, EndCode, FrameDecoder, FrameSettings,
     MAX_COMMAND_TEXT, MAX_NON_PROCEDURE_TEXT, RX_BUFFER, StartCode,
+    TransmissionCode,
 };
 use libfuzzer_sys::fuzz_target;
 
@@ -32,7 +33,11 @@ fuzz_target!(|data: &[u8]| {
             head[0],
         ),
         // Set bytes of any count, right or wrong: the decoder must cope with both.
-        start_codes: head[6..8].iter().take(usize::from(head[0] >> 6)).copied().collect(),
+        start_codes: head[6..8]
+            .iter()
+            .take(usize::from(head[0] >> 6))
+            .copied()
+            .collect(),
         end_code: pick(
             &[
                 EndCode::Etx,
@@ -45,8 +50,16 @@ fuzz_target!(|data: &[u8]| {
             ],
             head[1],
         ),
-        end_codes: head[5..7].iter().take(usize::from(head[1] >> 6)).copied().collect(),
+        end_codes: head[5..7]
+            .iter()
+            .take(usize::from(head[1] >> 6))
+            .copied()
+            .collect(),
         transposition: head[2] & 1 == 0,
+        code: pick(
+            &[TransmissionCode::Ascii, TransmissionCode::Ebcdic],
+            head[2] >> 3,
+        ),
         bcc: pick(&[BccKind::None, BccKind::Set1, BccKind::Set2], head[2] >> 1),
         bcc_range: pick(
             &[
@@ -58,7 +71,12 @@ fuzz_target!(|data: &[u8]| {
             head[3],
         ),
         bcc_calc: pick(
-            &[BccCalc::Add, BccCalc::AddInvert, BccCalc::Eor, BccCalc::Crc16],
+            &[
+                BccCalc::Add,
+                BccCalc::AddInvert,
+                BccCalc::Eor,
+                BccCalc::Crc16,
+            ],
             head[3] >> 2,
         ),
         bcc_code: pick(&[BccCode::TransmissionCode, BccCode::Binary], head[3] >> 4),

@@ -5,9 +5,11 @@
 use std::collections::HashSet;
 use std::time::{Duration, Instant};
 
-use cellgate::engine::{Engine, LineError};
-use cellgate::fuji::command::{Module, Request};
-use cellgate::fuji::master::{Master, MasterCommand, MasterEvent, MasterSettings, OperationMode};
+use cellgate_core::engine::{Engine, LineError};
+use cellgate_core::fuji::command::{Module, Request};
+use cellgate_core::fuji::master::{
+    Master, MasterCommand, MasterEvent, MasterSettings, OperationMode,
+};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
@@ -25,14 +27,25 @@ fuzz_target!(|data: &[u8]| {
     let mut now = Instant::now();
     let mut open = HashSet::new();
     let mut ended = HashSet::new();
-    let station = if matches!(mode, OperationMode::One) { 0 } else { 1 };
+    let station = if matches!(mode, OperationMode::One) {
+        0
+    } else {
+        1
+    };
     for (i, op) in rest.chunks(5).enumerate() {
         match op[0] % 5 {
             0 => {
                 let id = i as u64;
                 let request = Request::read_words(Module::D, u16::from(op[0]), 1 + op.len());
                 if let Ok(request) = request {
-                    master.handle_command(now, MasterCommand::Request { id, station, request });
+                    master.handle_command(
+                        now,
+                        MasterCommand::Request {
+                            id,
+                            station,
+                            request,
+                        },
+                    );
                     open.insert(id);
                 }
             }
@@ -42,9 +55,7 @@ fuzz_target!(|data: &[u8]| {
                 now += Duration::from_millis(u64::from(op[0]) * 40);
                 master.handle_timeout(now);
             }
-            _ => {
-                while master.poll_transmit(now).is_some() {}
-            }
+            _ => while master.poll_transmit(now).is_some() {},
         }
         while let Some(event) = master.poll_event() {
             if let MasterEvent::Done { id, .. } = event {

@@ -6,9 +6,9 @@
 //! 16 or 24 was set), and decodes again to the same block.
 #![no_main]
 
-use cellgate::fanuc::g05::{
-    AuxFunction, AuxOrder, BlockDecoder, DataFormat, G05EncodeError, G05Entry, G05Format,
-    MAX_AXES, UnitTime,
+use cellgate_core::fanuc::g05::{
+    AuxFunction, AuxOrder, BlockDecoder, DataFormat, G05EncodeError, G05Entry, G05Format, MAX_AXES,
+    UnitTime,
 };
 use libfuzzer_sys::fuzz_target;
 

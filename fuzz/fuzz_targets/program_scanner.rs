@@ -2,9 +2,9 @@
 //! panics, and the blocks of any program are found without panicking.
 #![no_main]
 
-use cellgate::fanuc::{EndCode, Protocol};
-use cellgate::jobs::blocks::{StartAt, block_at, find_start};
-use cellgate::jobs::source::{ProgramRules, Scanner, scan};
+use cellgate_core::fanuc::{EndCode, Protocol};
+use cellgate_core::program::blocks::{StartAt, block_at, find_start};
+use cellgate_core::program::scan::{ProgramRules, Scanner, scan};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
@@ -18,7 +18,11 @@ fuzz_target!(|data: &[u8]| {
             2 => Protocol::B,
             _ => Protocol::ExpansionB,
         },
-        end_code: if sel & 4 == 0 { EndCode::Cr } else { EndCode::Etx },
+        end_code: if sel & 4 == 0 {
+            EndCode::Cr
+        } else {
+            EndCode::Etx
+        },
         max_size: 1 + u64::from(sel >> 3) * 64,
     };
     let whole = scan(rules, rest);
@@ -33,14 +37,18 @@ fuzz_target!(|data: &[u8]| {
         cut = cut * 3 % 11 + 1;
     }
     let by_pieces = piece_result.and_then(|()| scanner.finish());
-    assert_eq!(whole.is_ok(), by_pieces.is_ok(), "{whole:?} / {by_pieces:?}");
+    assert_eq!(
+        whole.is_ok(),
+        by_pieces.is_ok(),
+        "{whole:?} / {by_pieces:?}"
+    );
     if let (Ok(a), Ok(b)) = (&whole, &by_pieces) {
         assert_eq!(a.size, b.size);
         assert_eq!(a.has_eor, b.has_eor);
     }
     let offset = u64::from(sel) * 3;
-    let block = futures::executor::block_on(block_at(rest, offset));
-    if let Ok(Some(b)) = block {
+    let block = block_at(rest, offset);
+    if let Some(b) = block {
         assert!(b.offset <= offset && usize::try_from(b.offset).unwrap() <= rest.len());
     }
     let at = if sel & 1 == 0 {
@@ -48,7 +56,7 @@ fuzz_target!(|data: &[u8]| {
     } else {
         StartAt::Sequence(u64::from(sel))
     };
-    if let Ok((header, start)) = futures::executor::block_on(find_start(rest, at, u32::from(sel % 4))) {
+    if let Ok((header, start)) = find_start(rest, at, u32::from(sel % 4)) {
         assert!(header <= start.offset);
         assert!(usize::try_from(start.offset).unwrap() <= rest.len());
     }

@@ -6,12 +6,12 @@
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
-use cellgate::fanuc::message::{Framing, MAX_FRAME};
-use cellgate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
-use cellgate::fanuc::{CodeSystem, EndCode};
-use cellgate::engine::Engine;
-use cellgate::fanuc::host::{EngineCommand, HostEngine};
-use cellgate::transport::{LineError, ModemIn};
+use cellgate_core::engine::Engine;
+use cellgate_core::engine::{LineError, ModemIn};
+use cellgate_core::fanuc::host::{EngineCommand, HostEngine};
+use cellgate_core::fanuc::message::{Framing, MAX_FRAME};
+use cellgate_core::fanuc::protocol_a::{ProtocolAConfig, ProtocolAHost};
+use cellgate_core::fanuc::{CodeSystem, EndCode};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| run(data));

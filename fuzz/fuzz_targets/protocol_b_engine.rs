@@ -7,11 +7,11 @@
 use std::time::Instant;
 
 use bytes::Bytes;
-use cellgate::fanuc::CodeSystem;
-use cellgate::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
-use cellgate::engine::Engine;
-use cellgate::fanuc::host::{EngineCommand, HostEngine};
-use cellgate::transport::{LineError, ModemIn};
+use cellgate_core::engine::Engine;
+use cellgate_core::engine::{LineError, ModemIn};
+use cellgate_core::fanuc::CodeSystem;
+use cellgate_core::fanuc::host::{EngineCommand, HostEngine};
+use cellgate_core::fanuc::protocol_b::{ProtocolBConfig, ProtocolBHost};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| run(data));
@@ -83,7 +83,15 @@ fn run(data: &[u8]) {
             assert_eq!(host.sent_since_dc3(), before, "sent after DC3");
         }
         assert!(host.sent_since_dc3() <= u64::MAX - piece);
-        assert!(host.punch_held() <= max, "punched bytes held: {}", host.punch_held());
-        assert!(host.program_buffered() <= max, "{}", host.program_buffered());
+        assert!(
+            host.punch_held() <= max,
+            "punched bytes held: {}",
+            host.punch_held()
+        );
+        assert!(
+            host.program_buffered() <= max,
+            "{}",
+            host.program_buffered()
+        );
     }
 }

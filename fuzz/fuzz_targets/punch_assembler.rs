@@ -3,7 +3,7 @@
 //! `%` to `%` in 7-bit text.
 #![no_main]
 
-use cellgate::jobs::punch::PunchAssembler;
+use cellgate_core::program::punch::PunchAssembler;
 use libfuzzer_sys::fuzz_target;
 
 const MAX: usize = 4096;

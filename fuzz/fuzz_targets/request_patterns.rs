@@ -2,8 +2,8 @@
 //! panic, and a request found names a program number of digits.
 #![no_main]
 
-use cellgate::fanuc::tape::TapeCode;
-use cellgate::jobs::punch::{PunchedText, RequestPatterns};
+use cellgate_core::program::punch::{PunchedText, RequestPatterns};
+use cellgate_core::program::tape::TapeCode;
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

@@ -4,7 +4,8 @@
 
 use std::time::{Duration, Instant};
 
-use cellgate::transport::{LineSettings, Pacer, Parity, StopBits};
+use cellgate_core::engine::line::{LineSettings, Parity, StopBits};
+use cellgate_core::engine::pacer::Pacer;
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
@@ -15,8 +16,16 @@ fuzz_target!(|data: &[u8]| {
         return;
     };
     let mut line = LineSettings::with_baud(300 + u32::from(a) * 400);
-    line.parity = if b & 1 == 0 { Parity::None } else { Parity::Even };
-    line.stop_bits = if b & 2 == 0 { StopBits::One } else { StopBits::Two };
+    line.parity = if b & 1 == 0 {
+        Parity::None
+    } else {
+        Parity::Even
+    };
+    line.stop_bits = if b & 2 == 0 {
+        StopBits::One
+    } else {
+        StopBits::Two
+    };
     let window = 1 + usize::from(b) * 8;
     let mut pacer = Pacer::new(line, window);
     let mut now = Instant::now();

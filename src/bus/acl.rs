@@ -13,10 +13,10 @@
 //! refused query is answered at once with no reply; a refused put or delete vanishes. The
 //! gateway's own session talking to itself passes no transport and is never filtered.
 //!
-//! Zenoh's rules see operations and keys, never payloads. A get on `P/C/machine/M/job` lists
-//! the queue *and* submits a job, so only `job.submit` grants it; a get on
-//! `P/C/program/NAME` reads a program *and*, carrying a `ProgramWrite`, writes one, so only
-//! `program.write` grants it; likewise the PLC and G05 keys, where gets with a payload write.
+//! Zenoh's rules see operations and keys, never payloads, so every write has a key of its own
+//! (`…/submit`, `…/program/NAME/write`, `…/mem/…/write`, `…/tag/NAME/set`,
+//! `…/transfer/N/send`) and a permission that reads a key never writes through it. The G05
+//! keys are all `g05.stream`'s: reading a stream is part of producing one.
 //!
 //! Behind a router the gateway has one transport, the router's, and cannot tell the router's
 //! clients apart: the router must hold a role with every permission, and the router enforces
@@ -25,7 +25,7 @@
 use serde_json::{Value, json};
 
 use super::keys::{CellKeys, MachineLeaf, PlcArea, admin_selector, gateway_selector};
-use crate::config::{Permission, SecurityConfig};
+use cellgate_core::config::{Permission, SecurityConfig};
 
 /// The id prefix of every rule, subject and policy cellgate generates; a zenoh file's own
 /// access-control entries may not use it.
@@ -138,18 +138,35 @@ fn writes(keys: Vec<String>) -> Vec<Grant> {
     ]
 }
 
+/// Reading the library: gets (a program, a wildcard listing, revisions, a comparison).
+fn program_reads(keys: &CellKeys) -> Vec<Grant> {
+    vec![
+        grant(Flow::Ingress, QUERY, keys.any_program_read()),
+        grant(Flow::Egress, REPLY_AND_QUERYABLE, keys.any_program_read()),
+    ]
+}
+
+/// Gets on keys that only answer.
+fn reads(keys: Vec<String>) -> Vec<Grant> {
+    vec![
+        grant(Flow::Ingress, QUERY, keys.clone()),
+        grant(Flow::Egress, REPLY_AND_QUERYABLE, keys),
+    ]
+}
+
 /// The rules of one permission.
 fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
     let leaf = |l: MachineLeaf| keys.any_leaf(l);
     match p {
         Permission::StatusRead => {
-            // Gets on status, DI, a job's latest event and a PLC link's status change
-            // nothing. (Tag reads are not here: a get with a payload on a tag key writes the
-            // tag, and the rules see keys, not payloads.)
+            // Gets on status, DI, the queue, a job's latest event, a PLC link's status and a
+            // tag change nothing: the writes of those keys have keys of their own.
             let answered = vec![
                 leaf(MachineLeaf::Status),
                 leaf(MachineLeaf::Di),
+                leaf(MachineLeaf::Job),
                 keys.any_plc_status(),
+                keys.any_plc_tag(),
                 keys.any_job_events(),
             ];
             vec![
@@ -175,13 +192,10 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
             ]
         }
         Permission::JobSubmit => {
+            let queried = vec![leaf(MachineLeaf::Submit), leaf(MachineLeaf::Job)];
             let mut g = vec![
-                grant(Flow::Ingress, QUERY, vec![leaf(MachineLeaf::Job)]),
-                grant(
-                    Flow::Egress,
-                    REPLY_AND_QUERYABLE,
-                    vec![leaf(MachineLeaf::Job)],
-                ),
+                grant(Flow::Ingress, QUERY, queried.clone()),
+                grant(Flow::Egress, REPLY_AND_QUERYABLE, queried),
             ];
             g.extend(job_events(keys));
             g
@@ -194,11 +208,22 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
                     &["declare_subscriber"],
                     vec![keys.any_job_events()],
                 ),
+                grant(Flow::Ingress, QUERY, vec![keys.any_job_cancel()]),
+                grant(
+                    Flow::Egress,
+                    REPLY_AND_QUERYABLE,
+                    vec![keys.any_job_cancel()],
+                ),
             ];
             g.extend(job_events(keys));
             g
         }
-        Permission::ProgramWrite => writes(vec![keys.any_program()]),
+        Permission::ProgramRead => program_reads(keys),
+        Permission::ProgramWrite => {
+            let mut g = writes(vec![keys.any_program_write()]);
+            g.extend(program_reads(keys));
+            g
+        }
         Permission::IoDo => vec![
             grant(
                 Flow::Ingress,
@@ -207,9 +232,13 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
             ),
             grant(Flow::Egress, SERVED_WRITE, vec![leaf(MachineLeaf::Do)]),
         ],
-        Permission::PlcTag => writes(vec![keys.any_plc_area(PlcArea::Tag)]),
+        Permission::PlcTag => writes(vec![keys.any_plc_tag_set()]),
+        // Reads and writes of memory both (the memory viewer is an engineer's tool).
         Permission::PlcMem => writes(vec![keys.any_plc_area(PlcArea::Mem)]),
-        Permission::PlcTransfer => writes(vec![keys.any_plc_area(PlcArea::Transfer)]),
+        Permission::PlcTransfer => writes(vec![
+            keys.any_plc_transfer_send(),
+            keys.any_plc_message_send(),
+        ]),
         Permission::G05Stream => {
             let mut g = writes(vec![keys.every_g05_key()]);
             // A stream's credits and state come back as publications.
@@ -233,6 +262,13 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
             ));
             g
         }
+        // A release changes state, so it has a key of its own, answered like a write.
+        Permission::ProgramRelease => reads(vec![keys.program_release("*")]),
+        Permission::HistoryRead => reads(vec![keys.history(), keys.utilisation()]),
+        Permission::AuditRead => reads(vec![keys.audit()]),
+        Permission::AuditNote => reads(vec![keys.audit_note()]),
+        // Reading a simulated machine's state is part of driving it.
+        Permission::SimControl => writes(vec![keys.any_sim()]),
         Permission::AdminRead => vec![
             grant(
                 Flow::Ingress,
@@ -345,7 +381,7 @@ pub fn router_access_control(
 ) -> Value {
     let mut clients = generate(security, keys, prefix, |f| f, ID_PREFIX);
     let everything = SecurityConfig {
-        roles: vec![crate::config::Role {
+        roles: vec![cellgate_core::config::Role {
             name: "gateway".to_string(),
             cert_common_names: gateway.to_vec(),
             usernames: Vec::new(),
@@ -420,363 +456,4 @@ pub fn merge(theirs: &Value, ours: Value) -> Result<Value, AclError> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::config::Role;
-    use zenoh::key_expr::keyexpr;
-
-    fn role(name: &str, cn: &str, permissions: &[Permission]) -> Role {
-        Role {
-            name: name.to_string(),
-            cert_common_names: vec![cn.to_string()],
-            usernames: Vec::new(),
-            permissions: permissions.to_vec(),
-        }
-    }
-
-    fn security(roles: Vec<Role>) -> SecurityConfig {
-        SecurityConfig {
-            roles,
-            ..SecurityConfig::default()
-        }
-    }
-
-    /// Whether `acl` lets the holder of `cn` send (`Ingress`) or receive (`Egress`) `message`
-    /// on `key`, by zenoh's rule: some allow rule of the subject's policies includes the key.
-    fn allows(acl: &Value, cn: &str, flow: Flow, message: &str, key: &str) -> bool {
-        let key = keyexpr::new(key).unwrap();
-        let subjects: Vec<&str> = acl["subjects"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .filter(|s| {
-                s["cert_common_names"]
-                    .as_array()
-                    .is_some_and(|c| c.iter().any(|c| c == cn))
-            })
-            .map(|s| s["id"].as_str().unwrap())
-            .collect();
-        let rule_ids: Vec<&str> = acl["policies"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .filter(|p| {
-                p["subjects"]
-                    .as_array()
-                    .unwrap()
-                    .iter()
-                    .any(|s| subjects.contains(&s.as_str().unwrap()))
-            })
-            .flat_map(|p| p["rules"].as_array().unwrap().iter())
-            .map(|r| r.as_str().unwrap())
-            .collect();
-        acl["rules"].as_array().unwrap().iter().any(|r| {
-            rule_ids.contains(&r["id"].as_str().unwrap())
-                && r["flows"]
-                    .as_array()
-                    .unwrap()
-                    .iter()
-                    .any(|f| f == flow.name())
-                && r["messages"]
-                    .as_array()
-                    .unwrap()
-                    .iter()
-                    .any(|m| m == message)
-                && r["key_exprs"]
-                    .as_array()
-                    .unwrap()
-                    .iter()
-                    .any(|k| keyexpr::new(k.as_str().unwrap()).unwrap().includes(key))
-        })
-    }
-
-    fn cell_acl() -> (Value, CellKeys) {
-        let keys = CellKeys::new("cellgate", "c").unwrap();
-        let sec = security(vec![
-            role("dashboard", "dash", &[Permission::StatusRead]),
-            role(
-                "mes",
-                "mes",
-                &[Permission::JobSubmit, Permission::ProgramWrite],
-            ),
-            role(
-                "operator",
-                "op",
-                &[Permission::IoDo, Permission::JobCancel, Permission::PlcTag],
-            ),
-            role("admin", "adm", &[Permission::AdminRead]),
-        ]);
-        (access_control(&sec, &keys, "cellgate").unwrap(), keys)
-    }
-
-    #[test]
-    fn no_roles_no_access_control() {
-        let keys = CellKeys::new("cellgate", "c").unwrap();
-        assert!(access_control(&SecurityConfig::default(), &keys, "cellgate").is_none());
-    }
-
-    #[test]
-    fn the_generated_section_is_one_zenoh_accepts() {
-        let (acl, _) = cell_acl();
-        let mut config = zenoh::Config::default();
-        config
-            .insert_json5("access_control", &acl.to_string())
-            .unwrap();
-        assert_eq!(
-            config
-                .get_json("access_control/default_permission")
-                .unwrap(),
-            "\"deny\""
-        );
-    }
-
-    #[test]
-    fn a_dashboard_reads_and_writes_nothing() {
-        let (acl, k) = cell_acl();
-        let status = k.leaf("m1", MachineLeaf::Status);
-        assert!(allows(&acl, "dash", Flow::Ingress, "query", &status));
-        assert!(allows(&acl, "dash", Flow::Egress, "reply", &status));
-        assert!(allows(
-            &acl,
-            "dash",
-            Flow::Ingress,
-            "query",
-            &k.any_leaf(MachineLeaf::Status)
-        ));
-        assert!(allows(
-            &acl,
-            "dash",
-            Flow::Ingress,
-            "declare_subscriber",
-            &k.all()
-        ));
-        assert!(allows(
-            &acl,
-            "dash",
-            Flow::Egress,
-            "put",
-            &k.job_events("m1", "j")
-        ));
-        assert!(allows(
-            &acl,
-            "dash",
-            Flow::Egress,
-            "liveliness_token",
-            &k.gateway()
-        ));
-        for (message, key) in [
-            ("query", k.leaf("m1", MachineLeaf::Job)),
-            ("query", k.leaf("m1", MachineLeaf::Do)),
-            ("put", k.leaf("m1", MachineLeaf::Do)),
-            ("query", k.program("O1")),
-            ("put", k.program("O1")),
-            ("delete", k.program("O1")),
-            ("delete", k.job_events("m1", "j")),
-            ("query", k.admin()),
-            ("query", k.all()),
-            ("put", "cellgate/c/plc/plc-1/tag/door".to_string()),
-        ] {
-            assert!(
-                !allows(&acl, "dash", Flow::Ingress, message, &key),
-                "{message} on {key}"
-            );
-        }
-        // A PLC link's status may be read; its memory and tags may not be queried, since a
-        // get with a payload there writes.
-        let plc_status = k.plc_status("plc-1");
-        assert!(allows(&acl, "dash", Flow::Ingress, "query", &plc_status));
-        assert!(allows(&acl, "dash", Flow::Egress, "reply", &plc_status));
-        assert!(allows(
-            &acl,
-            "dash",
-            Flow::Egress,
-            "declare_queryable",
-            &plc_status
-        ));
-        assert!(allows(
-            &acl,
-            "dash",
-            Flow::Ingress,
-            "query",
-            &k.any_plc_status()
-        ));
-        for key in [
-            k.plc_tag("plc-1", "door"),
-            k.plc_mem("plc-1", 0, "D", Some(0)),
-            k.plc_transfer("plc-1", 1),
-        ] {
-            assert!(
-                !allows(&acl, "dash", Flow::Ingress, "query", &key),
-                "query on {key}"
-            );
-        }
-        // The gateway does not announce the routes a dashboard may not use.
-        assert!(!allows(
-            &acl,
-            "dash",
-            Flow::Egress,
-            "declare_queryable",
-            &k.leaf("m1", MachineLeaf::Job)
-        ));
-    }
-
-    #[test]
-    fn each_role_gets_its_routes_only() {
-        let (acl, k) = cell_acl();
-        let job = k.leaf("m1", MachineLeaf::Job);
-        assert!(allows(&acl, "mes", Flow::Ingress, "query", &job));
-        assert!(allows(
-            &acl,
-            "mes",
-            Flow::Ingress,
-            "query",
-            &k.program("O1")
-        ));
-        assert!(allows(&acl, "mes", Flow::Ingress, "put", &k.program("O1")));
-        assert!(allows(
-            &acl,
-            "mes",
-            Flow::Ingress,
-            "declare_subscriber",
-            &k.job_events("m1", "*")
-        ));
-        assert!(!allows(
-            &acl,
-            "mes",
-            Flow::Ingress,
-            "put",
-            &k.leaf("m1", MachineLeaf::Do)
-        ));
-        assert!(!allows(
-            &acl,
-            "mes",
-            Flow::Ingress,
-            "delete",
-            &k.job_events("m1", "j")
-        ));
-        assert!(allows(
-            &acl,
-            "op",
-            Flow::Ingress,
-            "put",
-            &k.leaf("m1", MachineLeaf::Do)
-        ));
-        assert!(allows(
-            &acl,
-            "op",
-            Flow::Ingress,
-            "delete",
-            &k.job_events("m1", "j")
-        ));
-        assert!(allows(
-            &acl,
-            "op",
-            Flow::Ingress,
-            "put",
-            "cellgate/c/plc/plc-1/tag/door"
-        ));
-        assert!(!allows(
-            &acl,
-            "op",
-            Flow::Ingress,
-            "put",
-            "cellgate/c/plc/plc-1/mem/D/1"
-        ));
-        assert!(!allows(&acl, "op", Flow::Ingress, "query", &job));
-        assert!(allows(&acl, "adm", Flow::Ingress, "query", &k.admin()));
-        assert!(allows(
-            &acl,
-            "adm",
-            Flow::Ingress,
-            "query",
-            "cellgate/*/@admin"
-        ));
-        assert!(allows(&acl, "adm", Flow::Egress, "reply", &k.admin()));
-        assert!(!allows(
-            &acl,
-            "adm",
-            Flow::Egress,
-            "reply",
-            "cellgate/other/@admin"
-        ));
-        assert!(!allows(
-            &acl,
-            "nobody",
-            Flow::Ingress,
-            "query",
-            &k.leaf("m1", MachineLeaf::Status)
-        ));
-    }
-
-    #[test]
-    fn a_router_lets_the_gateway_do_the_mirror_of_its_clients() {
-        let keys = CellKeys::new("cellgate", "c").unwrap();
-        let sec = security(vec![role("dashboard", "dash", &[Permission::StatusRead])]);
-        let acl = router_access_control(&sec, &keys, "cellgate", &["gw".to_string()]);
-        let status = keys.leaf("m1", MachineLeaf::Status);
-        assert!(allows(
-            &acl,
-            "gw",
-            Flow::Ingress,
-            "declare_queryable",
-            &status
-        ));
-        assert!(allows(&acl, "gw", Flow::Ingress, "reply", &status));
-        assert!(allows(&acl, "gw", Flow::Egress, "query", &status));
-        assert!(allows(
-            &acl,
-            "gw",
-            Flow::Egress,
-            "put",
-            &keys.leaf("m1", MachineLeaf::Do)
-        ));
-        assert!(allows(
-            &acl,
-            "gw",
-            Flow::Ingress,
-            "liveliness_token",
-            &keys.gateway()
-        ));
-        assert!(allows(&acl, "dash", Flow::Ingress, "query", &status));
-        let mut config = zenoh::Config::default();
-        config
-            .insert_json5("access_control", &acl.to_string())
-            .unwrap();
-    }
-
-    #[test]
-    fn merging_keeps_the_files_rules_and_refuses_what_would_open_the_cell() {
-        let (ours, _) = cell_acl();
-        let theirs = json!({
-            "enabled": true,
-            "default_permission": "deny",
-            "rules": [{ "id": "mine", "messages": ["put"], "flows": ["ingress"],
-                        "permission": "allow", "key_exprs": ["plant/**"] }],
-            "subjects": [{ "id": "everyone" }],
-            "policies": [{ "rules": ["mine"], "subjects": ["everyone"] }],
-        });
-        let merged = merge(&theirs, ours.clone()).unwrap();
-        assert_eq!(merged["rules"][0]["id"], "mine");
-        assert_eq!(
-            merged["rules"].as_array().unwrap().len(),
-            ours["rules"].as_array().unwrap().len() + 1
-        );
-        assert_eq!(merged["default_permission"], "deny");
-
-        let mut open = theirs.clone();
-        open["default_permission"] = json!("allow");
-        assert_eq!(merge(&open, ours.clone()), Err(AclError::DefaultAllow));
-        let mut clash = theirs;
-        clash["subjects"][0]["id"] = json!("cellgate/role/x");
-        assert!(matches!(
-            merge(&clash, ours.clone()),
-            Err(AclError::ReservedId {
-                list: "subjects",
-                ..
-            })
-        ));
-        let disabled = json!({ "enabled": false, "default_permission": "allow",
-                               "rules": null, "subjects": null, "policies": null });
-        assert_eq!(merge(&disabled, ours.clone()).unwrap(), ours);
-    }
-}
+mod tests;

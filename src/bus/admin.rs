@@ -12,10 +12,17 @@ use zenoh::query::{Query, Queryable};
 
 use super::BusError;
 use super::keys::CellKeys;
-use crate::config::CellConfig;
+use cellgate_core::config::CellConfig;
 
 /// The crate version, as reported by `--version` and the admin key.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// The running configuration as `@admin` shows it: credentials left out.
+fn redacted(config: &CellConfig) -> CellConfig {
+    let mut c = config.clone();
+    c.telemetry = c.telemetry.redacted();
+    c
+}
 
 /// The JSON document the admin key answers with.
 pub fn admin_document(config: &CellConfig, zid: &str) -> serde_json::Value {
@@ -24,8 +31,16 @@ pub fn admin_document(config: &CellConfig, zid: &str) -> serde_json::Value {
         "version": VERSION,
         "cell": config.cell,
         "zid": zid,
-        "config": config,
+        "started_unix_ms": started_unix_ms(),
+        "config": redacted(config),
     })
+}
+
+/// When this process's gateway started, milliseconds since the Unix epoch: fixed by the
+/// first call ([`crate::gateway::run`] makes it as it starts).
+pub fn started_unix_ms() -> u64 {
+    static STARTED: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *STARTED.get_or_init(crate::jobs::unix_ms)
 }
 
 /// The gateway's token and admin queryable. Undeclared when dropped (or explicitly, with
@@ -34,7 +49,9 @@ pub struct AdminRoute {
     token: LivelinessToken,
     queryable: Queryable<FifoChannelHandler<Query>>,
     key: String,
-    document: String,
+    document: serde_json::Value,
+    /// The cell's history, whose health the document shows.
+    history: crate::history::History,
 }
 
 impl AdminRoute {
@@ -62,13 +79,36 @@ impl AdminRoute {
                 key: key.clone(),
                 source,
             })?;
-        let document = admin_document(config, &session.zid().to_string()).to_string();
+        let document = admin_document(config, &session.zid().to_string());
         Ok(AdminRoute {
             token,
             queryable,
             key,
             document,
+            history: crate::history::History::disabled(),
         })
+    }
+
+    /// The same route, showing the health of `history` (records dropped, why it cannot write).
+    pub fn with_history(mut self, history: crate::history::History) -> Self {
+        self.history = history;
+        self
+    }
+
+    /// The document as it stands now.
+    fn current(&self) -> String {
+        if !self.history.enabled() {
+            return self.document.to_string();
+        }
+        let health = self.history.health();
+        let mut doc = self.document.clone();
+        if let Some(o) = doc.as_object_mut() {
+            o.insert(
+                "history".to_string(),
+                serde_json::json!({ "dropped": health.dropped, "fault": health.fault }),
+            );
+        }
+        doc.to_string()
     }
 
     /// Answers admin queries until `stop`.
@@ -82,7 +122,7 @@ impl AdminRoute {
                     Err(_) => break,
                 },
             };
-            if let Err(e) = query.reply(self.key.as_str(), self.document.as_str()).await {
+            if let Err(e) = query.reply(self.key.as_str(), self.current()).await {
                 tracing::warn!(selector = %query.selector(), error = %e, "admin reply failed");
             }
         }

@@ -1,15 +1,19 @@
 //! What every route shares ([`RouteContext`]): the session, the cell's keys, its machines and
 //! program library, and the bound on requests that may wait. Also the typed errors a request
-//! is refused with ([`RequestError`], coded in `crate::codes`) and the reply helpers.
+//! is refused with ([`RequestError`], coded in `cellgate_core::codes`) and the reply helpers.
 
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
+use futures::future::BoxFuture;
+use futures::stream::BoxStream;
+use futures::{FutureExt as _, StreamExt as _};
 use prost::Message;
 use tokio::sync::Semaphore;
 use tokio::task::JoinSet;
+use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 use zenoh::bytes::Encoding;
 use zenoh::handlers::FifoChannelHandler;
@@ -19,19 +23,239 @@ use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample};
 
 use super::BusError;
+use super::audit::{Audit, Auditor};
 use super::keys::{CellKey, CellKeys, MachineLeaf, intersects};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, error_reply};
-use crate::codes::BusCode;
-use crate::fanuc::Protocol;
+use crate::history::History;
 use crate::jobs::JobError;
 use crate::jobs::library::{LibraryError, ProgramLibrary};
-use crate::pb;
+use cellgate_core::bounds::{self, BoundError, Bounded, Limits};
+use cellgate_core::codes::BusCode;
+use cellgate_core::fanuc::Protocol;
+use cellgate_core::pb;
+use zenoh::pubsub::Publisher;
+use zenoh::qos::CongestionControl;
 
 /// Requests whose reply may wait (a job whose program is scanned or fetched, a DI read, a DO
-/// output, a library transfer) that run at once; more wait for a slot. The bound keeps a
-/// flood of requests from becoming an unbounded number of tasks.
+/// output, a library transfer) that run at once, over every [`Pool`]. The bound keeps a flood
+/// of requests from becoming an unbounded number of tasks.
 pub const MAX_WAITING_REQUESTS: usize = 256;
+
+/// Programs fetched from keys at once (`JobRequest.key`): each may hold `programs.max_inline`.
+pub const MAX_FETCHES: usize = 2;
+
+/// The share of the request slots a kind of request runs in, so that a flood of one kind (a
+/// dashboard's DI reads) never takes the slots of another (the MES's submits): with its pool
+/// full, a request is answered `ERROR_CODE_BUSY` at once while the other pools serve on.
+/// zenoh's stable API does not tell the gateway which client sent a query, so the shares are
+/// per kind of request, which is also per permission.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Pool {
+    /// Status, DI, the queue, job events, PLC status and tag reads: `status.read`.
+    Read,
+    /// Job submits and cancels: `job.submit`, `job.cancel`.
+    Jobs,
+    /// Program reads: each holds a whole program in memory, so few at once
+    /// (`programs.max_size` each).
+    ProgramRead,
+    /// Program stores and removals: `program.write`.
+    ProgramWrite,
+    /// DO outputs: `io.do`.
+    Io,
+    /// PLC memory, tag writes, transfers.
+    Plc,
+    /// G05 stream requests.
+    G05,
+    /// Controls of simulated machines: `sim.control`.
+    Sim,
+}
+
+impl Pool {
+    /// Every pool.
+    pub const ALL: [Pool; 8] = [
+        Pool::Read,
+        Pool::Jobs,
+        Pool::ProgramRead,
+        Pool::ProgramWrite,
+        Pool::Io,
+        Pool::Plc,
+        Pool::G05,
+        Pool::Sim,
+    ];
+
+    /// Requests of this kind that run at once; together [`MAX_WAITING_REQUESTS`].
+    pub const fn slots(self) -> usize {
+        match self {
+            Pool::Read => 88,
+            Pool::Jobs => 64,
+            Pool::ProgramRead => 4,
+            Pool::ProgramWrite => 12,
+            Pool::Io => 32,
+            Pool::Plc => 32,
+            Pool::G05 => 16,
+            Pool::Sim => 8,
+        }
+    }
+
+    fn index(self) -> usize {
+        match self {
+            Pool::Read => 0,
+            Pool::Jobs => 1,
+            Pool::ProgramRead => 2,
+            Pool::ProgramWrite => 3,
+            Pool::Io => 4,
+            Pool::Plc => 5,
+            Pool::G05 => 6,
+            Pool::Sim => 7,
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Pool::Read => "reads",
+            Pool::Jobs => "job requests",
+            Pool::ProgramRead => "program reads",
+            Pool::ProgramWrite => "program stores",
+            Pool::Io => "DO outputs",
+            Pool::Plc => "PLC requests",
+            Pool::G05 => "G05 requests",
+            Pool::Sim => "simulation controls",
+        }
+    }
+}
+
+const _: () = {
+    let mut sum = 0;
+    let mut i = 0;
+    while i < Pool::ALL.len() {
+        sum += Pool::ALL[i].slots();
+        i += 1;
+    }
+    assert!(sum == MAX_WAITING_REQUESTS);
+};
+
+/// What arrives on a route's queryable or subscriber.
+pub(crate) enum Incoming {
+    Query(Query),
+    Sample(Sample),
+    /// The queryable or subscriber ended: the session closed under the route.
+    Ended,
+}
+
+type Handler<C> = Arc<dyn Fn(C, Incoming) -> BoxFuture<'static, ()> + Send + Sync>;
+
+/// One queryable or subscriber of a route and what serves what arrives on it.
+pub(crate) struct Endpoint<C> {
+    incoming: BoxStream<'static, Incoming>,
+    /// `None`: answered on the route's loop itself (cheap answers from memory); else run in a
+    /// slot of the pool.
+    pool: Option<Pool>,
+    handle: Handler<C>,
+}
+
+impl<C: Send + 'static> Endpoint<C> {
+    /// Queries on `queryable`, each served by `f`.
+    pub fn queries<F, Fut>(
+        queryable: Queryable<FifoChannelHandler<Query>>,
+        pool: Option<Pool>,
+        f: F,
+    ) -> Self
+    where
+        F: Fn(C, Query) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = ()> + Send + 'static,
+    {
+        let incoming = futures::stream::unfold(Some(queryable), |q| async move {
+            let q = q?;
+            Some(match q.recv_async().await {
+                Ok(query) => (Incoming::Query(query), Some(q)),
+                Err(_) => (Incoming::Ended, None),
+            })
+        });
+        Endpoint {
+            incoming: incoming.boxed(),
+            pool,
+            handle: Arc::new(move |c, i| match i {
+                Incoming::Query(q) => f(c, q).boxed(),
+                _ => async {}.boxed(),
+            }),
+        }
+    }
+
+    /// Puts and deletes on `subscriber`, each served by `f`.
+    pub fn samples<F, Fut>(
+        subscriber: Subscriber<FifoChannelHandler<Sample>>,
+        pool: Option<Pool>,
+        f: F,
+    ) -> Self
+    where
+        F: Fn(C, Sample) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = ()> + Send + 'static,
+    {
+        let incoming = futures::stream::unfold(Some(subscriber), |s| async move {
+            let s = s?;
+            Some(match s.recv_async().await {
+                Ok(sample) => (Incoming::Sample(sample), Some(s)),
+                Err(_) => (Incoming::Ended, None),
+            })
+        });
+        Endpoint {
+            incoming: incoming.boxed(),
+            pool,
+            handle: Arc::new(move |c, i| match i {
+                Incoming::Sample(s) => f(c, s).boxed(),
+                _ => async {}.boxed(),
+            }),
+        }
+    }
+}
+
+/// What a route's context gives the loop that serves it.
+pub(crate) trait Routed: Clone + Send + Sync + 'static {
+    fn route(&self) -> &RouteContext;
+}
+
+impl Routed for RouteContext {
+    fn route(&self) -> &RouteContext {
+        self
+    }
+}
+
+/// Serves a route's endpoints until `stop`, or until one of them ends (the session closed):
+/// every request in a slot of its pool, off the loop, so that one slow querier holds up
+/// neither its route nor the others; the requests still running are dropped when it returns.
+pub(crate) async fn serve_route<C: Routed>(
+    ctx: C,
+    stop: CancellationToken,
+    endpoints: Vec<Endpoint<C>>,
+) {
+    let mut tasks = JoinSet::new();
+    let mut handlers = Vec::new();
+    let mut streams = Vec::new();
+    for (i, e) in endpoints.into_iter().enumerate() {
+        handlers.push((e.pool, e.handle));
+        streams.push(e.incoming.map(move |item| (i, item)).boxed());
+    }
+    let mut incoming = futures::stream::select_all(streams);
+    loop {
+        tokio::select! {
+            () = stop.cancelled() => break,
+            next = incoming.next() => {
+                let Some((i, item)) = next else { break };
+                if matches!(item, Incoming::Ended) {
+                    break;
+                }
+                let Some((pool, handle)) = handlers.get(i) else { continue };
+                match pool {
+                    None => handle(ctx.clone(), item).await,
+                    Some(pool) => ctx.route().spawn_in(&mut tasks, *pool, item, handle, ctx.clone()).await,
+                }
+            }
+            Some(_) = tasks.join_next() => {}
+        }
+    }
+    tasks.shutdown().await;
+}
 
 /// What the routes of one cell share.
 #[derive(Clone)]
@@ -40,9 +264,18 @@ pub(crate) struct RouteContext {
     pub keys: Arc<CellKeys>,
     pub machines: Arc<BTreeMap<String, Arc<Machine>>>,
     pub library: ProgramLibrary,
-    /// Largest inline program a `JobRequest` may carry (`programs.max_inline`).
+    /// Largest inline program a `JobRequest` may carry (`programs.max_inline`); a program
+    /// fetched from a key too.
     pub max_inline: u64,
-    slots: Arc<Semaphore>,
+    /// Key prefixes a `JobRequest.key` may name (`programs.fetch_prefixes`).
+    pub fetch_prefixes: Arc<[String]>,
+    /// Fetches of a job's program at once: each may hold `max_inline` bytes.
+    pub fetches: Arc<Semaphore>,
+    /// The cell's history and audit trail (disabled: records nothing).
+    pub history: History,
+    /// Who may have sent a write, for the audit.
+    pub auditor: Arc<Auditor>,
+    slots: Arc<[Arc<Semaphore>]>,
 }
 
 /// What a request's key names.
@@ -72,14 +305,16 @@ pub(crate) enum RequestError {
         expected: String,
         got: Option<String>,
     },
-    #[error("machine {machine}: the payload is not a cellgate.v1.{message}: {error}")]
-    Payload {
-        machine: String,
-        message: &'static str,
-        error: prost::DecodeError,
-    },
+    #[error("machine {machine}: {error}")]
+    Payload { machine: String, error: BoundError },
     #[error("machine {machine}: {what}")]
     Invalid { machine: String, what: String },
+    /// A request sent to a key that does not take it (a write on a read key).
+    #[error("{0}")]
+    WrongKey(String),
+    /// The cell file does not allow what the request asks for.
+    #[error("{0}")]
+    NotPermitted(String),
     #[error("machine {machine}: JobRequest.key {key:?} is not a key expression: {error}")]
     BadKey {
         machine: String,
@@ -113,27 +348,46 @@ pub(crate) enum RequestError {
         job: String,
         kept: usize,
     },
-    #[error("the gateway is serving {max} requests already; try again later")]
-    Busy { max: usize },
+    #[error("the gateway is serving {max} {what} already; try again later")]
+    Busy { what: &'static str, max: usize },
     #[error(transparent)]
     Link(#[from] crate::link::driver::LinkError),
     #[error(transparent)]
-    G05(#[from] crate::g05::G05Error),
+    G05(#[from] crate::link::g05::G05Error),
     #[error(transparent)]
-    Batch(#[from] crate::g05::stream::BatchError),
+    Batch(#[from] cellgate_core::fanuc::g05::stream::BatchError),
     #[error("machine {machine} has no G05 stream {stream:?} open (only the last one is kept)")]
     NoSuchStream { machine: String, stream: String },
-    #[error("program {name}: the payload is not a cellgate.v1.ProgramWrite: {error}")]
-    ProgramWritePayload {
-        name: String,
-        error: prost::DecodeError,
-    },
+    #[error("program {name}: {error}")]
+    ProgramWritePayload { name: String, error: BoundError },
     #[error("program {name}: the ProgramWrite names no operation: set store or remove")]
     ProgramWriteEmpty { name: String },
     #[error(transparent)]
     Job(#[from] JobError),
     #[error(transparent)]
     Library(#[from] LibraryError),
+    #[error(transparent)]
+    History(#[from] crate::history::HistoryError),
+    #[error("{0}")]
+    Param(#[from] cellgate_core::history::ParamError),
+    #[error("program {name}: {error}")]
+    NotText {
+        name: String,
+        error: cellgate_core::program::diff::NotText,
+    },
+    /// A simulation control for a machine that is not simulated.
+    #[error(
+        "machine {machine} is not simulated (its transport is not kind = \"sim\"): the \
+         sim controls drive simulated machines only"
+    )]
+    NotSimulated { machine: String },
+    /// A simulation control the simulated machine cannot take now, or ever.
+    #[error("machine {machine}: {why}")]
+    SimRefused {
+        machine: String,
+        why: String,
+        code: pb::ErrorCode,
+    },
 }
 
 fn not_to(got: &Option<String>) -> String {
@@ -149,6 +403,7 @@ impl BusCode for RequestError {
             RequestError::OneMachine { .. }
             | RequestError::Payload { .. }
             | RequestError::Invalid { .. }
+            | RequestError::WrongKey(_)
             | RequestError::BadKey { .. }
             | RequestError::ProgramWritePayload { .. }
             | RequestError::ProgramWriteEmpty { .. } => pb::ErrorCode::InvalidRequest,
@@ -163,10 +418,16 @@ impl BusCode for RequestError {
             }
             RequestError::G05(e) => e.code(),
             RequestError::Busy { .. } => pb::ErrorCode::Busy,
+            RequestError::NotPermitted(_) => pb::ErrorCode::NotPermitted,
             RequestError::Link(e) => e.code(),
             RequestError::Batch(e) => e.code(),
             RequestError::Job(e) => e.code(),
             RequestError::Library(e) => e.code(),
+            RequestError::History(e) => e.code(),
+            RequestError::Param(e) => e.code(),
+            RequestError::NotText { .. } => pb::ErrorCode::InvalidRequest,
+            RequestError::NotSimulated { .. } => pb::ErrorCode::NotSupported,
+            RequestError::SimRefused { code, .. } => *code,
         }
     }
 }
@@ -185,8 +446,52 @@ impl RouteContext {
             machines,
             library,
             max_inline,
-            slots: Arc::new(Semaphore::new(MAX_WAITING_REQUESTS)),
+            fetch_prefixes: Arc::new([]),
+            fetches: Arc::new(Semaphore::new(MAX_FETCHES)),
+            history: History::disabled(),
+            auditor: Arc::default(),
+            slots: Pool::ALL
+                .iter()
+                .map(|p| Arc::new(Semaphore::new(p.slots())))
+                .collect(),
         }
+    }
+
+    /// The bounds of request messages in this cell.
+    pub fn limits(&self) -> Limits {
+        Limits {
+            max_inline: self.max_inline,
+            max_program: self.library.max_size(),
+        }
+    }
+
+    /// `bytes` as the request message `M`, within its bounds ([`cellgate_core::bounds`]).
+    pub fn decode<M: Bounded>(&self, machine: &str, bytes: &[u8]) -> Result<M, RequestError> {
+        bounds::decode(bytes, &self.limits()).map_err(|error| RequestError::Payload {
+            machine: machine.to_string(),
+            error,
+        })
+    }
+
+    /// The same context, recording in `history` and auditing with the cell's roles.
+    pub fn with_history(mut self, history: History, auditor: Auditor) -> Self {
+        self.history = history;
+        self.auditor = Arc::new(auditor);
+        self
+    }
+
+    /// Records an audited write and its outcome.
+    pub fn audit<E: BusCode + std::fmt::Display>(&self, a: Audit<'_>, outcome: Result<(), &E>) {
+        self.auditor.record(&self.history, a, outcome);
+    }
+
+    /// The same context, allowing `JobRequest.key` under these prefixes.
+    pub fn with_fetch_prefixes(mut self, prefixes: &[String]) -> Self {
+        self.fetch_prefixes = prefixes
+            .iter()
+            .map(|p| p.trim_end_matches('/').to_string())
+            .collect();
+        self
     }
 
     pub async fn queryable(
@@ -219,54 +524,51 @@ impl RouteContext {
             })
     }
 
-    /// Runs a query that may wait off the route's loop, in one of the
-    /// [`MAX_WAITING_REQUESTS`] slots: one slow querier holds up neither its route nor the
-    /// others. With every slot taken the query is answered `ERROR_CODE_BUSY` at once: a flood
-    /// of requests never becomes an unbounded number of tasks.
-    pub async fn spawn_query<F, Fut>(&self, tasks: &mut JoinSet<()>, q: Query, request: F)
-    where
-        F: FnOnce(Query) -> Fut,
-        Fut: Future<Output = ()> + Send + 'static,
-    {
-        match Arc::clone(&self.slots).try_acquire_owned() {
-            Ok(slot) => {
-                let run = request(q);
-                tasks.spawn(async move {
-                    run.await;
-                    drop(slot);
-                });
-            }
-            Err(_) => {
-                reply_err(
-                    &q,
-                    &RequestError::Busy {
-                        max: MAX_WAITING_REQUESTS,
-                    },
-                )
-                .await
-            }
-        }
+    /// A slot of `pool`, if one is free; the request it runs gives it back when dropped.
+    pub fn slot(&self, pool: Pool) -> Option<tokio::sync::OwnedSemaphorePermit> {
+        let semaphore = self.slots.get(pool.index())?;
+        Arc::clone(semaphore).try_acquire_owned().ok()
     }
 
-    /// As [`Self::spawn_query`] for a put or delete, which has no answer: with every slot
-    /// taken it is dropped, and logged.
-    pub fn spawn_sample<F, Fut>(&self, tasks: &mut JoinSet<()>, sample: Sample, request: F)
-    where
-        F: FnOnce(Sample) -> Fut,
-        Fut: Future<Output = ()> + Send + 'static,
-    {
-        match Arc::clone(&self.slots).try_acquire_owned() {
+    /// Runs a request of `pool` off the route's loop, in one of the pool's slots. With every
+    /// slot of the pool taken a query is answered `ERROR_CODE_BUSY` at once, and a put or
+    /// delete (which has no answer) is dropped and logged: a flood of requests never becomes
+    /// an unbounded number of tasks, nor takes the slots of another kind of request.
+    async fn spawn_in<C: Routed>(
+        &self,
+        tasks: &mut JoinSet<()>,
+        pool: Pool,
+        item: Incoming,
+        handle: &Handler<C>,
+        ctx: C,
+    ) {
+        match self.slot(pool).ok_or(()) {
             Ok(slot) => {
-                let run = request(sample);
+                let run = handle(ctx, item);
                 tasks.spawn(async move {
                     run.await;
                     drop(slot);
                 });
             }
-            Err(_) => tracing::warn!(
-                key = %sample.key_expr(),
-                "request dropped: {MAX_WAITING_REQUESTS} requests are being served already"
-            ),
+            Err(_) => match item {
+                Incoming::Query(q) => {
+                    reply_err(
+                        &q,
+                        &RequestError::Busy {
+                            what: pool.name(),
+                            max: pool.slots(),
+                        },
+                    )
+                    .await
+                }
+                Incoming::Sample(s) => tracing::warn!(
+                    key = %s.key_expr(),
+                    "request dropped: {} {} are being served already",
+                    pool.slots(),
+                    pool.name()
+                ),
+                Incoming::Ended => {}
+            },
         }
     }
 
@@ -280,6 +582,7 @@ impl RouteContext {
                 CellKey::Machine { machine }
                 | CellKey::Leaf { machine, .. }
                 | CellKey::JobEvents { machine, .. }
+                | CellKey::JobCancel { machine, .. }
                 | CellKey::G05 { machine, .. },
             ) => machine,
             _ => return Target::Wild,
@@ -369,5 +672,44 @@ pub(crate) async fn reply_err(q: &Query, error: &(impl BusCode + std::fmt::Displ
         .await;
     if let Err(e) = sent {
         tracing::warn!(selector = %q.selector(), error = %e, "error reply failed");
+    }
+}
+
+/// One of a machine's publishers: messages `M` on `P/C/machine/M/<leaf>`, with the QoS its
+/// route chose. Undeclared when dropped.
+pub(crate) struct MachinePublisher<M> {
+    publisher: Publisher<'static>,
+    message: std::marker::PhantomData<fn(&M)>,
+}
+
+impl<M: BusMessage> MachinePublisher<M> {
+    pub async fn declare(
+        ctx: &RouteContext,
+        machine: &str,
+        leaf: MachineLeaf,
+        congestion: CongestionControl,
+    ) -> Result<Self, BusError> {
+        let key = ctx.keys.leaf(machine, leaf);
+        let publisher = ctx
+            .session
+            .declare_publisher(key.clone())
+            .encoding(encoding::<M>())
+            .congestion_control(congestion)
+            .await
+            .map_err(|source| BusError::Declare {
+                what: "publisher",
+                key,
+                source,
+            })?;
+        Ok(MachinePublisher {
+            publisher,
+            message: std::marker::PhantomData,
+        })
+    }
+
+    pub async fn publish(&self, message: &M) {
+        if let Err(e) = self.publisher.put(message.encode_to_vec()).await {
+            tracing::warn!(key = %self.publisher.key_expr(), error = %e, "publishing failed");
+        }
     }
 }

@@ -10,10 +10,11 @@
 //! - `context`: what every route shares, the typed request errors, the reply helpers;
 //! - one route per kind: `route_status`, `route_job`, `route_io` (DI/DO), `route_alarm`,
 //!   `route_punch`, `route_program` (library), `route_g05` (G05 streams), `route_plc` (PLC
-//!   memory, transfers, status), `route_tag` (PLC tags); each declares its own queryables, subscribers
+//!   memory, transfers, status), `route_tag` (PLC tags), `route_sim` (the controls of simulated
+//!   machines); each declares its own queryables, subscribers
 //!   or publishers, and they are undeclared when it is dropped;
-//! - `machine`: a machine's view (its status) and the task that publishes through the
-//!   machine's publishers of each route;
+//! - `machine`: a machine's view (its status) and its publishers; `machine_task`: the task
+//!   that publishes what the link and the job manager report through them;
 //! - [`admin`]: the gateway's own token and `@admin` key.
 //!
 //! One queryable or subscriber per route serves every machine (`P/C/machine/*/status`, …): a
@@ -29,17 +30,22 @@
 
 pub mod acl;
 pub mod admin;
+mod audit;
 pub mod context;
 pub mod keys;
 mod machine;
+mod machine_task;
 pub mod payload;
+mod record;
 mod route_alarm;
 mod route_g05;
+mod route_history;
 mod route_io;
 mod route_job;
 mod route_plc;
 mod route_program;
 mod route_punch;
+mod route_sim;
 mod route_status;
 mod route_tag;
 pub mod session;
@@ -48,7 +54,7 @@ pub use route_job::{FETCH_TIMEOUT, RECENT_JOBS};
 pub use route_plc::{PlcLink, STATUS_EVERY as PLC_STATUS_EVERY};
 pub use session::{BusError, open, open_cell};
 
-pub use crate::config::{BusConfig, BusMode};
+pub use cellgate_core::config::{BusConfig, BusMode};
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -57,27 +63,35 @@ use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
+use self::audit::Auditor;
 use self::context::RouteContext;
 use self::keys::CellKeys;
-use self::machine::{Machine, MachineFeeds, MachineTask};
+use self::machine::Machine;
+use self::machine_task::{MachineFeeds, MachineTask};
 use self::route_g05::G05Route;
+use self::route_history::HistoryRoute;
 use self::route_io::IoRoute;
 use self::route_job::JobRoute;
 use self::route_program::ProgramRoute;
 use self::route_punch::PunchSettings;
+use self::route_sim::SimRoute;
 use self::route_status::StatusRoute;
-use crate::config::{CellConfig, MachineConfig};
-use crate::g05::G05Desk;
+use crate::history::History;
 use crate::jobs::journal::Journal;
 use crate::jobs::library::ProgramLibrary;
 use crate::jobs::{self, JobsSettings};
 use crate::link::driver::LinkHandle;
+use crate::link::g05::G05Desk;
+use cellgate_core::config::{CellConfig, MachineConfig};
 
 /// A machine of the cell and its running link, as the gateway hands them to [`serve`].
 #[derive(Debug, Clone)]
 pub struct MachineLink {
     pub config: MachineConfig,
     pub link: LinkHandle,
+    /// The simulated board on the far end of a `sim` transport, for the `P/C/sim/M/...`
+    /// controls; `None` for a real machine.
+    pub sim: Option<crate::sim::BoardControl>,
 }
 
 /// Serves the cell's machines and program library on `session` until `shutdown` is
@@ -107,15 +121,45 @@ pub async fn serve_announced(
     shutdown: CancellationToken,
     ready: Option<tokio::sync::oneshot::Sender<()>>,
 ) -> Result<(), BusError> {
+    serve_recorded(
+        session,
+        config,
+        machines,
+        shutdown,
+        ready,
+        History::disabled(),
+    )
+    .await
+}
+
+/// [`serve_announced`], recording the cell's history and audit trail in `history`.
+pub async fn serve_recorded(
+    session: &Session,
+    config: &CellConfig,
+    machines: Vec<MachineLink>,
+    shutdown: CancellationToken,
+    ready: Option<tokio::sync::oneshot::Sender<()>>,
+    history: History,
+) -> Result<(), BusError> {
     let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
-    let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size).with_quota(
-        crate::jobs::library::Quota {
+    let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size)
+        .with_quota(crate::jobs::library::Quota {
             bytes: config.programs.quota_bytes,
             files: config.programs.quota_files,
-        },
+        })
+        .with_retention(crate::jobs::library::Retention {
+            revisions: config.programs.keep_revisions,
+            days: config.programs.keep_revision_days,
+        });
+    // Off the runtime's threads: opening reads and checks the whole file.
+    let (dir, damaged) = (
+        config.programs.journal_dir(),
+        config.programs.damaged_journal,
     );
-    let journal = Journal::open(&config.programs.journal_dir())?;
-    let mut restored = journal.restore()?;
+    let (journal, mut restored) =
+        tokio::task::spawn_blocking(move || Journal::open_and_restore(&dir, damaged))
+            .await
+            .map_err(|e| BusError::Internal(e.to_string()))??;
     let jobs_stop = shutdown.child_token();
     let machines_stop = CancellationToken::new();
     let routes_stop = shutdown.child_token();
@@ -124,7 +168,12 @@ pub async fn serve_announced(
     let mut started = Vec::new();
     let mut by_name = BTreeMap::new();
     let mut job_tasks = JoinSet::new();
-    for MachineLink { config: mc, link } in machines {
+    for MachineLink {
+        config: mc,
+        link,
+        sim,
+    } in machines
+    {
         if by_name.contains_key(&mc.name) {
             tracing::error!(machine = %mc.name, "machine given twice; serving the first only");
             continue;
@@ -135,6 +184,7 @@ pub async fn serve_announced(
             journal: journal.clone(),
             restored: restored.jobs.remove(&mc.name).unwrap_or_default(),
             keep: config.programs.keep_jobs,
+            accept: mc.accept,
         };
         let (jobs, task, job_events) =
             jobs::spawn(&mc.name, settings, link.clone(), jobs_stop.clone());
@@ -150,7 +200,7 @@ pub async fn serve_announced(
             *mc.transport.line(),
             jobs_stop.clone(),
         );
-        let machine = Arc::new(Machine::new(mc, link, jobs, g05));
+        let machine = Arc::new(Machine::new(mc, link, jobs, g05, sim));
         by_name.insert(machine.name().to_string(), Arc::clone(&machine));
         started.push((machine, feeds));
     }
@@ -160,7 +210,9 @@ pub async fn serve_announced(
         Arc::new(by_name),
         library.clone(),
         config.programs.max_inline.min(config.programs.max_size),
-    );
+    )
+    .with_fetch_prefixes(&config.programs.fetch_prefixes)
+    .with_history(history, Auditor::new(&config.security));
 
     let mut machine_tasks = JoinSet::new();
     let mut route_tasks = JoinSet::new();
@@ -181,7 +233,14 @@ pub async fn serve_announced(
         let job = JobRoute::declare(&ctx).await?;
         let io = IoRoute::declare(&ctx).await?;
         let program = ProgramRoute::declare(&ctx).await?;
+        let records = HistoryRoute::declare(&ctx).await?;
         let g05 = G05Route::declare(&ctx).await?;
+        route_tasks.spawn(records.run(ctx.clone(), routes_stop.clone()));
+        // Only a cell with simulated machines has their controls.
+        if ctx.machines.values().any(|m| m.sim.is_some()) {
+            let sim = SimRoute::declare(&ctx).await?;
+            route_tasks.spawn(sim.run(ctx.clone(), routes_stop.clone()));
+        }
         route_tasks.spawn(g05.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(status.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(job.run(ctx.clone(), routes_stop.clone()));
@@ -220,7 +279,19 @@ pub async fn serve_plcs(
     plcs: Vec<PlcLink>,
     shutdown: CancellationToken,
 ) -> Result<(), BusError> {
+    serve_plcs_recorded(session, config, plcs, shutdown, History::disabled()).await
+}
+
+/// [`serve_plcs`], recording stations, tag values and writes in `history`.
+pub async fn serve_plcs_recorded(
+    session: &Session,
+    config: &CellConfig,
+    plcs: Vec<PlcLink>,
+    shutdown: CancellationToken,
+    history: History,
+) -> Result<(), BusError> {
     let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
+    // The PLC routes never touch the library (its index opens on first use only).
     let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size);
     let route = RouteContext::new(
         session.clone(),
@@ -228,7 +299,8 @@ pub async fn serve_plcs(
         Arc::new(BTreeMap::new()),
         library,
         config.programs.max_inline.min(config.programs.max_size),
-    );
+    )
+    .with_history(history, Auditor::new(&config.security));
     let ctx = route_plc::PlcContext {
         route,
         plcs: Arc::new(

@@ -4,10 +4,11 @@
 
 use zenoh::bytes::Encoding;
 
-use crate::fanuc::Protocol;
-use crate::fanuc::host::LinkState;
-use crate::fanuc::sat::{AlarmCause, BufferStatus, StatusData};
-use crate::pb;
+use cellgate_core::fanuc::Protocol;
+use cellgate_core::fanuc::host::LinkState;
+use cellgate_core::fanuc::sat::{AlarmCause, BufferStatus, StatusData};
+use cellgate_core::pb;
+use cellgate_core::plc::tags::{Quality, TagValue};
 
 /// A message of the bus contract, with the full name that goes in its encoding's schema.
 pub trait BusMessage: prost::Message + Default {
@@ -44,11 +45,25 @@ bus_messages!(
     PlcWritten,
     PlcTransfer,
     PlcTransferred,
+    PlcMessage,
+    PlcMessageSent,
     TagValue,
     TagWrite,
     TagWritten,
     PlcStatus,
     PlcStation,
+    ProgramRevision,
+    ProgramRevisions,
+    ProgramRelease,
+    ProgramDiff,
+    RequestOrigin,
+    HistoryPage,
+    Utilisation,
+    AuditRecord,
+    SimDi,
+    SimAutostart,
+    SimPunch,
+    SimState,
 );
 
 /// `application/protobuf;<schema>` for `M`.
@@ -139,8 +154,8 @@ pub fn sat(s: &StatusData) -> pb::Sat {
 }
 
 /// A G05 stream's status as published.
-pub fn g05_status(s: &crate::g05::StreamStatus) -> pb::G05Status {
-    use crate::g05::stream::{EndReason, StreamState};
+pub fn g05_status(s: &crate::link::g05::StreamStatus) -> pb::G05Status {
+    use cellgate_core::fanuc::g05::stream::{EndReason, StreamState};
     let f = &s.figures;
     let state = match f.state {
         StreamState::Priming => pb::G05State::Priming,
@@ -155,6 +170,7 @@ pub fn g05_status(s: &crate::g05::StreamStatus) -> pb::G05Status {
         Some(EndReason::Cancelled) => pb::G05EndReason::Cancelled,
         Some(EndReason::ProducerLost) => pb::G05EndReason::ProducerLost,
         Some(EndReason::ProducerIdle) => pb::G05EndReason::ProducerIdle,
+        Some(EndReason::NoBatch) => pb::G05EndReason::NoBatch,
     };
     pb::G05Status {
         stream_id: s.stream.clone(),
@@ -175,40 +191,22 @@ pub fn g05_status(s: &crate::g05::StreamStatus) -> pb::G05Status {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::fanuc::sat::Params;
-
-    #[test]
-    fn encodings_name_the_message() {
-        let e = encoding::<pb::JobEvent>();
-        assert_eq!(e.to_string(), "application/protobuf;cellgate.v1.JobEvent");
-        assert_eq!(schema_of(&e).as_deref(), Some("cellgate.v1.JobEvent"));
-    }
-
-    #[test]
-    fn sat_fields_carry_over() {
-        let s = StatusData {
-            remote: Some(true),
-            status: Some(BufferStatus::Alarm),
-            alarm_cause: Some(AlarmCause::OverrunRetryOver),
-            buffered: Some(1234),
-            params: Some(Params::POWER_ON),
-            packet_n: Some(2),
-            ..StatusData::default()
-        };
-        let p = sat(&s);
-        assert_eq!(p.remote, Some(true));
-        assert_eq!(p.buffer_status(), pb::BufferStatus::Alarm);
-        assert_eq!(p.buffer_status_digit, Some(3));
-        assert_eq!(p.alarm_cause(), pb::AlarmCause::OverrunRetryOver);
-        assert_eq!(p.alarm_cause_digit, Some(0xA));
-        assert_eq!(p.bytes_buffered, Some(1234));
-        assert_eq!(p.params.unwrap().to, 20);
-        assert_eq!(p.packet_n, Some(2));
-        let empty = sat(&StatusData::default());
-        assert_eq!(empty.buffer_status(), pb::BufferStatus::Unknown);
-        assert_eq!(empty.params, None);
+/// A tag's value as a message.
+pub(crate) fn tag_message(plc: &str, v: &TagValue) -> pb::TagValue {
+    pb::TagValue {
+        plc: plc.to_string(),
+        name: v.name.clone(),
+        value: v.value,
+        raw: v.raw,
+        unix_ms: v.time.map(pb::unix_ms),
+        quality: match v.quality {
+            Quality::Good => pb::TagQuality::Good,
+            Quality::Stale => pb::TagQuality::Stale,
+            Quality::StationDown => pb::TagQuality::StationDown,
+        } as i32,
+        writable: v.writable,
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -22,14 +22,19 @@ use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
 use super::BusError;
-use super::context::{RequestError, RouteContext, Target, reply, reply_err};
+use super::audit::{Audit, origin_of};
+use super::context::{
+    MachinePublisher, Pool, RequestError, RouteContext, Target, reply, reply_err,
+};
 use super::keys::{CellKey, G05Part, MachineLeaf};
 use super::machine::Machine;
 use super::payload::{encoding, g05_status};
-use crate::fanuc::g05::AuxWord;
-use crate::g05::stream::{Batch, BlockIn, EndReason};
-use crate::g05::{STATUS_INTERVAL, StreamHandle};
-use crate::pb;
+use super::route_alarm;
+use crate::link::g05::{STATUS_INTERVAL, StreamHandle, StreamStatus};
+use cellgate_core::config::Permission;
+use cellgate_core::fanuc::g05::AuxWord;
+use cellgate_core::fanuc::g05::stream::{Batch, BlockIn, EndReason, G05Watch};
+use cellgate_core::pb;
 
 /// The G05 queryables and subscribers of the cell. Undeclared when dropped.
 pub(crate) struct G05Route {
@@ -91,6 +96,15 @@ impl G05Route {
                 q = self.blocks_get.recv_async() => match q {
                     // Browsing with wildcards sends no batch anywhere.
                     Ok(q) if q.key_expr().is_wild() => {}
+                    // Without a payload a get asks for the status: it is never a batch (an
+                    // empty batch 0 would make the producer's real batch 0 a repeat).
+                    Ok(q) if q.payload().is_none() => match stream_of(&ctx, q.key_expr().as_str()) {
+                        Ok(h) => {
+                            let msg = g05_status(&h.status().borrow());
+                            reply(&q, q.key_expr().to_string(), &msg).await;
+                        }
+                        Err(e) => reply_err(&q, &e).await,
+                    },
                     Ok(q) => {
                         let payload = q.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
                         match batch(&ctx, q.key_expr().as_str(), &payload).await {
@@ -101,10 +115,16 @@ impl G05Route {
                     Err(_) => break,
                 },
                 s = self.deletes.recv_async() => match s {
-                    Ok(s) if s.kind() == SampleKind::Delete => {
-                        let c = ctx.clone();
-                        ctx.spawn_sample(&mut tasks, s, |s| async move { cancel(&c, &s).await });
-                    }
+                    Ok(s) if s.kind() == SampleKind::Delete => match ctx.slot(Pool::G05) {
+                        Some(slot) => {
+                            let c = ctx.clone();
+                            tasks.spawn(async move {
+                                cancel(&c, &s).await;
+                                drop(slot);
+                            });
+                        }
+                        None => tracing::warn!(key = %s.key_expr(), "G05 cancel dropped: too many G05 requests at once"),
+                    },
                     Ok(_) => {}
                     Err(_) => break,
                 },
@@ -141,12 +161,7 @@ async fn open(
             .payload()
             .map(|p| p.to_bytes().into_owned())
             .unwrap_or_default();
-        let request =
-            pb::G05Open::decode(payload.as_slice()).map_err(|error| RequestError::Payload {
-                machine: m.name().to_string(),
-                message: "G05Open",
-                error,
-            })?;
+        let request: pb::G05Open = ctx.decode(m.name(), &payload)?;
         let (handle, opened) = m.g05.open(Some(request.stream_id)).await?;
         let g = m.g05.config().map(|c| c.format());
         let reply_msg = pb::G05Opened {
@@ -164,6 +179,25 @@ async fn open(
         Ok::<_, RequestError>((m, handle, reply_msg, request.producer_token))
     }
     .await;
+    let machine = match ctx.keys.parse(q.key_expr().as_str()) {
+        Some(CellKey::Leaf { machine, .. }) => machine.to_string(),
+        _ => String::new(),
+    };
+    ctx.audit(
+        Audit {
+            action: "g05.open",
+            permission: Permission::G05Stream,
+            key: q.key_expr().as_str(),
+            machine: &machine,
+            target: match &result {
+                Ok((_, _, opened, _)) => opened.stream_id.clone(),
+                Err(_) => machine.clone(),
+            },
+            detail: String::new(),
+            origin: origin_of(q.attachment()),
+        },
+        result.as_ref().map(|_| ()),
+    );
     match result {
         Ok((m, handle, opened, token)) => {
             reply(q, q.key_expr().to_string(), &opened).await;
@@ -218,11 +252,21 @@ async fn follow(
             return;
         }
     };
+    // Starvation and an idle end are alarms, not only status fields.
+    let alarms = match route_alarm::declare_publisher(&ctx, machine.name()).await {
+        Ok(p) => Some(p),
+        Err(e) => {
+            tracing::warn!(stream = %handle.id, error = %e, "cannot publish the G05 stream's alarms");
+            None
+        }
+    };
+    let mut watch = G05Watch::new();
     let mut status = handle.status();
     let mut tick = tokio::time::interval(STATUS_INTERVAL);
     let mut producer_seen = false;
     loop {
         let now = status.borrow_and_update().clone();
+        raise_alarms(&machine, alarms.as_ref(), &mut watch, &now).await;
         if now.is_over() {
             break;
         }
@@ -258,6 +302,28 @@ async fn follow(
         .await;
     if let Err(e) = sent {
         tracing::warn!(%key, error = %e, "the G05 stream's last status was not published");
+    }
+}
+
+/// Publishes the alarms a stream's status raises, on the machine's alarm key, and keeps the
+/// latest in its status.
+async fn raise_alarms(
+    machine: &Machine,
+    publisher: Option<&MachinePublisher<pb::AlarmEvent>>,
+    watch: &mut G05Watch,
+    status: &StreamStatus,
+) {
+    for alarm in watch.observe(crate::link::pump::now(), &status.figures) {
+        tracing::warn!(stream = %status.stream, %alarm, "G05 alarm");
+        let event = machine.alarm_event(
+            pb::AlarmKind::G05,
+            "",
+            format!("stream {}: {alarm}", status.stream),
+        );
+        machine.view().status.last_alarm = Some(event.clone());
+        if let Some(p) = publisher {
+            p.publish(&event).await;
+        }
     }
 }
 
@@ -302,11 +368,8 @@ async fn batch(
     payload: &[u8],
 ) -> Result<pb::G05Status, RequestError> {
     let handle = stream_of(ctx, key)?;
-    let b = pb::G05Batch::decode(payload).map_err(|error| RequestError::Payload {
-        machine: handle.id.clone(),
-        message: "G05Batch",
-        error,
-    })?;
+    // Sized before it is decoded (`cellgate_core::bounds`).
+    let b: pb::G05Batch = ctx.decode(&handle.id, payload)?;
     let batch = Batch {
         seq: b.seq,
         blocks: b
@@ -349,7 +412,27 @@ async fn status(ctx: &RouteContext, q: &Query) {
 
 /// A delete on `P/C/machine/M/g05/S` cancels the stream: the end block goes out.
 async fn cancel(ctx: &RouteContext, sample: &Sample) {
-    match stream_of(ctx, sample.key_expr().as_str()) {
+    let key = sample.key_expr().as_str();
+    let (machine, stream) = match ctx.keys.parse(key) {
+        Some(CellKey::G05 {
+            machine, stream, ..
+        }) => (machine.to_string(), stream.to_string()),
+        _ => (String::new(), String::new()),
+    };
+    let found = stream_of(ctx, key);
+    ctx.audit(
+        Audit {
+            action: "g05.cancel",
+            permission: Permission::G05Stream,
+            key,
+            machine: &machine,
+            target: stream,
+            detail: String::new(),
+            origin: origin_of(sample.attachment()),
+        },
+        found.as_ref().map(|_| ()),
+    );
+    match found {
         Ok(h) => {
             tracing::info!(stream = %h.id, "G05 stream cancelled on the bus");
             let _ = h.end(EndReason::Cancelled).await;

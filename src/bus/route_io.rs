@@ -11,8 +11,6 @@
 
 use std::time::SystemTime;
 
-use prost::Message;
-use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
@@ -21,12 +19,17 @@ use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
 use super::BusError;
-use super::context::{RequestError, RouteContext, Target, reply, reply_err};
+use super::audit::{Audit, origin_of};
+use super::context::MachinePublisher;
+use super::context::{
+    Endpoint, Pool, RequestError, RouteContext, Target, reply, reply_err, serve_route,
+};
 use super::keys::MachineLeaf;
-use super::machine::{Machine, MachinePublisher};
+use super::machine::Machine;
 use crate::jobs;
 use crate::link::driver::{LinkCommand, LinkEvent};
-use crate::pb;
+use cellgate_core::config::Permission;
+use cellgate_core::pb;
 
 /// The DI and DO queryables and the DO subscriber of the cell. Undeclared when dropped.
 pub(crate) struct IoRoute {
@@ -47,32 +50,25 @@ impl IoRoute {
     }
 
     pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        let mut tasks = JoinSet::new();
-        loop {
-            tokio::select! {
-                () = stop.cancelled() => break,
-                q = self.di.recv_async() => match q {
-                    Ok(q) => {
-                        let c = ctx.clone();
-                        ctx.spawn_query(&mut tasks, q, |q| async move { di_get(&c, &q).await }).await;
-                    }
-                    Err(_) => break,
-                },
-                q = self.do_get.recv_async() => match q {
-                    Ok(q) => {
-                        let c = ctx.clone();
-                        ctx.spawn_query(&mut tasks, q, |q| async move { do_get(&c, &q).await }).await;
-                    }
-                    Err(_) => break,
-                },
-                s = self.do_put.recv_async() => match s {
-                    Ok(s) => do_put(&ctx, &s).await,
-                    Err(_) => break,
-                },
-                Some(_) = tasks.join_next() => {}
-            }
-        }
-        tasks.shutdown().await;
+        serve_route(
+            ctx,
+            stop,
+            vec![
+                Endpoint::queries(self.di, Some(Pool::Read), |c, q| async move {
+                    di_get(&c, &q).await
+                }),
+                Endpoint::queries(self.do_get, Some(Pool::Io), |c, q| async move {
+                    do_get(&c, &q).await
+                }),
+                // Without waiting: a flood of puts is refused past the link's command queue.
+                Endpoint::samples(
+                    self.do_put,
+                    None,
+                    |c, s| async move { do_put(&c, &s).await },
+                ),
+            ],
+        )
+        .await;
     }
 }
 
@@ -149,11 +145,33 @@ async fn di_get(ctx: &RouteContext, q: &Query) {
     if let Some(e) = io_refusal(&m) {
         return reply_err(q, &e).await;
     }
-    let read = exchange(&m, LinkCommand::ReadDi, "SDI answered RDI", |e| match e {
-        LinkEvent::Di { value } => Some(*value),
-        _ => None,
-    })
-    .await;
+    // Many gets at once share one RDI: each waits its turn, and one that finds an image read
+    // since it arrived takes that one instead of asking the board again.
+    // A read that failed since it arrived is its answer too: waiting ones do not each try
+    // again for a whole exchange time.
+    let arrived = tokio::time::Instant::now();
+    let mut last = m.di_read.lock().await;
+    let read = match *last {
+        Some((at, Ok(value))) if at >= arrived => Ok(value),
+        Some((at, Err(()))) if at >= arrived => Err(RequestError::NoAnswer {
+            machine: m.name().to_string(),
+            answer: "SDI answered RDI",
+            waited: m.exchange_timeout(),
+        }),
+        _ => {
+            let read = exchange(&m, LinkCommand::ReadDi, "SDI answered RDI", |e| match e {
+                LinkEvent::Di { value } => Some(*value),
+                _ => None,
+            })
+            .await;
+            *last = Some((
+                tokio::time::Instant::now(),
+                read.as_ref().map(|v| *v).map_err(|_| ()),
+            ));
+            read
+        }
+    };
+    drop(last);
     match read {
         Ok(value) => {
             let di = pb::DiImage {
@@ -168,16 +186,12 @@ async fn di_get(ctx: &RouteContext, q: &Query) {
 }
 
 /// Checks a DO command; returns `(value, mask)`.
-fn do_command(m: &Machine, payload: &[u8]) -> Result<(u8, u8), RequestError> {
+fn do_command(ctx: &RouteContext, m: &Machine, payload: &[u8]) -> Result<(u8, u8), RequestError> {
     let invalid = |what: String| RequestError::Invalid {
         machine: m.name().to_string(),
         what,
     };
-    let cmd = pb::DoCommand::decode(payload).map_err(|error| RequestError::Payload {
-        machine: m.name().to_string(),
-        message: "DoCommand",
-        error,
-    })?;
+    let cmd: pb::DoCommand = ctx.decode(m.name(), payload)?;
     let value = u8::try_from(cmd.value)
         .map_err(|_| invalid(format!("DO value {} is not 8 bits (0..=255)", cmd.value)))?;
     let mask = u8::try_from(cmd.mask.unwrap_or(0xFF))
@@ -201,7 +215,8 @@ async fn do_put(ctx: &RouteContext, sample: &Sample) {
     if !m.config.protocol.is_a_family() {
         return tracing::warn!(%key, "DO refused: Protocol B has no SDO (§4.4.1)");
     }
-    match do_command(&m, sample.payload().to_bytes().as_ref()) {
+    let origin = origin_of(sample.attachment());
+    match do_command(ctx, &m, sample.payload().to_bytes().as_ref()) {
         Ok((value, mask)) => {
             // Without waiting: a flood of puts is refused past the link's command queue
             // rather than stalling this route.
@@ -209,12 +224,53 @@ async fn do_put(ctx: &RouteContext, sample: &Sample) {
             let asked = sample
                 .timestamp()
                 .map_or_else(SystemTime::now, |t| t.get_time().to_system_time());
-            if let Err(e) = m.link.try_send(LinkCommand::SetDo { value, mask, asked }) {
+            let sent = m
+                .link
+                .try_send(LinkCommand::SetDo { value, mask, asked })
+                .map_err(RequestError::from);
+            audit_do(
+                ctx,
+                key.as_str(),
+                &m,
+                Some((value, mask)),
+                origin,
+                sent.as_ref(),
+            );
+            if let Err(e) = sent {
                 tracing::warn!(%key, "DO refused: {e}");
             }
         }
-        Err(e) => tracing::warn!(%key, "DO refused: {e}"),
+        Err(e) => {
+            audit_do(ctx, key.as_str(), &m, None, origin, Err(&e));
+            tracing::warn!(%key, "DO refused: {e}");
+        }
     }
+}
+
+/// Records a DO output in the audit: a put's outcome is that the link took it (the SDO goes
+/// out with its next exchange), a get's that the SDO went out.
+fn audit_do(
+    ctx: &RouteContext,
+    key: &str,
+    m: &Machine,
+    command: Option<(u8, u8)>,
+    origin: Option<pb::RequestOrigin>,
+    outcome: Result<&(), &RequestError>,
+) {
+    ctx.audit(
+        Audit {
+            action: "io.do",
+            permission: Permission::IoDo,
+            key,
+            machine: m.name(),
+            target: m.name().to_string(),
+            detail: command
+                .map(|(v, mask)| format!("DO {v:#04x} mask {mask:#04x}"))
+                .unwrap_or_default(),
+            origin,
+        },
+        outcome.map(|_| ()),
+    );
 }
 
 /// A get with a `DoCommand` on `do`: outputs the DO image and answers the status once the
@@ -241,11 +297,17 @@ async fn do_get(ctx: &RouteContext, q: &Query) {
         };
         return reply_err(q, &e).await;
     };
-    let (value, mask) = match do_command(&m, payload.to_bytes().as_ref()) {
+    let origin = origin_of(q.attachment());
+    let key = q.key_expr().as_str();
+    let (value, mask) = match do_command(ctx, &m, payload.to_bytes().as_ref()) {
         Ok(c) => c,
-        Err(e) => return reply_err(q, &e).await,
+        Err(e) => {
+            audit_do(ctx, key, &m, None, origin, Err(&e));
+            return reply_err(q, &e).await;
+        }
     };
     if let Some(e) = io_refusal(&m) {
+        audit_do(ctx, key, &m, Some((value, mask)), origin, Err(&e));
         return reply_err(q, &e).await;
     }
     let sent = exchange(
@@ -262,6 +324,7 @@ async fn do_get(ctx: &RouteContext, q: &Query) {
         },
     )
     .await;
+    audit_do(ctx, key, &m, Some((value, mask)), origin, sent.as_ref());
     match sent {
         Ok(()) => {
             // The machine's task folds the same event into the view; make sure the reply

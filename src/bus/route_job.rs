@@ -1,7 +1,9 @@
 //! Jobs on the bus.
 //!
-//! - `P/C/machine/M/job`: a get with a `JobRequest` queues a job (`JobAccepted` or
-//!   `ErrorReply`); a get without payload answers the machine's `JobQueue`.
+//! - `P/C/machine/M/submit`: a get with a `JobRequest` queues a job (`JobAccepted` or
+//!   `ErrorReply`): the write has a key of its own, so that a role that reads the queue can
+//!   never submit;
+//! - `P/C/machine/M/job`: a get answers the machine's `JobQueue`.
 //! - `P/C/machine/M/job/ID`: the job's `JobEvent`s, published reliably (QoS `Block`); a get
 //!   answers its latest event (the last [`RECENT_JOBS`] jobs are kept); a delete from another
 //!   session cancels the job.
@@ -13,7 +15,6 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use prost::Message;
-use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 use zenoh::bytes::Encoding;
 use zenoh::handlers::FifoChannelHandler;
@@ -24,14 +25,18 @@ use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
 use super::BusError;
-use super::context::{RequestError, RouteContext, Target, reply, reply_err};
+use super::audit::{Audit, origin_of};
+use super::context::{
+    Endpoint, Pool, RequestError, RouteContext, Target, reply, reply_err, serve_route,
+};
 use super::keys::{CellKey, MachineLeaf, intersects, is_plain_chunk};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, schema_of};
 use crate::jobs::JobSubmission;
-use crate::jobs::blocks::StartAt;
 use crate::jobs::source::ProgramInput;
-use crate::pb;
+use cellgate_core::config::Permission;
+use cellgate_core::pb;
+use cellgate_core::program::blocks::StartAt;
 
 /// How long fetching a job's program from a `key` may take.
 pub const FETCH_TIMEOUT: Duration = Duration::from_secs(5);
@@ -41,16 +46,22 @@ pub const RECENT_JOBS: usize = 256;
 
 /// The job queryables and the cancel subscriber of the cell. Undeclared when dropped.
 pub(crate) struct JobRoute {
-    requests: Queryable<FifoChannelHandler<Query>>,
+    submits: Queryable<FifoChannelHandler<Query>>,
+    queues: Queryable<FifoChannelHandler<Query>>,
     events: Queryable<FifoChannelHandler<Query>>,
+    cancels: Queryable<FifoChannelHandler<Query>>,
     deletes: Subscriber<FifoChannelHandler<Sample>>,
 }
 
 impl JobRoute {
     pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
         Ok(JobRoute {
-            requests: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::Job)).await?,
+            submits: ctx
+                .queryable(ctx.keys.any_leaf(MachineLeaf::Submit))
+                .await?,
+            queues: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::Job)).await?,
             events: ctx.queryable(ctx.keys.any_job_events()).await?,
+            cancels: ctx.queryable(ctx.keys.any_job_cancel()).await?,
             // Only other sessions cancel jobs; this session's own job events need not come
             // back to it.
             deletes: ctx
@@ -60,55 +71,109 @@ impl JobRoute {
     }
 
     pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        let mut tasks = JoinSet::new();
-        loop {
-            tokio::select! {
-                () = stop.cancelled() => break,
-                q = self.requests.recv_async() => match q {
-                    Ok(q) => {
-                        let c = ctx.clone();
-                        ctx.spawn_query(&mut tasks, q, |q| async move { job_request(&c, &q).await }).await;
-                    }
-                    Err(_) => break,
-                },
-                q = self.events.recv_async() => match q {
-                    Ok(q) => job_events(&ctx, &q).await,
-                    Err(_) => break,
-                },
-                s = self.deletes.recv_async() => match s {
-                    Ok(s) => {
-                        let c = ctx.clone();
-                        ctx.spawn_sample(&mut tasks, s, |s| async move { job_delete(&c, &s).await });
-                    }
-                    Err(_) => break,
-                },
-                Some(_) = tasks.join_next() => {}
-            }
-        }
-        tasks.shutdown().await;
+        serve_route(
+            ctx,
+            stop,
+            vec![
+                Endpoint::queries(self.submits, Some(Pool::Jobs), |c, q| async move {
+                    job_submit(&c, &q).await
+                }),
+                Endpoint::queries(self.queues, Some(Pool::Read), |c, q| async move {
+                    job_queue(&c, &q).await
+                }),
+                Endpoint::queries(
+                    self.events,
+                    None,
+                    |c, q| async move { job_events(&c, &q).await },
+                ),
+                Endpoint::queries(self.cancels, Some(Pool::Jobs), |c, q| async move {
+                    job_cancel(&c, &q).await
+                }),
+                Endpoint::samples(self.deletes, Some(Pool::Jobs), |c, s| async move {
+                    job_delete(&c, &s).await
+                }),
+            ],
+        )
+        .await;
     }
 }
 
-/// A get on `P/C/machine/M/job`.
-async fn job_request(ctx: &RouteContext, q: &Query) {
+/// A get on `P/C/machine/M/job`: the queue of every machine it takes in.
+async fn job_queue(ctx: &RouteContext, q: &Query) {
+    if q.payload().is_some() {
+        let e = RequestError::WrongKey(format!(
+            "a get on {} reads the queue and takes no payload: submit a JobRequest on {}",
+            q.key_expr(),
+            ctx.keys.leaf("<machine>", MachineLeaf::Submit)
+        ));
+        return reply_err(q, &e).await;
+    }
+    let matching = ctx.matching(q, MachineLeaf::Job);
+    if matching.is_empty() {
+        return ctx.unmatched(q).await;
+    }
+    for (key, m) in matching {
+        match m.jobs.queue().await {
+            Ok(queue) => reply(q, key, &queue).await,
+            Err(e) => reply_err(q, &RequestError::from(e)).await,
+        }
+    }
+}
+
+/// A get with a `JobRequest` on `P/C/machine/M/submit`.
+async fn job_submit(ctx: &RouteContext, q: &Query) {
     let Some(payload) = q.payload() else {
-        // No payload: the queue of every machine asked for.
-        let matching = ctx.matching(q, MachineLeaf::Job);
-        if matching.is_empty() {
-            return ctx.unmatched(q).await;
+        if q.key_expr().is_wild() {
+            // A wildcard get without payload (`P/C/**`) browses; a submit names one machine.
+            return;
         }
-        for (key, m) in matching {
-            match m.jobs.queue().await {
-                Ok(queue) => reply(q, key, &queue).await,
-                Err(e) => reply_err(q, &RequestError::from(e)).await,
-            }
-        }
-        return;
+        let e = RequestError::WrongKey(format!(
+            "a get on {} submits a job and needs a JobRequest; the queue is read on {}",
+            q.key_expr(),
+            ctx.keys.leaf("<machine>", MachineLeaf::Job)
+        ));
+        return reply_err(q, &e).await;
     };
     let payload = payload.to_bytes();
-    match submit(ctx, q, &payload).await {
+    let origin = origin_of(q.attachment());
+    let machine = match ctx.keys.parse(q.key_expr().as_str()) {
+        Some(CellKey::Leaf { machine, .. }) => machine.to_string(),
+        _ => String::new(),
+    };
+    let submitted = submit(ctx, q, &payload, origin.clone()).await;
+    let detail = match &submitted {
+        Ok(a) => describe_program(a.program.as_ref()),
+        Err(_) => String::new(),
+    };
+    ctx.audit(
+        Audit {
+            action: "job.submit",
+            permission: Permission::JobSubmit,
+            key: q.key_expr().as_str(),
+            machine: &machine,
+            target: match &submitted {
+                Ok(a) => a.job_id.clone(),
+                Err(_) => machine.clone(),
+            },
+            detail,
+            origin,
+        },
+        submitted.as_ref().map(|_| ()),
+    );
+    match submitted {
         Ok(accepted) => reply(q, q.key_expr().to_string(), &accepted).await,
         Err(e) => reply_err(q, &e).await,
+    }
+}
+
+/// A job's program, for the audit: `O1234 revision 3 (3f2a9c1b…)` or `sha256 3f2a9c1b…`.
+pub(crate) fn describe_program(p: Option<&pb::ProgramRef>) -> String {
+    let Some(p) = p else { return String::new() };
+    let short: String = p.sha256.chars().take(12).collect();
+    if p.library.is_empty() {
+        format!("sha256 {short}")
+    } else {
+        format!("{} revision {} ({short})", p.library, p.revision)
     }
 }
 
@@ -116,13 +181,10 @@ async fn submit(
     ctx: &RouteContext,
     q: &Query,
     payload: &[u8],
+    origin: Option<pb::RequestOrigin>,
 ) -> Result<pb::JobAccepted, RequestError> {
-    let m = ctx.one_machine(q, MachineLeaf::Job, "JobRequest")?;
-    let request = pb::JobRequest::decode(payload).map_err(|error| RequestError::Payload {
-        machine: m.name().to_string(),
-        message: "JobRequest",
-        error,
-    })?;
+    let m = ctx.one_machine(q, MachineLeaf::Submit, "JobRequest")?;
+    let request: pb::JobRequest = ctx.decode(m.name(), payload)?;
     let input = match request.program {
         None => {
             return Err(RequestError::Invalid {
@@ -180,11 +242,18 @@ async fn submit(
         start_at,
         resume_after_restart: request.resume_after_restart,
         deadline_s: request.deadline_s,
+        revision: request.revision,
+        submitted_by: origin.unwrap_or_default(),
     };
     Ok(m.jobs.submit(submission).await?)
 }
 
 /// Fetches a program from `key` with one `get`: the first reply's payload.
+///
+/// The gateway fetches with its own session, so it fetches only what every `job.submit`
+/// client may have fetched itself: one key (no wildcards) under a prefix the cell file lists
+/// in `programs.fetch_prefixes`, never a cellgate key, at most `max_inline` bytes, and few at
+/// once ([`super::context::MAX_FETCHES`]).
 async fn fetch(ctx: &RouteContext, m: &Machine, key: &str) -> Result<Bytes, RequestError> {
     let machine = m.name().to_string();
     let ke = KeyExpr::try_from(key.to_string()).map_err(|error| RequestError::BadKey {
@@ -192,10 +261,35 @@ async fn fetch(ctx: &RouteContext, m: &Machine, key: &str) -> Result<Bytes, Requ
         key: key.to_string(),
         error,
     })?;
+    let allowed = !ke.is_wild()
+        && !key.split('/').any(|c| c.starts_with('@'))
+        && ctx.fetch_prefixes.iter().any(|p| {
+            key.strip_prefix(p.as_str())
+                .is_some_and(|r| r.starts_with('/'))
+        });
+    if !allowed {
+        return Err(RequestError::NotPermitted(format!(
+            "machine {machine}: JobRequest.key {key:?} is not one the cell file lets jobs fetch \
+             from (programs.fetch_prefixes: {}): the gateway fetches with its own authority, \
+             so only keys under those prefixes, without wildcards; put the program in the \
+             library or send it inline",
+            if ctx.fetch_prefixes.is_empty() {
+                "none".to_string()
+            } else {
+                ctx.fetch_prefixes.join(", ")
+            }
+        )));
+    }
     let failed = |why: String| RequestError::FetchFailed {
         machine: machine.clone(),
         key: key.to_string(),
         why,
+    };
+    let Ok(_fetching) = ctx.fetches.clone().try_acquire_owned() else {
+        return Err(RequestError::Busy {
+            what: "program fetches",
+            max: super::context::MAX_FETCHES,
+        });
     };
     let replies = ctx
         .session
@@ -206,7 +300,17 @@ async fn fetch(ctx: &RouteContext, m: &Machine, key: &str) -> Result<Bytes, Requ
     let mut error = None;
     while let Ok(reply) = replies.recv_async().await {
         match reply.result() {
-            Ok(sample) => return Ok(Bytes::from(sample.payload().to_bytes().into_owned())),
+            Ok(sample) => {
+                let len = sample.payload().len() as u64;
+                if len > ctx.max_inline {
+                    return Err(failed(format!(
+                        "the reply holds {len} bytes, over the {} a job's program may bring \
+                         inline or fetched (programs.max_inline)",
+                        ctx.max_inline
+                    )));
+                }
+                return Ok(Bytes::from(sample.payload().to_bytes().into_owned()));
+            }
             Err(e) => {
                 error.get_or_insert_with(|| describe_error(e.payload(), e.encoding()));
             }
@@ -263,6 +367,93 @@ async fn job_events(ctx: &RouteContext, q: &Query) {
     }
 }
 
+/// How long a confirmed cancel waits for a running job to end before it answers the job's
+/// latest event (the board stops at its next exchange, §4.4).
+const CANCEL_WAIT: Duration = Duration::from_secs(20);
+
+/// A get on `P/C/machine/M/job/ID/cancel`: cancels the job and answers its end (its
+/// `cancelled` event, or how it ended first), or why it could not be cancelled.
+async fn job_cancel(ctx: &RouteContext, q: &Query) {
+    let key = q.key_expr().as_str();
+    let (Some(CellKey::JobCancel { job, .. }), Target::One(m)) =
+        (ctx.keys.parse(key), ctx.target(q.key_expr()))
+    else {
+        if !q.key_expr().is_wild() {
+            ctx.unmatched(q).await;
+        }
+        return;
+    };
+    if q.payload().is_some() {
+        let e = RequestError::WrongKey(format!(
+            "a get on {key} cancels the job and takes no payload"
+        ));
+        return reply_err(q, &e).await;
+    }
+    let mut events = m.jobs.subscribe();
+    let cancelled = m.jobs.cancel(job).await;
+    ctx.audit(
+        Audit {
+            action: "job.cancel",
+            permission: Permission::JobCancel,
+            key,
+            machine: m.name(),
+            target: job.to_string(),
+            detail: String::new(),
+            origin: origin_of(q.attachment()),
+        },
+        cancelled.as_ref().map(|_| ()),
+    );
+    if let Err(e) = cancelled {
+        return reply_err(q, &RequestError::from(e)).await;
+    }
+    let ended = tokio::time::timeout(CANCEL_WAIT, async {
+        loop {
+            match events.recv().await {
+                Ok(e)
+                    if e.job_id == job
+                        && matches!(
+                            e.kind,
+                            Some(
+                                pb::job_event::Kind::Completed(_)
+                                    | pb::job_event::Kind::Failed(_)
+                                    | pb::job_event::Kind::Cancelled(_)
+                            )
+                        ) =>
+                {
+                    return Some(e);
+                }
+                Ok(_) => {}
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
+                Err(_) => return None,
+            }
+        }
+    })
+    .await
+    .ok()
+    .flatten();
+    let answer = match ended {
+        Some(e) => Some((*e).clone()),
+        // Not ended yet (or its end went by): the latest event kept.
+        None => m
+            .view()
+            .recent_jobs
+            .iter()
+            .find(|e| e.job_id == job)
+            .cloned(),
+    };
+    match answer {
+        Some(e) => reply(q, ctx.keys.job_events(m.name(), job), &e).await,
+        None => {
+            let e = RequestError::NoSuchJob {
+                machine: m.name().to_string(),
+                job: job.to_string(),
+                kept: RECENT_JOBS,
+            };
+            reply_err(q, &e).await;
+        }
+    }
+}
+
 /// A delete on `P/C/machine/M/job/ID` cancels the job.
 async fn job_delete(ctx: &RouteContext, sample: &Sample) {
     if sample.kind() != SampleKind::Delete {
@@ -279,7 +470,20 @@ async fn job_delete(ctx: &RouteContext, sample: &Sample) {
         tracing::warn!(%key, "cancel refused: name one job, without wildcards");
         return;
     }
-    match m.jobs.cancel(job).await {
+    let cancelled = m.jobs.cancel(job).await;
+    ctx.audit(
+        Audit {
+            action: "job.cancel",
+            permission: Permission::JobCancel,
+            key: key.as_str(),
+            machine: m.name(),
+            target: job.to_string(),
+            detail: String::new(),
+            origin: origin_of(sample.attachment()),
+        },
+        cancelled.as_ref().map(|_| ()),
+    );
+    match cancelled {
         Ok(outcome) => {
             tracing::info!(machine = %m.name(), job, ?outcome, "cancel requested on the bus")
         }

@@ -7,19 +7,23 @@
 //! - `P/C/plc/L/transfer/MSGNO`: transfers the PLC sends are published here (`PlcTransfer`,
 //!   reliable, `Block`: each is a message, none supersedes another); a get with a
 //!   `PlcTransfer` sends one to the PLC and answers `PlcTransferred`, a put sends it unanswered.
+//! - `P/C/plc/L/message` (modes 4–5, FFU120B §5-5, where the gateway is the module's external
+//!   device): each message the PLC sends is published here (`PlcMessage`, reliable, `Block`); a
+//!   get on `P/C/plc/L/message/send` with a `PlcMessage` sends one to the PLC and answers
+//!   `PlcMessageSent` once it is on its way (nothing on the line answers it), a put sends it
+//!   unanswered.
 //! - `P/C/plc/L/status`: `PlcStatus` on a get; published (`Drop`: the next supersedes a lost
 //!   one) when a station goes up or down and every [`STATUS_EVERY`].
 //! - `P/C/plc/L/station/S`: a liveliness token while station S answers.
 //!
 //! A refusal of the module comes back as an `ErrorReply` whose code names the STA
-//! (`ERROR_CODE_PLC_*`) and whose `sta` carries it (`crate::codes`).
+//! (`ERROR_CODE_PLC_*`) and whose `sta` carries it (`cellgate_core::codes`).
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, SystemTime};
 
 use tokio::sync::broadcast::error::RecvError;
-use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
@@ -29,15 +33,17 @@ use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
 use super::BusError;
-use super::context::{RouteContext, reply, reply_err};
+use super::audit::{Audit, origin_of};
+use super::context::{Endpoint, Pool, RouteContext, Routed, reply, reply_err, serve_route};
 use super::keys::{PlcArea, PlcKey};
 use super::payload::{BusMessage, encoding, schema_of};
-use crate::codes::BusCode;
-use crate::config::PlcConfig;
-use crate::fuji::command::{Module, Reply, Request, RequestError as FujiRequestError};
-use crate::fuji::master::MasterError;
-use crate::pb;
 use crate::plc::{PlcEvent, PlcHandle, PlcLinkError, PlcSnapshot, TagError, TagWriteError};
+use cellgate_core::codes::BusCode;
+use cellgate_core::config::Permission;
+use cellgate_core::config::PlcConfig;
+use cellgate_core::fuji::command::{Module, Reply, Request, RequestError as FujiRequestError};
+use cellgate_core::fuji::master::MasterError;
+use cellgate_core::pb;
 
 /// How often a PLC link's status is published when nothing changes.
 pub const STATUS_EVERY: Duration = Duration::from_secs(5);
@@ -56,6 +62,12 @@ pub(crate) struct PlcContext {
     pub plcs: Arc<BTreeMap<String, PlcLink>>,
 }
 
+impl Routed for PlcContext {
+    fn route(&self) -> &RouteContext {
+        &self.route
+    }
+}
+
 /// Why a PLC request was refused.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -72,11 +84,10 @@ pub(crate) enum PlcRequestError {
         what: String,
         expected: &'static str,
     },
-    #[error("PLC {plc}: the payload is not a cellgate.v1.{message}: {error}")]
+    #[error("PLC {plc}: {error}")]
     Payload {
         plc: String,
-        message: &'static str,
-        error: prost::DecodeError,
+        error: cellgate_core::bounds::BoundError,
     },
     #[error("PLC {plc}: {error}")]
     Request {
@@ -124,11 +135,6 @@ impl BusCode for PlcRequestError {
     }
 }
 
-pub(crate) fn unix_ms(t: SystemTime) -> u64 {
-    t.duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
-}
-
 impl PlcContext {
     /// The PLC a key names.
     pub fn plc(&self, name: &str) -> Result<&PlcLink, PlcRequestError> {
@@ -160,107 +166,101 @@ impl PlcContext {
     }
 }
 
-fn decode_payload<M: BusMessage>(plc: &str, bytes: &[u8]) -> Result<M, PlcRequestError> {
-    M::decode(bytes).map_err(|error| PlcRequestError::Payload {
+/// `bytes` as the request message `M`, within its bounds ([`cellgate_core::bounds`]).
+pub(crate) fn decode_payload<M: cellgate_core::bounds::Bounded>(
+    plc: &str,
+    bytes: &[u8],
+) -> Result<M, PlcRequestError> {
+    // No PLC message depends on the cell file's program limits.
+    let limits = cellgate_core::bounds::Limits {
+        max_inline: 0,
+        max_program: 0,
+    };
+    cellgate_core::bounds::decode(bytes, &limits).map_err(|error| PlcRequestError::Payload {
         plc: plc.to_string(),
-        message: M::SCHEMA.trim_start_matches("cellgate.v1."),
         error,
     })
 }
 
-/// The memory, transfer and status queryables, and the subscriber for puts. Undeclared
+/// The memory, transfer and status queryables, and the subscribers for puts. Undeclared
 /// when dropped.
 pub(crate) struct PlcRoute {
     mem: Queryable<FifoChannelHandler<Query>>,
     transfer: Queryable<FifoChannelHandler<Query>>,
+    message: Queryable<FifoChannelHandler<Query>>,
     status: Queryable<FifoChannelHandler<Query>>,
-    puts: Subscriber<FifoChannelHandler<Sample>>,
+    mem_puts: Subscriber<FifoChannelHandler<Sample>>,
+    transfer_puts: Subscriber<FifoChannelHandler<Sample>>,
+    message_puts: Subscriber<FifoChannelHandler<Sample>>,
 }
 
 impl PlcRoute {
     pub async fn declare(ctx: &PlcContext) -> Result<Self, BusError> {
         let k = &ctx.route.keys;
         Ok(PlcRoute {
+            // Reads and the writes' own keys (`…/write`): the handler tells them apart.
             mem: ctx.route.queryable(k.any_plc_area(PlcArea::Mem)).await?,
-            transfer: ctx
-                .route
-                .queryable(k.any_plc_area(PlcArea::Transfer))
-                .await?,
+            transfer: ctx.route.queryable(k.any_plc_transfer_send()).await?,
+            message: ctx.route.queryable(k.any_plc_message_send()).await?,
             status: ctx.route.queryable(k.any_plc_status()).await?,
-            // Remote only: the gateway's own transfer publications are not requests.
-            puts: ctx
+            mem_puts: ctx
                 .route
-                .subscriber(k.any_plc_area(PlcArea::Mem), Locality::Remote)
+                .subscriber(k.any_plc_mem_write(), Locality::Remote)
+                .await?,
+            transfer_puts: ctx
+                .route
+                .subscriber(k.any_plc_transfer_send(), Locality::Remote)
+                .await?,
+            message_puts: ctx
+                .route
+                .subscriber(k.any_plc_message_send(), Locality::Remote)
                 .await?,
         })
     }
 
     pub async fn run(self, ctx: PlcContext, stop: CancellationToken) {
-        let transfer_puts = match ctx
-            .route
-            .subscriber(
-                ctx.route.keys.any_plc_area(PlcArea::Transfer),
-                Locality::Remote,
-            )
-            .await
-        {
-            Ok(s) => s,
-            Err(e) => {
-                tracing::error!(error = %e, "PLC transfer subscriber");
-                return;
-            }
-        };
-        let mut tasks = JoinSet::new();
-        loop {
-            tokio::select! {
-                () = stop.cancelled() => break,
-                q = self.mem.recv_async() => match q {
-                    Ok(q) => {
-                        let c = ctx.clone();
-                        ctx.route.spawn_query(&mut tasks, q, |q| async move { mem_query(&c, &q).await }).await;
+        serve_route(
+            ctx,
+            stop,
+            vec![
+                Endpoint::queries(self.mem, Some(Pool::Plc), |c: PlcContext, q| async move {
+                    mem_query(&c, &q).await
+                }),
+                Endpoint::queries(self.transfer, Some(Pool::Plc), |c: PlcContext, q| async move {
+                    transfer_query(&c, &q).await
+                }),
+                Endpoint::queries(self.message, Some(Pool::Plc), |c: PlcContext, q| async move {
+                    message_query(&c, &q).await
+                }),
+                Endpoint::samples(
+                    self.message_puts,
+                    Some(Pool::Plc),
+                    |c: PlcContext, s| async move {
+                        if let Err(e) = message_put(&c, &s).await {
+                            tracing::warn!(key = %s.key_expr(), error = %e, "PLC message put refused");
+                        }
+                    },
+                ),
+                Endpoint::queries(self.status, Some(Pool::Read), |c: PlcContext, q| async move {
+                    status_query(&c, &q).await
+                }),
+                Endpoint::samples(self.mem_puts, Some(Pool::Plc), |c: PlcContext, s| async move {
+                    if let Err(e) = mem_put(&c, &s).await {
+                        tracing::warn!(key = %s.key_expr(), error = %e, "PLC memory put refused");
                     }
-                    Err(_) => break,
-                },
-                q = self.transfer.recv_async() => match q {
-                    Ok(q) => {
-                        let c = ctx.clone();
-                        ctx.route.spawn_query(&mut tasks, q, |q| async move { transfer_query(&c, &q).await }).await;
-                    }
-                    Err(_) => break,
-                },
-                q = self.status.recv_async() => match q {
-                    Ok(q) => {
-                        let c = ctx.clone();
-                        ctx.route.spawn_query(&mut tasks, q, |q| async move { status_query(&c, &q).await }).await;
-                    }
-                    Err(_) => break,
-                },
-                s = self.puts.recv_async() => match s {
-                    Ok(s) => {
-                        let c = ctx.clone();
-                        ctx.route.spawn_sample(&mut tasks, s, |s| async move {
-                            if let Err(e) = mem_put(&c, &s).await {
-                                tracing::warn!(key = %s.key_expr(), error = %e, "PLC memory put refused");
-                            }
-                        });
-                    }
-                    Err(_) => break,
-                },
-                s = transfer_puts.recv_async() => match s {
-                    Ok(s) => {
-                        let c = ctx.clone();
-                        ctx.route.spawn_sample(&mut tasks, s, |s| async move {
-                            if let Err(e) = transfer_put(&c, &s).await {
-                                tracing::warn!(key = %s.key_expr(), error = %e, "PLC transfer put refused");
-                            }
-                        });
-                    }
-                    Err(_) => break,
-                },
-                Some(_) = tasks.join_next() => {}
-            }
-        }
-        tasks.shutdown().await;
+                }),
+                Endpoint::samples(
+                    self.transfer_puts,
+                    Some(Pool::Plc),
+                    |c: PlcContext, s| async move {
+                        if let Err(e) = transfer_put(&c, &s).await {
+                            tracing::warn!(key = %s.key_expr(), error = %e, "PLC transfer put refused");
+                        }
+                    },
+                ),
+            ],
+        )
+        .await;
     }
 }
 
@@ -270,9 +270,12 @@ struct MemTarget {
     station: u8,
     module: Module,
     address: Option<u16>,
+    /// The key is a write key (`…/write`).
+    write: bool,
 }
 
-const MEM_KEY: &str = "P/C/plc/L/mem/STATION/MODULE/ADDRESS (e.g. …/mem/0/D/100)";
+const MEM_KEY: &str = "P/C/plc/L/mem/STATION/MODULE/ADDRESS to read (e.g. …/mem/0/D/100), \
+     …/ADDRESS/write to write, P/C/plc/L/mem/STATION/MODULE/write to clear";
 
 fn mem_target(ctx: &PlcContext, key: &str) -> Result<MemTarget, PlcRequestError> {
     let bad = |what: String| PlcRequestError::BadKey {
@@ -285,6 +288,7 @@ fn mem_target(ctx: &PlcContext, key: &str) -> Result<MemTarget, PlcRequestError>
         station,
         module,
         address,
+        write,
     }) = ctx.route.keys.parse_plc(key)
     else {
         return Err(bad("not a memory key".to_string()));
@@ -317,6 +321,7 @@ fn mem_target(ctx: &PlcContext, key: &str) -> Result<MemTarget, PlcRequestError>
         station,
         module,
         address,
+        write,
     })
 }
 
@@ -349,7 +354,18 @@ async fn mem_request(
         plc: t.plc.clone(),
         error,
     };
+    let wrong_key = |what: &str| PlcRequestError::BadKey {
+        key: key.to_string(),
+        what: what.to_string(),
+        expected: MEM_KEY,
+    };
     match payload {
+        None if t.write => Err(wrong_key(
+            "a get on a …/write key writes and needs a PlcWrite; words are read without /write",
+        )),
+        Some(_) if !t.write => Err(wrong_key(
+            "a get here reads and takes no payload: a PlcWrite goes to the key with /write",
+        )),
         None => {
             let address = t.address.ok_or_else(|| PlcRequestError::BadKey {
                 key: key.to_string(),
@@ -369,7 +385,7 @@ async fn mem_request(
                 address: u32::from(address),
                 words,
                 attribute: u32::from(t.module.attribute().code()),
-                unix_ms: unix_ms(SystemTime::now()),
+                unix_ms: pb::unix_ms(SystemTime::now()),
             }))
         }
         Some(bytes) => {
@@ -423,6 +439,12 @@ async fn mem_query(ctx: &PlcContext, q: &Query) {
         Ok(count) => mem_request(ctx, &key, count, payload.as_deref()).await,
         Err(e) => Err(e),
     };
+    audit_mem(
+        ctx,
+        &key,
+        origin_of(q.attachment()),
+        result.as_ref().map(|_| ()),
+    );
     match result {
         Ok(Answer::Words(w)) => reply(q, key, &w).await,
         Ok(Answer::Written(w)) => reply(q, key, &w).await,
@@ -437,19 +459,99 @@ async fn mem_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
         return Ok(());
     }
     let bytes = s.payload().to_bytes();
-    mem_request(ctx, s.key_expr().as_str(), 1, Some(&bytes))
+    let done = mem_request(ctx, s.key_expr().as_str(), 1, Some(&bytes))
         .await
-        .map(|_| ())
+        .map(|_| ());
+    audit_mem(
+        ctx,
+        s.key_expr().as_str(),
+        origin_of(s.attachment()),
+        done.as_ref().map(|_| ()),
+    );
+    done
+}
+
+/// Records a memory write or clear in the audit (reads are not writes).
+fn audit_mem(
+    ctx: &PlcContext,
+    key: &str,
+    origin: Option<pb::RequestOrigin>,
+    outcome: Result<(), &PlcRequestError>,
+) {
+    let Some(PlcKey::Mem {
+        plc,
+        station,
+        module,
+        address,
+        write: true,
+    }) = ctx.route.keys.parse_plc(key)
+    else {
+        return;
+    };
+    let (action, target) = match address {
+        Some(a) => (
+            "plc.mem.write",
+            format!("{plc} station {station} {module}{a}"),
+        ),
+        None => ("plc.mem.clear", format!("{plc} station {station} {module}")),
+    };
+    ctx.route.audit(
+        Audit {
+            action,
+            permission: Permission::PlcMem,
+            key,
+            machine: plc,
+            target,
+            detail: String::new(),
+            origin,
+        },
+        outcome,
+    );
+}
+
+/// Records a transfer sent to the PLC in the audit.
+fn audit_transfer(
+    ctx: &PlcContext,
+    key: &str,
+    origin: Option<pb::RequestOrigin>,
+    outcome: Result<&pb::PlcTransferred, &PlcRequestError>,
+) {
+    let (plc, target) = match ctx.route.keys.parse_plc(key) {
+        Some(PlcKey::Transfer { plc, message, .. }) => {
+            (plc.to_string(), format!("{plc} message {message}"))
+        }
+        _ => (String::new(), key.to_string()),
+    };
+    ctx.route.audit(
+        Audit {
+            action: "plc.transfer",
+            permission: Permission::PlcTransfer,
+            key,
+            machine: &plc,
+            target,
+            detail: match outcome {
+                Ok(t) => format!("{} bytes", t.bytes),
+                Err(_) => String::new(),
+            },
+            origin,
+        },
+        outcome.map(|_| ()),
+    );
 }
 
 fn transfer_target(ctx: &PlcContext, key: &str) -> Result<(String, u8), PlcRequestError> {
     let bad = |what: String| PlcRequestError::BadKey {
         key: key.to_string(),
         what,
-        expected: "P/C/plc/L/transfer/MSGNO (0..=255)",
+        expected: "P/C/plc/L/transfer/MSGNO/send (MSGNO 0..=255)",
     };
-    let Some(PlcKey::Transfer { plc, message }) = ctx.route.keys.parse_plc(key) else {
-        return Err(bad("not a transfer key".to_string()));
+    let Some(PlcKey::Transfer {
+        plc,
+        message,
+        send: true,
+    }) = ctx.route.keys.parse_plc(key)
+    else {
+        return Err(bad("not a transfer's send key".to_string()));
     };
     ctx.plc(plc)?;
     let message = message
@@ -496,7 +598,9 @@ async fn transfer_query(ctx: &PlcContext, q: &Query) {
         reply_err(q, &e).await;
         return;
     };
-    match send_transfer(ctx, &key, &payload).await {
+    let sent = send_transfer(ctx, &key, &payload).await;
+    audit_transfer(ctx, &key, origin_of(q.attachment()), sent.as_ref());
+    match sent {
         Ok(t) => reply(q, key, &t).await,
         Err(e) => reply_err(q, &e).await,
     }
@@ -508,9 +612,20 @@ async fn transfer_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestErro
     {
         return Ok(());
     }
-    send_transfer(ctx, s.key_expr().as_str(), &s.payload().to_bytes())
-        .await
-        .map(|_| ())
+    let sent = send_transfer(ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await;
+    audit_transfer(
+        ctx,
+        s.key_expr().as_str(),
+        origin_of(s.attachment()),
+        sent.as_ref(),
+    );
+    sent.map(|_| ())
+}
+
+/// A moment of the link's clock as Unix milliseconds.
+fn ago_unix_ms(at: std::time::Instant) -> u64 {
+    let ago = crate::link::pump::now().saturating_duration_since(at);
+    crate::jobs::unix_ms().saturating_sub(u64::try_from(ago.as_millis()).unwrap_or(u64::MAX))
 }
 
 /// The `PlcStatus` of a link.
@@ -528,7 +643,7 @@ pub(crate) fn status_message(link: &PlcLink, snap: &PlcSnapshot) -> pb::PlcStatu
             .iter()
             .map(|&n| {
                 let s = c.stations.get(&n).cloned().unwrap_or_else(|| {
-                    crate::fuji::master::StationCounters {
+                    cellgate_core::fuji::master::StationCounters {
                         up: true,
                         ..Default::default()
                     }
@@ -549,6 +664,7 @@ pub(crate) fn status_message(link: &PlcLink, snap: &PlcSnapshot) -> pb::PlcStatu
                         .map(|(k, v)| (u32::from(*k), *v))
                         .collect(),
                     refused_down: s.refused_down,
+                    last_error_unix_ms: s.last_error_at.map_or(0, ago_unix_ms),
                     last_error: s.last_error.map(|e| e.to_string()).unwrap_or_default(),
                 }
             })
@@ -570,9 +686,135 @@ pub(crate) fn status_message(link: &PlcLink, snap: &PlcSnapshot) -> pb::PlcStatu
         tags: snap
             .tags
             .iter()
-            .map(|t| super::route_tag::tag_message(&plc, t))
+            .map(|t| super::payload::tag_message(&plc, t))
+            .collect(),
+        messages_received: c.messages_received,
+        messages_sent: c.messages_sent,
+        partial_messages: c.partial_messages,
+        fixed_length: link.config.fixed_length.map_or(0, u32::from),
+        poll_groups: snap
+            .groups
+            .iter()
+            .zip(0u32..)
+            .map(|(g, group)| {
+                let ms = |d: std::time::Duration| u32::try_from(d.as_millis()).unwrap_or(u32::MAX);
+                pb::PlcPollGroup {
+                    group,
+                    interval_ms: ms(g.interval),
+                    reads: u32::try_from(g.reads).unwrap_or(u32::MAX),
+                    rounds: g.rounds,
+                    last_round_ms: ms(g.last_round),
+                    mean_round_ms: ms(g.mean_round),
+                    max_round_ms: ms(g.max_round),
+                    achieved_interval_ms: ms(g.achieved_interval),
+                    overruns: g.overruns,
+                }
+            })
             .collect(),
     }
+}
+
+const MESSAGE_KEY: &str = "P/C/plc/L/message/send, on a PLC in mode 4 or 5";
+
+/// Sends a non-procedure message (modes 4–5, FFU120B §5-5) to the PLC of `key`.
+async fn send_message(
+    ctx: &PlcContext,
+    key: &str,
+    bytes: &[u8],
+) -> Result<pb::PlcMessageSent, PlcRequestError> {
+    let bad = |what: String| PlcRequestError::BadKey {
+        key: key.to_string(),
+        what,
+        expected: MESSAGE_KEY,
+    };
+    let Some(PlcKey::Message { plc, send: true }) = ctx.route.keys.parse_plc(key) else {
+        return Err(bad("not a message's send key".to_string()));
+    };
+    let link = ctx.plc(plc)?;
+    let m: pb::PlcMessage = decode_payload(plc, bytes)?;
+    let n = m.data.len() as u32;
+    // The master refuses it in modes 1–3 (§5-5) and checks its length (item 15).
+    let reply = link
+        .link
+        .send_message(m.data)
+        .await?
+        .map_err(|error| PlcRequestError::Plc {
+            plc: plc.to_string(),
+            error,
+        })?;
+    let line_bytes = match reply {
+        Reply::Sent { bytes } => u32::try_from(bytes).unwrap_or(u32::MAX),
+        _ => 0,
+    };
+    Ok(pb::PlcMessageSent {
+        plc: plc.to_string(),
+        bytes: n,
+        line_bytes,
+        receive_message: u32::from(link.config.receive_message),
+    })
+}
+
+async fn message_query(ctx: &PlcContext, q: &Query) {
+    let key = q.key_expr().to_string();
+    let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) else {
+        let e = PlcRequestError::BadKey {
+            key,
+            what: "a get here sends a message and needs a PlcMessage payload".to_string(),
+            expected: "subscribe to P/C/plc/L/message for the PLC's messages",
+        };
+        reply_err(q, &e).await;
+        return;
+    };
+    let sent = send_message(ctx, &key, &payload).await;
+    audit_message(ctx, &key, origin_of(q.attachment()), sent.as_ref());
+    match sent {
+        Ok(m) => reply(q, key, &m).await,
+        Err(e) => reply_err(q, &e).await,
+    }
+}
+
+/// Records a message sent to the PLC (modes 4–5) in the audit.
+fn audit_message(
+    ctx: &PlcContext,
+    key: &str,
+    origin: Option<pb::RequestOrigin>,
+    outcome: Result<&pb::PlcMessageSent, &PlcRequestError>,
+) {
+    let plc = match ctx.route.keys.parse_plc(key) {
+        Some(PlcKey::Message { plc, .. }) => plc.to_string(),
+        _ => String::new(),
+    };
+    ctx.route.audit(
+        Audit {
+            action: "plc.message",
+            permission: Permission::PlcTransfer,
+            key,
+            machine: &plc,
+            target: plc.clone(),
+            detail: match outcome {
+                Ok(m) => format!("{} bytes", m.bytes),
+                Err(_) => String::new(),
+            },
+            origin,
+        },
+        outcome.map(|_| ()),
+    );
+}
+
+async fn message_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
+    if s.kind() != SampleKind::Put
+        || schema_of(s.encoding()).as_deref() != Some(pb::PlcMessage::SCHEMA)
+    {
+        return Ok(());
+    }
+    let sent = send_message(ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await;
+    audit_message(
+        ctx,
+        s.key_expr().as_str(),
+        origin_of(s.attachment()),
+        sent.as_ref(),
+    );
+    sent.map(|_| ())
 }
 
 async fn status_query(ctx: &PlcContext, q: &Query) {
@@ -644,11 +886,29 @@ pub(crate) async fn publish_link(ctx: PlcContext, link: PlcLink, stop: Cancellat
                         message: u32::from(message),
                         data,
                         from_plc: true,
-                        unix_ms: unix_ms(time),
+                        unix_ms: pb::unix_ms(time),
                     };
                     ctx.publish(keys.plc_transfer(&name, message), &t, CongestionControl::Block).await;
                 }
+                Ok(PlcEvent::Message { data, time }) => {
+                    let m = pb::PlcMessage {
+                        plc: name.clone(),
+                        data,
+                        from_plc: true,
+                        receive_message: 0,
+                        unix_ms: pb::unix_ms(time),
+                    };
+                    ctx.publish(keys.plc_message(&name), &m, CongestionControl::Block).await;
+                }
                 Ok(PlcEvent::Station { station, up }) => {
+                    ctx.route.history.event(
+                        &name,
+                        pb::HistoryKind::Station,
+                        pb::history_record::Record::Station(pb::StationChange {
+                            station: u32::from(station),
+                            up,
+                        }),
+                    );
                     if up {
                         if let Ok(t) = ctx.route.session.liveliness().declare_token(keys.plc_station(&name, station)).await {
                             tokens.insert(station, t);

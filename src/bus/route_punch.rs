@@ -19,19 +19,20 @@
 use zenoh::qos::CongestionControl;
 
 use super::BusError;
+use super::context::MachinePublisher;
 use super::context::RouteContext;
 use super::keys::MachineLeaf;
-use super::machine::MachinePublisher;
-use crate::config::ProgramsConfig;
-use crate::fanuc::tape::TapeCode;
-use crate::jobs::library::LibraryError;
-use crate::jobs::punch::{
+use crate::jobs::library::{LibraryError, Store};
+use crate::jobs::source::ProgramInput;
+use crate::jobs::{self, JobError, JobSubmission, JobsHandle};
+use cellgate_core::config::ProgramsConfig;
+use cellgate_core::pb;
+use cellgate_core::program::diff::{self, DiffOptions};
+use cellgate_core::program::punch::{
     PunchAssembler, PunchError, PunchedText, RemoteRequest, RequestPatterns, is_punched_name,
     library_name,
 };
-use crate::jobs::source::ProgramInput;
-use crate::jobs::{self, JobError, JobSubmission, JobsHandle};
-use crate::pb;
+use cellgate_core::program::tape::TapeCode;
 
 /// What the cell file says about punched programs.
 #[derive(Debug, Clone)]
@@ -172,6 +173,7 @@ impl PunchDesk {
             request: None,
             damaged: program.damage.is_some(),
             damage: program.damage.clone().unwrap_or_default(),
+            comparison: None,
         };
         let mut alarm = None;
         if let Some(damage) = &program.damage {
@@ -200,7 +202,10 @@ impl PunchDesk {
                 ));
             }
             punched.request = Some(answer);
-        } else if self.settings.store {
+        } else {
+            punched.comparison = self.compare(&program, jobs).await;
+        }
+        if program.damage.is_none() && punched.request.is_none() && self.settings.store {
             match self.store(&program, unix_ms, jobs).await {
                 Ok(name) => punched.library_name = name,
                 Err(e) => {
@@ -216,6 +221,46 @@ impl PunchDesk {
             punched: Some(punched),
             alarm,
         }
+    }
+
+    /// The punched program against the library's program of its O-number (FANUC counts
+    /// `O12` and `O0012` as one program: each spelling is tried), blanks and EOBs aside.
+    async fn compare(
+        &self,
+        program: &PunchedText,
+        jobs: &JobsHandle,
+    ) -> Option<pb::PunchComparison> {
+        let written = program.o_number.clone()?;
+        let digits = written.get(1..)?.trim_start_matches('0');
+        let lookup = RemoteRequest {
+            program: format!("O{}", if digits.is_empty() { "0" } else { digits }),
+            written,
+        };
+        for name in lookup.candidates() {
+            let Ok((revision, bytes)) = jobs.library().read_revision(&name, "").await else {
+                continue;
+            };
+            let options = DiffOptions {
+                blanks: true,
+                ..DiffOptions::default()
+            };
+            let counts = match diff::counts(&bytes, &program.text, options) {
+                Ok(c) => c,
+                Err(e) => {
+                    tracing::info!(machine = %self.machine, program = %name, error = %e, "punched program not compared");
+                    return None;
+                }
+            };
+            return Some(pb::PunchComparison {
+                library_name: name,
+                revision: revision.number,
+                same: counts.same(),
+                blocks_added: counts.added,
+                blocks_removed: counts.removed,
+                blocks_changed: counts.changed,
+            });
+        }
+        None
     }
 
     /// Stores the program under the first free name.
@@ -237,7 +282,16 @@ impl PunchDesk {
                     name: taken.pop().unwrap_or_default(),
                 });
             };
-            match jobs.library().store_new(&name, &program.text).await {
+            let store = Store {
+                bytes: &program.text,
+                by: pb::RequestOrigin {
+                    user: "(punch)".to_string(),
+                    via: self.machine.clone(),
+                },
+                comment: format!("punched out by {}", self.machine),
+                adopted: None,
+            };
+            match jobs.library().store_new_as(&name, store).await {
                 Ok(entry) => {
                     self.expire(unix_ms, jobs).await;
                     return Ok(entry.name);
@@ -280,8 +334,34 @@ impl PunchDesk {
         };
         let candidates = request.candidates();
         for name in &candidates {
+            // A machine that takes only released revisions gets the latest released one.
+            let revision = if jobs.accept() == cellgate_core::config::Accept::Released {
+                jobs.library()
+                    .revisions(name)
+                    .await
+                    .ok()
+                    .and_then(|r| {
+                        r.revisions
+                            .iter()
+                            .find(|x| {
+                                matches!(
+                                    x.state(),
+                                    pb::RevisionState::Released | pb::RevisionState::Locked
+                                )
+                            })
+                            .map(|x| x.number.to_string())
+                    })
+                    .unwrap_or_default()
+            } else {
+                String::new()
+            };
             let submission = JobSubmission {
                 input: ProgramInput::Library(name.clone()),
+                revision,
+                submitted_by: pb::RequestOrigin {
+                    user: "(remote request)".to_string(),
+                    via: self.machine.clone(),
+                },
                 ..JobSubmission::default()
             };
             match jobs.submit(submission).await {

@@ -11,11 +11,12 @@ use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 
 use super::BusError;
+use super::context::MachinePublisher;
 use super::context::{RouteContext, reply};
 use super::keys::MachineLeaf;
-use super::machine::{Machine, MachinePublisher};
+use super::machine::Machine;
 use crate::jobs;
-use crate::pb;
+use cellgate_core::pb;
 
 /// The status queryable of the cell. Undeclared when dropped.
 pub(crate) struct StatusRoute {
@@ -71,15 +72,18 @@ impl StatusPublisher {
     }
 
     /// Publishes the machine's status if it changed since the last publication (the time of
-    /// day aside).
-    pub async fn publish(&mut self, machine: &Machine) {
-        let current = machine.view().status.clone();
+    /// day aside); returns it when it did.
+    pub async fn publish(&mut self, machine: &Machine) -> Option<&pb::MachineStatus> {
+        let mut current = machine.view().status.clone();
+        current.storage_fault = machine.storage_fault();
         if self.published.as_ref() == Some(&current) {
-            return;
+            return None;
         }
         let mut stamped = current.clone();
         stamped.unix_ms = jobs::unix_ms();
+        machine.line_counters(&mut stamped);
         self.publisher.publish(&stamped).await;
         self.published = Some(current);
+        self.published.as_ref()
     }
 }

@@ -5,12 +5,13 @@
 //!   subscribers on an old value until the next change.
 //! - A get answers the latest `TagValue` (value, time stamp, quality); a wildcard get answers
 //!   every tag it matches.
-//! - A get with a `TagWrite` writes the tag (scale undone, range checked) and answers
-//!   `TagWritten` once the module confirmed; a put with one writes it unanswered. A write to
-//!   a read-only tag is refused (`ERROR_CODE_NOT_SUPPORTED`) and never reaches the PLC.
+//! - `P/C/plc/L/tag/NAME/set`, the write's own key: a get with a `TagWrite` writes the tag
+//!   (scale undone, range checked) and answers `TagWritten` once the module confirmed; a put
+//!   with one writes it unanswered. A write to a read-only tag is refused
+//!   (`ERROR_CODE_NOT_SUPPORTED`) and never reaches the PLC. A role that reads tags can never
+//!   write one.
 
 use tokio::sync::broadcast::error::RecvError;
-use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
@@ -19,86 +20,73 @@ use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
 use super::BusError;
-use super::context::{reply, reply_err};
-use super::keys::{PlcArea, PlcKey, intersects};
+use super::audit::{Audit, origin_of};
+use super::context::{Endpoint, Pool, reply, reply_err, serve_route};
+use super::keys::{PlcKey, intersects};
+use super::payload::tag_message;
 use super::payload::{BusMessage, schema_of};
-use super::route_plc::{PlcContext, PlcLink, PlcRequestError, unix_ms};
-use crate::pb;
-use crate::plc::{PlcEvent, Quality, TagValue};
+use super::route_plc::{PlcContext, PlcLink, PlcRequestError};
+use crate::plc::PlcEvent;
+use cellgate_core::config::Permission;
+use cellgate_core::pb;
+use prost::Message as _;
 
-/// A tag's value as a message.
-pub(crate) fn tag_message(plc: &str, v: &TagValue) -> pb::TagValue {
-    pb::TagValue {
-        plc: plc.to_string(),
-        name: v.name.clone(),
-        value: v.value,
-        raw: v.raw,
-        unix_ms: v.time.map(unix_ms),
-        quality: match v.quality {
-            Quality::Good => pb::TagQuality::Good,
-            Quality::Stale => pb::TagQuality::Stale,
-            Quality::StationDown => pb::TagQuality::StationDown,
-        } as i32,
-        writable: v.writable,
-    }
-}
-
-/// The tag queryable and the subscriber for tag writes. Undeclared when dropped.
+/// The tag queryables and the subscriber for tag writes. Undeclared when dropped.
 pub(crate) struct TagRoute {
     get: Queryable<FifoChannelHandler<Query>>,
+    set: Queryable<FifoChannelHandler<Query>>,
     puts: Subscriber<FifoChannelHandler<Sample>>,
 }
 
 impl TagRoute {
     pub async fn declare(ctx: &PlcContext) -> Result<Self, BusError> {
-        let key = ctx.route.keys.any_plc_area(PlcArea::Tag);
+        let k = &ctx.route.keys;
         Ok(TagRoute {
-            get: ctx.route.queryable(key.clone()).await?,
-            // Remote only: the gateway's own TagValue publications are not writes.
-            puts: ctx.route.subscriber(key, Locality::Remote).await?,
+            get: ctx.route.queryable(k.any_plc_tag()).await?,
+            set: ctx.route.queryable(k.any_plc_tag_set()).await?,
+            puts: ctx
+                .route
+                .subscriber(k.any_plc_tag_set(), Locality::Remote)
+                .await?,
         })
     }
 
     pub async fn run(self, ctx: PlcContext, stop: CancellationToken) {
-        let mut tasks = JoinSet::new();
-        loop {
-            tokio::select! {
-                () = stop.cancelled() => break,
-                q = self.get.recv_async() => match q {
-                    Ok(q) => {
-                        let c = ctx.clone();
-                        ctx.route.spawn_query(&mut tasks, q, |q| async move { tag_query(&c, &q).await }).await;
+        serve_route(
+            ctx,
+            stop,
+            vec![
+                Endpoint::queries(self.get, Some(Pool::Read), |c: PlcContext, q| async move {
+                    tag_query(&c, &q).await
+                }),
+                Endpoint::queries(self.set, Some(Pool::Plc), |c: PlcContext, q| async move {
+                    tag_set(&c, &q).await
+                }),
+                Endpoint::samples(self.puts, Some(Pool::Plc), |c: PlcContext, s| async move {
+                    if let Err(e) = tag_put(&c, &s).await {
+                        tracing::warn!(key = %s.key_expr(), error = %e, "tag write refused");
                     }
-                    Err(_) => break,
-                },
-                s = self.puts.recv_async() => match s {
-                    Ok(s) => {
-                        let c = ctx.clone();
-                        ctx.route.spawn_sample(&mut tasks, s, |s| async move {
-                            if let Err(e) = tag_put(&c, &s).await {
-                                tracing::warn!(key = %s.key_expr(), error = %e, "tag write refused");
-                            }
-                        });
-                    }
-                    Err(_) => break,
-                },
-                Some(_) = tasks.join_next() => {}
-            }
-        }
-        tasks.shutdown().await;
+                }),
+            ],
+        )
+        .await;
     }
 }
 
-fn tag_target<'k>(ctx: &PlcContext, key: &'k str) -> Result<(&'k str, &'k str), PlcRequestError> {
+/// The PLC and tag a key names, and whether it is the tag's write key (`…/set`).
+fn tag_target<'k>(
+    ctx: &PlcContext,
+    key: &'k str,
+) -> Result<(&'k str, &'k str, bool), PlcRequestError> {
     match ctx.route.keys.parse_plc(key) {
-        Some(PlcKey::Tag { plc, name }) => {
+        Some(PlcKey::Tag { plc, name, set }) => {
             ctx.plc(plc)?;
-            Ok((plc, name))
+            Ok((plc, name, set))
         }
         _ => Err(PlcRequestError::BadKey {
             key: key.to_string(),
             what: "not a tag key".to_string(),
-            expected: "P/C/plc/L/tag/NAME",
+            expected: "P/C/plc/L/tag/NAME to read, P/C/plc/L/tag/NAME/set to write",
         }),
     }
 }
@@ -108,13 +96,15 @@ async fn write_tag(
     key: &str,
     bytes: &[u8],
 ) -> Result<pb::TagWritten, PlcRequestError> {
-    let (plc, name) = tag_target(ctx, key)?;
-    let w: pb::TagWrite =
-        prost::Message::decode(bytes).map_err(|error| PlcRequestError::Payload {
-            plc: plc.to_string(),
-            message: "TagWrite",
-            error,
-        })?;
+    let (plc, name, set) = tag_target(ctx, key)?;
+    if !set {
+        return Err(PlcRequestError::BadKey {
+            key: key.to_string(),
+            what: "a tag is written on its own key".to_string(),
+            expected: "P/C/plc/L/tag/NAME/set",
+        });
+    }
+    let w: pb::TagWrite = super::route_plc::decode_payload(plc, bytes)?;
     let link = ctx.plc(plc)?;
     link.link
         .write_tag(name, w.value)
@@ -130,18 +120,80 @@ async fn write_tag(
     })
 }
 
-async fn tag_query(ctx: &PlcContext, q: &Query) {
+/// A get with a `TagWrite` on `P/C/plc/L/tag/NAME/set`.
+async fn tag_set(ctx: &PlcContext, q: &Query) {
     let key = q.key_expr().to_string();
-    if let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) {
-        match write_tag(ctx, &key, &payload).await {
-            Ok(w) => reply(q, key, &w).await,
-            Err(e) => reply_err(q, &e).await,
+    let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) else {
+        if !q.key_expr().is_wild() {
+            let e = PlcRequestError::BadKey {
+                key,
+                what: "a get here writes the tag and needs a TagWrite".to_string(),
+                expected: "P/C/plc/L/tag/NAME to read the tag",
+            };
+            reply_err(q, &e).await;
         }
         return;
+    };
+    let written = write_tag(ctx, &key, &payload).await;
+    audit_tag(
+        ctx,
+        &key,
+        &payload,
+        origin_of(q.attachment()),
+        written.as_ref(),
+    );
+    match written {
+        Ok(w) => reply(q, key, &w).await,
+        Err(e) => reply_err(q, &e).await,
+    }
+}
+
+/// Records a tag write in the audit.
+fn audit_tag(
+    ctx: &PlcContext,
+    key: &str,
+    payload: &[u8],
+    origin: Option<pb::RequestOrigin>,
+    outcome: Result<&pb::TagWritten, &PlcRequestError>,
+) {
+    let (plc, name) = match tag_target(ctx, key) {
+        Ok((p, n, _)) => (p.to_string(), n.to_string()),
+        Err(_) => (String::new(), key.to_string()),
+    };
+    let detail = match outcome {
+        Ok(w) => format!("value {}", w.value),
+        Err(_) => pb::TagWrite::decode(payload)
+            .map(|w| format!("value {}", w.value))
+            .unwrap_or_default(),
+    };
+    ctx.route.audit(
+        Audit {
+            action: "plc.tag",
+            permission: Permission::PlcTag,
+            key,
+            machine: &plc,
+            target: format!("{plc}/{name}"),
+            detail,
+            origin,
+        },
+        outcome.map(|_| ()),
+    );
+}
+
+/// A get on `P/C/plc/L/tag/NAME`: the tag's latest value.
+async fn tag_query(ctx: &PlcContext, q: &Query) {
+    let key = q.key_expr().to_string();
+    if q.payload().is_some() {
+        let e = PlcRequestError::BadKey {
+            key,
+            what: "a get here reads the tag and takes no payload".to_string(),
+            expected: "P/C/plc/L/tag/NAME/set for a TagWrite",
+        };
+        return reply_err(q, &e).await;
     }
     if !q.key_expr().is_wild() {
         let result = match tag_target(ctx, &key) {
-            Ok((plc, name)) => match ctx.plc(plc) {
+            Ok((plc, name, _)) => match ctx.plc(plc) {
                 Ok(link) => match link.link.get_tag(name).await {
                     Ok(Ok(v)) => Ok(tag_message(plc, &v)),
                     Ok(Err(e)) => Err(PlcRequestError::from(e)),
@@ -178,22 +230,45 @@ async fn tag_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
     {
         return Ok(());
     }
-    write_tag(ctx, s.key_expr().as_str(), &s.payload().to_bytes())
-        .await
-        .map(|_| ())
+    let payload = s.payload().to_bytes();
+    let written = write_tag(ctx, s.key_expr().as_str(), &payload).await;
+    audit_tag(
+        ctx,
+        s.key_expr().as_str(),
+        &payload,
+        origin_of(s.attachment()),
+        written.as_ref(),
+    );
+    written.map(|_| ())
 }
 
 /// Publishes a PLC link's tag changes until `stop`.
 pub(crate) async fn publish_tags(ctx: PlcContext, link: PlcLink, stop: CancellationToken) {
     let mut events = link.link.subscribe();
     let plc = link.config.name.clone();
+    // The tags whose values the history keeps.
+    let kept: std::collections::BTreeSet<String> = link
+        .config
+        .tags
+        .iter()
+        .filter(|t| t.history)
+        .map(|t| t.name.clone())
+        .collect();
     loop {
         tokio::select! {
             () = stop.cancelled() => break,
             ev = events.recv() => match ev {
                 Ok(PlcEvent::Tag(v)) => {
                     let key = ctx.route.keys.plc_tag(&plc, &v.name);
-                    ctx.publish(key, &tag_message(&plc, &v), CongestionControl::Block).await;
+                    let message = tag_message(&plc, &v);
+                    if kept.contains(&v.name) {
+                        ctx.route.history.event(
+                            &plc,
+                            pb::HistoryKind::Tag,
+                            pb::history_record::Record::Tag(message.clone()),
+                        );
+                    }
+                    ctx.publish(key, &message, CongestionControl::Block).await;
                 }
                 Ok(PlcEvent::Stopped { .. }) | Err(RecvError::Closed) => break,
                 Ok(_) => {}

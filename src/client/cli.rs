@@ -15,13 +15,14 @@ use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use prost::Message;
 
+use super::records;
 use super::render::{self, WatchPrinter};
 use super::{
     Client, ClientError, ClientSecurity, ConnectOptions, Credentials, DEFAULT_ENDPOINT, JobOutcome,
-    parse_byte,
+    WatchEvent, parse_byte,
 };
-use crate::pb;
-use crate::pb::job_event::Kind;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
 
 /// Exit code of an interrupted `submit`.
 pub const EXIT_INTERRUPTED: u8 = 130;
@@ -77,6 +78,10 @@ pub struct ConnectArgs {
     /// A file whose first line is the password of --user.
     #[arg(long, value_name = "FILE", requires = "user")]
     pub password_file: Option<PathBuf>,
+    /// Who you are, for the gateway's audit trail (attached to every request; the gateway
+    /// records it as your word). Default: --user, else your login name.
+    #[arg(long = "as", value_name = "NAME", env = "CELLGATE_AS")]
+    pub as_user: Option<String>,
 }
 
 /// Where a client command takes the password of `--user` from when no file is given.
@@ -113,7 +118,18 @@ impl ConnectArgs {
                 })
             }
         };
+        let user = self
+            .as_user
+            .clone()
+            .or_else(|| self.user.clone())
+            .or_else(|| std::env::var("USER").ok())
+            .or_else(|| std::env::var("LOGNAME").ok())
+            .unwrap_or_default();
         Ok(ConnectOptions {
+            origin: Some(pb::RequestOrigin {
+                user: user.chars().take(cellgate_core::bounds::MAX_TEXT).collect(),
+                via: "cli".to_string(),
+            }),
             endpoint: self.connect.clone(),
             prefix: self.prefix.clone(),
             cell: self.cell.clone(),
@@ -204,12 +220,19 @@ pub fn execute(command: &impl ClientCommand) -> ExitCode {
 
 /// `cellgate submit`.
 #[derive(Debug, Clone, Args)]
-#[command(group(clap::ArgGroup::new("source").required(true).args(["file", "library", "key"])))]
+#[command(
+    override_usage = "cellgate submit [OPTIONS] <MACHINE> <FILE|--library <NAME>|--key <KEY>|--resume <JOB_ID>>"
+)]
+#[command(group(
+    clap::ArgGroup::new("source")
+        .required(true)
+        .args(["file", "library", "key", "resume"])
+))]
 pub struct SubmitArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
     /// The machine to send the program to (its name in the cell file).
-    #[arg(short, long, value_name = "MACHINE")]
+    #[arg(value_name = "MACHINE")]
     pub machine: String,
     /// The program file. It is sent inline, in one message, so it is held whole in memory;
     /// for large programs put it in the library first (`cellgate program put`) and use
@@ -219,6 +242,10 @@ pub struct SubmitArgs {
     /// A program of the gateway's library instead of a file.
     #[arg(long, value_name = "NAME")]
     pub library: Option<String>,
+    /// With --library: the revision to send, by number or SHA-256 (default: the latest; a
+    /// machine with `accept = "released"` takes only released ones).
+    #[arg(long, value_name = "REV", requires = "library")]
+    pub revision: Option<String>,
     /// A zenoh key the gateway fetches the program from (one get), instead of a file.
     #[arg(long, value_name = "KEY")]
     pub key: Option<String>,
@@ -237,7 +264,7 @@ pub struct SubmitArgs {
     pub detach: bool,
     /// Send the program of an earlier job that failed or was cancelled again, from the
     /// first block the board did not acknowledge whole, with the program's header first.
-    #[arg(long, value_name = "JOB_ID", conflicts_with_all = ["file", "library", "key"])]
+    #[arg(long, value_name = "JOB_ID")]
     pub resume: Option<String>,
     /// Start at a block: `N1234` (its sequence number) or a line number; the program's
     /// header (its lines before the first numbered block) goes first.
@@ -259,6 +286,10 @@ pub struct SubmitArgs {
     /// a retry with the same id queues nothing twice.
     #[arg(long, value_name = "ID")]
     pub request_id: Option<String>,
+    /// Print JSON on stdout: the acceptance (job_id, queue_position), then the job's last
+    /// event, one object a line, instead of the job id.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// A new request id: unique per process and moment.
@@ -344,6 +375,7 @@ impl SubmitArgs {
             start_at,
             resume_after_restart: self.resume_after_restart,
             deadline_s: self.deadline,
+            revision: self.revision.clone().unwrap_or_default(),
         })
     }
 }
@@ -357,7 +389,11 @@ impl ClientCommand for SubmitArgs {
         let request = self.request(io).await?;
         let (accepted, mut follower) = client.submit(&self.machine, &request).await?;
         let job = accepted.job_id.clone();
-        let _ = writeln!(io.out, "{job}");
+        if self.json {
+            let _ = writeln!(io.out, "{}", render::accepted_json(&accepted));
+        } else {
+            let _ = writeln!(io.out, "{job}");
+        }
         let _ = io.out.flush();
         let _ = writeln!(
             io.err,
@@ -379,7 +415,7 @@ impl ClientCommand for SubmitArgs {
                     let _ = writeln!(
                         io.err,
                         "interrupted: job {job} keeps running on {m}; follow it with \
-                         `cellgate watch {m}`, cancel it with `cellgate cancel {m} {job}`",
+                         `cellgate job {job} --follow`, cancel it with `cellgate cancel {job}`",
                         m = self.machine
                     );
                     follower.close().await;
@@ -397,6 +433,9 @@ impl ClientCommand for SubmitArgs {
             };
             show_progress(&bar, io, &event);
             if let Some(outcome) = JobOutcome::of(&event) {
+                if self.json {
+                    let _ = writeln!(io.out, "{}", render::job_event_json(&event));
+                }
                 break Some(outcome);
             }
         };
@@ -464,6 +503,9 @@ pub struct HealthArgs {
     /// should not restart a gateway because a CNC is switched off.
     #[arg(long)]
     pub gateway_only: bool,
+    /// Print JSON (healthy, links, down, alarm) instead of text.
+    #[arg(long)]
+    pub json: bool,
 }
 
 impl ClientCommand for HealthArgs {
@@ -472,10 +514,17 @@ impl ClientCommand for HealthArgs {
     }
 
     /// Connecting already proved that the gateway answers its admin key; then every link
-    /// must have its transport open and its device answering.
+    /// must have its transport open and its device answering. A machine in alarm has its
+    /// link up (the board answers), so it is healthy, but named: an operator's matter, not
+    /// the gateway's.
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
         if self.gateway_only {
-            let _ = writeln!(io.out, "ok: the gateway answers");
+            if self.json {
+                let v = serde_json::json!({ "healthy": true, "gateway": true });
+                let _ = writeln!(io.out, "{v}");
+            } else {
+                let _ = writeln!(io.out, "ok: the gateway answers");
+            }
             return Ok(0);
         }
         let statuses = client.status(None).await?;
@@ -502,13 +551,33 @@ impl ClientCommand for HealthArgs {
                 .filter(|s| !s.up)
                 .map(|s| format!("{} station {} (down)", s.plc, s.station)),
         );
+        let alarm: Vec<String> = statuses
+            .iter()
+            .filter(|s| {
+                s.link_state() == pb::LinkState::Alarm
+                    || s.sat
+                        .as_ref()
+                        .is_some_and(|sat| sat.buffer_status() == pb::BufferStatus::Alarm)
+            })
+            .map(|s| s.machine.clone())
+            .collect();
         let links = statuses.len() + stations.len();
-        if down.is_empty() {
-            let _ = writeln!(
+        let healthy = down.is_empty();
+        if self.json {
+            let v = serde_json::json!({
+                "healthy": healthy, "gateway": true, "links": links, "down": down,
+                "alarm": alarm,
+            });
+            let _ = writeln!(io.out, "{v}");
+        } else if healthy {
+            let _ = write!(
                 io.out,
                 "ok: the gateway answers and its {links} link(s) are up"
             );
-            Ok(0)
+            if !alarm.is_empty() {
+                let _ = write!(io.out, "; in alarm: {}", alarm.join(", "));
+            }
+            let _ = writeln!(io.out);
         } else {
             let _ = writeln!(
                 io.out,
@@ -516,8 +585,8 @@ impl ClientCommand for HealthArgs {
                 down.len(),
                 down.join(", ")
             );
-            Ok(1)
         }
+        Ok(if healthy { 0 } else { 1 })
     }
 }
 
@@ -551,7 +620,16 @@ impl ClientCommand for StatusArgs {
         // The PLC stations, when no one machine was asked for.
         if self.machine.is_none() && !self.json {
             let plcs = client.plc_status(None).await.unwrap_or_default();
-            let _ = write!(io.out, "{}", super::plc::status_text(&plcs));
+            let _ = write!(
+                io.out,
+                "{}",
+                render::plc_status_text(&plcs, render::now_ms())
+            );
+        }
+        if !self.json
+            && let Some(line) = render::gateway_line(client.admin(), render::now_ms())
+        {
+            let _ = writeln!(io.out, "{line}");
         }
         if statuses.is_empty() && client.admin().is_null() {
             // A gateway that hides @admin enforces roles: no status may be a refusal.
@@ -564,6 +642,161 @@ impl ClientCommand for StatusArgs {
     }
 }
 
+// ---- jobs ------------------------------------------------------------------------------------
+
+/// `cellgate jobs`.
+#[derive(Debug, Clone, Args)]
+pub struct JobsArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// One machine; default every machine of the cell.
+    #[arg(value_name = "MACHINE")]
+    pub machine: Option<String>,
+    /// Also the jobs that ended (the gateway keeps the latest 256 of each machine), with how
+    /// each ended.
+    #[arg(long)]
+    pub all: bool,
+    /// Print JSON (an array of each machine's queue: active, waiting; with --all, ended: the
+    /// last event of each ended job).
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl ClientCommand for JobsArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        // Asking for the status first names the cell's machines when MACHINE is none of them.
+        let machines: Vec<String> = client
+            .status(self.machine.as_deref())
+            .await?
+            .into_iter()
+            .map(|s| s.machine)
+            .collect();
+        let mut queues = Vec::new();
+        for m in &machines {
+            queues.push(client.queue(m).await?);
+        }
+        let ended: Vec<pb::JobEvent> = if self.all {
+            client
+                .recent_jobs(self.machine.as_deref())
+                .await?
+                .into_iter()
+                .filter(super::is_end)
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if self.json {
+            let all: Vec<serde_json::Value> = queues
+                .iter()
+                .map(|q| {
+                    let mut v = render::queue_json(q);
+                    if self.all {
+                        v["ended"] = ended
+                            .iter()
+                            .filter(|e| e.machine == q.machine)
+                            .map(render::job_event_json)
+                            .collect();
+                    }
+                    v
+                })
+                .collect();
+            let text = serde_json::to_string_pretty(&all).unwrap_or_default();
+            let _ = writeln!(io.out, "{text}");
+        } else {
+            let _ = write!(io.out, "{}", render::queue_table(&queues, &ended));
+        }
+        Ok(0)
+    }
+}
+
+/// `cellgate job`.
+#[derive(Debug, Clone, Args)]
+pub struct JobArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// The job id `submit` printed; it names the machine (`mill-1-tpfqpi-3` runs on mill-1).
+    #[arg(value_name = "JOB_ID")]
+    pub job_id: String,
+    /// Follow the job's events until it ends; the exit code is then the job's (0 completed,
+    /// 1 failed or cancelled), as for `submit`.
+    #[arg(long)]
+    pub follow: bool,
+    /// Print JSON (the job's latest event; with --follow, each event a line).
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl JobArgs {
+    fn show(&self, io: &mut Io<'_>, e: &pb::JobEvent) {
+        if self.json {
+            let _ = writeln!(io.out, "{}", render::job_event_json(e));
+        } else {
+            let _ = writeln!(
+                io.out,
+                "{} {} on {}: {}",
+                render::clock(e.unix_ms),
+                e.job_id,
+                e.machine,
+                render::job_kind_text(e)
+            );
+        }
+        let _ = io.out.flush();
+    }
+}
+
+impl ClientCommand for JobArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        let (machine, job) = job_target(&self.job_id, None)?;
+        if !self.follow {
+            let latest = client.job_latest(&machine, &job).await?;
+            self.show(io, &latest);
+            return Ok(0);
+        }
+        // Subscribed before the latest event is asked for, so that nothing falls between.
+        let mut follower = client.follow(&machine, &job).await?;
+        let mut last = match client.job_latest(&machine, &job).await {
+            Ok(e) => e,
+            Err(e) => {
+                follower.close().await;
+                return Err(e);
+            }
+        };
+        self.show(io, &last);
+        let interrupt = tokio::signal::ctrl_c();
+        tokio::pin!(interrupt);
+        while !super::is_end(&last) {
+            let next = tokio::select! {
+                e = follower.next() => e,
+                _ = &mut interrupt => break,
+            };
+            match next {
+                Ok(Some(e)) => {
+                    // Progress comes four times a second; as text, the steps are enough.
+                    if self.json || !matches!(e.kind, Some(Kind::Progress(_))) {
+                        self.show(io, &e);
+                    }
+                    last = e;
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    follower.close().await;
+                    return Err(e);
+                }
+            }
+        }
+        follower.close().await;
+        Ok(JobOutcome::of(&last).map_or(EXIT_INTERRUPTED, |o| o.exit_code()))
+    }
+}
+
 // ---- watch -----------------------------------------------------------------------------------
 
 /// `cellgate watch`.
@@ -571,9 +804,21 @@ impl ClientCommand for StatusArgs {
 pub struct WatchArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
-    /// Only this machine's events.
+    /// Only this machine's events, or this PLC's (its stations, transfers and tags).
     #[arg(value_name = "MACHINE")]
     pub machine: Option<String>,
+    /// PLC tag changes to print as well: `--tags` every tag, `--tags=parts,recipe` those.
+    /// Without it tag changes are left out (a counter tag changes every second and would
+    /// drown everything else), unless MACHINE is a PLC.
+    #[arg(
+        long,
+        value_name = "NAMES",
+        num_args = 0..=1,
+        require_equals = true,
+        default_missing_value = "*",
+        value_delimiter = ','
+    )]
+    pub tags: Option<Vec<String>>,
     /// One JSON object per line.
     #[arg(long)]
     pub json: bool,
@@ -582,12 +827,60 @@ pub struct WatchArgs {
     pub count: Option<u64>,
 }
 
+impl WatchArgs {
+    /// Whether a tag change is printed.
+    fn shows_tag(&self, tag: &pb::TagValue, plc_watched: bool) -> bool {
+        plc_watched
+            || self
+                .tags
+                .as_ref()
+                .is_some_and(|names| names.iter().any(|n| n == "*" || *n == tag.name))
+    }
+}
+
 impl ClientCommand for WatchArgs {
     fn connect_args(&self) -> &ConnectArgs {
         &self.connect
     }
 
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        // A name that is neither a machine nor a PLC of the cell would print nothing, ever.
+        let mut plc_watched = false;
+        if let Some(m) = &self.machine {
+            match client.status(Some(m)).await {
+                Ok(_) => {}
+                Err(e) if e.refusal() == Some(pb::ErrorCode::UnknownMachine) => {
+                    let plcs: Vec<String> = client
+                        .plc_status(None)
+                        .await
+                        .unwrap_or_default()
+                        .into_iter()
+                        .map(|p| p.plc)
+                        .collect();
+                    if !plcs.contains(m) {
+                        let machines: Vec<String> = client
+                            .status(None)
+                            .await
+                            .unwrap_or_default()
+                            .into_iter()
+                            .map(|s| s.machine)
+                            .collect();
+                        return Err(ClientError::InvalidArgument {
+                            what: format!("watch {m}"),
+                            reason: format!(
+                                "cell {} has no machine or PLC {m:?}; its machines: {}; its \
+                                 PLCs: {}",
+                                client.cell(),
+                                list_or_none(&machines),
+                                list_or_none(&plcs)
+                            ),
+                        });
+                    }
+                    plc_watched = true;
+                }
+                Err(e) => return Err(e),
+            }
+        }
         let mut watch = client.watch().await?;
         let mut printer = WatchPrinter::new();
         let mut printed = 0;
@@ -609,7 +902,12 @@ impl ClientCommand for WatchArgs {
             {
                 continue;
             }
-            let now = crate::jobs::unix_ms();
+            if let WatchEvent::Tag(t) = &event
+                && !self.shows_tag(t, plc_watched)
+            {
+                continue;
+            }
+            let now = cellgate_core::pb::unix_ms(std::time::SystemTime::now());
             let line = if self.json {
                 Some(render::watch_json(&event, now).to_string())
             } else {
@@ -628,6 +926,14 @@ impl ClientCommand for WatchArgs {
         }
         watch.close().await;
         Ok(0)
+    }
+}
+
+fn list_or_none(names: &[String]) -> String {
+    if names.is_empty() {
+        "none".to_string()
+    } else {
+        names.join(", ")
     }
 }
 
@@ -655,6 +961,9 @@ pub struct DoArgs {
     /// Put the command and return without waiting for SDO to go out (no confirmation).
     #[arg(long)]
     pub no_wait: bool,
+    /// Print JSON (machine, do_image, confirmed) instead of text.
+    #[arg(long)]
+    pub json: bool,
 }
 
 impl ClientCommand for DoArgs {
@@ -665,12 +974,26 @@ impl ClientCommand for DoArgs {
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
         if self.no_wait {
             client.put_do(&self.machine, self.value, self.mask).await?;
+            if self.json {
+                let v = serde_json::json!({
+                    "machine": self.machine, "value": self.value, "mask": self.mask,
+                    "confirmed": false,
+                });
+                let _ = writeln!(io.out, "{v}");
+            }
             let _ = writeln!(io.err, "{}: DO command sent (not confirmed)", self.machine);
             return Ok(0);
         }
         let status = client.set_do(&self.machine, self.value, self.mask).await?;
         let image = status.do_image.unwrap_or(u32::from(self.value));
-        let _ = writeln!(io.out, "{} DO {}", self.machine, render::byte_image(image));
+        if self.json {
+            let v = serde_json::json!({
+                "machine": self.machine, "do_image": image, "confirmed": true,
+            });
+            let _ = writeln!(io.out, "{v}");
+        } else {
+            let _ = writeln!(io.out, "{} DO {}", self.machine, render::byte_image(image));
+        }
         Ok(0)
     }
 }
@@ -684,7 +1007,7 @@ pub struct DiArgs {
     /// board's next exchange, up to 2·Tp + 1 s.
     #[arg(value_name = "MACHINE")]
     pub machine: String,
-    /// Print JSON.
+    /// Print JSON (machine, value, unix_ms) instead of text.
     #[arg(long)]
     pub json: bool,
 }
@@ -718,21 +1041,31 @@ pub enum ProgramCommand {
         name: String,
         /// The program file.
         file: PathBuf,
+        /// A comment for the revision the store makes.
+        #[arg(short = 'c', long, value_name = "TEXT")]
+        comment: Option<String>,
+        /// Print JSON (a ProgramInfo) of the stored program.
+        #[arg(long)]
+        json: bool,
     },
     /// Fetch a program of the library.
     Get {
         #[command(flatten)]
         connect: ConnectArgs,
+        /// The program's name in the library (`cellgate program ls` lists them).
         name: String,
         /// Write it to FILE instead of stdout.
         #[arg(short, long, value_name = "FILE")]
         output: Option<PathBuf>,
+        /// Print JSON (name, size, text) instead of the program's bytes.
+        #[arg(long, conflicts_with = "output")]
+        json: bool,
     },
     /// List the library.
     Ls {
         #[command(flatten)]
         connect: ConnectArgs,
-        /// Print JSON (an array of ProgramInfo).
+        /// Print JSON (an array of name, size, modified_unix_ms).
         #[arg(long)]
         json: bool,
     },
@@ -740,7 +1073,95 @@ pub enum ProgramCommand {
     Rm {
         #[command(flatten)]
         connect: ConnectArgs,
+        /// The program's name in the library.
         name: String,
+        /// Print JSON (name, size, modified_unix_ms) of the removed program.
+        #[arg(long)]
+        json: bool,
+    },
+    /// A program's revisions, newest first: number, state, when, by whom, size, hash,
+    /// comment.
+    History {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The program's library name.
+        name: String,
+        /// Print JSON (a ProgramRevisions).
+        #[arg(long)]
+        json: bool,
+    },
+    /// Compare two revisions block by block (default: the latest against the one before).
+    /// Exit code 0 when they are the same, 1 when they differ.
+    Diff {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The program's library name.
+        name: String,
+        /// The older revision: a number or a SHA-256 (or its first 8+ hex digits).
+        a: Option<String>,
+        /// The newer revision (default: the latest).
+        b: Option<String>,
+        /// Leave out what does not change the machining: sequence, blanks, comments
+        /// (repeat or comma-separate).
+        #[arg(long, value_name = "WHAT", value_delimiter = ',')]
+        ignore: Vec<String>,
+        /// Print JSON (a ProgramDiff).
+        #[arg(long)]
+        json: bool,
+    },
+    /// Release a revision for production (default: the latest); with --state, set another
+    /// state: draft unreleases (or unlocks a locked one). Needs program.release.
+    Release {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The program's library name.
+        name: String,
+        /// The revision (default: the latest).
+        revision: Option<String>,
+        /// The state it takes: released, locked or draft.
+        #[arg(long, value_name = "STATE", default_value = "released")]
+        state: String,
+        /// Why, for the record.
+        #[arg(short = 'c', long, value_name = "TEXT")]
+        comment: Option<String>,
+        /// Print JSON (the ProgramRevision as it now is).
+        #[arg(long)]
+        json: bool,
+    },
+    /// Lock a revision (default: the latest): while the latest revision is locked nothing
+    /// replaces or removes the program. Needs program.release.
+    Lock {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The program's library name.
+        name: String,
+        /// The revision (default: the latest).
+        revision: Option<String>,
+        /// Why, for the record.
+        #[arg(short = 'c', long, value_name = "TEXT")]
+        comment: Option<String>,
+        /// Print JSON (the ProgramRevision as it now is).
+        #[arg(long)]
+        json: bool,
+    },
+    /// Store another library program (a punched one) as NAME's next revision.
+    Adopt {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The program that gets the new revision (e.g. O1234).
+        name: String,
+        /// The library program to take the content of (e.g. the punched
+        /// lathe-1-O1234-20261201T061500Z).
+        from: String,
+        /// Its revision (default: the latest).
+        #[arg(long, value_name = "REV")]
+        revision: Option<String>,
+        /// A comment for the new revision.
+        #[arg(short = 'c', long, value_name = "TEXT")]
+        comment: Option<String>,
+        /// Print JSON (the ProgramInfo with its new revision).
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -750,13 +1171,24 @@ impl ClientCommand for ProgramCommand {
             ProgramCommand::Put { connect, .. }
             | ProgramCommand::Get { connect, .. }
             | ProgramCommand::Ls { connect, .. }
-            | ProgramCommand::Rm { connect, .. } => connect,
+            | ProgramCommand::Rm { connect, .. }
+            | ProgramCommand::History { connect, .. }
+            | ProgramCommand::Diff { connect, .. }
+            | ProgramCommand::Release { connect, .. }
+            | ProgramCommand::Lock { connect, .. }
+            | ProgramCommand::Adopt { connect, .. } => connect,
         }
     }
 
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
         match self {
-            ProgramCommand::Put { name, file, .. } => {
+            ProgramCommand::Put {
+                name,
+                file,
+                comment,
+                json,
+                ..
+            } => {
                 let data = tokio::fs::read(file)
                     .await
                     .map_err(|source| ClientError::File {
@@ -764,11 +1196,121 @@ impl ClientCommand for ProgramCommand {
                         op: "read",
                         source,
                     })?;
-                let info = client.program_put(name, &data).await?;
-                let _ = writeln!(io.err, "{}: stored, {} bytes", info.name, info.size);
+                let info = client
+                    .program_put_with(name, &data, comment.clone().unwrap_or_default())
+                    .await?;
+                if *json {
+                    let _ = writeln!(io.out, "{}", render::program_json(&info));
+                }
+                let rev = info
+                    .latest
+                    .as_ref()
+                    .map(|r| format!(", revision {}", r.number))
+                    .unwrap_or_default();
+                let _ = writeln!(io.err, "{}: stored, {} bytes{rev}", info.name, info.size);
             }
-            ProgramCommand::Get { name, output, .. } => {
+            ProgramCommand::History { name, json, .. } => {
+                return records::program_history(client, io, name, *json).await;
+            }
+            ProgramCommand::Diff {
+                name,
+                a,
+                b,
+                ignore,
+                json,
+                ..
+            } => {
+                return records::program_diff(
+                    client,
+                    io,
+                    name,
+                    a.as_deref(),
+                    b.as_deref(),
+                    ignore,
+                    *json,
+                )
+                .await;
+            }
+            ProgramCommand::Release {
+                name,
+                revision,
+                state,
+                comment,
+                json,
+                ..
+            } => {
+                let state = match state.as_str() {
+                    "released" => pb::RevisionState::Released,
+                    "locked" => pb::RevisionState::Locked,
+                    "draft" => pb::RevisionState::Draft,
+                    other => {
+                        return Err(ClientError::InvalidArgument {
+                            what: format!("--state {other}"),
+                            reason: "released, locked or draft".to_string(),
+                        });
+                    }
+                };
+                return records::program_state(
+                    client,
+                    io,
+                    name,
+                    revision.as_deref(),
+                    state,
+                    comment.as_deref(),
+                    *json,
+                )
+                .await;
+            }
+            ProgramCommand::Lock {
+                name,
+                revision,
+                comment,
+                json,
+                ..
+            } => {
+                return records::program_state(
+                    client,
+                    io,
+                    name,
+                    revision.as_deref(),
+                    pb::RevisionState::Locked,
+                    comment.as_deref(),
+                    *json,
+                )
+                .await;
+            }
+            ProgramCommand::Adopt {
+                name,
+                from,
+                revision,
+                comment,
+                json,
+                ..
+            } => {
+                return records::program_adopt(
+                    client,
+                    io,
+                    name,
+                    from,
+                    revision.as_deref(),
+                    comment.as_deref(),
+                    *json,
+                )
+                .await;
+            }
+            ProgramCommand::Get {
+                name, output, json, ..
+            } => {
                 let data = client.program_get(name).await?;
+                if *json {
+                    let v = serde_json::json!({
+                        "name": name,
+                        "size": data.len(),
+                        "text": String::from_utf8_lossy(&data),
+                    });
+                    let _ = writeln!(io.out, "{v}");
+                    return Ok(0);
+                }
                 match output {
                     Some(path) => {
                         tokio::fs::write(path, &data)
@@ -798,13 +1340,16 @@ impl ClientCommand for ProgramCommand {
                         let _ = writeln!(
                             io.err,
                             "note: this gateway enforces roles; listing the library needs \
-                             program.write"
+                             program.read"
                         );
                     }
                 }
             }
-            ProgramCommand::Rm { name, .. } => {
-                client.program_remove(name).await?;
+            ProgramCommand::Rm { name, json, .. } => {
+                let info = client.program_remove(name).await?;
+                if *json {
+                    let _ = writeln!(io.out, "{}", render::program_json(&info));
+                }
                 let _ = writeln!(io.err, "{name}: removed");
             }
         }
@@ -819,12 +1364,31 @@ impl ClientCommand for ProgramCommand {
 pub struct CancelArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
-    /// The machine the job runs on.
-    #[arg(value_name = "MACHINE")]
-    pub machine: String,
-    /// The job id `submit` printed.
+    /// The job id `submit` printed; it names the machine (`mill-1-tpfqpi-3` runs on mill-1).
     #[arg(value_name = "JOB_ID")]
     pub job_id: String,
+    /// The job id, after a machine: the older form `cancel MACHINE JOB_ID`.
+    #[arg(value_name = "JOB", hide = true)]
+    pub legacy_job_id: Option<String>,
+    /// Print JSON (the job's last event) instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The machine and job a job id names (`JOB_ID`, or the older `MACHINE JOB_ID`).
+pub fn job_target(first: &str, second: Option<&str>) -> Result<(String, String), ClientError> {
+    if let Some(job) = second {
+        return Ok((first.to_string(), job.to_string()));
+    }
+    match super::machine_of_job(first) {
+        Some(machine) => Ok((machine.to_string(), first.to_string())),
+        None => Err(ClientError::InvalidArgument {
+            what: format!("job {first:?}"),
+            reason: "not a job id: ids are MACHINE-RUN-N, as `submit` prints them \
+                     (e.g. mill-1-tpfqpi-3)"
+                .to_string(),
+        }),
+    }
 }
 
 impl ClientCommand for CancelArgs {
@@ -833,7 +1397,11 @@ impl ClientCommand for CancelArgs {
     }
 
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
-        let last = client.cancel(&self.machine, &self.job_id).await?;
+        let (machine, job) = job_target(&self.job_id, self.legacy_job_id.as_deref())?;
+        let last = client.cancel(&machine, &job).await?;
+        if self.json {
+            let _ = writeln!(io.out, "{}", render::job_event_json(&last));
+        }
         let _ = writeln!(io.err, "{}: {}", last.job_id, render::job_kind_text(&last));
         Ok(match JobOutcome::of(&last) {
             Some(JobOutcome::Cancelled(_)) => 0,
@@ -850,7 +1418,7 @@ pub struct G05Args {
     #[command(flatten)]
     pub connect: ConnectArgs,
     /// The machine to stream to (its cell file has a `[machines.g05]` table).
-    #[arg(short, long, value_name = "MACHINE")]
+    #[arg(value_name = "MACHINE")]
     pub machine: String,
     /// CSV of blocks, one a line: one integer travel per axis (least input increments), then
     /// the auxiliary value when the machine's blocks carry one (empty: none). `#` starts a
@@ -858,11 +1426,14 @@ pub struct G05Args {
     #[arg(value_name = "FILE")]
     pub file: PathBuf,
     /// The stream's id (default: the gateway names it).
-    #[arg(long, value_name = "ID", default_value = "")]
-    pub id: String,
+    #[arg(long, value_name = "ID")]
+    pub id: Option<String>,
     /// Blocks per batch at most.
     #[arg(long, value_name = "N", default_value_t = 200)]
     pub batch: usize,
+    /// Print the stream's last status as JSON instead of a line of text.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// One CSV line as a block: `axes` travels, then an optional auxiliary value when `aux`.
@@ -923,7 +1494,9 @@ impl ClientCommand for G05Args {
             })?)
         };
         let mut lines = tokio::io::BufReader::new(input).lines();
-        let (opened, _token) = client.g05_open(&self.machine, &self.id, true).await?;
+        let (opened, _token) = client
+            .g05_open(&self.machine, self.id.as_deref().unwrap_or_default(), true)
+            .await?;
         let stream = opened.stream_id.clone();
         let status_sub = client.g05_status(&self.machine, &stream).await?;
         let _ = writeln!(
@@ -993,9 +1566,19 @@ impl ClientCommand for G05Args {
                 let blocks: Vec<pb::G05Block> = pending.drain(..n).collect();
                 let end = eof && pending.is_empty();
                 sent += blocks.len() as u64;
-                client
-                    .g05_batch(&self.machine, &stream, &pb::G05Batch { seq, blocks, end })
-                    .await?;
+                // Acknowledged: a refused batch (a travel out of range) ends the stream here
+                // with the reason, instead of leaving it open.
+                let batch = pb::G05Batch { seq, blocks, end };
+                match client.g05_batch_acked(&self.machine, &stream, &batch).await {
+                    Ok(status) => latest = status,
+                    Err(e) => {
+                        let _ = writeln!(io.err, "cellgate: {e}");
+                        let _ = client.g05_cancel(&self.machine, &stream).await;
+                        let _ = writeln!(io.err, "stream {stream} cancelled (end block sent)");
+                        let _ = status_sub.undeclare().await;
+                        return Ok(e.exit_code());
+                    }
+                }
                 seq += 1;
                 if end {
                     break None;
@@ -1052,10 +1635,7 @@ impl ClientCommand for G05Args {
             let _ = writeln!(io.err, "cellgate: stream {stream}: no final status");
             return Ok(1);
         };
-        let _ = serde_json::to_writer(&mut *io.out, &render::g05_json(&last));
-        let _ = writeln!(io.out);
-        let _ = writeln!(
-            io.err,
+        let summary = format!(
             "G05 stream {stream} {}: {} blocks, {} underruns (estimated){}",
             render::g05_state_name(last.state()),
             last.received,
@@ -1066,6 +1646,13 @@ impl ClientCommand for G05Args {
                 format!("; last error: {}", last.last_error)
             }
         );
+        if self.json {
+            let _ = serde_json::to_writer(&mut *io.out, &render::g05_json(&last));
+            let _ = writeln!(io.out);
+            let _ = writeln!(io.err, "{summary}");
+        } else {
+            let _ = writeln!(io.out, "{summary}");
+        }
         let clean = last.state() == pb::G05State::Completed
             && last.end_reason() == pb::G05EndReason::Producer;
         Ok(match fail {

@@ -5,16 +5,19 @@
 //! only, listens nowhere and has multicast scouting off, then finds the cell: the one named,
 //! or, if none is, the only cell whose gateway answers `P/*/@admin` there. Every operation
 //! after that speaks the contract of [`crate::bus`] (keys of [`CellKeys`], protobuf payloads
-//! of [`crate::pb`], `ErrorReply` on refusal) and nothing else, so it works against any
+//! of [`cellgate_core::pb`], `ErrorReply` on refusal) and nothing else, so it works against any
 //! gateway of the same contract. [`cli`] turns the operations into the commands; [`render`]
 //! formats their results for people (text) and programs (JSON).
 
 pub mod cli;
 pub mod plc;
+pub mod records;
 pub mod render;
+pub mod sim;
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
 use prost::Message;
@@ -31,9 +34,9 @@ use crate::bus::keys::{
 };
 use crate::bus::payload::{BusMessage, encoding, schema_of};
 use crate::bus::{BusConfig, BusError, BusMode};
-use crate::jobs::library::{LibraryError, validate_name};
-use crate::pb;
-use crate::pb::job_event::Kind;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
+use cellgate_core::program::name::{NameError, check_name};
 
 /// The endpoint a client connects to unless told otherwise: where `cellgate run` listens
 /// by default.
@@ -61,12 +64,16 @@ pub const SILENCE: Duration = Duration::from_secs(5);
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum ClientError {
-    /// Zenoh refused the endpoint given with `--connect`.
-    #[error("--connect {endpoint}: not a zenoh endpoint (e.g. tcp/127.0.0.1:7447): {source}")]
+    /// The endpoint given with `--connect` is not one (zenoh's own error, a JSON5 parse
+    /// error with source paths, is kept as the source, not shown).
+    #[error(
+        "--connect {endpoint}: not a zenoh endpoint: endpoints look like tcp/127.0.0.1:7447 \
+         (PROTOCOL/ADDRESS: tcp/HOST:PORT, tls/HOST:PORT, unixsock-stream/PATH)"
+    )]
     Endpoint {
         endpoint: String,
         #[source]
-        source: BusError,
+        source: Option<BusError>,
     },
     /// Nothing accepted the connection.
     #[error("{}", unreachable_message(endpoint, *secured))]
@@ -108,7 +115,7 @@ pub enum ClientError {
     InvalidArgument { what: String, reason: String },
     /// A library name the gateway would refuse.
     #[error("{0}")]
-    ProgramName(#[source] LibraryError),
+    ProgramName(#[source] NameError),
     /// The gateway answered with an `ErrorReply`.
     #[error("{what}: refused by the gateway ({}): {message}", code.as_str_name())]
     Refused {
@@ -245,6 +252,9 @@ pub struct ConnectOptions {
     pub timeout: Duration,
     /// TLS and user name, for a gateway with `[security]`.
     pub security: ClientSecurity,
+    /// Who the client says it is, attached to every request (the gateway's audit records
+    /// it); `None`: nothing attached.
+    pub origin: Option<pb::RequestOrigin>,
 }
 
 /// How many times a request that nothing took is sent (see `Client::get_one`).
@@ -261,6 +271,7 @@ impl Default for ConnectOptions {
             cell: None,
             timeout: DEFAULT_TIMEOUT,
             security: ClientSecurity::default(),
+            origin: None,
         }
     }
 }
@@ -294,7 +305,8 @@ impl std::fmt::Debug for Credentials {
 }
 
 impl ClientSecurity {
-    fn is_empty(&self) -> bool {
+    /// Whether nothing is set: a plain session.
+    pub fn is_empty(&self) -> bool {
         *self == ClientSecurity::default()
     }
 
@@ -378,12 +390,15 @@ type RawReply = Result<(String, Vec<u8>, Encoding), (Vec<u8>, Encoding)>;
 type RawReplies = Vec<RawReply>;
 
 /// A connected client of one cell.
+#[derive(Clone)]
 pub struct Client {
     session: Session,
     keys: CellKeys,
     endpoint: String,
     timeout: Duration,
-    admin: serde_json::Value,
+    admin: Arc<serde_json::Value>,
+    /// The encoded `RequestOrigin` attached to every request, if any.
+    origin: Option<Vec<u8>>,
 }
 
 impl std::fmt::Debug for Client {
@@ -410,10 +425,19 @@ pub fn client_config(
         multicast_scouting: false,
         ..BusConfig::default()
     };
+    let shaped = endpoint
+        .split_once('/')
+        .is_some_and(|(proto, addr)| !proto.is_empty() && !addr.is_empty());
+    if !shaped {
+        return Err(ClientError::Endpoint {
+            endpoint: endpoint.to_string(),
+            source: None,
+        });
+    }
     let mut config =
         crate::bus::session::zenoh_config(&bus).map_err(|source| ClientError::Endpoint {
             endpoint: endpoint.to_string(),
-            source,
+            source: Some(source),
         })?;
     security.apply(endpoint, &mut config)?;
     Ok(config)
@@ -440,7 +464,8 @@ impl Client {
                     keys,
                     endpoint: options.endpoint.clone(),
                     timeout: options.timeout,
-                    admin,
+                    admin: Arc::new(admin),
+                    origin: options.origin.as_ref().map(Message::encode_to_vec),
                 }),
                 Err(e) => {
                     let _ = session.close().await;
@@ -579,6 +604,62 @@ impl Client {
         }
     }
 
+    /// A client of `cell` over a session opened elsewhere (the console's), with the admin
+    /// document found for it. Closing it closes that session: drop it instead.
+    pub fn attach(
+        session: Session,
+        prefix: &str,
+        cell: &str,
+        admin: serde_json::Value,
+        timeout: Duration,
+    ) -> Result<Client, ClientError> {
+        Ok(Client {
+            keys: CellKeys::new(prefix, cell)?,
+            endpoint: String::new(),
+            session,
+            timeout,
+            admin: Arc::new(admin),
+            origin: None,
+        })
+    }
+
+    /// The same client, saying `origin` sent what it asks.
+    pub fn with_origin(&self, origin: &pb::RequestOrigin) -> Client {
+        Client {
+            origin: Some(origin.encode_to_vec()),
+            ..self.clone()
+        }
+    }
+
+    /// The cells whose gateways answer under `prefix`, with their admin documents (`Null`
+    /// where a gateway does not show it): what a site view serves.
+    pub async fn discover(
+        session: &Session,
+        prefix: &str,
+        timeout: Duration,
+    ) -> Result<Vec<(String, serde_json::Value)>, ClientError> {
+        Self::admin_answers(session, prefix, "*", timeout).await
+    }
+
+    /// Cancels a job with a get on its cancel key and answers how it ended (its `cancelled`
+    /// event, or the end it reached first), or its latest event if it has not ended within
+    /// the gateway's wait.
+    pub async fn cancel_confirmed(
+        &self,
+        machine: &str,
+        job_id: &str,
+    ) -> Result<pb::JobEvent, ClientError> {
+        Self::machine_arg(machine)?;
+        let key = self.keys.job_cancel(machine, job_id);
+        self.get_one(
+            &format!("cancel of {job_id}"),
+            &key,
+            None,
+            IO_TIMEOUT.max(Duration::from_secs(30)),
+        )
+        .await
+    }
+
     /// Closes the session. Call it before the runtime ends.
     pub async fn close(self) {
         if let Err(e) = self.session.close().await {
@@ -632,7 +713,15 @@ impl Client {
         payload: Option<(Vec<u8>, Encoding)>,
         timeout: Duration,
     ) -> Result<RawReplies, ClientError> {
-        get_raw(&self.session, what, key, payload, timeout).await
+        get_raw(
+            &self.session,
+            what,
+            key,
+            payload,
+            timeout,
+            self.origin.clone(),
+        )
+        .await
     }
 
     /// The replies to a get, each decoded as `M`; the first `ErrorReply` fails the whole.
@@ -699,7 +788,7 @@ impl Client {
         self.get_all(what, key, payload, self.timeout).await
     }
 
-    fn machine_arg(machine: &str) -> Result<(), ClientError> {
+    pub(crate) fn machine_arg(machine: &str) -> Result<(), ClientError> {
         if is_plain_chunk(machine) {
             Ok(())
         } else {
@@ -757,7 +846,7 @@ impl Client {
         let what = format!("submit to {machine}");
         let events_key = self.keys.job_events(machine, "*");
         let subscriber = self.subscribe(&events_key).await?;
-        let key = self.keys.leaf(machine, MachineLeaf::Job);
+        let key = self.keys.leaf(machine, MachineLeaf::Submit);
         let payload = (request.encode_to_vec(), encoding::<pb::JobRequest>());
         let accepted: pb::JobAccepted = match self
             .get_one(&what, &key, Some(payload), SUBMIT_TIMEOUT)
@@ -839,6 +928,26 @@ impl Client {
             .await
     }
 
+    /// The last event of every job the gateway keeps (the latest 256 of each machine), of one
+    /// machine or of all, oldest first.
+    pub async fn recent_jobs(
+        &self,
+        machine: Option<&str>,
+    ) -> Result<Vec<pb::JobEvent>, ClientError> {
+        if let Some(m) = machine {
+            Self::machine_arg(m)?;
+        }
+        let key = self.keys.job_events(machine.unwrap_or("*"), "*");
+        let mut all: Vec<pb::JobEvent> = self
+            .get_all("recent jobs", &key, None, self.timeout)
+            .await?
+            .into_iter()
+            .map(|(_, e)| e)
+            .collect();
+        all.sort_by(|a, b| (a.unix_ms, &a.job_id).cmp(&(b.unix_ms, &b.job_id)));
+        Ok(all)
+    }
+
     /// The queue of one machine.
     pub async fn queue(&self, machine: &str) -> Result<pb::JobQueue, ClientError> {
         Self::machine_arg(machine)?;
@@ -859,7 +968,11 @@ impl Client {
         }
         let mut follower = self.follow(machine, job_id).await?;
         let key = self.keys.job_events(machine, job_id);
-        let deleted = self.session.delete(key.as_str()).await;
+        let mut delete = self.session.delete(key.as_str());
+        if let Some(origin) = &self.origin {
+            delete = delete.attachment(ZBytes::from(origin.clone()));
+        }
+        let deleted = delete.await;
         if let Err(source) = deleted {
             follower.close().await;
             return Err(ClientError::Zenoh {
@@ -904,14 +1017,17 @@ impl Client {
             value: u32::from(value),
             mask: mask.map(u32::from),
         };
-        self.session
+        let mut put = self
+            .session
             .put(key.as_str(), cmd.encode_to_vec())
-            .encoding(encoding::<pb::DoCommand>())
-            .await
-            .map_err(|source| ClientError::Zenoh {
-                what: format!("put {key}"),
-                source,
-            })
+            .encoding(encoding::<pb::DoCommand>());
+        if let Some(origin) = &self.origin {
+            put = put.attachment(ZBytes::from(origin.clone()));
+        }
+        put.await.map_err(|source| ClientError::Zenoh {
+            what: format!("put {key}"),
+            source,
+        })
     }
 
     /// Reads DI of `machine` now (RDI → SDI).
@@ -986,6 +1102,25 @@ impl Client {
             })
     }
 
+    /// Sends a batch of a stream and waits for the gateway's answer: the stream's status with
+    /// the batch taken, or the refusal (a travel out of range, no credits, a gap).
+    pub async fn g05_batch_acked(
+        &self,
+        machine: &str,
+        stream: &str,
+        batch: &pb::G05Batch,
+    ) -> Result<pb::G05Status, ClientError> {
+        let key = self.keys.g05(machine, stream, G05Part::Blocks);
+        let payload = (batch.encode_to_vec(), encoding::<pb::G05Batch>());
+        self.get_one(
+            &format!("batch {} of G05 stream {stream}", batch.seq),
+            &key,
+            Some(payload),
+            self.timeout,
+        )
+        .await
+    }
+
     /// Follows a stream's status.
     pub async fn g05_status(
         &self,
@@ -1012,7 +1147,7 @@ impl Client {
     // ---- program library -------------------------------------------------------------------
 
     fn program_arg(name: &str) -> Result<(), ClientError> {
-        validate_name(name).map_err(ClientError::ProgramName)
+        check_name(name).map_err(ClientError::ProgramName)
     }
 
     /// Every program of the library, sorted by name.
@@ -1064,10 +1199,153 @@ impl Client {
                 ),
             });
         }
+        self.program_put_with(name, program, String::new()).await
+    }
+
+    /// [`Self::program_put`] with a comment for the revision it makes.
+    pub async fn program_put_with(
+        &self,
+        name: &str,
+        program: &[u8],
+        comment: String,
+    ) -> Result<pb::ProgramInfo, ClientError> {
+        Self::program_arg(name)?;
         let write = pb::ProgramWrite {
             op: Some(pb::program_write::Op::Store(program.to_vec())),
+            comment,
         };
         self.program_write(name, "store", write).await
+    }
+
+    /// Stores `from`'s revision (empty: its latest) as `name`'s next revision (a punched
+    /// program adopted as a revision of the library's program).
+    pub async fn program_adopt(
+        &self,
+        name: &str,
+        from: &str,
+        revision: &str,
+        comment: String,
+    ) -> Result<pb::ProgramInfo, ClientError> {
+        Self::program_arg(name)?;
+        Self::program_arg(from)?;
+        let write = pb::ProgramWrite {
+            op: Some(pb::program_write::Op::Adopt(pb::program_write::Adopt {
+                from: from.to_string(),
+                revision: revision.to_string(),
+            })),
+            comment,
+        };
+        self.program_write(name, "adopt into", write).await
+    }
+
+    /// Every kept revision of a program, newest first.
+    pub async fn program_revisions(&self, name: &str) -> Result<pb::ProgramRevisions, ClientError> {
+        Self::program_arg(name)?;
+        let key = self.keys.program_revisions(name);
+        self.get_one(&format!("revisions of {name}"), &key, None, self.timeout)
+            .await
+    }
+
+    /// One revision's content.
+    pub async fn program_revision(
+        &self,
+        name: &str,
+        revision: &str,
+    ) -> Result<Vec<u8>, ClientError> {
+        Self::program_arg(name)?;
+        let key = self.keys.program_revision(name, revision);
+        let what = format!("revision {revision} of {name}");
+        let replies = self.get_raw(&what, &key, None, self.timeout).await?;
+        match replies.into_iter().next() {
+            Some(Ok((_, bytes, _))) => Ok(bytes),
+            Some(Err((bytes, enc))) => Err(refusal(&what, &bytes, &enc)),
+            None => Err(no_reply(&what, &key, self.timeout, self.timeout)),
+        }
+    }
+
+    /// Two revisions compared (`a`, `b`: numbers or hashes; `None`: the defaults, the latest
+    /// against the one before), ignoring `ignore` (`sequence,blanks,comments`).
+    pub async fn program_diff(
+        &self,
+        name: &str,
+        a: Option<&str>,
+        b: Option<&str>,
+        ignore: &[String],
+    ) -> Result<pb::ProgramDiff, ClientError> {
+        Self::program_arg(name)?;
+        let mut params = Vec::new();
+        if let Some(a) = a {
+            params.push(format!("a={a}"));
+        }
+        if let Some(b) = b {
+            params.push(format!("b={b}"));
+        }
+        if !ignore.is_empty() {
+            params.push(format!("ignore={}", ignore.join(",")));
+        }
+        let mut key = self.keys.program_diff(name);
+        if !params.is_empty() {
+            key = format!("{key}?{}", params.join(";"));
+        }
+        self.get_one(&format!("diff of {name}"), &key, None, self.timeout)
+            .await
+    }
+
+    /// Changes a revision's state (`revision` empty: the latest).
+    pub async fn program_release(
+        &self,
+        name: &str,
+        revision: &str,
+        state: pb::RevisionState,
+        comment: String,
+    ) -> Result<pb::ProgramRevision, ClientError> {
+        Self::program_arg(name)?;
+        let key = self.keys.program_release(name);
+        let release = pb::ProgramRelease {
+            revision: revision.to_string(),
+            state: state as i32,
+            comment,
+        };
+        let payload = (release.encode_to_vec(), encoding::<pb::ProgramRelease>());
+        self.get_one(
+            &format!("release {name}"),
+            &key,
+            Some(payload),
+            self.timeout,
+        )
+        .await
+    }
+
+    // ---- history ---------------------------------------------------------------------------
+
+    /// One page of the history (`audit`: of the audit trail) with these selector parameters
+    /// (`_time`, `machine`, `kind`, `tag`, `limit`, `after`).
+    pub async fn history(
+        &self,
+        audit: bool,
+        params: &[(String, String)],
+    ) -> Result<pb::HistoryPage, ClientError> {
+        let base = if audit {
+            self.keys.audit()
+        } else {
+            self.keys.history()
+        };
+        let key = with_params(base, params);
+        let what = if audit {
+            "the audit trail"
+        } else {
+            "the history"
+        };
+        self.get_one(what, &key, None, self.timeout).await
+    }
+
+    /// Utilisation with these selector parameters (`_time`, `machine`, `bucket`).
+    pub async fn utilisation(
+        &self,
+        params: &[(String, String)],
+    ) -> Result<pb::Utilisation, ClientError> {
+        let key = with_params(self.keys.utilisation(), params);
+        self.get_one("utilisation", &key, None, self.timeout).await
     }
 
     /// Removes a program from the library; answers it as it was, once it is gone.
@@ -1075,18 +1353,19 @@ impl Client {
         Self::program_arg(name)?;
         let write = pb::ProgramWrite {
             op: Some(pb::program_write::Op::Remove(pb::program_write::Remove {})),
+            comment: String::new(),
         };
         self.program_write(name, "remove", write).await
     }
 
-    /// A confirmed library change: a get with a `ProgramWrite` on the program's key.
+    /// A confirmed library change: a get with a `ProgramWrite` on the program's write key.
     async fn program_write(
         &self,
         name: &str,
         op: &str,
         write: pb::ProgramWrite,
     ) -> Result<pb::ProgramInfo, ClientError> {
-        let key = self.keys.program(name);
+        let key = self.keys.program_write(name);
         let payload = (write.encode_to_vec(), encoding::<pb::ProgramWrite>());
         self.get_one(
             &format!("{op} program {name}"),
@@ -1173,16 +1452,29 @@ fn no_reply(what: &str, key: &str, timeout: Duration, waited: Duration) -> Clien
     }
 }
 
+/// `key?name=value;...`: zenoh's selector with parameters.
+fn with_params(key: String, params: &[(String, String)]) -> String {
+    if params.is_empty() {
+        return key;
+    }
+    let p: Vec<String> = params.iter().map(|(k, v)| format!("{k}={v}")).collect();
+    format!("{key}?{}", p.join(";"))
+}
+
 async fn get_raw(
     session: &Session,
     what: &str,
     key: &str,
     payload: Option<(Vec<u8>, Encoding)>,
     timeout: Duration,
+    origin: Option<Vec<u8>>,
 ) -> Result<RawReplies, ClientError> {
     let mut builder = session.get(key).timeout(timeout);
     if let Some((bytes, enc)) = payload {
         builder = builder.payload(ZBytes::from(bytes)).encoding(enc);
+    }
+    if let Some(origin) = origin {
+        builder = builder.attachment(ZBytes::from(origin));
     }
     let replies = builder.await.map_err(|source| ClientError::Zenoh {
         what: format!("{what}: get {key}"),
@@ -1395,7 +1687,7 @@ impl JobFollower {
     async fn latest(&self) -> Result<pb::JobEvent, ClientError> {
         let key = self.keys.job_events(&self.machine, &self.job_id);
         let what = format!("job {}", self.job_id);
-        let replies = get_raw(&self.session, &what, &key, None, self.timeout).await?;
+        let replies = get_raw(&self.session, &what, &key, None, self.timeout, None).await?;
         decode_all::<pb::JobEvent>(&what, replies)?
             .into_iter()
             .map(|(_, e)| e)
@@ -1459,6 +1751,8 @@ pub enum WatchEvent {
     Tag(pb::TagValue),
     /// A transfer: from the PLC (published by the gateway), or one a client put to it.
     Transfer(pb::PlcTransfer),
+    /// A non-procedure message (modes 4–5): from the PLC, or one a client put to it.
+    PlcMessage(pb::PlcMessage),
     /// A PLC station's liveliness token: it answers (`up`) or was marked down.
     PlcStation {
         plc: String,
@@ -1539,6 +1833,11 @@ impl Watch {
                 {
                     decode(key, key, &bytes, enc).map(WatchEvent::Transfer)
                 }
+                PlcKey::Message { .. }
+                    if put && schema.as_deref() == Some(pb::PlcMessage::SCHEMA) =>
+                {
+                    decode(key, key, &bytes, enc).map(WatchEvent::PlcMessage)
+                }
                 // Status every few seconds, writes by other clients: not shown.
                 _ => return None,
             };
@@ -1565,7 +1864,7 @@ impl Watch {
                     })
                 }
                 // Job requests and G05 opens are gets, not puts.
-                MachineLeaf::Job | MachineLeaf::G05 => return None,
+                MachineLeaf::Job | MachineLeaf::Submit | MachineLeaf::G05 => return None,
             },
             // A stream's status comes ten times a second: only its end is shown.
             CellKey::G05 {
@@ -1586,11 +1885,11 @@ impl Watch {
                 machine: machine.to_string(),
                 job_id: job.to_string(),
             }),
-            CellKey::Program { name } if put => Ok(WatchEvent::ProgramPut {
+            CellKey::ProgramWrite { name } if put => Ok(WatchEvent::ProgramPut {
                 name: name.to_string(),
                 size: bytes.len() as u64,
             }),
-            CellKey::Program { name } => Ok(WatchEvent::ProgramDeleted {
+            CellKey::ProgramWrite { name } => Ok(WatchEvent::ProgramDeleted {
                 name: name.to_string(),
             }),
             _ => return None,
@@ -1606,6 +1905,18 @@ impl Watch {
         let _ = self.data.undeclare().await;
         let _ = self.tokens.undeclare().await;
     }
+}
+
+/// The machine a job id names: ids are `M-<run>-<n>` (`mill-1-tpfqpi-3`), and a machine's
+/// name may itself hold `-`. `None` for a text that is not such an id.
+pub fn machine_of_job(job_id: &str) -> Option<&str> {
+    let mut parts = job_id.rsplitn(3, '-');
+    let n = parts.next()?;
+    let run = parts.next()?;
+    let machine = parts.next()?;
+    let numbered = !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit());
+    let stamped = !run.is_empty() && run.bytes().all(|b| b.is_ascii_alphanumeric());
+    (numbered && stamped && !machine.is_empty()).then_some(machine)
 }
 
 /// Reads a byte given as `0x..` (hex), `0b..` (binary) or decimal, with optional `_`
@@ -1630,108 +1941,4 @@ pub fn parse_byte(text: &str) -> Result<u8, String> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn bytes_parse_in_three_notations_and_are_range_checked() {
-        assert_eq!(parse_byte("0x5A"), Ok(0x5A));
-        assert_eq!(parse_byte("0XfF"), Ok(0xFF));
-        assert_eq!(parse_byte("0b1010_0101"), Ok(0xA5));
-        assert_eq!(parse_byte("255"), Ok(255));
-        assert_eq!(parse_byte("0"), Ok(0));
-        assert!(parse_byte("256").unwrap_err().contains("0..=255"));
-        assert!(parse_byte("0x100").unwrap_err().contains("0..=255"));
-        assert!(parse_byte("0b2").unwrap_err().contains("not a number"));
-        assert!(parse_byte("-1").is_err());
-        assert!(parse_byte("0x").unwrap_err().contains("no digits"));
-        assert!(parse_byte("").is_err());
-    }
-
-    #[test]
-    fn the_client_session_connects_only_and_never_scouts() {
-        let c = client_config("tcp/127.0.0.1:7447", &ClientSecurity::default()).unwrap();
-        assert_eq!(c.get_json("mode").unwrap(), "\"client\"");
-        assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
-        assert_eq!(c.get_json("listen/endpoints").unwrap(), "[]");
-        assert!(
-            c.get_json("connect/endpoints")
-                .unwrap()
-                .contains("tcp/127.0.0.1:7447")
-        );
-        assert!(matches!(
-            client_config("nonsense", &ClientSecurity::default()),
-            Err(ClientError::Endpoint { .. })
-        ));
-    }
-
-    #[test]
-    fn tls_options_go_into_the_session_and_must_fit_the_endpoint() {
-        let tls = ClientSecurity {
-            ca: Some("/etc/ca.pem".into()),
-            certificate: Some("/etc/me.pem".into()),
-            private_key: Some("/etc/me-key.pem".into()),
-            credentials: Some(Credentials {
-                user: "mes".to_string(),
-                password: "s3cret".to_string(),
-            }),
-        };
-        let c = client_config("tls/127.0.0.1:7447", &tls).unwrap();
-        let t = |k: &str| c.get_json(&format!("transport/link/tls/{k}")).unwrap();
-        assert_eq!(t("root_ca_certificate"), "\"/etc/ca.pem\"");
-        assert_eq!(t("connect_certificate"), "\"/etc/me.pem\"");
-        assert_eq!(t("connect_private_key"), "\"/etc/me-key.pem\"");
-        assert_eq!(t("enable_mtls"), "true");
-        assert!(!format!("{tls:?}").contains("s3cret"));
-        let bad = |endpoint: &str, s: ClientSecurity| {
-            let e = client_config(endpoint, &s).unwrap_err();
-            assert!(matches!(e, ClientError::Security { .. }), "{e}");
-            assert_eq!(e.exit_code(), 2);
-            e.to_string()
-        };
-        assert!(bad("tcp/127.0.0.1:7447", tls.clone()).contains("tls/"));
-        assert!(bad("tls/127.0.0.1:7447", ClientSecurity::default()).contains("--tls-ca"));
-        let half = ClientSecurity {
-            private_key: None,
-            ..tls
-        };
-        assert!(bad("tls/127.0.0.1:7447", half).contains("both"));
-    }
-
-    #[test]
-    fn refusals_keep_the_gateways_code_and_message() {
-        let e = pb::ErrorReply {
-            code: pb::ErrorCode::UnknownMachine as i32,
-            message: "cell x has no machine \"m\"".to_string(),
-            sta: None,
-        };
-        let err = refusal("status", &e.encode_to_vec(), &encoding::<pb::ErrorReply>());
-        assert_eq!(err.refusal(), Some(pb::ErrorCode::UnknownMachine));
-        assert_eq!(err.exit_code(), 2);
-        let text = err.to_string();
-        assert!(text.contains("ERROR_CODE_UNKNOWN_MACHINE"), "{text}");
-        assert!(text.contains("no machine"), "{text}");
-    }
-
-    #[test]
-    fn a_reply_of_another_schema_is_a_bad_reply() {
-        let s = pb::MachineStatus::default().encode_to_vec();
-        let r = decode::<pb::DiImage>("di", "k", &s, &encoding::<pb::MachineStatus>());
-        assert!(matches!(r, Err(ClientError::BadReply { .. })));
-    }
-
-    #[test]
-    fn outcomes_map_to_exit_codes() {
-        let ev = |kind| pb::JobEvent {
-            kind: Some(kind),
-            ..pb::JobEvent::default()
-        };
-        let done = ev(Kind::Completed(pb::job_event::Completed::default()));
-        let failed = ev(Kind::Failed(pb::job_event::Failed::default()));
-        let progress = ev(Kind::Progress(pb::job_event::Progress::default()));
-        assert_eq!(JobOutcome::of(&done).unwrap().exit_code(), 0);
-        assert_eq!(JobOutcome::of(&failed).unwrap().exit_code(), 1);
-        assert!(JobOutcome::of(&progress).is_none());
-        assert!(is_end(&done) && !is_end(&progress));
-    }
-}
+mod tests;

@@ -1,17 +1,17 @@
 //! The client side of the cell PLC: `cellgate plc read|write|clear|send|status` and
 //! `cellgate tag get|set`, over the keys of `crate::bus::route_plc` and `route_tag`.
 
-use std::fmt::Write as _;
 use std::time::Duration;
 
 use clap::Subcommand;
 use serde_json::{Value, json};
 
 use super::cli::{ClientCommand, ConnectArgs, Io};
+use super::render::{plc_status_text, tag_json, tag_text};
 use super::{Client, ClientError};
 use crate::bus::keys::{PlcKey, is_plain_chunk};
 use crate::bus::payload::{BusMessage, encoding};
-use crate::pb;
+use cellgate_core::pb;
 
 /// How long a PLC request may wait: the master's reply time-out (at most 600 s in the cell
 /// file) times its attempts, behind the requests queued before it.
@@ -75,7 +75,7 @@ impl Client {
     ) -> Result<pb::PlcWritten, ClientError> {
         chunk_arg("PLC", plc)?;
         chunk_arg("module", module)?;
-        let key = self.keys().plc_mem(plc, station, module, address);
+        let key = self.keys().plc_mem_write(plc, station, module, address);
         self.get_one_pub(
             &format!("write to {module} on {plc}"),
             &key,
@@ -92,7 +92,7 @@ impl Client {
         data: Vec<u8>,
     ) -> Result<pb::PlcTransferred, ClientError> {
         chunk_arg("PLC", plc)?;
-        let key = self.keys().plc_transfer(plc, message);
+        let key = self.keys().plc_transfer_send(plc, message);
         let t = pb::PlcTransfer {
             plc: plc.to_string(),
             message: u32::from(message),
@@ -101,6 +101,24 @@ impl Client {
             unix_ms: 0,
         };
         self.get_one_pub(&format!("transfer {message} to {plc}"), &key, payload(&t))
+            .await
+    }
+
+    /// Sends a non-procedure message to the PLC (modes 4–5): it goes to the module's receive
+    /// message number.
+    pub async fn plc_message(
+        &self,
+        plc: &str,
+        data: Vec<u8>,
+    ) -> Result<pb::PlcMessageSent, ClientError> {
+        chunk_arg("PLC", plc)?;
+        let key = self.keys().plc_message_send(plc);
+        let m = pb::PlcMessage {
+            plc: plc.to_string(),
+            data,
+            ..pb::PlcMessage::default()
+        };
+        self.get_one_pub(&format!("message to {plc}"), &key, payload(&m))
             .await
     }
 
@@ -152,8 +170,19 @@ impl Client {
 
     /// Writes a tag (found as [`Self::tag_get`] finds it).
     pub async fn tag_set(&self, tag: &str, value: f64) -> Result<pb::TagWritten, ClientError> {
-        let current = self.tag_get(tag).await?;
-        let key = self.keys().plc_tag(&current.plc, &current.name);
+        // PLC/NAME needs no read first: a role that may write tags need not read them.
+        let (plc, name) = match tag.split_once('/') {
+            Some((p, n)) => {
+                chunk_arg("PLC", p)?;
+                chunk_arg("tag", n)?;
+                (p.to_string(), n.to_string())
+            }
+            None => {
+                let current = self.tag_get(tag).await?;
+                (current.plc, current.name)
+            }
+        };
+        let key = self.keys().plc_tag_set(&plc, &name);
         self.get_one_pub(
             &format!("write of tag {tag}"),
             &key,
@@ -180,69 +209,6 @@ impl Client {
     }
 }
 
-/// A tag in one line: `plc-1/parts = 42 (good, 12:00:01.250)`.
-pub fn tag_text(t: &pb::TagValue) -> String {
-    let value = match t.value {
-        Some(v) => format!("{v}"),
-        None => "-".to_string(),
-    };
-    format!(
-        "{}/{} = {} ({}{})",
-        t.plc,
-        t.name,
-        value,
-        quality_name(t.quality()),
-        if t.writable { ", writable" } else { "" }
-    )
-}
-
-pub fn quality_name(q: pb::TagQuality) -> &'static str {
-    match q {
-        pb::TagQuality::Good => "good",
-        pb::TagQuality::Stale => "stale",
-        pb::TagQuality::StationDown => "station down",
-        pb::TagQuality::Unspecified => "?",
-    }
-}
-
-pub fn tag_json(t: &pb::TagValue) -> Value {
-    json!({
-        "plc": t.plc, "name": t.name, "value": t.value, "raw": t.raw,
-        "unix_ms": t.unix_ms, "quality": quality_name(t.quality()), "writable": t.writable,
-    })
-}
-
-/// The stations of every PLC link, one line each.
-pub fn status_text(plcs: &[pb::PlcStatus]) -> String {
-    let mut s = String::new();
-    if plcs.is_empty() {
-        return s;
-    }
-    let _ = writeln!(
-        s,
-        "{:<12} {:>7} {:<5} {:>9} {:>9} {:>8} {:>7} {:>4}  LAST ERROR",
-        "PLC", "STATION", "STATE", "REQUESTS", "REPLIES", "TIMEOUTS", "RETRIES", "BCC"
-    );
-    for p in plcs {
-        for st in &p.stations {
-            let _ = writeln!(
-                s,
-                "{:<12} {:>7} {:<5} {:>9} {:>9} {:>8} {:>7} {:>4}  {}",
-                p.plc,
-                format!("{:02}", st.station),
-                if st.up { "up" } else { "down" },
-                st.requests,
-                st.replies,
-                st.timeouts,
-                st.retries,
-                st.bcc_errors,
-                st.last_error
-            );
-        }
-    }
-    s
-}
-
 // ---- commands ----------------------------------------------------------------------------------
 
 /// `cellgate plc`.
@@ -265,6 +231,7 @@ pub enum PlcCommand {
         /// The RS-485 station (modes 2, 3); 0 in mode 1.
         #[arg(long, default_value_t = 0)]
         station: u8,
+        /// Print JSON (plc, station, module, address, words).
         #[arg(long)]
         json: bool,
     },
@@ -272,38 +239,71 @@ pub enum PlcCommand {
     Write {
         #[command(flatten)]
         connect: ConnectArgs,
+        /// The PLC (its name in the cell file).
         plc: String,
+        /// The module: D, W9, B, M, ... (as for `plc read`).
         module: String,
+        /// Relative word address of the first word.
         address: u16,
         /// The words: decimal or 0x hex.
         #[arg(required = true, value_parser = parse_word)]
         values: Vec<u32>,
+        /// The RS-485 station (modes 2, 3); 0 in mode 1.
         #[arg(long, default_value_t = 0)]
         station: u8,
+        /// Print JSON (the module's confirmation) instead of text.
+        #[arg(long)]
+        json: bool,
     },
     /// Clear a whole module (01/05).
     Clear {
         #[command(flatten)]
         connect: ConnectArgs,
+        /// The PLC (its name in the cell file).
         plc: String,
+        /// The module to clear: D, W9, B, M, ... (as for `plc read`).
         module: String,
+        /// The RS-485 station (modes 2, 3); 0 in mode 1.
         #[arg(long, default_value_t = 0)]
         station: u8,
+        /// Print JSON (the module's confirmation) instead of text.
+        #[arg(long)]
+        json: bool,
     },
     /// Send a transfer to the PLC's message module MSGNO (mode 1 only).
     Send {
         #[command(flatten)]
         connect: ConnectArgs,
+        /// The PLC (its name in the cell file).
         plc: String,
+        /// The message number MSGNO the PLC's sequence program registered.
         message: u8,
         /// The data, in hex (e.g. 48656C6C6F).
         data: String,
+        /// Print JSON (the module's confirmation) instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Send a message to a PLC in mode 4 or 5 (non-procedure): it goes to the module's
+    /// receive message number (FFU120B §5-5).
+    Message {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The PLC link, as the cell file names it (in mode 4 or 5).
+        plc: String,
+        /// The data, in hex (e.g. 4C4F542D37); 1 to 216 bytes, or exactly the fixed length.
+        data: String,
+        /// Print JSON (a PlcMessageSent).
+        #[arg(long)]
+        json: bool,
     },
     /// The PLC links' stations and counters.
     Status {
         #[command(flatten)]
         connect: ConnectArgs,
+        /// One PLC; default every PLC of the cell.
         plc: Option<String>,
+        /// Print JSON (an array: each PLC's stations, counters and tags).
         #[arg(long)]
         json: bool,
     },
@@ -316,6 +316,7 @@ impl ClientCommand for PlcCommand {
             | PlcCommand::Write { connect, .. }
             | PlcCommand::Clear { connect, .. }
             | PlcCommand::Send { connect, .. }
+            | PlcCommand::Message { connect, .. }
             | PlcCommand::Status { connect, .. } => connect,
         }
     }
@@ -362,6 +363,7 @@ impl ClientCommand for PlcCommand {
                 address,
                 values,
                 station,
+                json,
                 ..
             } => {
                 let w = client
@@ -376,16 +378,21 @@ impl ClientCommand for PlcCommand {
                         },
                     )
                     .await?;
-                let _ = writeln!(
-                    io.out,
-                    "{}: {} word(s) written to {}{}",
-                    w.plc, w.words, w.module, w.address
-                );
+                if *json {
+                    let _ = writeln!(io.out, "{}", written_json(&w));
+                } else {
+                    let _ = writeln!(
+                        io.out,
+                        "{}: {} word(s) written to {}{}",
+                        w.plc, w.words, w.module, w.address
+                    );
+                }
             }
             PlcCommand::Clear {
                 plc,
                 module,
                 station,
+                json,
                 ..
             } => {
                 let w = client
@@ -400,20 +407,51 @@ impl ClientCommand for PlcCommand {
                         },
                     )
                     .await?;
-                let _ = writeln!(io.out, "{}: module {} cleared", w.plc, w.module);
+                if *json {
+                    let _ = writeln!(io.out, "{}", written_json(&w));
+                } else {
+                    let _ = writeln!(io.out, "{}: module {} cleared", w.plc, w.module);
+                }
             }
             PlcCommand::Send {
-                plc, message, data, ..
+                plc,
+                message,
+                data,
+                json,
+                ..
             } => {
                 let bytes = hex::decode(data.trim()).map_err(|e| ClientError::InvalidArgument {
                     what: format!("data {data:?}"),
                     reason: format!("not hex: {e}"),
                 })?;
                 let t = client.plc_send(plc, *message, bytes).await?;
+                if *json {
+                    let v = json!({ "plc": t.plc, "message": t.message, "bytes": t.bytes });
+                    let _ = writeln!(io.out, "{v}");
+                } else {
+                    let _ = writeln!(
+                        io.out,
+                        "{}: transfer {} taken, {} bytes",
+                        t.plc, t.message, t.bytes
+                    );
+                }
+            }
+            PlcCommand::Message {
+                plc, data, json, ..
+            } => {
+                let bytes = hex::decode(data.trim()).map_err(|e| ClientError::InvalidArgument {
+                    what: format!("data {data:?}"),
+                    reason: format!("not hex: {e}"),
+                })?;
+                let m = client.plc_message(plc, bytes).await?;
+                if *json {
+                    let _ = writeln!(io.out, "{}", serde_json::to_string(&m).unwrap_or_default());
+                    return Ok(0);
+                }
                 let _ = writeln!(
                     io.out,
-                    "{}: transfer {} taken, {} bytes",
-                    t.plc, t.message, t.bytes
+                    "{}: message of {} bytes sent ({} on the line) to receive message {}",
+                    m.plc, m.bytes, m.line_bytes, m.receive_message
                 );
             }
             PlcCommand::Status { plc, json, .. } => {
@@ -428,7 +466,9 @@ impl ClientCommand for PlcCommand {
                                     "station": s.station, "up": s.up, "requests": s.requests,
                                     "replies": s.replies, "timeouts": s.timeouts,
                                     "retries": s.retries, "bcc_errors": s.bcc_errors,
-                                    "error_replies": s.error_replies, "last_error": s.last_error,
+                                    "error_replies": super::render::error_replies_json(s),
+                                    "last_error": s.last_error,
+                                    "last_error_unix_ms": s.last_error_unix_ms,
                                 })).collect::<Vec<_>>(),
                                 "tags": p.tags.iter().map(tag_json).collect::<Vec<_>>(),
                             })
@@ -436,7 +476,8 @@ impl ClientCommand for PlcCommand {
                         .collect();
                     let _ = writeln!(io.out, "{}", Value::Array(v));
                 } else {
-                    let _ = write!(io.out, "{}", status_text(&all));
+                    let now = cellgate_core::pb::unix_ms(std::time::SystemTime::now());
+                    let _ = write!(io.out, "{}", plc_status_text(&all, now));
                     for p in &all {
                         for t in &p.tags {
                             let _ = writeln!(io.out, "{}", tag_text(t));
@@ -449,6 +490,14 @@ impl ClientCommand for PlcCommand {
     }
 }
 
+/// A confirmed memory write or clear as JSON.
+fn written_json(w: &pb::PlcWritten) -> Value {
+    json!({
+        "plc": w.plc, "station": w.station, "module": w.module,
+        "address": w.address, "words": w.words, "cleared": w.cleared,
+    })
+}
+
 /// `cellgate tag`.
 #[derive(Debug, Clone, Subcommand)]
 pub enum TagCommand {
@@ -456,7 +505,9 @@ pub enum TagCommand {
     Get {
         #[command(flatten)]
         connect: ConnectArgs,
+        /// The tag: NAME, or PLC/NAME when several PLCs have one.
         name: String,
+        /// Print JSON (plc, name, value, raw, unix_ms, quality, writable).
         #[arg(long)]
         json: bool,
     },
@@ -464,9 +515,14 @@ pub enum TagCommand {
     Set {
         #[command(flatten)]
         connect: ConnectArgs,
+        /// The tag: NAME, or PLC/NAME when several PLCs have one.
         name: String,
+        /// The value in the tag's units (its scale is undone by the gateway).
         #[arg(allow_negative_numbers = true)]
         value: f64,
+        /// Print JSON (plc, name, value) instead of text.
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -487,9 +543,16 @@ impl ClientCommand for TagCommand {
                     let _ = writeln!(io.out, "{}", tag_text(&t));
                 }
             }
-            TagCommand::Set { name, value, .. } => {
+            TagCommand::Set {
+                name, value, json, ..
+            } => {
                 let w = client.tag_set(name, *value).await?;
-                let _ = writeln!(io.out, "{}/{} = {} written", w.plc, w.name, w.value);
+                if *json {
+                    let v = json!({ "plc": w.plc, "name": w.name, "value": w.value });
+                    let _ = writeln!(io.out, "{v}");
+                } else {
+                    let _ = writeln!(io.out, "{}/{} = {} written", w.plc, w.name, w.value);
+                }
             }
         }
         Ok(0)

@@ -10,8 +10,8 @@ use std::fmt::Write as _;
 use serde_json::{Value, json};
 
 use super::WatchEvent;
-use crate::pb;
-use crate::pb::job_event::Kind;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
 
 // ---- small pieces ----------------------------------------------------------------------------
 
@@ -31,7 +31,7 @@ pub fn clock(unix_ms: u64) -> String {
 /// `YYYY-MM-DD HH:MM:SSZ` (UTC) of a Unix time in milliseconds.
 pub fn date_time(unix_ms: u64) -> String {
     let secs = unix_ms / 1000;
-    let (y, m, d) = crate::jobs::punch::civil_from_days(secs / 86_400);
+    let (y, m, d) = cellgate_core::program::punch::civil_from_days(secs / 86_400);
     let day = secs % 86_400;
     format!(
         "{y:04}-{m:02}-{d:02} {:02}:{:02}:{:02}Z",
@@ -83,6 +83,51 @@ pub fn link_text(s: pb::LinkState) -> String {
     short(s.as_str_name(), "LINK_STATE_")
 }
 
+/// The LINK column: the link's state, but `waiting for CNC` while a job waits for the CNC to
+/// ask for it (the link itself is idle then, which reads as if nothing were pending).
+pub fn link_cell(s: &pb::MachineStatus) -> String {
+    let state = s.link_state();
+    if state == pb::LinkState::Idle && !s.current_job_id.is_empty() && !s.waiting_for.is_empty() {
+        "waiting for CNC".to_string()
+    } else {
+        link_text(state)
+    }
+}
+
+/// A duration for people: `45 s`, `12 min`, `3 h`, `2 d`.
+pub fn age(ms: u64) -> String {
+    let secs = ms / 1000;
+    if secs < 120 {
+        format!("{secs} s")
+    } else if secs < 2 * 3600 {
+        format!("{} min", secs / 60)
+    } else if secs < 2 * 86_400 {
+        format!("{} h", secs / 3600)
+    } else {
+        format!("{} d", secs / 86_400)
+    }
+}
+
+/// What a machine waits for, as a sentence; `None` when it waits for nothing.
+pub fn waiting_text(s: &pb::MachineStatus) -> Option<String> {
+    if s.waiting_for.is_empty() {
+        return None;
+    }
+    let since = if s.waiting_since_unix_ms > 0 && s.unix_ms >= s.waiting_since_unix_ms {
+        format!(" for {}", age(s.unix_ms - s.waiting_since_unix_ms))
+    } else {
+        String::new()
+    };
+    Some(if link_cell(s) == "waiting for CNC" {
+        format!(
+            "{}: job {} waits{since} for the CNC to read it ({})",
+            s.machine, s.current_job_id, s.waiting_for
+        )
+    } else {
+        format!("{}: waiting{since} for {}", s.machine, s.waiting_for)
+    })
+}
+
 /// The SAT's buffer status, with the alarm cause when in alarm (§4.4.2).
 pub fn sat_text(sat: Option<&pb::Sat>) -> String {
     let Some(sat) = sat else {
@@ -106,7 +151,7 @@ fn dash(s: &str) -> &str {
 }
 
 /// Rows as a table with columns padded to their widest cell.
-fn table(header: &[&str], rows: &[Vec<String>]) -> String {
+pub(crate) fn table(header: &[&str], rows: &[Vec<String>]) -> String {
     let mut widths: Vec<usize> = header.iter().map(|h| h.chars().count()).collect();
     for row in rows {
         for (w, cell) in widths.iter_mut().zip(row) {
@@ -151,7 +196,7 @@ pub fn status_table(statuses: &[pb::MachineStatus]) -> String {
             vec![
                 s.machine.clone(),
                 protocol_text(s.protocol()).to_string(),
-                link_text(s.link_state()),
+                link_cell(s),
                 sat_text(s.sat.as_ref()),
                 s.sat
                     .as_ref()
@@ -173,6 +218,16 @@ pub fn status_table(statuses: &[pb::MachineStatus]) -> String {
         .collect();
     let mut out = table(&header, &rows);
     for s in statuses {
+        if let Some(w) = waiting_text(s) {
+            let _ = writeln!(out, "{w}");
+        }
+        if !s.storage_fault.is_empty() {
+            let _ = writeln!(
+                out,
+                "{}: the job journal cannot write: {}",
+                s.machine, s.storage_fault
+            );
+        }
         if let Some(a) = &s.last_alarm {
             let _ = writeln!(out, "{}: last alarm {}", s.machine, alarm_text(a));
         }
@@ -225,6 +280,10 @@ pub fn status_json(s: &pb::MachineStatus) -> Value {
         "di_image": s.di_image,
         "last_alarm": s.last_alarm.as_ref().map(alarm_json),
         "unix_ms": s.unix_ms,
+        "g05": s.g05.as_ref().map(g05_json),
+        "waiting_for": s.waiting_for,
+        "waiting_since_unix_ms": s.waiting_since_unix_ms,
+        "storage_fault": s.storage_fault,
     })
 }
 
@@ -267,9 +326,22 @@ pub fn job_kind_text(e: &pb::JobEvent) -> String {
                 ),
                 _ => {}
             }
+            if c.bytes_after_eor > 0 {
+                let _ = write!(
+                    t,
+                    "; the {} after the EOR % not sent (the CNC ignores them)",
+                    bytes(c.bytes_after_eor)
+                );
+            }
             t
         }
         Some(Kind::Failed(f)) => failed_text(f),
+        Some(Kind::Cancelled(c)) if c.next_block.is_none() && c.bytes_on_line == 0 => {
+            format!(
+                "cancelled by {} before the CNC read any of it: nothing was sent",
+                dash(&c.by)
+            )
+        }
         Some(Kind::Cancelled(c)) => {
             let mut t = format!("cancelled by {} at byte {}", dash(&c.by), c.byte_offset);
             if let Some(b) = &c.next_block {
@@ -333,6 +405,7 @@ pub fn job_event_json(e: &pb::JobEvent) -> Value {
             "completed",
             json!({
                 "bytes_sent": c.bytes_sent,
+                "bytes_after_eor": c.bytes_after_eor,
                 "duration_ms": c.duration_ms,
                 "confirmation": c.confirmation().as_str_name(),
             }),
@@ -369,6 +442,95 @@ pub fn job_event_json(e: &pb::JobEvent) -> Value {
 
 pub fn accepted_json(a: &pb::JobAccepted) -> Value {
     json!({ "job_id": a.job_id, "queue_position": a.queue_position })
+}
+
+/// Now, as Unix milliseconds.
+pub fn now_ms() -> u64 {
+    pb::unix_ms(std::time::SystemTime::now())
+}
+
+/// The gateway's version and uptime from its admin document; `None` when the gateway does
+/// not show the document (a cell with roles, without `admin.read`).
+pub fn gateway_line(admin: &Value, now_ms: u64) -> Option<String> {
+    let version = admin["version"].as_str()?;
+    let cell = admin["cell"].as_str().unwrap_or("?");
+    let mut t = format!("gateway: cellgate {version}, cell {cell}");
+    if let Some(started) = admin["started_unix_ms"].as_u64() {
+        let _ = write!(
+            t,
+            ", up {} (since {})",
+            age(now_ms.saturating_sub(started)),
+            date_time(started)
+        );
+    }
+    Some(t)
+}
+
+fn queued_row(machine: &str, state: &str, j: &pb::QueuedJob) -> Vec<String> {
+    vec![
+        machine.to_string(),
+        j.job_id.clone(),
+        state.to_string(),
+        j.name.clone(),
+        j.priority.to_string(),
+        format!("{} of {}", bytes(j.bytes_sent), bytes(j.bytes_total)),
+        clock(j.accepted_unix_ms),
+    ]
+}
+
+/// The machines' queues as a table: the active job, then the waiting ones in run order;
+/// then the ended jobs given, one line each.
+pub fn queue_table(queues: &[pb::JobQueue], ended: &[pb::JobEvent]) -> String {
+    let mut rows = Vec::new();
+    for q in queues {
+        if let Some(a) = &q.active {
+            rows.push(queued_row(&q.machine, "active", a));
+        }
+        for (i, w) in q.waiting.iter().enumerate() {
+            rows.push(queued_row(&q.machine, &format!("waiting, {i} ahead"), w));
+        }
+    }
+    let mut out = if rows.is_empty() {
+        "no job active or waiting\n".to_string()
+    } else {
+        table(
+            &[
+                "MACHINE", "JOB", "STATE", "NAME", "PRIORITY", "SENT", "ACCEPTED",
+            ],
+            &rows,
+        )
+    };
+    if !ended.is_empty() {
+        let _ = writeln!(out, "ended:");
+        for e in ended {
+            let _ = writeln!(
+                out,
+                "  {} {} {}: {}",
+                clock(e.unix_ms),
+                e.machine,
+                e.job_id,
+                job_kind_text(e)
+            );
+        }
+    }
+    out
+}
+
+fn queued_json(j: &pb::QueuedJob) -> Value {
+    json!({
+        "job_id": j.job_id, "name": j.name, "priority": j.priority,
+        "bytes_total": j.bytes_total, "bytes_sent": j.bytes_sent,
+        "accepted_unix_ms": j.accepted_unix_ms,
+    })
+}
+
+/// A machine's queue as JSON.
+pub fn queue_json(q: &pb::JobQueue) -> Value {
+    json!({
+        "machine": q.machine,
+        "active": q.active.as_ref().map(queued_json),
+        "waiting": q.waiting.iter().map(queued_json).collect::<Vec<_>>(),
+    })
 }
 
 // ---- alarms, DI, programs --------------------------------------------------------------------
@@ -469,7 +631,23 @@ pub fn program_table(programs: &[pb::ProgramInfo]) -> String {
 }
 
 pub fn program_json(p: &pb::ProgramInfo) -> Value {
-    json!({ "name": p.name, "size": p.size, "modified_unix_ms": p.modified_unix_ms })
+    let latest = p.latest.as_ref().map(|r| {
+        json!({
+            "number": r.number,
+            "sha256": r.sha256,
+            "state": r.state().as_str_name(),
+            "unix_ms": r.unix_ms,
+            "by": r.by.as_ref().map(|o| json!({"user": o.user, "via": o.via})),
+            "comment": r.comment,
+        })
+    });
+    json!({
+        "name": p.name,
+        "size": p.size,
+        "modified_unix_ms": p.modified_unix_ms,
+        "latest": latest,
+        "latest_released": p.latest_released,
+    })
 }
 
 // ---- watch -----------------------------------------------------------------------------------
@@ -493,7 +671,7 @@ impl WatchPrinter {
             WatchEvent::Status(s) => {
                 let headline = format!(
                     "link {}, SAT {}, job {}, {} waiting, DO {}, DI {}",
-                    link_text(s.link_state()),
+                    link_cell(s),
                     sat_text(s.sat.as_ref()),
                     dash(&s.current_job_id),
                     s.jobs_waiting,
@@ -584,7 +762,7 @@ impl WatchPrinter {
                 clock(now_ms),
                 if *up { "up" } else { "gone" }
             ),
-            WatchEvent::Tag(t) => format!("{} {}", clock(now_ms), super::plc::tag_text(t)),
+            WatchEvent::Tag(t) => format!("{} {}", clock(now_ms), tag_text(t)),
             WatchEvent::Transfer(t) => format!(
                 "{} {} transfer {} {} {} bytes: {}",
                 clock(now_ms),
@@ -593,6 +771,14 @@ impl WatchPrinter {
                 if t.from_plc { "from PLC" } else { "to PLC" },
                 t.data.len(),
                 hex::encode_upper(&t.data)
+            ),
+            WatchEvent::PlcMessage(m) => format!(
+                "{} {} message {} {} bytes: {}",
+                clock(now_ms),
+                m.plc,
+                if m.from_plc { "from PLC" } else { "to PLC" },
+                m.data.len(),
+                hex::encode_upper(&m.data)
             ),
             WatchEvent::PlcStation { plc, station, up } => format!(
                 "{} {plc} station {station} {}",
@@ -607,7 +793,7 @@ impl WatchPrinter {
     }
 }
 
-/// The machine an event concerns, if one.
+/// The machine (or PLC) an event concerns, if one.
 pub fn watch_machine(event: &WatchEvent) -> Option<&str> {
     match event {
         WatchEvent::Status(s) => Some(&s.machine),
@@ -619,6 +805,10 @@ pub fn watch_machine(event: &WatchEvent) -> Option<&str> {
         WatchEvent::DoCommand { machine, .. }
         | WatchEvent::CancelRequested { machine, .. }
         | WatchEvent::Link { machine, .. } => Some(machine),
+        // A PLC's events are its name's, as a machine's are the machine's.
+        WatchEvent::Tag(t) => Some(&t.plc),
+        WatchEvent::Transfer(t) => Some(&t.plc),
+        WatchEvent::PlcStation { plc, .. } => Some(plc),
         _ => None,
     }
 }
@@ -651,10 +841,14 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
         WatchEvent::Gateway { up } => json!({
             "event": if *up { "gateway_up" } else { "gateway_gone" }, "unix_ms": now_ms,
         }),
-        WatchEvent::Tag(t) => json!({ "event": "tag", "tag": super::plc::tag_json(t) }),
+        WatchEvent::Tag(t) => json!({ "event": "tag", "tag": tag_json(t) }),
         WatchEvent::Transfer(t) => json!({
             "event": "transfer", "plc": t.plc, "message": t.message, "from_plc": t.from_plc,
             "data": hex::encode_upper(&t.data), "unix_ms": t.unix_ms,
+        }),
+        WatchEvent::PlcMessage(m) => json!({
+            "event": "plc_message", "plc": m.plc, "from_plc": m.from_plc,
+            "data": hex::encode_upper(&m.data), "unix_ms": m.unix_ms,
         }),
         WatchEvent::PlcStation { plc, station, up } => json!({
             "event": if *up { "plc_station_up" } else { "plc_station_down" },
@@ -698,240 +892,115 @@ pub fn g05_json(g: &pb::G05Status) -> Value {
     })
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
+/// A tag in one line: `plc-1/parts = 42 (good, 12:00:01.250)`.
+pub fn tag_text(t: &pb::TagValue) -> String {
+    let value = match t.value {
+        Some(v) => format!("{v}"),
+        None => "-".to_string(),
+    };
+    format!(
+        "{}/{} = {} ({}{})",
+        t.plc,
+        t.name,
+        value,
+        quality_name(t.quality()),
+        if t.writable { ", writable" } else { "" }
+    )
+}
 
-    #[test]
-    fn times_are_utc() {
-        assert_eq!(clock(0), "00:00:00.000Z");
-        assert_eq!(clock(1_700_000_000_123), "22:13:20.123Z");
-        assert_eq!(date_time(1_700_000_000_123), "2023-11-14 22:13:20Z");
-        assert_eq!(date_time(951_782_400_000), "2000-02-29 00:00:00Z");
-    }
-
-    #[test]
-    fn sizes_and_images_read_well() {
-        assert_eq!(bytes(512), "512 B");
-        assert_eq!(bytes(40 * 1024), "40.0 KiB");
-        assert_eq!(bytes(3 * 1024 * 1024 / 2), "1.5 MiB");
-        assert_eq!(byte_image(0x5A), "0x5A 0b01011010");
-    }
-
-    fn status() -> pb::MachineStatus {
-        pb::MachineStatus {
-            machine: "mill-1".to_string(),
-            protocol: pb::Protocol::ExpansionA as i32,
-            link_state: pb::LinkState::Sending as i32,
-            sat: Some(pb::Sat {
-                buffer_status: pb::BufferStatus::Alarm as i32,
-                alarm_cause: pb::AlarmCause::ChecksumRetryOver as i32,
-                bytes_buffered: Some(300),
-                ..pb::Sat::default()
-            }),
-            counters: Some(pb::LinkCounters {
-                nc_bytes_sent: 2048,
-                jobs_completed: 3,
-                programs_punched: 5,
-                retries: 4,
-                ..pb::LinkCounters::default()
-            }),
-            current_job_id: "mill-1-x-7".to_string(),
-            do_image: Some(0xA5),
-            last_alarm: Some(pb::AlarmEvent {
-                machine: "mill-1".to_string(),
-                kind: pb::AlarmKind::LinkAlarm as i32,
-                alarm_number: "SR0945".to_string(),
-                message: "retry over".to_string(),
-                unix_ms: 0,
-            }),
-            ..pb::MachineStatus::default()
-        }
-    }
-
-    #[test]
-    fn the_status_table_shows_what_the_contract_carries() {
-        let t = status_table(&[status()]);
-        let mut lines = t.lines();
-        let header = lines.next().unwrap();
-        assert!(header.starts_with("MACHINE"), "{t}");
-        let row = lines.next().unwrap();
-        for cell in [
-            "mill-1",
-            "Expansion A",
-            "sending",
-            "alarm: checksum retry over",
-            "300",
-            "mill-1-x-7",
-            "0xA5",
-            "2.0 KiB",
-        ] {
-            assert!(row.contains(cell), "{cell:?} missing from {row:?}");
-        }
-        assert!(
-            lines
-                .next()
-                .unwrap()
-                .contains("link alarm SR0945: retry over"),
-            "{t}"
-        );
-        assert_eq!(status_table(&[]), "no machine answered\n");
-    }
-
-    #[test]
-    fn punched_programs_read_as_sentences() {
-        let mut p = pb::PunchedProgram {
-            machine: "lathe-1".to_string(),
-            name: "SHAFT".to_string(),
-            o_number: "O1234".to_string(),
-            code_system: pb::CodeSystem::Eia as i32,
-            program: b"%\nO1234(SHAFT)\n%".to_vec(),
-            library_name: "lathe-1-O1234-20261122T061500Z".to_string(),
-            unix_ms: 0,
-            request: None,
-            damaged: false,
-            damage: String::new(),
-        };
-        let mut printer = WatchPrinter::new();
-        let line = printer
-            .line(&WatchEvent::Punched(Box::new(p.clone())), 0)
-            .unwrap();
-        assert!(
-            line.contains("lathe-1 punched SHAFT (16 bytes, CODE_SYSTEM_EIA)"),
-            "{line}"
-        );
-        assert!(
-            line.ends_with("stored as lathe-1-O1234-20261122T061500Z"),
-            "{line}"
-        );
-        p.library_name.clear();
-        p.request = Some(pb::RemoteRequest {
-            program: "O12".to_string(),
-            error: "no program O12".to_string(),
-            ..pb::RemoteRequest::default()
-        });
-        let line = printer
-            .line(&WatchEvent::Punched(Box::new(p.clone())), 0)
-            .unwrap();
-        assert!(
-            line.ends_with("remote request for O12 refused: no program O12"),
-            "{line}"
-        );
-        let damaged = pb::PunchedProgram {
-            damaged: true,
-            damage: "parity error in a received character during the punch-out".to_string(),
-            library_name: String::new(),
-            ..p.clone()
-        };
-        let line = printer
-            .line(&WatchEvent::Punched(Box::new(damaged)), 0)
-            .unwrap();
-        assert!(
-            line.ends_with(
-                "DAMAGED (parity error in a received character during the punch-out): not \
-                 stored, punch it again"
-            ),
-            "{line}"
-        );
-        let j = watch_json(&WatchEvent::Punched(Box::new(p)), 0);
-        assert_eq!(j["event"], "punched");
-        assert_eq!(j["punched"]["code_system"], "CODE_SYSTEM_EIA");
-        assert_eq!(j["punched"]["request"]["program"], "O12");
-        assert_eq!(
-            watch_machine(&WatchEvent::Punched(Box::default())),
-            Some("")
-        );
-    }
-
-    #[test]
-    fn status_json_uses_the_proto_names() {
-        let j = status_json(&status());
-        assert_eq!(j["protocol"], "PROTOCOL_EXPANSION_A");
-        assert_eq!(j["link_state"], "LINK_STATE_SENDING");
-        assert_eq!(j["sat"]["buffer_status"], "BUFFER_STATUS_ALARM");
-        assert_eq!(j["sat"]["bytes_buffered"], 300);
-        assert_eq!(j["do_image"], 0xA5);
-        assert_eq!(j["di_image"], Value::Null);
-        assert_eq!(j["counters"]["jobs_completed"], 3);
-        assert_eq!(j["counters"]["programs_punched"], 5);
-        assert_eq!(j["last_alarm"]["alarm_number"], "SR0945");
-    }
-
-    #[test]
-    fn job_events_read_as_sentences() {
-        let ev = |kind| pb::JobEvent {
-            job_id: "j".to_string(),
-            machine: "m".to_string(),
-            unix_ms: 0,
-            kind: Some(kind),
-        };
-        let p = ev(Kind::Progress(pb::job_event::Progress {
-            bytes_sent: 512,
-            bytes_total: Some(2048),
-            rate_bps: 1900,
-            bytes_on_line: 512,
-        }));
-        assert_eq!(job_kind_text(&p), "sent 512 B of 2.0 KiB (25%), 1900 B/s");
-        let p = ev(Kind::Progress(pb::job_event::Progress {
-            bytes_on_line: 1024,
-            ..pb::job_event::Progress::default()
-        }));
-        assert_eq!(job_kind_text(&p), "sent 0 B, 1.0 KiB on the line, 0 B/s");
-        let f = ev(Kind::Failed(pb::job_event::Failed {
-            reason: "retry over".to_string(),
-            byte_offset: 512,
-            alarm_number: "SR0945".to_string(),
-            code: pb::ErrorCode::LinkFailed as i32,
-            bytes_on_line: 700,
-            next_block: Some(pb::BlockPosition {
-                line: 20,
-                sequence_number: "N190".to_string(),
-                byte_offset: 500,
-            }),
-        }));
-        assert_eq!(
-            job_kind_text(&f),
-            "failed at byte 512: retry over [SR0945] (link failed); resumes at line 20 (N190)"
-        );
-        let j = job_event_json(&f);
-        assert_eq!(j["failed"]["byte_offset"], 512);
-        assert_eq!(j["failed"]["code"], "ERROR_CODE_LINK_FAILED");
-        assert_eq!(j["failed"]["next_block"]["line"], 20);
-    }
-
-    #[test]
-    fn di_is_shown_in_hex_and_bits() {
-        let t = di_text(&pb::DiImage {
-            machine: "mill-1".to_string(),
-            value: 0x5A,
-            unix_ms: 0,
-        });
-        assert!(t.starts_with("mill-1 DI 0x5A 0b01011010 (90)"), "{t}");
-        assert!(t.contains("0 1 0 1 1 0 1 0"), "{t}");
-    }
-
-    #[test]
-    fn watch_prints_a_status_only_when_its_headline_changes() {
-        let mut p = WatchPrinter::new();
-        let mut s = status();
-        assert!(
-            p.line(&WatchEvent::Status(Box::new(s.clone())), 0)
-                .is_some()
-        );
-        s.counters.as_mut().unwrap().retries += 1;
-        assert!(
-            p.line(&WatchEvent::Status(Box::new(s.clone())), 0)
-                .is_none()
-        );
-        s.do_image = Some(0);
-        let line = p.line(&WatchEvent::Status(Box::new(s)), 0).unwrap();
-        assert!(line.contains("DO 0x00"), "{line}");
-        let link = WatchEvent::Link {
-            machine: "mill-1".to_string(),
-            up: false,
-        };
-        assert!(p.line(&link, 0).unwrap().ends_with("mill-1 link down"));
-        assert_eq!(watch_json(&link, 5)["event"], "link_down");
-        assert_eq!(watch_machine(&link), Some("mill-1"));
+/// A tag quality as people read it.
+pub fn quality_name(q: pb::TagQuality) -> &'static str {
+    match q {
+        pb::TagQuality::Good => "good",
+        pb::TagQuality::Stale => "stale",
+        pb::TagQuality::StationDown => "station down",
+        pb::TagQuality::Unspecified => "?",
     }
 }
+
+/// A tag as one JSON object.
+pub fn tag_json(t: &pb::TagValue) -> Value {
+    json!({
+        "plc": t.plc, "name": t.name, "value": t.value, "raw": t.raw,
+        "unix_ms": t.unix_ms, "quality": quality_name(t.quality()), "writable": t.writable,
+    })
+}
+
+/// A station's last error with how old it is (`12 min ago: ...`), or empty.
+pub fn last_error_text(st: &pb::PlcStation, now_ms: u64) -> String {
+    if st.last_error.is_empty() {
+        return String::new();
+    }
+    if st.last_error_unix_ms == 0 {
+        return st.last_error.clone();
+    }
+    format!(
+        "{} ago: {}",
+        age(now_ms.saturating_sub(st.last_error_unix_ms)),
+        st.last_error
+    )
+}
+
+/// Error replies by STA code as the FFU120B manual writes them (`A7`), for JSON.
+pub fn error_replies_json(st: &pb::PlcStation) -> Value {
+    let mut codes: Vec<(&u32, &u64)> = st.error_replies.iter().collect();
+    codes.sort();
+    Value::Object(
+        codes
+            .into_iter()
+            .map(|(sta, n)| (format!("{sta:02X}"), json!(n)))
+            .collect(),
+    )
+}
+
+/// The stations of every PLC link, one line each; `now_ms` ages their last errors.
+pub fn plc_status_text(plcs: &[pb::PlcStatus], now_ms: u64) -> String {
+    let mut s = String::new();
+    if plcs.is_empty() {
+        return s;
+    }
+    let _ = writeln!(
+        s,
+        "{:<12} {:>7} {:<5} {:>9} {:>9} {:>8} {:>7} {:>4}  LAST ERROR",
+        "PLC", "STATION", "STATE", "REQUESTS", "REPLIES", "TIMEOUTS", "RETRIES", "BCC"
+    );
+    for p in plcs {
+        for st in &p.stations {
+            let _ = writeln!(
+                s,
+                "{:<12} {:>7} {:<5} {:>9} {:>9} {:>8} {:>7} {:>4}  {}",
+                p.plc,
+                format!("{:02}", st.station),
+                if st.up { "up" } else { "down" },
+                st.requests,
+                st.replies,
+                st.timeouts,
+                st.retries,
+                st.bcc_errors,
+                last_error_text(st, now_ms)
+            );
+        }
+    }
+    for p in plcs {
+        for g in &p.poll_groups {
+            let _ = writeln!(
+                s,
+                "{}: poll group {} every {} ms, {} reads: round {} ms (mean {}, max {}), achieved interval {} ms, {} overruns in {} rounds",
+                p.plc,
+                g.group,
+                g.interval_ms,
+                g.reads,
+                g.last_round_ms,
+                g.mean_round_ms,
+                g.max_round_ms,
+                g.achieved_interval_ms,
+                g.overruns,
+                g.rounds
+            );
+        }
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests;

@@ -60,7 +60,61 @@ pub enum JournalError {
         #[source]
         source: serde_json::Error,
     },
+    /// The journal file is damaged: the gateway does not start on it unless the cell file
+    /// says to move it aside (`programs.damaged_journal = "move-aside"`).
+    #[error(
+        "job journal {} is damaged ({cause}): the jobs it held cannot be read. Move it aside \
+         with its store (mv {0} {0}.damaged; mv {1} {1}.damaged: the jobs it held are lost, \
+         their program copies stay in {1}.damaged) or set programs.damaged_journal = \
+         \"move-aside\" in the cell file to have the gateway do both and start with an empty \
+         journal", path.display(), store.display()
+    )]
+    Damaged {
+        path: PathBuf,
+        store: PathBuf,
+        cause: String,
+    },
 }
+
+impl JournalError {
+    /// Whether the disk (or the file system's quota) is full: the write may succeed once
+    /// space is back.
+    pub fn is_storage_full(&self) -> bool {
+        let io = match self {
+            JournalError::Io { source, .. } => Some(source),
+            JournalError::Database { source, .. } => match source.as_ref() {
+                redb::Error::Io(e) => Some(e),
+                _ => None,
+            },
+            _ => None,
+        };
+        io.is_some_and(is_storage_full)
+    }
+}
+
+/// Runs blocking file work (a disk sync takes milliseconds) so that it does not hold up the
+/// other tasks of the runtime's worker thread: on a multi-thread runtime through
+/// `block_in_place`, which moves them to another worker first; elsewhere (the paused-time
+/// tests' current-thread runtime, or no runtime) directly.
+fn blocking<T>(f: impl FnOnce() -> T) -> T {
+    match tokio::runtime::Handle::try_current() {
+        Ok(h) if h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
+            tokio::task::block_in_place(f)
+        }
+        _ => f(),
+    }
+}
+
+/// Whether an I/O error says the disk or a quota is full.
+pub fn is_storage_full(e: &std::io::Error) -> bool {
+    e.kind() == std::io::ErrorKind::StorageFull
+        || e.kind() == std::io::ErrorKind::QuotaExceeded
+        || e.raw_os_error() == Some(libc::ENOSPC)
+        || e.raw_os_error() == Some(libc::EDQUOT)
+}
+
+/// What the gateway does with a journal it finds damaged (`programs.damaged_journal`).
+pub use cellgate_core::config::DamagedJournal;
 
 /// Where a job stands.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -107,9 +161,55 @@ pub struct JobRecord {
     pub acked: u64,
     /// The job's latest `JobEvent`, protobuf-encoded.
     pub last_event: Vec<u8>,
+    /// What it sends and who asked (older journals have none).
+    #[serde(default)]
+    pub origin: JobOriginRecord,
+}
+
+/// What a job sends and who submitted it, as the journal keeps it.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JobOriginRecord {
+    /// The library program, if it came from the library.
+    #[serde(default)]
+    pub library: String,
+    /// The library revision; 0 when not from the library.
+    #[serde(default)]
+    pub revision: u32,
+    /// SHA-256 of the program's bytes, hex.
+    #[serde(default)]
+    pub sha256: String,
+    /// Who submitted it, as the client said.
+    #[serde(default)]
+    pub user: String,
+    #[serde(default)]
+    pub via: String,
+    /// When it started, ms since the Unix epoch; 0 while it has not.
+    #[serde(default)]
+    pub started_unix_ms: u64,
 }
 
 impl JobRecord {
+    /// Where the job came from, as its events carry it.
+    pub fn origin_pb(&self) -> cellgate_core::pb::JobOrigin {
+        let o = &self.origin;
+        cellgate_core::pb::JobOrigin {
+            program: Some(cellgate_core::pb::ProgramRef {
+                library: o.library.clone(),
+                revision: o.revision,
+                sha256: o.sha256.clone(),
+            }),
+            submitted_by: (!o.user.is_empty() || !o.via.is_empty()).then(|| {
+                cellgate_core::pb::RequestOrigin {
+                    user: o.user.clone(),
+                    via: o.via.clone(),
+                }
+            }),
+            queued_unix_ms: self.accepted_unix_ms,
+            started_unix_ms: o.started_unix_ms,
+            name: self.name.clone(),
+        }
+    }
+
     /// The program's size: the file and its suffix.
     pub fn program_size(&self) -> u64 {
         self.file_len + self.suffix.len() as u64
@@ -161,14 +261,21 @@ pub struct Journal {
 }
 
 struct Inner {
-    db: Database,
+    path: PathBuf,
     /// Taken for every write transaction, so that checkpoints reach the database in the order
     /// they were made.
     pending: std::sync::Mutex<Pending>,
 }
 
-/// Progress checkpoints not yet in the database: the latest record of each running job.
+/// The database and the progress checkpoints not yet in it: the latest record of each
+/// running job.
 struct Pending {
+    /// `None` after a write failed (a full disk): redb refuses every later transaction on a
+    /// database that saw an I/O error, so the next write opens the file again, which recovers
+    /// it, instead of refusing writes until a restart.
+    db: Option<Database>,
+    /// Why the last write failed, until one succeeds: what status shows.
+    fault: Option<String>,
     records: BTreeMap<u64, Vec<u8>>,
     /// When the last commit began: every checkpoint before it is on disk.
     last_durable: std::time::Instant,
@@ -182,13 +289,94 @@ impl Inner {
     }
 }
 
+/// Opens the database file, never panicking: redb panics on some damaged files.
+pub(crate) fn open_db(path: &Path) -> Result<Database, OpenError> {
+    match quietly(|| Database::create(path)) {
+        Ok(Ok(db)) => Ok(db),
+        Ok(Err(e)) => Err(OpenError::Redb(e)),
+        Err(panic) => Err(OpenError::Panicked(panic_text(&panic))),
+    }
+}
+
+/// Why the database file did not open.
+pub(crate) enum OpenError {
+    Redb(redb::DatabaseError),
+    Panicked(String),
+}
+
+thread_local! {
+    /// Set while this thread runs [`quietly`]: its panics are caught and reported as errors.
+    static QUIET: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs `f`, catching a panic of the database library as an `Err` without the panic hook
+/// printing it (a damaged journal is an error the gateway reports, not a crash). Panics of
+/// other threads meanwhile are printed as always.
+pub(crate) fn quietly<T>(f: impl FnOnce() -> T) -> std::thread::Result<T> {
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !QUIET.with(std::cell::Cell::get) {
+                previous(info);
+            }
+        }));
+    });
+    QUIET.with(|q| q.set(true));
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    QUIET.with(|q| q.set(false));
+    result
+}
+
+pub(crate) fn panic_text(panic: &Box<dyn std::any::Any + Send>) -> String {
+    panic
+        .downcast_ref::<&str>()
+        .map(|s| (*s).to_string())
+        .or_else(|| panic.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "the database library panicked".to_string())
+}
+
 /// Runs `f` in one durable write transaction that first writes the pending checkpoints, so
-/// that what `f` writes or removes supersedes them.
+/// that what `f` writes or removes supersedes them. A database closed by an earlier failure
+/// is opened again first.
 fn commit<T>(
-    db: &Database,
+    path: &Path,
     pending: &mut Pending,
     f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
 ) -> Result<T, redb::Error> {
+    let result = try_commit(path, pending, f);
+    match &result {
+        Ok(_) => {
+            if pending.fault.take().is_some() {
+                tracing::info!(path = %path.display(), "job journal writable again");
+            }
+        }
+        Err(e) => {
+            // Closed, so that the next write starts from the file as it is on disk.
+            pending.db = None;
+            pending.fault = Some(e.to_string());
+        }
+    }
+    result
+}
+
+fn try_commit<T>(
+    path: &Path,
+    pending: &mut Pending,
+    f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
+) -> Result<T, redb::Error> {
+    if pending.db.is_none() {
+        pending.db = Some(match open_db(path) {
+            Ok(db) => db,
+            Err(OpenError::Redb(e)) => return Err(e.into()),
+            Err(OpenError::Panicked(text)) => {
+                return Err(redb::Error::Io(std::io::Error::other(text)));
+            }
+        });
+    }
+    let Some(db) = pending.db.as_ref() else {
+        return Err(redb::Error::Io(std::io::Error::other("journal closed")));
+    };
     pending.last_durable = std::time::Instant::now();
     let tx = db.begin_write()?;
     if !pending.records.is_empty() {
@@ -207,12 +395,12 @@ fn commit<T>(
 impl Drop for Inner {
     /// A gateway that stops writes the checkpoints it still holds.
     fn drop(&mut self) {
-        let Inner { db, pending } = self;
+        let Inner { path, pending } = self;
         let pending = pending
             .get_mut()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
         if !pending.records.is_empty()
-            && let Err(e) = commit(db, pending, |_| Ok(()))
+            && let Err(e) = commit(path, pending, |_| Ok(()))
         {
             tracing::error!(error = %e, "job journal: last progress checkpoints not written");
         }
@@ -236,6 +424,50 @@ impl Journal {
     /// crash may have left. A second gateway on the same journal is refused: the database
     /// file is locked while open.
     pub fn open(dir: &Path) -> Result<Journal, JournalError> {
+        Self::open_and_restore(dir, DamagedJournal::Refuse).map(|(j, _)| j)
+    }
+
+    /// Opens (or creates) the journal in `dir` and reads back what it holds. A journal that
+    /// cannot be read (a damaged or empty database file, an unreadable record) is refused with
+    /// [`JournalError::Damaged`], or with `DamagedJournal::MoveAside` renamed aside with its
+    /// store (`jobs.redb.damaged-<ms>`, `store.damaged-<ms>`), said loudly, and replaced by an
+    /// empty one. Never panics, whatever the file holds.
+    pub fn open_and_restore(
+        dir: &Path,
+        damaged: DamagedJournal,
+    ) -> Result<(Journal, Restored), JournalError> {
+        match Self::try_open(dir) {
+            Err(JournalError::Damaged { path, store, cause })
+                if damaged == DamagedJournal::MoveAside =>
+            {
+                let stamp = cellgate_core::pb::unix_ms(std::time::SystemTime::now());
+                let aside = dir.join(format!("jobs.redb.damaged-{stamp}"));
+                let store_aside = dir.join(format!("store.damaged-{stamp}"));
+                let io = |p: &Path| {
+                    let p = p.to_path_buf();
+                    move |source| JournalError::Io { path: p, source }
+                };
+                std::fs::rename(&path, &aside).map_err(io(&path))?;
+                let programs = std::fs::read_dir(&store).map_or(0, Iterator::count);
+                if store.exists() {
+                    std::fs::rename(&store, &store_aside).map_err(io(&store))?;
+                }
+                tracing::error!(
+                    journal = %path.display(),
+                    moved_to = %aside.display(),
+                    store_moved_to = %store_aside.display(),
+                    programs,
+                    %cause,
+                    "job journal damaged: moved aside (programs.damaged_journal = \"move-aside\"); \
+                     starting with an empty journal: the jobs it held are not restored"
+                );
+                Self::try_open(dir)
+            }
+            other => other,
+        }
+    }
+
+    fn try_open(dir: &Path) -> Result<(Journal, Restored), JournalError> {
         let io = |path: &Path| {
             let path = path.to_path_buf();
             move |source| JournalError::Io { path, source }
@@ -249,19 +481,43 @@ impl Journal {
             }
         }
         let path = dir.join("jobs.redb");
-        let db = Database::create(&path).map_err(|e| JournalError::Database {
+        let store_dir = store.clone();
+        let damaged = |cause: String| JournalError::Damaged {
             path: path.clone(),
-            source: Box::new(e.into()),
-        })?;
+            store: store_dir.clone(),
+            cause,
+        };
+        // redb writes its header when it creates a file: an empty one lost everything.
+        if std::fs::metadata(&path).is_ok_and(|m| m.is_file() && m.len() == 0) {
+            return Err(damaged("the file is empty".to_string()));
+        }
+        let db = match open_db(&path) {
+            Ok(db) => db,
+            Err(OpenError::Panicked(text)) => return Err(damaged(text)),
+            Err(OpenError::Redb(redb::DatabaseError::Storage(redb::StorageError::Io(e))))
+                if e.kind() != std::io::ErrorKind::InvalidData =>
+            {
+                return Err(JournalError::Io { path, source: e });
+            }
+            Err(OpenError::Redb(e @ redb::DatabaseError::DatabaseAlreadyOpen)) => {
+                return Err(JournalError::Database {
+                    path,
+                    source: Box::new(e.into()),
+                });
+            }
+            Err(OpenError::Redb(e)) => return Err(damaged(e.to_string())),
+        };
         let journal = Journal {
             inner: std::sync::Arc::new(Inner {
-                db,
+                path: path.clone(),
                 pending: std::sync::Mutex::new(Pending {
+                    db: Some(db),
+                    fault: None,
                     records: BTreeMap::new(),
                     last_durable: std::time::Instant::now(),
                 }),
             }),
-            path,
+            path: path.clone(),
             store,
         };
         // Tables exist from the first write on, so that reads never miss them.
@@ -271,7 +527,21 @@ impl Journal {
             tx.open_table(META)?;
             Ok(())
         })?;
-        Ok(journal)
+        let restored = match quietly(|| journal.restore()) {
+            Ok(Ok(r)) => r,
+            Ok(Err(e @ (JournalError::Record { .. } | JournalError::Database { .. }))) => {
+                return Err(damaged(e.to_string()));
+            }
+            Ok(Err(e)) => return Err(e),
+            Err(panic) => return Err(damaged(panic_text(&panic))),
+        };
+        Ok((journal, restored))
+    }
+
+    /// Why the last write failed, while writes fail (a full disk); `None` when the journal
+    /// writes.
+    pub fn fault(&self) -> Option<String> {
+        self.inner.pending().fault.clone()
     }
 
     pub fn path(&self) -> &Path {
@@ -295,8 +565,10 @@ impl Journal {
         &self,
         f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
     ) -> Result<T, JournalError> {
-        let mut pending = self.inner.pending();
-        commit(&self.inner.db, &mut pending, f).map_err(|e| self.db_error(e))
+        blocking(|| {
+            let mut pending = self.inner.pending();
+            commit(&self.inner.path, &mut pending, f).map_err(|e| self.db_error(e))
+        })
     }
 
     /// The next sequence number, taken durably.
@@ -311,6 +583,10 @@ impl Journal {
 
     /// Writes a program into the store as file `name`, synced, and returns its length.
     pub fn store_bytes(&self, name: &str, parts: &[&[u8]]) -> Result<u64, JournalError> {
+        blocking(|| self.store_bytes_now(name, parts))
+    }
+
+    fn store_bytes_now(&self, name: &str, parts: &[&[u8]]) -> Result<u64, JournalError> {
         let tmp = self.store.join(format!(".tmp-{name}"));
         let dest = self.store.join(name);
         let io = |source| JournalError::Io {
@@ -333,6 +609,10 @@ impl Journal {
     /// Links (or, on another file system, copies) the file at `from` into the store as
     /// `name`, and returns its length.
     pub fn store_file(&self, name: &str, from: &Path) -> Result<u64, JournalError> {
+        blocking(|| self.store_file_now(name, from))
+    }
+
+    fn store_file_now(&self, name: &str, from: &Path) -> Result<u64, JournalError> {
         let dest = self.store.join(name);
         let io = |source| JournalError::Io {
             path: dest.clone(),
@@ -363,12 +643,20 @@ impl Journal {
     }
 
     /// Writes (inserts or replaces) a job record, durably.
+    ///
+    /// A record that cannot be written now (a full disk) is held and written with the next
+    /// commit that succeeds, as a progress checkpoint is, so that a job's end reaches the
+    /// journal once space is back instead of being lost.
     pub fn put_job(&self, record: &JobRecord) -> Result<(), JournalError> {
         let bytes = self.encode(record)?;
-        self.write(|tx| {
+        let written = self.write(|tx| {
             tx.open_table(JOBS)?.insert(record.seq, bytes.as_slice())?;
             Ok(())
-        })
+        });
+        if written.is_err() {
+            self.inner.pending().records.insert(record.seq, bytes);
+        }
+        written
     }
 
     /// Checkpoints a running job's acknowledged offset. It is held in memory and reaches the
@@ -382,7 +670,8 @@ impl Journal {
         if pending.last_durable.elapsed() < PROGRESS_DURABLE_EVERY {
             return Ok(());
         }
-        commit(&self.inner.db, &mut pending, |_| Ok(())).map_err(|e| self.db_error(e))
+        blocking(|| commit(&self.inner.path, &mut pending, |_| Ok(())))
+            .map_err(|e| self.db_error(e))
     }
 
     fn encode(&self, record: &JobRecord) -> Result<Vec<u8>, JournalError> {
@@ -436,7 +725,14 @@ impl Journal {
     pub fn restore(&self) -> Result<Restored, JournalError> {
         // The checkpoints held in memory first, so that what is read is what was written.
         self.write(|_| Ok(()))?;
-        let tx = self.inner.db.begin_read().map_err(|e| self.db_error(e))?;
+        let pending = self.inner.pending();
+        let Some(db) = pending.db.as_ref() else {
+            return Err(self.db_error(redb::Error::Io(std::io::Error::other(
+                "the journal is closed after a failed write",
+            ))));
+        };
+        let tx = db.begin_read().map_err(|e| self.db_error(e))?;
+        drop(pending);
         let mut restored = Restored::default();
         let jobs = tx.open_table(JOBS).map_err(|e| self.db_error(e))?;
         for entry in jobs.iter().map_err(|e| self.db_error(e))? {
@@ -471,180 +767,4 @@ impl Journal {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn record(seq: u64, machine: &str, state: JobState) -> JobRecord {
-        JobRecord {
-            seq,
-            id: format!("{machine}-x-{seq}"),
-            machine: machine.to_string(),
-            request_id: String::new(),
-            name: "O1".to_string(),
-            priority: 0,
-            accepted_unix_ms: 1,
-            file: seq.to_string(),
-            file_len: 7,
-            suffix: b"%".to_vec(),
-            start: None,
-            resume_after_restart: false,
-            deadline_s: 0,
-            state,
-            acked: 0,
-            last_event: Vec::new(),
-        }
-    }
-
-    #[test]
-    fn records_and_files_survive_reopening_and_go_together() {
-        let dir = tempfile::tempdir().unwrap();
-        let j = Journal::open(dir.path()).unwrap();
-        assert_eq!(j.next_seq().unwrap(), 1);
-        assert_eq!(j.next_seq().unwrap(), 2);
-        let len = j.store_bytes("1", &[b"%\nO1\n", b"X1\n"]).unwrap();
-        assert_eq!(len, 8);
-        let mut a = record(1, "m1", JobState::Waiting);
-        j.put_job(&a).unwrap();
-        j.put_job(&record(2, "m2", JobState::Active)).unwrap();
-        a.acked = 5;
-        a.state = JobState::Active;
-        j.put_job(&a).unwrap();
-        let p = PunchedRecord {
-            seq: 3,
-            machine: "m2".into(),
-            o_number: Some("O7".into()),
-            unix_ms: 9,
-            text: b"%\nO7\n%".to_vec(),
-        };
-        j.put_punched(&p).unwrap();
-        drop(j);
-
-        // A half-written store file from a crash is gone after reopening.
-        std::fs::write(dir.path().join("store/.tmp-9"), b"partial").unwrap();
-        let j = Journal::open(dir.path()).unwrap();
-        assert!(!dir.path().join("store/.tmp-9").exists());
-        assert_eq!(j.next_seq().unwrap(), 3);
-        let r = j.restore().unwrap();
-        assert_eq!(r.jobs["m1"], vec![a.clone()]);
-        assert_eq!(r.jobs["m2"][0].state, JobState::Active);
-        assert_eq!(r.punched, vec![p]);
-        assert_eq!(std::fs::read(j.file_path("1")).unwrap(), b"%\nO1\nX1\n");
-
-        j.remove_jobs(&[a]).unwrap();
-        j.remove_punched(3).unwrap();
-        let r = j.restore().unwrap();
-        assert!(!r.jobs.contains_key("m1"));
-        assert!(r.punched.is_empty());
-        assert!(!j.file_path("1").exists());
-    }
-
-    /// The acknowledged offset of job `seq` as the database holds it, without the
-    /// checkpoints held in memory.
-    fn stored_acked(j: &Journal, seq: u64) -> u64 {
-        let tx = j.inner.db.begin_read().unwrap();
-        let table = tx.open_table(JOBS).unwrap();
-        let bytes = table.get(seq).unwrap().unwrap();
-        serde_json::from_slice::<JobRecord>(bytes.value())
-            .unwrap()
-            .acked
-    }
-
-    /// Progress checkpoints are held in memory and reach the disk with the next commit, made
-    /// by a checkpoint itself once the last commit is a second old; a gateway that stops
-    /// writes what it holds.
-    #[test]
-    fn progress_checkpoints_reach_the_disk_at_a_bounded_rate() {
-        let dir = tempfile::tempdir().unwrap();
-        let j = Journal::open(dir.path()).unwrap();
-        let mut a = record(1, "m1", JobState::Active);
-        j.put_job(&a).unwrap();
-        a.acked = 100;
-        j.put_progress(&a).unwrap();
-        assert_eq!(
-            stored_acked(&j, 1),
-            0,
-            "just after a commit, progress is held"
-        );
-        // The commit of another record carries it to disk.
-        j.put_job(&record(2, "m2", JobState::Waiting)).unwrap();
-        assert_eq!(stored_acked(&j, 1), 100);
-        // Past the interval, a checkpoint is a commit of its own.
-        j.inner.pending().last_durable -= PROGRESS_DURABLE_EVERY;
-        a.acked = 200;
-        j.put_progress(&a).unwrap();
-        assert_eq!(stored_acked(&j, 1), 200);
-        // Held again, then written when the journal closes.
-        a.acked = 300;
-        j.put_progress(&a).unwrap();
-        assert_eq!(stored_acked(&j, 1), 200);
-        drop(j);
-        let j = Journal::open(dir.path()).unwrap();
-        assert_eq!(stored_acked(&j, 1), 300);
-        // Restoring reads what was written, held checkpoints included.
-        a.acked = 400;
-        j.put_progress(&a).unwrap();
-        assert_eq!(j.restore().unwrap().jobs["m1"][0].acked, 400);
-    }
-
-    /// A held checkpoint never overwrites what the job's own later write says, nor brings back
-    /// a job that was removed.
-    #[test]
-    fn a_held_checkpoint_does_not_undo_a_later_write() {
-        let dir = tempfile::tempdir().unwrap();
-        let j = Journal::open(dir.path()).unwrap();
-        let mut a = record(1, "m1", JobState::Active);
-        let b = record(2, "m2", JobState::Active);
-        j.put_job(&a).unwrap();
-        j.put_job(&b).unwrap();
-        a.acked = 100;
-        j.put_progress(&a).unwrap();
-        j.put_progress(&b).unwrap();
-        a.state = JobState::Ended;
-        a.acked = 120;
-        j.put_job(&a).unwrap();
-        j.remove_jobs(std::slice::from_ref(&b)).unwrap();
-        drop(j);
-        let j = Journal::open(dir.path()).unwrap();
-        let r = j.restore().unwrap();
-        assert_eq!(r.jobs["m1"][0].state, JobState::Ended);
-        assert_eq!(r.jobs["m1"][0].acked, 120);
-        assert!(!r.jobs.contains_key("m2"));
-    }
-
-    #[test]
-    fn a_linked_program_keeps_its_version_when_the_library_replaces_it() {
-        let dir = tempfile::tempdir().unwrap();
-        let j = Journal::open(&dir.path().join("journal")).unwrap();
-        let lib = dir.path().join("O1");
-        std::fs::write(&lib, b"%\nO1\nold\n%").unwrap();
-        assert_eq!(j.store_file("5", &lib).unwrap(), 10);
-        // The library replaces by rename: a new inode.
-        let tmp = dir.path().join(".O1.tmp");
-        std::fs::write(&tmp, b"%\nO1\nnew, longer\n%").unwrap();
-        std::fs::rename(&tmp, &lib).unwrap();
-        assert_eq!(std::fs::read(j.file_path("5")).unwrap(), b"%\nO1\nold\n%");
-    }
-
-    #[test]
-    fn a_second_gateway_cannot_open_the_same_journal() {
-        let dir = tempfile::tempdir().unwrap();
-        let _j = Journal::open(dir.path()).unwrap();
-        assert!(Journal::open(dir.path()).is_err());
-    }
-
-    #[test]
-    fn stream_offsets_map_back_to_the_program() {
-        let mut r = record(1, "m", JobState::Ended);
-        r.file_len = 100;
-        r.suffix.clear();
-        assert_eq!(r.stream_size(), 100);
-        r.start = Some(StartPoint {
-            header_end: 10,
-            body_start: 60,
-        });
-        assert_eq!(r.stream_size(), 50);
-        assert_eq!(r.program_offset(4), 60);
-        assert_eq!(r.program_offset(10), 60);
-        assert_eq!(r.program_offset(25), 75);
-    }
-}
+mod tests;

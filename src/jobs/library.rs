@@ -1,27 +1,51 @@
 //! The cell's program library: NC programs kept as files in `programs.dir`, one file per
-//! program, named by its library name.
+//! program, named by its library name, and every revision of each.
 //!
 //! Names are one key chunk of `P/C/program/<name>` and a plain file name at once: 1 to 128
 //! characters of `A-Z a-z 0-9 . _ + -`, starting with a letter or digit. That rules out path
 //! traversal (`..`, `/`), hidden files, and every zenoh wildcard or reserved character.
 //!
-//! A program is stored by writing a hidden temporary file and renaming it over the old one,
-//! so a reader (a job streaming the program) keeps the complete old or new version, never a
-//! mix. The file is synced before the rename and the directory after it, so a power cut
-//! leaves the old program or the new one, never an empty name. Temporary files a crash left
-//! behind are removed when the gateway starts ([`ProgramLibrary::create_dir`]).
+//! **Revisions.** Every store makes a revision: its number, the SHA-256 of its content, size,
+//! time, who stored it (as the client said), a comment and a state (draft, released, locked).
+//! The content is kept once per hash in `.revisions/objects/<sha256>`, the revisions in an
+//! index beside it (`.revisions/index.redb`), and the latest revision's content is also the
+//! program's own file `programs.dir/<name>`, so that what is in the directory is what a job
+//! sends. Retention (`programs.keep_revisions`, `keep_revision_days`) drops old revisions,
+//! never a program's latest, its latest released, or a locked one; content no revision names
+//! any more is removed. A file put in the directory by hand becomes a revision (by
+//! `(file)`) when the gateway starts.
 //!
-//! Optional quotas bound the library's bytes and files ([`Quota`]).
+//! Every file is written by writing a hidden temporary file and renaming it into place, so a
+//! reader (a job streaming the program) keeps the complete old or new version, never a mix.
+//! The file is synced before the rename and the directory after it, so a power cut leaves
+//! the old program or the new one, never an empty name. Temporary files a crash left behind
+//! are removed when the gateway starts ([`ProgramLibrary::create_dir`]). A store is on disk
+//! (content, the program's file, the index) before it is answered; a failure part way leaves
+//! the earlier revision the program's latest.
+//!
+//! Optional quotas bound the library ([`Quota`]): the bytes of every revision's content kept
+//! (once per hash) and the number of programs.
 
+mod index;
+
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::UNIX_EPOCH;
 
-use tokio::io::AsyncWriteExt;
+use sha2::{Digest, Sha256};
 
-/// Longest library name.
-pub const NAME_MAX: usize = 128;
+use cellgate_core::codes::BusCode;
+use cellgate_core::pb::{self, RevisionState};
+
+use self::index::Index;
+pub use self::index::IndexError;
+pub use cellgate_core::program::name::NAME_MAX;
+use cellgate_core::program::name::check_name;
+
+/// Where revisions live, inside `programs.dir`: hidden, so never a program.
+const REVISIONS_DIR: &str = ".revisions";
 
 /// Why a library operation failed.
 #[derive(Debug, thiserror::Error)]
@@ -39,13 +63,27 @@ pub enum LibraryError {
     /// `programs.quota_files`.
     #[error(
         "program {name:?} not stored: the library would hold {would} {what}, over \
-         programs.quota_{what} = {limit}; remove programs first (`cellgate program rm`)"
+         programs.quota_{what} = {limit}: every kept revision counts (a removed program's too, \
+         until retention drops it); keep fewer revisions (programs.keep_revisions, \
+         keep_revision_days) or remove programs (`cellgate program rm`)"
     )]
     QuotaExceeded {
         name: String,
         what: &'static str,
         would: u64,
         limit: u64,
+    },
+    /// The disk (or its quota) is full: nothing was stored, any earlier version of the
+    /// program is as it was.
+    #[error(
+        "program {name:?} not stored: the disk holding {} is full ({source}); the earlier \
+         version, if any, is unchanged. Free space and store it again", path.display()
+    )]
+    StorageFull {
+        name: String,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
     },
     #[error("program {name:?}: cannot {op} {}: {source}", path.display())]
     Io {
@@ -55,6 +93,47 @@ pub enum LibraryError {
         #[source]
         source: std::io::Error,
     },
+    /// The program's latest revision is locked.
+    #[error(
+        "program {name:?}: revision {number} is locked, so the program may not be {what}; a \
+         role with program.release may unlock it (`cellgate program release {name} \
+         {number} --state draft`)"
+    )]
+    Locked {
+        name: String,
+        number: u32,
+        what: &'static str,
+    },
+    /// No revision of that number or hash is kept.
+    #[error(
+        "program {name:?} has no revision {revision:?}{}", if known.is_empty() { String::new() } else { format!("; its revisions are {known}") }
+    )]
+    NoRevision {
+        name: String,
+        revision: String,
+        known: String,
+    },
+    /// A state change the rules do not allow.
+    #[error("program {name:?} revision {number}: {why}")]
+    Transition {
+        name: String,
+        number: u32,
+        why: String,
+    },
+    /// The machine takes only released revisions.
+    #[error(
+        "machine {machine} takes only released revisions (accept = \"released\"), and \
+         program {name:?} revision {number} is a draft{}; release it (`cellgate program \
+         release {name} {number}`) or name a released revision", latest_released.map(|n| format!(" (its latest released revision is {n})")).unwrap_or_default()
+    )]
+    NotReleased {
+        machine: String,
+        name: String,
+        number: u32,
+        latest_released: Option<u32>,
+    },
+    #[error(transparent)]
+    Index(#[from] IndexError),
 }
 
 /// One stored program.
@@ -64,10 +143,27 @@ pub struct ProgramEntry {
     pub size: u64,
     /// Last stored, ms since the Unix epoch (0 if the file system does not say).
     pub modified_unix_ms: u64,
+    /// Its latest revision (for a removal: the one that was latest).
+    pub latest: Option<pb::ProgramRevision>,
+    /// Its latest released (or locked) revision, 0 if none.
+    pub latest_released: u32,
+}
+
+impl ProgramEntry {
+    /// As the bus carries it.
+    pub fn info(self) -> pb::ProgramInfo {
+        pb::ProgramInfo {
+            name: self.name,
+            size: self.size,
+            modified_unix_ms: self.modified_unix_ms,
+            latest: self.latest,
+            latest_released: self.latest_released,
+        }
+    }
 }
 
 /// Whether a store may replace a program of the same name.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Place {
     Replace,
     New,
@@ -80,58 +176,172 @@ pub struct Quota {
     pub files: Option<u64>,
 }
 
+/// How many revisions the library keeps (`programs.keep_revisions`, `keep_revision_days`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Retention {
+    pub revisions: u32,
+    pub days: Option<u32>,
+}
+
+impl Default for Retention {
+    fn default() -> Self {
+        Retention {
+            revisions: cellgate_core::config::ProgramsConfig::DEFAULT_KEEP_REVISIONS,
+            days: None,
+        }
+    }
+}
+
+/// A store: the content and what the revision records of it.
+#[derive(Debug, Clone, Default)]
+pub struct Store<'a> {
+    pub bytes: &'a [u8],
+    /// Who stored it, as the client said.
+    pub by: pb::RequestOrigin,
+    pub comment: String,
+    /// Content taken from another program's revision.
+    pub adopted: Option<(String, u32)>,
+}
+
 /// The program library. Cheap to clone.
 #[derive(Debug, Clone)]
 pub struct ProgramLibrary {
     dir: Arc<PathBuf>,
     max_size: u64,
     quota: Quota,
+    retention: Retention,
+    /// Held from a store's quota check to its end, so that concurrent stores cannot all
+    /// pass the check and then together break the quota, nor number two revisions alike.
+    stores: Arc<tokio::sync::Mutex<()>>,
+    index: Arc<tokio::sync::OnceCell<Arc<Index>>>,
+}
+
+/// Writes `parts` to `path` atomically and durably: into a hidden temporary file beside it,
+/// synced, then renamed over `path` (or, with `replace = false`, linked, which fails if the
+/// name is taken), and the directory synced. Any failure (a full disk) removes the temporary
+/// file and leaves whatever `path` held as it was. Blocking: call it off the runtime's
+/// threads.
+pub fn write_atomically(path: &Path, parts: &[&[u8]], replace: bool) -> std::io::Result<()> {
+    use std::io::Write as _;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    // Hidden (leading '.'), so never a valid program name and never listed.
+    let temp = dir.join(format!(
+        ".{name}.{}.{}.tmp",
+        std::process::id(),
+        TEMP_COUNTER.fetch_add(1, Ordering::Relaxed)
+    ));
+    let written = (|| {
+        let mut file = std::fs::File::create(&temp)?;
+        for part in parts {
+            file.write_all(part)?;
+        }
+        file.sync_all()?;
+        drop(file);
+        if replace {
+            std::fs::rename(&temp, path)?;
+        } else {
+            let linked = std::fs::hard_link(&temp, path);
+            let _ = std::fs::remove_file(&temp);
+            linked?;
+        }
+        std::fs::File::open(dir)?.sync_all()
+    })();
+    if written.is_err() {
+        let _ = std::fs::remove_file(&temp);
+    }
+    written
 }
 
 static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 
-/// Checks a library name (see the module documentation).
+/// Checks a library name (see [`cellgate_core::program::name`]).
 pub fn validate_name(name: &str) -> Result<(), LibraryError> {
-    let invalid = |reason| {
-        Err(LibraryError::InvalidName {
-            name: name.to_string(),
-            reason,
-        })
+    check_name(name).map_err(|e| LibraryError::InvalidName {
+        name: e.name,
+        reason: e.reason,
+    })
+}
+
+/// The SHA-256 of `bytes`, in lower-case hex.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex::encode(Sha256::digest(bytes))
+}
+
+fn now_ms() -> u64 {
+    pb::unix_ms(std::time::SystemTime::now())
+}
+
+fn is_released(r: &pb::ProgramRevision) -> bool {
+    matches!(r.state(), RevisionState::Released | RevisionState::Locked)
+}
+
+/// The revision `rev` names in `revisions` (oldest first): a number, a SHA-256 (or a prefix
+/// of at least 8 hex digits that only one revision has), or, empty, the latest.
+fn find<'r>(
+    name: &str,
+    revisions: &'r [pb::ProgramRevision],
+    rev: &str,
+) -> Result<&'r pb::ProgramRevision, LibraryError> {
+    let missing = || LibraryError::NoRevision {
+        name: name.to_string(),
+        revision: rev.to_string(),
+        known: revisions
+            .iter()
+            .map(|r| r.number.to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
     };
-    if name.is_empty() {
-        return invalid("it is empty");
+    let rev = rev.trim();
+    if rev.is_empty() || rev == "latest" {
+        return revisions.last().ok_or_else(|| LibraryError::NotFound {
+            name: name.to_string(),
+        });
     }
-    if name.len() > NAME_MAX {
-        return invalid("it is longer than 128 characters");
-    }
-    if !name
-        .bytes()
-        .all(|b| b.is_ascii_alphanumeric() || b"._+-".contains(&b))
+    if let Ok(n) = rev.parse::<u32>()
+        && rev.len() < 8
     {
-        return invalid("use only letters, digits, '.', '_', '+' and '-'");
+        return revisions.iter().find(|r| r.number == n).ok_or_else(missing);
     }
-    if !name
-        .as_bytes()
-        .first()
-        .is_some_and(u8::is_ascii_alphanumeric)
-    {
-        return invalid("it must start with a letter or a digit");
+    let rev = rev.to_ascii_lowercase();
+    if rev.len() >= 8 && rev.bytes().all(|b| b.is_ascii_hexdigit()) {
+        let hits: Vec<&pb::ProgramRevision> = revisions
+            .iter()
+            .filter(|r| r.sha256.starts_with(&rev))
+            .collect();
+        // The same content stored twice is two revisions with one hash: the newer one.
+        let hashes: BTreeSet<&str> = hits.iter().map(|r| r.sha256.as_str()).collect();
+        if hashes.len() == 1 {
+            return hits.last().copied().ok_or_else(missing);
+        }
     }
-    Ok(())
+    Err(missing())
 }
 
 impl ProgramLibrary {
     pub fn new(dir: impl Into<PathBuf>, max_size: u64) -> Self {
         ProgramLibrary {
+            stores: Arc::default(),
             dir: Arc::new(dir.into()),
             max_size,
             quota: Quota::default(),
+            retention: Retention::default(),
+            index: Arc::default(),
         }
     }
 
     /// The same library, bounded by `quota`.
     pub fn with_quota(mut self, quota: Quota) -> Self {
         self.quota = quota;
+        self
+    }
+
+    /// The same library, keeping revisions as `retention` says.
+    pub fn with_retention(mut self, retention: Retention) -> Self {
+        self.retention = retention;
         self
     }
 
@@ -143,28 +353,159 @@ impl ProgramLibrary {
         self.max_size
     }
 
-    /// Creates the directory if it does not exist, and removes the temporary files a crash
-    /// left in it (those of this process, which has written nothing yet, excepted).
+    fn revisions_dir(&self) -> PathBuf {
+        self.dir.join(REVISIONS_DIR)
+    }
+
+    fn objects_dir(&self) -> PathBuf {
+        self.revisions_dir().join("objects")
+    }
+
+    fn object_path(&self, sha: &str) -> PathBuf {
+        self.objects_dir().join(sha)
+    }
+
+    /// Creates the directory if it does not exist, removes the temporary files a crash left
+    /// in it (those of this process, which has written nothing yet, excepted), and opens the
+    /// revision index, taking in the programs it does not know yet.
     pub async fn create_dir(&self) -> std::io::Result<()> {
         tokio::fs::create_dir_all(self.dir.as_path()).await?;
-        let mut dir = tokio::fs::read_dir(self.dir.as_path()).await?;
         let own = format!(".{}.", std::process::id());
-        while let Some(item) = dir.next_entry().await? {
-            let Ok(name) = item.file_name().into_string() else {
+        for dir in [self.dir.as_path().to_path_buf(), self.objects_dir()] {
+            let Ok(mut entries) = tokio::fs::read_dir(&dir).await else {
                 continue;
             };
-            if name.starts_with('.') && name.ends_with(".tmp") && !name.contains(&own) {
-                match tokio::fs::remove_file(item.path()).await {
-                    Ok(()) => {
-                        tracing::info!(file = %name, "temporary file of an earlier run removed")
-                    }
-                    Err(e) => {
-                        tracing::warn!(file = %name, error = %e, "temporary file not removed")
+            while let Some(item) = entries.next_entry().await? {
+                let Ok(name) = item.file_name().into_string() else {
+                    continue;
+                };
+                if name.starts_with('.') && name.ends_with(".tmp") && !name.contains(&own) {
+                    match tokio::fs::remove_file(item.path()).await {
+                        Ok(()) => {
+                            tracing::info!(file = %name, "temporary file of an earlier run removed")
+                        }
+                        Err(e) => {
+                            tracing::warn!(file = %name, error = %e, "temporary file not removed")
+                        }
                     }
                 }
             }
         }
+        self.index().await.map_err(|e| match e {
+            LibraryError::Io { source, .. } | LibraryError::StorageFull { source, .. } => source,
+            other => std::io::Error::other(other.to_string()),
+        })?;
         Ok(())
+    }
+
+    /// The revision index, opened (and the directory's programs taken in) on first use.
+    async fn index(&self) -> Result<Arc<Index>, LibraryError> {
+        self.index
+            .get_or_try_init(|| async {
+                let lib = self.clone();
+                blocking(move || lib.open_index()).await
+            })
+            .await
+            .cloned()
+    }
+
+    /// Opens the index and gives every program file it does not know (or whose content is
+    /// not its latest revision's: edited by hand) a revision. Blocking.
+    fn open_index(&self) -> Result<Arc<Index>, LibraryError> {
+        let io = |op, path: &Path| {
+            let path = path.to_path_buf();
+            move |source| LibraryError::Io {
+                name: String::new(),
+                op,
+                path,
+                source,
+            }
+        };
+        let objects = self.objects_dir();
+        std::fs::create_dir_all(&objects).map_err(io("create", &objects))?;
+        let index = Index::open(&self.revisions_dir().join("index.redb"))?;
+        let latest: std::collections::BTreeMap<String, pb::ProgramRevision> = index
+            .latest_all()?
+            .into_iter()
+            .map(|r| (r.name.clone(), r))
+            .collect();
+        let mut adopted = Vec::new();
+        let dir = match std::fs::read_dir(self.dir.as_path()) {
+            Ok(d) => d,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Arc::new(index)),
+            Err(e) => return Err(io("list", self.dir.as_path())(e)),
+        };
+        for item in dir.flatten() {
+            let Ok(name) = item.file_name().into_string() else {
+                continue;
+            };
+            if validate_name(&name).is_err() || !item.path().is_file() {
+                continue;
+            }
+            let bytes = std::fs::read(item.path()).map_err(io("read", &item.path()))?;
+            let sha = sha256_hex(&bytes);
+            let known = latest.get(&name);
+            if known.is_some_and(|r| r.sha256 == sha && !r.removed) {
+                if !self.object_path(&sha).exists() {
+                    self.write_object(&name, &sha, &bytes)?;
+                }
+                continue;
+            }
+            self.write_object(&name, &sha, &bytes)?;
+            let revision = pb::ProgramRevision {
+                name: name.clone(),
+                number: known.map_or(1, |r| r.number + 1),
+                sha256: sha,
+                size: bytes.len() as u64,
+                unix_ms: modified_ms(&item.metadata().map_err(io("read", &item.path()))?),
+                by: Some(pb::RequestOrigin {
+                    user: "(file)".to_string(),
+                    via: String::new(),
+                }),
+                comment: "found in programs.dir".to_string(),
+                state: RevisionState::Draft as i32,
+                ..Default::default()
+            };
+            adopted.push(revision);
+        }
+        if !adopted.is_empty() {
+            index.put(&adopted, &[])?;
+            tracing::info!(
+                programs = adopted.len(),
+                "program library: files found in the directory taken in as revisions"
+            );
+        }
+        Ok(Arc::new(index))
+    }
+
+    /// Writes content under its hash, once. Blocking.
+    fn write_object(&self, name: &str, sha: &str, bytes: &[u8]) -> Result<(), LibraryError> {
+        let path = self.object_path(sha);
+        if path.exists() {
+            return Ok(());
+        }
+        match write_atomically(&path, &[bytes], false) {
+            Ok(()) => Ok(()),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(()),
+            Err(e) => Err(self.write_error(name, path, e)),
+        }
+    }
+
+    fn write_error(&self, name: &str, path: PathBuf, e: std::io::Error) -> LibraryError {
+        if crate::jobs::journal::is_storage_full(&e) {
+            LibraryError::StorageFull {
+                name: name.to_string(),
+                path,
+                source: e,
+            }
+        } else {
+            LibraryError::Io {
+                name: name.to_string(),
+                op: "write",
+                path,
+                source: e,
+            }
+        }
     }
 
     /// Makes the directory's entries (a rename, a link, a removal) durable.
@@ -173,41 +514,6 @@ impl ProgramLibrary {
             .await?
             .sync_all()
             .await
-    }
-
-    /// Refuses a store of `size` bytes under `name` that would break the quota.
-    async fn check_quota(&self, name: &str, size: u64) -> Result<(), LibraryError> {
-        if self.quota == Quota::default() {
-            return Ok(());
-        }
-        // The program it replaces does not count.
-        let others: Vec<ProgramEntry> = self
-            .list()
-            .await?
-            .into_iter()
-            .filter(|e| e.name != name)
-            .collect();
-        let checks = [
-            (
-                "bytes",
-                self.quota.bytes,
-                others.iter().map(|e| e.size).sum::<u64>() + size,
-            ),
-            ("files", self.quota.files, others.len() as u64 + 1),
-        ];
-        for (what, limit, would) in checks {
-            if let Some(limit) = limit
-                && would > limit
-            {
-                return Err(LibraryError::QuotaExceeded {
-                    name: name.to_string(),
-                    what,
-                    would,
-                    limit,
-                });
-            }
-        }
-        Ok(())
     }
 
     pub(crate) fn path_of(&self, name: &str) -> Result<PathBuf, LibraryError> {
@@ -229,9 +535,25 @@ impl ProgramLibrary {
         }
     }
 
-    /// Stores `program` under `name`, replacing any program of that name.
+    /// Stores `program` under `name` as its next revision, by nobody in particular.
     pub async fn store(&self, name: &str, program: &[u8]) -> Result<ProgramEntry, LibraryError> {
-        self.write(name, program, Place::Replace).await
+        self.store_as(
+            name,
+            Store {
+                bytes: program,
+                ..Store::default()
+            },
+        )
+        .await
+    }
+
+    /// Stores a revision of `name`, replacing the program's file.
+    pub async fn store_as(
+        &self,
+        name: &str,
+        store: Store<'_>,
+    ) -> Result<ProgramEntry, LibraryError> {
+        self.write(name, store, Place::Replace).await
     }
 
     /// Stores `program` under `name` only if no program has that name yet
@@ -242,17 +564,61 @@ impl ProgramLibrary {
         name: &str,
         program: &[u8],
     ) -> Result<ProgramEntry, LibraryError> {
-        self.write(name, program, Place::New).await
+        self.store_new_as(
+            name,
+            Store {
+                bytes: program,
+                ..Store::default()
+            },
+        )
+        .await
+    }
+
+    /// [`Self::store_new`] with what the revision records.
+    pub async fn store_new_as(
+        &self,
+        name: &str,
+        store: Store<'_>,
+    ) -> Result<ProgramEntry, LibraryError> {
+        self.write(name, store, Place::New).await
+    }
+
+    /// Stores `from`'s revision `revision` (empty: its latest) as `name`'s next revision.
+    pub async fn adopt(
+        &self,
+        name: &str,
+        from: &str,
+        revision: &str,
+        by: pb::RequestOrigin,
+        comment: String,
+    ) -> Result<ProgramEntry, LibraryError> {
+        let (source, bytes) = self.read_revision(from, revision).await?;
+        let comment = if comment.is_empty() {
+            format!("adopted from {from} revision {}", source.number)
+        } else {
+            comment
+        };
+        self.write(
+            name,
+            Store {
+                bytes: &bytes,
+                by,
+                comment,
+                adopted: Some((from.to_string(), source.number)),
+            },
+            Place::Replace,
+        )
+        .await
     }
 
     async fn write(
         &self,
         name: &str,
-        program: &[u8],
+        store: Store<'_>,
         place: Place,
     ) -> Result<ProgramEntry, LibraryError> {
         let path = self.path_of(name)?;
-        let size = program.len() as u64;
+        let size = store.bytes.len() as u64;
         if size > self.max_size {
             return Err(LibraryError::TooLarge {
                 name: name.to_string(),
@@ -260,61 +626,212 @@ impl ProgramLibrary {
                 max: self.max_size,
             });
         }
-        self.check_quota(name, size).await?;
-        // Hidden (leading '.'), so never a valid name and never listed.
-        let temp = self.dir.join(format!(
-            ".{name}.{}.{}.tmp",
-            std::process::id(),
-            TEMP_COUNTER.fetch_add(1, Ordering::Relaxed)
-        ));
-        let written = async {
-            let mut file = tokio::fs::File::create(&temp).await?;
-            file.write_all(program).await?;
-            file.sync_all().await?;
-            drop(file);
-            match place {
-                Place::Replace => tokio::fs::rename(&temp, &path).await,
-                Place::New => {
-                    let linked = tokio::fs::hard_link(&temp, &path).await;
-                    let _ = tokio::fs::remove_file(&temp).await;
-                    linked
-                }
-            }?;
-            self.sync_dir().await
-        }
-        .await;
-        if let Err(e) = written {
-            let _ = tokio::fs::remove_file(&temp).await;
-            if e.kind() == std::io::ErrorKind::AlreadyExists {
-                return Err(LibraryError::Exists {
-                    name: name.to_string(),
+        let index = self.index().await?;
+        let _store = self.stores.lock().await;
+        let lib = self.clone();
+        let name = name.to_string();
+        let bytes = store.bytes.to_vec();
+        let (by, comment, adopted) = (store.by, store.comment, store.adopted);
+        blocking(move || {
+            let revisions = index.revisions(&name)?;
+            let latest = revisions.last();
+            let present = latest.is_some_and(|r| !r.removed) && path.is_file();
+            if place == Place::New && (present || path.exists()) {
+                return Err(LibraryError::Exists { name });
+            }
+            if let Some(l) = latest
+                && !l.removed
+                && l.state() == RevisionState::Locked
+            {
+                return Err(LibraryError::Locked {
+                    name,
+                    number: l.number,
+                    what: "replaced",
                 });
             }
-            return Err(LibraryError::Io {
-                name: name.to_string(),
-                op: "write",
-                path,
-                source: e,
-            });
-        }
-        self.entry(name).await
+            let sha = sha256_hex(&bytes);
+            // The same content again makes no new revision.
+            if let Some(l) = latest
+                && present
+                && l.sha256 == sha
+                && adopted.is_none()
+            {
+                return lib.entry_blocking(&name, &index);
+            }
+            lib.check_quota(&index, &name, &sha, size, !present)?;
+            lib.write_object(&name, &sha, &bytes)?;
+            let replace = place == Place::Replace;
+            write_atomically(&path, &[&bytes], replace).map_err(|e| {
+                if e.kind() == std::io::ErrorKind::AlreadyExists {
+                    LibraryError::Exists { name: name.clone() }
+                } else {
+                    lib.write_error(&name, path.clone(), e)
+                }
+            })?;
+            let now = now_ms();
+            let revision = pb::ProgramRevision {
+                name: name.clone(),
+                number: latest.map_or(1, |r| r.number + 1),
+                sha256: sha,
+                size,
+                unix_ms: now,
+                by: Some(by),
+                comment,
+                state: RevisionState::Draft as i32,
+                adopted_from: adopted.as_ref().map(|a| a.0.clone()).unwrap_or_default(),
+                adopted_revision: adopted.as_ref().map_or(0, |a| a.1),
+                ..Default::default()
+            };
+            let mut all = revisions.clone();
+            all.push(revision.clone());
+            let dropped = lib.retained_out(&all, now);
+            if let Err(e) = index.put(&[revision], &dropped) {
+                // The file holds the new content, the index its earlier revision: put the
+                // earlier content back, so the program is what its latest revision says.
+                if let Some(l) = latest
+                    && let Ok(old) = std::fs::read(lib.object_path(&l.sha256))
+                {
+                    let _ = write_atomically(&path, &[&old], true);
+                }
+                return Err(match e.io() {
+                    Some(io) if crate::jobs::journal::is_storage_full(io) => {
+                        LibraryError::StorageFull {
+                            name,
+                            path,
+                            source: std::io::Error::new(io.kind(), io.to_string()),
+                        }
+                    }
+                    _ => e.into(),
+                });
+            }
+            if !dropped.is_empty() {
+                lib.collect_objects(&index);
+            }
+            lib.entry_blocking(&name, &index)
+        })
+        .await
     }
 
-    pub(crate) async fn entry(&self, name: &str) -> Result<ProgramEntry, LibraryError> {
+    /// The revisions retention drops from `all` (one program's, oldest first) at `now`.
+    fn retained_out(&self, all: &[pb::ProgramRevision], now: u64) -> Vec<(String, u32)> {
+        let latest = all.last().map(|r| r.number);
+        let latest_released = all.iter().rev().find(|r| is_released(r)).map(|r| r.number);
+        let keep_from = all.len().saturating_sub(self.retention.revisions as usize);
+        let cutoff = self
+            .retention
+            .days
+            .map(|d| now.saturating_sub(u64::from(d) * 24 * 3600 * 1000));
+        all.iter()
+            .enumerate()
+            .filter(|(i, r)| {
+                let protected = Some(r.number) == latest
+                    || Some(r.number) == latest_released
+                    || r.state() == RevisionState::Locked;
+                let old = *i < keep_from || cutoff.is_some_and(|c| r.unix_ms < c);
+                old && !protected
+            })
+            .map(|(_, r)| (r.name.clone(), r.number))
+            .collect()
+    }
+
+    /// Removes content no kept revision names. Blocking; failures are logged only (the
+    /// content is merely kept longer).
+    fn collect_objects(&self, index: &Index) {
+        let Ok(kept) = index.hashes() else { return };
+        let Ok(dir) = std::fs::read_dir(self.objects_dir()) else {
+            return;
+        };
+        for item in dir.flatten() {
+            let name = item.file_name().to_string_lossy().into_owned();
+            if name.starts_with('.') || kept.contains(&name) {
+                continue;
+            }
+            if let Err(e) = std::fs::remove_file(item.path()) {
+                tracing::warn!(object = %name, error = %e, "program library: content not removed");
+            }
+        }
+    }
+
+    /// Refuses a store of `size` bytes of content `sha` under `name` that would break the
+    /// quota: every kept revision's content counts once per hash, and the programs.
+    fn check_quota(
+        &self,
+        index: &Index,
+        name: &str,
+        sha: &str,
+        size: u64,
+        new_program: bool,
+    ) -> Result<(), LibraryError> {
+        if self.quota == Quota::default() {
+            return Ok(());
+        }
+        let mut bytes = 0u64;
+        let mut seen_new = false;
+        if let Ok(dir) = std::fs::read_dir(self.objects_dir()) {
+            for item in dir.flatten() {
+                let n = item.file_name().to_string_lossy().into_owned();
+                if n.starts_with('.') {
+                    continue;
+                }
+                seen_new |= n == sha;
+                bytes += item.metadata().map_or(0, |m| m.len());
+            }
+        }
+        if !seen_new {
+            bytes += size;
+        }
+        let programs = index
+            .latest_all()?
+            .iter()
+            .filter(|r| !r.removed && self.dir.join(&r.name).is_file())
+            .count() as u64
+            + u64::from(new_program);
+        for (what, limit, would) in [
+            ("files", self.quota.files, programs),
+            ("bytes", self.quota.bytes, bytes),
+        ] {
+            if let Some(limit) = limit
+                && would > limit
+            {
+                return Err(LibraryError::QuotaExceeded {
+                    name: name.to_string(),
+                    what,
+                    would,
+                    limit,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    fn entry_blocking(&self, name: &str, index: &Index) -> Result<ProgramEntry, LibraryError> {
         let path = self.path_of(name)?;
-        let meta = tokio::fs::metadata(&path)
-            .await
-            .map_err(|e| self.io_error(name, "read", e))?;
+        let meta = std::fs::metadata(&path).map_err(|e| self.io_error(name, "read", e))?;
         if !meta.is_file() {
             return Err(LibraryError::NotFound {
                 name: name.to_string(),
             });
         }
+        let revisions = index.revisions(name)?;
         Ok(ProgramEntry {
             name: name.to_string(),
             size: meta.len(),
             modified_unix_ms: modified_ms(&meta),
+            latest_released: revisions
+                .iter()
+                .rev()
+                .find(|r| is_released(r))
+                .map_or(0, |r| r.number),
+            latest: revisions.last().cloned(),
         })
+    }
+
+    pub(crate) async fn entry(&self, name: &str) -> Result<ProgramEntry, LibraryError> {
+        validate_name(name)?;
+        let index = self.index().await?;
+        let lib = self.clone();
+        let name = name.to_string();
+        blocking(move || lib.entry_blocking(&name, &index)).await
     }
 
     /// Opens a program for streaming; returns the file and its size.
@@ -335,34 +852,159 @@ impl ProgramLibrary {
         Ok((file, meta.len()))
     }
 
-    /// Reads a whole program, for a bus reply (whose payload is one message anyway). Refuses
-    /// one larger than `programs.max_size`.
+    /// Reads a whole program, its latest revision, for a bus reply (whose payload is one
+    /// message anyway): the content a job sends. Refuses one larger than `programs.max_size`.
     pub async fn read(&self, name: &str) -> Result<Vec<u8>, LibraryError> {
-        let entry = self.entry(name).await?;
-        if entry.size > self.max_size {
+        self.path_of(name)?;
+        Ok(self.read_revision(name, "").await?.1)
+    }
+
+    /// Every kept revision of `name`, newest first.
+    pub async fn revisions(&self, name: &str) -> Result<pb::ProgramRevisions, LibraryError> {
+        validate_name(name)?;
+        let index = self.index().await?;
+        let n = name.to_string();
+        let mut revisions = blocking(move || Ok(index.revisions(&n)?)).await?;
+        if revisions.is_empty() {
+            return Err(LibraryError::NotFound {
+                name: name.to_string(),
+            });
+        }
+        let removed = revisions.last().is_some_and(|r| r.removed);
+        revisions.reverse();
+        Ok(pb::ProgramRevisions {
+            name: name.to_string(),
+            revisions,
+            removed,
+        })
+    }
+
+    /// The revision `rev` names (a number, a SHA-256, or empty for the latest) and the path
+    /// of its content, which never changes.
+    pub async fn revision(
+        &self,
+        name: &str,
+        rev: &str,
+    ) -> Result<(pb::ProgramRevision, PathBuf), LibraryError> {
+        validate_name(name)?;
+        let index = self.index().await?;
+        let n = name.to_string();
+        let revisions = blocking(move || Ok(index.revisions(&n)?)).await?;
+        if revisions.is_empty() {
+            return Err(LibraryError::NotFound {
+                name: name.to_string(),
+            });
+        }
+        let r = find(name, &revisions, rev)?.clone();
+        if rev.trim().is_empty() && r.removed {
+            return Err(LibraryError::NotFound {
+                name: name.to_string(),
+            });
+        }
+        let path = self.object_path(&r.sha256);
+        Ok((r, path))
+    }
+
+    /// A revision and its content.
+    pub async fn read_revision(
+        &self,
+        name: &str,
+        rev: &str,
+    ) -> Result<(pb::ProgramRevision, Vec<u8>), LibraryError> {
+        let (r, path) = self.revision(name, rev).await?;
+        if r.size > self.max_size {
             return Err(LibraryError::TooLarge {
                 name: name.to_string(),
-                size: entry.size,
+                size: r.size,
                 max: self.max_size,
             });
         }
-        let path = self.path_of(name)?;
-        tokio::fs::read(&path)
+        let bytes = tokio::fs::read(&path)
             .await
-            .map_err(|e| self.io_error(name, "read", e))
+            .map_err(|e| self.io_error(name, "read", e))?;
+        Ok((r, bytes))
     }
 
-    /// Removes a program; returns it as it was.
+    /// Changes the state of revision `rev` (empty: the latest): draft → released, draft or
+    /// released → locked, released → draft (unreleased), locked → released (unlocked).
+    pub async fn set_state(
+        &self,
+        name: &str,
+        rev: &str,
+        state: RevisionState,
+        by: pb::RequestOrigin,
+        comment: String,
+    ) -> Result<pb::ProgramRevision, LibraryError> {
+        validate_name(name)?;
+        let index = self.index().await?;
+        let _store = self.stores.lock().await;
+        let (name, rev) = (name.to_string(), rev.to_string());
+        blocking(move || {
+            let revisions = index.revisions(&name)?;
+            if revisions.is_empty() {
+                return Err(LibraryError::NotFound { name });
+            }
+            let mut r = find(&name, &revisions, &rev)?.clone();
+            let transition = |why: &str| LibraryError::Transition {
+                name: name.clone(),
+                number: r.number,
+                why: why.to_string(),
+            };
+            let next = match (r.state(), state) {
+                (_, RevisionState::Unspecified) => {
+                    return Err(transition(
+                        "say the state it takes: released, locked or draft",
+                    ));
+                }
+                (from, to) if from == to => return Ok(r),
+                (RevisionState::Locked, RevisionState::Draft) => RevisionState::Released,
+                (RevisionState::Draft | RevisionState::Unspecified, RevisionState::Locked) => {
+                    RevisionState::Locked
+                }
+                (_, to) => to,
+            };
+            r.state = next as i32;
+            r.state_unix_ms = now_ms();
+            r.state_by = Some(by);
+            r.state_comment = comment;
+            index.put(std::slice::from_ref(&r), &[])?;
+            Ok(r)
+        })
+        .await
+    }
+
+    /// Removes a program, by nobody in particular; returns it as it was.
     pub async fn remove(&self, name: &str) -> Result<ProgramEntry, LibraryError> {
+        self.remove_by(name).await
+    }
+
+    /// Removes a program; returns it as it was. Its revisions stay readable until retention
+    /// drops them; a locked program is not removed.
+    pub async fn remove_by(&self, name: &str) -> Result<ProgramEntry, LibraryError> {
         let path = self.path_of(name)?;
         // Only programs: a directory that happens to carry a valid name is not one.
         let entry = self.entry(name).await?;
+        if let Some(l) = &entry.latest
+            && l.state() == RevisionState::Locked
+        {
+            return Err(LibraryError::Locked {
+                name: name.to_string(),
+                number: l.number,
+                what: "removed",
+            });
+        }
+        let index = self.index().await?;
+        let _store = self.stores.lock().await;
         tokio::fs::remove_file(&path)
             .await
             .map_err(|e| self.io_error(name, "remove", e))?;
         self.sync_dir()
             .await
             .map_err(|e| self.io_error(name, "sync the directory after removing", e))?;
+        if let Some(mut latest) = entry.latest.clone() {
+            latest.removed = true;
+            blocking(move || Ok(index.put(&[latest], &[])?)).await?;
+        }
         Ok(entry)
     }
 
@@ -373,6 +1015,25 @@ impl ProgramLibrary {
             op: "list",
             path: self.dir.as_path().to_path_buf(),
             source: e,
+        };
+        let index = self.index().await?;
+        let latest: std::collections::BTreeMap<String, (pb::ProgramRevision, u32)> = {
+            let index = Arc::clone(&index);
+            blocking(move || {
+                let all = index.latest_all()?;
+                let mut out = std::collections::BTreeMap::new();
+                for r in all {
+                    let released = index
+                        .revisions(&r.name)?
+                        .iter()
+                        .rev()
+                        .find(|x| is_released(x))
+                        .map_or(0, |x| x.number);
+                    out.insert(r.name.clone(), (r, released));
+                }
+                Ok(out)
+            })
+            .await?
         };
         let mut entries = Vec::new();
         let mut dir = match tokio::fs::read_dir(self.dir.as_path()).await {
@@ -391,16 +1052,36 @@ impl ProgramLibrary {
                 continue;
             };
             if meta.is_file() {
+                let (latest, latest_released) = match latest.get(&name) {
+                    Some((r, n)) => (Some(r.clone()), *n),
+                    None => (None, 0),
+                };
                 entries.push(ProgramEntry {
                     name,
                     size: meta.len(),
                     modified_unix_ms: modified_ms(&meta),
+                    latest,
+                    latest_released,
                 });
             }
         }
         entries.sort_by(|a, b| a.name.cmp(&b.name));
         Ok(entries)
     }
+}
+
+/// Runs library file and index work off the runtime's threads.
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, LibraryError> + Send + 'static,
+) -> Result<T, LibraryError> {
+    tokio::task::spawn_blocking(f).await.unwrap_or_else(|e| {
+        Err(LibraryError::Io {
+            name: String::new(),
+            op: "run the library task",
+            path: PathBuf::new(),
+            source: std::io::Error::other(e.to_string()),
+        })
+    })
 }
 
 fn modified_ms(meta: &std::fs::Metadata) -> u64 {
@@ -410,178 +1091,24 @@ fn modified_ms(meta: &std::fs::Metadata) -> u64 {
         .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn names_are_one_safe_key_chunk() {
-        for ok in ["O1234", "part-7.nc", "a", "X_1+2", &"n".repeat(128)] {
-            assert!(validate_name(ok).is_ok(), "{ok}");
-        }
-        for bad in [
-            "",
-            ".",
-            "..",
-            "../etc",
-            "a/b",
-            ".hidden",
-            "-x",
-            "a*",
-            "**",
-            "a$b",
-            "a?b",
-            "a#b",
-            "sp ace",
-            "@admin",
-            "é",
-            &"n".repeat(129),
-        ] {
-            assert!(validate_name(bad).is_err(), "{bad:?}");
-        }
-    }
-
-    #[tokio::test]
-    async fn store_read_list_remove() {
-        let dir = tempfile::tempdir().unwrap();
-        let lib = ProgramLibrary::new(dir.path(), 100);
-        assert!(lib.list().await.unwrap().is_empty());
-        let e = lib.store("O1", b"%\nO1\n%").await.unwrap();
-        assert_eq!(e.size, 6);
-        lib.store("O2", b"%\nO2\n%").await.unwrap();
-        lib.store("O1", b"%\nO1\nM30\n%").await.unwrap();
-        assert_eq!(lib.read("O1").await.unwrap(), b"%\nO1\nM30\n%");
-        let names: Vec<_> = lib
-            .list()
-            .await
-            .unwrap()
-            .into_iter()
-            .map(|e| e.name)
-            .collect();
-        assert_eq!(names, ["O1", "O2"]);
-        lib.remove("O1").await.unwrap();
-        assert!(matches!(
-            lib.read("O1").await,
-            Err(LibraryError::NotFound { .. })
-        ));
-        assert!(matches!(
-            lib.remove("O1").await,
-            Err(LibraryError::NotFound { .. })
-        ));
-        assert!(matches!(
-            lib.store("big", &[b'x'; 101]).await,
-            Err(LibraryError::TooLarge { size: 101, .. })
-        ));
-        assert!(matches!(
-            lib.store("../x", b"x").await,
-            Err(LibraryError::InvalidName { .. })
-        ));
-        // No temporary file is left behind, and stray files are not listed.
-        std::fs::write(dir.path().join(".junk"), b"x").unwrap();
-        let names: Vec<_> = lib
-            .list()
-            .await
-            .unwrap()
-            .into_iter()
-            .map(|e| e.name)
-            .collect();
-        assert_eq!(names, ["O2"]);
-    }
-
-    #[tokio::test]
-    async fn store_new_never_replaces() {
-        let dir = tempfile::tempdir().unwrap();
-        let lib = ProgramLibrary::new(dir.path(), 100);
-        lib.store_new("m-O1", b"%\nO1\n%").await.unwrap();
-        assert!(matches!(
-            lib.store_new("m-O1", b"%\nO1\nM30\n%").await,
-            Err(LibraryError::Exists { .. })
-        ));
-        assert_eq!(lib.read("m-O1").await.unwrap(), b"%\nO1\n%");
-        // Racing writers: exactly one wins each name, and no temporary file is left.
-        let tries = (0..8).map(|i| {
-            let lib = lib.clone();
-            tokio::spawn(async move { lib.store_new("m-O2", format!("%{i}%").as_bytes()).await })
-        });
-        let mut won = 0;
-        for t in tries {
-            if t.await.unwrap().is_ok() {
-                won += 1;
+impl BusCode for LibraryError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            LibraryError::NotFound { .. } | LibraryError::NoRevision { .. } => {
+                pb::ErrorCode::NotFound
             }
+            LibraryError::InvalidName { .. }
+            | LibraryError::TooLarge { .. }
+            | LibraryError::Exists { .. }
+            | LibraryError::Transition { .. } => pb::ErrorCode::InvalidRequest,
+            LibraryError::QuotaExceeded { .. } => pb::ErrorCode::QuotaExceeded,
+            LibraryError::StorageFull { .. } => pb::ErrorCode::StorageFull,
+            LibraryError::Io { .. } | LibraryError::Index(_) => pb::ErrorCode::StorageFailed,
+            LibraryError::Locked { .. } => pb::ErrorCode::Locked,
+            LibraryError::NotReleased { .. } => pb::ErrorCode::NotReleased,
         }
-        assert_eq!(won, 1);
-        let mut files: Vec<_> = std::fs::read_dir(dir.path())
-            .unwrap()
-            .map(|e| e.unwrap().file_name().into_string().unwrap())
-            .collect();
-        files.sort();
-        assert_eq!(files, ["m-O1", "m-O2"]);
-    }
-
-    #[tokio::test]
-    async fn quotas_refuse_what_would_go_past_them_and_a_replaced_program_does_not_count() {
-        let dir = tempfile::tempdir().unwrap();
-        let lib = ProgramLibrary::new(dir.path(), 100).with_quota(Quota {
-            bytes: Some(100),
-            files: Some(2),
-        });
-        lib.store("A", &[b'x'; 60]).await.unwrap();
-        // Replacing A: only the new size counts.
-        lib.store("A", &[b'x'; 70]).await.unwrap();
-        let e = lib.store("B", &[b'y'; 31]).await.unwrap_err();
-        assert!(
-            matches!(
-                e,
-                LibraryError::QuotaExceeded {
-                    what: "bytes",
-                    would: 101,
-                    limit: 100,
-                    ..
-                }
-            ),
-            "{e}"
-        );
-        assert!(e.to_string().contains("programs.quota_bytes = 100"), "{e}");
-        lib.store("B", &[b'y'; 29]).await.unwrap();
-        let e = lib.store_new("C", b"z").await.unwrap_err();
-        assert!(
-            matches!(
-                e,
-                LibraryError::QuotaExceeded {
-                    what: "files",
-                    would: 3,
-                    limit: 2,
-                    ..
-                }
-            ),
-            "{e}"
-        );
-        // Nothing of the refused stores is left.
-        let names: Vec<String> = lib
-            .list()
-            .await
-            .unwrap()
-            .into_iter()
-            .map(|e| e.name)
-            .collect();
-        assert_eq!(names, ["A", "B"]);
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
-    }
-
-    #[tokio::test]
-    async fn temporary_files_of_an_earlier_run_are_removed_at_start() {
-        let dir = tempfile::tempdir().unwrap();
-        let lib = ProgramLibrary::new(dir.path(), 100);
-        lib.store("KEEP", b"%\nO1\n%").await.unwrap();
-        // What a crash between write and rename leaves, from another process id.
-        let stale = dir.path().join(".O1234.999999999.3.tmp");
-        std::fs::write(&stale, b"half a prog").unwrap();
-        // A hidden file that is not a temporary file of the library stays.
-        let other = dir.path().join(".keepme");
-        std::fs::write(&other, b"").unwrap();
-        lib.create_dir().await.unwrap();
-        assert!(!stale.exists());
-        assert!(other.exists());
-        assert_eq!(lib.read("KEEP").await.unwrap(), b"%\nO1\n%");
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -36,10 +36,8 @@
 //! and the bus routes put them on their keys. It runs in tokio time, so it is tested under
 //! paused time with a stand-in link.
 
-pub mod blocks;
 pub mod journal;
 pub mod library;
-pub mod punch;
 pub mod queue;
 pub mod source;
 
@@ -52,17 +50,18 @@ use tokio::sync::{broadcast, mpsc, oneshot, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
-use crate::codes::BusCode;
-use crate::fanuc::alarm::CncAlarm;
-use crate::fanuc::host::Confirmation;
 use crate::link::JobId;
 use crate::link::driver::{JobFailure, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
-use crate::pb;
-use crate::pb::job_event::Kind;
 use crate::telemetry::metrics::{self, MachineMetrics, Outcome};
 use crate::telemetry::span_count;
-use blocks::{Block, BlockError, StartAt};
-use journal::{JobRecord, JobState, Journal, JournalError, StartPoint};
+use cellgate_core::codes::BusCode;
+use cellgate_core::config::Accept;
+use cellgate_core::fanuc::alarm::CncAlarm;
+use cellgate_core::fanuc::host::Confirmation;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
+use cellgate_core::program::blocks::{Block, BlockError, StartAt};
+use journal::{JobOriginRecord, JobRecord, JobState, Journal, JournalError, StartPoint};
 use library::{LibraryError, ProgramLibrary};
 use queue::PriorityQueue;
 use source::{ProgramError, ProgramInput, ProgramRules};
@@ -80,7 +79,11 @@ pub const JOB_EVENTS: usize = 1024;
 pub const PROGRESS_MIN_INTERVAL: Duration = Duration::from_millis(250);
 
 /// Ended jobs each machine keeps by default: their latest event, request id and program.
-pub const KEEP_ENDED: usize = 256;
+pub const KEEP_ENDED: usize = cellgate_core::config::DEFAULT_KEEP_JOBS;
+
+/// Ended jobs per machine whose program copy stays in the journal's store, so that they can be
+/// resumed; older ones keep their events and request ids but not their programs.
+pub const RESUMABLE_COPIES: usize = 8;
 
 /// Longest client request id.
 pub const REQUEST_ID_MAX: usize = 128;
@@ -103,6 +106,10 @@ pub struct JobSubmission {
     pub resume_after_restart: bool,
     /// Seconds the job may take from its start; 0: no deadline.
     pub deadline_s: u32,
+    /// With a library program: the revision (a number or a SHA-256); empty: the latest.
+    pub revision: String,
+    /// Who submitted it, as the client said.
+    pub submitted_by: pb::RequestOrigin,
 }
 
 /// Why a job request or a cancellation was refused.
@@ -143,6 +150,17 @@ pub enum JobError {
         #[source]
         error: BlockError,
     },
+    #[error(
+        "machine {machine}: JobRequest.revision names a library revision, but the program does \
+         not come from the library"
+    )]
+    RevisionWithoutLibrary { machine: String },
+    /// The machine takes only released library revisions, and the program is not one.
+    #[error(
+        "machine {machine} takes only released library revisions (accept = \"released\"): \
+         {what} cannot be sent to it; store it in the library and release it"
+    )]
+    OnlyReleased { machine: String, what: &'static str },
     #[error("machine {machine}: job {job} cannot be resumed: {why}")]
     NotResumable {
         machine: String,
@@ -178,6 +196,7 @@ pub struct JobsSnapshot {
 pub struct JobsHandle {
     machine: Arc<str>,
     rules: ProgramRules,
+    accept: Accept,
     library: ProgramLibrary,
     journal: Journal,
     requests: mpsc::Sender<Request>,
@@ -213,6 +232,11 @@ impl JobsHandle {
 
     pub fn rules(&self) -> ProgramRules {
         self.rules
+    }
+
+    /// Which library revisions the machine takes.
+    pub fn accept(&self) -> Accept {
+        self.accept
     }
 
     /// The program library the machine's jobs read from.
@@ -287,8 +311,32 @@ impl JobsHandle {
     /// The program in the journal's store, checked, and the job's record.
     async fn stage(&self, seq: u64, file: &str, s: JobSubmission) -> Result<JobRecord, JobError> {
         let mut start = s.start_at;
+        let mut origin = JobOriginRecord {
+            user: s.submitted_by.user.clone(),
+            via: s.submitted_by.via.clone(),
+            ..JobOriginRecord::default()
+        };
+        if !s.revision.is_empty() && !matches!(s.input, ProgramInput::Library(_)) {
+            return Err(JobError::RevisionWithoutLibrary {
+                machine: self.machine.to_string(),
+            });
+        }
+        if self.accept == Accept::Released {
+            let what = match &s.input {
+                ProgramInput::Inline(_) => Some("an inline program"),
+                ProgramInput::Fetched { .. } => Some("a program fetched from a key"),
+                ProgramInput::Library(_) | ProgramInput::Resume(_) => None,
+            };
+            if let Some(what) = what {
+                return Err(JobError::OnlyReleased {
+                    machine: self.machine.to_string(),
+                    what,
+                });
+            }
+        }
         let (default_name, file_len, suffix) = match s.input {
             ProgramInput::Inline(bytes) => {
+                origin.sha256 = library::sha256_hex(&bytes);
                 let report = source::scan(self.rules, &bytes);
                 let suffix = self.checked_suffix(&report, s.append_eor)?;
                 let len = self
@@ -298,6 +346,7 @@ impl JobsHandle {
                 (report.ok().and_then(|r| r.o_number), len, Vec::new())
             }
             ProgramInput::Fetched { key, bytes } => {
+                origin.sha256 = library::sha256_hex(&bytes);
                 let suffix =
                     self.checked_suffix(&source::scan(self.rules, &bytes), s.append_eor)?;
                 let len = self
@@ -307,22 +356,44 @@ impl JobsHandle {
                 (Some(key), len, Vec::new())
             }
             ProgramInput::Library(name) => {
-                // Linked first, checked after: the version checked is the version sent, even
-                // if the library replaces the program meanwhile.
-                let path = self
+                let library_error = |error| JobError::Library {
+                    machine: self.machine.to_string(),
+                    error,
+                };
+                // The revision's content never changes: the version checked is the version
+                // sent, even if the library stores a new one meanwhile.
+                let (revision, path) = self
                     .library
-                    .path_of(&name)
-                    .map_err(|error| JobError::Library {
-                        machine: self.machine.to_string(),
-                        error,
-                    })?;
-                self.library
-                    .entry(&name)
+                    .revision(&name, &s.revision)
                     .await
-                    .map_err(|error| JobError::Library {
+                    .map_err(library_error)?;
+                if self.accept == Accept::Released
+                    && !matches!(
+                        revision.state(),
+                        pb::RevisionState::Released | pb::RevisionState::Locked
+                    )
+                {
+                    let latest_released = self.library.revisions(&name).await.ok().and_then(|r| {
+                        r.revisions
+                            .iter()
+                            .find(|x| {
+                                matches!(
+                                    x.state(),
+                                    pb::RevisionState::Released | pb::RevisionState::Locked
+                                )
+                            })
+                            .map(|x| x.number)
+                    });
+                    return Err(library_error(LibraryError::NotReleased {
                         machine: self.machine.to_string(),
-                        error,
-                    })?;
+                        name,
+                        number: revision.number,
+                        latest_released,
+                    }));
+                }
+                origin.library = name.clone();
+                origin.revision = revision.number;
+                origin.sha256 = revision.sha256.clone();
                 let len = self
                     .journal
                     .store_file(file, &path)
@@ -347,6 +418,16 @@ impl JobsHandle {
             }
             ProgramInput::Resume(job) => {
                 let (earlier, next) = self.resumable(&job).await?;
+                // A job that sent no library revision cannot go to such a machine again.
+                if self.accept == Accept::Released && earlier.origin.revision == 0 {
+                    return Err(JobError::OnlyReleased {
+                        machine: self.machine.to_string(),
+                        what: "a job that did not send a library revision",
+                    });
+                }
+                origin.library = earlier.origin.library.clone();
+                origin.revision = earlier.origin.revision;
+                origin.sha256 = earlier.origin.sha256.clone();
                 let len = self
                     .journal
                     .store_file(file, &self.journal.file_path(&earlier.file))
@@ -371,7 +452,7 @@ impl JobsHandle {
                         machine: self.machine.to_string(),
                         error: BlockError::Read(e.to_string()),
                     })?;
-                let (header_end, block) = blocks::find_start(program, at, header_lines)
+                let (header_end, block) = source::find_start(program, at, header_lines)
                     .await
                     .map_err(|error| JobError::Start {
                         machine: self.machine.to_string(),
@@ -405,6 +486,7 @@ impl JobsHandle {
             state: JobState::Waiting,
             acked: 0,
             last_event: Vec::new(),
+            origin,
         })
     }
 
@@ -450,13 +532,25 @@ impl JobsHandle {
         }
         let event = pb::JobEvent::decode(record.last_event.as_slice())
             .map_err(|_| not("its last event is unreadable"))?;
-        let next = match event.kind {
-            Some(Kind::Failed(f)) => f.next_block,
-            Some(Kind::Cancelled(c)) => c.next_block,
+        let (next, on_line) = match event.kind {
+            Some(Kind::Failed(f)) => (f.next_block, f.bytes_on_line),
+            Some(Kind::Cancelled(c)) => (c.next_block, c.bytes_on_line),
             Some(Kind::Completed(_)) => return Err(not("it completed")),
-            _ => None,
+            _ => (None, 0),
+        };
+        let next = next.ok_or_else(|| {
+            if on_line == 0 {
+                not("nothing of it went to the board (the CNC never asked for it): submit its program again")
+            } else {
+                not("no block is known where it stopped")
+            }
+        })?;
+        if !self.journal.file_path(&record.file).exists() {
+            return Err(not(
+                "its program is no longer kept: only the latest 8 ended jobs of a machine keep \
+                 theirs; submit the program again, starting at the block (start_at)",
+            ));
         }
-        .ok_or_else(|| not("no block is known where it stopped"))?;
         let block = Block {
             line: next.line,
             sequence: (!next.sequence_number.is_empty()).then_some(next.sequence_number),
@@ -510,6 +604,8 @@ pub struct JobsSettings {
     pub restored: Vec<JobRecord>,
     /// Ended jobs kept.
     pub keep: usize,
+    /// Which library revisions the machine takes.
+    pub accept: Accept,
 }
 
 /// Starts the job manager of `machine`, which feeds `link`. It ends when `shutdown` is
@@ -540,6 +636,7 @@ pub fn spawn(
     let handle = JobsHandle {
         machine: name.clone(),
         rules: settings.rules,
+        accept: settings.accept,
         library: settings.library.clone(),
         journal: settings.journal.clone(),
         requests: req_tx,
@@ -584,9 +681,7 @@ pub fn spawn(
 
 /// Milliseconds since the Unix epoch, now.
 pub fn unix_ms() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+    pb::unix_ms(SystemTime::now())
 }
 
 fn base36(mut n: u64) -> String {
@@ -709,6 +804,8 @@ enum End {
         bytes: u64,
         duration_ms: u64,
         confirmation: Confirmation,
+        /// Bytes of the program past its EOR, which the board was never sent.
+        after_eor: u64,
     },
     Failed {
         reason: String,
@@ -748,8 +845,9 @@ impl Manager {
                 event = link_events.recv() => match event {
                     Ok(e) => self.on_link_event(e).await,
                     Err(broadcast::error::RecvError::Lagged(n)) => {
-                        // Only a stalled manager lags; job ends may have been lost.
-                        tracing::error!(missed = n, "job manager fell behind the link's events");
+                        // Only a stalled manager lags; a job's end may have been lost.
+                        tracing::error!(missed = n, "job manager fell behind the link's events; asking the link where its jobs stand");
+                        self.resync().await;
                     }
                     // Cannot happen while this manager holds the link handle.
                     Err(broadcast::error::RecvError::Closed) => break,
@@ -817,7 +915,7 @@ impl Manager {
         let Ok(program) = self.open_program(record).await else {
             return 0;
         };
-        blocks::find_start(program, StartAt::Line(block.line), 0)
+        source::find_start(program, StartAt::Line(block.line), 0)
             .await
             .map_or(0, |(header, _)| header)
     }
@@ -829,12 +927,22 @@ impl Manager {
         source::open_program(&self.journal.file_path(&record.file), &record.suffix).await
     }
 
+    /// Where the active job resumes, having ended at `acked` with `sent` on the line: none
+    /// for a job of which nothing went to the board (the CNC never asked for it), which a
+    /// resume would only send whole again.
+    async fn resume_point(&self, active: &Active, acked: u64, sent: u64) -> Option<Block> {
+        if sent == 0 {
+            return None;
+        }
+        self.next_block(&active.record, acked).await
+    }
+
     /// The first block the board does not hold whole once it acknowledged `acked` bytes of
     /// what the job sent.
     async fn next_block(&self, record: &JobRecord, acked: u64) -> Option<Block> {
         let offset = record.program_offset(acked);
         let program = self.open_program(record).await.ok()?;
-        match blocks::block_at(program, offset).await {
+        match source::block_at(program, offset).await {
             Ok(block) => block,
             Err(e) => {
                 tracing::warn!(job = %record.id, error = %e, "where the job stopped is not known");
@@ -858,6 +966,23 @@ impl Manager {
     }
 
     /// Forgets the oldest ended jobs past the limit, with their programs.
+    /// Keeps the program copies of only the [`RESUMABLE_COPIES`] latest ended jobs: an ended
+    /// job's copy serves nothing but a resume (`JobRequest.resume_job`), and the journal's store
+    /// must not grow with every failed or cancelled job it keeps.
+    fn drop_old_copies(&mut self) {
+        let mut kept = 0;
+        for r in self.ended.iter().rev() {
+            let path = self.journal.file_path(&r.file);
+            if !path.exists() {
+                continue;
+            }
+            kept += 1;
+            if kept > RESUMABLE_COPIES {
+                let _ = std::fs::remove_file(path);
+            }
+        }
+    }
+
     fn trim(&mut self) {
         let mut gone = Vec::new();
         while self.ended.len() > self.keep {
@@ -954,11 +1079,12 @@ impl Manager {
         self.metrics.job_ended(outcome, sending);
     }
 
-    fn emit(&self, id: &str, kind: Kind) -> pb::JobEvent {
+    fn emit(&self, id: &str, kind: Kind, origin: Option<pb::JobOrigin>) -> pb::JobEvent {
         let event = pb::JobEvent {
             job_id: id.to_string(),
             machine: self.machine.to_string(),
             unix_ms: unix_ms(),
+            origin,
             kind: Some(kind),
         };
         // No subscriber is not an error: nobody is watching this machine's jobs right now.
@@ -974,8 +1100,10 @@ impl Manager {
                 bytes,
                 duration_ms,
                 confirmation,
+                after_eor,
             } => Kind::Completed(pb::job_event::Completed {
                 bytes_sent: bytes,
+                bytes_after_eor: after_eor,
                 duration_ms,
                 confirmation: confirmation_pb(confirmation) as i32,
             }),
@@ -999,7 +1127,7 @@ impl Manager {
             }),
         };
         self.trace_end(&record, &kind, acked, sent);
-        let event = self.emit(&record.id, kind);
+        let event = self.emit(&record.id, kind, Some(record.origin_pb()));
         record.state = JobState::Ended;
         record.acked = acked;
         record.last_event = event.encode_to_vec();
@@ -1009,6 +1137,7 @@ impl Manager {
             let _ = std::fs::remove_file(self.journal.file_path(&record.file));
         }
         self.ended.push_back(record);
+        self.drop_old_copies();
         self.trim();
     }
 
@@ -1062,9 +1191,17 @@ impl Manager {
             let position = self.position_of(id).unwrap_or(0);
             // Only the first request's program is kept.
             let _ = std::fs::remove_file(self.journal.file_path(&record.file));
+            let program = self
+                .ended
+                .iter()
+                .chain(self.waiting.iter())
+                .chain(self.active.as_ref().map(|a| &a.record))
+                .find(|r| &r.id == id)
+                .and_then(|r| r.origin_pb().program);
             return Ok(pb::JobAccepted {
                 job_id: id.clone(),
                 queue_position: position,
+                program,
             });
         }
         if self.link_stopped {
@@ -1093,6 +1230,7 @@ impl Manager {
             job_id: record.id.clone(),
             machine: self.machine.to_string(),
             unix_ms: unix_ms(),
+            origin: Some(record.origin_pb()),
             kind: Some(Kind::Queued(pb::job_event::Queued {
                 queue_position: position,
             })),
@@ -1106,6 +1244,7 @@ impl Manager {
                 error,
             })?;
         let id = record.id.clone();
+        let program = record.origin_pb().program;
         self.remember_request(&record);
         self.open_trace(&record, "request");
         tracing::info!(job = %id, name = %record.name, size = record.stream_size(), priority = record.priority, "job queued");
@@ -1120,6 +1259,7 @@ impl Manager {
         Ok(pb::JobAccepted {
             job_id: id,
             queue_position: position,
+            program,
         })
     }
 
@@ -1287,6 +1427,52 @@ impl Manager {
         }
     }
 
+    /// After missed link events: the active job's end, if the link has one for it, is taken
+    /// as if it had come; a job the link no longer holds and has no end for is failed (its end
+    /// was lost with the events), never left active forever.
+    async fn resync(&mut self) {
+        let Some(link_id) = self.active.as_ref().map(|a| a.link_id) else {
+            return;
+        };
+        let (reply, answer) = oneshot::channel();
+        if self.link.send(LinkCommand::Jobs(reply)).await.is_err() {
+            return self.link_gone("the link stopped").await;
+        }
+        let Ok(jobs) = answer.await else {
+            return self.link_gone("the link stopped").await;
+        };
+        let end = jobs.recent_ends.into_iter().find(|e| {
+            matches!(e,
+                LinkEvent::JobDone { job, .. }
+                | LinkEvent::JobFailed { job, .. }
+                | LinkEvent::JobCancelled { job, .. } if *job == link_id)
+        });
+        if let Some(end) = end {
+            return Box::pin(self.on_link_event(end)).await;
+        }
+        if jobs.active == Some(link_id) || jobs.queued.contains(&link_id) {
+            return;
+        }
+        if let Some(active) = self.active.take() {
+            let next = self.next_block(&active.record, active.acked).await;
+            self.totals.jobs_failed += 1;
+            let reason = "the link's report of the job's end was lost (the gateway fell behind \
+                          its events): what the board acknowledged is all that is known"
+                .to_string();
+            self.end(
+                active.record,
+                End::Failed {
+                    reason,
+                    alarm: None,
+                    code: pb::ErrorCode::LinkFailed,
+                },
+                active.acked,
+                active.sent,
+                next,
+            );
+        }
+    }
+
     fn active_for(&mut self, link_id: JobId) -> Option<&mut Active> {
         self.active.as_mut().filter(|a| a.link_id == link_id)
     }
@@ -1327,7 +1513,9 @@ impl Manager {
                         Some(now + Duration::from_secs(u64::from(active.record.deadline_s)));
                 }
                 active.shaper = ProgressShaper::new(now, Some(active.record.stream_size()));
+                active.record.origin.started_unix_ms = unix_ms();
                 let (id, size) = (active.record.id.clone(), active.record.stream_size());
+                let origin = active.record.origin_pb();
                 tracing::info!(job = %id, "job started");
                 self.trace_started(&id);
                 let event = self.emit(
@@ -1335,6 +1523,7 @@ impl Manager {
                     Kind::Started(pb::job_event::Started {
                         bytes_total: Some(size),
                     }),
+                    Some(origin),
                 );
                 if let Some(active) = self.active.as_mut() {
                     active.record.last_event = event.encode_to_vec();
@@ -1370,6 +1559,7 @@ impl Manager {
                         rate_bps: rate,
                         bytes_on_line: sent,
                     }),
+                    None,
                 );
                 if let Some(active) = self.active.as_mut() {
                     // The acknowledged offset survives a crash once the checkpoint is written.
@@ -1398,10 +1588,14 @@ impl Manager {
                 self.totals.jobs_completed += 1;
                 self.totals.nc_bytes_sent += bytes.saturating_sub(published_bytes(&active));
                 tracing::info!(job = %active.record.id, bytes, ?confirmation, "job completed");
+                // The link stops at EOR (§8.2): what follows it in the program (a line end
+                // after the last `%`) is never sent.
+                let after_eor = active.record.stream_size().saturating_sub(bytes);
                 let end = End::Completed {
                     bytes,
                     duration_ms: u64::try_from(duration.as_millis()).unwrap_or(u64::MAX),
                     confirmation,
+                    after_eor,
                 };
                 self.end(active.record, end, bytes, bytes, None);
             }
@@ -1418,7 +1612,7 @@ impl Manager {
                     return;
                 };
                 self.totals.nc_bytes_sent += offset.saturating_sub(published_bytes(&active));
-                let next = self.next_block(&active.record, offset).await;
+                let next = self.resume_point(&active, offset, sent).await;
                 if active.deadline_passed {
                     self.totals.jobs_failed += 1;
                     let end = End::Failed {
@@ -1480,7 +1674,7 @@ impl Manager {
                     "link"
                 };
                 tracing::info!(job = %active.record.id, offset, by, "job cancelled");
-                let next = self.next_block(&active.record, offset).await;
+                let next = self.resume_point(&active, offset, sent).await;
                 self.end(active.record, End::Cancelled { by }, offset, sent, next);
             }
             _ => {}
@@ -1506,6 +1700,27 @@ fn confirmation_pb(c: Confirmation) -> pb::Confirmation {
         Confirmation::Acknowledged => pb::Confirmation::Acknowledged,
         Confirmation::EndOfRead => pb::Confirmation::EndOfRead,
         Confirmation::Unverified => pb::Confirmation::Unverified,
+    }
+}
+
+impl BusCode for JobError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            JobError::Program { .. }
+            | JobError::RequestId { .. }
+            | JobError::Start { .. }
+            | JobError::NotResumable { .. }
+            | JobError::RevisionWithoutLibrary { .. } => pb::ErrorCode::InvalidRequest,
+            JobError::OnlyReleased { .. } => pb::ErrorCode::NotReleased,
+            JobError::Journal { error, .. } if error.is_storage_full() => {
+                pb::ErrorCode::StorageFull
+            }
+            JobError::Journal { .. } => pb::ErrorCode::StorageFailed,
+            JobError::Library { error, .. } => error.code(),
+            JobError::QueueFull { .. } => pb::ErrorCode::QueueFull,
+            JobError::UnknownJob { .. } => pb::ErrorCode::NotFound,
+            JobError::LinkStopped { .. } | JobError::Stopped { .. } => pb::ErrorCode::Unavailable,
+        }
     }
 }
 

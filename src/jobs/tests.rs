@@ -8,10 +8,10 @@ use tokio::io::AsyncReadExt;
 use tokio::sync::Semaphore;
 
 use super::*;
-use crate::config::CellConfig;
-use crate::fanuc::Protocol;
-use crate::fanuc::error::{AbortReason, LinkAlarm};
 use crate::jobs::journal::Journal;
+use cellgate_core::config::CellConfig;
+use cellgate_core::fanuc::Protocol;
+use cellgate_core::fanuc::error::{AbortReason, LinkAlarm};
 
 /// What the stand-in link was told, in order.
 type Log = Arc<Mutex<Vec<String>>>;
@@ -27,16 +27,58 @@ struct StandIn {
     pace: Duration,
     /// Jobs queued while another one was being sent.
     pending: std::collections::VecDeque<ProgramJob>,
+    /// The job being sent, and the end events sent, as a link reports them (`Jobs`).
+    active: Option<JobId>,
+    ends: Vec<LinkEvent>,
+    /// After a job's end, floods the event channel past its capacity: the manager misses the
+    /// end and must ask.
+    flood_after_end: Arc<std::sync::atomic::AtomicBool>,
+    /// Answers `Jobs` as a link that has forgotten its ends.
+    forget_ends: Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl StandIn {
-    fn emit(&self, e: LinkEvent) {
+    fn emit(&mut self, e: LinkEvent) {
+        let end = matches!(
+            e,
+            LinkEvent::JobDone { .. } | LinkEvent::JobCancelled { .. }
+        );
+        if end {
+            self.ends.push(e.clone());
+            self.active = None;
+        }
         let _ = self.events.send(e);
+        if end
+            && self
+                .flood_after_end
+                .load(std::sync::atomic::Ordering::SeqCst)
+        {
+            for _ in 0..2000 {
+                let _ = self.events.send(LinkEvent::Progress {
+                    job: 999_999,
+                    acked: 0,
+                    sent: 0,
+                    total: None,
+                });
+            }
+        }
     }
 
     fn other(&mut self, cmd: LinkCommand) {
         match cmd {
             LinkCommand::Queue(job) => self.pending.push_back(job),
+            LinkCommand::Jobs(reply) => {
+                let forget = self.forget_ends.load(std::sync::atomic::Ordering::SeqCst);
+                let _ = reply.send(crate::link::driver::LinkJobs {
+                    active: self.active,
+                    queued: self.pending.iter().map(|j| j.id).collect(),
+                    recent_ends: if forget {
+                        Vec::new()
+                    } else {
+                        self.ends.clone()
+                    },
+                });
+            }
             other => self.log.lock().unwrap().push(format!("{other:?}")),
         }
     }
@@ -81,6 +123,7 @@ impl StandIn {
                 },
             }
         }
+        self.active = Some(job.id);
         self.emit(LinkEvent::JobStarted { job: job.id });
         let mut sent = 0u64;
         let mut data = Vec::new();
@@ -140,6 +183,8 @@ struct Rig {
     protocol: Protocol,
     chunk: usize,
     pace: Duration,
+    flood_after_end: Arc<std::sync::atomic::AtomicBool>,
+    forget_ends: Arc<std::sync::atomic::AtomicBool>,
 }
 
 fn rig(protocol: Protocol, chunk: usize, pace: Duration) -> Rig {
@@ -162,6 +207,8 @@ fn rig_in(dir: Arc<tempfile::TempDir>, protocol: Protocol, chunk: usize, pace: D
     let (ev_tx, _) = broadcast::channel(1024);
     let log = Log::default();
     let release = Arc::new(Semaphore::new(0));
+    let flood_after_end = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let forget_ends = Arc::new(std::sync::atomic::AtomicBool::new(false));
     tokio::spawn(
         StandIn {
             commands: cmd_rx,
@@ -171,6 +218,10 @@ fn rig_in(dir: Arc<tempfile::TempDir>, protocol: Protocol, chunk: usize, pace: D
             chunk,
             pace,
             pending: Default::default(),
+            active: None,
+            ends: Vec::new(),
+            flood_after_end: flood_after_end.clone(),
+            forget_ends: forget_ends.clone(),
         }
         .run(),
     );
@@ -185,6 +236,7 @@ fn rig_in(dir: Arc<tempfile::TempDir>, protocol: Protocol, chunk: usize, pace: D
         journal,
         restored: restored.jobs.remove("m1").unwrap_or_default(),
         keep: KEEP_ENDED,
+        accept: Default::default(),
     };
     let (jobs, task, events) = spawn(&machine.name, settings, link, shutdown.clone());
     Rig {
@@ -200,6 +252,8 @@ fn rig_in(dir: Arc<tempfile::TempDir>, protocol: Protocol, chunk: usize, pace: D
         protocol,
         chunk,
         pace,
+        flood_after_end,
+        forget_ends,
     }
 }
 
@@ -841,4 +895,41 @@ async fn waiting_jobs_hold_no_file_open() {
         "{before} fds before, {after} after 200 jobs"
     );
     assert_eq!(r.jobs.queue().await.unwrap().waiting.len(), 199);
+}
+
+/// A manager that falls behind the link's events asks the link where its jobs stand: a job
+/// whose end it missed ends as the link reported it, or fails saying its end was lost, but
+/// never stays active.
+#[tokio::test(start_paused = true)]
+async fn a_job_end_lost_in_a_lag_is_asked_for_and_never_left_active() {
+    for forget in [false, true] {
+        let mut r = rig(Protocol::A, 8, Duration::from_millis(10));
+        r.flood_after_end
+            .store(true, std::sync::atomic::Ordering::SeqCst);
+        r.forget_ends
+            .store(forget, std::sync::atomic::Ordering::SeqCst);
+        let accepted = r.jobs.submit(inline(b"%\nO1\nG00X0\n%", 0)).await.unwrap();
+        r.release.add_permits(1);
+        let end = loop {
+            let e = next(&mut r.events).await;
+            if e.job_id == accepted.job_id
+                && matches!(
+                    e.kind,
+                    Some(Kind::Completed(_) | Kind::Failed(_) | Kind::Cancelled(_))
+                )
+            {
+                break e;
+            }
+        };
+        match (forget, end.kind) {
+            (false, Some(Kind::Completed(_))) => {}
+            (true, Some(Kind::Failed(f))) => {
+                assert!(f.reason.contains("was lost"), "{}", f.reason);
+            }
+            (_, other) => panic!("forget = {forget}: ended {other:?}"),
+        }
+        // Nothing is left active: the queue is empty.
+        let queue = r.jobs.queue().await.unwrap();
+        assert!(queue.active.is_none(), "{queue:?}");
+    }
 }

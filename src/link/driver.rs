@@ -15,20 +15,22 @@ use tokio_util::sync::CancellationToken;
 
 use super::JobId;
 use super::pump::{Pump, PumpError, now};
-use crate::fanuc::alarm::CncAlarm;
-use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
-use crate::fanuc::host::{
-    Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState, PunchDamage,
-};
-use crate::fanuc::sat::StatusData;
 use crate::telemetry::metrics::{self, LinkMetrics};
 use crate::telemetry::span_count;
 use crate::transport::Transport;
+use cellgate_core::fanuc::alarm::CncAlarm;
+use cellgate_core::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
+use cellgate_core::fanuc::host::{
+    Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState, PunchDamage,
+};
+use cellgate_core::fanuc::sat::StatusData;
 
 /// Where a program's bytes come from: a file, a bus download, a test vector.
 pub type ProgramSource = Box<dyn AsyncRead + Send + Unpin>;
 
-pub use crate::fanuc::host::Chunk;
+use cellgate_core::codes::BusCode;
+pub use cellgate_core::fanuc::host::Chunk;
+use cellgate_core::pb;
 
 /// What a job's program is read from.
 pub enum JobSource {
@@ -86,7 +88,24 @@ pub enum LinkCommand {
     ReadDi,
     /// Clear the board's buffer (CLB, §4.4.1).
     ClearBuffer,
+    /// Report the link's jobs: for an owner that fell behind the link's events and may have
+    /// missed a job's end.
+    Jobs(tokio::sync::oneshot::Sender<LinkJobs>),
 }
+
+/// The link's jobs as it holds them now ([`LinkCommand::Jobs`]).
+#[derive(Debug, Clone, Default)]
+pub struct LinkJobs {
+    /// The job being sent.
+    pub active: Option<JobId>,
+    /// The jobs waiting behind it, in order.
+    pub queued: Vec<JobId>,
+    /// The end events of the latest jobs that ended ([`RECENT_ENDS`] at most), oldest first.
+    pub recent_ends: Vec<LinkEvent>,
+}
+
+/// Job ends a link remembers for [`LinkCommand::Jobs`].
+pub const RECENT_ENDS: usize = 8;
 
 /// Why a job on a link failed.
 #[derive(Debug, Clone, thiserror::Error)]
@@ -229,6 +248,8 @@ pub struct LinkHandle {
     events: broadcast::Sender<LinkEvent>,
     /// The link's state now, for whoever starts watching after the link started.
     state: watch::Receiver<Option<LinkState>>,
+    /// The line counters the link task keeps; none for a link served by something else.
+    metrics: Option<Arc<LinkMetrics>>,
 }
 
 impl LinkHandle {
@@ -247,7 +268,14 @@ impl LinkHandle {
             commands,
             events,
             state,
+            metrics: None,
         }
+    }
+
+    /// The line's counters (bytes, frames) as the link task keeps them; `None` for a link
+    /// that keeps none (one built with [`LinkHandle::from_channels`]).
+    pub fn line_counts(&self) -> Option<metrics::LinkCounts> {
+        self.metrics.as_ref().map(|m| m.counts())
     }
 
     pub fn machine(&self) -> &str {
@@ -309,16 +337,18 @@ where
     let (cmd_tx, cmd_rx) = mpsc::channel(COMMAND_QUEUE);
     let (ev_tx, _) = broadcast::channel(LINK_EVENTS);
     let (state_tx, state_rx) = watch::channel(None);
+    let link_metrics = metrics::link(&machine);
     let handle = LinkHandle {
         machine: machine.clone(),
         commands: cmd_tx,
         events: ev_tx.clone(),
         state: state_rx,
+        metrics: Some(Arc::clone(&link_metrics)),
     };
     let line = transport.describe();
     let span = tracing::info_span!("link", machine = %machine, line = %line);
     let driver = Driver {
-        metrics: metrics::link(&machine),
+        metrics: link_metrics,
         counted: Counted::default(),
         session: None,
         machine,
@@ -333,6 +363,7 @@ where
         do_wanted: 0,
         buf: Box::default(),
         waiting: None,
+        recent_ends: VecDeque::new(),
     };
     let task = tokio::spawn(tracing::Instrument::instrument(driver.run(shutdown), span));
     (handle, task)
@@ -386,6 +417,8 @@ struct Driver<E, T> {
     buf: Box<[u8]>,
     /// What the engine waits for from the board, as last reported.
     waiting: Option<&'static str>,
+    /// The latest job ends, for an owner that missed them.
+    recent_ends: VecDeque<LinkEvent>,
 }
 
 enum Wake {
@@ -474,7 +507,18 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
         result
     }
 
-    fn emit(&self, event: LinkEvent) {
+    fn emit(&mut self, event: LinkEvent) {
+        if matches!(
+            event,
+            LinkEvent::JobDone { .. }
+                | LinkEvent::JobFailed { .. }
+                | LinkEvent::JobCancelled { .. }
+        ) {
+            if self.recent_ends.len() >= RECENT_ENDS {
+                self.recent_ends.pop_front();
+            }
+            self.recent_ends.push_back(event.clone());
+        }
         // No subscriber is not an error: nobody is watching this link right now.
         let _ = self.events.send(event);
     }
@@ -632,18 +676,20 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             }
             LinkCommand::ReadDi => self.engine_command(EngineCommand::ReadDi),
             LinkCommand::ClearBuffer => self.engine_command(EngineCommand::ClearBuffer),
+            LinkCommand::Jobs(reply) => {
+                let _ = reply.send(LinkJobs {
+                    active: self.active.as_ref().map(|a| a.id),
+                    queued: self.queue.iter().map(|j| j.id).collect(),
+                    recent_ends: self.recent_ends.iter().cloned().collect(),
+                });
+            }
         }
     }
 
     fn handle_source(&mut self, read: Read, want: usize) {
         let read = match read {
             Read::Bytes(r) => r,
-            Read::Chunk(Some(Chunk::Text(data))) => {
-                return self.engine_command(EngineCommand::ProgramData(data));
-            }
-            Read::Chunk(Some(Chunk::Binary(data))) => {
-                return self.engine_command(EngineCommand::BinaryData(data));
-            }
+            Read::Chunk(Some(chunk)) => return self.engine_command(chunk.command()),
             Read::Chunk(None) => Ok(0),
         };
         match read {
@@ -829,9 +875,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
 
 /// Milliseconds since the Unix epoch, for events people read.
 fn unix_ms() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+    pb::unix_ms(std::time::SystemTime::now())
 }
 
 /// What a job's source gave.
@@ -848,5 +892,24 @@ async fn read_some(source: Option<&mut JobSource>, buf: &mut [u8]) -> Read {
         Some(JobSource::Program(s)) => Read::Bytes(s.read(buf).await),
         Some(JobSource::Chunks(rx)) => Read::Chunk(rx.recv().await),
         None => std::future::pending().await,
+    }
+}
+
+impl BusCode for LinkError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            LinkError::NotRunning { .. } => pb::ErrorCode::Unavailable,
+            LinkError::Busy { .. } => pb::ErrorCode::Busy,
+        }
+    }
+}
+
+impl BusCode for JobFailure {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            JobFailure::Aborted(reason) => reason.code(),
+            JobFailure::Source(_) | JobFailure::LinkStopped(_) => pb::ErrorCode::LinkFailed,
+            JobFailure::Shutdown => pb::ErrorCode::Unavailable,
+        }
     }
 }

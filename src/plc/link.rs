@@ -5,18 +5,22 @@
 
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::time::SystemTime;
+use std::time::{Duration, SystemTime};
 
 use tokio::sync::{broadcast, mpsc, oneshot};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
-use super::tags::{TagError, TagTable, TagValue, TagWrite, WriteOp};
-use crate::engine::Engine;
-use crate::fuji::command::{Reply, Request};
-use crate::fuji::master::{Counters, Master, MasterCommand, MasterError, MasterEvent, RequestId};
 use crate::link::pump::{Pump, PumpError};
 use crate::transport::Transport;
+use cellgate_core::codes::BusCode;
+use cellgate_core::engine::Engine;
+use cellgate_core::fuji::command::{Reply, Request};
+use cellgate_core::fuji::master::{
+    Counters, Master, MasterCommand, MasterError, MasterEvent, RequestId,
+};
+use cellgate_core::pb;
+use cellgate_core::plc::tags::{TagError, TagTable, TagValue, TagWrite, WriteOp};
 
 /// Commands a PLC link holds waiting; [`PlcHandle`] refuses more (`Busy`).
 pub const COMMAND_QUEUE: usize = 256;
@@ -47,6 +51,12 @@ pub enum PlcCommand {
     },
     /// Counters and tag values now.
     Snapshot { reply: oneshot::Sender<PlcSnapshot> },
+    /// Modes 4–5: a message to the module (§5-5); done once it is on its way (nothing
+    /// answers it).
+    Send {
+        data: Vec<u8>,
+        reply: oneshot::Sender<RequestResult>,
+    },
 }
 
 /// Why a tag write failed.
@@ -71,6 +81,8 @@ pub enum PlcEvent {
         data: Vec<u8>,
         time: SystemTime,
     },
+    /// Modes 4–5: a message the PLC sent (§5-5 ii).
+    Message { data: Vec<u8>, time: SystemTime },
     /// A station was marked down or answers again.
     Station { station: u8, up: bool },
     /// A poll group's reads all ended (`group` index, when its round started).
@@ -79,11 +91,34 @@ pub enum PlcEvent {
     Stopped { error: Option<Arc<PumpError>> },
 }
 
+/// How one poll group keeps its interval, as the link measured it.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct GroupStats {
+    /// The configured interval (the tags' `poll_ms`).
+    pub interval: Duration,
+    /// Read requests per round.
+    pub reads: usize,
+    /// Rounds completed.
+    pub rounds: u64,
+    /// The last round: from its first request to the end of its last read.
+    pub last_round: Duration,
+    /// The mean round since the link started.
+    pub mean_round: Duration,
+    /// The longest round since the link started.
+    pub max_round: Duration,
+    /// Between the starts of the last two rounds: the interval achieved.
+    pub achieved_interval: Duration,
+    /// Rounds that took longer than the interval (the next one started late).
+    pub overruns: u64,
+}
+
 /// The link's state at one moment.
 #[derive(Debug, Clone)]
 pub struct PlcSnapshot {
     pub counters: Counters,
     pub tags: Vec<TagValue>,
+    /// Each poll group's round times, in the tag table's group order.
+    pub groups: Vec<GroupStats>,
     /// The transport, as it describes itself.
     pub line: String,
     /// Bytes received and sent on the line.
@@ -171,6 +206,13 @@ impl PlcHandle {
         rx.await.map_err(|_| self.not_running())
     }
 
+    /// Modes 4–5: sends a message and waits until it is on its way.
+    pub async fn send_message(&self, data: Vec<u8>) -> Result<RequestResult, PlcLinkError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(PlcCommand::Send { data, reply: tx })?;
+        rx.await.map_err(|_| self.not_running())
+    }
+
     pub async fn snapshot(&self) -> Result<PlcSnapshot, PlcLinkError> {
         let (tx, rx) = oneshot::channel();
         self.send(PlcCommand::Snapshot { reply: tx })?;
@@ -203,10 +245,17 @@ pub fn spawn<T: Transport + 'static>(
     let groups = tags
         .groups()
         .iter()
-        .map(|_| GroupState {
+        .map(|g| GroupState {
             due: start,
             started: start,
+            last_start: None,
             outstanding: 0,
+            total: Duration::ZERO,
+            stats: GroupStats {
+                interval: g.interval,
+                reads: g.reads.len(),
+                ..GroupStats::default()
+            },
         })
         .collect();
     let driver = Driver {
@@ -243,8 +292,29 @@ enum Pending {
 struct GroupState {
     due: Instant,
     started: Instant,
+    /// When the round before the current one started.
+    last_start: Option<Instant>,
     /// Reads of the current round not ended yet.
     outstanding: usize,
+    /// Every completed round's time, added up (for the mean).
+    total: Duration,
+    stats: GroupStats,
+}
+
+impl GroupState {
+    /// The round that started at `started` ended at `now`.
+    fn round_done(&mut self, now: Instant) {
+        let round = now.saturating_duration_since(self.started);
+        let s = &mut self.stats;
+        s.rounds += 1;
+        s.last_round = round;
+        s.max_round = s.max_round.max(round);
+        self.total += round;
+        s.mean_round = self.total / u32::try_from(s.rounds).unwrap_or(u32::MAX);
+        if round > s.interval {
+            s.overruns += 1;
+        }
+    }
 }
 
 struct Driver<T> {
@@ -321,6 +391,12 @@ impl<T: Transport> Driver<T> {
                 request,
                 reply,
             } => self.submit(station, request, Pending::Caller(reply)),
+            PlcCommand::Send { data, reply } => {
+                let id = self.next_id;
+                self.next_id += 1;
+                self.pending.insert(id, Pending::Caller(reply));
+                self.pump.command(MasterCommand::Send { id, data });
+            }
             PlcCommand::GetTag { name, reply } => {
                 let _ = reply.send(self.tags.value(&name).cloned());
             }
@@ -328,6 +404,7 @@ impl<T: Transport> Driver<T> {
                 let _ = reply.send(PlcSnapshot {
                     counters: self.pump.engine().counters(),
                     tags: self.tags.values(),
+                    groups: self.groups.iter().map(|g| g.stats.clone()).collect(),
                     line: self.pump.transport().describe(),
                     bytes: self.pump.counters(),
                 });
@@ -384,6 +461,10 @@ impl<T: Transport> Driver<T> {
                 .map(|r| (r.station, r.module, r.address, r.words))
                 .collect();
             let state = &mut self.groups[g];
+            if let Some(prev) = state.last_start {
+                state.stats.achieved_interval = now.saturating_duration_since(prev);
+            }
+            state.last_start = Some(now);
             state.started = now;
             // Fixed rate; a round that overran starts the next one at once, never in a burst.
             state.due = (state.due + interval).max(now);
@@ -407,6 +488,7 @@ impl<T: Transport> Driver<T> {
         if let Some(state) = self.groups.get_mut(group) {
             state.outstanding = state.outstanding.saturating_sub(1);
             if state.outstanding == 0 {
+                state.round_done(Instant::now());
                 let started = state.started;
                 self.emit(PlcEvent::PollDone { group, started });
             }
@@ -420,6 +502,10 @@ impl<T: Transport> Driver<T> {
                 MasterEvent::Done { id, result, .. } => self.done(id, result),
                 MasterEvent::Transfer { message, data } => self.emit(PlcEvent::Transfer {
                     message,
+                    data,
+                    time: SystemTime::now(),
+                }),
+                MasterEvent::Received { data } => self.emit(PlcEvent::Message {
                     data,
                     time: SystemTime::now(),
                 }),
@@ -478,6 +564,12 @@ impl<T: Transport> Driver<T> {
             }
             Pending::TagWrite { write, reply } => {
                 let ok = result.is_ok();
+                if ok {
+                    // Before the reply: a get that follows the confirmed write answers it.
+                    if let Some(v) = self.tags.apply_written(&write, SystemTime::now()) {
+                        self.emit(PlcEvent::Tag(v));
+                    }
+                }
                 let _ = reply.send(result.map(|_| write).map_err(TagWriteError::from));
                 if ok {
                     // Read the groups of what was written at once, so its new value is
@@ -496,5 +588,29 @@ async fn sleep_until(due: Option<Instant>) {
     match due {
         Some(t) => tokio::time::sleep_until(t).await,
         None => std::future::pending().await,
+    }
+}
+
+impl BusCode for TagWriteError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            TagWriteError::Tag(e) => e.code(),
+            TagWriteError::Plc(e) => e.code(),
+        }
+    }
+    fn sta(&self) -> Option<u8> {
+        match self {
+            TagWriteError::Plc(e) => e.sta(),
+            TagWriteError::Tag(_) => None,
+        }
+    }
+}
+
+impl BusCode for PlcLinkError {
+    fn code(&self) -> pb::ErrorCode {
+        match self {
+            PlcLinkError::NotRunning { .. } => pb::ErrorCode::Unavailable,
+            PlcLinkError::Busy { .. } => pb::ErrorCode::Busy,
+        }
     }
 }

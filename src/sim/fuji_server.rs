@@ -20,11 +20,10 @@
 //!
 //! The options carry the names of the `[[plcs]]` keys (`--start-code`, `--bcc-range`, …, with
 //! the same values), so a module and a gateway entry are set up alike; modes 4 and 5
-//! (non-procedure) are simulated too, though the gateway does not speak them.
+//! (non-procedure) too, where the gateway is the module's external device.
 
 use std::future::Future;
 use std::net::SocketAddr;
-use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -33,16 +32,17 @@ use serde_json::{Value, json};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::broadcast;
 
-use super::micrex::{MicrexCommand, MicrexConfig, MicrexConfigError, MicrexEvent};
 use super::micrex_handle::MicrexHandle;
-use super::server::{EventSink, PacedLine};
-use crate::config::{
-    BccCalc, BccCode, BccKind, BccRange, PlcConfig, PlcEndCode, PlcSimConfig, PlcStartCode,
-    TransportConfig,
-};
-use crate::fuji::command::{FileType, Sta};
-use crate::fuji::master::OperationMode;
+use super::server::{EventSink, PacedLine, serve_one_at_a_time};
 use crate::transport::{DataBits, LineSettings, Parity, StopBits};
+use cellgate_core::config::{PlcConfig, PlcSimConfig, TransportConfig};
+use cellgate_core::fuji::command::{FileType, Sta};
+use cellgate_core::fuji::frame::{
+    BccCalc, BccCode, BccKind, BccRange, EndCode as PlcEndCode, FrameSettings,
+    StartCode as PlcStartCode, TransmissionCode,
+};
+use cellgate_core::fuji::master::OperationMode;
+use cellgate_core::sim::micrex::{MicrexCommand, MicrexConfig, MicrexConfigError, MicrexEvent};
 
 /// A value written as in the cell file (`--bcc-range start+text`, `--stop-bits 1.5`).
 fn cell_value<T: serde::de::DeserializeOwned>(text: &str) -> Result<T, String> {
@@ -155,6 +155,10 @@ pub struct SimFujiArgs {
     /// Code transposition off (item 14): bytes travel as they are, not as two hex characters.
     #[arg(long)]
     pub no_transposition: bool,
+    /// Transmission code (item 13): ascii (JIS) or ebcdic (needs 8 data bits, initial error
+    /// F6).
+    #[arg(long, value_parser = cell_value::<TransmissionCode>, default_value = "ascii")]
+    pub code: TransmissionCode,
     /// BCC (item 20): none, set1 (high character first), set2 (low first).
     #[arg(long, value_parser = cell_value::<BccKind>, default_value = "none")]
     pub bcc: BccKind,
@@ -213,16 +217,22 @@ impl SimFujiArgs {
             name: "sim".to_string(),
             mode: self.mode.dial(),
             stations: self.stations.clone(),
-            start_code: self.start_code,
-            start_codes: self.start_codes.clone(),
-            end_code: self.end_code,
-            end_codes: self.end_codes.clone(),
-            bcc: self.bcc,
-            bcc_range: self.bcc_range,
-            bcc_calc: self.bcc_calc,
-            bcc_code: self.bcc_code,
-            transposition: !self.no_transposition,
+            frame: FrameSettings {
+                start_code: self.start_code,
+                start_codes: self.start_codes.clone(),
+                end_code: self.end_code,
+                end_codes: self.end_codes.clone(),
+                bcc: self.bcc,
+                bcc_range: self.bcc_range,
+                bcc_calc: self.bcc_calc,
+                bcc_code: self.bcc_code,
+                transposition: !self.no_transposition,
+                code: self.code,
+                ..FrameSettings::default()
+            },
             timeout_ms: PlcConfig::DEFAULT_TIMEOUT_MS,
+            fixed_length: self.fixed_length.and_then(|n| u16::try_from(n).ok()),
+            receive_message: self.receive_message,
             transport: TransportConfig::Sim {
                 line: self.line_settings(),
             },
@@ -232,7 +242,7 @@ impl SimFujiArgs {
                 ticks: Vec::new(),
             },
         };
-        let mut c = crate::plc::micrex_config(&entry);
+        let mut c = MicrexConfig::for_plc(&entry);
         c.mode = self.mode;
         c.processing_delay = Duration::from_millis(self.processing_delay_ms);
         c.p_link = self.p_link;
@@ -244,7 +254,7 @@ impl SimFujiArgs {
         c.fixed_length = self.fixed_length;
         c.receive_message = self.receive_message;
         // Checked here, so a bad option fails at start and not at the first connection.
-        super::micrex::Micrex::new(c.clone())?;
+        cellgate_core::sim::micrex::Micrex::new(c.clone())?;
         Ok(c)
     }
 }
@@ -313,7 +323,7 @@ pub async fn serve_fuji_on(
     sink: EventSink,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), SimFujiError> {
-    super::micrex::Micrex::new(config.clone())?;
+    cellgate_core::sim::micrex::Micrex::new(config.clone())?;
     let addr = listener.local_addr().map_err(SimFujiError::Io)?;
     let line = config.line;
     sink(&json!({
@@ -325,41 +335,14 @@ pub async fn serve_fuji_on(
         "line": line.to_string(),
         "messages": config.messages,
     }));
-    let mut shutdown = std::pin::pin!(shutdown);
-    type Session = Pin<Box<dyn Future<Output = String> + Send>>;
-    let mut session: Option<(SocketAddr, Session)> = None;
-    loop {
-        tokio::select! {
-            () = &mut shutdown => break,
-            accepted = listener.accept() => match accepted {
-                Ok((stream, peer)) => {
-                    if let Some((old, _)) = session.take() {
-                        sink(&json!({
-                            "event": "disconnected",
-                            "peer": old.to_string(),
-                            "reason": "replaced by a new connection",
-                        }));
-                    }
-                    sink(&json!({"event": "connected", "peer": peer.to_string()}));
-                    let fut = run_session(stream, peer, config.clone(), plan.clone(), sink.clone());
-                    session = Some((peer, Box::pin(fut)));
-                }
-                Err(e) => {
-                    tracing::warn!(error = %e, "simulated FFU120B: accept failed");
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                }
-            },
-            reason = async {
-                match session.as_mut() {
-                    Some((_, s)) => s.await,
-                    None => std::future::pending().await,
-                }
-            }, if session.is_some() => {
-                let peer = session.take().map(|(p, _)| p.to_string());
-                sink(&json!({"event": "disconnected", "peer": peer, "reason": reason}));
-            }
-        }
-    }
+    serve_one_at_a_time(
+        listener,
+        shutdown,
+        &sink,
+        "simulated FFU120B",
+        |stream, peer| run_session(stream, peer, config.clone(), plan.clone(), sink.clone()),
+    )
+    .await;
     Ok(())
 }
 
@@ -524,92 +507,4 @@ pub fn event_json(event: &MicrexEvent) -> Value {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use clap::Parser;
-
-    #[derive(Parser)]
-    struct Cli {
-        #[command(flatten)]
-        args: SimFujiArgs,
-    }
-
-    #[test]
-    fn options_take_the_cell_file_values() {
-        let cli = Cli::try_parse_from([
-            "sim",
-            "--mode",
-            "3",
-            "--stations",
-            "1,2,31",
-            "--parity",
-            "odd",
-            "--stop-bits",
-            "1.5",
-            "--data-bits",
-            "7",
-            "--start-code",
-            "set2",
-            "--start-codes",
-            "0x02,0x05",
-            "--end-code",
-            "cr-lf",
-            "--bcc",
-            "set2",
-            "--bcc-range",
-            "start+text+end",
-            "--bcc-calc",
-            "crc16",
-            "--bcc-code",
-            "binary",
-            "--no-transposition",
-            "--file",
-            "30:di:256",
-            "--messages",
-            "1,7",
-        ])
-        .unwrap();
-        let c = cli.args.micrex_config().unwrap();
-        assert_eq!(c.mode, OperationMode::Three);
-        assert_eq!(c.stations, vec![1, 2, 31]);
-        assert_eq!(c.line.parity, Parity::Odd);
-        assert_eq!(c.line.stop_bits, StopBits::OnePointFive);
-        assert_eq!(c.line.data_bits, DataBits::Seven);
-        assert_eq!(c.frame.start_bytes(), &[0x02, 0x05]);
-        assert_eq!(c.frame.end_bytes(), b"\r\n");
-        assert!(!c.frame.transposition);
-        assert_eq!(c.frame.bcc, crate::fuji::frame::BccKind::Set2);
-        assert_eq!(
-            c.frame.bcc_range,
-            crate::fuji::frame::BccRange::StartTextEnd
-        );
-        assert_eq!(c.frame.bcc_calc, crate::fuji::frame::BccCalc::Crc16);
-        assert_eq!(c.frame.bcc_code, crate::fuji::frame::BccCode::Binary);
-        assert_eq!(c.files, vec![(30, FileType::Di, 256)]);
-        assert_eq!(c.messages, vec![1, 7]);
-    }
-
-    #[test]
-    fn bad_options_are_refused_with_a_reason() {
-        for (args, want) in [
-            (vec!["--mode", "6"], "1 to 5"),
-            (vec!["--bcc-range", "all"], "all"),
-            (vec!["--start-codes", "300"], "not a byte"),
-            (vec!["--file", "30:XI:5"], "XI"),
-            (vec!["--transfer", "5"], "MSGNO:HEXDATA"),
-        ] {
-            let err = Cli::try_parse_from(std::iter::once("sim").chain(args.iter().copied()))
-                .err()
-                .unwrap_or_else(|| panic!("{args:?} parsed"));
-            assert!(err.to_string().contains(want), "{args:?}: {err}");
-        }
-        // Parsed, but the module refuses it: set1 without its byte, a 32nd station.
-        let cli = Cli::try_parse_from(["sim", "--start-code", "set1"]).unwrap();
-        assert!(cli.args.micrex_config().is_err());
-        let many: Vec<String> = (1..=32).map(|n| n.to_string()).collect();
-        let cli =
-            Cli::try_parse_from(["sim", "--mode", "3", "--stations", &many.join(",")]).unwrap();
-        let err = cli.args.micrex_config().unwrap_err();
-        assert!(err.to_string().contains("32 stations"), "{err}");
-    }
-}
+mod tests;

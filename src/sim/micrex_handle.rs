@@ -12,12 +12,14 @@ use tokio::sync::{broadcast, mpsc, oneshot};
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
 
-use super::micrex::{Micrex, MicrexCommand, MicrexConfig, MicrexConfigError, MicrexEvent};
-use crate::config::SimTick;
-use crate::engine::Engine;
-use crate::fuji::command::Module;
 use crate::link::pump::{Pump, PumpError};
 use crate::transport::Transport;
+use cellgate_core::config::SimTick;
+use cellgate_core::engine::Engine;
+use cellgate_core::fuji::command::Module;
+use cellgate_core::sim::micrex::{
+    Micrex, MicrexCommand, MicrexConfig, MicrexConfigError, MicrexEvent,
+};
 
 enum Control {
     Command(MicrexCommand),

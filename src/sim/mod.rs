@@ -1,41 +1,38 @@
-//! Simulated devices for tests, CI and laptops: a FANUC remote-buffer board with a CNC behind
-//! it, speaking the device side of the protocols the gateway speaks as host.
+//! Simulated devices for tests, CI and laptops, run over the gateway's transports: the core's
+//! sans-IO models ([`cellgate_core::sim`]: a FANUC remote-buffer board with a CNC behind it,
+//! an FFU120B with a MICREX-F) in tokio tasks.
 //!
-//! - [`fanuc_board`]: the board, sans-IO ([`FanucBoard`] implements [`Engine`]);
-//! - [`cnc`]: the CNC model: buffer, consumption at a rate, programs split at EOR, DI/DO,
-//!   G05 binary input operation (one block a unit time, underruns, SR0890);
-//! - [`server`]: the board as a TCP serial device server (`cellgate sim fanuc`).
+//! - [`server`]: the board as a TCP serial device server (`cellgate sim fanuc`);
+//! - [`micrex_handle`], [`fuji_server`]: the simulated PLC over a transport, and as a TCP
+//!   device server (`cellgate sim fuji`).
 //!
 //! [`BoardHandle`] runs a board over any [`Transport`] in a tokio task, and is what tests and
 //! an embedded cell use: commands in, a snapshot of the board's state, and a broadcast of its
 //! events.
 
-pub mod cnc;
-pub mod fanuc_board;
 pub mod fuji_server;
-pub mod micrex;
 pub mod micrex_handle;
 pub mod server;
 
 use std::future::Future;
 use std::pin::Pin;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::task::Poll;
 
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio::task::JoinHandle;
 
-use crate::engine::Engine;
-use crate::engine::ModemIn;
-use crate::fanuc::alarm::CncAlarm;
-use crate::fanuc::sat::{Params, StatusData};
 use crate::link::pump::{Pump, PumpError};
 use crate::transport::Transport;
+use cellgate_core::engine::Engine;
+use cellgate_core::engine::ModemIn;
+use cellgate_core::fanuc::alarm::CncAlarm;
+use cellgate_core::fanuc::sat::{Params, StatusData};
 
-pub use cnc::{G05End, G05Stats, ReceivedProgram};
-pub use fanuc_board::{
-    BoardCommand, BoardConfig, BoardConfigError, BoardEvent, BoardLinkState, ControlCode,
-    FanucBoard, FlowCounters,
+use cellgate_core::sim::{
+    BoardCommand, BoardConfig, BoardConfigError, BoardEvent, BoardLinkState, FanucBoard, G05Stats,
+    ReceivedProgram,
 };
 
 /// Errors of the simulators, kept apart from the protocol events they report.
@@ -56,7 +53,7 @@ pub enum SimError {
     PunchCode {
         path: std::path::PathBuf,
         #[source]
-        error: crate::fanuc::tape::TapeError,
+        error: cellgate_core::program::tape::TapeError,
     },
     #[error(
         "simulator listen address {addr} is not loopback: simulators bind 127.0.0.1 or ::1 only"
@@ -122,6 +119,12 @@ pub struct BoardSnapshot {
     pub g05: Option<G05Stats>,
     /// Whether the board's task has ended (line closed or error).
     pub stopped: bool,
+    /// Whether the CNC is in alarm.
+    pub alarm: bool,
+    /// Whether the operator starts reads and resets alarms by himself.
+    pub autostart: bool,
+    /// Commands the board has taken since power-on ([`BoardControl::apply`] waits on it).
+    pub commands_taken: u64,
 }
 
 impl BoardSnapshot {
@@ -145,6 +148,9 @@ impl BoardSnapshot {
             punched: 0,
             g05: None,
             stopped: false,
+            alarm: false,
+            autostart: false,
+            commands_taken: 0,
         };
         s.refresh(board);
         s
@@ -160,6 +166,8 @@ impl BoardSnapshot {
         self.buffered = cnc.buffered();
         self.di_image = cnc.di();
         self.do_image = cnc.do_image();
+        self.alarm = cnc.alarm().is_some();
+        self.autostart = board.autostart();
         let flow = board.flow_counters();
         self.dc1_sent = flow.dc1_sent;
         self.dc3_sent = flow.dc3_sent;
@@ -192,6 +200,63 @@ pub struct BoardHandle {
     events: broadcast::Sender<BoardEvent>,
     state: watch::Receiver<BoardSnapshot>,
     task: JoinHandle<Result<(), SimError>>,
+    /// Commands sent so far; held while one is sent, so that its number is its place.
+    sent: Arc<Mutex<u64>>,
+}
+
+/// What a running cell's bus routes drive a simulated board with: its commands, and its
+/// state once it took one. Cheap to clone; it does not keep the board running.
+#[derive(Debug, Clone)]
+pub struct BoardControl {
+    commands: mpsc::UnboundedSender<BoardCommand>,
+    state: watch::Receiver<BoardSnapshot>,
+    sent: Arc<Mutex<u64>>,
+}
+
+/// A command the simulated board did not take.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum ControlError {
+    #[error("the simulated board has stopped")]
+    Stopped,
+    #[error("the simulated board did not take the command within {} ms", .0.as_millis())]
+    Late(std::time::Duration),
+}
+
+impl BoardControl {
+    /// The board's state now.
+    pub fn snapshot(&self) -> BoardSnapshot {
+        self.state.borrow().clone()
+    }
+
+    /// Gives the board `command` and returns its state once it has taken it (within
+    /// `within`).
+    pub async fn apply(
+        &self,
+        command: BoardCommand,
+        within: std::time::Duration,
+    ) -> Result<BoardSnapshot, ControlError> {
+        let number = {
+            let mut sent = self.sent.lock().unwrap_or_else(PoisonError::into_inner);
+            self.commands
+                .send(command)
+                .map_err(|_| ControlError::Stopped)?;
+            *sent += 1;
+            *sent
+        };
+        let mut state = self.state.clone();
+        let taken = tokio::time::timeout(
+            within,
+            state.wait_for(|s| s.stopped || s.commands_taken >= number),
+        )
+        .await
+        .map_err(|_| ControlError::Late(within))?
+        .map_err(|_| ControlError::Stopped)?
+        .clone();
+        if taken.commands_taken < number {
+            return Err(ControlError::Stopped);
+        }
+        Ok(taken)
+    }
 }
 
 /// Events kept for slow subscribers; older ones are lost (`RecvError::Lagged`).
@@ -211,12 +276,13 @@ impl BoardHandle {
                 board,
                 line,
                 cmd_rx,
-                |board, new_events| {
+                |board, new_events, taken| {
                     state_tx.send_modify(|s| {
                         for e in new_events.iter() {
                             s.record(e);
                         }
                         s.refresh(board);
+                        s.commands_taken = taken;
                     });
                     for e in new_events.drain(..) {
                         // No subscriber is fine.
@@ -234,12 +300,25 @@ impl BoardHandle {
             events,
             state,
             task,
+            sent: Arc::new(Mutex::new(0)),
         })
     }
 
     /// Sends a command to the board (ignored once the board has stopped).
     pub fn command(&self, command: BoardCommand) {
-        let _ = self.commands.send(command);
+        let mut sent = self.sent.lock().unwrap_or_else(PoisonError::into_inner);
+        if self.commands.send(command).is_ok() {
+            *sent += 1;
+        }
+    }
+
+    /// A control of the board for the bus routes.
+    pub fn control(&self) -> BoardControl {
+        BoardControl {
+            commands: self.commands.clone(),
+            state: self.state.clone(),
+            sent: Arc::clone(&self.sent),
+        }
     }
     /// Cycle start in remote mode.
     pub fn start_reading(&self) {
@@ -306,23 +385,24 @@ impl BoardHandle {
 
 /// Runs a board over a transport with the link [`Pump`] until the commands channel closes,
 /// `shutdown` completes, or the line ends (end of stream: `Ok`) or fails. `report` gets the
-/// board and the events of each step.
+/// board, the events of each step and the commands it has taken so far.
 pub(crate) async fn run_board<T: Transport>(
     board: FanucBoard,
     line: T,
     mut commands: mpsc::UnboundedReceiver<BoardCommand>,
-    mut report: impl FnMut(&FanucBoard, &mut Vec<BoardEvent>),
+    mut report: impl FnMut(&FanucBoard, &mut Vec<BoardEvent>, u64),
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), SimError> {
     let describe = line.describe();
     let mut pump = Pump::new(board, line);
     let mut shutdown = std::pin::pin!(shutdown);
     let mut events = Vec::new();
+    let mut taken = 0u64;
     let result = loop {
         while let Some(e) = pump.engine_mut().poll_event() {
             events.push(e);
         }
-        report(pump.engine(), &mut events);
+        report(pump.engine(), &mut events, taken);
         events.clear();
         tokio::select! {
             stepped = pump.step() => match stepped {
@@ -331,7 +411,10 @@ pub(crate) async fn run_board<T: Transport>(
                 Err(PumpError::Io(source)) => break Err(SimError::Line { line: describe, source }),
             },
             command = commands.recv() => match command {
-                Some(c) => pump.command(c),
+                Some(c) => {
+                    pump.command(c);
+                    taken += 1;
+                }
                 None => break Ok(()),
             },
             () = &mut shutdown => break Ok(()),
@@ -340,7 +423,7 @@ pub(crate) async fn run_board<T: Transport>(
     while let Some(e) = pump.engine_mut().poll_event() {
         events.push(e);
     }
-    report(pump.engine(), &mut events);
+    report(pump.engine(), &mut events, taken);
     result
 }
 

@@ -49,14 +49,14 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio::time::{Instant, Sleep};
 
-use crate::fanuc::g05::{AuxFunction, AuxOrder, DataFormat, G05Format, UnitTime};
-use crate::fanuc::message::Framing;
-use crate::fanuc::sat::Params;
-use crate::fanuc::tape::{self, TapeCode};
-use crate::fanuc::{CodeSystem, EndCode, Protocol};
-use crate::sim::cnc::{DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE};
 use crate::sim::{BoardCommand, BoardConfig, BoardEvent, FanucBoard, SimError, run_board};
 use crate::transport::{LineSettings, ModemIn, ModemOut, Pacer, Transport};
+use cellgate_core::fanuc::g05::{AuxFunction, AuxOrder, DataFormat, G05Format, UnitTime};
+use cellgate_core::fanuc::message::Framing;
+use cellgate_core::fanuc::sat::Params;
+use cellgate_core::fanuc::{CodeSystem, EndCode, Protocol};
+use cellgate_core::program::tape::{self, TapeCode};
+use cellgate_core::sim::cnc::{DEFAULT_BUFFER_SIZE, DEFAULT_CONSUME_RATE};
 
 /// `--protocol`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -459,8 +459,48 @@ pub async fn serve_fanuc_with(
         listening["g05"] = serde_json::to_value(g05).unwrap_or(Value::Null);
     }
     sink(&listening);
+    serve_one_at_a_time(
+        listener,
+        shutdown,
+        &sink,
+        "simulated board",
+        |stream, peer| {
+            let session = run_session(
+                stream,
+                peer,
+                config.clone(),
+                settings,
+                punch.clone(),
+                sink.clone(),
+            );
+            async move {
+                match session.await {
+                    Ok(()) => "connection closed".to_string(),
+                    Err(e) => e.to_string(),
+                }
+            }
+        },
+    )
+    .await;
+    Ok(())
+}
+
+/// The accept loop of a simulated device server: one connection at a time, as a serial
+/// line has one host; a new connection replaces the old one (a host that reconnects after a
+/// cut finds the device at once). Each connection runs the session `start` makes of it, and
+/// ends with the reason that session gives. Reports `connected` and `disconnected` on `sink`.
+pub(crate) async fn serve_one_at_a_time<F, S>(
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()>,
+    sink: &EventSink,
+    what: &'static str,
+    mut start: F,
+) where
+    F: FnMut(TcpStream, SocketAddr) -> S,
+    S: Future<Output = String> + Send + 'static,
+{
     let mut shutdown = std::pin::pin!(shutdown);
-    type Session = Pin<Box<dyn Future<Output = Result<(), SimError>> + Send>>;
+    type Session = Pin<Box<dyn Future<Output = String> + Send>>;
     let mut session: Option<(SocketAddr, Session)> = None;
     loop {
         tokio::select! {
@@ -475,37 +515,24 @@ pub async fn serve_fanuc_with(
                         }));
                     }
                     sink(&json!({"event": "connected", "peer": peer.to_string()}));
-                    let fut = run_session(
-                        stream,
-                        peer,
-                        config.clone(),
-                        settings,
-                        punch.clone(),
-                        sink.clone(),
-                    );
-                    session = Some((peer, Box::pin(fut)));
+                    session = Some((peer, Box::pin(start(stream, peer))));
                 }
                 Err(e) => {
-                    tracing::warn!(error = %e, "simulated board: accept failed");
+                    tracing::warn!(error = %e, "{what}: accept failed");
                     tokio::time::sleep(Duration::from_millis(100)).await;
                 }
             },
-            result = async {
+            reason = async {
                 match session.as_mut() {
                     Some((_, s)) => s.await,
                     None => std::future::pending().await,
                 }
             }, if session.is_some() => {
                 let peer = session.take().map(|(p, _)| p.to_string());
-                let reason = match result {
-                    Ok(()) => "connection closed".to_string(),
-                    Err(e) => e.to_string(),
-                };
                 sink(&json!({"event": "disconnected", "peer": peer, "reason": reason}));
             }
         }
     }
-    Ok(())
 }
 
 async fn run_session(
@@ -534,7 +561,7 @@ async fn run_session(
         board,
         line,
         commands_rx,
-        |_, events| {
+        |_, events, _| {
             for e in events.iter() {
                 if let Some(v) = event_json(e) {
                     sink(&v);
@@ -1005,7 +1032,7 @@ mod tests {
 
     #[test]
     fn g05_events_as_json() {
-        use crate::sim::{G05End, G05Stats};
+        use cellgate_core::sim::{G05End, G05Stats};
         let v = event_json(&BoardEvent::G05Started {
             axes: 3,
             unit_ms: 2,
@@ -1047,7 +1074,7 @@ mod tests {
     /// `--g05-axes`: binary data after `G05` over TCP; start and end with totals as JSON.
     #[tokio::test]
     async fn g05_session_over_tcp_reported_as_json() {
-        use crate::fanuc::g05::G05Encoder;
+        use cellgate_core::fanuc::g05::G05Encoder;
         use tokio::io::AsyncWriteExt;
         let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
@@ -1085,7 +1112,7 @@ G05
         .to_vec();
         let mut e = G05Encoder::new(format).unwrap();
         for k in 1..=20 {
-            let tool = (k == 10).then_some(crate::fanuc::g05::AuxWord::significant(12));
+            let tool = (k == 10).then_some(cellgate_core::fanuc::g05::AuxWord::significant(12));
             e.block(&[k, -1], tool, &mut tape).unwrap();
         }
         e.end(&mut tape);

@@ -16,47 +16,10 @@ pub mod prometheus;
 use std::io::IsTerminal as _;
 use std::net::SocketAddr;
 
-use serde::{Deserialize, Serialize};
+pub use cellgate_core::config::telemetry::{LogFormat, TelemetryConfig, redact_credentials};
 use tracing_subscriber::{
     EnvFilter, Layer as _, fmt, layer::SubscriberExt as _, util::SubscriberInitExt as _,
 };
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum LogFormat {
-    #[default]
-    Human,
-    Json,
-}
-
-/// `[telemetry]` of the cell file.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct TelemetryConfig {
-    pub log_format: LogFormat,
-    /// An env-filter directive such as `info,cellgate=debug`; `RUST_LOG` overrides it.
-    pub log_filter: String,
-    /// OTLP/gRPC endpoint, e.g. `http://127.0.0.1:4317`. `None` (the default) exports nothing,
-    /// unless `OTEL_EXPORTER_OTLP_ENDPOINT` is set.
-    pub otlp_endpoint: Option<String>,
-    /// `service.name` of exported spans and metrics.
-    pub service_name: String,
-    /// Address (IP and port) of the Prometheus text endpoint, e.g. `127.0.0.1:9464`. `None`
-    /// (the default) opens no port.
-    pub prometheus: Option<String>,
-}
-
-impl Default for TelemetryConfig {
-    fn default() -> Self {
-        TelemetryConfig {
-            log_format: LogFormat::Human,
-            log_filter: "info".to_string(),
-            otlp_endpoint: None,
-            service_name: "cellgate".to_string(),
-            prometheus: None,
-        }
-    }
-}
 
 /// A count as a span field: tracing-opentelemetry exports `u64` fields as strings (they may
 /// not fit an OTLP integer), so counts go in as `i64`, which every real one fits.
@@ -206,7 +169,7 @@ pub fn install_metrics(
             .with_endpoint(endpoint)
             .build()
             .map_err(|source| TelemetryError::Exporter {
-                endpoint: endpoint.to_string(),
+                endpoint: redact_credentials(endpoint),
                 source,
             })?;
         builder = builder.with_periodic_exporter(exporter);
@@ -234,7 +197,7 @@ pub fn install_metrics(
     let provider = builder.build();
     let instruments = metrics::register(&provider);
     if let Some(endpoint) = endpoint {
-        tracing::info!(%endpoint, "exporting metrics over OTLP/gRPC");
+        tracing::info!(endpoint = %redact_credentials(endpoint), "exporting metrics over OTLP/gRPC");
     }
     Ok(MetricsGuard {
         provider: Some(provider),
@@ -365,7 +328,7 @@ pub fn init(cfg: &TelemetryConfig) -> Result<TelemetryGuard, TelemetryError> {
         opentelemetry::global::set_tracer_provider(provider.clone());
     }
     if let Some(endpoint) = &endpoint {
-        tracing::info!(%endpoint, service = %cfg.service_name, "exporting spans over OTLP/gRPC");
+        tracing::info!(endpoint = %redact_credentials(endpoint), service = %cfg.service_name, "exporting spans over OTLP/gRPC");
     }
     // Built after the subscriber, so that its own messages are logged.
     let metrics = install_metrics(cfg, endpoint.as_deref())?;
@@ -385,7 +348,7 @@ fn tracer_provider(
         .with_endpoint(endpoint)
         .build()
         .map_err(|source| TelemetryError::Exporter {
-            endpoint: endpoint.to_string(),
+            endpoint: redact_credentials(endpoint),
             source,
         })?;
     Ok(opentelemetry_sdk::trace::SdkTracerProvider::builder()
@@ -395,58 +358,4 @@ fn tracer_provider(
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn rust_log_overrides_the_cell_file() {
-        let f = filter("info", Some("cellgate=trace")).unwrap();
-        assert_eq!(f.to_string(), "cellgate=trace");
-        let f = filter("warn,cellgate=debug", None).unwrap();
-        assert!(f.to_string().contains("cellgate=debug"), "{f}");
-        // An empty RUST_LOG is treated as unset.
-        let f = filter("warn", Some("  ")).unwrap();
-        assert_eq!(f.to_string(), "warn");
-    }
-
-    #[test]
-    fn a_bad_filter_names_where_it_came_from() {
-        match filter("info", Some("cellgate=loud")) {
-            Err(TelemetryError::Filter { origin, .. }) => assert_eq!(origin, RUST_LOG),
-            other => panic!("expected a filter error, got {other:?}"),
-        }
-        match filter("cellgate=loud", None) {
-            Err(TelemetryError::Filter { origin, .. }) => {
-                assert_eq!(origin, "telemetry.log_filter")
-            }
-            other => panic!("expected a filter error, got {other:?}"),
-        }
-    }
-
-    #[test]
-    fn otlp_is_off_unless_an_endpoint_is_given() {
-        let cfg = TelemetryConfig::default();
-        assert_eq!(otlp_endpoint(&cfg, None), None);
-        assert_eq!(otlp_endpoint(&cfg, Some("")), None);
-        assert_eq!(
-            otlp_endpoint(&cfg, Some("http://127.0.0.1:4317")).as_deref(),
-            Some("http://127.0.0.1:4317")
-        );
-        let cfg = TelemetryConfig {
-            otlp_endpoint: Some("http://127.0.0.1:14317".to_string()),
-            ..TelemetryConfig::default()
-        };
-        assert_eq!(
-            otlp_endpoint(&cfg, Some("http://127.0.0.1:4317")).as_deref(),
-            Some("http://127.0.0.1:14317")
-        );
-    }
-
-    #[test]
-    fn a_guard_without_exporter_shuts_down_quietly() {
-        let mut guard = TelemetryGuard::default();
-        assert!(!guard.exporting());
-        guard.shutdown().unwrap();
-        guard.shutdown().unwrap();
-    }
-}
+mod tests;

@@ -18,17 +18,16 @@
 //! [`Transport::take_line_error`]; a cut line or a lost device server shows as DR (and CD) off in
 //! [`Transport::modem`] (alarm SR0855). Neither is an I/O error, and nothing panics on line input.
 
-pub mod pacer;
 mod redial;
 pub mod serial;
 pub mod sim;
 pub mod tcp;
 
-pub use pacer::Pacer;
+pub use cellgate_core::engine::pacer::{self, Pacer};
 
 use tokio::io::{AsyncRead, AsyncWrite};
 
-pub use crate::engine::line::{
+pub use cellgate_core::engine::line::{
     DataBits, FlowControl, LineError, LineSettings, ModemIn, ModemOut, Parity, StopBits,
 };
 

@@ -4,11 +4,53 @@
 //! away the line reads as cut, and whichever of the reading or the writing task polls drives
 //! the next attempt.
 
+use std::fmt;
+use std::io;
+use std::pin::Pin;
 use std::sync::{Arc, Mutex};
-use std::task::{Wake, Waker};
+use std::task::{Context, Poll, Wake, Waker};
 use std::time::Duration;
 
+use tokio::io::{AsyncRead, ReadBuf};
 use tokio::time::Instant;
+
+/// A carrier that comes back by itself, as its reads see it.
+pub(crate) trait Redialing {
+    /// What carries the bytes while it is up.
+    type Stream: AsyncRead + Unpin + ?Sized;
+    /// Why a read that gave nothing means the carrier is gone.
+    const END_OF_INPUT: &'static str;
+    /// Drives the next attempt: the stream while it is up, `None` once shut down for good,
+    /// `Pending` while it is away (both directions are woken when it is back).
+    fn poll_up(&mut self) -> Poll<Option<&mut Self::Stream>>;
+    /// The stream failed: drop it and try again after the backoff.
+    fn lost(&mut self, why: &dyn fmt::Display);
+}
+
+/// A read through a carrier that comes back: a failing carrier is not an error to the reader,
+/// who waits for it to be up again; EOF only after shutdown.
+pub(crate) fn poll_read<T: Redialing>(
+    carrier: &mut T,
+    cx: &mut Context<'_>,
+    buf: &mut ReadBuf<'_>,
+) -> Poll<io::Result<()>> {
+    loop {
+        let before = buf.filled().len();
+        let read = match carrier.poll_up() {
+            Poll::Ready(Some(stream)) => Pin::new(stream).poll_read(cx, buf),
+            Poll::Ready(None) => return Poll::Ready(Ok(())),
+            Poll::Pending => return Poll::Pending,
+        };
+        match read {
+            Poll::Pending => return Poll::Pending,
+            Poll::Ready(Ok(())) if buf.filled().len() > before || buf.remaining() == 0 => {
+                return Poll::Ready(Ok(()));
+            }
+            Poll::Ready(Ok(())) => carrier.lost(&T::END_OF_INPUT),
+            Poll::Ready(Err(e)) => carrier.lost(&e),
+        }
+    }
+}
 
 /// The wakers of the reading and the writing task. Either one may drive reconnection (poll the
 /// attempt or the backoff timer); whichever does, both are woken on progress, so that a reader
@@ -110,24 +152,4 @@ impl Backoff {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[tokio::test(start_paused = true)]
-    async fn doubles_to_the_bound_and_restarts_after_a_lasting_connection() {
-        let ms = Duration::from_millis;
-        let mut b = Backoff::new(ms(100), ms(500));
-        let waits: Vec<_> = (0..5).map(|_| b.take_wait()).collect();
-        assert_eq!(waits, [ms(100), ms(200), ms(400), ms(500), ms(500)]);
-        assert_eq!(b.failed(), 1);
-        assert_eq!(b.failed(), 2);
-        assert_eq!(b.up(), 2);
-        // Dropped at once: the backoff keeps its size.
-        b.lost();
-        assert_eq!(b.peek(), ms(500));
-        b.up();
-        tokio::time::advance(ms(600)).await;
-        b.lost();
-        assert_eq!(b.peek(), ms(100));
-    }
-}
+mod tests;

@@ -24,7 +24,6 @@
 //! adapters lack DSR or CD) are logged once and read as on, the manual's wiring for unused lines;
 //! they never fail the link.
 
-use std::collections::VecDeque;
 use std::fmt;
 use std::io;
 use std::pin::Pin;
@@ -37,7 +36,9 @@ use tokio::time::{Instant, Sleep};
 use tokio_serial::{SerialPort, SerialPortBuilderExt, SerialStream};
 use tracing::{debug, info, warn};
 
-use super::redial::{Backoff, Wakers};
+use cellgate_core::engine::parmrk::MarkDecoder;
+
+use super::redial::{self, Backoff, Redialing, Wakers};
 use super::{
     DataBits, FlowControl, LineError, LineSettings, ModemIn, ModemOut, Pacer, Parity, StopBits,
     Transport, TransportError,
@@ -253,81 +254,6 @@ fn enable_error_marks(_port: &SerialStream) -> io::Result<()> {
     ))
 }
 
-/// Decodes the kernel's PARMRK marks (POSIX termios): `FF FF` is a data `FF`, `FF 00 c` a
-/// character `c` received with a parity or framing error (`FF 00 00` also a break). Bad
-/// characters are not delivered; their errors are queued in line order.
-#[derive(Debug, Default)]
-pub struct MarkDecoder {
-    raw: VecDeque<u8>,
-    errors: VecDeque<LineError>,
-}
-
-impl MarkDecoder {
-    /// Bytes held: an incomplete mark, or data not decoded yet.
-    pub fn buffered(&self) -> usize {
-        self.raw.len()
-    }
-
-    /// The oldest line error decoded and not taken yet.
-    pub fn take_error(&mut self) -> Option<LineError> {
-        self.errors.pop_front()
-    }
-
-    pub fn feed(&mut self, raw: &[u8]) {
-        self.raw.extend(raw.iter().copied());
-    }
-
-    /// Decode into `out` as far as possible. A read never spans an error: decoding stops at a
-    /// mark once `out` has bytes, so an error taken after a read lies before that read's bytes.
-    /// An incomplete mark at the end waits for the next bytes. Returns the bytes written.
-    pub fn decode(&mut self, out: &mut ReadBuf<'_>) -> usize {
-        let mut n = 0;
-        while out.remaining() > 0 {
-            let Some(&b) = self.raw.front() else { break };
-            if b != 0xFF {
-                out.put_slice(&[b]);
-                self.raw.pop_front();
-                n += 1;
-                continue;
-            }
-            match (self.raw.get(1).copied(), self.raw.get(2).copied()) {
-                (None, _) | (Some(0x00), None) => break,
-                (Some(0xFF), _) => {
-                    out.put_slice(&[0xFF]);
-                    self.raw.drain(..2);
-                    n += 1;
-                }
-                (Some(0x00), Some(c)) => {
-                    if n > 0 {
-                        break;
-                    }
-                    self.errors.push_back(if c == 0 {
-                        LineError::Framing
-                    } else {
-                        LineError::Parity
-                    });
-                    self.raw.drain(..3);
-                }
-                // Not a mark (cannot come from the kernel in PARMRK mode): pass it on.
-                (Some(_), _) => {
-                    out.put_slice(&[0xFF]);
-                    self.raw.pop_front();
-                    n += 1;
-                }
-            }
-        }
-        n
-    }
-
-    /// At end of input, hand over an incomplete mark as data.
-    pub fn finish(&mut self, out: &mut ReadBuf<'_>) {
-        while out.remaining() > 0 {
-            let Some(b) = self.raw.pop_front() else { break };
-            out.put_slice(&[b]);
-        }
-    }
-}
-
 impl AsyncRead for SerialTransport {
     fn poll_read(
         mut self: Pin<&mut Self>,
@@ -342,7 +268,9 @@ impl AsyncRead for SerialTransport {
             return Poll::Ready(Ok(()));
         }
         loop {
-            if marks.decode(buf) > 0 {
+            let n = marks.decode(buf.initialize_unfilled());
+            if n > 0 {
+                buf.advance(n);
                 return Poll::Ready(Ok(()));
             }
             let mut scratch = [0u8; 512];
@@ -351,7 +279,8 @@ impl AsyncRead for SerialTransport {
                 Poll::Pending => return Poll::Pending,
                 Poll::Ready(Err(e)) => return Poll::Ready(Err(e)),
                 Poll::Ready(Ok(())) if raw.filled().is_empty() => {
-                    marks.finish(buf);
+                    let n = marks.finish(buf.initialize_unfilled());
+                    buf.advance(n);
                     return Poll::Ready(Ok(()));
                 }
                 Poll::Ready(Ok(())) => marks.feed(raw.filled()),
@@ -443,7 +372,7 @@ impl Transport for SerialTransport {
     }
 
     fn take_line_error(&mut self) -> Option<LineError> {
-        self.marks.as_mut().and_then(|m| m.errors.pop_front())
+        self.marks.as_mut().and_then(MarkDecoder::take_error)
     }
 
     fn describe(&self) -> String {
@@ -613,6 +542,28 @@ impl ReopeningSerial {
     }
 }
 
+impl Redialing for ReopeningSerial {
+    type Stream = SerialTransport;
+    const END_OF_INPUT: &'static str = "end of input";
+
+    fn poll_up(&mut self) -> Poll<Option<&mut SerialTransport>> {
+        if !self.poll_port() {
+            return match self.state {
+                PortState::Closed => Poll::Ready(None),
+                _ => Poll::Pending,
+            };
+        }
+        match &mut self.state {
+            PortState::Open(port) => Poll::Ready(Some(port.as_mut())),
+            _ => Poll::Pending,
+        }
+    }
+
+    fn lost(&mut self, why: &dyn fmt::Display) {
+        ReopeningSerial::lost(self, why);
+    }
+}
+
 impl AsyncRead for ReopeningSerial {
     /// Bytes from the port. A failing port is not an error to the reader: it waits for the port
     /// to be open again. EOF only after shutdown.
@@ -623,26 +574,7 @@ impl AsyncRead for ReopeningSerial {
     ) -> Poll<io::Result<()>> {
         let this = &mut *self;
         Wakers::set(&this.wakers.read, cx.waker());
-        loop {
-            if !this.poll_port() {
-                return match this.state {
-                    PortState::Closed => Poll::Ready(Ok(())),
-                    _ => Poll::Pending,
-                };
-            }
-            let PortState::Open(port) = &mut this.state else {
-                continue;
-            };
-            let before = buf.filled().len();
-            match Pin::new(port.as_mut()).poll_read(cx, buf) {
-                Poll::Pending => return Poll::Pending,
-                Poll::Ready(Ok(())) if buf.filled().len() > before || buf.remaining() == 0 => {
-                    return Poll::Ready(Ok(()));
-                }
-                Poll::Ready(Ok(())) => this.lost(&"end of input"),
-                Poll::Ready(Err(e)) => this.lost(&e),
-            }
-        }
+        redial::poll_read(this, cx, buf)
     }
 }
 
@@ -734,94 +666,4 @@ impl Transport for ReopeningSerial {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn decode_all(d: &mut MarkDecoder) -> Vec<u8> {
-        let mut out = Vec::new();
-        loop {
-            let mut b = [0u8; 64];
-            let mut rb = ReadBuf::new(&mut b);
-            if d.decode(&mut rb) == 0 {
-                return out;
-            }
-            out.extend_from_slice(rb.filled());
-        }
-    }
-
-    #[test]
-    fn plain_bytes_pass() {
-        let mut d = MarkDecoder::default();
-        d.feed(&[0x11, 0x13, 0x0D, 0x00, 0x41]);
-        assert_eq!(decode_all(&mut d), [0x11, 0x13, 0x0D, 0x00, 0x41]);
-        assert!(d.errors.is_empty());
-    }
-
-    #[test]
-    fn doubled_ff_is_one_ff() {
-        let mut d = MarkDecoder::default();
-        d.feed(&[0x01, 0xFF, 0xFF, 0x02]);
-        assert_eq!(decode_all(&mut d), [0x01, 0xFF, 0x02]);
-    }
-
-    #[test]
-    fn marked_character_is_dropped_and_reported_in_order() {
-        let mut d = MarkDecoder::default();
-        d.feed(&[b'A', 0xFF, 0x00, b'x', b'B', 0xFF, 0x00, 0x00, b'C']);
-        let mut b = [0u8; 16];
-        let mut rb = ReadBuf::new(&mut b);
-        assert_eq!(d.decode(&mut rb), 1, "a read stops before a mark");
-        assert_eq!(rb.filled(), b"A");
-        assert!(d.errors.is_empty());
-        let mut rb = ReadBuf::new(&mut b);
-        assert_eq!(d.decode(&mut rb), 1);
-        assert_eq!(rb.filled(), b"B");
-        assert_eq!(d.errors.pop_front(), Some(LineError::Parity));
-        let mut rb = ReadBuf::new(&mut b);
-        assert_eq!(d.decode(&mut rb), 1);
-        assert_eq!(rb.filled(), b"C");
-        assert_eq!(d.errors.pop_front(), Some(LineError::Framing));
-    }
-
-    #[test]
-    fn marks_split_across_reads() {
-        let mut d = MarkDecoder::default();
-        d.feed(&[b'a', 0xFF]);
-        assert_eq!(decode_all(&mut d), b"a");
-        d.feed(&[0x00]);
-        assert_eq!(decode_all(&mut d), b"");
-        d.feed(&[b'z', b'b', 0xFF]);
-        assert_eq!(decode_all(&mut d), b"b");
-        assert_eq!(d.errors.pop_front(), Some(LineError::Parity));
-        d.feed(&[0xFF]);
-        assert_eq!(decode_all(&mut d), [0xFF]);
-    }
-
-    #[test]
-    fn incomplete_mark_at_end_of_input_is_data() {
-        let mut d = MarkDecoder::default();
-        d.feed(&[0xFF]);
-        assert_eq!(decode_all(&mut d), b"");
-        let mut b = [0u8; 4];
-        let mut rb = ReadBuf::new(&mut b);
-        d.finish(&mut rb);
-        assert_eq!(rb.filled(), [0xFF]);
-    }
-
-    #[test]
-    fn full_output_keeps_the_rest() {
-        let mut d = MarkDecoder::default();
-        d.feed(&[1, 2, 3, 0xFF, 0xFF]);
-        let mut b = [0u8; 2];
-        let mut rb = ReadBuf::new(&mut b);
-        assert_eq!(d.decode(&mut rb), 2);
-        assert_eq!(decode_all(&mut d), [3, 0xFF]);
-    }
-
-    #[test]
-    fn opening_a_missing_port_names_it() {
-        let e = SerialTransport::open("/dev/cellgate-no-such-port", LineSettings::default())
-            .unwrap_err();
-        assert!(e.to_string().contains("/dev/cellgate-no-such-port"), "{e}");
-    }
-}
+mod tests;

@@ -31,7 +31,7 @@ use tokio::net::TcpStream;
 use tokio::time::{Instant, Sleep};
 use tracing::{debug, info, warn};
 
-use super::redial::{Backoff, Wakers};
+use super::redial::{self, Backoff, Redialing, Wakers};
 use super::{LineSettings, ModemIn, ModemOut, Pacer, Transport, TransportError};
 
 /// Connection and pacing options of a [`TcpTransport`].
@@ -316,6 +316,28 @@ fn connect_future(addr: String, timeout: Duration) -> ConnectFuture {
     })
 }
 
+impl Redialing for TcpTransport {
+    type Stream = TcpStream;
+    const END_OF_INPUT: &'static str = "closed by the device server";
+
+    fn poll_up(&mut self) -> Poll<Option<&mut TcpStream>> {
+        if !self.poll_connection() {
+            return match self.state {
+                State::Closed => Poll::Ready(None),
+                _ => Poll::Pending,
+            };
+        }
+        match &mut self.state {
+            State::Connected(stream) => Poll::Ready(Some(stream)),
+            _ => Poll::Pending,
+        }
+    }
+
+    fn lost(&mut self, why: &dyn fmt::Display) {
+        self.disconnected(why);
+    }
+}
+
 impl AsyncRead for TcpTransport {
     /// Bytes from the device server. Never returns EOF or an error while the transport is in
     /// use: a lost connection is reported in the log and by the modem lines, and the read waits
@@ -327,26 +349,7 @@ impl AsyncRead for TcpTransport {
     ) -> Poll<io::Result<()>> {
         let this = &mut *self;
         Wakers::set(&this.wakers.read, cx.waker());
-        loop {
-            if !this.poll_connection() {
-                if matches!(this.state, State::Closed) {
-                    return Poll::Ready(Ok(()));
-                }
-                return Poll::Pending;
-            }
-            let State::Connected(stream) = &mut this.state else {
-                continue;
-            };
-            let before = buf.filled().len();
-            match Pin::new(stream).poll_read(cx, buf) {
-                Poll::Pending => return Poll::Pending,
-                Poll::Ready(Ok(())) if buf.filled().len() > before || buf.remaining() == 0 => {
-                    return Poll::Ready(Ok(()));
-                }
-                Poll::Ready(Ok(())) => this.disconnected(&"closed by the device server"),
-                Poll::Ready(Err(e)) => this.disconnected(&e),
-            }
-        }
+        redial::poll_read(this, cx, buf)
     }
 }
 
@@ -497,36 +500,4 @@ impl Transport for TcpTransport {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn addresses() {
-        for good in [
-            "127.0.0.1:4001",
-            "moxa-cell3:950",
-            "[::1]:4001",
-            "localhost:1",
-        ] {
-            assert!(check_addr(good).is_ok(), "{good}");
-        }
-        for bad in [
-            "127.0.0.1",
-            ":4001",
-            "host:",
-            "host:0",
-            "host:70000",
-            "::1:4001",
-        ] {
-            assert!(
-                matches!(check_addr(bad), Err(TransportError::BadAddress { .. })),
-                "{bad}"
-            );
-        }
-    }
-
-    #[test]
-    fn default_window_is_inside_protocol_b_allowance() {
-        assert!(TcpOptions::default().window < 512);
-    }
-}
+mod tests;

@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use cellgate::pb;
+use cellgate_core::pb;
 use prost::Message;
 use zenoh::Session;
 
@@ -15,7 +15,6 @@ pub fn free_port() -> u16 {
         .port()
 }
 
-/// A client session connecting to a gateway on `tcp/127.0.0.1:port`, multicast scouting off.
 /// A first port with `n - 1` free ports after it (checked by binding them all), below the
 /// ephemeral range (32768 and up on Linux), where many in a row are rarely all free.
 pub fn free_ports(n: u16) -> u16 {
@@ -130,7 +129,11 @@ pub struct RunningCell {
     routes_stop: tokio_util::sync::CancellationToken,
     links_stop: tokio_util::sync::CancellationToken,
     served: tokio::task::JoinHandle<Result<(), cellgate::bus::BusError>>,
-    _dir: tempfile::TempDir,
+    /// The cell's history, kept in its own directory as the gateway keeps it.
+    pub history: cellgate::history::History,
+    history_stop: tokio_util::sync::CancellationToken,
+    history_writer: Option<tokio::task::JoinHandle<()>>,
+    pub dir: tempfile::TempDir,
 }
 
 pub type Sub =
@@ -142,13 +145,28 @@ impl RunningCell {
     /// bus only once every link is already up, as a gateway whose routes start after its
     /// links would.
     pub async fn start(
-        config: impl FnOnce(u16, &std::path::Path) -> cellgate::config::CellConfig,
+        config: impl FnOnce(u16, &std::path::Path) -> cellgate_core::config::CellConfig,
         late: bool,
     ) -> Self {
-        let port = free_port();
         let dir = tempfile::tempdir().unwrap();
-        let config = config(port, dir.path());
-        let gateway = cellgate::bus::open(&config.bus).await.unwrap();
+        // A free port can be taken by another test between the check and the bind: retry.
+        let mut config = config(free_port(), dir.path());
+        let mut attempts = 0;
+        let gateway = loop {
+            match cellgate::bus::open(&config.bus).await {
+                Ok(s) => break s,
+                Err(e) if attempts < 5 && e.to_string().contains("in use") => {
+                    attempts += 1;
+                    config.bus.listen = vec![format!("tcp/127.0.0.1:{}", free_port())];
+                }
+                Err(e) => panic!("{e}"),
+            }
+        };
+        let port: u16 = config.bus.listen[0]
+            .rsplit(':')
+            .next()
+            .and_then(|p| p.parse().ok())
+            .unwrap();
         let links_stop = tokio_util::sync::CancellationToken::new();
         let cell = cellgate::cell::Cell::start(&config, &links_stop)
             .await
@@ -158,7 +176,7 @@ impl RunningCell {
             for m in &cell.machines {
                 let link = m.link.clone();
                 eventually("the link is up before the routes start", move || {
-                    link.state() == Some(cellgate::fanuc::host::LinkState::Ready)
+                    link.state() == Some(cellgate_core::fanuc::host::LinkState::Ready)
                 })
                 .await;
             }
@@ -166,10 +184,36 @@ impl RunningCell {
         let machines = cell.machine_links();
         let routes_stop = tokio_util::sync::CancellationToken::new();
         let (ready_tx, ready) = tokio::sync::oneshot::channel();
+        let plcs = cell.plc_links();
+        let history_stop = tokio_util::sync::CancellationToken::new();
+        let (history, history_writer) = if config.history.enabled {
+            let (h, w) = cellgate::history::History::open(
+                &config.history.dir_in(&config.programs.dir),
+                &config.history,
+                history_stop.clone(),
+            )
+            .await
+            .unwrap();
+            (h, Some(w))
+        } else {
+            (cellgate::history::History::disabled(), None)
+        };
         let served = {
             let (gw, cfg, stop) = (gateway.clone(), config.clone(), routes_stop.clone());
+            let h = history.clone();
             tokio::spawn(async move {
-                cellgate::bus::serve_announced(&gw, &cfg, machines, stop, Some(ready_tx)).await
+                tokio::try_join!(
+                    cellgate::bus::serve_recorded(
+                        &gw,
+                        &cfg,
+                        machines,
+                        stop.clone(),
+                        Some(ready_tx),
+                        h.clone(),
+                    ),
+                    cellgate::bus::serve_plcs_recorded(&gw, &cfg, plcs, stop, h),
+                )
+                .map(|_| ())
             })
         };
         // Announced once every route is declared, as `gateway::run` does.
@@ -188,7 +232,10 @@ impl RunningCell {
             routes_stop,
             links_stop,
             served,
-            _dir: dir,
+            history,
+            history_stop,
+            history_writer,
+            dir,
         }
     }
 
@@ -202,6 +249,10 @@ impl RunningCell {
             .unwrap();
         self.links_stop.cancel();
         self.cell.join().await;
+        self.history_stop.cancel();
+        if let Some(w) = self.history_writer {
+            w.await.unwrap();
+        }
         self.client.close().await.unwrap();
         self.gateway.close().await.unwrap();
     }
@@ -228,7 +279,7 @@ impl RunningCell {
         };
         let accepted: pb::JobAccepted = get_one(
             &self.client,
-            &self.keys.leaf(machine, MachineLeaf::Job),
+            &self.keys.leaf(machine, MachineLeaf::Submit),
             Some(request.encode_to_vec()),
         )
         .await;

@@ -2,13 +2,15 @@
 #![allow(dead_code)]
 
 pub mod bus;
+pub mod cli;
 pub mod device_server;
+pub mod pki;
 
 use std::time::Duration;
 
 use cellgate::cell::Cell;
-use cellgate::config::CellConfig;
 use cellgate::link::driver::{LinkEvent, LinkHandle};
+use cellgate_core::config::CellConfig;
 use tokio::sync::broadcast;
 use tokio_util::sync::CancellationToken;
 

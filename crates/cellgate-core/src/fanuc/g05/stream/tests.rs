@@ -1,0 +1,231 @@
+use super::*;
+use crate::fanuc::g05::UnitTime;
+
+fn settings() -> StreamSettings {
+    let mut format = G05Format::new(2);
+    format.unit_time_ms = UnitTime::Ms8;
+    StreamSettings {
+        format,
+        before: Bytes::from_static(b"G05\n"),
+        after: Bytes::from_static(b"M30\n"),
+        window: 10,
+        prime: 4,
+        idle: Duration::from_secs(2),
+    }
+}
+
+fn blocks(n: usize) -> Vec<BlockIn> {
+    (0..n)
+        .map(|i| BlockIn {
+            travels: vec![i as i32 + 1, -1],
+            aux: None,
+        })
+        .collect()
+}
+
+fn batch(seq: u64, n: usize) -> Batch {
+    Batch {
+        seq,
+        blocks: blocks(n),
+        end: false,
+    }
+}
+
+fn binary_len(chunks: &[Chunk]) -> usize {
+    chunks
+        .iter()
+        .map(|c| match c {
+            Chunk::Binary(b) | Chunk::Primed { blocks: b, .. } => b.len(),
+            Chunk::Text(_) => 0,
+        })
+        .sum()
+}
+
+#[test]
+fn blocks_wait_for_the_priming_level_then_flow() {
+    let t0 = Instant::now();
+    let mut s = Stream::new(settings(), t0);
+    assert_eq!(s.offer(t0, &batch(0, 3)), Ok(Offered::Accepted));
+    assert!(s.take_chunks().is_empty(), "below the priming level");
+    assert_eq!(s.credits(), 7);
+    assert_eq!(s.offer(t0, &batch(1, 1)), Ok(Offered::Accepted));
+    let c = s.take_chunks();
+    // The G05 block and the priming level's blocks are one chunk (§9.2).
+    assert_eq!(c.len(), 1);
+    assert!(
+        matches!(&c[0], Chunk::Primed { text, .. } if text == &Bytes::from_static(b"G05\n")),
+        "{c:?}"
+    );
+    assert_eq!(binary_len(&c), 4 * 5);
+    assert_eq!(s.state(), StreamState::Streaming);
+    s.offer(t0, &batch(2, 2)).unwrap();
+    assert_eq!(binary_len(&s.take_chunks()), 2 * 5);
+    // Credits come back as blocks go on the line: "G05\n" and two blocks.
+    s.on_sent(t0, 4 + 10);
+    assert_eq!(s.figures().on_line, 2);
+    assert_eq!(s.credits(), 10 - 4);
+}
+
+#[test]
+fn gaps_repeats_credits_and_bad_blocks_refuse_the_whole_batch() {
+    let t0 = Instant::now();
+    let mut s = Stream::new(settings(), t0);
+    s.offer(t0, &batch(0, 2)).unwrap();
+    assert_eq!(s.offer(t0, &batch(0, 2)), Ok(Offered::Repeat));
+    assert!(matches!(
+        s.offer(t0, &batch(2, 1)),
+        Err(BatchError::Gap {
+            expected: 1,
+            got: 2
+        })
+    ));
+    assert!(matches!(
+        s.offer(t0, &batch(1, 9)),
+        Err(BatchError::Credits { credits: 8, .. })
+    ));
+    let mut bad = batch(1, 3);
+    bad.blocks[1].travels = vec![1, 9000];
+    let e = s.offer(t0, &bad).unwrap_err();
+    assert!(e.to_string().contains("9000"), "{e}");
+    let mut short = batch(1, 1);
+    short.blocks[0].travels = vec![1];
+    assert!(s.offer(t0, &short).is_err());
+    let f = s.figures();
+    assert_eq!(
+        (f.received, f.gaps, f.repeats, f.refused, f.next_seq),
+        (2, 1, 1, 3, 1)
+    );
+    // Nothing of the refused batches was taken: the next good one is block 3.
+    s.offer(t0, &batch(1, 2)).unwrap();
+    assert_eq!(s.figures().received, 4);
+}
+
+#[test]
+fn the_end_sends_the_end_block_and_the_closing_text() {
+    let t0 = Instant::now();
+    let mut s = Stream::new(settings(), t0);
+    s.offer(
+        t0,
+        &Batch {
+            seq: 0,
+            blocks: blocks(2),
+            end: true,
+        },
+    )
+    .unwrap();
+    // A short stream ended by its producer is sent whole, priming or not.
+    let c = s.take_chunks();
+    assert!(
+        matches!(c.first(), Some(Chunk::Primed { text, .. }) if text == &Bytes::from_static(b"G05\n")),
+        "{c:?}"
+    );
+    assert_eq!(c.get(1), Some(&Chunk::Binary(Bytes::from(vec![0u8; 5]))));
+    assert_eq!(c.last(), Some(&Chunk::Text(Bytes::from_static(b"M30\n"))));
+    assert!(s.is_closing());
+    assert_eq!(s.credits(), 0);
+    assert!(matches!(
+        s.offer(t0, &batch(1, 1)),
+        Err(BatchError::Ended { .. })
+    ));
+}
+
+#[test]
+fn a_stream_lost_before_its_g05_block_sends_nothing() {
+    let t0 = Instant::now();
+    let mut s = Stream::new(settings(), t0);
+    s.offer(t0, &batch(0, 2)).unwrap();
+    s.finish(EndReason::ProducerLost);
+    assert!(s.take_chunks().is_empty());
+    assert_eq!(s.state(), StreamState::Failed);
+}
+
+#[test]
+fn underruns_are_estimated_from_the_line_and_the_unit_time() {
+    let t0 = Instant::now();
+    let ms = Duration::from_millis;
+    let mut s = Stream::new(settings(), t0);
+    s.offer(t0, &batch(0, 4)).unwrap();
+    s.take_chunks();
+    // The G05 block and four blocks on the line at t0.
+    s.on_sent(t0, 4 + 20);
+    // 8 ms slots: at 40 ms five slots have passed, four found a block (judged with the
+    // estimate's lag).
+    s.tick(t0 + ms(40) + ESTIMATE_LAG);
+    let f = s.figures();
+    assert_eq!((f.cnc_buffer, f.underruns), (0, 1));
+    // A producer silent for the idle time with the CNC dry is taken as gone.
+    assert_eq!(s.tick(t0 + ms(1000)), None);
+    assert_eq!(s.tick(t0 + ms(2000)), Some(EndReason::ProducerIdle));
+}
+
+#[test]
+fn a_stream_that_gets_no_batch_within_the_idle_time_ends() {
+    let t0 = Instant::now();
+    let ms = Duration::from_millis;
+    let mut s = Stream::new(settings(), t0);
+    assert_eq!(s.tick(t0 + ms(1999)), None);
+    assert_eq!(s.tick(t0 + ms(2000)), Some(EndReason::NoBatch));
+    // One batch, and the rule is the CNC's: silence alone ends nothing before the G05 block.
+    let mut s = Stream::new(settings(), t0);
+    s.offer(t0, &batch(0, 4)).unwrap();
+    assert_eq!(s.tick(t0 + ms(5000)), None);
+}
+
+fn figures(underruns: u64, end_reason: Option<EndReason>) -> StreamFigures {
+    StreamFigures {
+        state: StreamState::Streaming,
+        credits: 0,
+        received: 100,
+        on_line: 90,
+        cnc_buffer: 0,
+        underruns,
+        gaps: 0,
+        repeats: 0,
+        refused: 0,
+        next_seq: 1,
+        last_error: None,
+        end_reason,
+    }
+}
+
+#[test]
+fn starvation_and_an_idle_end_raise_alarms_once_per_episode() {
+    let t0 = Instant::now();
+    let ms = Duration::from_millis;
+    let mut w = G05Watch::new();
+    assert!(w.observe(t0, &figures(0, None)).is_empty());
+    let a = w.observe(t0 + ms(100), &figures(3, None));
+    assert!(
+        matches!(a.as_slice(), [G05Alarm::Starving { underruns: 3, .. }]),
+        "{a:?}"
+    );
+    // Rises within the quiet time belong to the same episode.
+    assert!(w.observe(t0 + ms(600), &figures(9, None)).is_empty());
+    assert!(w.observe(t0 + ms(1500), &figures(12, None)).is_empty());
+    assert!(w.observe(t0 + ms(3000), &figures(12, None)).is_empty());
+    // Quiet for longer than STARVATION_QUIET: a new episode.
+    let a = w.observe(t0 + ms(3600), &figures(13, None));
+    assert!(
+        matches!(a.as_slice(), [G05Alarm::Starving { underruns: 13, .. }]),
+        "{a:?}"
+    );
+    assert!(a[0].to_string().contains("starving"), "{}", a[0]);
+    // A producer that fell silent ends the stream: one alarm, however often it is seen.
+    let a = w.observe(t0 + ms(3700), &figures(13, Some(EndReason::ProducerIdle)));
+    assert_eq!(
+        a,
+        [G05Alarm::Idle {
+            reason: EndReason::ProducerIdle
+        }]
+    );
+    assert!(
+        w.observe(t0 + ms(3800), &figures(13, Some(EndReason::ProducerIdle)))
+            .is_empty()
+    );
+    // The producer's own end is no alarm.
+    let mut w = G05Watch::new();
+    assert!(
+        w.observe(t0, &figures(0, Some(EndReason::Producer)))
+            .is_empty()
+    );
+}

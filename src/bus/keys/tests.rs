@@ -1,0 +1,82 @@
+use super::*;
+
+#[test]
+fn every_built_key_is_a_valid_key_expression() {
+    let k = CellKeys::new("factory/a", "c1").unwrap();
+    let keys = [
+        k.machine("m"),
+        k.leaf("m", MachineLeaf::Alarm),
+        k.job_events("m", "m-x-1"),
+        k.program("O1.nc"),
+        k.any_leaf(MachineLeaf::Status),
+        k.any_job_events(),
+        k.any_program(),
+        k.gateway(),
+        k.admin(),
+        k.all(),
+        k.any_machine(),
+        k.leaf("m", MachineLeaf::G05),
+        k.g05("m", "s", G05Part::Blocks),
+        k.any_g05(G05Part::Status),
+        k.every_g05_key(),
+        k.plc_area("plc-1", PlcArea::Tag),
+        k.any_plc_area(PlcArea::Mem),
+        k.any_plc(),
+        gateway_selector("factory/a", "*"),
+    ];
+    for key in keys {
+        assert!(keyexpr::new(key.as_str()).is_ok(), "{key}");
+    }
+}
+
+#[test]
+fn route_patterns_take_in_their_keys_and_no_others() {
+    let k = CellKeys::new("cellgate", "c").unwrap();
+    let includes = |pattern: &str, key: &str| {
+        keyexpr::new(pattern)
+            .unwrap()
+            .includes(keyexpr::new(key).unwrap())
+    };
+    let g05 = k.every_g05_key();
+    assert!(includes(&g05, &k.leaf("m1", MachineLeaf::G05)));
+    assert!(includes(&g05, &k.g05("m1", "s-7", G05Part::Status)));
+    assert!(includes(&g05, &k.g05("m1", "s-7", G05Part::Blocks)));
+    assert!(includes(&g05, &k.g05("m1", "s-7", G05Part::Producer)));
+    assert!(!includes(&g05, &k.leaf("m1", MachineLeaf::Do)));
+    let tags = k.any_plc_area(PlcArea::Tag);
+    assert!(includes(&tags, "cellgate/c/plc/plc-1/tag/door"));
+    assert!(!includes(&tags, "cellgate/c/plc/plc-1/mem/D/100"));
+    assert!(includes(&k.any_plc(), "cellgate/c/plc/plc-1/mem/D/100"));
+    assert!(includes(&k.any_machine(), &k.machine("m1")));
+    assert!(!includes(
+        &k.any_machine(),
+        &k.leaf("m1", MachineLeaf::Status)
+    ));
+    assert_eq!(gateway_selector("cellgate", "c"), k.gateway());
+    assert_eq!(cell_of_gateway_key("cellgate", &k.gateway()), Some("c"));
+    assert_eq!(
+        cell_of_gateway_key("cellgate", "cellgate/a/b/gateway"),
+        None
+    );
+}
+
+#[test]
+fn wildcard_queries_take_in_matching_keys() {
+    let k = CellKeys::new("cellgate", "c").unwrap();
+    let q = KeyExpr::new("cellgate/c/machine/*/status").unwrap();
+    assert!(intersects(&q, &k.leaf("m1", MachineLeaf::Status)));
+    assert!(!intersects(&q, &k.leaf("m1", MachineLeaf::Di)));
+    let all = KeyExpr::new("cellgate/c/**").unwrap();
+    assert!(intersects(&all, &k.program("p")));
+}
+
+#[test]
+fn plain_chunks_are_what_zenoh_takes_as_one_chunk_without_wildcards() {
+    for chunk in [
+        "mill-1", "a b", "@admin", "O1234.nc", "x+y", "", "a/b", "*", "**", "$*", "a$*b", "a?",
+        "a#", "ä", "-", ".", "..",
+    ] {
+        let zenoh = !chunk.contains('/') && keyexpr::new(chunk).is_ok_and(|k| !k.is_wild());
+        assert_eq!(is_plain_chunk(chunk), zenoh, "{chunk:?}");
+    }
+}

@@ -1,0 +1,105 @@
+//! What a machine's task records in the cell's history: a job once it ended, alarms, the
+//! link's state and what the CNC is doing when they change, a G05 stream once it is over.
+
+use cellgate_core::history::activity;
+use cellgate_core::pb::{self, HistoryKind, history_record::Record, job_event::Kind};
+
+use crate::history::History;
+
+/// A finished job as the history keeps it; `None` for an event that does not end a job.
+pub(crate) fn job_history(event: &pb::JobEvent) -> Option<pb::JobHistory> {
+    let origin = event.origin.clone().unwrap_or_default();
+    let mut h = pb::JobHistory {
+        job_id: event.job_id.clone(),
+        ended_unix_ms: event.unix_ms,
+        ..Default::default()
+    };
+    match event.kind.as_ref()? {
+        Kind::Completed(c) => {
+            h.outcome = pb::JobOutcome::Completed as i32;
+            h.bytes_sent = c.bytes_sent;
+            h.bytes_total = c.bytes_sent;
+        }
+        Kind::Failed(f) => {
+            h.outcome = pb::JobOutcome::Failed as i32;
+            h.bytes_sent = f.byte_offset;
+            h.reason = f.reason.clone();
+            h.code = f.code;
+            h.alarm_number = f.alarm_number.clone();
+        }
+        Kind::Cancelled(c) => {
+            h.outcome = pb::JobOutcome::Cancelled as i32;
+            h.bytes_sent = c.byte_offset;
+            h.reason = if c.by.is_empty() {
+                "cancelled".to_string()
+            } else {
+                format!("cancelled by {}", c.by)
+            };
+        }
+        Kind::Queued(_) | Kind::Started(_) | Kind::Progress(_) => return None,
+    }
+    h.origin = Some(origin);
+    Some(h)
+}
+
+/// The last states recorded of one machine, so that only changes are recorded.
+#[derive(Debug, Default)]
+pub(crate) struct Recorder {
+    link: Option<i32>,
+    activity: Option<i32>,
+    /// The G05 stream whose end was recorded last.
+    g05_ended: Option<String>,
+    /// Job sizes seen in `started` events, for the record of their end.
+    totals: std::collections::HashMap<String, u64>,
+}
+
+impl Recorder {
+    /// Records what changed in `status`.
+    pub fn status(&mut self, history: &History, machine: &str, status: &pb::MachineStatus) {
+        if !history.enabled() {
+            return;
+        }
+        if self.link != Some(status.link_state) {
+            self.link = Some(status.link_state);
+            history.event(machine, HistoryKind::Link, Record::Link(status.link_state));
+        }
+        let a = activity(status) as i32;
+        if self.activity != Some(a) {
+            self.activity = Some(a);
+            history.event(machine, HistoryKind::Cnc, Record::Cnc(a));
+        }
+        if let Some(g) = &status.g05
+            && g.end_reason != pb::G05EndReason::Unspecified as i32
+            && self.g05_ended.as_deref() != Some(g.stream_id.as_str())
+        {
+            self.g05_ended = Some(g.stream_id.clone());
+            history.event(machine, HistoryKind::G05, Record::G05(g.clone()));
+        }
+    }
+
+    /// Records a job that ended.
+    pub fn job(&mut self, history: &History, machine: &str, event: &pb::JobEvent) {
+        if !history.enabled() {
+            return;
+        }
+        if let Some(Kind::Started(s)) = &event.kind {
+            self.totals
+                .insert(event.job_id.clone(), s.bytes_total.unwrap_or(0));
+            return;
+        }
+        if let Some(mut h) = job_history(event) {
+            if let Some(total) = self.totals.remove(&event.job_id) {
+                h.bytes_total = total;
+            }
+            history.event(machine, HistoryKind::Job, Record::Job(h));
+        }
+    }
+
+    /// Records an alarm.
+    pub fn alarm(history: &History, machine: &str, alarm: &pb::AlarmEvent) {
+        history.event(machine, HistoryKind::Alarm, Record::Alarm(alarm.clone()));
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,305 @@
+//! The client side of the simulated machines' controls: `cellgate sim state|di|alarm|reset|
+//! read|hold|auto|punch`, over the keys of `crate::bus::route_sim`.
+
+use std::path::PathBuf;
+
+use clap::{Subcommand, ValueEnum};
+use serde_json::{Value, json};
+
+use super::cli::{ClientCommand, ConnectArgs, Io};
+use super::{Client, ClientError, parse_byte, render};
+use crate::bus::keys::SimLeaf;
+use crate::bus::payload::{BusMessage, encoding};
+use cellgate_core::pb;
+
+impl Client {
+    /// Gives a simulated machine a control (or, for [`SimLeaf::State`], reads its state) and
+    /// returns its state once the simulated board took it.
+    pub async fn sim_control<M: BusMessage>(
+        &self,
+        machine: &str,
+        leaf: SimLeaf,
+        payload: Option<&M>,
+    ) -> Result<pb::SimState, ClientError> {
+        Self::machine_arg(machine)?;
+        let key = self.keys().sim(machine, leaf);
+        let payload = payload.map(|m| (m.encode_to_vec(), encoding::<M>()));
+        self.get_one_pub(&format!("sim {} of {machine}", leaf.chunk()), &key, payload)
+            .await
+    }
+
+    /// The state of every simulated machine of the cell, sorted by name.
+    pub async fn sim_states(&self) -> Result<Vec<pb::SimState>, ClientError> {
+        let key = self.keys().sim("*", SimLeaf::State);
+        let mut all: Vec<pb::SimState> = self
+            .get_all_pub("simulated machines", &key, None)
+            .await?
+            .into_iter()
+            .map(|(_, s)| s)
+            .collect();
+        all.sort_by(|a, b| a.machine.cmp(&b.machine));
+        Ok(all)
+    }
+}
+
+/// A simulated machine's state in one line.
+pub fn state_text(s: &pb::SimState) -> String {
+    let mut t = format!(
+        "{} (simulated, board {}): CNC {}, {}, autostart {}; DI {}, DO {}; {} buffered; {} \
+         program(s) read",
+        s.machine,
+        s.board_link,
+        if s.reading { "reading" } else { "not reading" },
+        if s.alarm { "IN ALARM" } else { "no alarm" },
+        if s.autostart { "on" } else { "off" },
+        render::byte_image(s.di),
+        render::byte_image(s.do_image),
+        render::bytes(s.buffered),
+        s.programs_read,
+    );
+    if !s.last_program.is_empty() {
+        t.push_str(&format!(", the last {}", s.last_program));
+    }
+    if s.punched_bytes > 0 {
+        t.push_str(&format!("; {} punched", render::bytes(s.punched_bytes)));
+    }
+    t
+}
+
+/// A simulated machine's state as JSON.
+pub fn state_json(s: &pb::SimState) -> Value {
+    json!({
+        "machine": s.machine, "reading": s.reading, "alarm": s.alarm,
+        "autostart": s.autostart, "di": s.di, "do_image": s.do_image, "buffered": s.buffered,
+        "programs_read": s.programs_read, "last_program": s.last_program,
+        "punched_bytes": s.punched_bytes, "board_link": s.board_link,
+    })
+}
+
+/// `on` or `off`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
+}
+
+/// The controls of the simulated machines (`kind = "sim"`) of a running cell: what an
+/// operator does at the CNC.
+#[derive(Debug, Clone, Subcommand)]
+pub enum SimControl {
+    /// A simulated machine's state (default: every simulated machine of the cell): reading,
+    /// alarm, autostart, DI, DO, buffer, programs read.
+    State {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The machine; default every simulated machine.
+        #[arg(value_name = "MACHINE")]
+        machine: Option<String>,
+        /// Print JSON (an array of machine, reading, alarm, autostart, di, do_image, ...).
+        #[arg(long)]
+        json: bool,
+    },
+    /// Set the DI image a simulated board reports (Protocol A family); read it with
+    /// `cellgate di MACHINE`.
+    Di {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The machine.
+        #[arg(value_name = "MACHINE")]
+        machine: String,
+        /// The DI bits: 0x.. hex, 0b.. binary or decimal, 0..=255.
+        #[arg(value_name = "VALUE", value_parser = parse_byte)]
+        value: u8,
+        /// Print the machine's state as JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Raise a CNC alarm on a simulated machine. With autostart on, its operator resets it
+    /// once the host has seen it; with `sim auto MACHINE off` it stays until `sim reset`.
+    Alarm {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The machine.
+        #[arg(value_name = "MACHINE")]
+        machine: String,
+        /// Print the machine's state as JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Reset a simulated CNC: its alarm cleared, its buffer emptied (a job being sent is
+    /// cancelled by the reset).
+    Reset {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The machine.
+        #[arg(value_name = "MACHINE")]
+        machine: String,
+        /// Print the machine's state as JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Cycle start: the simulated CNC reads from its buffer, so a waiting job starts
+    /// (refused while the CNC is in alarm).
+    Read {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The machine.
+        #[arg(value_name = "MACHINE")]
+        machine: String,
+        /// Print the machine's state as JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Feed hold: the simulated CNC stops reading; its buffer is kept.
+    Hold {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The machine.
+        #[arg(value_name = "MACHINE")]
+        machine: String,
+        /// Print the machine's state as JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Autostart on or off. On (the default cell's machines start so), the operator starts
+    /// every read and resets every alarm by himself; off, only `sim read` and `sim reset` do.
+    Auto {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The machine.
+        #[arg(value_name = "MACHINE")]
+        machine: String,
+        /// on or off.
+        #[arg(value_enum, value_name = "ON|OFF")]
+        on: OnOff,
+        /// Print the machine's state as JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Make a simulated CNC punch a program out to the gateway (Protocol B family): it
+    /// appears on the machine's punch key and, by default, in the program library.
+    Punch {
+        #[command(flatten)]
+        connect: ConnectArgs,
+        /// The machine.
+        #[arg(value_name = "MACHINE")]
+        machine: String,
+        /// The program: plain text from the tape-start % through the EOR % (at most 64 KiB);
+        /// the gateway encodes it in the machine's code.
+        #[arg(value_name = "FILE")]
+        file: PathBuf,
+        /// Print the machine's state as JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+impl ClientCommand for SimControl {
+    fn connect_args(&self) -> &ConnectArgs {
+        match self {
+            SimControl::State { connect, .. }
+            | SimControl::Di { connect, .. }
+            | SimControl::Alarm { connect, .. }
+            | SimControl::Reset { connect, .. }
+            | SimControl::Read { connect, .. }
+            | SimControl::Hold { connect, .. }
+            | SimControl::Auto { connect, .. }
+            | SimControl::Punch { connect, .. } => connect,
+        }
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        let none: Option<&pb::SimState> = None;
+        let (state, json) = match self {
+            SimControl::State {
+                machine: None,
+                json,
+                ..
+            } => {
+                let all = client.sim_states().await?;
+                if *json {
+                    let v: Vec<Value> = all.iter().map(state_json).collect();
+                    let _ = writeln!(io.out, "{}", Value::Array(v));
+                } else if all.is_empty() {
+                    let _ = writeln!(io.out, "no simulated machine answered");
+                } else {
+                    for s in &all {
+                        let _ = writeln!(io.out, "{}", state_text(s));
+                    }
+                }
+                return Ok(0);
+            }
+            SimControl::State {
+                machine: Some(m),
+                json,
+                ..
+            } => (client.sim_control(m, SimLeaf::State, none).await?, *json),
+            SimControl::Di {
+                machine,
+                value,
+                json,
+                ..
+            } => {
+                let di = pb::SimDi {
+                    value: u32::from(*value),
+                };
+                (
+                    client.sim_control(machine, SimLeaf::Di, Some(&di)).await?,
+                    *json,
+                )
+            }
+            SimControl::Alarm { machine, json, .. } => (
+                client.sim_control(machine, SimLeaf::Alarm, none).await?,
+                *json,
+            ),
+            SimControl::Reset { machine, json, .. } => (
+                client.sim_control(machine, SimLeaf::Reset, none).await?,
+                *json,
+            ),
+            SimControl::Read { machine, json, .. } => (
+                client.sim_control(machine, SimLeaf::Read, none).await?,
+                *json,
+            ),
+            SimControl::Hold { machine, json, .. } => (
+                client.sim_control(machine, SimLeaf::Hold, none).await?,
+                *json,
+            ),
+            SimControl::Auto {
+                machine, on, json, ..
+            } => {
+                let a = pb::SimAutostart {
+                    on: *on == OnOff::On,
+                };
+                let s = client
+                    .sim_control(machine, SimLeaf::Autostart, Some(&a))
+                    .await?;
+                (s, *json)
+            }
+            SimControl::Punch {
+                machine,
+                file,
+                json,
+                ..
+            } => {
+                let program = tokio::fs::read(file)
+                    .await
+                    .map_err(|source| ClientError::File {
+                        path: file.clone(),
+                        op: "read",
+                        source,
+                    })?;
+                let p = pb::SimPunch { program };
+                let s = client
+                    .sim_control(machine, SimLeaf::Punch, Some(&p))
+                    .await?;
+                (s, *json)
+            }
+        };
+        if json {
+            let _ = writeln!(io.out, "{}", state_json(&state));
+        } else {
+            let _ = writeln!(io.out, "{}", state_text(&state));
+        }
+        Ok(0)
+    }
+}

@@ -1,0 +1,71 @@
+//! The console's pages, compiled into the binary: nothing is fetched from anywhere else
+//! (the Content-Security-Policy says so to the browser too).
+
+use axum::extract::{Path, Request};
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+
+/// The files under `assets/`.
+static FILES: include_dir::Dir<'_> =
+    include_dir::include_dir!("$CARGO_MANIFEST_DIR/src/console/assets");
+
+fn kind(name: &str) -> &'static str {
+    match name.rsplit_once('.').map(|(_, e)| e) {
+        Some("html") => "text/html; charset=utf-8",
+        Some("js") => "text/javascript; charset=utf-8",
+        Some("css") => "text/css; charset=utf-8",
+        Some("svg") => "image/svg+xml",
+        Some("png") => "image/png",
+        _ => "application/octet-stream",
+    }
+}
+
+fn serve(name: &str) -> Response {
+    // One level only: a name with a separator is no asset.
+    if name.contains(['/', '\\']) {
+        return (StatusCode::NOT_FOUND, "no such file\n").into_response();
+    }
+    match FILES.get_file(name) {
+        Some(f) => ([(header::CONTENT_TYPE, kind(name))], f.contents()).into_response(),
+        None => (StatusCode::NOT_FOUND, "no such file\n").into_response(),
+    }
+}
+
+/// `/`: the single page.
+pub async fn index() -> Response {
+    serve("index.html")
+}
+
+/// `/assets/FILE`.
+pub async fn file(Path(name): Path<String>) -> Response {
+    serve(&name)
+}
+
+/// Headers every answer carries: only this origin's scripts, styles and connections; no
+/// framing; no caching of the API's answers.
+pub async fn headers(req: Request, next: Next) -> Response {
+    let api = req.uri().path().starts_with("/api/");
+    let mut r = next.run(req).await;
+    let h = r.headers_mut();
+    h.insert(
+        header::CONTENT_SECURITY_POLICY,
+        HeaderValue::from_static(
+            "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; \
+             connect-src 'self'; frame-ancestors 'none'; base-uri 'none'; form-action 'self'",
+        ),
+    );
+    h.insert(
+        header::X_CONTENT_TYPE_OPTIONS,
+        HeaderValue::from_static("nosniff"),
+    );
+    h.insert(
+        header::REFERRER_POLICY,
+        HeaderValue::from_static("no-referrer"),
+    );
+    h.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
+    if api {
+        h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    }
+    r
+}

@@ -1,0 +1,418 @@
+//! The web console (docs/console.md): pages for the floor and the office, served over HTTP(S)
+//! by axum, built only from the public bus contract.
+//!
+//! The console is a client of the bus like the command line: it asks the cells' gateways
+//! with gets on their keys ([`crate::client::Client`]), subscribes to what they publish
+//! ([`live`]), and acts as each browser user: their roles decide what the console lets them
+//! do ([`auth`]), and every request it sends carries their name, so that the cell's audit
+//! trail records them. The gateway serves it for its own cell (`[console]`), on its own
+//! session; `cellgate console` serves every cell behind a router, on a session of its own:
+//! the same code.
+//!
+//! - [`listen`]: HTTP or HTTPS, the peer's client certificate;
+//! - [`auth`]: logins, sessions, CSRF, permissions;
+//! - [`api`]: the JSON API;
+//! - [`live`]: publications coalesced for the pages' event streams;
+//! - [`assets`]: the pages, compiled into the binary.
+
+pub mod api;
+pub mod assets;
+pub mod auth;
+pub mod listen;
+pub mod live;
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::Router;
+use axum::routing::{get, post};
+use prost::Message as _;
+use tokio::sync::Mutex;
+use tokio_util::sync::CancellationToken;
+use zenoh::Session;
+
+use crate::client::Client;
+use crate::telemetry::prometheus::Exposition;
+use cellgate_core::config::{ConsoleConfig, Permission, SecurityConfig};
+use cellgate_core::pb;
+
+use self::auth::{Auth, User};
+use self::listen::{ListenError, PlainListener, TlsListener};
+use self::live::Live;
+
+/// How long the console waits for a gateway's answer.
+const REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
+/// How often the list of cells is asked again at most.
+const DISCOVERY_EVERY: Duration = Duration::from_secs(5);
+
+/// What the console serves and how.
+#[derive(Debug, Clone)]
+pub struct ConsoleSettings {
+    pub console: ConsoleConfig,
+    /// The bus prefix `P` of the cells.
+    pub prefix: String,
+    /// The one cell served (the gateway's own); `None`: every cell that answers (site view).
+    pub cell: Option<String>,
+    /// Users, roles and the certificates for HTTPS.
+    pub security: SecurityConfig,
+}
+
+/// The console's state, shared by every request.
+pub struct Console {
+    session: Session,
+    prefix: String,
+    only: Option<String>,
+    auth: Auth,
+    live: Live,
+    /// Cells found, with their admin documents, and when they were last asked for.
+    cells: Mutex<(Instant, BTreeMap<String, serde_json::Value>)>,
+    clients: Mutex<BTreeMap<String, Client>>,
+    https: bool,
+    session_max_s: u64,
+    metrics: Option<Exposition>,
+    /// Cancelled when the console stops: the pages' event streams end with it.
+    stop: CancellationToken,
+}
+
+impl Console {
+    /// The cells that answer, asked again at most every [`DISCOVERY_EVERY`].
+    async fn refresh(&self) -> BTreeMap<String, serde_json::Value> {
+        let mut cells = self.cells.lock().await;
+        if cells.0.elapsed() < DISCOVERY_EVERY && !cells.1.is_empty() {
+            return cells.1.clone();
+        }
+        let found = match Client::discover(&self.session, &self.prefix, REQUEST_TIMEOUT).await {
+            Ok(f) => f,
+            Err(e) => {
+                tracing::warn!(error = %e, "console: looking for cells failed");
+                Vec::new()
+            }
+        };
+        let found: BTreeMap<String, serde_json::Value> = found
+            .into_iter()
+            .filter(|(c, _)| self.only.as_ref().is_none_or(|o| o == c))
+            .collect();
+        *cells = (Instant::now(), found.clone());
+        found
+    }
+
+    /// The client of `cell`, if its gateway answers.
+    async fn cell(&self, cell: &str) -> Option<Client> {
+        if let Some(c) = self.clients.lock().await.get(cell) {
+            return Some(c.clone());
+        }
+        let admin = self.refresh().await.get(cell).cloned()?;
+        let client = Client::attach(
+            self.session.clone(),
+            &self.prefix,
+            cell,
+            admin,
+            REQUEST_TIMEOUT,
+        )
+        .ok()?;
+        self.clients
+            .lock()
+            .await
+            .insert(cell.to_string(), client.clone());
+        Some(client)
+    }
+
+    /// Adds a request the console refused `user` to the cell's audit trail (as a note: the
+    /// gateway never saw the request itself). Best effort: a cell that keeps no history, or
+    /// a console whose identity may not add notes, leaves it in the console's log only.
+    async fn note_refusal(
+        &self,
+        cell: &str,
+        user: &User,
+        action: &str,
+        p: Permission,
+        target: &str,
+        why: &str,
+    ) {
+        let Some(client) = self.cell(cell).await else {
+            return;
+        };
+        let record = pb::AuditRecord {
+            action: action.to_string(),
+            key: String::new(),
+            target: target.to_string(),
+            detail: format!("refused by the console: needs {}", p.name()),
+            origin: Some(pb::RequestOrigin {
+                user: user.name.clone(),
+                via: "console".to_string(),
+            }),
+            error: why.to_string(),
+            ..Default::default()
+        };
+        let key = client.keys().audit_note();
+        let sent = self
+            .session
+            .get(key.as_str())
+            .payload(record.encode_to_vec())
+            .timeout(REQUEST_TIMEOUT)
+            .await;
+        if let Ok(replies) = sent {
+            while replies.recv_async().await.is_ok() {}
+        }
+    }
+}
+
+/// Why the console stopped.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConsoleError {
+    #[error(transparent)]
+    Listen(#[from] ListenError),
+    #[error("console: subscribing to the cells' publications: {0}")]
+    Subscribe(#[source] zenoh::Error),
+    #[error("console: serving HTTP: {0}")]
+    Serve(#[source] std::io::Error),
+}
+
+/// The console's routes.
+pub fn router(console: Arc<Console>) -> Router {
+    use api::*;
+    let cell = "/api/v1/cells/{cell}";
+    Router::new()
+        .route("/", get(assets::index))
+        .route("/assets/{file}", get(assets::file))
+        .route("/health", get(health))
+        .route("/metrics", get(metrics))
+        .route("/api/v1/me", get(me))
+        .route("/api/v1/login", post(login))
+        .route("/api/v1/logout", post(logout))
+        .route("/api/v1/cells", get(cells))
+        .route(&format!("{cell}/overview"), get(overview))
+        .route(&format!("{cell}/events"), get(events))
+        .route(&format!("{cell}/machines/{{m}}"), get(machine))
+        .route(&format!("{cell}/machines/{{m}}/submit"), post(submit))
+        .route(
+            &format!("{cell}/machines/{{m}}/jobs/{{id}}/cancel"),
+            post(cancel),
+        )
+        .route(&format!("{cell}/machines/{{m}}/do"), post(set_do))
+        .route(&format!("{cell}/programs"), get(programs))
+        .route(
+            &format!("{cell}/programs/{{name}}"),
+            get(program).put(program_put).delete(program_delete),
+        )
+        .route(
+            &format!("{cell}/programs/{{name}}/revisions"),
+            get(revisions),
+        )
+        .route(
+            &format!("{cell}/programs/{{name}}/rev/{{rev}}"),
+            get(revision),
+        )
+        .route(&format!("{cell}/programs/{{name}}/diff"), get(diff))
+        .route(&format!("{cell}/programs/{{name}}/release"), post(release))
+        .route(&format!("{cell}/programs/{{name}}/adopt"), post(adopt))
+        .route(&format!("{cell}/plcs/{{p}}"), get(plc))
+        .route(&format!("{cell}/plcs/{{p}}/tags/{{tag}}"), post(tag_set))
+        .route(
+            &format!("{cell}/plcs/{{p}}/mem/{{station}}/{{module}}/{{address}}"),
+            get(mem),
+        )
+        .route(&format!("{cell}/history"), get(history))
+        .route(&format!("{cell}/audit"), get(audit))
+        .route(&format!("{cell}/utilisation"), get(utilisation))
+        // A program upload is the largest request: programs.max_size is checked by the
+        // gateway; the console takes no more than the contract's largest default.
+        .layer(axum::extract::DefaultBodyLimit::max(
+            usize::try_from(cellgate_core::config::ProgramsConfig::DEFAULT_MAX_SIZE)
+                .unwrap_or(usize::MAX),
+        ))
+        .layer(axum::middleware::from_fn(assets::headers))
+        .with_state(console)
+}
+
+/// How long the console lets requests under way finish when it stops.
+const STOP_GRACE: Duration = Duration::from_secs(5);
+
+/// A console listening, and the URL it is reached at.
+pub struct Served {
+    pub url: String,
+    pub task: tokio::task::JoinHandle<Result<(), ConsoleError>>,
+}
+
+impl Served {
+    /// Waits for the console to stop (its stop token cancelled), at most [`STOP_GRACE`]
+    /// for the requests under way; then it is stopped whatever they do.
+    pub async fn join(mut self) {
+        if tokio::time::timeout(STOP_GRACE, &mut self.task)
+            .await
+            .is_err()
+        {
+            tracing::warn!("console: requests still under way when it stopped; cut short");
+            self.task.abort();
+        }
+    }
+}
+
+/// Serves the console on `session` until `stop`. Binds at once (so a port taken is an error
+/// now), then serves in a task.
+pub async fn serve(
+    session: Session,
+    settings: ConsoleSettings,
+    metrics: Option<Exposition>,
+    stop: CancellationToken,
+) -> Result<Served, ConsoleError> {
+    let c = &settings.console;
+    let https = settings.security.tls.is_some();
+    let tcp = listen::bind(&c.listen).await?;
+    let local: SocketAddr = tcp.local_addr().map_err(ConsoleError::Serve)?;
+    let live = Live::start(
+        &session,
+        &settings.prefix,
+        settings.cell.as_deref(),
+        stop.clone(),
+    )
+    .await
+    .map_err(ConsoleError::Subscribe)?;
+    let console = Arc::new(Console {
+        session,
+        prefix: settings.prefix.clone(),
+        only: settings.cell.clone(),
+        auth: Auth::new(
+            &settings.security,
+            Duration::from_secs(u64::from(c.session_idle_minutes) * 60),
+            Duration::from_secs(u64::from(c.session_hours) * 3600),
+        ),
+        live,
+        cells: Mutex::new((Instant::now() - DISCOVERY_EVERY * 2, BTreeMap::new())),
+        clients: Mutex::new(BTreeMap::new()),
+        https,
+        session_max_s: u64::from(c.session_hours) * 3600,
+        metrics,
+        stop: stop.clone(),
+    });
+    let app = router(console).into_make_service_with_connect_info::<listen::Peer>();
+    let url = format!("{}://{}/", if https { "https" } else { "http" }, local);
+    let task = if let Some(tls) = &settings.security.tls {
+        let listener =
+            TlsListener::new(tcp, listen::acceptor(tls)?).map_err(ConsoleError::Serve)?;
+        tokio::spawn(async move {
+            axum::serve(listener, app)
+                .with_graceful_shutdown(async move { stop.cancelled().await })
+                .await
+                .map_err(ConsoleError::Serve)
+        })
+    } else {
+        let listener = PlainListener(tcp);
+        tokio::spawn(async move {
+            axum::serve(listener, app)
+                .with_graceful_shutdown(async move { stop.cancelled().await })
+                .await
+                .map_err(ConsoleError::Serve)
+        })
+    };
+    Ok(Served { url, task })
+}
+
+impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, PlainListener>>
+    for listen::Peer
+{
+    fn connect_info(s: axum::serve::IncomingStream<'_, PlainListener>) -> Self {
+        s.remote_addr().clone()
+    }
+}
+
+impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, TlsListener>>
+    for listen::Peer
+{
+    fn connect_info(s: axum::serve::IncomingStream<'_, TlsListener>) -> Self {
+        s.remote_addr().clone()
+    }
+}
+
+/// `cellgate console`: the site view, every cell behind the endpoint.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SiteArgs {
+    #[command(flatten)]
+    pub connect: crate::client::cli::ConnectArgs,
+    /// Where the console listens, ADDRESS:PORT (default: console.listen of --config, else
+    /// 127.0.0.1:7480).
+    #[arg(long, value_name = "ADDR")]
+    pub listen: Option<String>,
+    /// A cell file whose [security] (users file, roles, TLS certificate for HTTPS) and
+    /// [console] settings the console takes; without one, it serves loopback only and every
+    /// user may do what the console's own bus identity may.
+    #[arg(short = 'c', long, value_name = "FILE")]
+    pub config: Option<std::path::PathBuf>,
+}
+
+/// Why the site console could not start.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SiteError {
+    #[error("{0}")]
+    Config(String),
+    #[error(transparent)]
+    Client(#[from] crate::client::ClientError),
+    #[error(transparent)]
+    Console(#[from] ConsoleError),
+}
+
+/// Runs the site console until `shutdown`: a session of its own to the endpoint, every cell
+/// under the prefix.
+pub async fn site(
+    args: &SiteArgs,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<(), SiteError> {
+    let (mut console, security) = match &args.config {
+        None => (ConsoleConfig::default(), SecurityConfig::default()),
+        Some(path) => {
+            let cell = cellgate_core::config::CellConfig::load(path)
+                .map_err(|e| SiteError::Config(format!("{}: {e}", path.display())))?;
+            (cell.console.unwrap_or_default(), cell.security)
+        }
+    };
+    if let Some(listen) = &args.listen {
+        console.listen = listen.clone();
+    }
+    let secured = security.tls.is_some() || security.users_file.is_some();
+    if !secured && !console.is_loopback() && !console.allow_remote {
+        return Err(SiteError::Config(format!(
+            "--listen {}: beyond this host without [security] anyone who reaches it could do \
+             anything; listen on 127.0.0.1, or give --config a cell file with [security] \
+             (or console.allow_remote = true)",
+            console.listen
+        )));
+    }
+    let options = args.connect.options()?;
+    let config = crate::client::client_config(&options.endpoint, &options.security)?;
+    let session =
+        zenoh::open(config)
+            .await
+            .map_err(|source| crate::client::ClientError::Unreachable {
+                endpoint: options.endpoint.clone(),
+                secured: !options.security.is_empty(),
+                source,
+            })?;
+    let stop = CancellationToken::new();
+    let settings = ConsoleSettings {
+        console,
+        prefix: options.prefix.clone(),
+        cell: options.cell.clone(),
+        security,
+    };
+    let served = match serve(session.clone(), settings, None, stop.clone()).await {
+        Ok(s) => s,
+        Err(e) => {
+            let _ = session.close().await;
+            return Err(e.into());
+        }
+    };
+    tracing::info!(url = %served.url, endpoint = %options.endpoint, "site console at {}", served.url);
+    eprintln!(
+        "cellgate console at {} (cells behind {})",
+        served.url, options.endpoint
+    );
+    shutdown.await;
+    stop.cancel();
+    served.join().await;
+    let _ = session.close().await;
+    Ok(())
+}

@@ -1,0 +1,419 @@
+use super::*;
+use cellgate_core::pb::RevisionState;
+
+#[test]
+fn names_are_one_safe_key_chunk() {
+    for ok in ["O1234", "part-7.nc", "a", "X_1+2", &"n".repeat(128)] {
+        assert!(validate_name(ok).is_ok(), "{ok}");
+    }
+    for bad in [
+        "",
+        ".",
+        "..",
+        "../etc",
+        "a/b",
+        ".hidden",
+        "-x",
+        "a*",
+        "**",
+        "a$b",
+        "a?b",
+        "a#b",
+        "sp ace",
+        "@admin",
+        "é",
+        &"n".repeat(129),
+    ] {
+        assert!(validate_name(bad).is_err(), "{bad:?}");
+    }
+}
+
+#[tokio::test]
+async fn store_read_list_remove() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 100);
+    assert!(lib.list().await.unwrap().is_empty());
+    let e = lib.store("O1", b"%\nO1\n%").await.unwrap();
+    assert_eq!(e.size, 6);
+    lib.store("O2", b"%\nO2\n%").await.unwrap();
+    lib.store("O1", b"%\nO1\nM30\n%").await.unwrap();
+    assert_eq!(lib.read("O1").await.unwrap(), b"%\nO1\nM30\n%");
+    let names: Vec<_> = lib
+        .list()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|e| e.name)
+        .collect();
+    assert_eq!(names, ["O1", "O2"]);
+    lib.remove("O1").await.unwrap();
+    assert!(matches!(
+        lib.read("O1").await,
+        Err(LibraryError::NotFound { .. })
+    ));
+    assert!(matches!(
+        lib.remove("O1").await,
+        Err(LibraryError::NotFound { .. })
+    ));
+    assert!(matches!(
+        lib.store("big", &[b'x'; 101]).await,
+        Err(LibraryError::TooLarge { size: 101, .. })
+    ));
+    assert!(matches!(
+        lib.store("../x", b"x").await,
+        Err(LibraryError::InvalidName { .. })
+    ));
+    // No temporary file is left behind, and stray files are not listed.
+    std::fs::write(dir.path().join(".junk"), b"x").unwrap();
+    let names: Vec<_> = lib
+        .list()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|e| e.name)
+        .collect();
+    assert_eq!(names, ["O2"]);
+}
+
+#[tokio::test]
+async fn store_new_never_replaces() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 100);
+    lib.store_new("m-O1", b"%\nO1\n%").await.unwrap();
+    assert!(matches!(
+        lib.store_new("m-O1", b"%\nO1\nM30\n%").await,
+        Err(LibraryError::Exists { .. })
+    ));
+    assert_eq!(lib.read("m-O1").await.unwrap(), b"%\nO1\n%");
+    // Racing writers: exactly one wins each name, and no temporary file is left.
+    let tries = (0..8).map(|i| {
+        let lib = lib.clone();
+        tokio::spawn(async move { lib.store_new("m-O2", format!("%{i}%").as_bytes()).await })
+    });
+    let mut won = 0;
+    for t in tries {
+        if t.await.unwrap().is_ok() {
+            won += 1;
+        }
+    }
+    assert_eq!(won, 1);
+    let mut files: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n != REVISIONS_DIR)
+        .collect();
+    files.sort();
+    assert_eq!(files, ["m-O1", "m-O2"]);
+    let temp = std::fs::read_dir(dir.path().join(REVISIONS_DIR).join("objects"))
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .ends_with(".tmp")
+        })
+        .count();
+    assert_eq!(temp, 0);
+}
+
+#[tokio::test]
+async fn quotas_count_every_kept_revision_once_per_content() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 100).with_quota(Quota {
+        bytes: Some(150),
+        files: Some(2),
+    });
+    lib.store("A", &[b'x'; 60]).await.unwrap();
+    // A's second revision: both are kept, so both count.
+    lib.store("A", &[b'x'; 70]).await.unwrap();
+    let e = lib.store("B", &[b'y'; 21]).await.unwrap_err();
+    assert!(
+        matches!(
+            e,
+            LibraryError::QuotaExceeded {
+                what: "bytes",
+                would: 151,
+                limit: 150,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("programs.quota_bytes = 150"), "{e}");
+    // The same content as a kept revision takes no more room.
+    lib.store("B", &[b'x'; 60]).await.unwrap();
+    lib.store("B", &[b'y'; 20]).await.unwrap();
+    let e = lib.store_new("C", b"z").await.unwrap_err();
+    assert!(
+        matches!(
+            e,
+            LibraryError::QuotaExceeded {
+                what: "files",
+                would: 3,
+                limit: 2,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    // Nothing of the refused stores is left.
+    let names: Vec<String> = lib
+        .list()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|e| e.name)
+        .collect();
+    assert_eq!(names, ["A", "B"]);
+    assert_eq!(
+        std::fs::read_dir(dir.path().join(REVISIONS_DIR).join("objects"))
+            .unwrap()
+            .count(),
+        3
+    );
+}
+
+fn by(user: &str) -> pb::RequestOrigin {
+    pb::RequestOrigin {
+        user: user.to_string(),
+        via: "test".to_string(),
+    }
+}
+
+async fn store_by(lib: &ProgramLibrary, name: &str, bytes: &[u8], user: &str) -> ProgramEntry {
+    lib.store_as(
+        name,
+        Store {
+            bytes,
+            by: by(user),
+            comment: format!("by {user}"),
+            adopted: None,
+        },
+    )
+    .await
+    .unwrap()
+}
+
+#[tokio::test]
+async fn every_store_makes_a_revision_readable_by_number_or_hash() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    let one = store_by(&lib, "O1", b"%\nO1\nG00X0\n%", "alice").await;
+    let r1 = one.latest.clone().unwrap();
+    assert_eq!(r1.number, 1);
+    assert_eq!(r1.sha256, sha256_hex(b"%\nO1\nG00X0\n%"));
+    assert_eq!(r1.by.as_ref().unwrap().user, "alice");
+    assert_eq!(r1.state(), RevisionState::Draft);
+    let two = store_by(&lib, "O1", b"%\nO1\nG00X1\n%", "bob").await;
+    assert_eq!(two.latest.as_ref().unwrap().number, 2);
+    // The same bytes again make no revision.
+    let again = store_by(&lib, "O1", b"%\nO1\nG00X1\n%", "carol").await;
+    assert_eq!(again.latest.as_ref().unwrap().number, 2);
+    assert_eq!(
+        again.latest.as_ref().unwrap().by.as_ref().unwrap().user,
+        "bob"
+    );
+
+    let revs = lib.revisions("O1").await.unwrap();
+    let numbers: Vec<u32> = revs.revisions.iter().map(|r| r.number).collect();
+    assert_eq!(numbers, [2, 1], "newest first");
+    assert_eq!(lib.read("O1").await.unwrap(), b"%\nO1\nG00X1\n%");
+    let (_, old) = lib.read_revision("O1", "1").await.unwrap();
+    assert_eq!(old, b"%\nO1\nG00X0\n%");
+    let (by_hash, _) = lib.read_revision("O1", &r1.sha256[..10]).await.unwrap();
+    assert_eq!(by_hash.number, 1);
+    let e = lib.read_revision("O1", "9").await.unwrap_err();
+    assert!(matches!(e, LibraryError::NoRevision { .. }), "{e}");
+    assert!(e.to_string().contains("its revisions are 1, 2"), "{e}");
+    assert_eq!(e.code(), pb::ErrorCode::NotFound);
+
+    // Across a restart (a new library on the same directory).
+    drop(lib);
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    let revs = lib.revisions("O1").await.unwrap();
+    assert_eq!(revs.revisions.len(), 2);
+    let three = store_by(&lib, "O1", b"%\nO1\nG00X2\n%", "dave").await;
+    assert_eq!(three.latest.unwrap().number, 3);
+}
+
+#[tokio::test]
+async fn a_removed_program_keeps_its_revisions_and_numbers_go_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    store_by(&lib, "O2", b"%\nA\n%", "a").await;
+    lib.remove_by("O2").await.unwrap();
+    assert!(matches!(
+        lib.read("O2").await,
+        Err(LibraryError::NotFound { .. })
+    ));
+    let revs = lib.revisions("O2").await.unwrap();
+    assert!(revs.removed);
+    assert!(lib.read_revision("O2", "1").await.is_ok());
+    // A job cannot take "the latest" of a removed program.
+    assert!(matches!(
+        lib.revision("O2", "").await,
+        Err(LibraryError::NotFound { .. })
+    ));
+    let back = store_by(&lib, "O2", b"%\nA\n%", "a").await;
+    assert_eq!(back.latest.unwrap().number, 2);
+}
+
+#[tokio::test]
+async fn release_lock_and_unlock_follow_the_rules_and_a_lock_holds() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    store_by(&lib, "O3", b"%\nA\n%", "a").await;
+    let r = lib
+        .set_state(
+            "O3",
+            "",
+            RevisionState::Released,
+            by("qa"),
+            "checked".into(),
+        )
+        .await
+        .unwrap();
+    assert_eq!(r.state(), RevisionState::Released);
+    assert_eq!(r.state_by.as_ref().unwrap().user, "qa");
+    assert_eq!(r.state_comment, "checked");
+    let r = lib
+        .set_state("O3", "1", RevisionState::Locked, by("qa"), String::new())
+        .await
+        .unwrap();
+    assert_eq!(r.state(), RevisionState::Locked);
+    // Locked: nothing replaces or removes it.
+    let e = lib.store("O3", b"%\nB\n%").await.unwrap_err();
+    assert!(matches!(e, LibraryError::Locked { number: 1, .. }), "{e}");
+    assert_eq!(e.code(), pb::ErrorCode::Locked);
+    let e = lib.remove_by("O3").await.unwrap_err();
+    assert!(matches!(e, LibraryError::Locked { .. }), "{e}");
+    assert_eq!(lib.read("O3").await.unwrap(), b"%\nA\n%");
+    // Unlocking (state draft) leaves it released; again, a draft.
+    let r = lib
+        .set_state("O3", "1", RevisionState::Draft, by("qa"), String::new())
+        .await
+        .unwrap();
+    assert_eq!(r.state(), RevisionState::Released);
+    let r = lib
+        .set_state("O3", "1", RevisionState::Draft, by("qa"), String::new())
+        .await
+        .unwrap();
+    assert_eq!(r.state(), RevisionState::Draft);
+    lib.store("O3", b"%\nB\n%").await.unwrap();
+    let e = lib
+        .set_state(
+            "O3",
+            "",
+            RevisionState::Unspecified,
+            by("qa"),
+            String::new(),
+        )
+        .await
+        .unwrap_err();
+    assert!(matches!(e, LibraryError::Transition { .. }), "{e}");
+}
+
+#[tokio::test]
+async fn retention_keeps_the_latest_the_latest_released_and_locked_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000).with_retention(Retention {
+        revisions: 2,
+        days: None,
+    });
+    store_by(&lib, "O4", b"%\n1\n%", "a").await;
+    lib.set_state("O4", "1", RevisionState::Released, by("qa"), String::new())
+        .await
+        .unwrap();
+    store_by(&lib, "O4", b"%\n2\n%", "a").await;
+    lib.set_state("O4", "2", RevisionState::Locked, by("qa"), String::new())
+        .await
+        .unwrap();
+    lib.set_state("O4", "2", RevisionState::Draft, by("qa"), String::new())
+        .await
+        .unwrap();
+    lib.set_state("O4", "2", RevisionState::Draft, by("qa"), String::new())
+        .await
+        .unwrap();
+    for i in 3..=6 {
+        store_by(&lib, "O4", format!("%\n{i}\n%").as_bytes(), "a").await;
+    }
+    let kept: Vec<u32> = lib
+        .revisions("O4")
+        .await
+        .unwrap()
+        .revisions
+        .iter()
+        .map(|r| r.number)
+        .collect();
+    // 5 and 6 are the newest two; 1 is the latest released.
+    assert_eq!(kept, [6, 5, 1]);
+    // The content of dropped revisions is gone, the rest is there.
+    let objects = std::fs::read_dir(dir.path().join(REVISIONS_DIR).join("objects"))
+        .unwrap()
+        .count();
+    assert_eq!(objects, 3);
+}
+
+#[tokio::test]
+async fn a_program_is_adopted_from_another_and_says_where_from() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    store_by(&lib, "O5", b"%\nOLD\n%", "a").await;
+    lib.store_new("lathe-1-O5-20261201T000000Z", b"%\nPUNCHED\n%")
+        .await
+        .unwrap();
+    let e = lib
+        .adopt(
+            "O5",
+            "lathe-1-O5-20261201T000000Z",
+            "",
+            by("op"),
+            String::new(),
+        )
+        .await
+        .unwrap();
+    let r = e.latest.unwrap();
+    assert_eq!(r.number, 2);
+    assert_eq!(r.adopted_from, "lathe-1-O5-20261201T000000Z");
+    assert_eq!(r.adopted_revision, 1);
+    assert!(r.comment.contains("adopted from"), "{}", r.comment);
+    assert_eq!(lib.read("O5").await.unwrap(), b"%\nPUNCHED\n%");
+}
+
+#[tokio::test]
+async fn files_put_in_the_directory_by_hand_become_revisions_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("O6"), b"%\nHAND\n%").unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    lib.create_dir().await.unwrap();
+    let r = lib.revisions("O6").await.unwrap();
+    assert_eq!(r.revisions.len(), 1);
+    assert_eq!(r.revisions[0].by.as_ref().unwrap().user, "(file)");
+    drop(lib);
+    // Edited by hand while the gateway was stopped: the next start makes revision 2.
+    std::fs::write(dir.path().join("O6"), b"%\nHAND 2\n%").unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    lib.create_dir().await.unwrap();
+    let r = lib.revisions("O6").await.unwrap();
+    assert_eq!(r.revisions[0].number, 2);
+    let (_, old) = lib.read_revision("O6", "1").await.unwrap();
+    assert_eq!(old, b"%\nHAND\n%");
+}
+
+#[tokio::test]
+async fn temporary_files_of_an_earlier_run_are_removed_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 100);
+    lib.store("KEEP", b"%\nO1\n%").await.unwrap();
+    // What a crash between write and rename leaves, from another process id.
+    let stale = dir.path().join(".O1234.999999999.3.tmp");
+    std::fs::write(&stale, b"half a prog").unwrap();
+    // A hidden file that is not a temporary file of the library stays.
+    let other = dir.path().join(".keepme");
+    std::fs::write(&other, b"").unwrap();
+    lib.create_dir().await.unwrap();
+    assert!(!stale.exists());
+    assert!(other.exists());
+    assert_eq!(lib.read("KEEP").await.unwrap(), b"%\nO1\n%");
+}

@@ -1,0 +1,527 @@
+//! The console's pages in a real browser (Debian's chromium, driven over chromium-driver's
+//! WebDriver), against a gateway serving the default cell: the overview shows every
+//! machine; a program uploaded, released and sent from the pages reaches the simulated CNC
+//! and its progress bar reaches the end; an alarm raised at the simulated CNC shows without a
+//! reload; a tag's trend moves; a read-only user sees no control to send a program and a
+//! request forged from the page is refused and audited; nothing is fetched from another
+//! origin. Screenshots of the pages are written to `target/console-screenshots/`, and to
+//! `docs/console/` when `CELLGATE_UPDATE_SCREENSHOTS=1`.
+//!
+//! Without `chromedriver` and `chromium` on the PATH (`.ci/run` installs Debian's), each test
+//! says so and checks nothing else.
+
+mod common;
+
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use cellgate_core::config::CellConfig;
+use common::bus::free_port;
+use fantoccini::{Client, ClientBuilder, Locator};
+use serde_json::{Value, json};
+
+/// chromium-driver running for one test; killed when dropped.
+struct Driver {
+    child: Child,
+    url: String,
+}
+
+impl Drop for Driver {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn found(program: &str) -> bool {
+    Command::new("sh")
+        .args(["-c", &format!("command -v {program}")])
+        .stdout(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+/// chromium-driver and a headless chromium session, or `None` (said on stderr) where the
+/// machine has no browser.
+async fn browser() -> Option<(Driver, Client)> {
+    let browser = ["chromium", "chromium-browser", "google-chrome"]
+        .into_iter()
+        .find(|b| found(b));
+    if !found("chromedriver") || browser.is_none() {
+        eprintln!(
+            "SKIPPED: no chromium and chromedriver here (apt-get install chromium chromium-driver; \
+             .ci/run does): the console's pages were not checked in a browser"
+        );
+        return None;
+    }
+    let port = free_port();
+    let child = Command::new("chromedriver")
+        .arg(format!("--port={port}"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("chromedriver starts");
+    let driver = Driver {
+        child,
+        url: format!("http://127.0.0.1:{port}"),
+    };
+    let mut caps = serde_json::Map::new();
+    caps.insert(
+        "goog:chromeOptions".to_string(),
+        json!({"args": [
+            "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+            "--window-size=1280,900", "--no-first-run", "--disable-extensions",
+            "--disable-background-networking", "--disable-sync", "--disable-component-update"
+        ]}),
+    );
+    let connector = hyper_util::client::legacy::connect::HttpConnector::new();
+    let started = Instant::now();
+    loop {
+        match ClientBuilder::new(connector.clone())
+            .capabilities(caps.clone())
+            .connect(&driver.url)
+            .await
+        {
+            Ok(c) => return Some((driver, c)),
+            Err(e) if started.elapsed() < Duration::from_secs(20) => {
+                let _ = e;
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+            Err(e) => panic!("no WebDriver session: {e}"),
+        }
+    }
+}
+
+/// A gateway of the default cell with its console on a port of its own.
+struct Gateway {
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>,
+    url: String,
+    bus: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Gateway {
+    async fn start(edit: impl FnOnce(&mut CellConfig, &std::path::Path)) -> Gateway {
+        let dir = tempfile::tempdir().unwrap();
+        let mut config = CellConfig::embedded_default();
+        let (port, console) = (free_port(), free_port());
+        config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
+        config.programs.dir = dir.path().join("programs");
+        config.console.as_mut().unwrap().listen = format!("127.0.0.1:{console}");
+        edit(&mut config, dir.path());
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let task = tokio::spawn(cellgate::gateway::run(config, async {
+            let _ = stopped.await;
+        }));
+        let url = format!("http://127.0.0.1:{console}");
+        let http = reqwest::Client::new();
+        for _ in 0..300 {
+            if let Ok(r) = http.get(format!("{url}/health")).send().await
+                && r.status() == 200
+            {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        Gateway {
+            stop: Some(stop),
+            task,
+            url,
+            bus: format!("tcp/127.0.0.1:{port}"),
+            _dir: dir,
+        }
+    }
+
+    async fn stop(mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        let _ = tokio::time::timeout(Duration::from_secs(20), self.task).await;
+    }
+}
+
+fn provider() {
+    let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
+}
+
+/// Waits for `css` to match an element.
+async fn wait_css(c: &Client, css: &str) -> fantoccini::elements::Element {
+    c.wait()
+        .at_most(Duration::from_secs(30))
+        .for_element(Locator::Css(css))
+        .await
+        .unwrap_or_else(|e| panic!("no {css} within 30 s: {e}"))
+}
+
+/// Waits until the script (an expression) is truthy.
+async fn wait_js(c: &Client, what: &str, expr: &str) -> Value {
+    let started = Instant::now();
+    loop {
+        let v = c
+            .execute(&format!("return ({expr});"), vec![])
+            .await
+            .unwrap_or(Value::Null);
+        if !matches!(v, Value::Null | Value::Bool(false)) && v != json!("") && v != json!(0) {
+            return v;
+        }
+        if started.elapsed() > Duration::from_secs(60) {
+            panic!("never: {what} ({expr})");
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// Writes the page as a PNG under target/, and under docs/console/ when asked to.
+async fn screenshot(c: &Client, name: &str) {
+    let png = c.screenshot().await.unwrap();
+    let target = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("console-screenshots");
+    std::fs::create_dir_all(&target).unwrap();
+    std::fs::write(target.join(format!("{name}.png")), &png).unwrap();
+    if std::env::var("CELLGATE_UPDATE_SCREENSHOTS").as_deref() == Ok("1") {
+        let docs = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/console");
+        std::fs::create_dir_all(&docs).unwrap();
+        std::fs::write(docs.join(format!("{name}.png")), &png).unwrap();
+    }
+}
+
+/// Every resource the page loaded came from its own origin.
+async fn only_own_origin(c: &Client, base: &str) {
+    let urls = c
+        .execute(
+            "return performance.getEntriesByType('resource').map(e => e.name)\
+             .concat([location.href]);",
+            vec![],
+        )
+        .await
+        .unwrap();
+    for u in urls.as_array().unwrap() {
+        let u = u.as_str().unwrap();
+        assert!(
+            u.starts_with(base),
+            "a request left the console's origin: {u}"
+        );
+    }
+}
+
+const PROGRAM: &str = "%\nO7001(BRACKET)\nN10G00X0Y0\nN20G01X25.F150\nN30Y40.\nN40M30\n%\n";
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
+    provider();
+    let Some((_driver, c)) = browser().await else {
+        return;
+    };
+    let gw = Gateway::start(|_, _| {}).await;
+    c.goto(&format!("{}/#/", gw.url)).await.unwrap();
+
+    // Every machine and the PLC have a tile.
+    for m in ["mill-1", "mill-2", "lathe-1"] {
+        wait_css(
+            &c,
+            &format!("article[data-tile=\"machine\"][data-name=\"{m}\"]"),
+        )
+        .await;
+    }
+    wait_css(&c, "article[data-tile=\"plc\"][data-name=\"plc-1\"]").await;
+    wait_js(
+        &c,
+        "mill-1's link is up",
+        "(document.querySelector('[data-tile=machine][data-name=\"mill-1\"] [data-field=link]')||{}).textContent?.toLowerCase().includes('idle')",
+    )
+    .await;
+    screenshot(&c, "overview").await;
+
+    // Upload a program from the page.
+    let file = gw._dir.path().join("O7001.nc");
+    std::fs::write(&file, PROGRAM).unwrap();
+    c.goto(&format!("{}/#/cell/demo/programs", gw.url))
+        .await
+        .unwrap();
+    wait_css(&c, "#upload-name")
+        .await
+        .send_keys("O7001")
+        .await
+        .unwrap();
+    c.find(Locator::Css("#upload-file"))
+        .await
+        .unwrap()
+        .send_keys(file.to_str().unwrap())
+        .await
+        .unwrap();
+    c.find(Locator::Css("#upload-comment"))
+        .await
+        .unwrap()
+        .send_keys("first article")
+        .await
+        .unwrap();
+    c.find(Locator::Css("#upload-submit"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    wait_css(&c, "tr[data-program=\"O7001\"]").await;
+    screenshot(&c, "programs").await;
+
+    // Release revision 1, and send it to mill-1.
+    c.goto(&format!("{}/#/cell/demo/programs/O7001", gw.url))
+        .await
+        .unwrap();
+    wait_css(&c, "button[data-action=\"release\"][data-rev=\"1\"]")
+        .await
+        .click()
+        .await
+        .unwrap();
+    wait_js(
+        &c,
+        "revision 1 shows released",
+        "(document.querySelector('tr[data-rev=\"1\"] [data-field=state]')||{}).textContent?.includes('released')",
+    )
+    .await;
+    screenshot(&c, "program").await;
+    c.execute(
+        "const s = document.querySelector('#send-machine'); s.value = 'mill-1'; \
+         s.dispatchEvent(new Event('change')); return true;",
+        vec![],
+    )
+    .await
+    .unwrap();
+    c.find(Locator::Css("#send-submit"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+
+    // On the overview, mill-1's progress bar runs to its end.
+    c.goto(&format!("{}/#/", gw.url)).await.unwrap();
+    wait_js(
+        &c,
+        "mill-1's progress bar reached the end",
+        "(() => { const p = document.querySelector('[data-tile=machine][data-name=\"mill-1\"] progress[data-field=progress]'); \
+           return p && p.max > 1 && p.value === p.max; })()",
+    )
+    .await;
+    // The simulated CNC has every byte of it, through its EOR.
+    let http = reqwest::Client::builder()
+        .cookie_store(true)
+        .build()
+        .unwrap();
+    http.get(format!("{}/api/v1/me", gw.url))
+        .send()
+        .await
+        .unwrap();
+    let job: Value = http
+        .get(format!("{}/api/v1/cells/demo/machines/mill-1", gw.url))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let latest = &job["jobs"][0];
+    assert!(latest["completed"].is_object(), "{job}");
+    assert_eq!(latest["origin"]["program"]["revision"], 1, "{job}");
+
+    // An alarm raised at the simulated CNC shows on the tile without a reload.
+    let session = cellgate::bus::open(&common::bus::client_config(
+        gw.bus.rsplit(':').next().unwrap().parse().unwrap(),
+    ))
+    .await
+    .unwrap();
+    let keys = cellgate::bus::keys::CellKeys::new("cellgate", "demo").unwrap();
+    let replies = session
+        .get(keys.sim("mill-1", cellgate::bus::keys::SimLeaf::Alarm))
+        .timeout(Duration::from_secs(10))
+        .await
+        .unwrap();
+    while replies.recv_async().await.is_ok() {}
+    wait_js(
+        &c,
+        "the alarm shows on mill-1's tile",
+        "(document.querySelector('[data-tile=machine][data-name=\"mill-1\"] [data-field=alarm]')||{}).textContent",
+    )
+    .await;
+    screenshot(&c, "overview-alarm").await;
+
+    // The machine page: the job with its revision, the alarm.
+    c.goto(&format!("{}/#/cell/demo/machine/mill-1", gw.url))
+        .await
+        .unwrap();
+    wait_css(&c, "tr[data-job]").await;
+    screenshot(&c, "machine").await;
+
+    // A tag's trend moves: the simulated sequence program counts parts every second.
+    c.goto(&format!("{}/#/cell/demo/plc/plc-1", gw.url))
+        .await
+        .unwrap();
+    wait_css(&c, "tr[data-tag=\"parts\"] svg.trend polyline").await;
+    let points = "(document.querySelector('tr[data-tag=\"parts\"] svg.trend polyline')||{}).getAttribute?.('points') || ''";
+    let first = wait_js(&c, "the trend has points", points).await;
+    let started = Instant::now();
+    loop {
+        let now = c
+            .execute(&format!("return ({points});"), vec![])
+            .await
+            .unwrap();
+        if now != first {
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "the trend of parts never moved"
+        );
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    }
+    screenshot(&c, "plc").await;
+
+    // History: the job, the alarm.
+    c.goto(&format!("{}/#/cell/demo/history", gw.url))
+        .await
+        .unwrap();
+    wait_css(&c, "#history-table tr[data-seq]").await;
+    screenshot(&c, "history").await;
+
+    only_own_origin(&c, &gw.url).await;
+    c.close().await.unwrap();
+    session.close().await.unwrap();
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_read_only_user_sees_no_send_control_and_a_forged_request_is_refused_and_audited() {
+    provider();
+    let Some((_driver, c)) = browser().await else {
+        return;
+    };
+    let gw = Gateway::start(|config, dir| {
+        let users = dir.join("users");
+        std::fs::write(&users, "olga:tulips\nerik:hammer\n").unwrap();
+        let text = format!(
+            r#"
+cell = "demo"
+[security]
+users_file = {users:?}
+[[security.roles]]
+name = "viewer"
+usernames = ["olga"]
+permissions = ["status.read", "program.read"]
+[[security.roles]]
+name = "engineer"
+usernames = ["erik"]
+permissions = ["status.read", "program.write", "job.submit", "audit.read"]
+"#
+        );
+        config.security = CellConfig::from_toml_str(&text, "security")
+            .unwrap()
+            .security;
+    })
+    .await;
+    // Erik puts a program in the library, through the API.
+    let erik = reqwest::Client::builder()
+        .cookie_store(true)
+        .build()
+        .unwrap();
+    let me: Value = erik
+        .post(format!("{}/api/v1/login", gw.url))
+        .json(&json!({"user": "erik", "password": "hammer"}))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let put = erik
+        .put(format!("{}/api/v1/cells/demo/programs/O7001", gw.url))
+        .header("X-CSRF-Token", me["csrf"].as_str().unwrap())
+        .body(PROGRAM)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(put.status(), 200);
+
+    // Olga logs in on the page.
+    c.goto(&format!("{}/#/", gw.url)).await.unwrap();
+    wait_css(&c, "#login-user")
+        .await
+        .send_keys("olga")
+        .await
+        .unwrap();
+    c.find(Locator::Css("#login-password"))
+        .await
+        .unwrap()
+        .send_keys("tulips")
+        .await
+        .unwrap();
+    c.find(Locator::Css("#login-submit"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    wait_css(&c, "article[data-tile=\"machine\"][data-name=\"mill-1\"]").await;
+    c.goto(&format!("{}/#/cell/demo/programs/O7001", gw.url))
+        .await
+        .unwrap();
+    wait_css(&c, "tr[data-rev=\"1\"]").await;
+    // She sees the program, and no control to send it, release it or upload one.
+    for hidden in [
+        "#send-submit",
+        "button[data-action=\"release\"]",
+        "#upload-submit",
+    ] {
+        assert!(
+            c.find(Locator::Css(hidden)).await.is_err(),
+            "{hidden} is shown to a read-only user"
+        );
+    }
+    // A submit forged from her page, with her own session's token, is refused...
+    let forged = c
+        .execute_async(
+            "const done = arguments[arguments.length - 1];
+             fetch('/api/v1/me').then(r => r.json()).then(me =>
+               fetch('/api/v1/cells/demo/machines/mill-1/submit', {method: 'POST',
+                 headers: {'Content-Type': 'application/json', 'X-CSRF-Token': me.csrf},
+                 body: JSON.stringify({library: 'O7001'})}))
+             .then(r => r.json().then(b => done([r.status, b])))
+             .catch(e => done([0, String(e)]));",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(forged[0], 403, "{forged}");
+    assert_eq!(forged[1]["code"], "ERROR_CODE_NOT_PERMITTED", "{forged}");
+    // ...and noted in the cell's audit trail, with her name.
+    let mut noted = false;
+    for _ in 0..50 {
+        let page: Value = erik
+            .get(format!("{}/api/v1/cells/demo/audit", gw.url))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        noted = page["records"].as_array().unwrap().iter().any(|r| {
+            r["audit"]["action"] == "audit.note" && r["audit"]["origin"]["user"] == "olga"
+        });
+        if noted {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert!(noted, "the forged submit is not in the audit trail");
+    // Nothing was queued on mill-1.
+    let m: Value = erik
+        .get(format!("{}/api/v1/cells/demo/machines/mill-1", gw.url))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert!(m["jobs"].as_array().unwrap().is_empty(), "{m}");
+    c.close().await.unwrap();
+    gw.stop().await;
+}
