@@ -540,3 +540,31 @@ listen = "0.0.0.0:7480"
         ok.warnings()
     );
 }
+
+/// The overview of a cell of more machines than one get's default FIFO holds (256): the
+/// console, in the gateway's own session, takes every machine's status. (It once hung the
+/// status route for good: the route blocked its thread on the full FIFO while the task that
+/// would drain it waited on the same thread.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_overview_of_a_cell_of_300_machines_answers_and_the_status_route_lives_on() {
+    const MACHINES: usize = 300;
+    let gw = Gateway::start(|config, _| {
+        let mill = config.machines[0].clone();
+        config.machines = (0..MACHINES)
+            .map(|i| {
+                let mut m = mill.clone();
+                m.name = format!("m{i:03}");
+                m
+            })
+            .collect();
+    })
+    .await;
+    let mut b = Browser::new(&gw.url);
+    b.me().await;
+    for _ in 0..3 {
+        let (status, o) = b.get("/api/v1/cells/demo/overview").await;
+        assert_eq!(status, 200, "{o}");
+        assert_eq!(o["machines"].as_array().unwrap().len(), MACHINES);
+    }
+    gw.stop().await;
+}

@@ -160,6 +160,13 @@ pub enum ClientError {
     /// The session closed under a subscriber.
     #[error("{what}: the zenoh session closed")]
     Closed { what: String },
+    /// A get was answered by more replies than a client keeps.
+    #[error("{what}: more than {max} replies on {key}; ask for fewer (name a machine)")]
+    TooManyReplies {
+        what: String,
+        key: String,
+        max: usize,
+    },
     /// A file given on the command line could not be read or written.
     #[error("{}: cannot {op}: {source}", path.display())]
     File {
@@ -1476,16 +1483,44 @@ async fn get_raw(
     if let Some(origin) = origin {
         builder = builder.attachment(ZBytes::from(origin));
     }
-    let replies = builder.await.map_err(|source| ClientError::Zenoh {
-        what: format!("{what}: get {key}"),
-        source,
-    })?;
+    // The replies go through a callback into an unbounded channel, not zenoh's default FIFO
+    // of 256: in the gateway's own session (its console) a reply is handed over on the
+    // replying route's thread, and a full FIFO blocks that thread while the task that would
+    // drain it can wait in the same thread's run queue (tokio's LIFO slot is not stolen):
+    // a wildcard status get over more than 256 machines hung the status route for good.
+    // The callback never blocks; what it holds is bounded by MAX_REPLIES. zenoh drops the
+    // callback when the query ends (final reply or time-out), which ends the channel.
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let taken = std::sync::atomic::AtomicUsize::new(0);
+    builder
+        .callback(move |reply: Reply| {
+            let n = taken.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let _ = tx.send((n < MAX_REPLIES).then(|| raw(&reply)));
+        })
+        .await
+        .map_err(|source| ClientError::Zenoh {
+            what: format!("{what}: get {key}"),
+            source,
+        })?;
     let mut out = Vec::new();
-    while let Ok(reply) = replies.recv_async().await {
-        out.push(raw(&reply));
+    while let Some(reply) = rx.recv().await {
+        match reply {
+            Some(r) => out.push(r),
+            None => {
+                return Err(ClientError::TooManyReplies {
+                    what: what.to_string(),
+                    key: key.to_string(),
+                    max: MAX_REPLIES,
+                });
+            }
+        }
     }
     Ok(out)
 }
+
+/// Replies one get keeps at most: every machine of the largest cell answers a wildcard status
+/// get, many times over.
+const MAX_REPLIES: usize = 1 << 16;
 
 fn raw(reply: &Reply) -> RawReply {
     match reply.result() {
