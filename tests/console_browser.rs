@@ -4,7 +4,8 @@
 //! and its progress bar reaches the end; an alarm raised at the simulated CNC shows without a
 //! reload; a tag's trend moves; a read-only user sees no control to send a program and a
 //! request forged from the page is refused and audited; nothing is fetched from another
-//! origin. Screenshots of the pages are written to `target/console-screenshots/`, and to
+//! origin; the site console (`cellgate console -e ROUTER`) shows the cells of two gateways;
+//! and the first load of an overview of 64 machines is timed (a figure, printed). Screenshots of the pages are written to `target/console-screenshots/`, and to
 //! `docs/console/` when `CELLGATE_UPDATE_SCREENSHOTS=1`.
 //!
 //! Without `chromedriver` and `chromium` on the PATH (`.ci/run` installs Debian's), each test
@@ -524,4 +525,176 @@ permissions = ["status.read", "program.write", "job.submit", "audit.read"]
     assert!(m["jobs"].as_array().unwrap().is_empty(), "{m}");
     c.close().await.unwrap();
     gw.stop().await;
+}
+
+/// The time from navigation start to every machine's tile in the DOM, in ms, as the page's
+/// own clock (`performance.now()`) saw it.
+async fn tiles_seen(c: &Client, tiles: usize) -> f64 {
+    let at = c
+        .execute_async(
+            "const [want, done] = [arguments[0], arguments[arguments.length - 1]];
+             (function tick() {
+               const n = document.querySelectorAll('article[data-tile=machine]').length;
+               if (n >= want) done(performance.now()); else setTimeout(tick, 5);
+             })();",
+            vec![json!(tiles)],
+        )
+        .await
+        .unwrap();
+    at.as_f64().unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_overview_of_64_machines_loads_and_the_figure_is_printed() {
+    provider();
+    let Some((_driver, c)) = browser().await else {
+        return;
+    };
+    const MACHINES: usize = 64;
+    let gw = Gateway::start(|config, _| {
+        let mill = config.machines[0].clone();
+        config.machines = (0..MACHINES)
+            .map(|i| {
+                let mut m = mill.clone();
+                m.name = format!("m{i:02}");
+                m
+            })
+            .collect();
+    })
+    .await;
+    // The first visit, then a reload (scripts in the browser's cache).
+    c.goto(&format!("{}/#/", gw.url)).await.unwrap();
+    let first = tiles_seen(&c, MACHINES).await;
+    c.refresh().await.unwrap();
+    let again = tiles_seen(&c, MACHINES).await;
+    let shown = c
+        .execute(
+            "return document.querySelectorAll('article[data-tile=machine]').length;",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(shown, json!(MACHINES), "one tile per machine");
+    // A figure, not a bound: the gateway here is a debug build sharing the machine with the
+    // browser and the other tests (docs/performance.md has the release figures).
+    eprintln!(
+        "FIGURE console first load, overview of {MACHINES} machines (debug gateway, headless \
+         chromium): {first:.0} ms; reloaded {again:.0} ms"
+    );
+    only_own_origin(&c, &gw.url).await;
+    c.close().await.unwrap();
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_site_console_shows_two_gateways_cells_in_the_browser() {
+    provider();
+    let Some((_driver, c)) = browser().await else {
+        return;
+    };
+    // A router, and the gateways of cells "north" and "south" connected to it.
+    let router_port = free_port();
+    let router = cellgate::bus::open(&cellgate::bus::BusConfig {
+        mode: cellgate::bus::BusMode::Router,
+        listen: vec![format!("tcp/127.0.0.1:{router_port}")],
+        ..cellgate::bus::BusConfig::default()
+    })
+    .await
+    .unwrap();
+    let mut gateways = Vec::new();
+    for cell in ["north", "south"] {
+        gateways.push(
+            Gateway::start(|c, _| {
+                c.cell = cell.to_string();
+                c.bus.connect = vec![format!("tcp/127.0.0.1:{router_port}")];
+            })
+            .await,
+        );
+    }
+    // The site console: `cellgate console -e ROUTER`.
+    let console_port = free_port();
+    let args = cellgate::console::SiteArgs {
+        connect: cellgate::client::cli::ConnectArgs {
+            connect: format!("tcp/127.0.0.1:{router_port}"),
+            prefix: "cellgate".to_string(),
+            cell: None,
+            timeout: 10,
+            tls_ca: None,
+            tls_cert: None,
+            tls_key: None,
+            user: None,
+            password_file: None,
+            as_user: None,
+        },
+        listen: Some(format!("127.0.0.1:{console_port}")),
+        config: None,
+    };
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let site = tokio::spawn(async move {
+        cellgate::console::site(&args, async {
+            let _ = stopped.await;
+        })
+        .await
+    });
+    let url = format!("http://127.0.0.1:{console_port}");
+    let http = reqwest::Client::new();
+    for _ in 0..300 {
+        if let Ok(r) = http.get(format!("{url}/health")).send().await
+            && r.status() == 200
+        {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    // The cells are found as their gateways answer on the router: reload until both show.
+    let started = Instant::now();
+    loop {
+        c.goto(&format!("{url}/#/")).await.unwrap();
+        let both = c
+            .wait()
+            .at_most(Duration::from_secs(5))
+            .for_element(Locator::Css(
+                "section[data-cell=\"south\"] article[data-tile=\"machine\"]",
+            ))
+            .await
+            .is_ok()
+            && c.find(Locator::Css(
+                "section[data-cell=\"north\"] article[data-tile=\"machine\"]",
+            ))
+            .await
+            .is_ok();
+        if both {
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "the site console never showed both cells"
+        );
+    }
+    for cell in ["north", "south"] {
+        for m in ["mill-1", "mill-2", "lathe-1"] {
+            wait_css(
+                &c,
+                &format!(
+                    "section[data-cell=\"{cell}\"] article[data-tile=\"machine\"][data-name=\"{m}\"]"
+                ),
+            )
+            .await;
+        }
+    }
+    wait_js(
+        &c,
+        "every link of both cells is up",
+        "(document.querySelector('#health')||{}).textContent?.includes('All 6 machine links up')",
+    )
+    .await;
+    screenshot(&c, "site").await;
+    only_own_origin(&c, &url).await;
+    c.close().await.unwrap();
+    let _ = stop.send(());
+    site.await.unwrap().unwrap();
+    for gw in gateways {
+        gw.stop().await;
+    }
+    router.close().await.unwrap();
 }
