@@ -21,7 +21,8 @@
 //! with `-- --machines 1024 --baud 86400 --protocol exp-a --job-seconds 20`; `--no-do` leaves
 //! the DO puts out, and `--undeclared-do` puts them on keys the client did not declare;
 //! `--no-history` turns the cell's history off; `--console-pages N` serves the console and
-//! opens N pages (each its first load, then its event stream) while the jobs run.
+//! opens N pages (each its first load, then its event stream) while the jobs run; `--window N`
+//! sets the machines' `transport.window`.
 //! `CELLGATE_GATEWAY_BIN=path` measures another gateway binary against the same boards. Under
 //! `cargo test` a smoke pass (4 machines, short jobs) checks that the benchmark still works.
 
@@ -122,6 +123,8 @@ struct Case {
     history: bool,
     /// Console pages open while the jobs run (each its event stream); 0: no console.
     console_pages: usize,
+    /// The machines' `transport.window`; `None`: the cell file leaves it out.
+    window: Option<u32>,
 }
 
 /// What the boards' process said, with when this program read it.
@@ -228,10 +231,14 @@ fn cell_file(
             "[console]\nlisten = \"127.0.0.1:{console_port}\"\n"
         ));
     }
+    let window = case
+        .window
+        .map(|w| format!(", window = {w}"))
+        .unwrap_or_default();
     for i in 0..case.machines {
         text.push_str(&format!(
             "[[machines]]\nname = \"m{i}\"\n{}\
-             transport = {{ kind = \"tcp\", address = \"127.0.0.1:{}\", line = {{ baud = {} }} }}\n",
+             transport = {{ kind = \"tcp\", address = \"127.0.0.1:{}\", line = {{ baud = {} }}{window} }}\n",
             case.proto.cell(),
             first + i,
             case.baud
@@ -720,6 +727,11 @@ fn main() {
                     console_pages: list(&args, "--console-pages", "0", |s| {
                         s.parse::<usize>().unwrap()
                     })[0],
+                    window: args
+                        .iter()
+                        .position(|a| a == "--window")
+                        .and_then(|i| args.get(i + 1))
+                        .map(|s| s.parse().expect("--window takes a number of bytes")),
                 };
                 rt.block_on(run(&case));
             }

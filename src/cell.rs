@@ -144,7 +144,7 @@ impl Cell {
                 sim_line = Some(control);
                 Box::new(host)
             }
-            other => open_transport(&name, other).await?,
+            other => open_transport(&name, other, TransportConfig::DEFAULT_WINDOW).await?,
         };
         let tags = TagTable::new(&name, &plc.tags);
         let (link, task) =
@@ -201,7 +201,7 @@ impl Cell {
                 sim_line = Some(control);
                 Box::new(host)
             }
-            other => open_transport(&name, other).await?,
+            other => open_transport(&name, other, machine.tcp_window()).await?,
         };
         let (link, task) = if let Some(b) = machine.protocol_b_config() {
             let engine = ProtocolBHost::new(b, now()).map_err(|source| CellError::ProtocolB {
@@ -269,9 +269,12 @@ impl Cell {
 
 /// Opens a serial port or connects to a device server (not a `sim` transport, whose far end
 /// the caller builds).
+/// `window` is the in-flight bound of a `tcp` transport: the one the link's kind or protocol
+/// sets where the file says none.
 async fn open_transport(
     name: &str,
     config: &TransportConfig,
+    window: u32,
 ) -> Result<Box<dyn Transport>, CellError> {
     let err = |source| CellError::Transport {
         machine: name.to_string(),
@@ -295,12 +298,12 @@ async fn open_transport(
         TransportConfig::Tcp {
             address,
             line,
-            window,
+            window: _,
             reconnect_min_ms,
             reconnect_max_ms,
         } => {
             let opts = TcpOptions {
-                window: *window as usize,
+                window: window as usize,
                 backoff_min: Duration::from_millis(*reconnect_min_ms),
                 backoff_max: Duration::from_millis(*reconnect_max_ms),
                 ..TcpOptions::default()

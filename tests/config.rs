@@ -61,7 +61,7 @@ fn example_file_loads_with_every_key() {
     assert_eq!(mill2.effective_interface(), Interface::Rs422);
     assert!(matches!(
         &mill2.transport,
-        TransportConfig::Tcp { address, window: 256, .. } if address == "192.0.2.21:4001"
+        TransportConfig::Tcp { address, window: Some(2048), .. } if address == "192.0.2.21:4001"
     ));
 
     let lathe = cfg.machine("lathe-1").unwrap();

@@ -165,6 +165,28 @@ impl Accept {
 }
 
 impl MachineConfig {
+    /// Default `transport.window` of a Protocol A family machine behind a device server, bytes.
+    /// There the host engine itself bounds what can follow a stop code: a Protocol A message
+    /// waits for the board's answer, and an Expansion A data packet is handed out only once
+    /// the one before has left the line (§5.3 3; protocol notes 17). So the window only sizes
+    /// the writes: twice the largest packet's data, so that a packet goes out in one write
+    /// instead of a write every half of [`TransportConfig::DEFAULT_WINDOW`] (docs/performance.md,
+    /// "What each change bought").
+    pub const A_FAMILY_WINDOW: u32 = 2048;
+
+    /// The `transport.window` in force for a `tcp` transport: the file's, else the protocol's
+    /// default ([`Self::A_FAMILY_WINDOW`]; [`TransportConfig::DEFAULT_WINDOW`] for Protocol B
+    /// and Expansion B, whose overrun after DC3 bounds it, §6.3, §7).
+    pub fn tcp_window(&self) -> u32 {
+        match &self.transport {
+            TransportConfig::Tcp {
+                window: Some(w), ..
+            } => *w,
+            _ if self.protocol.is_a_family() => Self::A_FAMILY_WINDOW,
+            _ => TransportConfig::DEFAULT_WINDOW,
+        }
+    }
+
     /// The §4.5 parameters: the file's values over the power-on values.
     pub fn params(&self) -> Params {
         params_of([
@@ -495,7 +517,11 @@ pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
 
     // A device server cannot take back bytes already handed to it, so its window must fit
     // in the overrun the board allows after DC3 (§6.3; Expansion B: protocol notes 12).
-    if let TransportConfig::Tcp { window, .. } = transport {
+    if let TransportConfig::Tcp {
+        window: Some(window),
+        ..
+    } = transport
+    {
         let limit = match protocol {
             Protocol::B => Some((
                 OVERRUN_B - 1,

@@ -206,7 +206,11 @@ impl CellConfig {
                     m.param_5000_bit3()
                 )?;
             }
-            writeln!(s, "    transport: {}", m.transport.describe())?;
+            writeln!(
+                s,
+                "    transport: {}",
+                m.transport.describe_with(m.tcp_window())
+            )?;
             if let TransportConfig::Sim { .. } = m.transport {
                 let b = m.board_sim();
                 writeln!(

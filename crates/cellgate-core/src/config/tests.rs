@@ -230,6 +230,19 @@ fn tcp_transport_checks() {
     assert_eq!(e.len(), 1);
     assert!(e[0].starts_with("machines.m.transport.window = 1024: must be within 1..=511"));
     assert!(errors_of(&f("expansion-b", "address = \"h:1\", window = 1024")).is_empty());
+    // The window in force: the file's, else the protocol's.
+    let window = |protocol: &str, t: &str| {
+        CellConfig::from_toml_str(&f(protocol, t), "t")
+            .unwrap()
+            .machines[0]
+            .tcp_window()
+    };
+    assert_eq!(window("a", "address = \"h:1\""), 2048);
+    assert_eq!(window("expansion-a", "address = \"h:1\""), 2048);
+    assert_eq!(window("b", "address = \"h:1\""), 256);
+    assert_eq!(window("expansion-b", "address = \"h:1\""), 256);
+    assert_eq!(window("a", "address = \"h:1\", window = 300"), 300);
+    assert_eq!(window("b", "address = \"h:1\", window = 300"), 300);
     let e = errors_of(&f(
         "a",
         "address = \"h:1\", reconnect_min_ms = 500, reconnect_max_ms = 100",
@@ -261,7 +274,7 @@ fn transport_tables() {
         TransportConfig::Tcp {
             address: "h:1".to_string(),
             line: LineSettings::with_baud(19_200),
-            window: 256,
+            window: None,
             reconnect_min_ms: 100,
             reconnect_max_ms: 5000,
         }

@@ -34,8 +34,11 @@ pub enum TransportConfig {
         address: String,
         /// Character framing of the device server's serial side, which sets the pace.
         line: LineSettings,
-        /// Bytes handed to the device server and not yet on the line, at most.
-        window: u32,
+        /// Bytes handed to the device server and not yet on the line, at most; `None`: the
+        /// link's default ([`TransportConfig::DEFAULT_WINDOW`], or the machine's protocol's,
+        /// see `MachineConfig::tcp_window`).
+        #[serde(skip_serializing_if = "Option::is_none")]
+        window: Option<u32>,
         /// First wait before reconnecting, ms; doubles on each failure.
         reconnect_min_ms: u64,
         /// Longest wait between reconnection attempts, ms.
@@ -167,7 +170,7 @@ impl RawTransport {
             TransportKind::Tcp => self.address.clone().map(|address| TransportConfig::Tcp {
                 address,
                 line,
-                window: self.window.unwrap_or(TransportConfig::DEFAULT_WINDOW),
+                window: self.window,
                 reconnect_min_ms,
                 reconnect_max_ms,
             }),
@@ -222,7 +225,7 @@ impl From<&TransportConfig> for RawTransport {
                 kind: Some(TransportKind::Tcp),
                 address: Some(address),
                 line: Some(line),
-                window: Some(window),
+                window,
                 reconnect_min_ms: Some(reconnect_min_ms),
                 reconnect_max_ms: Some(reconnect_max_ms),
                 ..RawTransport::default()
@@ -256,7 +259,8 @@ impl TryFrom<RawTransport> for TransportConfig {
 }
 
 impl TransportConfig {
-    /// Default of `window`, bytes.
+    /// Default of `window`, bytes, where the link's protocol sets no other: well inside the
+    /// 512 characters Protocol B may overrun a DC3 by (§6.3).
     pub const DEFAULT_WINDOW: u32 = 256;
     /// Default of `reconnect_min_ms`, ms.
     pub const DEFAULT_RECONNECT_MIN_MS: u64 = 100;
@@ -283,6 +287,12 @@ impl TransportConfig {
 
     /// One line for logs and `check-config`: "serial /dev/ttyS0, 19200 8N2".
     pub fn describe(&self) -> String {
+        self.describe_with(Self::DEFAULT_WINDOW)
+    }
+
+    /// [`describe`](Self::describe), with the window a `tcp` transport has where the file sets
+    /// none (a machine's: `MachineConfig::tcp_window`).
+    pub fn describe_with(&self, default_window: u32) -> String {
         match self {
             TransportConfig::Serial {
                 path,
@@ -299,10 +309,16 @@ impl TransportConfig {
                 window,
                 reconnect_min_ms,
                 reconnect_max_ms,
-            } => format!(
-                "tcp {address}, serial side {line}, window {window} bytes, \
-                 reconnect every {reconnect_min_ms}..{reconnect_max_ms} ms"
-            ),
+            } => {
+                let window = match window {
+                    Some(w) => format!("{w} bytes"),
+                    None => format!("{default_window} bytes (default)"),
+                };
+                format!(
+                    "tcp {address}, serial side {line}, window {window}, \
+                     reconnect every {reconnect_min_ms}..{reconnect_max_ms} ms"
+                )
+            }
             TransportConfig::Sim { line } => format!("sim, {line}"),
         }
     }
@@ -389,14 +405,16 @@ pub(super) fn check_transport(c: &mut Checker, path: &str, t: &TransportConfig) 
                     "",
                 );
             }
-            c.range(
-                || format!("{path}.window"),
-                *window,
-                1,
-                65_536,
-                " bytes",
-                "",
-            );
+            if let Some(window) = window {
+                c.range(
+                    || format!("{path}.window"),
+                    *window,
+                    1,
+                    65_536,
+                    " bytes",
+                    "",
+                );
+            }
             check_backoff(c, path, *reconnect_min_ms, *reconnect_max_ms);
         }
         TransportConfig::Sim { .. } => {}
