@@ -268,13 +268,12 @@ impl Cell {
 }
 
 /// Opens a serial port or connects to a device server (not a `sim` transport, whose far end
-/// the caller builds).
-/// `window` is the in-flight bound of a `tcp` transport: the one the link's kind or protocol
-/// sets where the file says none.
+/// the caller builds). `default_window` is the in-flight bound of a `tcp` transport whose file
+/// sets none (the machine's protocol's, or the PLC's).
 async fn open_transport(
     name: &str,
     config: &TransportConfig,
-    window: u32,
+    default_window: u32,
 ) -> Result<Box<dyn Transport>, CellError> {
     let err = |source| CellError::Transport {
         machine: name.to_string(),
@@ -303,7 +302,7 @@ async fn open_transport(
             reconnect_max_ms,
         } => {
             let opts = TcpOptions {
-                window: window as usize,
+                window: config.window_or(default_window) as usize,
                 backoff_min: Duration::from_millis(*reconnect_min_ms),
                 backoff_max: Duration::from_millis(*reconnect_max_ms),
                 ..TcpOptions::default()

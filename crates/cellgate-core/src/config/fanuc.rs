@@ -178,13 +178,11 @@ impl MachineConfig {
     /// default ([`Self::A_FAMILY_WINDOW`]; [`TransportConfig::DEFAULT_WINDOW`] for Protocol B
     /// and Expansion B, whose overrun after DC3 bounds it, §6.3, §7).
     pub fn tcp_window(&self) -> u32 {
-        match &self.transport {
-            TransportConfig::Tcp {
-                window: Some(w), ..
-            } => *w,
-            _ if self.protocol.is_a_family() => Self::A_FAMILY_WINDOW,
-            _ => TransportConfig::DEFAULT_WINDOW,
-        }
+        self.transport.window_or(if self.protocol.is_a_family() {
+            Self::A_FAMILY_WINDOW
+        } else {
+            TransportConfig::DEFAULT_WINDOW
+        })
     }
 
     /// The §4.5 parameters: the file's values over the power-on values.

@@ -243,6 +243,12 @@ fn tcp_transport_checks() {
     assert_eq!(window("expansion-b", "address = \"h:1\""), 256);
     assert_eq!(window("a", "address = \"h:1\", window = 300"), 300);
     assert_eq!(window("b", "address = \"h:1\", window = 300"), 300);
+    // A PLC's (or any link's) own window wins over the default it is opened with.
+    let t = |w: &str| -> TransportConfig {
+        toml::from_str(&format!("kind = \"tcp\"\naddress = \"h:1\"\n{w}")).unwrap()
+    };
+    assert_eq!(t("window = 100").window_or(256), 100);
+    assert_eq!(t("").window_or(256), 256);
     let e = errors_of(&f(
         "a",
         "address = \"h:1\", reconnect_min_ms = 500, reconnect_max_ms = 100",

@@ -267,6 +267,17 @@ impl TransportConfig {
     /// Default of `reconnect_max_ms`, ms.
     pub const DEFAULT_RECONNECT_MAX_MS: u64 = 5_000;
 
+    /// The in-flight bound of a `tcp` transport: the file's `window`, else `default` (the
+    /// link's: see `MachineConfig::tcp_window`).
+    pub fn window_or(&self, default: u32) -> u32 {
+        match self {
+            TransportConfig::Tcp {
+                window: Some(w), ..
+            } => *w,
+            _ => default,
+        }
+    }
+
     /// The character framing of the line.
     pub fn line(&self) -> &LineSettings {
         match self {
