@@ -613,22 +613,7 @@ async fn the_site_console_shows_two_gateways_cells_in_the_browser() {
     }
     // The site console: `cellgate console -e ROUTER`.
     let console_port = free_port();
-    let args = cellgate::console::SiteArgs {
-        connect: cellgate::client::cli::ConnectArgs {
-            connect: format!("tcp/127.0.0.1:{router_port}"),
-            prefix: "cellgate".to_string(),
-            cell: None,
-            timeout: 10,
-            tls_ca: None,
-            tls_cert: None,
-            tls_key: None,
-            user: None,
-            password_file: None,
-            as_user: None,
-        },
-        listen: Some(format!("127.0.0.1:{console_port}")),
-        config: None,
-    };
+    let args = common::bus::site_args(router_port, console_port);
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let site = tokio::spawn(async move {
         cellgate::console::site(&args, async {

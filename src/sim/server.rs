@@ -380,8 +380,9 @@ pub async fn serve_fanuc(
             .map_err(|source| SimError::Bind { addr, source })?;
         listeners.push(listener);
     }
-    if args.boards == 1 {
-        let listener = listeners.pop().expect("one listener was bound");
+    if args.boards == 1
+        && let Some(listener) = listeners.pop()
+    {
         let settings = args.line_settings();
         return serve_fanuc_with(listener, config, settings, punch, stdout, shutdown).await;
     }

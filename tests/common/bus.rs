@@ -321,3 +321,24 @@ pub async fn follow(events: &Sub, job: &str, within: Duration) -> Vec<pb::job_ev
     .unwrap_or_else(|_| panic!("job {job} did not end within {within:?}: {seen:?}"));
     seen
 }
+
+/// The arguments of `cellgate console -e tcp/127.0.0.1:ROUTER --listen 127.0.0.1:CONSOLE`: a
+/// site console without credentials, on loopback.
+pub fn site_args(router_port: u16, console_port: u16) -> cellgate::console::SiteArgs {
+    cellgate::console::SiteArgs {
+        connect: cellgate::client::cli::ConnectArgs {
+            connect: format!("tcp/127.0.0.1:{router_port}"),
+            prefix: "cellgate".to_string(),
+            cell: None,
+            timeout: 10,
+            tls_ca: None,
+            tls_cert: None,
+            tls_key: None,
+            user: None,
+            password_file: None,
+            as_user: None,
+        },
+        listen: Some(format!("127.0.0.1:{console_port}")),
+        config: None,
+    }
+}
