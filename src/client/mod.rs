@@ -1485,9 +1485,10 @@ async fn get_raw(
     }
     // The replies go through a callback into an unbounded channel, not zenoh's default FIFO
     // of 256: in the gateway's own session (its console) a reply is handed over on the
-    // replying route's thread, and a full FIFO blocks that thread while the task that would
-    // drain it can wait in the same thread's run queue (tokio's LIFO slot is not stolen):
-    // a wildcard status get over more than 256 machines hung the status route for good.
+    // replying route's thread, and a full FIFO blocks that thread. A wildcard status get over
+    // more than 256 machines hung the status route for good: its thread parked in the FIFO's
+    // send while the runtime's other thread sat idle and the draining task never ran (likely
+    // held in the blocked thread's LIFO slot, which tokio does not steal; not proven).
     // The callback never blocks; what it holds is bounded by MAX_REPLIES. zenoh drops the
     // callback when the query ends (final reply or time-out), which ends the channel.
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
