@@ -141,9 +141,14 @@ impl<E: Engine, T: Transport> Pump<E, T> {
         loop {
             let mut moved = false;
             let now = now();
-            moved |= self.sync_modem(cx, now);
+            // Bytes first, then the lines: what arrived before a line went off is the
+            // engine's before it hears of the change (a board's DC3 before its ER off).
             moved |= self.poll_read(cx, now)?;
+            moved |= self.sync_modem(cx, now);
             moved |= self.poll_write(cx, now)?;
+            // After the write: bytes the engine handed out before changing its lines go first
+            // (a board's DC3 before its ER goes off, §6.4 (1)).
+            self.drive_modem();
             moved |= self.poll_deadline(cx, now);
             if !moved {
                 break;
@@ -157,7 +162,7 @@ impl<E: Engine, T: Transport> Pump<E, T> {
         }
     }
 
-    fn sync_modem(&mut self, cx: &mut Context<'_>, now: Instant) -> bool {
+    fn drive_modem(&mut self) {
         let want = self.engine.modem_out();
         if self.modem_out != Some(want) {
             if let Err(e) = self.transport.set_modem(want) {
@@ -165,6 +170,9 @@ impl<E: Engine, T: Transport> Pump<E, T> {
             }
             self.modem_out = Some(want);
         }
+    }
+
+    fn sync_modem(&mut self, cx: &mut Context<'_>, now: Instant) -> bool {
         // Poll until pending, so that the next tick's wake-up is registered: a tick taken
         // without a change and nothing else to do would otherwise leave a silent line (a
         // Protocol B line waiting for DR) unpolled for good.

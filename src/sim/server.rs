@@ -789,6 +789,10 @@ impl<S: AsyncRead + AsyncWrite + Send + Unpin> Transport for PacedLine<S> {
     fn modem(&mut self) -> std::io::Result<ModemIn> {
         Ok(ModemIn::ALL_ON)
     }
+    /// The lines never change, so there is nothing to poll.
+    fn modem_wakes_reader(&self) -> bool {
+        true
+    }
     fn describe(&self) -> String {
         self.name.clone()
     }

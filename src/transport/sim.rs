@@ -20,6 +20,9 @@
 //!
 //! Null-modem crossing (§3.2): an end's DR and CD follow the peer's ER, its CS follows the peer's
 //! RS. Both ends start with ER and RS on. A cut line or a dropped peer reads as all lines off.
+//! An end's output change takes effect once the characters it wrote before have arrived, as a
+//! driver that drains its transmitter before changing its lines; every change wakes the
+//! peer's reader, so the lines need no polling ([`Transport::modem_wakes_reader`]).
 //!
 //! # Faults
 //!
@@ -313,6 +316,13 @@ impl Direction {
     fn next_arrival(&self, line: &LineSettings) -> Option<Instant> {
         self.queue.front().map(|seg| seg.arrival(line, 0))
     }
+
+    /// Arrival time of the last queued character.
+    fn last_arrival(&self, line: &LineSettings) -> Option<Instant> {
+        self.queue
+            .back()
+            .map(|seg| seg.arrival(line, seg.bytes.len().saturating_sub(1)))
+    }
 }
 
 #[derive(Debug)]
@@ -320,6 +330,9 @@ struct Shared {
     settings: LineSettings,
     dirs: [Direction; 2],
     out: [ModemOut; 2],
+    /// Output changes of each end waiting for the characters that end wrote before them to
+    /// leave the line, oldest first: (when, lines).
+    changes: [VecDeque<(Instant, ModemOut)>; 2],
     open: [bool; 2],
     cut: bool,
 }
@@ -329,7 +342,29 @@ impl Shared {
         &mut self.dirs[d.index()]
     }
 
-    fn modem_in(&self, end: End) -> ModemIn {
+    /// Both ends' readers, to be woken (outside the lock) after the input lines of both changed.
+    fn take_reader_wakers(&mut self) -> [Option<Waker>; 2] {
+        self.dirs.each_mut().map(|d| d.reader_waker.take())
+    }
+
+    /// Applies the output changes due by `now`; whether one of `end`'s inputs changed.
+    fn settle(&mut self, now: Instant, end: End) -> bool {
+        let mut changed = false;
+        for e in [End::Host, End::Device] {
+            let i = e.index();
+            while let Some(&(at, out)) = self.changes[i].front()
+                && at <= now
+            {
+                changed |= e == end.peer() && self.out[i] != out;
+                self.out[i] = out;
+                self.changes[i].pop_front();
+            }
+        }
+        changed
+    }
+
+    fn modem_in(&mut self, end: End) -> ModemIn {
+        self.settle(Instant::now(), end);
         let peer = end.peer().index();
         if self.cut || !self.open[peer] {
             return ModemIn {
@@ -368,6 +403,7 @@ pub fn line_with(settings: LineSettings, opts: SimOptions) -> (SimPort, SimPort,
             Direction::new(settings, opts),
         ],
         out: [ModemOut::ALL_ON; 2],
+        changes: Default::default(),
         open: [true; 2],
         cut: false,
     }));
@@ -471,15 +507,21 @@ impl AsyncRead for SimPort {
                 d.counters.delivered += n as u64;
                 return Poll::Ready(Ok(()));
             }
-            let next = match d.next_arrival(&line) {
-                Some(at) => at,
-                None if d.writer_closed => return Poll::Ready(Ok(())), // EOF
-                None => {
-                    store_waker(&mut d.reader_waker, cx);
-                    return Poll::Pending;
-                }
-            };
+            let arrival = d.next_arrival(&line);
+            let closed = d.writer_closed;
             store_waker(&mut d.reader_waker, cx);
+            // The peer's output changes are due in line order: this reader wakes for them
+            // too, and its owner reads the lines again.
+            if guard.settle(now, this.end) {
+                cx.waker().wake_by_ref();
+            }
+            let change = guard.changes[this.end.peer().index()].front().map(|c| c.0);
+            let next = match (arrival, change) {
+                (Some(a), Some(c)) => a.min(c),
+                (Some(at), None) | (None, Some(at)) => at,
+                (None, None) if closed => return Poll::Ready(Ok(())), // EOF
+                (None, None) => return Poll::Pending,
+            };
             drop(guard);
             match super::poll_sleep(&mut this.read_sleep, next, cx) {
                 Poll::Ready(()) => continue,
@@ -639,8 +681,38 @@ impl Drop for SimPort {
 
 impl Transport for SimPort {
     fn set_modem(&mut self, out: ModemOut) -> io::Result<()> {
-        lock(&self.shared).out[self.end.index()] = out;
+        let waker = {
+            let now = Instant::now();
+            let mut guard = lock(&self.shared);
+            guard.settle(now, self.end);
+            let i = self.end.index();
+            let line = guard.settings;
+            let last = guard.changes[i].back().map_or(guard.out[i], |c| c.1);
+            if last == out {
+                None
+            } else {
+                // As a UART's driver drains its transmitter first: the lines change once the
+                // characters written before have left, so a DC3 sent before ER goes off
+                // reaches the peer before it sees ER off (§6.4 (1)).
+                match guard.dir(self.end.tx()).last_arrival(&line) {
+                    Some(at) if at > now => guard.changes[i].push_back((at, out)),
+                    _ if guard.changes[i].is_empty() => guard.out[i] = out,
+                    _ => guard.changes[i].push_back((now, out)),
+                }
+                // The peer's input lines follow these: its reader looks at them again.
+                guard.dir(self.end.tx()).reader_waker.take()
+            }
+        };
+        if let Some(w) = waker {
+            w.wake();
+        }
         Ok(())
+    }
+
+    /// Every change of an end's input lines (the peer's outputs, the peer dropped, the cable
+    /// cut or restored) wakes that end's reader, so an idle simulated link needs no timer.
+    fn modem_wakes_reader(&self) -> bool {
+        true
     }
 
     fn modem(&mut self) -> io::Result<ModemIn> {
@@ -734,16 +806,25 @@ impl SimLine {
     /// DR, CS and CD off (the "DR down" of alarm SR0855). Writes are still accepted, at line
     /// pace, and discarded.
     pub fn cut(&self) {
-        let mut g = lock(&self.shared);
-        g.cut = true;
-        for d in &mut g.dirs {
-            d.lose_in_flight();
-        }
+        let wakers = {
+            let mut g = lock(&self.shared);
+            g.cut = true;
+            for d in &mut g.dirs {
+                d.lose_in_flight();
+            }
+            g.take_reader_wakers()
+        };
+        wakers.into_iter().flatten().for_each(Waker::wake);
     }
 
     /// Reconnect a cut cable: bytes written from now on are delivered again.
     pub fn restore(&self) {
-        lock(&self.shared).cut = false;
+        let wakers = {
+            let mut g = lock(&self.shared);
+            g.cut = false;
+            g.take_reader_wakers()
+        };
+        wakers.into_iter().flatten().for_each(Waker::wake);
     }
 
     /// Whether the cable is cut.
@@ -763,7 +844,9 @@ impl SimLine {
 
     /// The output lines `end` drives.
     pub fn modem_out(&self, end: End) -> ModemOut {
-        lock(&self.shared).out[end.index()]
+        let mut guard = lock(&self.shared);
+        guard.settle(Instant::now(), end.peer());
+        guard.out[end.index()]
     }
 
     /// The input lines `end` reads.

@@ -102,3 +102,81 @@ async fn describe_names_the_framing() {
     let (host, _dev, _l) = line(LineSettings::with_baud(86_400));
     assert_eq!(host.describe(), "sim 86400 8N2");
 }
+
+/// Resolves with the input lines of `port` once they differ from `from`, looking at them only
+/// when the port's pending read is woken (as the link pump does for such transports).
+async fn lines_change(port: &mut SimPort, from: ModemIn) -> ModemIn {
+    std::future::poll_fn(|cx| {
+        let mut b = [0u8; 1];
+        let mut buf = ReadBuf::new(&mut b);
+        assert!(Pin::new(&mut *port).poll_read(cx, &mut buf).is_pending());
+        match port.modem() {
+            Ok(now) if now != from => Poll::Ready(now),
+            _ => Poll::Pending,
+        }
+    })
+    .await
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_change_of_the_input_lines_wakes_the_reader() {
+    let (mut host, mut dev, l) = line(LineSettings::with_baud(19_200));
+    assert!(host.modem_wakes_reader());
+    let on = host.modem().unwrap();
+    let within = Duration::from_secs(3600);
+
+    let watch = tokio::spawn(async move {
+        let off = lines_change(&mut host, on).await;
+        (host, off)
+    });
+    tokio::task::yield_now().await;
+    dev.set_modem(ModemOut {
+        er: false,
+        rs: true,
+    })
+    .unwrap();
+    let (mut host, off) = tokio::time::timeout(within, watch).await.unwrap().unwrap();
+    assert!(!off.dr && !off.cd && off.cs, "{off:?}");
+
+    dev.set_modem(ModemOut::ALL_ON).unwrap();
+    let watch = tokio::spawn(async move {
+        let cut = lines_change(&mut host, on).await;
+        (host, cut)
+    });
+    tokio::task::yield_now().await;
+    l.cut();
+    let (host, cut) = tokio::time::timeout(within, watch).await.unwrap().unwrap();
+    assert!(!cut.dr && !cut.cs && !cut.cd, "{cut:?}");
+    drop(host);
+}
+
+#[tokio::test(start_paused = true)]
+async fn lines_change_after_the_characters_written_before() {
+    let s = LineSettings::with_baud(19_200);
+    let (mut host, mut dev, l) = line(s);
+    let on = host.modem().unwrap();
+    // A board's DC3, then ER off (§6.4 (1)): the host reads the DC3 before DR goes off.
+    dev.write_all(&[0x13]).await.unwrap();
+    dev.set_modem(ModemOut {
+        er: false,
+        rs: true,
+    })
+    .unwrap();
+    assert_eq!(
+        host.modem().unwrap(),
+        on,
+        "DR went off before the DC3 arrived"
+    );
+    assert!(
+        l.modem_out(End::Device).er,
+        "ER changed before the DC3 left"
+    );
+    let t0 = Instant::now();
+    let mut b = [0u8; 1];
+    host.read_exact(&mut b).await.unwrap();
+    assert_eq!(b, [0x13]);
+    assert!(Instant::now() - t0 >= s.char_time());
+    let off = lines_change(&mut host, on).await;
+    assert!(!off.dr && !off.cd, "{off:?}");
+    assert!(!l.modem_out(End::Device).er);
+}
