@@ -262,18 +262,21 @@ pub struct Journal {
 
 struct Inner {
     path: PathBuf,
-    /// Taken for every write transaction, so that checkpoints reach the database in the order
-    /// they were made.
+    /// Taken for every write transaction, for the whole of it (a disk sync), so that
+    /// checkpoints reach the database in the order they were made. `None` after a write failed
+    /// (a full disk): redb refuses every later transaction on a database that saw an I/O
+    /// error, so the next write opens the file again, which recovers it, instead of refusing
+    /// writes until a restart.
+    db: std::sync::Mutex<Option<Database>>,
+    /// Taken only for moments, never across a disk write: a link recording a checkpoint while
+    /// a commit syncs the disk must not wait for it (its runtime thread would stall every
+    /// other link's task with it).
     pending: std::sync::Mutex<Pending>,
 }
 
-/// The database and the progress checkpoints not yet in it: the latest record of each
-/// running job.
+/// The progress checkpoints not yet in the database (the latest record of each running job),
+/// and how the last write went.
 struct Pending {
-    /// `None` after a write failed (a full disk): redb refuses every later transaction on a
-    /// database that saw an I/O error, so the next write opens the file again, which recovers
-    /// it, instead of refusing writes until a restart.
-    db: Option<Database>,
     /// Why the last write failed, until one succeeds: what status shows.
     fault: Option<String>,
     records: BTreeMap<u64, Vec<u8>>,
@@ -284,6 +287,12 @@ struct Pending {
 impl Inner {
     fn pending(&self) -> std::sync::MutexGuard<'_, Pending> {
         self.pending
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn db(&self) -> std::sync::MutexGuard<'_, Option<Database>> {
+        self.db
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
@@ -340,21 +349,32 @@ pub(crate) fn panic_text(panic: &Box<dyn std::any::Any + Send>) -> String {
 /// that what `f` writes or removes supersedes them. A database closed by an earlier failure
 /// is opened again first.
 fn commit<T>(
-    path: &Path,
-    pending: &mut Pending,
+    inner: &Inner,
     f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
 ) -> Result<T, redb::Error> {
-    let result = try_commit(path, pending, f);
+    let mut db = inner.db();
+    // Taken under the writer's lock: a checkpoint made from here on waits for the next commit.
+    let records = {
+        let mut pending = inner.pending();
+        pending.last_durable = std::time::Instant::now();
+        std::mem::take(&mut pending.records)
+    };
+    let result = try_commit(&inner.path, &mut db, &records, f);
+    let mut pending = inner.pending();
     match &result {
         Ok(_) => {
             if pending.fault.take().is_some() {
-                tracing::info!(path = %path.display(), "job journal writable again");
+                tracing::info!(path = %inner.path.display(), "job journal writable again");
             }
         }
         Err(e) => {
             // Closed, so that the next write starts from the file as it is on disk.
-            pending.db = None;
+            *db = None;
             pending.fault = Some(e.to_string());
+            // Kept for the next commit, unless the job made a newer one meanwhile.
+            for (seq, bytes) in records {
+                pending.records.entry(seq).or_insert(bytes);
+            }
         }
     }
     result
@@ -362,45 +382,37 @@ fn commit<T>(
 
 fn try_commit<T>(
     path: &Path,
-    pending: &mut Pending,
+    db: &mut Option<Database>,
+    records: &BTreeMap<u64, Vec<u8>>,
     f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
 ) -> Result<T, redb::Error> {
-    if pending.db.is_none() {
-        pending.db = Some(match open_db(path) {
+    let db = match db {
+        Some(db) => db,
+        None => db.insert(match open_db(path) {
             Ok(db) => db,
             Err(OpenError::Redb(e)) => return Err(e.into()),
             Err(OpenError::Panicked(text)) => {
                 return Err(redb::Error::Io(std::io::Error::other(text)));
             }
-        });
-    }
-    let Some(db) = pending.db.as_ref() else {
-        return Err(redb::Error::Io(std::io::Error::other("journal closed")));
+        }),
     };
-    pending.last_durable = std::time::Instant::now();
     let tx = db.begin_write()?;
-    if !pending.records.is_empty() {
+    if !records.is_empty() {
         let mut jobs = tx.open_table(JOBS)?;
-        for (seq, bytes) in &pending.records {
+        for (seq, bytes) in records {
             jobs.insert(*seq, bytes.as_slice())?;
         }
     }
     let out = f(&tx)?;
     tx.commit()?;
-    // Only once they are on disk: a failed commit keeps them for the next one.
-    pending.records.clear();
     Ok(out)
 }
 
 impl Drop for Inner {
     /// A gateway that stops writes the checkpoints it still holds.
     fn drop(&mut self) {
-        let Inner { path, pending } = self;
-        let pending = pending
-            .get_mut()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        if !pending.records.is_empty()
-            && let Err(e) = commit(path, pending, |_| Ok(()))
+        if !self.pending().records.is_empty()
+            && let Err(e) = commit(self, |_| Ok(()))
         {
             tracing::error!(error = %e, "job journal: last progress checkpoints not written");
         }
@@ -510,8 +522,8 @@ impl Journal {
         let journal = Journal {
             inner: std::sync::Arc::new(Inner {
                 path: path.clone(),
+                db: std::sync::Mutex::new(Some(db)),
                 pending: std::sync::Mutex::new(Pending {
-                    db: Some(db),
                     fault: None,
                     records: BTreeMap::new(),
                     last_durable: std::time::Instant::now(),
@@ -565,10 +577,7 @@ impl Journal {
         &self,
         f: impl FnOnce(&redb::WriteTransaction) -> Result<T, redb::Error>,
     ) -> Result<T, JournalError> {
-        blocking(|| {
-            let mut pending = self.inner.pending();
-            commit(&self.inner.path, &mut pending, f).map_err(|e| self.db_error(e))
-        })
+        blocking(|| commit(&self.inner, f).map_err(|e| self.db_error(e)))
     }
 
     /// The next sequence number, taken durably.
@@ -665,13 +674,16 @@ impl Journal {
     /// acknowledged, and at most that far behind while the job makes progress.
     pub fn put_progress(&self, record: &JobRecord) -> Result<(), JournalError> {
         let bytes = self.encode(record)?;
-        let mut pending = self.inner.pending();
-        pending.records.insert(record.seq, bytes);
-        if pending.last_durable.elapsed() < PROGRESS_DURABLE_EVERY {
-            return Ok(());
+        {
+            let mut pending = self.inner.pending();
+            pending.records.insert(record.seq, bytes);
+            if pending.last_durable.elapsed() < PROGRESS_DURABLE_EVERY {
+                return Ok(());
+            }
+            // This call makes the commit: the others of this second only hold theirs.
+            pending.last_durable = std::time::Instant::now();
         }
-        blocking(|| commit(&self.inner.path, &mut pending, |_| Ok(())))
-            .map_err(|e| self.db_error(e))
+        self.write(|_| Ok(()))
     }
 
     fn encode(&self, record: &JobRecord) -> Result<Vec<u8>, JournalError> {
@@ -725,14 +737,14 @@ impl Journal {
     pub fn restore(&self) -> Result<Restored, JournalError> {
         // The checkpoints held in memory first, so that what is read is what was written.
         self.write(|_| Ok(()))?;
-        let pending = self.inner.pending();
-        let Some(db) = pending.db.as_ref() else {
+        let guard = self.inner.db();
+        let Some(db) = guard.as_ref() else {
             return Err(self.db_error(redb::Error::Io(std::io::Error::other(
                 "the journal is closed after a failed write",
             ))));
         };
         let tx = db.begin_read().map_err(|e| self.db_error(e))?;
-        drop(pending);
+        drop(guard);
         let mut restored = Restored::default();
         let jobs = tx.open_table(JOBS).map_err(|e| self.db_error(e))?;
         for entry in jobs.iter().map_err(|e| self.db_error(e))? {

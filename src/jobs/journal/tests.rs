@@ -68,7 +68,7 @@ fn records_and_files_survive_reopening_and_go_together() {
 /// The acknowledged offset of job `seq` as the database holds it, without the
 /// checkpoints held in memory.
 fn stored_acked(j: &Journal, seq: u64) -> u64 {
-    let tx = j.inner.pending().db.as_ref().unwrap().begin_read().unwrap();
+    let tx = j.inner.db().as_ref().unwrap().begin_read().unwrap();
     let table = tx.open_table(JOBS).unwrap();
     let bytes = table.get(seq).unwrap().unwrap();
     serde_json::from_slice::<JobRecord>(bytes.value())
