@@ -469,6 +469,31 @@ fn a_10_kib_program_in_dats_then_eod() {
     b.expect(Command::Wat);
 }
 
+/// Where the board's RS is seen, a DAT goes out in pieces of No so that CS off stops the host
+/// within No bytes (§4.3 (5)); behind a TCP device server, which carries no modem lines, it
+/// goes out whole: one write.
+#[test]
+fn a_dat_is_handed_out_in_pieces_of_no_only_where_cs_is_seen() {
+    for cs_visible in [true, false] {
+        let mut b = Bench::ready(ProtocolAConfig {
+            cs_visible,
+            ..Default::default()
+        });
+        b.command(EngineCommand::StartProgram { total: None });
+        b.data(&nc_program(9000));
+        b.board(Command::Gtd);
+        let pieces = b.pieces();
+        let whole: usize = pieces.iter().map(Vec::len).sum();
+        assert!(whole > 1950, "{whole}");
+        if cs_visible {
+            assert!(pieces.iter().all(|p| p.len() <= 50), "{:?}", pieces.len());
+            assert_eq!(pieces.len(), whole.div_ceil(50));
+        } else {
+            assert_eq!(pieces.len(), 1);
+        }
+    }
+}
+
 #[test]
 fn dat_length_follows_the_boards_nb_and_no() {
     let params = Params {

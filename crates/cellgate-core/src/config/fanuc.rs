@@ -227,10 +227,12 @@ impl MachineConfig {
         }
     }
 
-    /// The settings of this machine's host engine, Protocol A family.
+    /// The settings of this machine's host engine, Protocol A family. A TCP device server
+    /// carries no modem lines, so the board's RS is not seen there (§4.3 (5)).
     pub fn protocol_a_config(&self) -> Option<ProtocolAConfig> {
-        self.protocol.is_a_family().then(|| {
-            ProtocolAConfig::for_link(
+        self.protocol.is_a_family().then(|| ProtocolAConfig {
+            cs_visible: !matches!(self.transport, TransportConfig::Tcp { .. }),
+            ..ProtocolAConfig::for_link(
                 Framing::new(self.code, self.effective_end_code()),
                 self.params(),
                 self.effective_packet_n(),

@@ -123,6 +123,11 @@ pub struct ProtocolAConfig {
     /// Line time of one character (the transport's `LineSettings::char_time`), so that time-out
     /// supervision starts after a long DAT has left the line. Zero when unknown.
     pub char_time: Duration,
+    /// The transport carries the board's RS (our CS): a serial port or the simulated line
+    /// does, and messages are then handed out in pieces of No so that CS off stops the host
+    /// within No bytes (§4.3 (5)). A TCP device server does not (it honours CS on its own
+    /// serial side): each message goes out whole, one write instead of one per No bytes.
+    pub cs_visible: bool,
 }
 
 impl Default for ProtocolAConfig {
@@ -136,6 +141,7 @@ impl Default for ProtocolAConfig {
             dummy_interval: Duration::from_secs(5),
             max_buffer: 64 * 1024,
             char_time: Duration::ZERO,
+            cs_visible: true,
         }
     }
 }
@@ -533,9 +539,14 @@ impl ProtocolAHost {
     }
 
     /// Pieces of Protocol A messages handed to the driver: at most the board's overrun
-    /// allowance No, so that CS off stops the host within No bytes (§4.3 (5)).
+    /// allowance No, so that CS off stops the host within No bytes (§4.3 (5)); whole
+    /// messages where CS is not seen ([`ProtocolAConfig::cs_visible`]).
     fn tx_chunk(&self) -> usize {
-        usize::from(self.board_params().no).max(16)
+        if self.cfg.cs_visible {
+            usize::from(self.board_params().no).max(16)
+        } else {
+            usize::MAX
+        }
     }
 
     fn emit(&mut self, event: EngineEvent) {
