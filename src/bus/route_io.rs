@@ -13,6 +13,7 @@ use std::time::SystemTime;
 
 use tokio_util::sync::CancellationToken;
 use zenoh::handlers::FifoChannelHandler;
+use zenoh::key_expr::KeyExpr;
 use zenoh::pubsub::Subscriber;
 use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
@@ -36,6 +37,11 @@ pub(crate) struct IoRoute {
     di: Queryable<FifoChannelHandler<Query>>,
     do_get: Queryable<FifoChannelHandler<Query>>,
     do_put: Subscriber<FifoChannelHandler<Sample>>,
+    /// Every machine's `do` key, declared and held for as long as the route runs: a put on
+    /// a key the gateway's routing tables hold has its route cached there, one that they do
+    /// not is matched against every declaration of the cell, on every put (a DO put a
+    /// second on a thousand machines).
+    _do_keys: Vec<KeyExpr<'static>>,
 }
 
 impl IoRoute {
@@ -46,6 +52,7 @@ impl IoRoute {
             do_put: ctx
                 .subscriber(ctx.keys.any_leaf(MachineLeaf::Do), Locality::Any)
                 .await?,
+            _do_keys: declare_keys(ctx, MachineLeaf::Do).await,
         })
     }
 
@@ -345,4 +352,19 @@ pub(crate) async fn declare_di_publisher(
     machine: &str,
 ) -> Result<MachinePublisher<pb::DiImage>, BusError> {
     MachinePublisher::declare(ctx, machine, MachineLeaf::Di, CongestionControl::Drop).await
+}
+
+/// Each machine's `leaf` key declared on the gateway's session, so that zenoh's routing
+/// tables hold it and cache its route. A key zenoh does not take is left out (its puts are
+/// routed all the same, only matched each time).
+async fn declare_keys(ctx: &RouteContext, leaf: MachineLeaf) -> Vec<KeyExpr<'static>> {
+    let mut keys = Vec::with_capacity(ctx.machines.len());
+    for name in ctx.machines.keys() {
+        let key = ctx.keys.leaf(name, leaf);
+        match ctx.session.declare_keyexpr(key.clone()).await {
+            Ok(k) => keys.push(k),
+            Err(e) => tracing::debug!(%key, error = %e, "key not declared"),
+        }
+    }
+    keys
 }
