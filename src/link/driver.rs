@@ -237,8 +237,9 @@ pub const PROGRESS_INTERVAL: Duration = Duration::from_millis(250);
 /// its job manager) take them within milliseconds.
 pub const LINK_EVENTS: usize = 256;
 
-/// The largest piece read from a program source at once.
-const SOURCE_CHUNK: usize = 16 * 1024;
+/// The largest piece read from a program source at once. A file source holds a buffer of
+/// the same size in `tokio::fs::File` besides this one, so it is counted twice per busy link.
+const SOURCE_CHUNK: usize = 8 * 1024;
 
 /// Talks to a running link task. Cheap to clone.
 #[derive(Clone, Debug)]

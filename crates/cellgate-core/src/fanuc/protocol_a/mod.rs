@@ -139,7 +139,7 @@ impl Default for ProtocolAConfig {
             conversion: None,
             wat_grace: Duration::from_secs(1),
             dummy_interval: Duration::from_secs(5),
-            max_buffer: 64 * 1024,
+            max_buffer: 32 * 1024,
             char_time: Duration::ZERO,
             cs_visible: true,
         }
