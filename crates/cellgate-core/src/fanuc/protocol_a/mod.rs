@@ -125,8 +125,9 @@ pub struct ProtocolAConfig {
     pub char_time: Duration,
     /// The transport carries the board's RS (our CS): a serial port or the simulated line
     /// does, and messages are then handed out in pieces of No so that CS off stops the host
-    /// within No bytes (§4.3 (5)). A TCP device server does not (it honours CS on its own
-    /// serial side): each message goes out whole, one write instead of one per No bytes.
+    /// within No bytes (§4.3 (5)). A TCP device server does not (its own RTS/CTS flow control
+    /// is what honours CS there): each message goes out whole, one write instead of one per
+    /// No bytes.
     pub cs_visible: bool,
 }
 
