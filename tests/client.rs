@@ -144,18 +144,7 @@ async fn start_gateway_with(links: impl FnOnce(&mut Vec<bus::MachineLink>)) -> G
 
 impl Gateway {
     fn connect(&self) -> ConnectArgs {
-        ConnectArgs {
-            connect: self.endpoint.clone(),
-            prefix: "cellgate".to_string(),
-            cell: None,
-            timeout: 10,
-            tls_ca: None,
-            tls_cert: None,
-            tls_key: None,
-            user: None,
-            password_file: None,
-            as_user: Some("tester".to_string()),
-        }
+        common::bus::connect_args(self.endpoint.clone(), Some("tester".to_string()))
     }
 
     async fn client(&self) -> Client {

@@ -466,16 +466,8 @@ async fn the_site_console_shows_every_cell_behind_a_router() {
         .await;
         gateways.push(gw);
     }
-    let console_port = free_port();
-    let args = common::bus::site_args(router_port, console_port);
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let site = tokio::spawn(async move {
-        cellgate::console::site(&args, async {
-            let _ = stopped.await;
-        })
-        .await
-    });
-    let url = format!("http://127.0.0.1:{console_port}");
+    let site = common::bus::SiteConsole::start(router_port);
+    let url = site.url.clone();
     wait_http(&format!("{url}/health")).await;
     let mut b = Browser::new(&url);
     b.me().await;
@@ -499,8 +491,7 @@ async fn the_site_console_shows_every_cell_behind_a_router() {
         assert_eq!(status, 200, "{o}");
         assert_eq!(o["machines"].as_array().unwrap().len(), 3, "{o}");
     }
-    let _ = stop.send(());
-    site.await.unwrap().unwrap();
+    site.stop().await;
     for gw in gateways {
         let _ = &gw.endpoint;
         gw.stop().await;

@@ -612,16 +612,8 @@ async fn the_site_console_shows_two_gateways_cells_in_the_browser() {
         );
     }
     // The site console: `cellgate console -e ROUTER`.
-    let console_port = free_port();
-    let args = common::bus::site_args(router_port, console_port);
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let site = tokio::spawn(async move {
-        cellgate::console::site(&args, async {
-            let _ = stopped.await;
-        })
-        .await
-    });
-    let url = format!("http://127.0.0.1:{console_port}");
+    let site = common::bus::SiteConsole::start(router_port);
+    let url = site.url.clone();
     let http = reqwest::Client::new();
     for _ in 0..300 {
         if let Ok(r) = http.get(format!("{url}/health")).send().await
@@ -676,8 +668,7 @@ async fn the_site_console_shows_two_gateways_cells_in_the_browser() {
     screenshot(&c, "site").await;
     only_own_origin(&c, &url).await;
     c.close().await.unwrap();
-    let _ = stop.send(());
-    site.await.unwrap().unwrap();
+    site.stop().await;
     for gw in gateways {
         gw.stop().await;
     }

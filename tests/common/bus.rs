@@ -322,23 +322,58 @@ pub async fn follow(events: &Sub, job: &str, within: Duration) -> Vec<pb::job_ev
     seen
 }
 
-/// The arguments of `cellgate console -e tcp/127.0.0.1:ROUTER --listen 127.0.0.1:CONSOLE`: a
-/// site console without credentials, on loopback.
-pub fn site_args(router_port: u16, console_port: u16) -> cellgate::console::SiteArgs {
-    cellgate::console::SiteArgs {
-        connect: cellgate::client::cli::ConnectArgs {
-            connect: format!("tcp/127.0.0.1:{router_port}"),
-            prefix: "cellgate".to_string(),
-            cell: None,
-            timeout: 10,
-            tls_ca: None,
-            tls_cert: None,
-            tls_key: None,
-            user: None,
-            password_file: None,
-            as_user: None,
-        },
-        listen: Some(format!("127.0.0.1:{console_port}")),
-        config: None,
+/// A client's connection arguments for `endpoint`, without credentials.
+pub fn connect_args(
+    endpoint: String,
+    as_user: Option<String>,
+) -> cellgate::client::cli::ConnectArgs {
+    cellgate::client::cli::ConnectArgs {
+        connect: endpoint,
+        prefix: "cellgate".to_string(),
+        cell: None,
+        timeout: 10,
+        tls_ca: None,
+        tls_cert: None,
+        tls_key: None,
+        user: None,
+        password_file: None,
+        as_user,
+    }
+}
+
+/// A site console, `cellgate console -e tcp/127.0.0.1:ROUTER --listen 127.0.0.1:PORT`, without
+/// credentials, running until [`SiteConsole::stop`].
+pub struct SiteConsole {
+    pub url: String,
+    stop: tokio::sync::oneshot::Sender<()>,
+    task: tokio::task::JoinHandle<Result<(), cellgate::console::SiteError>>,
+}
+
+impl SiteConsole {
+    pub fn start(router_port: u16) -> Self {
+        let port = free_port();
+        let args = cellgate::console::SiteArgs {
+            connect: connect_args(format!("tcp/127.0.0.1:{router_port}"), None),
+            listen: Some(format!("127.0.0.1:{port}")),
+            config: None,
+        };
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let task = tokio::spawn(async move {
+            cellgate::console::site(&args, async {
+                let _ = stopped.await;
+            })
+            .await
+        });
+        SiteConsole {
+            url: format!("http://127.0.0.1:{port}"),
+            stop,
+            task,
+        }
+    }
+
+    /// Stops the console and checks that it ended without an error.
+    pub async fn stop(self) {
+        let _ = self.stop.send(());
+        self.task.await.unwrap().unwrap();
     }
 }
