@@ -376,7 +376,11 @@ async fn a_user_may_do_what_their_roles_allow_and_a_forged_request_is_refused_an
     assert!(e["message"].as_str().unwrap().contains("job.submit"), "{e}");
     // The gateway never saw it; the console noted it in the cell's audit trail, with her name.
     let note = audited(&erik, |a| {
-        a["action"] == "audit.note" && a["origin"]["user"] == "olga"
+        a["action"] == "audit.note"
+            && a["origin"]["user"] == "olga"
+            && a["detail"]
+                .as_str()
+                .is_some_and(|d| d.contains("job.submit"))
     })
     .await;
     assert!(

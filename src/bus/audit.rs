@@ -92,7 +92,15 @@ impl Auditor {
             Ok(()) => (true, 0, String::new()),
             Err(e) => (false, e.code() as i32, e.to_string()),
         };
-        history.audit(
+        // A console's notes come gathered by the console (`count`): kept as they come, so
+        // that one user's refusals of different kinds stay apart.
+        let keep = if a.permission == Permission::AuditNote {
+            History::audit_gathered
+        } else {
+            History::audit
+        };
+        keep(
+            history,
             a.machine,
             pb::AuditRecord {
                 action: a.action.to_string(),
@@ -105,6 +113,7 @@ impl Auditor {
                 ok,
                 code,
                 error,
+                count: 0,
             },
         );
     }

@@ -301,6 +301,19 @@ async fn program_write(ctx: &RouteContext, q: &Query) {
             return reply_err(q, &e).await;
         }
     };
+    if let Some(pb::program_write::Op::Check(c)) = &write.op {
+        return match ctx.library.check_store(name, c.size).await {
+            Ok(Some(entry)) => reply(q, q.key_expr().to_string(), &entry.info()).await,
+            Ok(None) => {
+                let info = pb::ProgramInfo {
+                    name: name.to_string(),
+                    ..Default::default()
+                };
+                reply(q, q.key_expr().to_string(), &info).await;
+            }
+            Err(e) => reply_err(q, &RequestError::from(e)).await,
+        };
+    }
     let by = origin.clone().unwrap_or_default();
     let (action, detail, done) = match write.op {
         Some(pb::program_write::Op::Store(bytes)) => (
@@ -338,7 +351,7 @@ async fn program_write(ctx: &RouteContext, q: &Query) {
                 .adopt(name, &a.from, &a.revision, by, write.comment)
                 .await,
         ),
-        None => {
+        Some(pb::program_write::Op::Check(_)) | None => {
             let e = RequestError::ProgramWriteEmpty {
                 name: name.to_string(),
             };

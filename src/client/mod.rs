@@ -1216,12 +1216,48 @@ impl Client {
         program: &[u8],
         comment: String,
     ) -> Result<pb::ProgramInfo, ClientError> {
+        self.program_store(name, program.to_vec(), comment).await
+    }
+
+    /// [`Self::program_put_with`], taking the program's bytes (no copy of them is made).
+    pub async fn program_store(
+        &self,
+        name: &str,
+        program: Vec<u8>,
+        comment: String,
+    ) -> Result<pb::ProgramInfo, ClientError> {
         Self::program_arg(name)?;
         let write = pb::ProgramWrite {
-            op: Some(pb::program_write::Op::Store(program.to_vec())),
+            op: Some(pb::program_write::Op::Store(program)),
             comment,
         };
         self.program_write(name, "store", write).await
+    }
+
+    /// The gateway's `programs.max_inline` (from its admin document), else the default: the
+    /// most a console takes in one upload.
+    pub fn max_inline(&self) -> u64 {
+        self.admin["config"]["programs"]["max_inline"]
+            .as_u64()
+            .unwrap_or(cellgate_core::config::ProgramsConfig::DEFAULT_MAX_INLINE)
+    }
+
+    /// Whether a store of `size` bytes as `name` would be taken (the name, the size, a lock,
+    /// the quotas), before the bytes are sent: the program as it stands, or the refusal a
+    /// store would get. Nothing is written.
+    pub async fn program_check(
+        &self,
+        name: &str,
+        size: u64,
+    ) -> Result<pb::ProgramInfo, ClientError> {
+        Self::program_arg(name)?;
+        let write = pb::ProgramWrite {
+            op: Some(pb::program_write::Op::Check(pb::program_write::Check {
+                size,
+            })),
+            comment: String::new(),
+        };
+        self.program_write(name, "check a store of", write).await
     }
 
     /// Stores `from`'s revision (empty: its latest) as `name`'s next revision (a punched
@@ -1260,6 +1296,7 @@ impl Client {
         revision: &str,
     ) -> Result<Vec<u8>, ClientError> {
         Self::program_arg(name)?;
+        chunk_arg("revision", revision)?;
         let key = self.keys.program_revision(name, revision);
         let what = format!("revision {revision} of {name}");
         let replies = self.get_raw(&what, &key, None, self.timeout).await?;
@@ -1282,18 +1319,15 @@ impl Client {
         Self::program_arg(name)?;
         let mut params = Vec::new();
         if let Some(a) = a {
-            params.push(format!("a={a}"));
+            params.push(("a".to_string(), a.to_string()));
         }
         if let Some(b) = b {
-            params.push(format!("b={b}"));
+            params.push(("b".to_string(), b.to_string()));
         }
         if !ignore.is_empty() {
-            params.push(format!("ignore={}", ignore.join(",")));
+            params.push(("ignore".to_string(), ignore.join(",")));
         }
-        let mut key = self.keys.program_diff(name);
-        if !params.is_empty() {
-            key = format!("{key}?{}", params.join(";"));
-        }
+        let key = with_params(self.keys.program_diff(name), &params)?;
         self.get_one(&format!("diff of {name}"), &key, None, self.timeout)
             .await
     }
@@ -1337,7 +1371,7 @@ impl Client {
         } else {
             self.keys.history()
         };
-        let key = with_params(base, params);
+        let key = with_params(base, params)?;
         let what = if audit {
             "the audit trail"
         } else {
@@ -1351,7 +1385,7 @@ impl Client {
         &self,
         params: &[(String, String)],
     ) -> Result<pb::Utilisation, ClientError> {
-        let key = with_params(self.keys.utilisation(), params);
+        let key = with_params(self.keys.utilisation(), params)?;
         self.get_one("utilisation", &key, None, self.timeout).await
     }
 
@@ -1459,13 +1493,39 @@ fn no_reply(what: &str, key: &str, timeout: Duration, waited: Duration) -> Clien
     }
 }
 
-/// `key?name=value;...`: zenoh's selector with parameters.
-fn with_params(key: String, params: &[(String, String)]) -> String {
+/// `key?name=value;...`: zenoh's selector with parameters. A name or value that would make
+/// another parameter (`;`, `=`, `?`, `#`) is refused: what a caller passes through (a
+/// console's query string) never becomes more than the one parameter it names.
+fn with_params(key: String, params: &[(String, String)]) -> Result<String, ClientError> {
     if params.is_empty() {
-        return key;
+        return Ok(key);
     }
-    let p: Vec<String> = params.iter().map(|(k, v)| format!("{k}={v}")).collect();
-    format!("{key}?{}", p.join(";"))
+    let mut p = Vec::with_capacity(params.len());
+    for (k, v) in params {
+        let bad = |s: &str| s.contains([';', '=', '?', '#', '&', '$']);
+        if k.is_empty() || bad(k) || bad(v) {
+            return Err(ClientError::InvalidArgument {
+                what: format!("parameter {k:?}"),
+                reason: format!(
+                    "{v:?}: names and values may not hold ';', '=', '?', '#', '&' or '$'"
+                ),
+            });
+        }
+        p.push(format!("{k}={v}"));
+    }
+    Ok(format!("{key}?{}", p.join(";")))
+}
+
+/// `what` names one key chunk: no '/', wildcard or selector character.
+pub(crate) fn chunk_arg(what: &str, value: &str) -> Result<(), ClientError> {
+    if is_plain_chunk(value) {
+        Ok(())
+    } else {
+        Err(ClientError::InvalidArgument {
+            what: format!("{what} {value:?}"),
+            reason: "one key chunk, without '/', '*', '$', '?' or '#'".to_string(),
+        })
+    }
 }
 
 async fn get_raw(

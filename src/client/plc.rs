@@ -8,25 +8,14 @@ use serde_json::{Value, json};
 
 use super::cli::{ClientCommand, ConnectArgs, Io};
 use super::render::{plc_status_text, tag_json, tag_text};
-use super::{Client, ClientError};
-use crate::bus::keys::{PlcKey, is_plain_chunk};
+use super::{Client, ClientError, chunk_arg};
+use crate::bus::keys::PlcKey;
 use crate::bus::payload::{BusMessage, encoding};
 use cellgate_core::pb;
 
 /// How long a PLC request may wait: the master's reply time-out (at most 600 s in the cell
 /// file) times its attempts, behind the requests queued before it.
 pub const PLC_TIMEOUT: Duration = Duration::from_secs(60);
-
-fn chunk_arg(what: &str, v: &str) -> Result<(), ClientError> {
-    if is_plain_chunk(v) {
-        Ok(())
-    } else {
-        Err(ClientError::InvalidArgument {
-            what: format!("{what} {v:?}"),
-            reason: "one key chunk, without '/', '*', '$', '?' or '#'".to_string(),
-        })
-    }
-}
 
 fn payload<M: BusMessage>(m: &M) -> Option<(Vec<u8>, zenoh::bytes::Encoding)> {
     Some((m.encode_to_vec(), encoding::<M>()))

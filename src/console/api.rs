@@ -1,79 +1,37 @@
-//! The console's JSON API (docs/console.md): each handler checks the user's permission, asks
-//! the cell's gateway over the bus as that user, and answers the gateway's message as proto3
-//! JSON, or its refusal with its code.
+//! The console's JSON API (docs/console.md): each handler is given a caller the route's
+//! [`Need`](super::extract::Need) allows (checked from the request's head, before any body
+//! is read), asks the cell's gateway over the bus as that user, and answers the gateway's
+//! message as proto3 JSON, or its refusal with its code.
 
 use std::collections::BTreeMap;
 use std::convert::Infallible;
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::Json;
-use axum::body::Bytes;
-use axum::extract::{ConnectInfo, Path, Query, RawQuery, State};
+use axum::body::Body;
+use axum::extract::{ConnectInfo, RawQuery, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
-use futures::Stream;
+use futures::{Stream, StreamExt as _};
 use serde::Deserialize;
 use serde_json::json;
+use tokio::io::{AsyncReadExt as _, AsyncSeekExt as _, AsyncWriteExt as _};
 
 use super::Console;
-use super::auth::{Auth, COOKIE, User};
+use super::auth::{COOKIE, LoginError, User};
+use super::extract::{
+    AdoptProgram, ApiError, Caller, CancelJob, JsonObject, Names, OutputDo, Params, ReadAudit,
+    ReadHistory, ReadPlcMemory, ReadPrograms, ReadStatus, ReleaseProgram, RemoveProgram, SetTag,
+    StoreProgram, SubmitJob, same_origin, session_id,
+};
 use super::listen::Peer;
 use crate::client::{Client, ClientError};
-use cellgate_core::config::Permission;
 use cellgate_core::pb;
 
-/// A refusal as the API answers it.
-#[derive(Debug)]
-pub struct ApiError {
-    status: StatusCode,
-    code: pb::ErrorCode,
-    message: String,
-}
-
-impl ApiError {
-    pub fn new(status: StatusCode, code: pb::ErrorCode, message: impl Into<String>) -> Self {
-        ApiError {
-            status,
-            code,
-            message: message.into(),
-        }
-    }
-
-    fn login() -> Self {
-        Self::new(
-            StatusCode::UNAUTHORIZED,
-            pb::ErrorCode::NotPermitted,
-            "log in first",
-        )
-    }
-
-    fn forbidden(p: Permission) -> Self {
-        Self::new(
-            StatusCode::FORBIDDEN,
-            pb::ErrorCode::NotPermitted,
-            format!("your roles do not allow {}", p.name()),
-        )
-    }
-
-    fn bad(message: impl Into<String>) -> Self {
-        Self::new(
-            StatusCode::BAD_REQUEST,
-            pb::ErrorCode::InvalidRequest,
-            message,
-        )
-    }
-}
-
-impl IntoResponse for ApiError {
-    fn into_response(self) -> Response {
-        (
-            self.status,
-            Json(json!({ "code": self.code.as_str_name(), "message": self.message })),
-        )
-            .into_response()
-    }
-}
+/// How often an event stream asks whether its session is still valid (expiry, a reload).
+const SESSION_CHECK_EVERY: Duration = Duration::from_secs(5);
 
 /// The HTTP status of a gateway's error code.
 fn status_of(code: pb::ErrorCode) -> StatusCode {
@@ -123,53 +81,7 @@ fn message<M: serde::Serialize>(m: &M) -> Response {
     Json(m).into_response()
 }
 
-fn session_id(headers: &HeaderMap) -> Option<String> {
-    let cookies = headers.get(header::COOKIE)?.to_str().ok()?;
-    cookies.split(';').find_map(|c| {
-        let (k, v) = c.trim().split_once('=')?;
-        (k == COOKIE).then(|| v.to_string())
-    })
-}
-
 impl Console {
-    /// The user of a request: its session, with the permission `p` and, for a write, the
-    /// CSRF token. A refusal of a write is in the console's log and the cell's audit trail.
-    async fn allowed(
-        &self,
-        headers: &HeaderMap,
-        p: Permission,
-        write: Option<(&str, &str, &str)>,
-    ) -> Result<User, ApiError> {
-        let user = session_id(headers)
-            .and_then(|id| self.auth.user(&id))
-            .ok_or_else(ApiError::login)?;
-        let csrf_ok = write.is_none()
-            || Auth::csrf_ok(
-                &user,
-                headers.get("x-csrf-token").and_then(|v| v.to_str().ok()),
-            );
-        let refusal = if !user.may(p) {
-            Some(ApiError::forbidden(p))
-        } else if !csrf_ok {
-            Some(ApiError::new(
-                StatusCode::FORBIDDEN,
-                pb::ErrorCode::NotPermitted,
-                "missing or wrong X-CSRF-Token: reload the page",
-            ))
-        } else {
-            None
-        };
-        if let Some(e) = refusal {
-            if let Some((cell, target, action)) = write {
-                tracing::warn!(user = %user.name, cell, target, action, error = %e.message, "console: request refused");
-                self.note_refusal(cell, &user, action, p, target, &e.message)
-                    .await;
-            }
-            return Err(e);
-        }
-        Ok(user)
-    }
-
     /// The cell's client, acting as `user`.
     async fn client(&self, cell: &str, user: &User) -> Result<Client, ApiError> {
         let base = self.cell(cell).await.ok_or_else(|| {
@@ -230,15 +142,25 @@ pub async fn me(
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct LoginBody {
     user: String,
     password: String,
 }
 
-pub async fn login(State(c): State<Arc<Console>>, body: Json<LoginBody>) -> ApiResult {
-    match c.auth.login(&body.user, &body.password) {
+/// A login is state-changing: only from the console's own pages (or a client that is no
+/// browser), throttled per name and address, every failure counted and in the audit.
+pub async fn login(
+    State(c): State<Arc<Console>>,
+    ConnectInfo(peer): ConnectInfo<Peer>,
+    headers: HeaderMap,
+    JsonObject(body): JsonObject<LoginBody>,
+) -> ApiResult {
+    same_origin(&headers, c.https)
+        .map_err(|why| ApiError::new(StatusCode::FORBIDDEN, pb::ErrorCode::NotPermitted, why))?;
+    match c.auth.login(&body.user, &body.password, peer.addr.ip()) {
         Ok((id, u)) => {
-            tracing::info!(user = %u.name, "console: logged in");
+            tracing::info!(user = %u.name, address = %peer.addr.ip(), "console: logged in");
             Ok(with_cookie(
                 Json(me_json(&c, &u)).into_response(),
                 &id,
@@ -247,27 +169,51 @@ pub async fn login(State(c): State<Arc<Console>>, body: Json<LoginBody>) -> ApiR
             ))
         }
         Err(e) => {
-            tracing::warn!(user = %body.user, error = %e, "console: login refused");
-            Err(ApiError::new(
-                StatusCode::UNAUTHORIZED,
+            let throttled = matches!(e, LoginError::Throttled(_));
+            tracing::warn!(user = %body.user, address = %peer.addr.ip(), error = %e, "console: login refused");
+            if matches!(e, LoginError::Refused | LoginError::Throttled(_)) {
+                crate::telemetry::metrics::event(
+                    "cellgate.console.login_failures",
+                    &[("outcome", if throttled { "throttled" } else { "refused" })],
+                    1,
+                );
+                c.note_login_failure(&body.user, peer.addr.ip(), &e.to_string());
+            }
+            let mut err = ApiError::new(
+                if throttled {
+                    StatusCode::TOO_MANY_REQUESTS
+                } else {
+                    StatusCode::UNAUTHORIZED
+                },
                 pb::ErrorCode::NotPermitted,
                 e.to_string(),
-            ))
+            );
+            if let LoginError::Throttled(wait) = e {
+                err.retry_after = Some(wait.as_secs_f64().ceil() as u64);
+            }
+            Err(err)
         }
     }
 }
 
-pub async fn logout(State(c): State<Arc<Console>>, headers: HeaderMap) -> Response {
+/// Ends the session (its event streams with it). Only from the console's own pages.
+pub async fn logout(State(c): State<Arc<Console>>, headers: HeaderMap) -> ApiResult {
+    same_origin(&headers, c.https)
+        .map_err(|why| ApiError::new(StatusCode::FORBIDDEN, pb::ErrorCode::NotPermitted, why))?;
     if let Some(id) = session_id(&headers) {
         c.auth.logout(&id);
     }
-    with_cookie(StatusCode::NO_CONTENT.into_response(), "", c.https, 0)
+    Ok(with_cookie(
+        StatusCode::NO_CONTENT.into_response(),
+        "",
+        c.https,
+        0,
+    ))
 }
 
 // ---- cells -----------------------------------------------------------------------------------
 
-pub async fn cells(State(c): State<Arc<Console>>, headers: HeaderMap) -> ApiResult {
-    c.allowed(&headers, Permission::StatusRead, None).await?;
+pub async fn cells(State(c): State<Arc<Console>>, _: Caller<ReadStatus>) -> ApiResult {
     let cells = c.refresh().await;
     let out: Vec<serde_json::Value> = cells
         .iter()
@@ -296,11 +242,10 @@ pub async fn cells(State(c): State<Arc<Console>>, headers: HeaderMap) -> ApiResu
 
 pub async fn overview(
     State(c): State<Arc<Console>>,
-    Path(cell): Path<String>,
-    headers: HeaderMap,
+    caller: Caller<ReadStatus>,
+    Names(cell): Names<String>,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::StatusRead, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let (machines, plcs) = tokio::join!(client.status(None), client.plc_status(None));
     let machines = machines?;
     // A cell without PLCs answers nothing there: that is no error.
@@ -318,11 +263,10 @@ pub async fn overview(
 
 pub async fn machine(
     State(c): State<Arc<Console>>,
-    Path((cell, m)): Path<(String, String)>,
-    headers: HeaderMap,
+    caller: Caller<ReadStatus>,
+    Names((cell, m)): Names<(String, String)>,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::StatusRead, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let (status, queue, jobs) = tokio::join!(
         client.status(Some(&m)),
         client.queue(&m),
@@ -347,6 +291,7 @@ pub async fn machine(
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SubmitBody {
     library: String,
     #[serde(default)]
@@ -359,23 +304,16 @@ pub struct SubmitBody {
 
 pub async fn submit(
     State(c): State<Arc<Console>>,
-    Path((cell, m)): Path<(String, String)>,
-    headers: HeaderMap,
-    body: Json<SubmitBody>,
+    caller: Caller<SubmitJob>,
+    Names((cell, m)): Names<(String, String)>,
+    JsonObject(body): JsonObject<SubmitBody>,
 ) -> ApiResult {
-    let user = c
-        .allowed(
-            &headers,
-            Permission::JobSubmit,
-            Some((&cell, &m, "job.submit")),
-        )
-        .await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let request = pb::JobRequest {
-        program: Some(pb::job_request::Program::Library(body.library.clone())),
-        revision: body.revision.clone(),
+        program: Some(pb::job_request::Program::Library(body.library)),
+        revision: body.revision,
         priority: body.priority,
-        name: body.name.clone(),
+        name: body.name,
         request_id: crate::client::cli::new_request_id(),
         ..Default::default()
     };
@@ -386,22 +324,16 @@ pub async fn submit(
 
 pub async fn cancel(
     State(c): State<Arc<Console>>,
-    Path((cell, m, job)): Path<(String, String, String)>,
-    headers: HeaderMap,
+    caller: Caller<CancelJob>,
+    Names((cell, m, job)): Names<(String, String, String)>,
 ) -> ApiResult {
-    let user = c
-        .allowed(
-            &headers,
-            Permission::JobCancel,
-            Some((&cell, &job, "job.cancel")),
-        )
-        .await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let event = client.cancel_confirmed(&m, &job).await?;
     Ok((StatusCode::ACCEPTED, Json(event)).into_response())
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct DoBody {
     value: u8,
     mask: Option<u8>,
@@ -409,14 +341,11 @@ pub struct DoBody {
 
 pub async fn set_do(
     State(c): State<Arc<Console>>,
-    Path((cell, m)): Path<(String, String)>,
-    headers: HeaderMap,
-    body: Json<DoBody>,
+    caller: Caller<OutputDo>,
+    Names((cell, m)): Names<(String, String)>,
+    JsonObject(body): JsonObject<DoBody>,
 ) -> ApiResult {
-    let user = c
-        .allowed(&headers, Permission::IoDo, Some((&cell, &m, "io.do")))
-        .await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     Ok(message(&client.set_do(&m, body.value, body.mask).await?))
 }
 
@@ -424,11 +353,10 @@ pub async fn set_do(
 
 pub async fn programs(
     State(c): State<Arc<Console>>,
-    Path(cell): Path<String>,
-    headers: HeaderMap,
+    caller: Caller<ReadPrograms>,
+    Names(cell): Names<String>,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::ProgramRead, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     Ok(Json(client.program_list().await?).into_response())
 }
 
@@ -438,77 +366,122 @@ fn text(bytes: Vec<u8>) -> Response {
 
 pub async fn program(
     State(c): State<Arc<Console>>,
-    Path((cell, name)): Path<(String, String)>,
-    headers: HeaderMap,
+    caller: Caller<ReadPrograms>,
+    Names((cell, name)): Names<(String, String)>,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::ProgramRead, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     Ok(text(client.program_get(&name).await?))
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct CommentQuery {
     #[serde(default)]
     comment: String,
 }
 
+/// A program upload: checked before its bytes are taken (the caller, then `Content-Length`
+/// against `programs.max_inline` and, through the gateway, the name, a lock and the
+/// quotas), then streamed to a temporary file within the limit, and sent to the gateway
+/// from there, a few stores at a time.
 pub async fn program_put(
     State(c): State<Arc<Console>>,
-    Path((cell, name)): Path<(String, String)>,
-    Query(q): Query<CommentQuery>,
+    caller: Caller<StoreProgram>,
+    Names((cell, name)): Names<(String, String)>,
+    Params(q): Params<CommentQuery>,
     headers: HeaderMap,
-    body: Bytes,
+    body: Body,
 ) -> ApiResult {
-    let user = c
-        .allowed(
-            &headers,
-            Permission::ProgramWrite,
-            Some((&cell, &name, "program.store")),
+    let client = c.client(&cell, &caller.user).await?;
+    let limit = client.max_inline();
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if let Some(n) = declared {
+        if n > limit {
+            return Err(ApiError::too_large(limit));
+        }
+        // The gateway says now whether it would take a program of that size.
+        client.program_check(&name, n).await?;
+    }
+    let program = spool(body, limit).await?;
+    let _sending = c.uploads.acquire().await.map_err(|_| {
+        ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            pb::ErrorCode::Unavailable,
+            "the console is stopping",
         )
-        .await?;
-    let client = c.client(&cell, &user).await?;
+    })?;
     Ok(message(
-        &client.program_put_with(&name, &body, q.comment).await?,
+        &client.program_store(&name, program, q.comment).await?,
     ))
+}
+
+/// Reads an upload into a temporary file, at most `limit` bytes, and back once it is whole:
+/// a slow upload holds a file, not memory.
+async fn spool(body: Body, limit: u64) -> Result<Vec<u8>, ApiError> {
+    let failed = |what: &str, e: std::io::Error| {
+        ApiError::new(
+            StatusCode::INSUFFICIENT_STORAGE,
+            pb::ErrorCode::StorageFailed,
+            format!("the console could not {what} the upload: {e}"),
+        )
+    };
+    let file = tokio::task::spawn_blocking(tempfile::tempfile)
+        .await
+        .map_err(|e| failed("hold", std::io::Error::other(e)))?
+        .map_err(|e| failed("hold", e))?;
+    let mut file = tokio::fs::File::from_std(file);
+    let mut stream = body.into_data_stream();
+    let mut size = 0u64;
+    while let Some(chunk) = stream.next().await {
+        let chunk = chunk.map_err(|e| ApiError::bad(format!("the upload broke off: {e}")))?;
+        size += chunk.len() as u64;
+        if size > limit {
+            return Err(ApiError::too_large(limit));
+        }
+        file.write_all(&chunk)
+            .await
+            .map_err(|e| failed("write", e))?;
+    }
+    file.rewind().await.map_err(|e| failed("read", e))?;
+    let mut program = Vec::with_capacity(usize::try_from(size).unwrap_or(0));
+    file.read_to_end(&mut program)
+        .await
+        .map_err(|e| failed("read", e))?;
+    Ok(program)
 }
 
 pub async fn program_delete(
     State(c): State<Arc<Console>>,
-    Path((cell, name)): Path<(String, String)>,
-    headers: HeaderMap,
+    caller: Caller<RemoveProgram>,
+    Names((cell, name)): Names<(String, String)>,
 ) -> ApiResult {
-    let user = c
-        .allowed(
-            &headers,
-            Permission::ProgramWrite,
-            Some((&cell, &name, "program.remove")),
-        )
-        .await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     Ok(message(&client.program_remove(&name).await?))
 }
 
 pub async fn revisions(
     State(c): State<Arc<Console>>,
-    Path((cell, name)): Path<(String, String)>,
-    headers: HeaderMap,
+    caller: Caller<ReadPrograms>,
+    Names((cell, name)): Names<(String, String)>,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::ProgramRead, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     Ok(message(&client.program_revisions(&name).await?))
 }
 
 pub async fn revision(
     State(c): State<Arc<Console>>,
-    Path((cell, name, rev)): Path<(String, String, String)>,
-    headers: HeaderMap,
+    caller: Caller<ReadPrograms>,
+    Names((cell, name, rev)): Names<(String, String, String)>,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::ProgramRead, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     Ok(text(client.program_revision(&name, &rev).await?))
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct DiffQuery {
     a: Option<String>,
     b: Option<String>,
@@ -518,12 +491,11 @@ pub struct DiffQuery {
 
 pub async fn diff(
     State(c): State<Arc<Console>>,
-    Path((cell, name)): Path<(String, String)>,
-    Query(q): Query<DiffQuery>,
-    headers: HeaderMap,
+    caller: Caller<ReadPrograms>,
+    Names((cell, name)): Names<(String, String)>,
+    Params(q): Params<DiffQuery>,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::ProgramRead, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let ignore: Vec<String> = q
         .ignore
         .split(',')
@@ -542,6 +514,7 @@ pub async fn diff(
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ReleaseBody {
     #[serde(default)]
     revision: String,
@@ -552,17 +525,10 @@ pub struct ReleaseBody {
 
 pub async fn release(
     State(c): State<Arc<Console>>,
-    Path((cell, name)): Path<(String, String)>,
-    headers: HeaderMap,
-    body: Json<ReleaseBody>,
+    caller: Caller<ReleaseProgram>,
+    Names((cell, name)): Names<(String, String)>,
+    JsonObject(body): JsonObject<ReleaseBody>,
 ) -> ApiResult {
-    let user = c
-        .allowed(
-            &headers,
-            Permission::ProgramRelease,
-            Some((&cell, &name, "program.release")),
-        )
-        .await?;
     let state = pb::RevisionState::from_str_name(&body.state)
         .filter(|s| *s != pb::RevisionState::Unspecified)
         .ok_or_else(|| {
@@ -571,14 +537,15 @@ pub async fn release(
                 body.state
             ))
         })?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let r = client
-        .program_release(&name, &body.revision, state, body.comment.clone())
+        .program_release(&name, &body.revision, state, body.comment)
         .await?;
     Ok(message(&r))
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct AdoptBody {
     from: String,
     #[serde(default)]
@@ -589,20 +556,13 @@ pub struct AdoptBody {
 
 pub async fn adopt(
     State(c): State<Arc<Console>>,
-    Path((cell, name)): Path<(String, String)>,
-    headers: HeaderMap,
-    body: Json<AdoptBody>,
+    caller: Caller<AdoptProgram>,
+    Names((cell, name)): Names<(String, String)>,
+    JsonObject(body): JsonObject<AdoptBody>,
 ) -> ApiResult {
-    let user = c
-        .allowed(
-            &headers,
-            Permission::ProgramWrite,
-            Some((&cell, &name, "program.adopt")),
-        )
-        .await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let info = client
-        .program_adopt(&name, &body.from, &body.revision, body.comment.clone())
+        .program_adopt(&name, &body.from, &body.revision, body.comment)
         .await?;
     Ok(message(&info))
 }
@@ -611,11 +571,10 @@ pub async fn adopt(
 
 pub async fn plc(
     State(c): State<Arc<Console>>,
-    Path((cell, p)): Path<(String, String)>,
-    headers: HeaderMap,
+    caller: Caller<ReadStatus>,
+    Names((cell, p)): Names<(String, String)>,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::StatusRead, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let status = client
         .plc_status(Some(&p))
         .await?
@@ -632,41 +591,36 @@ pub async fn plc(
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct TagBody {
     value: f64,
 }
 
 pub async fn tag_set(
     State(c): State<Arc<Console>>,
-    Path((cell, p, tag)): Path<(String, String, String)>,
-    headers: HeaderMap,
-    body: Json<TagBody>,
+    caller: Caller<SetTag>,
+    Names((cell, p, tag)): Names<(String, String, String)>,
+    JsonObject(body): JsonObject<TagBody>,
 ) -> ApiResult {
-    let target = format!("{p}/{tag}");
-    let user = c
-        .allowed(
-            &headers,
-            Permission::PlcTag,
-            Some((&cell, &target, "plc.tag")),
-        )
-        .await?;
-    let client = c.client(&cell, &user).await?;
-    Ok(message(&client.tag_set(&target, body.value).await?))
+    let client = c.client(&cell, &caller.user).await?;
+    Ok(message(
+        &client.tag_set(&format!("{p}/{tag}"), body.value).await?,
+    ))
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct CountQuery {
     count: Option<usize>,
 }
 
 pub async fn mem(
     State(c): State<Arc<Console>>,
-    Path((cell, p, station, module, address)): Path<(String, String, u8, String, u16)>,
-    Query(q): Query<CountQuery>,
-    headers: HeaderMap,
+    caller: Caller<ReadPlcMemory>,
+    Names((cell, p, station, module, address)): Names<(String, String, u8, String, u16)>,
+    Params(q): Params<CountQuery>,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::PlcMem, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let words = client
         .plc_read(&p, station, &module, address, q.count.unwrap_or(1))
         .await?;
@@ -739,17 +693,11 @@ fn csv(page: &pb::HistoryPage) -> Response {
 async fn records(
     c: &Console,
     cell: &str,
-    headers: &HeaderMap,
+    user: &User,
     raw: Option<String>,
     audit: bool,
 ) -> ApiResult {
-    let p = if audit {
-        Permission::AuditRead
-    } else {
-        Permission::HistoryRead
-    };
-    let user = c.allowed(headers, p, None).await?;
-    let client = c.client(cell, &user).await?;
+    let client = c.client(cell, user).await?;
     let (params, as_csv) = params(raw);
     let page = client.history(audit, &params).await?;
     Ok(if as_csv { csv(&page) } else { message(&page) })
@@ -757,72 +705,89 @@ async fn records(
 
 pub async fn history(
     State(c): State<Arc<Console>>,
-    Path(cell): Path<String>,
+    caller: Caller<ReadHistory>,
+    Names(cell): Names<String>,
     RawQuery(raw): RawQuery,
-    headers: HeaderMap,
 ) -> ApiResult {
-    records(&c, &cell, &headers, raw, false).await
+    records(&c, &cell, &caller.user, raw, false).await
 }
 
 pub async fn audit(
     State(c): State<Arc<Console>>,
-    Path(cell): Path<String>,
+    caller: Caller<ReadAudit>,
+    Names(cell): Names<String>,
     RawQuery(raw): RawQuery,
-    headers: HeaderMap,
 ) -> ApiResult {
-    records(&c, &cell, &headers, raw, true).await
+    records(&c, &cell, &caller.user, raw, true).await
 }
 
 pub async fn utilisation(
     State(c): State<Arc<Console>>,
-    Path(cell): Path<String>,
+    caller: Caller<ReadHistory>,
+    Names(cell): Names<String>,
     RawQuery(raw): RawQuery,
-    headers: HeaderMap,
 ) -> ApiResult {
-    let user = c.allowed(&headers, Permission::HistoryRead, None).await?;
-    let client = c.client(&cell, &user).await?;
+    let client = c.client(&cell, &caller.user).await?;
     let (params, _) = params(raw);
     Ok(message(&client.utilisation(&params).await?))
 }
 
 // ---- live ------------------------------------------------------------------------------------
 
+/// The cell's events as they happen, for as long as the session lasts: a logout, the end
+/// of the session (idle, its hours, a user's other sessions) or a change of the user's
+/// roles ends the stream.
 pub async fn events(
     State(c): State<Arc<Console>>,
-    Path(cell): Path<String>,
+    caller: Caller<ReadStatus>,
+    Names(cell): Names<String>,
     RawQuery(raw): RawQuery,
-    headers: HeaderMap,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
-    c.allowed(&headers, Permission::StatusRead, None).await?;
     let machines: Vec<String> = form_urlencoded::parse(raw.unwrap_or_default().as_bytes())
         .filter(|(k, _)| k == "machine")
         .map(|(_, v)| v.into_owned())
         .collect();
     let rx = c.live.subscribe();
-    // The stream ends with the console, so that a page left open never holds up its stop.
-    let state = (rx, cell, machines, c.stop.clone());
-    let stream = futures::stream::unfold(state, |(mut rx, cell, machines, stop)| async move {
-        loop {
-            let got = tokio::select! {
-                () = stop.cancelled() => return None,
-                got = rx.recv() => got,
-            };
-            let event = match got {
-                Ok(e) => {
-                    if e.cell != cell || (!machines.is_empty() && !machines.contains(&e.name)) {
-                        continue;
+    let ended = caller.user.ended.clone();
+    let mut check = tokio::time::interval(SESSION_CHECK_EVERY);
+    check.reset();
+    // The stream ends with the console too, so that a page left open never holds up its stop.
+    let state = (rx, cell, machines, c.clone(), ended, caller.session, check);
+    let stream = futures::stream::unfold(
+        state,
+        |(mut rx, cell, machines, c, ended, session, mut check)| async move {
+            loop {
+                let got = tokio::select! {
+                    () = c.stop.cancelled() => return None,
+                    () = ended.cancelled() => return None,
+                    _ = check.tick() => {
+                        if c.auth.live(&session) {
+                            continue;
+                        }
+                        return None;
                     }
-                    Event::default().event(e.kind).data(e.json.clone())
-                }
-                // The page fell behind: it reloads what it shows.
-                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {
-                    Event::default().event("resync").data("{}")
-                }
-                Err(_) => return None,
-            };
-            return Some((Ok::<_, Infallible>(event), (rx, cell, machines, stop)));
-        }
-    });
+                    got = rx.recv() => got,
+                };
+                let event = match got {
+                    Ok(e) => {
+                        if e.cell != cell || (!machines.is_empty() && !machines.contains(&e.name)) {
+                            continue;
+                        }
+                        Event::default().event(e.kind).data(e.json.clone())
+                    }
+                    // The page fell behind: it reloads what it shows.
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {
+                        Event::default().event("resync").data("{}")
+                    }
+                    Err(_) => return None,
+                };
+                return Some((
+                    Ok::<_, Infallible>(event),
+                    (rx, cell, machines, c, ended, session, check),
+                ));
+            }
+        },
+    );
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }
 

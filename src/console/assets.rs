@@ -1,7 +1,7 @@
 //! The console's pages, compiled into the binary: nothing is fetched from anywhere else
 //! (the Content-Security-Policy says so to the browser too).
 
-use axum::extract::{Path, Request};
+use axum::extract::{Path, Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
@@ -43,8 +43,9 @@ pub async fn file(Path(name): Path<String>) -> Response {
 }
 
 /// Headers every answer carries: only this origin's scripts, styles and connections; no
-/// framing; no caching of the API's answers.
-pub async fn headers(req: Request, next: Next) -> Response {
+/// framing, no opener or embedding from elsewhere; no caching of the API's answers; under
+/// TLS, HTTPS only from now on (HSTS).
+pub async fn headers(State(https): State<bool>, req: Request, next: Next) -> Response {
     let api = req.uri().path().starts_with("/api/");
     let mut r = next.run(req).await;
     let h = r.headers_mut();
@@ -64,6 +65,24 @@ pub async fn headers(req: Request, next: Next) -> Response {
         HeaderValue::from_static("no-referrer"),
     );
     h.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
+    h.insert(
+        "cross-origin-opener-policy",
+        HeaderValue::from_static("same-origin"),
+    );
+    h.insert(
+        "cross-origin-resource-policy",
+        HeaderValue::from_static("same-origin"),
+    );
+    h.insert(
+        "permissions-policy",
+        HeaderValue::from_static("camera=(), microphone=(), geolocation=(), usb=(), serial=()"),
+    );
+    if https {
+        h.insert(
+            header::STRICT_TRANSPORT_SECURITY,
+            HeaderValue::from_static("max-age=31536000"),
+        );
+    }
     if api {
         h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
     }

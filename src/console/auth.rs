@@ -10,19 +10,26 @@
 //! `session_idle_minutes` without a request and after `session_hours` however busy. Every
 //! write carries the session's CSRF token in `X-CSRF-Token`, so that a page of another site
 //! cannot make a logged-in browser act.
+//!
+//! Sessions are bounded per user (`console.sessions_per_user`): a user's new session ends
+//! that user's oldest, never anybody else's, so no user can log another out by logging in
+//! often. Every session carries a token cancelled when it ends (logout, expiry, a bound, a
+//! user whose roles changed), which ends the event streams it opened. Password guesses are
+//! throttled per name and per address ([`super::throttle`]).
 
 use std::collections::{BTreeSet, HashMap};
+use std::net::IpAddr;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use cellgate_core::config::{Permission, SecurityConfig};
 use subtle::ConstantTimeEq as _;
+use tokio_util::sync::CancellationToken;
+
+use super::throttle::Throttle;
 
 /// The session cookie's name.
 pub const COOKIE: &str = "cellgate_console";
-
-/// Sessions kept at most; the oldest go first beyond it.
-const MAX_SESSIONS: usize = 4096;
 
 /// A logged-in user.
 #[derive(Debug, Clone)]
@@ -34,6 +41,8 @@ pub struct User {
     pub csrf: String,
     created: Instant,
     last: Instant,
+    /// Cancelled when the session ends.
+    pub ended: CancellationToken,
 }
 
 impl User {
@@ -49,36 +58,27 @@ impl User {
 pub enum LoginError {
     #[error("unknown user or wrong password")]
     Refused,
+    /// Too many failures of this name or from this address: nothing is looked at until then.
+    #[error("too many failed logins: try again in {} s", .0.as_secs().max(1))]
+    Throttled(Duration),
     #[error("this console takes no passwords: the cell has no users file")]
     NoUsers,
     #[error("user {0} holds no role of the cell: nothing to do here")]
     NoRole(String),
 }
 
-/// Users, roles and sessions.
-#[derive(Debug)]
-pub struct Auth {
+/// The cell's users and roles, as the cell file gives them (replaced on a reload).
+#[derive(Debug, Default)]
+struct Cell {
     secured: bool,
     users: HashMap<String, String>,
     security: SecurityConfig,
-    idle: Duration,
-    max_age: Duration,
-    sessions: Mutex<HashMap<String, User>>,
 }
 
-fn token() -> String {
-    let mut bytes = [0u8; 32];
-    // The OS's random source; without it no session can be trusted, so none is made.
-    if getrandom::fill(&mut bytes).is_err() {
-        return String::new();
-    }
-    hex::encode(bytes)
-}
-
-impl Auth {
-    /// `users_file` read at start; a file that cannot be read leaves nobody able to log in
-    /// by password (said in the log).
-    pub fn new(security: &SecurityConfig, idle: Duration, max_age: Duration) -> Self {
+impl Cell {
+    /// `users_file` read now; a file that cannot be read leaves nobody able to log in by
+    /// password (said in the log).
+    fn read(security: &SecurityConfig) -> Self {
         let mut users = HashMap::new();
         if let Some(path) = &security.users_file {
             match std::fs::read_to_string(path) {
@@ -95,19 +95,11 @@ impl Auth {
                     "console: the users file cannot be read; nobody can log in by password"),
             }
         }
-        Auth {
+        Cell {
             secured: security.tls.is_some() || security.users_file.is_some(),
             users,
             security: security.clone(),
-            idle,
-            max_age,
-            sessions: Mutex::new(HashMap::new()),
         }
-    }
-
-    /// Whether users log in (the cell has `[security]`).
-    pub fn secured(&self) -> bool {
-        self.secured
     }
 
     /// The permissions of a user name or certificate name: those of the roles naming it;
@@ -130,6 +122,67 @@ impl Auth {
             .collect()
     }
 
+    /// Whether session `u` may go on under these users and roles.
+    fn still_holds(&self, u: &User) -> bool {
+        match u.via {
+            "none" => !self.secured,
+            "password" => {
+                self.users.contains_key(&u.name)
+                    && self.permissions(&u.name, false) == u.permissions
+            }
+            _ => self.permissions(&u.name, true) == u.permissions,
+        }
+    }
+}
+
+/// Users, roles and sessions.
+#[derive(Debug)]
+pub struct Auth {
+    cell: std::sync::RwLock<Cell>,
+    idle: Duration,
+    max_age: Duration,
+    per_user: usize,
+    sessions: Mutex<HashMap<String, User>>,
+    throttle: Throttle,
+}
+
+fn token() -> String {
+    let mut bytes = [0u8; 32];
+    // The OS's random source; without it no session can be trusted, so none is made.
+    if getrandom::fill(&mut bytes).is_err() {
+        return String::new();
+    }
+    hex::encode(bytes)
+}
+
+impl Auth {
+    /// The cell's users and roles; sessions end after `idle` without a request, after
+    /// `max_age` however busy; a user holds at most `per_user` sessions.
+    pub fn new(
+        security: &SecurityConfig,
+        idle: Duration,
+        max_age: Duration,
+        per_user: usize,
+    ) -> Self {
+        Auth {
+            cell: std::sync::RwLock::new(Cell::read(security)),
+            idle,
+            max_age,
+            per_user: per_user.max(1),
+            sessions: Mutex::new(HashMap::new()),
+            throttle: Throttle::default(),
+        }
+    }
+
+    fn cell(&self) -> std::sync::RwLockReadGuard<'_, Cell> {
+        self.cell.read().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Whether users log in (the cell has `[security]`).
+    pub fn secured(&self) -> bool {
+        self.cell().secured
+    }
+
     fn open(
         &self,
         name: &str,
@@ -144,32 +197,73 @@ impl Auth {
             csrf: token(),
             created: now,
             last: now,
+            ended: CancellationToken::new(),
         };
         let id = token();
-        if let Ok(mut s) = self.sessions.lock() {
-            if s.len() >= MAX_SESSIONS {
-                let oldest = s.iter().min_by_key(|(_, u)| u.last).map(|(k, _)| k.clone());
-                if let Some(k) = oldest {
-                    s.remove(&k);
+        let mut s = self.sessions.lock().unwrap_or_else(|p| p.into_inner());
+        self.sweep(&mut s, now);
+        // This user's oldest sessions make room for the new one; nobody else's.
+        let mut own: Vec<(Instant, String)> = s
+            .iter()
+            .filter(|(_, u)| u.name == name && u.via == via)
+            .map(|(k, u)| (u.created, k.clone()))
+            .collect();
+        if own.len() >= self.per_user {
+            own.sort();
+            for (_, k) in &own[..=own.len() - self.per_user] {
+                if let Some(u) = s.remove(k) {
+                    u.ended.cancel();
                 }
             }
-            s.insert(id.clone(), user.clone());
         }
+        s.insert(id.clone(), user.clone());
         (id, user)
     }
 
-    /// Checks a name and password against the users file; a session on success.
-    pub fn login(&self, name: &str, password: &str) -> Result<(String, User), LoginError> {
-        if self.users.is_empty() {
+    fn valid(&self, u: &User, now: Instant) -> bool {
+        now.duration_since(u.last) < self.idle && now.duration_since(u.created) < self.max_age
+    }
+
+    /// Ends the sessions that are no longer valid.
+    fn sweep(&self, s: &mut HashMap<String, User>, now: Instant) {
+        s.retain(|_, u| {
+            let keep = self.valid(u, now);
+            if !keep {
+                u.ended.cancel();
+            }
+            keep
+        });
+    }
+
+    /// Checks a name and password from `addr` against the users file; a session on success.
+    /// Throttled: past a few failures of the name or from the address, the password is not
+    /// looked at until the wait has passed ([`LoginError::Throttled`]).
+    pub fn login(
+        &self,
+        name: &str,
+        password: &str,
+        addr: IpAddr,
+    ) -> Result<(String, User), LoginError> {
+        let cell = self.cell();
+        if cell.users.is_empty() {
             return Err(LoginError::NoUsers);
         }
-        let known = self.users.get(name).map(String::as_bytes).unwrap_or(b"");
+        let now = Instant::now();
+        if let Some(wait) = self.throttle.closed(name, addr, now) {
+            return Err(LoginError::Throttled(wait));
+        }
+        let known = cell.users.get(name).map(String::as_bytes).unwrap_or(b"");
         // Compared in constant time, and compared even for an unknown user.
         let same: bool = known.ct_eq(password.as_bytes()).into();
-        if !same || !self.users.contains_key(name) || password.is_empty() {
-            return Err(LoginError::Refused);
+        if !same || !cell.users.contains_key(name) || password.is_empty() {
+            return Err(match self.throttle.failed(name, addr, now) {
+                Some(wait) => LoginError::Throttled(wait),
+                None => LoginError::Refused,
+            });
         }
-        let permissions = self.permissions(name, false);
+        self.throttle.succeeded(name);
+        let permissions = cell.permissions(name, false);
+        drop(cell);
         if permissions.is_empty() {
             return Err(LoginError::NoRole(name.to_string()));
         }
@@ -179,11 +273,15 @@ impl Auth {
     /// A session for a verified client certificate's common name, or for anybody on a cell
     /// without security.
     pub fn implicit(&self, certificate_name: Option<&str>) -> Option<(String, User)> {
-        if !self.secured {
-            return Some(self.open("anonymous", "none", self.permissions("", false)));
+        let cell = self.cell();
+        if !cell.secured {
+            let all = cell.permissions("", false);
+            drop(cell);
+            return Some(self.open("anonymous", "none", all));
         }
         let name = certificate_name?;
-        let permissions = self.permissions(name, true);
+        let permissions = cell.permissions(name, true);
+        drop(cell);
         if permissions.is_empty() {
             return None;
         }
@@ -195,18 +293,45 @@ impl Auth {
         if id.is_empty() {
             return None;
         }
-        let mut sessions = self.sessions.lock().ok()?;
+        let mut sessions = self.sessions.lock().unwrap_or_else(|p| p.into_inner());
         let now = Instant::now();
-        let valid = sessions.get(id).is_some_and(|u| {
-            now.duration_since(u.last) < self.idle && now.duration_since(u.created) < self.max_age
-        });
+        let valid = sessions.get(id).is_some_and(|u| self.valid(u, now));
         if !valid {
-            sessions.remove(id);
+            if let Some(u) = sessions.remove(id) {
+                u.ended.cancel();
+            }
             return None;
         }
         let u = sessions.get_mut(id)?;
         u.last = now;
         Some(u.clone())
+    }
+
+    /// Whether session `id` is still valid, without marking it used: what an event stream
+    /// asks now and then, so that it ends with an expired session too.
+    pub fn live(&self, id: &str) -> bool {
+        let sessions = self.sessions.lock().unwrap_or_else(|p| p.into_inner());
+        sessions
+            .get(id)
+            .is_some_and(|u| self.valid(u, Instant::now()))
+    }
+
+    /// Takes the cell's users and roles anew (a reloaded cell file; the users file is read
+    /// again): every session whose user is gone or whose permissions changed ends, and its
+    /// event streams with it. Answers how many ended.
+    pub fn set_security(&self, security: &SecurityConfig) -> usize {
+        let fresh = Cell::read(security);
+        let mut sessions = self.sessions.lock().unwrap_or_else(|p| p.into_inner());
+        let before = sessions.len();
+        sessions.retain(|_, u| {
+            let keep = fresh.still_holds(u);
+            if !keep {
+                u.ended.cancel();
+            }
+            keep
+        });
+        *self.cell.write().unwrap_or_else(|p| p.into_inner()) = fresh;
+        before - sessions.len()
     }
 
     /// When session `id` ends at the latest, as ms since the Unix epoch.
@@ -217,9 +342,11 @@ impl Auth {
         cellgate_core::pb::unix_ms(std::time::SystemTime::now() + left)
     }
 
+    /// Ends session `id`: its event streams end with it.
     pub fn logout(&self, id: &str) {
-        if let Ok(mut s) = self.sessions.lock() {
-            s.remove(id);
+        let mut s = self.sessions.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(u) = s.remove(id) {
+            u.ended.cancel();
         }
     }
 

@@ -10,7 +10,9 @@
 //! the same code.
 //!
 //! - [`listen`]: HTTP or HTTPS, the peer's client certificate;
-//! - [`auth`]: logins, sessions, CSRF, permissions;
+//! - [`auth`]: logins, sessions, CSRF, permissions; [`throttle`]: password guesses cost time;
+//! - [`extract`]: what a request brings, checked before its handler and before its body is
+//!   read (the caller and their permission, the origin, the names, the JSON body);
 //! - [`api`]: the JSON API;
 //! - [`live`]: publications coalesced for the pages' event streams;
 //! - [`assets`]: the pages, compiled into the binary.
@@ -18,27 +20,30 @@
 pub mod api;
 pub mod assets;
 pub mod auth;
+pub mod extract;
 pub mod listen;
 pub mod live;
+pub mod throttle;
 
 use std::collections::BTreeMap;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use axum::Router;
 use axum::routing::{get, post};
 use prost::Message as _;
-use tokio::sync::Mutex;
+use tokio::sync::{Mutex, Semaphore, mpsc};
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
 use crate::client::Client;
 use crate::telemetry::prometheus::Exposition;
 use cellgate_core::config::{ConsoleConfig, Permission, SecurityConfig};
+use cellgate_core::history::refusals::{self, Refusals};
 use cellgate_core::pb;
 
-use self::auth::{Auth, User};
+use self::auth::Auth;
 use self::listen::{ListenError, PlainListener, TlsListener};
 use self::live::Live;
 
@@ -46,6 +51,12 @@ use self::live::Live;
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 /// How often the list of cells is asked again at most.
 const DISCOVERY_EVERY: Duration = Duration::from_secs(5);
+/// Program uploads sent to a gateway at once: each is held whole while it is sent.
+const UPLOADS_AT_ONCE: usize = 2;
+/// Body limit of every request but a program upload (which takes `programs.max_inline`).
+const BODY_LIMIT: usize = 16 * 1024;
+/// Audit notes waiting to be sent, at most; beyond, they are dropped and logged.
+const NOTES_WAITING: usize = 1024;
 
 /// What the console serves and how.
 #[derive(Debug, Clone)]
@@ -74,6 +85,12 @@ pub struct Console {
     metrics: Option<Exposition>,
     /// Cancelled when the console stops: the pages' event streams end with it.
     stop: CancellationToken,
+    /// Program uploads being sent.
+    uploads: Semaphore,
+    /// Refusals of the current minute, gathered before they go to the cells' audit trails.
+    refusals: std::sync::Mutex<Refusals>,
+    /// Audit notes to send: (cell, empty for every cell; the record).
+    notes: mpsc::Sender<refusals::Out>,
 }
 
 impl Console {
@@ -120,41 +137,115 @@ impl Console {
     }
 
     /// Adds a request the console refused `user` to the cell's audit trail (as a note: the
-    /// gateway never saw the request itself). Best effort: a cell that keeps no history, or
-    /// a console whose identity may not add notes, leaves it in the console's log only.
-    async fn note_refusal(
+    /// gateway never saw the request itself), gathered with the others of its kind and minute.
+    /// Best effort: a cell that keeps no history, or a console whose identity may not add
+    /// notes, leaves it in the console's log only.
+    fn note_refusal(
         &self,
         cell: &str,
-        user: &User,
+        user: &str,
         action: &str,
         p: Permission,
         target: &str,
         why: &str,
     ) {
-        let Some(client) = self.cell(cell).await else {
-            return;
-        };
         let record = pb::AuditRecord {
             action: action.to_string(),
-            key: String::new(),
             target: target.to_string(),
             detail: format!("refused by the console: needs {}", p.name()),
             origin: Some(pb::RequestOrigin {
-                user: user.name.clone(),
+                user: user.to_string(),
                 via: "console".to_string(),
             }),
+            code: pb::ErrorCode::NotPermitted as i32,
             error: why.to_string(),
             ..Default::default()
         };
-        let key = client.keys().audit_note();
-        let sent = self
-            .session
-            .get(key.as_str())
-            .payload(record.encode_to_vec())
-            .timeout(REQUEST_TIMEOUT)
-            .await;
-        if let Ok(replies) = sent {
-            while replies.recv_async().await.is_ok() {}
+        self.note(cell, record);
+    }
+
+    /// A failed login, in the audit trail of every cell the console serves, gathered per name
+    /// and minute.
+    fn note_login_failure(&self, name: &str, addr: IpAddr, why: &str) {
+        let record = pb::AuditRecord {
+            action: "console.login".to_string(),
+            target: name.to_string(),
+            detail: format!("from {addr}"),
+            origin: Some(pb::RequestOrigin {
+                user: name.to_string(),
+                via: "console".to_string(),
+            }),
+            code: pb::ErrorCode::NotPermitted as i32,
+            error: why.to_string(),
+            ..Default::default()
+        };
+        self.note("", record);
+    }
+
+    fn note(&self, cell: &str, record: pb::AuditRecord) {
+        let now = pb::unix_ms(std::time::SystemTime::now());
+        let out = self
+            .refusals
+            .lock()
+            .map(|mut r| r.refuse(cell, record, now))
+            .unwrap_or_default();
+        self.send_notes(out);
+    }
+
+    fn send_notes(&self, out: Vec<refusals::Out>) {
+        for note in out {
+            if self.notes.try_send(note).is_err() {
+                tracing::warn!(
+                    "console: too many audit notes waiting; one dropped (it is in this log)"
+                );
+            }
+        }
+    }
+
+    /// Sends one note to `cell` (empty: every cell served).
+    async fn send_note(&self, cell: &str, record: &pb::AuditRecord) {
+        let cells: Vec<String> = if cell.is_empty() {
+            self.refresh().await.into_keys().collect()
+        } else {
+            vec![cell.to_string()]
+        };
+        for cell in cells {
+            let Some(client) = self.cell(&cell).await else {
+                continue;
+            };
+            let key = client.keys().audit_note();
+            let sent = self
+                .session
+                .get(key.as_str())
+                .payload(record.encode_to_vec())
+                .timeout(REQUEST_TIMEOUT)
+                .await;
+            if let Ok(replies) = sent {
+                while replies.recv_async().await.is_ok() {}
+            }
+        }
+    }
+}
+
+/// Sends the audit notes, and the summaries of each minute's refusals once it is over.
+async fn notes_task(
+    console: Arc<Console>,
+    mut rx: mpsc::Receiver<refusals::Out>,
+    stop: CancellationToken,
+) {
+    let mut flush = tokio::time::interval(Duration::from_secs(5));
+    loop {
+        tokio::select! {
+            () = stop.cancelled() => break,
+            got = rx.recv() => match got {
+                Some((cell, record)) => console.send_note(&cell, &record).await,
+                None => break,
+            },
+            _ = flush.tick() => {
+                let now = pb::unix_ms(std::time::SystemTime::now());
+                let out = console.refusals.lock().map(|mut r| r.flush(now)).unwrap_or_default();
+                console.send_notes(out);
+            }
         }
     }
 }
@@ -171,10 +262,13 @@ pub enum ConsoleError {
     Serve(#[source] std::io::Error),
 }
 
-/// The console's routes.
+/// The console's routes: each handler's extractors say what it needs of its caller
+/// ([`extract::Caller`]), checked before any body is read; bodies are at most
+/// [`BODY_LIMIT`] but a program upload's, which streams within `programs.max_inline`.
 pub fn router(console: Arc<Console>) -> Router {
     use api::*;
     let cell = "/api/v1/cells/{cell}";
+    let https = console.https;
     Router::new()
         .route("/", get(assets::index))
         .route("/assets/{file}", get(assets::file))
@@ -196,7 +290,10 @@ pub fn router(console: Arc<Console>) -> Router {
         .route(&format!("{cell}/programs"), get(programs))
         .route(
             &format!("{cell}/programs/{{name}}"),
-            get(program).put(program_put).delete(program_delete),
+            get(program)
+                .put(program_put)
+                .layer(axum::extract::DefaultBodyLimit::disable())
+                .delete(program_delete),
         )
         .route(
             &format!("{cell}/programs/{{name}}/revisions"),
@@ -218,13 +315,10 @@ pub fn router(console: Arc<Console>) -> Router {
         .route(&format!("{cell}/history"), get(history))
         .route(&format!("{cell}/audit"), get(audit))
         .route(&format!("{cell}/utilisation"), get(utilisation))
-        // A program upload is the largest request: programs.max_size is checked by the
-        // gateway; the console takes no more than the contract's largest default.
-        .layer(axum::extract::DefaultBodyLimit::max(
-            usize::try_from(cellgate_core::config::ProgramsConfig::DEFAULT_MAX_SIZE)
-                .unwrap_or(usize::MAX),
-        ))
-        .layer(axum::middleware::from_fn(assets::headers))
+        .fallback(extract::not_found)
+        .method_not_allowed_fallback(extract::method_not_allowed)
+        .layer(axum::extract::DefaultBodyLimit::max(BODY_LIMIT))
+        .layer(axum::middleware::from_fn_with_state(https, assets::headers))
         .with_state(console)
 }
 
@@ -271,6 +365,7 @@ pub async fn serve(
     )
     .await
     .map_err(ConsoleError::Subscribe)?;
+    let (notes_tx, notes_rx) = mpsc::channel(NOTES_WAITING);
     let console = Arc::new(Console {
         session,
         prefix: settings.prefix.clone(),
@@ -279,6 +374,7 @@ pub async fn serve(
             &settings.security,
             Duration::from_secs(u64::from(c.session_idle_minutes) * 60),
             Duration::from_secs(u64::from(c.session_hours) * 3600),
+            c.sessions_per_user as usize,
         ),
         live,
         cells: Mutex::new((Instant::now() - DISCOVERY_EVERY * 2, BTreeMap::new())),
@@ -287,7 +383,11 @@ pub async fn serve(
         session_max_s: u64::from(c.session_hours) * 3600,
         metrics,
         stop: stop.clone(),
+        uploads: Semaphore::new(UPLOADS_AT_ONCE),
+        refusals: std::sync::Mutex::new(Refusals::default()),
+        notes: notes_tx,
     });
+    tokio::spawn(notes_task(Arc::clone(&console), notes_rx, stop.clone()));
     let app = router(console).into_make_service_with_connect_info::<listen::Peer>();
     let url = format!("{}://{}/", if https { "https" } else { "http" }, local);
     let task = if let Some(tls) = &settings.security.tls {

@@ -13,6 +13,13 @@
 //! by its number (for paging); `subjects` indexes records by `machine/kind`, by `#kind` and,
 //! for tag values, by `plc/tag`, so that a query for one machine, one kind or one tag reads
 //! only its own records. The audit trail has the same four tables of its own.
+//!
+//! Refused requests are gathered before they reach the audit
+//! ([`cellgate_core::history::refusals`]: the first of a kind at once, the rest of its
+//! minute as one record with a count), indexed under a subject of their own, and bounded by
+//! `max_refusals` apart from the writes that were taken. Every record dropped before its
+//! retention days (the writer behind, the store full too long, `max_records`,
+//! `max_refusals`) is counted on `cellgate.history.dropped` and said in the log.
 
 // redb's error is large; it stays inside this module's transactions.
 #![allow(clippy::result_large_err)]
@@ -30,6 +37,7 @@ use tokio_util::sync::CancellationToken;
 
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::HistoryConfig;
+use cellgate_core::history::refusals::Refusals;
 use cellgate_core::history::{HistoryQuery, Mark};
 use cellgate_core::pb::{self, HistoryKind, history_record::Record};
 
@@ -155,6 +163,8 @@ struct Inner {
     written: AtomicU64,
     /// Why the last commit failed, while commits fail.
     fault: Mutex<Option<String>>,
+    /// Refused requests of the current minute, gathered.
+    refusals: Mutex<Refusals>,
 }
 
 /// The cell's history: cheap to clone; a disabled one records nothing and answers
@@ -233,6 +243,7 @@ impl History {
             handed: AtomicU64::new(0),
             written: AtomicU64::new(0),
             fault: Mutex::new(None),
+            refusals: Mutex::new(Refusals::default()),
         });
         let history = History {
             inner: Some(Arc::clone(&inner)),
@@ -308,6 +319,7 @@ impl History {
             inner.handed.fetch_add(1, Ordering::Relaxed);
         } else {
             let n = inner.dropped.fetch_add(1, Ordering::Relaxed) + 1;
+            dropped(log, "behind", 1);
             if n.is_power_of_two() {
                 tracing::warn!(
                     dropped = n,
@@ -359,14 +371,50 @@ impl History {
         );
     }
 
-    /// Records an audit record about `machine` (empty for the library's).
+    /// Records an audit record about `machine` (empty for the library's). A refusal (not
+    /// `ok`) is gathered with the others of its kind and minute.
     pub fn audit(&self, machine: &str, record: pb::AuditRecord) {
+        let Some(inner) = &self.inner else { return };
+        if record.ok {
+            return self.audit_now(machine, record);
+        }
+        let now = pb::unix_ms(std::time::SystemTime::now());
+        let out = inner
+            .refusals
+            .lock()
+            .map(|mut r| r.refuse(machine, record, now))
+            .unwrap_or_default();
+        for (m, r) in out {
+            self.audit_now(&m, r);
+        }
+    }
+
+    /// Records an audit record that was gathered already (a console's note), as it is.
+    pub fn audit_gathered(&self, machine: &str, record: pb::AuditRecord) {
+        self.audit_now(machine, record);
+    }
+
+    fn audit_now(&self, machine: &str, record: pb::AuditRecord) {
         self.record(
             Log::Audit,
             machine,
             HistoryKind::Audit,
             Record::Audit(record),
         );
+    }
+
+    /// Writes the summaries of the refusals of a minute that is over.
+    fn flush_refusals(&self) {
+        let Some(inner) = &self.inner else { return };
+        let now = pb::unix_ms(std::time::SystemTime::now());
+        let out = inner
+            .refusals
+            .lock()
+            .map(|mut r| r.flush(now))
+            .unwrap_or_default();
+        for (m, r) in out {
+            self.audit_now(&m, r);
+        }
     }
 
     /// The records `query` asks for from `log`: at most `query.limit`, oldest first.
@@ -564,7 +612,23 @@ fn subjects(r: &pb::HistoryRecord) -> Vec<String> {
     if let Some(Record::Tag(t)) = &r.record {
         s.push(tag_subject(&t.plc, &t.name));
     }
+    if let Some(k) = counted_subject(r) {
+        s.push(k.to_string());
+    }
     s
+}
+
+/// The index subject of refused requests in the audit (no machine or kind starts with `!`).
+const REFUSED: &str = "!refused";
+
+/// The subject whose records are counted and bounded, if any: a tag's values (bounded by
+/// `tag_values`) or the audit's refusals (by `max_refusals`).
+fn counted_subject(r: &pb::HistoryRecord) -> Option<std::borrow::Cow<'static, str>> {
+    match &r.record {
+        Some(Record::Tag(t)) => Some(tag_subject(&t.plc, &t.name).into()),
+        Some(Record::Audit(a)) if !a.ok => Some(REFUSED.into()),
+        _ => None,
+    }
 }
 
 /// What utilisation needs of a record, kept in its index entries: a machine's activity, a
@@ -606,6 +670,7 @@ async fn write_loop(inner: Arc<Inner>, mut rx: mpsc::Receiver<Waiting>, stop: Ca
                 None => break,
             },
             _ = tick.tick() => {
+                History { inner: Some(Arc::clone(&inner)) }.flush_refusals();
                 if !waiting.is_empty() {
                     waiting = commit(&inner, waiting).await;
                 }
@@ -673,7 +738,9 @@ async fn commit(inner: &Arc<Inner>, waiting: Vec<Waiting>) -> Vec<Waiting> {
     }
     if left.len() > MAX_WAITING {
         let over = left.len() - MAX_WAITING;
-        left.drain(..over);
+        for w in left.drain(..over) {
+            dropped(w.log, "store_refused", 1);
+        }
         inner.dropped.fetch_add(over as u64, Ordering::Relaxed);
         inner.written.fetch_add(over as u64, Ordering::Relaxed);
         tracing::warn!(
@@ -688,7 +755,8 @@ fn write_batch(inner: &Inner, batch: &[Waiting]) -> Result<(), HistoryError> {
     let path = &inner.path;
     let e = |x: redb::Error| db_error(path, x);
     let tx = inner.db.begin_write().map_err(|x| e(x.into()))?;
-    let mut tags: BTreeSet<String> = BTreeSet::new();
+    // Subjects past their bound: (log, subject, bound).
+    let mut over: BTreeSet<(usize, String, u64)> = BTreeSet::new();
     {
         for log in [Log::History, Log::Audit] {
             let t = log.tables();
@@ -706,24 +774,41 @@ fn write_batch(inner: &Inner, batch: &[Waiting]) -> Result<(), HistoryError> {
                     subj.insert((s.as_str(), r.unix_ms, r.seq), summary(r))
                         .map_err(|x| e(x.into()))?;
                 }
-                if let Some(Record::Tag(tag)) = &r.record {
-                    let s = tag_subject(&tag.plc, &tag.name);
+                if let Some(s) = counted_subject(r) {
                     let n = counts
-                        .get(s.as_str())
+                        .get(s.as_ref())
                         .map_err(|x| e(x.into()))?
                         .map_or(0, |v| v.value())
                         + 1;
-                    counts.insert(s.as_str(), n).map_err(|x| e(x.into()))?;
-                    if n > u64::from(inner.config.tag_values) {
-                        tags.insert(s);
+                    counts.insert(s.as_ref(), n).map_err(|x| e(x.into()))?;
+                    let bound = if s == REFUSED {
+                        inner.config.max_refusals
+                    } else {
+                        u64::from(inner.config.tag_values)
+                    };
+                    if n > bound {
+                        over.insert((log as usize, s.into_owned(), bound));
                     }
                 }
             }
         }
-        // Tag values beyond the bound go at once: a fast tag must not fill the store.
-        for subject in &tags {
-            drop_oldest_of_tag(&tx, HISTORY, subject, u64::from(inner.config.tag_values))
-                .map_err(e)?;
+        // Tag values and refusals beyond their bound go at once: a fast tag must not fill
+        // the store, nor refusals push the taken writes out of the audit.
+        for (log, subject, bound) in &over {
+            let (log, t) = if *log == Log::Audit as usize {
+                (Log::Audit, AUDIT)
+            } else {
+                (Log::History, HISTORY)
+            };
+            let n = drop_oldest_of(&tx, t, subject, *bound).map_err(e)?;
+            if subject == REFUSED && n > 0 {
+                dropped(log, "max_refusals", n);
+                tracing::warn!(
+                    records = n,
+                    max_refusals = bound,
+                    "history: the oldest refusal records of the audit dropped (history.max_refusals)"
+                );
+            }
         }
     }
     tx.commit().map_err(|x| e(x.into()))
@@ -746,28 +831,28 @@ fn remove_record(
         for s in subjects(&r) {
             subj.remove((s.as_str(), ms, seq))?;
         }
-        if let Some(Record::Tag(tag)) = &r.record {
-            let s = tag_subject(&tag.plc, &tag.name);
+        if let Some(s) = counted_subject(&r) {
             let mut counts = tx.open_table(t.counts)?;
-            let n = counts.get(s.as_str())?.map_or(0, |v| v.value());
-            counts.insert(s.as_str(), n.saturating_sub(1))?;
+            let n = counts.get(s.as_ref())?.map_or(0, |v| v.value());
+            counts.insert(s.as_ref(), n.saturating_sub(1))?;
         }
     }
     Ok(())
 }
 
-fn drop_oldest_of_tag(
+/// Drops the oldest records of a counted subject beyond `keep`; how many.
+fn drop_oldest_of(
     tx: &redb::WriteTransaction,
     t: Tables,
     subject: &str,
     keep: u64,
-) -> Result<(), redb::Error> {
+) -> Result<u64, redb::Error> {
     let n = tx
         .open_table(t.counts)?
         .get(subject)?
         .map_or(0, |v| v.value());
     if n <= keep {
-        return Ok(());
+        return Ok(0);
     }
     let over = usize::try_from(n - keep).unwrap_or(usize::MAX);
     let victims: Vec<(u64, u64)> = {
@@ -783,10 +868,24 @@ fn drop_oldest_of_tag(
         }
         v
     };
+    let dropped = victims.len() as u64;
     for (ms, seq) in victims {
         remove_record(tx, t, ms, seq)?;
     }
-    Ok(())
+    Ok(dropped)
+}
+
+/// Counts records dropped before their retention days.
+fn dropped(log: Log, reason: &str, n: u64) {
+    let log = match log {
+        Log::History => "history",
+        Log::Audit => "audit",
+    };
+    crate::telemetry::metrics::event(
+        "cellgate.history.dropped",
+        &[("log", log), ("reason", reason)],
+        n,
+    );
 }
 
 /// Retention: records older than their log's days, and the oldest beyond `max_records`.
@@ -798,10 +897,12 @@ fn prune_logs(inner: &Inner) {
         (Log::Audit, inner.config.keep_audit_days),
     ] {
         let cutoff = now.saturating_sub(u64::from(days) * day);
-        let run = || -> Result<u64, redb::Error> {
+        // Records removed in all, and those of them still within their days (`max_records`).
+        let run = || -> Result<(u64, u64), redb::Error> {
             let t = log.tables();
             let tx = inner.db.begin_write()?;
             let mut removed = 0u64;
+            let mut by_cap = 0u64;
             loop {
                 let victims: Vec<(u64, u64)> = {
                     let records = tx.open_table(t.records)?;
@@ -828,17 +929,28 @@ fn prune_logs(inner: &Inner) {
                     remove_record(&tx, t, *ms, *seq)?;
                 }
                 removed += victims.len() as u64;
+                by_cap += victims.iter().filter(|(ms, _)| *ms >= cutoff).count() as u64;
                 if victims.len() < 10_000 {
                     break;
                 }
             }
             tx.commit()?;
-            Ok(removed)
+            Ok((removed, by_cap))
         };
         match run() {
-            Ok(0) => {}
-            Ok(n) => {
-                tracing::info!(records = n, log = ?log, "history: retention dropped old records")
+            Ok((0, _)) => {}
+            Ok((n, by_cap)) => {
+                tracing::info!(records = n, log = ?log, "history: retention dropped old records");
+                if by_cap > 0 {
+                    dropped(log, "max_records", by_cap);
+                    tracing::warn!(
+                        records = by_cap,
+                        max_records = inner.config.max_records,
+                        log = ?log,
+                        "history: records dropped before their retention days: the log holds \
+                         history.max_records"
+                    );
+                }
             }
             Err(e) => tracing::warn!(error = %e, log = ?log, "history: retention failed"),
         }

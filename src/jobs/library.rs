@@ -535,6 +535,48 @@ impl ProgramLibrary {
         }
     }
 
+    /// Whether a store of `size` bytes under `name` would be taken, before the bytes are
+    /// sent: the name, `programs.max_size`, a locked latest revision and the quota (counting
+    /// the content as new). Nothing is written. Answers the program as it stands, if any.
+    pub async fn check_store(
+        &self,
+        name: &str,
+        size: u64,
+    ) -> Result<Option<ProgramEntry>, LibraryError> {
+        let path = self.path_of(name)?;
+        if size > self.max_size {
+            return Err(LibraryError::TooLarge {
+                name: name.to_string(),
+                size,
+                max: self.max_size,
+            });
+        }
+        let index = self.index().await?;
+        let lib = self.clone();
+        let name = name.to_string();
+        blocking(move || {
+            let latest = index.revisions(&name)?.pop();
+            let present = latest.as_ref().is_some_and(|r| !r.removed) && path.is_file();
+            if let Some(l) = &latest
+                && !l.removed
+                && l.state() == RevisionState::Locked
+            {
+                return Err(LibraryError::Locked {
+                    name,
+                    number: l.number,
+                    what: "replaced",
+                });
+            }
+            lib.check_quota(&index, &name, "", size, !present)?;
+            if present {
+                lib.entry_blocking(&name, &index).map(Some)
+            } else {
+                Ok(None)
+            }
+        })
+        .await
+    }
+
     /// Stores `program` under `name` as its next revision, by nobody in particular.
     pub async fn store(&self, name: &str, program: &[u8]) -> Result<ProgramEntry, LibraryError> {
         self.store_as(

@@ -28,6 +28,9 @@
 //! | `cellgate.do.delay` (s) | histogram | `link` |
 //! | `cellgate.g05.underruns` | counter | `machine` |
 //! | `cellgate.plc.station_timeouts` | counter | `plc`, `station` |
+//! | `cellgate.bus.misdirected_writes` | counter | `key` (the read key's kind: `program`, `tag`, …) |
+//! | `cellgate.history.dropped` | counter | `log` (`history`/`audit`), `reason` |
+//! | `cellgate.console.login_failures` | counter | `outcome` (`refused`/`throttled`) |
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -239,12 +242,17 @@ struct Histograms {
     do_delay: Histogram<f64>,
 }
 
+/// A rare event's name and attributes.
+type EventKey = (&'static str, Vec<(&'static str, String)>);
+
 #[derive(Debug, Default)]
 struct Registry {
     links: Mutex<BTreeMap<String, Arc<LinkMetrics>>>,
     machines: Mutex<BTreeMap<String, Arc<MachineMetrics>>>,
     /// (PLC, station) → time-outs.
     plc_timeouts: Mutex<BTreeMap<(String, u8), u64>>,
+    /// Rare events ([`EVENTS`]) by name and attributes.
+    events: Mutex<BTreeMap<EventKey, u64>>,
     /// The histograms of every installed provider, by install number.
     histograms: Mutex<Vec<(u64, Histograms)>>,
     installs: AtomicU64,
@@ -303,6 +311,41 @@ pub fn plc_station_timeouts(plc: &str, station: u8) -> u64 {
         .unwrap_or(0)
 }
 
+/// The counters of rare events [`event`] counts, with their descriptions.
+pub const EVENTS: [(&str, &str); 3] = [
+    (
+        "cellgate.bus.misdirected_writes",
+        "Puts and deletes on keys that only read: nothing was written",
+    ),
+    (
+        "cellgate.history.dropped",
+        "History and audit records dropped before their retention days",
+    ),
+    (
+        "cellgate.console.login_failures",
+        "Console logins refused (wrong name or password) or throttled",
+    ),
+];
+
+/// Counts `n` rare events of counter `name` (one of [`EVENTS`]) with `attrs`: a lock and
+/// a map lookup, for what happens now and then, not per byte.
+pub fn event(name: &'static str, attrs: &[(&'static str, &str)], n: u64) {
+    let key = (
+        name,
+        attrs.iter().map(|(k, v)| (*k, (*v).to_string())).collect(),
+    );
+    *lock(&registry().events).entry(key).or_insert(0) += n;
+}
+
+/// Events of counter `name` with `attrs` so far.
+pub fn events(name: &'static str, attrs: &[(&'static str, &str)]) -> u64 {
+    let key = (
+        name,
+        attrs.iter().map(|(k, v)| (*k, (*v).to_string())).collect(),
+    );
+    lock(&registry().events).get(&key).copied().unwrap_or(0)
+}
+
 /// Instruments registered on one meter provider; dropping it stops recording job durations
 /// and DO delays into that provider.
 #[derive(Debug)]
@@ -322,6 +365,23 @@ pub fn register(provider: &SdkMeterProvider) -> Instruments {
     let meter = provider.meter(SCOPE);
     register_links(&meter);
     register_machines(&meter);
+    for (name, description) in EVENTS {
+        let _ = meter
+            .u64_observable_counter(name)
+            .with_description(description)
+            .with_callback(move |o| {
+                for ((n, attrs), v) in lock(&registry().events).iter() {
+                    if *n == name {
+                        let attrs: Vec<KeyValue> = attrs
+                            .iter()
+                            .map(|(k, v)| KeyValue::new(*k, v.clone()))
+                            .collect();
+                        o.observe(*v, &attrs);
+                    }
+                }
+            })
+            .build();
+    }
     let _ = meter
         .u64_observable_counter("cellgate.plc.station_timeouts")
         .with_description("PLC stations that did not answer within the time-out")

@@ -6,6 +6,8 @@
 //! parameter is read there with zenoh's own time-range parser, so this module gets the range
 //! resolved to milliseconds.
 
+pub mod refusals;
+
 use std::collections::BTreeSet;
 
 use crate::pb;

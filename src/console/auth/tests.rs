@@ -1,6 +1,8 @@
 use super::*;
 use cellgate_core::config::Role;
 
+const HERE: IpAddr = IpAddr::V4(std::net::Ipv4Addr::LOCALHOST);
+
 fn security(users: &std::path::Path) -> SecurityConfig {
     SecurityConfig {
         tls: None,
@@ -30,6 +32,7 @@ fn auth() -> (tempfile::TempDir, Auth) {
         &security(&users),
         Duration::from_secs(60),
         Duration::from_secs(3600),
+        4,
     );
     (dir, a)
 }
@@ -38,17 +41,20 @@ fn auth() -> (tempfile::TempDir, Auth) {
 fn users_log_in_with_the_users_file_and_get_their_roles_permissions() {
     let (_d, a) = auth();
     assert!(a.secured());
-    let (id, u) = a.login("olga", "secret").unwrap();
+    let (id, u) = a.login("olga", "secret", HERE).unwrap();
     assert!(u.may(Permission::IoDo) && u.may(Permission::StatusRead));
     assert!(!u.may(Permission::JobSubmit));
     assert_eq!(a.user(&id).unwrap().name, "olga");
-    let (_, e) = a.login("erik", "other").unwrap();
+    let (_, e) = a.login("erik", "other", HERE).unwrap();
     // Writing the library includes reading it.
     assert!(e.may(Permission::ProgramRead));
-    assert_eq!(a.login("olga", "wrong").unwrap_err(), LoginError::Refused);
-    assert_eq!(a.login("ghost", "").unwrap_err(), LoginError::Refused);
     assert_eq!(
-        a.login("nobody", "x").unwrap_err(),
+        a.login("olga", "wrong", HERE).unwrap_err(),
+        LoginError::Refused
+    );
+    assert_eq!(a.login("ghost", "", HERE).unwrap_err(), LoginError::Refused);
+    assert_eq!(
+        a.login("nobody", "x", HERE).unwrap_err(),
         LoginError::NoRole("nobody".into())
     );
     a.logout(&id);
@@ -71,6 +77,7 @@ fn without_security_everybody_may_everything() {
         &SecurityConfig::default(),
         Duration::from_secs(60),
         Duration::from_secs(60),
+        4,
     );
     assert!(!a.secured());
     let (_, u) = a.implicit(None).unwrap();
@@ -86,11 +93,93 @@ fn sessions_end_when_idle_and_csrf_must_match() {
         &security(&users),
         Duration::from_millis(50),
         Duration::from_secs(60),
+        4,
     );
-    let (id, u) = a.login("olga", "secret").unwrap();
+    let (id, u) = a.login("olga", "secret", HERE).unwrap();
     assert!(Auth::csrf_ok(&u, Some(&u.csrf)));
     assert!(!Auth::csrf_ok(&u, Some("forged")));
     assert!(!Auth::csrf_ok(&u, None));
     std::thread::sleep(Duration::from_millis(80));
     assert!(a.user(&id).is_none(), "idle too long");
+}
+
+#[test]
+fn a_users_new_session_ends_that_users_oldest_and_nobody_elses() {
+    let (_d, a) = auth();
+    let (erik, erik_user) = a.login("erik", "other", HERE).unwrap();
+    let mut olga = Vec::new();
+    for _ in 0..4 {
+        olga.push(a.login("olga", "secret", HERE).unwrap());
+    }
+    // Many more logins of olga: each ends her oldest session.
+    for _ in 0..50 {
+        let oldest = olga.remove(0);
+        olga.push(a.login("olga", "secret", HERE).unwrap());
+        assert!(a.user(&oldest.0).is_none());
+        assert!(oldest.1.ended.is_cancelled(), "its event streams end");
+    }
+    assert!(olga.iter().all(|(id, _)| a.user(id).is_some()));
+    assert_eq!(a.user(&erik).unwrap().name, "erik");
+    assert!(!erik_user.ended.is_cancelled());
+}
+
+#[test]
+fn logout_and_expiry_end_the_sessions_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let users = dir.path().join("users");
+    std::fs::write(&users, "olga:secret\n").unwrap();
+    let a = Auth::new(
+        &security(&users),
+        Duration::from_millis(50),
+        Duration::from_secs(60),
+        4,
+    );
+    let (id, u) = a.login("olga", "secret", HERE).unwrap();
+    assert!(a.live(&id));
+    a.logout(&id);
+    assert!(u.ended.is_cancelled() && !a.live(&id));
+    let (id, u) = a.login("olga", "secret", HERE).unwrap();
+    std::thread::sleep(Duration::from_millis(80));
+    assert!(!a.live(&id), "idle too long");
+    assert!(a.user(&id).is_none());
+    assert!(u.ended.is_cancelled());
+}
+
+#[test]
+fn guessing_a_password_is_throttled_and_the_right_one_waits_its_turn() {
+    let (_d, a) = auth();
+    for _ in 0..crate::console::throttle::FREE_PER_USER {
+        assert_eq!(
+            a.login("olga", "guess", HERE).unwrap_err(),
+            LoginError::Refused
+        );
+    }
+    let LoginError::Throttled(wait) = a.login("olga", "guess", HERE).unwrap_err() else {
+        panic!("not throttled");
+    };
+    assert_eq!(wait, Duration::from_secs(1));
+    // The right password is not looked at while the name is closed.
+    assert!(matches!(
+        a.login("olga", "secret", HERE).unwrap_err(),
+        LoginError::Throttled(_)
+    ));
+    std::thread::sleep(wait + Duration::from_millis(20));
+    assert_eq!(a.login("olga", "secret", HERE).unwrap().1.name, "olga");
+}
+
+#[test]
+fn a_reload_ends_the_sessions_of_users_whose_roles_changed() {
+    let (d, a) = auth();
+    let (olga, olga_user) = a.login("olga", "secret", HERE).unwrap();
+    let (erik, erik_user) = a.login("erik", "other", HERE).unwrap();
+    let mut changed = security(&d.path().join("users"));
+    changed.roles[0].permissions.push(Permission::JobSubmit);
+    assert_eq!(a.set_security(&changed), 1);
+    assert!(olga_user.ended.is_cancelled() && a.user(&olga).is_none());
+    assert!(!erik_user.ended.is_cancelled() && a.user(&erik).is_some());
+    // A user removed from the users file.
+    std::fs::write(d.path().join("users"), "olga:secret\n").unwrap();
+    assert_eq!(a.set_security(&changed), 1);
+    assert!(erik_user.ended.is_cancelled());
+    assert!(a.login("erik", "other", HERE).is_err());
 }

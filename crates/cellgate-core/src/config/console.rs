@@ -16,6 +16,9 @@ pub struct ConsoleConfig {
     pub session_idle_minutes: u32,
     /// Hours a session lasts at most, however busy.
     pub session_hours: u32,
+    /// Sessions one user holds at most (browsers, tablets): a new one ends that user's
+    /// oldest, never another user's.
+    pub sessions_per_user: u32,
     /// Listen beyond loopback on a cell without `[security]` (anyone who reaches the port
     /// may then do anything): off by default, and warned of when on.
     pub allow_remote: bool,
@@ -27,6 +30,7 @@ impl Default for ConsoleConfig {
             listen: Self::DEFAULT_LISTEN.to_string(),
             session_idle_minutes: 30,
             session_hours: 12,
+            sessions_per_user: 16,
             allow_remote: false,
         }
     }
@@ -69,6 +73,14 @@ pub(super) fn check_console(c: &mut Checker, console: &ConsoleConfig, secured: b
         1,
         24 * 60,
         " minutes",
+        "",
+    );
+    c.range(
+        || "console.sessions_per_user".to_string(),
+        console.sessions_per_user,
+        1,
+        1024,
+        "",
         "",
     );
     c.range(

@@ -22,6 +22,10 @@ pub struct HistoryConfig {
     pub keep_audit_days: u32,
     /// Most records kept in all (history and audit each): the oldest go first beyond it.
     pub max_records: u64,
+    /// Most refusal records the audit keeps (requests refused, gathered per sender, action,
+    /// code and minute): the oldest refusals go first beyond it, never a write that was
+    /// taken, so that what anyone can send cannot push the real writes out of the trail.
+    pub max_refusals: u64,
     /// Values kept per tag with `history = true`: the oldest go first beyond it.
     pub tag_values: u32,
     /// Where shifts start, `HH:MM` UTC, for utilisation by shift: each runs to the next one's
@@ -37,6 +41,7 @@ impl Default for HistoryConfig {
             keep_days: 90,
             keep_audit_days: 400,
             max_records: 5_000_000,
+            max_refusals: 100_000,
             tag_values: 10_000,
             shifts: vec!["06:00".into(), "14:00".into(), "22:00".into()],
         }
@@ -73,6 +78,7 @@ pub(super) fn check_history(c: &mut Checker, h: &HistoryConfig) {
         ("keep_audit_days", u64::from(h.keep_audit_days), 36_500),
         ("tag_values", u64::from(h.tag_values), 10_000_000),
         ("max_records", h.max_records, 1_000_000_000),
+        ("max_refusals", h.max_refusals, 1_000_000_000),
     ] {
         c.range(|| format!("history.{key}"), v, 1, max, "", "");
     }
