@@ -539,3 +539,51 @@ async fn utilisation_shares_the_time_and_counts_parts() {
     assert_eq!(e.code(), pb::ErrorCode::InvalidRequest);
     cell.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_put_or_delete_on_a_read_key_is_logged_counted_and_audited_never_silent() {
+    use cellgate::bus::route_misdirected::METRIC;
+    use cellgate::telemetry::metrics::events;
+    let cell = RunningCell::start(cell_config, false).await;
+    let program_before = events(METRIC, &[("key", "program")]);
+    let tag_before = events(METRIC, &[("key", "plc.tag")]);
+    // A client of the old contract: a put of a program on its read key, a delete on a tag's.
+    cell.client
+        .put(cell.keys.program("O777"), V1.to_vec())
+        .attachment(origin("mallory"))
+        .await
+        .unwrap();
+    cell.client
+        .delete(cell.keys.plc_tag("plc-1", "parts"))
+        .await
+        .unwrap();
+    common::bus::eventually("both are counted", || {
+        events(METRIC, &[("key", "program")]) > program_before
+            && events(METRIC, &[("key", "plc.tag")]) > tag_before
+    })
+    .await;
+    let misdirected = |p: &pb::HistoryPage, key: &str| {
+        p.records.iter().find_map(|r| match &r.record {
+            Some(pb::history_record::Record::Audit(a))
+                if a.action == "bus.misdirected" && a.target == key =>
+            {
+                Some(a.clone())
+            }
+            _ => None,
+        })
+    };
+    let key = cell.keys.program("O777");
+    let page = records(&cell, &cell.keys.audit(), |p| {
+        misdirected(p, &key).is_some()
+    })
+    .await;
+    let a = misdirected(&page, &key).unwrap();
+    assert!(!a.ok);
+    assert_eq!(a.code, pb::ErrorCode::InvalidRequest as i32);
+    assert!(a.error.contains(&cell.keys.program_write("O777")), "{a:?}");
+    assert_eq!(a.origin.unwrap().user, "mallory");
+    // And nothing was stored.
+    let e = get_err(&cell.client, &key, None).await;
+    assert_eq!(e.code(), pb::ErrorCode::NotFound);
+    cell.stop().await;
+}

@@ -42,6 +42,7 @@ mod route_g05;
 mod route_history;
 mod route_io;
 mod route_job;
+pub mod route_misdirected;
 mod route_plc;
 mod route_program;
 mod route_punch;
@@ -72,6 +73,7 @@ use self::route_g05::G05Route;
 use self::route_history::HistoryRoute;
 use self::route_io::IoRoute;
 use self::route_job::JobRoute;
+use self::route_misdirected::MisdirectedRoute;
 use self::route_program::ProgramRoute;
 use self::route_punch::PunchSettings;
 use self::route_sim::SimRoute;
@@ -235,7 +237,9 @@ pub async fn serve_recorded(
         let program = ProgramRoute::declare(&ctx).await?;
         let records = HistoryRoute::declare(&ctx).await?;
         let g05 = G05Route::declare(&ctx).await?;
+        let misdirected = MisdirectedRoute::declare(&ctx).await?;
         route_tasks.spawn(records.run(ctx.clone(), routes_stop.clone()));
+        route_tasks.spawn(misdirected.run(ctx.clone(), routes_stop.clone()));
         // Only a cell with simulated machines has their controls.
         if ctx.machines.values().any(|m| m.sim.is_some()) {
             let sim = SimRoute::declare(&ctx).await?;
