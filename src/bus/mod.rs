@@ -152,7 +152,8 @@ pub async fn serve_recorded(
         .with_retention(crate::jobs::library::Retention {
             revisions: config.programs.keep_revisions,
             days: config.programs.keep_revision_days,
-        });
+        })
+        .with_owned(config.owned_files());
     // Off the runtime's threads: opening reads and checks the whole file.
     let (dir, damaged) = (
         config.programs.journal_dir(),

@@ -214,6 +214,10 @@ pub struct ProgramLibrary {
     /// pass the check and then together break the quota, nor number two revisions alike.
     stores: Arc<tokio::sync::Mutex<()>>,
     index: Arc<tokio::sync::OnceCell<Arc<Index>>>,
+    /// The gateway's own files ([`CellConfig::owned_files`]): never a program.
+    ///
+    /// [`CellConfig::owned_files`]: cellgate_core::config::CellConfig::owned_files
+    owned: Arc<[PathBuf]>,
 }
 
 /// Writes `parts` to `path` atomically and durably: into a hidden temporary file beside it,
@@ -330,7 +334,29 @@ impl ProgramLibrary {
             quota: Quota::default(),
             retention: Retention::default(),
             index: Arc::default(),
+            owned: Arc::new([]),
         }
+    }
+
+    /// The same library, never taking `owned` (the gateway's journal, history, keys) for
+    /// programs.
+    pub fn with_owned(mut self, owned: Vec<PathBuf>) -> Self {
+        self.owned = owned.into();
+        self
+    }
+
+    /// Checks a name as [`validate_name`] does, and refuses the gateway's own files.
+    fn check_name(&self, name: &str) -> Result<(), LibraryError> {
+        validate_name(name)?;
+        let path = self.dir.join(name);
+        if cellgate_core::config::owned::is_owned(&self.owned, &self.dir, &path) {
+            return Err(LibraryError::InvalidName {
+                name: name.to_string(),
+                reason: "it is a file of the gateway's own (its job journal, history or keys), \
+                         never a program",
+            });
+        }
+        Ok(())
     }
 
     /// The same library, bounded by `quota`.
@@ -439,7 +465,7 @@ impl ProgramLibrary {
             let Ok(name) = item.file_name().into_string() else {
                 continue;
             };
-            if validate_name(&name).is_err() || !item.path().is_file() {
+            if self.check_name(&name).is_err() || !item.path().is_file() {
                 continue;
             }
             let bytes = std::fs::read(item.path()).map_err(io("read", &item.path()))?;
@@ -517,7 +543,7 @@ impl ProgramLibrary {
     }
 
     pub(crate) fn path_of(&self, name: &str) -> Result<PathBuf, LibraryError> {
-        validate_name(name)?;
+        self.check_name(name)?;
         Ok(self.dir.join(name))
     }
 
@@ -869,7 +895,7 @@ impl ProgramLibrary {
     }
 
     pub(crate) async fn entry(&self, name: &str) -> Result<ProgramEntry, LibraryError> {
-        validate_name(name)?;
+        self.check_name(name)?;
         let index = self.index().await?;
         let lib = self.clone();
         let name = name.to_string();
@@ -903,7 +929,7 @@ impl ProgramLibrary {
 
     /// Every kept revision of `name`, newest first.
     pub async fn revisions(&self, name: &str) -> Result<pb::ProgramRevisions, LibraryError> {
-        validate_name(name)?;
+        self.check_name(name)?;
         let index = self.index().await?;
         let n = name.to_string();
         let mut revisions = blocking(move || Ok(index.revisions(&n)?)).await?;
@@ -928,7 +954,7 @@ impl ProgramLibrary {
         name: &str,
         rev: &str,
     ) -> Result<(pb::ProgramRevision, PathBuf), LibraryError> {
-        validate_name(name)?;
+        self.check_name(name)?;
         let index = self.index().await?;
         let n = name.to_string();
         let revisions = blocking(move || Ok(index.revisions(&n)?)).await?;
@@ -977,7 +1003,7 @@ impl ProgramLibrary {
         by: pb::RequestOrigin,
         comment: String,
     ) -> Result<pb::ProgramRevision, LibraryError> {
-        validate_name(name)?;
+        self.check_name(name)?;
         let index = self.index().await?;
         let _store = self.stores.lock().await;
         let (name, rev) = (name.to_string(), rev.to_string());
@@ -1087,7 +1113,7 @@ impl ProgramLibrary {
             let Ok(name) = item.file_name().into_string() else {
                 continue;
             };
-            if validate_name(&name).is_err() {
+            if self.check_name(&name).is_err() {
                 continue;
             }
             let Ok(meta) = item.metadata().await else {

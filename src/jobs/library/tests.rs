@@ -417,3 +417,35 @@ async fn temporary_files_of_an_earlier_run_are_removed_at_start() {
     assert!(other.exists());
     assert_eq!(lib.read("KEEP").await.unwrap(), b"%\nO1\n%");
 }
+
+#[tokio::test]
+async fn the_gateways_own_files_are_never_listed_served_replaced_or_removed() {
+    let dir = tempfile::tempdir().unwrap();
+    // A journal in the library's folder, as a cell file moved under a running gateway has it.
+    let journal = dir.path().join("jobs.redb");
+    std::fs::write(&journal, b"live journal").unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 100)
+        .with_owned(vec![dir.path().to_path_buf(), journal.clone()]);
+    lib.store("O1", b"%\nO1\n%").await.unwrap();
+    let names: Vec<String> = lib
+        .list()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|e| e.name)
+        .collect();
+    assert_eq!(names, ["O1"]);
+    assert!(matches!(
+        lib.read("jobs.redb").await,
+        Err(LibraryError::InvalidName { .. })
+    ));
+    assert!(matches!(
+        lib.remove("jobs.redb").await,
+        Err(LibraryError::InvalidName { .. })
+    ));
+    assert!(matches!(
+        lib.store("jobs.redb", b"%\nO2\n%").await,
+        Err(LibraryError::InvalidName { .. })
+    ));
+    assert_eq!(std::fs::read(&journal).unwrap(), b"live journal");
+}

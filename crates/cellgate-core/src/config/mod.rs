@@ -25,6 +25,7 @@ mod error;
 mod fanuc;
 mod g05;
 mod history;
+pub mod owned;
 mod plc;
 mod programs;
 mod security;
@@ -33,7 +34,7 @@ pub mod telemetry;
 mod transport;
 
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
@@ -126,7 +127,40 @@ impl CellConfig {
             origin: origin.clone(),
             reason: e.to_string(),
         })?;
-        Self::from_toml_str(&text, &origin)
+        let config = Self::from_toml_str(&text, &origin)?;
+        // The cell file in the library would be served to anyone who may read programs, keys
+        // and user names in it ([`owned`]).
+        if owned::listed_in(&config.programs.dir, path) {
+            return Err(ConfigErrors(vec![ConfigError::Invalid {
+                path: "programs.dir".to_string(),
+                value: error::q(&config.programs.dir.display().to_string()),
+                reason: format!(
+                    "holds the cell file {origin}: the library would list it as a program and \
+                     serve it; keep the cell file outside programs.dir"
+                ),
+                section: "",
+            }]));
+        }
+        Ok(config)
+    }
+
+    /// The files and directories the gateway owns: the library never lists, serves or
+    /// removes them ([`owned`]).
+    pub fn owned_files(&self) -> Vec<PathBuf> {
+        let journal = self.programs.journal_dir();
+        let history = self.history.dir_in(&self.programs.dir);
+        let mut out = vec![
+            journal.join("jobs.redb"),
+            journal,
+            history.join("history.redb"),
+            history,
+        ];
+        out.extend(self.bus.zenoh_config.clone());
+        out.extend(self.security.users_file.clone());
+        if let Some(t) = &self.security.tls {
+            out.extend([t.ca.clone(), t.certificate.clone(), t.private_key.clone()]);
+        }
+        out.iter().map(|p| owned::lexical(p)).collect()
     }
 
     /// The cell built into the binary: cell "demo" with three simulated CNCs on loopback.
@@ -403,6 +437,38 @@ fn edit_distance(a: &str, b: &str) -> usize {
     row[b.len()]
 }
 
+/// The files the gateway owns, refused where the library would take them for programs
+/// ([`owned`]).
+fn check_owned(c: &mut Checker, raw: &RawCell) {
+    let dir = &raw.programs.dir;
+    let mut files: Vec<(&'static str, PathBuf)> = Vec::new();
+    if let Some(j) = &raw.programs.journal {
+        files.push(("programs.journal", j.clone()));
+    }
+    if let Some(h) = &raw.history.dir {
+        files.push(("history.dir", h.clone()));
+    }
+    if let Some(z) = &raw.bus.zenoh_config {
+        files.push(("bus.zenoh_config", z.clone()));
+    }
+    files.extend(raw.security.files());
+    for (key, path) in files {
+        if owned::listed_in(dir, &path) {
+            c.invalid(
+                key.to_string(),
+                error::q(&path.display().to_string()),
+                format!(
+                    "must lie outside programs.dir ({}), or in a hidden directory of it (a \
+                     name starting with '.'): the library would list it as a program, serve \
+                     its bytes and let a library remove delete it",
+                    dir.display()
+                ),
+                "",
+            );
+        }
+    }
+}
+
 fn check(raw: &RawCell) -> Vec<ConfigError> {
     check_with(raw, true)
 }
@@ -442,6 +508,7 @@ fn check_with(raw: &RawCell, files: bool) -> Vec<ConfigError> {
         }
     }
     check_security(&mut c, &raw.security, &raw.bus);
+    check_owned(&mut c, raw);
     if let Some(console) = &raw.console {
         check_console(&mut c, console, raw.security.is_configured());
     }

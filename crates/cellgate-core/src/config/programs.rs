@@ -183,29 +183,6 @@ pub(super) fn check_programs(c: &mut Checker, p: &ProgramsConfig) {
             "",
         );
     }
-    // The journal inside the library would show up as a program, and a put could overwrite
-    // it; a relative path is compared as written.
-    // A hidden directory (`.journal`, the default) is never a program name, so never listed.
-    let journal = p.journal_dir();
-    let listed = journal.strip_prefix(&p.dir).ok().is_some_and(|rest| {
-        rest.components()
-            .next()
-            .is_some_and(|c| !c.as_os_str().to_string_lossy().starts_with('.'))
-    });
-    if p.journal.is_some() && listed {
-        c.invalid(
-            "programs.journal".to_string(),
-            q(&journal.display().to_string()),
-            format!(
-                "must lie outside programs.dir ({}), or in a hidden directory of it: the \
-                 library would list the journal's files as programs; leave it out for the \
-                 default {}",
-                p.dir.display(),
-                p.dir.join(".journal").display()
-            ),
-            "",
-        );
-    }
     for (i, prefix) in p.fetch_prefixes.iter().enumerate() {
         let chunks_ok = prefix.split('/').all(crate::keys::is_plain_chunk);
         if !chunks_ok {

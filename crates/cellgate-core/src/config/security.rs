@@ -213,6 +213,26 @@ impl RawSecurity {
     pub(super) fn is_configured(&self) -> bool {
         self.tls.is_some() || self.users_file.is_some()
     }
+
+    /// The files the section names, with their keys.
+    pub(super) fn files(&self) -> Vec<(&'static str, PathBuf)> {
+        let mut out = Vec::new();
+        if let Some(f) = &self.users_file {
+            out.push(("security.users_file", f.clone()));
+        }
+        if let Some(t) = &self.tls {
+            for (key, f) in [
+                ("security.tls.ca", &t.ca),
+                ("security.tls.certificate", &t.certificate),
+                ("security.tls.private_key", &t.private_key),
+            ] {
+                if let Some(f) = f {
+                    out.push((key, f.clone()));
+                }
+            }
+        }
+        out
+    }
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]

@@ -848,3 +848,37 @@ fn every_unknown_key_is_reported_at_once_with_the_key_it_most_likely_means() {
     let e = errors_of("cell = \"c\"\nzzzzzzzz = 1\n");
     assert!(!e[0].contains("did you mean"), "{e:?}");
 }
+
+#[test]
+fn the_gateways_own_files_are_refused_where_the_library_would_list_them() {
+    let f = |extra: &str| format!("cell = \"c\"\n{extra}\n[programs]\ndir = \"lib\"\n");
+    // The journal in the library's folder itself: the library would serve `jobs.redb`.
+    for journal in ["lib", "./lib", "lib/", "lib/jobs"] {
+        let e = errors_of(&format!("{}journal = {journal:?}\n", f("")));
+        assert!(
+            e.iter().any(|m| m.starts_with("programs.journal")
+                && m.contains("must lie outside programs.dir")),
+            "{journal}: {e:?}"
+        );
+    }
+    let e = errors_of(&f("[history]\ndir = \"lib\""));
+    assert!(e.iter().any(|m| m.starts_with("history.dir")), "{e:?}");
+    let e = errors_of(&f("[bus]\nzenoh_config = \"lib/zenoh.json5\""));
+    assert!(e.iter().any(|m| m.starts_with("bus.zenoh_config")), "{e:?}");
+    // Hidden entries, and places beside the library, are fine.
+    assert!(errors_of(&format!("{}journal = \"lib/.journal\"\n", f(""))).is_empty());
+    assert!(errors_of(&f("[history]\ndir = \"lib/.history\"")).is_empty());
+}
+
+#[test]
+fn a_cell_file_inside_the_library_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = dir.path().join("lib");
+    std::fs::create_dir(&lib).unwrap();
+    let text = format!("cell = \"c\"\n[programs]\ndir = {lib:?}\n");
+    std::fs::write(lib.join("cell.toml"), &text).unwrap();
+    let e = CellConfig::load(&lib.join("cell.toml")).unwrap_err();
+    assert!(e.to_string().contains("holds the cell file"), "{e}");
+    std::fs::write(dir.path().join("cell.toml"), &text).unwrap();
+    assert!(CellConfig::load(&dir.path().join("cell.toml")).is_ok());
+}
