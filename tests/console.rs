@@ -82,6 +82,7 @@ async fn wait_http(url: &str) {
 /// A browser: a cookie jar and the CSRF token of its session.
 struct Browser {
     http: reqwest::Client,
+    jar: std::sync::Arc<reqwest::cookie::Jar>,
     base: String,
     csrf: String,
 }
@@ -89,11 +90,13 @@ struct Browser {
 impl Browser {
     fn new(base: &str) -> Browser {
         provider();
+        let jar = std::sync::Arc::new(reqwest::cookie::Jar::default());
         Browser {
             http: reqwest::Client::builder()
-                .cookie_store(true)
+                .cookie_provider(jar.clone())
                 .build()
                 .unwrap(),
+            jar,
             base: base.to_string(),
             csrf: String::new(),
         }
@@ -548,3 +551,6 @@ async fn the_overview_of_a_cell_of_300_machines_answers_and_the_status_route_liv
     }
     gw.stop().await;
 }
+
+#[path = "console/door.rs"]
+mod door;

@@ -48,7 +48,11 @@ pub async fn file(Path(name): Path<String>) -> Response {
 pub async fn headers(State(https): State<bool>, req: Request, next: Next) -> Response {
     let api = req.uri().path().starts_with("/api/");
     let mut r = next.run(req).await;
-    let h = r.headers_mut();
+    add_headers(r.headers_mut(), https, api);
+    r
+}
+
+fn add_headers(h: &mut axum::http::HeaderMap, https: bool, api: bool) {
     h.insert(
         header::CONTENT_SECURITY_POLICY,
         HeaderValue::from_static(
@@ -86,5 +90,29 @@ pub async fn headers(State(https): State<bool>, req: Request, next: Next) -> Res
     if api {
         h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
     }
-    r
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hsts_under_tls_only_and_the_usual_headers_always() {
+        for https in [false, true] {
+            let mut h = axum::http::HeaderMap::new();
+            add_headers(&mut h, https, true);
+            assert_eq!(h.contains_key(header::STRICT_TRANSPORT_SECURITY), https);
+            for name in [
+                "content-security-policy",
+                "x-content-type-options",
+                "x-frame-options",
+                "referrer-policy",
+                "cross-origin-opener-policy",
+                "cross-origin-resource-policy",
+                "cache-control",
+            ] {
+                assert!(h.contains_key(name), "{name}");
+            }
+        }
+    }
 }
