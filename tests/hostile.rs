@@ -713,3 +713,36 @@ fn check_config_warns_of_a_listener_beyond_loopback_without_security() {
         "{stderr}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_store_is_checked_before_its_bytes_are_sent_and_the_check_writes_nothing() {
+    let cell = RunningCell::start(
+        |port, dir| {
+            let mut c = default_cell(port, dir);
+            c.programs.max_size = 1000;
+            c
+        },
+        false,
+    )
+    .await;
+    let check = |size| {
+        pb::ProgramWrite {
+            op: Some(pb::program_write::Op::Check(pb::program_write::Check {
+                size,
+            })),
+            comment: String::new(),
+        }
+        .encode_to_vec()
+    };
+    let key = cell.keys.program_write("O42");
+    let info: pb::ProgramInfo = get_one(&cell.client, &key, Some(check(500))).await;
+    assert_eq!(info.name, "O42");
+    assert_eq!(info.size, 0, "a new program: nothing stands yet");
+    let e = get_err(&cell.client, &key, Some(check(5000))).await;
+    assert_eq!(e.code(), pb::ErrorCode::InvalidRequest, "{}", e.message);
+    assert!(e.message.contains("max_size"), "{}", e.message);
+    // Nothing was written.
+    let e = get_err(&cell.client, &cell.keys.program("O42"), None).await;
+    assert_eq!(e.code(), pb::ErrorCode::NotFound);
+    cell.stop().await;
+}

@@ -28,7 +28,7 @@
 //! | `cellgate.do.delay` (s) | histogram | `link` |
 //! | `cellgate.g05.underruns` | counter | `machine` |
 //! | `cellgate.plc.station_timeouts` | counter | `plc`, `station` |
-//! | `cellgate.bus.misdirected_writes` | counter | `key` (the read key's kind: `program`, `tag`, …) |
+//! | `cellgate.bus.misdirected_writes` | counter | `key` (the read key's kind: `program`, `job`, `plc.tag`, `plc.mem`, `plc.transfer`, `plc.message`) |
 //! | `cellgate.history.dropped` | counter | `log` (`history`/`audit`), `reason` |
 //! | `cellgate.console.login_failures` | counter | `outcome` (`refused`/`throttled`) |
 
