@@ -29,7 +29,7 @@
 //! `engine` imports nothing of the crate. `fanuc` and `fuji` import `engine`; `program`
 //! imports `fanuc`; `plc` imports `fuji`; `sim` imports the protocols it simulates;
 //! `config` imports the engines' own settings types and `program`'s rules; `pb` imports
-//! nothing and `codes` only `pb`. `tests/layering.rs` checks these arrows.
+//! nothing and `codes` only `pb`. `tests/cli/layering.rs` checks these arrows.
 
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]

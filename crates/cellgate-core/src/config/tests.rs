@@ -1,4 +1,4 @@
-//! Validation rules, one test per rule; `tests/config.rs` covers the file as users meet it.
+//! Validation rules, one test per rule; `tests/cli/config.rs` covers the file as users meet it.
 use super::fanuc::default_interface;
 use super::*;
 use crate::engine::LineSettings;

@@ -3,7 +3,7 @@
 //! has every byte, a failed job names the offset the board acknowledged, and the link comes
 //! back by itself. Virtual time: hours of line traffic run in seconds.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

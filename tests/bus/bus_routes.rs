@@ -2,7 +2,7 @@
 //! whose links are stand-ins, and a client session talking to it over tcp/127.0.0.1 with
 //! multicast scouting off. Real time (zenoh cannot run under paused time), short waits.
 
-mod common;
+use crate::common;
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};

@@ -11,7 +11,7 @@
 //! Without `chromedriver` and `chromium` on the PATH (`.ci/run` installs Debian's), each test
 //! says so and checks nothing else.
 
-mod common;
+use crate::common;
 
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};

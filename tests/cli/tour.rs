@@ -4,7 +4,7 @@
 //! the tour says it does. And every `cellgate` command the README and docs/cli.md show is one
 //! the binary takes.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};

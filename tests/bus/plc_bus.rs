@@ -3,7 +3,7 @@
 //! and writes of every attribute with their byte order on the line, and tags published on
 //! change past their deadband. Real time, multi-thread runtime, loopback, multicast off.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

@@ -3,7 +3,7 @@
 //! time. Downloads with hundreds of DC3 / DC1 cycles, CNC alarms mid-transfer with
 //! notification on and off, and punch-out round trips.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

@@ -4,7 +4,7 @@
 //! download fails the job with its offset and raises an alarm event.
 //! Real time (zenoh cannot run under paused time), loopback, multicast scouting off.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

@@ -1,7 +1,7 @@
 //! The library's revisions, compare and release, and the cell's history, audit trail and
 //! utilisation, as a client meets them on the bus.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

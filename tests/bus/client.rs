@@ -5,7 +5,7 @@
 //! can look into the simulated CNCs; the `cellgate` binary is run against that gateway and
 //! against a `cellgate run` process. Real time, loopback, multicast off.
 
-mod common;
+use crate::common;
 
 use common::bus::free_port;
 

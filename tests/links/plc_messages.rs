@@ -5,7 +5,7 @@
 //! client sends on `…/message/send` reaches the module's receive message number. Real time,
 //! loopback, multicast off.
 
-mod common;
+use crate::common;
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;

@@ -2,7 +2,7 @@
 //! sessions and CSRF, roles that bound what a browser user may do (a forged request is refused
 //! and audited), the pages' live events, and the site view of several cells behind a router.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 
@@ -552,5 +552,5 @@ async fn the_overview_of_a_cell_of_300_machines_answers_and_the_status_route_liv
     gw.stop().await;
 }
 
-#[path = "console/door.rs"]
+#[path = "door.rs"]
 mod door;

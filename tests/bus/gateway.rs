@@ -1,6 +1,6 @@
 //! The gateway as a whole on loopback: its session, its token and admin key, a clean stop.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

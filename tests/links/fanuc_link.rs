@@ -1,7 +1,7 @@
 //! A host link against the simulated remote-buffer board, end to end over the simulated line,
 //! in virtual time: cell file → transports → Protocol A / Expansion A engines → board and CNC.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

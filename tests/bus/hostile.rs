@@ -6,7 +6,7 @@
 //! The disk-full tests mount a small tmpfs (as root, as CI runs); where mounting is refused
 //! they say so and pass without checking anything else.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::Stdio;

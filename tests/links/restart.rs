@@ -4,7 +4,7 @@
 //! failed at the offset the board acknowledged, and a submit repeated with its request id
 //! queues nothing.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::{Child, Stdio};

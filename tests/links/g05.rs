@@ -1,7 +1,7 @@
 //! G05 streams through every protocol to the simulated CNC, in virtual time: what the CNC took
 //! is exactly what was streamed, and the stream's own figures tell the truth about underruns.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

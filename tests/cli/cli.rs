@@ -1,6 +1,6 @@
 //! The `cellgate` binary as a user runs it: version, run until a signal, check-config.
 
-mod common;
+use crate::common;
 
 use common::bus::free_port;
 

@@ -2,7 +2,7 @@
 //! it: the job manager with its journal, the real link and the simulated board, in virtual
 //! time.
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 use std::time::Duration;

@@ -1,7 +1,7 @@
 //! `cellgate sim fanuc --boards N`: N independent boards from one process, on consecutive
 //! ports, each event line tagged with its board. Loopback only.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader};
 use std::net::TcpStream;

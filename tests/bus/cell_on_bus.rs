@@ -3,7 +3,7 @@
 //! line), and a separate client session that drives it through the public contract only.
 //! Real time (zenoh cannot run under paused time), loopback, multicast scouting off.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

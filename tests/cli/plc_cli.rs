@@ -6,7 +6,7 @@ use std::process::{Output, Stdio};
 use std::thread;
 use std::time::{Duration, Instant};
 
-mod common;
+use crate::common;
 
 use common::bus::free_port;
 use common::cli::text;

@@ -1,7 +1,7 @@
 //! G05 streams through the bus contract, in real time on loopback: open, batches by put and by
 //! get, status, refusals as `ErrorReply`s, and a producer whose liveliness token goes away.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

@@ -6,7 +6,7 @@
 //! same requests against the same cell without roles to show that those checks see an effect
 //! when there is one. Real time, loopback, multicast scouting off.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
