@@ -40,7 +40,7 @@ pub fn admin_document(config: &CellConfig, zid: &str) -> serde_json::Value {
 /// first call ([`crate::gateway::run`] makes it as it starts).
 pub fn started_unix_ms() -> u64 {
     static STARTED: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
-    *STARTED.get_or_init(crate::jobs::unix_ms)
+    *STARTED.get_or_init(cellgate_core::pb::now_ms)
 }
 
 /// The gateway's token and admin queryable. Undeclared when dropped (or explicitly, with

@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
 use super::payload;
-use crate::jobs::{self, JobsHandle, JobsSnapshot};
+use crate::jobs::{JobsHandle, JobsSnapshot};
 use crate::link::driver::{LinkEvent, LinkHandle};
 use crate::link::g05::G05Desk;
 use cellgate_core::config::MachineConfig;
@@ -87,7 +87,7 @@ impl Machine {
     /// The status as of now.
     pub fn status(&self) -> pb::MachineStatus {
         let mut s = self.view().status.clone();
-        s.unix_ms = jobs::unix_ms();
+        s.unix_ms = pb::now_ms();
         self.line_counters(&mut s);
         s.storage_fault = self.storage_fault();
         s.g05 = self
@@ -155,7 +155,7 @@ impl Machine {
                 let di = pb::DiImage {
                     machine: self.name().to_string(),
                     value: u32::from(*value),
-                    unix_ms: jobs::unix_ms(),
+                    unix_ms: pb::now_ms(),
                 };
                 view.status.di_image = Some(u32::from(*value));
                 view.last_di = Some(di.clone());
@@ -257,7 +257,7 @@ impl Machine {
             kind: kind as i32,
             alarm_number: number.to_string(),
             message,
-            unix_ms: jobs::unix_ms(),
+            unix_ms: pb::now_ms(),
         }
     }
 

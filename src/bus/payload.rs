@@ -187,7 +187,7 @@ pub fn g05_status(s: &crate::link::g05::StreamStatus) -> pb::G05Status {
         next_seq: f.next_seq,
         last_error: f.last_error.clone().unwrap_or_default(),
         end_reason: end_reason as i32,
-        unix_ms: crate::jobs::unix_ms(),
+        unix_ms: pb::now_ms(),
     }
 }
 

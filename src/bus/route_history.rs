@@ -64,10 +64,6 @@ impl HistoryRoute {
     }
 }
 
-fn now_ms() -> u64 {
-    pb::unix_ms(SystemTime::now())
-}
-
 /// A `_time` value as an inclusive range of ms, with zenoh's parser; an open end is the
 /// epoch or now.
 pub(crate) fn time_range(value: &str, now: SystemTime) -> Result<(u64, u64), String> {
@@ -221,7 +217,7 @@ async fn utilisation_of(ctx: &RouteContext, q: &Query) -> Result<pb::Utilisation
         query.bucket,
         ctx.history.shifts(),
     );
-    let now = now_ms();
+    let now = pb::now_ms();
     let gateway = ctx
         .history
         .gateway_marks(query.from_ms, query.to_ms)

@@ -27,7 +27,6 @@ use super::context::{
 };
 use super::keys::MachineLeaf;
 use super::machine::Machine;
-use crate::jobs;
 use crate::link::driver::{LinkCommand, LinkEvent};
 use cellgate_core::config::Permission;
 use cellgate_core::pb;
@@ -184,7 +183,7 @@ async fn di_get(ctx: &RouteContext, q: &Query) {
             let di = pb::DiImage {
                 machine: m.name().to_string(),
                 value: u32::from(value),
-                unix_ms: jobs::unix_ms(),
+                unix_ms: pb::now_ms(),
             };
             reply(q, q.key_expr().to_string(), &di).await;
         }

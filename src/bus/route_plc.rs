@@ -21,7 +21,7 @@
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
-use std::time::{Duration, SystemTime};
+use std::time::Duration;
 
 use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
@@ -385,7 +385,7 @@ async fn mem_request(
                 address: u32::from(address),
                 words,
                 attribute: u32::from(t.module.attribute().code()),
-                unix_ms: pb::unix_ms(SystemTime::now()),
+                unix_ms: pb::now_ms(),
             }))
         }
         Some(bytes) => {
@@ -625,7 +625,7 @@ async fn transfer_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestErro
 /// A moment of the link's clock as Unix milliseconds.
 fn ago_unix_ms(at: std::time::Instant) -> u64 {
     let ago = crate::link::pump::now().saturating_duration_since(at);
-    crate::jobs::unix_ms().saturating_sub(u64::try_from(ago.as_millis()).unwrap_or(u64::MAX))
+    pb::now_ms().saturating_sub(u64::try_from(ago.as_millis()).unwrap_or(u64::MAX))
 }
 
 /// The `PlcStatus` of a link.

@@ -24,7 +24,7 @@ use super::context::RouteContext;
 use super::keys::MachineLeaf;
 use crate::jobs::library::{LibraryError, Store};
 use crate::jobs::source::ProgramInput;
-use crate::jobs::{self, JobError, JobSubmission, JobsHandle};
+use crate::jobs::{JobError, JobSubmission, JobsHandle};
 use cellgate_core::config::ProgramsConfig;
 use cellgate_core::pb;
 use cellgate_core::program::diff::{self, DiffOptions};
@@ -148,7 +148,7 @@ impl PunchDesk {
     }
 
     async fn program(&self, program: PunchedText, jobs: &JobsHandle) -> Outcome {
-        let unix_ms = jobs::unix_ms();
+        let unix_ms = pb::now_ms();
         let request = self.settings.requests.match_program(&program);
         tracing::info!(
             machine = %self.machine,

@@ -15,7 +15,6 @@ use super::context::MachinePublisher;
 use super::context::{RouteContext, reply};
 use super::keys::MachineLeaf;
 use super::machine::Machine;
-use crate::jobs;
 use cellgate_core::pb;
 
 /// The status queryable of the cell. Undeclared when dropped.
@@ -80,7 +79,7 @@ impl StatusPublisher {
             return None;
         }
         let mut stamped = current.clone();
-        stamped.unix_ms = jobs::unix_ms();
+        stamped.unix_ms = pb::now_ms();
         machine.line_counters(&mut stamped);
         self.publisher.publish(&stamped).await;
         self.published = Some(current);

@@ -623,11 +623,11 @@ impl ClientCommand for StatusArgs {
             let _ = write!(
                 io.out,
                 "{}",
-                render::plc_status_text(&plcs, render::now_ms())
+                render::plc_status_text(&plcs, cellgate_core::pb::now_ms())
             );
         }
         if !self.json
-            && let Some(line) = render::gateway_line(client.admin(), render::now_ms())
+            && let Some(line) = render::gateway_line(client.admin(), cellgate_core::pb::now_ms())
         {
             let _ = writeln!(io.out, "{line}");
         }
@@ -907,7 +907,7 @@ impl ClientCommand for WatchArgs {
             {
                 continue;
             }
-            let now = cellgate_core::pb::unix_ms(std::time::SystemTime::now());
+            let now = cellgate_core::pb::now_ms();
             let line = if self.json {
                 Some(render::watch_json(&event, now).to_string())
             } else {

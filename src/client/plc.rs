@@ -465,7 +465,7 @@ impl ClientCommand for PlcCommand {
                         .collect();
                     let _ = writeln!(io.out, "{}", Value::Array(v));
                 } else {
-                    let now = cellgate_core::pb::unix_ms(std::time::SystemTime::now());
+                    let now = cellgate_core::pb::now_ms();
                     let _ = write!(io.out, "{}", plc_status_text(&all, now));
                     for p in &all {
                         for t in &p.tags {

@@ -444,11 +444,6 @@ pub fn accepted_json(a: &pb::JobAccepted) -> Value {
     json!({ "job_id": a.job_id, "queue_position": a.queue_position })
 }
 
-/// Now, as Unix milliseconds.
-pub fn now_ms() -> u64 {
-    pb::unix_ms(std::time::SystemTime::now())
-}
-
 /// The gateway's version and uptime from its admin document; `None` when the gateway does
 /// not show the document (a cell with roles, without `admin.read`).
 pub fn gateway_line(admin: &Value, now_ms: u64) -> Option<String> {

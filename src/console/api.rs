@@ -254,7 +254,7 @@ pub async fn overview(
         "cell": cell,
         "machines": machines,
         "plcs": plcs,
-        "unix_ms": pb::unix_ms(std::time::SystemTime::now()).to_string(),
+        "unix_ms": pb::now_ms().to_string(),
     }))
     .into_response())
 }

@@ -277,13 +277,7 @@ impl History {
     /// Records `record` about `machine` (a machine or PLC link; empty for the gateway's own)
     /// now. Never waits: a full queue drops the record and counts it.
     pub fn record(&self, log: Log, machine: &str, kind: HistoryKind, record: Record) {
-        self.record_at(
-            log,
-            machine,
-            kind,
-            record,
-            pb::unix_ms(std::time::SystemTime::now()),
-        );
+        self.record_at(log, machine, kind, record, pb::now_ms());
     }
 
     /// [`Self::record`] at a time of the caller's (a generated or imported history). A time
@@ -378,7 +372,7 @@ impl History {
         if record.ok {
             return self.audit_now(machine, record);
         }
-        let now = pb::unix_ms(std::time::SystemTime::now());
+        let now = pb::now_ms();
         let out = inner
             .refusals
             .lock()
@@ -406,7 +400,7 @@ impl History {
     /// Writes the summaries of the refusals of a minute that is over.
     fn flush_refusals(&self) {
         let Some(inner) = &self.inner else { return };
-        let now = pb::unix_ms(std::time::SystemTime::now());
+        let now = pb::now_ms();
         let out = inner
             .refusals
             .lock()
@@ -533,10 +527,7 @@ fn open_store(dir: &Path, path: &Path) -> Result<Database, HistoryError> {
             Err(OpenError::Panicked(text)) => text,
         }
     };
-    let aside = path.with_extension(format!(
-        "redb.damaged-{}",
-        pb::unix_ms(std::time::SystemTime::now())
-    ));
+    let aside = path.with_extension(format!("redb.damaged-{}", pb::now_ms()));
     std::fs::rename(path, &aside).map_err(|source| HistoryError::Io {
         path: path.to_path_buf(),
         source,
@@ -890,7 +881,7 @@ fn dropped(log: Log, reason: &str, n: u64) {
 
 /// Retention: records older than their log's days, and the oldest beyond `max_records`.
 fn prune_logs(inner: &Inner) {
-    let now = pb::unix_ms(std::time::SystemTime::now());
+    let now = pb::now_ms();
     let day = 24 * 3600 * 1000u64;
     for (log, days) in [
         (Log::History, inner.config.keep_days),

@@ -13,7 +13,7 @@ async fn open(dir: &Path, stop: &CancellationToken) -> (History, tokio::task::Jo
 }
 
 fn query(store: Store, params: &[(&str, &str)]) -> HistoryQuery {
-    let now = pb::unix_ms(std::time::SystemTime::now()) + 1000;
+    let now = pb::now_ms() + 1000;
     HistoryQuery::parse(store, params.iter().copied(), |_| Err(String::new()), now).unwrap()
 }
 

@@ -452,7 +452,7 @@ impl Journal {
             Err(JournalError::Damaged { path, store, cause })
                 if damaged == DamagedJournal::MoveAside =>
             {
-                let stamp = cellgate_core::pb::unix_ms(std::time::SystemTime::now());
+                let stamp = cellgate_core::pb::now_ms();
                 let aside = dir.join(format!("jobs.redb.damaged-{stamp}"));
                 let store_aside = dir.join(format!("store.damaged-{stamp}"));
                 let io = |p: &Path| {

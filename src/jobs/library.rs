@@ -275,10 +275,6 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
     hex::encode(Sha256::digest(bytes))
 }
 
-fn now_ms() -> u64 {
-    pb::unix_ms(std::time::SystemTime::now())
-}
-
 fn is_released(r: &pb::ProgramRevision) -> bool {
     matches!(r.state(), RevisionState::Released | RevisionState::Locked)
 }
@@ -736,7 +732,7 @@ impl ProgramLibrary {
                     lib.write_error(&name, path.clone(), e)
                 }
             })?;
-            let now = now_ms();
+            let now = pb::now_ms();
             let revision = pb::ProgramRevision {
                 name: name.clone(),
                 number: latest.map_or(1, |r| r.number + 1),
@@ -1032,7 +1028,7 @@ impl ProgramLibrary {
                 (_, to) => to,
             };
             r.state = next as i32;
-            r.state_unix_ms = now_ms();
+            r.state_unix_ms = pb::now_ms();
             r.state_by = Some(by);
             r.state_comment = comment;
             index.put(std::slice::from_ref(&r), &[])?;

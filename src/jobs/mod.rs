@@ -476,7 +476,7 @@ impl JobsHandle {
             request_id: s.request_id,
             name,
             priority: s.priority,
-            accepted_unix_ms: unix_ms(),
+            accepted_unix_ms: pb::now_ms(),
             file: file.to_string(),
             file_len,
             suffix,
@@ -677,11 +677,6 @@ pub fn spawn(
         span,
     ));
     (handle, task, first_rx)
-}
-
-/// Milliseconds since the Unix epoch, now.
-pub fn unix_ms() -> u64 {
-    pb::unix_ms(SystemTime::now())
 }
 
 fn base36(mut n: u64) -> String {
@@ -1083,7 +1078,7 @@ impl Manager {
         let event = pb::JobEvent {
             job_id: id.to_string(),
             machine: self.machine.to_string(),
-            unix_ms: unix_ms(),
+            unix_ms: pb::now_ms(),
             origin,
             kind: Some(kind),
         };
@@ -1229,7 +1224,7 @@ impl Manager {
         let queued = pb::JobEvent {
             job_id: record.id.clone(),
             machine: self.machine.to_string(),
-            unix_ms: unix_ms(),
+            unix_ms: pb::now_ms(),
             origin: Some(record.origin_pb()),
             kind: Some(Kind::Queued(pb::job_event::Queued {
                 queue_position: position,
@@ -1401,7 +1396,7 @@ impl Manager {
     fn deadline_reason(&self, deadline_s: u32) -> String {
         let mut why = format!("the job did not complete within its deadline of {deadline_s} s");
         if let Some((what, since)) = self.link_waiting {
-            let secs = unix_ms().saturating_sub(since) / 1000;
+            let secs = pb::now_ms().saturating_sub(since) / 1000;
             why.push_str(&format!("; the link was waiting {secs} s for {what}"));
         }
         why
@@ -1513,7 +1508,7 @@ impl Manager {
                         Some(now + Duration::from_secs(u64::from(active.record.deadline_s)));
                 }
                 active.shaper = ProgressShaper::new(now, Some(active.record.stream_size()));
-                active.record.origin.started_unix_ms = unix_ms();
+                active.record.origin.started_unix_ms = pb::now_ms();
                 let (id, size) = (active.record.id.clone(), active.record.stream_size());
                 let origin = active.record.origin_pb();
                 tracing::info!(job = %id, "job started");

@@ -757,7 +757,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             self.waiting = waiting;
             self.emit(LinkEvent::Waiting {
                 what: waiting,
-                since_unix_ms: unix_ms(),
+                since_unix_ms: pb::now_ms(),
             });
         }
     }
@@ -872,11 +872,6 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             total: active.size,
         })
     }
-}
-
-/// Milliseconds since the Unix epoch, for events people read.
-fn unix_ms() -> u64 {
-    pb::unix_ms(std::time::SystemTime::now())
 }
 
 /// What a job's source gave.

@@ -226,10 +226,7 @@ impl G05Desk {
                 }
                 id
             }
-            None => format!(
-                "s{}-{n}",
-                cellgate_core::pb::unix_ms(std::time::SystemTime::now())
-            ),
+            None => format!("s{}-{n}", cellgate_core::pb::now_ms()),
         };
         let settings = StreamSettings {
             format: config.format(),

@@ -9,6 +9,13 @@
 include!(concat!(env!("OUT_DIR"), "/cellgate.v1.rs"));
 include!(concat!(env!("OUT_DIR"), "/cellgate.v1.serde.rs"));
 
+/// Now, as the contract's `*unix_ms` fields carry it: the one wall-clock reading of the
+/// gateway's records and events (the engines take their `now` from the caller and never read
+/// a clock).
+pub fn now_ms() -> u64 {
+    unix_ms(std::time::SystemTime::now())
+}
+
 /// A time as the contract's `*unix_ms` fields carry it: milliseconds since the Unix epoch (0
 /// for a time before it).
 pub fn unix_ms(t: std::time::SystemTime) -> u64 {
