@@ -35,7 +35,7 @@
 //!
 //! A module imports only the modules of lower layers in the list above (and the core):
 //! `tests/cli/layering.rs` checks it, for this crate and the core. Only the bus side (`bus`,
-//! `client`, `gateway`) speaks zenoh, so links, jobs and transports run without a bus (and
+//! `client`, `console`, `gateway`) speaks zenoh, so links, jobs and transports run without a bus (and
 //! in paused time).
 
 pub mod bus;

@@ -21,6 +21,7 @@ pub mod api;
 pub mod assets;
 pub mod auth;
 pub mod extract;
+mod headers;
 pub mod listen;
 pub mod live;
 pub mod throttle;
@@ -183,7 +184,7 @@ impl Console {
     }
 
     fn note(&self, cell: &str, record: pb::AuditRecord) {
-        let now = pb::unix_ms(std::time::SystemTime::now());
+        let now = pb::now_ms();
         let out = self
             .refusals
             .lock()
@@ -242,7 +243,7 @@ async fn notes_task(
                 None => break,
             },
             _ = flush.tick() => {
-                let now = pb::unix_ms(std::time::SystemTime::now());
+                let now = pb::now_ms();
                 let out = console.refusals.lock().map(|mut r| r.flush(now)).unwrap_or_default();
                 console.send_notes(out);
             }
@@ -318,7 +319,10 @@ pub fn router(console: Arc<Console>) -> Router {
         .fallback(extract::not_found)
         .method_not_allowed_fallback(extract::method_not_allowed)
         .layer(axum::extract::DefaultBodyLimit::max(BODY_LIMIT))
-        .layer(axum::middleware::from_fn_with_state(https, assets::headers))
+        .layer(axum::middleware::from_fn_with_state(
+            https,
+            headers::headers,
+        ))
         .with_state(console)
 }
 
