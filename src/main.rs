@@ -66,11 +66,11 @@ enum Command {
     Cancel(client::CancelArgs),
     /// The cell's history: jobs (with the revision each sent), alarms, link and CNC states,
     /// PLC stations, G05 streams, tag values.
-    History(cellgate::client::records::HistoryCommand),
+    History(cellgate::client::cli::records::HistoryCommand),
     /// The audit trail: every write the gateway took, who asked, and what came of it.
-    Audit(cellgate::client::records::AuditCommand),
+    Audit(cellgate::client::cli::records::AuditCommand),
     /// Time shares per machine and hour or shift: reading, idle, alarm, link down; parts.
-    Utilisation(cellgate::client::records::UtilisationArgs),
+    Utilisation(cellgate::client::cli::records::UtilisationArgs),
     /// Serve the web console for every cell behind an endpoint (a site view) until SIGINT or
     /// SIGTERM; a gateway serves its own cell's with `[console]` in its cell file.
     Console(cellgate::console::SiteArgs),

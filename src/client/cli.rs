@@ -15,7 +15,6 @@ use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use prost::Message;
 
-use super::records;
 use super::render::{self, WatchPrinter};
 use super::{
     Client, ClientError, ClientSecurity, ConnectOptions, Credentials, DEFAULT_ENDPOINT, JobOutcome,
@@ -23,6 +22,8 @@ use super::{
 };
 use cellgate_core::pb;
 use cellgate_core::pb::job_event::Kind;
+
+pub mod records;
 
 /// Exit code of an interrupted `submit`.
 pub const EXIT_INTERRUPTED: u8 = 130;
@@ -292,20 +293,6 @@ pub struct SubmitArgs {
     pub json: bool,
 }
 
-/// A new request id: unique per process and moment.
-pub fn new_request_id() -> String {
-    use std::sync::atomic::{AtomicU64, Ordering};
-    static COUNT: AtomicU64 = AtomicU64::new(0);
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos());
-    format!(
-        "{nanos:x}-{:x}-{}",
-        std::process::id(),
-        COUNT.fetch_add(1, Ordering::Relaxed)
-    )
-}
-
 /// `N1234` or `1234` → the block, by sequence number or line.
 fn parse_block(text: &str) -> Result<pb::block_start::At, ClientError> {
     let bad = || ClientError::InvalidArgument {
@@ -371,7 +358,10 @@ impl SubmitArgs {
             name: self.name.clone().unwrap_or_default(),
             priority: self.priority,
             append_eor: self.append_eor,
-            request_id: self.request_id.clone().unwrap_or_else(new_request_id),
+            request_id: self
+                .request_id
+                .clone()
+                .unwrap_or_else(super::new_request_id),
             start_at,
             resume_after_restart: self.resume_after_restart,
             deadline_s: self.deadline,

@@ -5,9 +5,9 @@ use std::fmt::Write as _;
 
 use clap::Args;
 
-use super::cli::{ClientCommand, ConnectArgs, Io};
-use super::render::{bytes, date_time, table};
-use super::{Client, ClientError};
+use super::{ClientCommand, ConnectArgs, Io};
+use crate::client::render::{bytes, date_time, table};
+use crate::client::{Client, ClientError};
 use cellgate_core::pb;
 
 /// JSON of any contract message (the proto3 JSON mapping), one object.
