@@ -899,6 +899,7 @@ impl Manager {
             origin: Some(record.origin_pb()),
             kind: Some(Kind::Queued(pb::job_event::Queued {
                 queue_position: position,
+                bytes_total: Some(record.stream_size()),
             })),
         };
         record.last_event = queued.encode_to_vec();
@@ -914,11 +915,13 @@ impl Manager {
         self.remember_request(&record);
         self.open_trace(&record, "request");
         tracing::info!(job = %id, name = %record.name, size = record.stream_size(), priority = record.priority, "job queued");
+        let size = record.stream_size();
         let position =
             u32::try_from(self.waiting.push(record.priority, record)).unwrap_or(u32::MAX);
         let _ = self.events.send(Arc::new(pb::JobEvent {
             kind: Some(Kind::Queued(pb::job_event::Queued {
                 queue_position: position,
+                bytes_total: Some(size),
             })),
             ..queued
         }));

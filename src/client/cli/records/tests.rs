@@ -115,7 +115,10 @@ fn the_current_bucket_is_shared_over_the_time_that_has_passed() {
     let text = utilisation_text(&u);
     let row = text.lines().find(|l| l.starts_with("mill-1")).unwrap();
     let cells: Vec<&str> = row.split_whitespace().collect();
-    assert!(cells.contains(&"56%"), "reading 5 of 9 known minutes: {text}");
+    assert!(
+        cells.contains(&"56%"),
+        "reading 5 of 9 known minutes: {text}"
+    );
     assert!(cells.contains(&"44%"), "idle 4 of 9: {text}");
     assert!(cells.contains(&"10%"), "unknown 1 of 10 passed: {text}");
 }
