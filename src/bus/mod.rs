@@ -215,6 +215,7 @@ pub async fn serve_recorded(
         config.programs.max_inline.min(config.programs.max_size),
     )
     .with_fetch_prefixes(&config.programs.fetch_prefixes)
+    .with_names(context::CellNames::of(config))
     .with_history(history, Auditor::new(&config.security));
 
     let mut machine_tasks = JoinSet::new();

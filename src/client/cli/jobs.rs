@@ -26,13 +26,17 @@ impl ClientCommand for JobsArgs {
     }
 
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
-        // Asking for the status first names the cell's machines when MACHINE is none of them.
-        let machines: Vec<String> = client
-            .status(self.machine.as_deref())
-            .await?
-            .into_iter()
-            .map(|s| s.machine)
-            .collect();
+        // One machine: its queue (the gateway names the cell's machines if it is none of
+        // them); all: the machines the status names.
+        let machines: Vec<String> = match &self.machine {
+            Some(m) => vec![m.clone()],
+            None => client
+                .status(None)
+                .await?
+                .into_iter()
+                .map(|s| s.machine)
+                .collect(),
+        };
         let mut queues = Vec::new();
         for m in &machines {
             queues.push(client.queue(m).await?);
