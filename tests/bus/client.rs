@@ -389,7 +389,10 @@ async fn status_shows_every_machine_as_a_table_and_as_json() {
     let (code, _, err) = cellgate(&["jobs", "-e", &ep, "nosuch"]).await;
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("ERROR_CODE_UNKNOWN_MACHINE"), "{err}");
-    assert!(err.contains("queue of nosuch") && !err.contains("status of"), "{err}");
+    assert!(
+        err.contains("queue of nosuch") && !err.contains("status of"),
+        "{err}"
+    );
     gw.stop().await;
 }
 

@@ -594,8 +594,14 @@ async fn a_question_about_a_name_the_cell_lacks_is_refused_not_answered_empty() 
     let history = cell.keys.history();
     let audit = cell.keys.audit();
     for (key, code) in [
-        (format!("{history}?machine=mill-9"), pb::ErrorCode::UnknownMachine),
-        (format!("{audit}?machine=mill-9"), pb::ErrorCode::UnknownMachine),
+        (
+            format!("{history}?machine=mill-9"),
+            pb::ErrorCode::UnknownMachine,
+        ),
+        (
+            format!("{audit}?machine=mill-9"),
+            pb::ErrorCode::UnknownMachine,
+        ),
         (format!("{history}?tag=plc-1/nope"), pb::ErrorCode::NotFound),
     ] {
         let e = get_err(&cell.client, &key, None).await;
