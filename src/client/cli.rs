@@ -46,6 +46,24 @@ pub const EXIT_INTERRUPTED: u8 = 130;
 /// Inline programs above this size get a hint to use the library instead.
 const INLINE_HINT: u64 = 16 * 1024 * 1024;
 
+/// The name of the user this process runs as, where `$USER` is unset (containers, systemd
+/// units): `/etc/passwd`'s name for the owner of `/proc/self`, else `uid N`, so that the
+/// records never say "by (cli)" with nobody.
+fn system_user() -> Option<String> {
+    use std::os::unix::fs::MetadataExt as _;
+    let uid = std::fs::metadata("/proc/self").ok()?.uid();
+    let by_name = std::fs::read_to_string("/etc/passwd")
+        .ok()
+        .and_then(|passwd| {
+            passwd.lines().find_map(|l| {
+                let mut f = l.split(':');
+                let name = f.next()?;
+                (f.nth(1)?.parse::<u32>().ok()? == uid).then(|| name.to_string())
+            })
+        });
+    Some(by_name.unwrap_or_else(|| format!("uid {uid}")))
+}
+
 /// Where the gateway is: options every client command takes.
 #[derive(Debug, Clone, Args)]
 pub struct ConnectArgs {
@@ -138,8 +156,9 @@ impl ConnectArgs {
             .as_user
             .clone()
             .or_else(|| self.user.clone())
-            .or_else(|| std::env::var("USER").ok())
-            .or_else(|| std::env::var("LOGNAME").ok())
+            .or_else(|| std::env::var("USER").ok().filter(|u| !u.is_empty()))
+            .or_else(|| std::env::var("LOGNAME").ok().filter(|u| !u.is_empty()))
+            .or_else(system_user)
             .unwrap_or_default();
         Ok(ConnectOptions {
             origin: Some(pb::RequestOrigin {

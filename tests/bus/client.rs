@@ -1636,3 +1636,34 @@ async fn simulation_controls_refuse_what_the_machine_cannot_take() {
     assert!(!gw.board(MILL_A).snapshot().alarm);
     gw.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_user_in_the_environment_records_still_name_who_ran_the_command() {
+    let gw = start_gateway().await;
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("O7777.nc");
+    std::fs::write(&file, b"%\nO7777\nG00X0\nM30\n%\n").unwrap();
+    let ep = gw.endpoint.clone();
+    let out = tokio::task::spawn_blocking(move || {
+        common::cli::command(["program", "put", "-e", &ep, "O7777"])
+            .arg(&file)
+            .env_remove("USER")
+            .env_remove("LOGNAME")
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(out.status.success(), "{}", common::cli::text(&out));
+    let (code, json, err) =
+        cellgate(&["program", "history", "-e", &gw.endpoint, "O7777", "--json"]).await;
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let by = &v["revisions"][0]["by"];
+    assert_eq!(by["via"], "cli", "{v}");
+    assert!(
+        by["user"].as_str().is_some_and(|u| !u.is_empty()),
+        "the record names somebody: {v}"
+    );
+    gw.stop().await;
+}
