@@ -882,3 +882,13 @@ fn a_cell_file_inside_the_library_is_refused() {
     std::fs::write(dir.path().join("cell.toml"), &text).unwrap();
     assert!(CellConfig::load(&dir.path().join("cell.toml")).is_ok());
 }
+
+#[test]
+fn a_misspelt_protocol_does_not_hide_a_wrong_baud_rate() {
+    let e = errors_of(
+        "cell = \"c\"\n[[machines]]\nname = \"m1\"\nprotocl = \"a\"\n\
+         transport = { kind = \"sim\", line = { baud = 12345 } }\n",
+    );
+    assert!(e.iter().any(|m| m.contains("protocl")), "{e:?}");
+    assert!(e.iter().any(|m| m.contains("line.baud = 12345")), "{e:?}");
+}
