@@ -195,3 +195,21 @@ fn run_on_an_endpoint_in_use_exits_1() {
     assert_eq!(status.code(), Some(1), "{log}");
     drop(taken);
 }
+
+#[test]
+fn logs_to_a_pipe_carry_no_terminal_colours() {
+    // The site console on an endpoint where nothing listens: it logs, then gives up.
+    let out = common::cli::command([
+        "console",
+        "-e",
+        "tcp/127.0.0.1:1",
+        "--listen",
+        "127.0.0.1:0",
+    ])
+    .env("RUST_LOG", "info")
+    .output()
+    .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.is_empty(), "it logged something");
+    assert!(!err.contains('\u{1b}'), "{err}");
+}
