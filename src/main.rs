@@ -729,9 +729,26 @@ fn serving_text(config: &CellConfig) -> String {
         Some(ep) => format!(" -e {ep}"),
         None => " -e ENDPOINT".to_string(),
     };
+    // A secured cell takes no client without its credentials: the hint says which.
+    let mut who = String::new();
+    if let Some(tls) = &config.security.tls {
+        who.push_str(&format!(" --tls-ca {}", tls.ca.display()));
+        if tls.require_client_certificates {
+            who.push_str(" --tls-cert CERT --tls-key KEY");
+        }
+    }
+    if config.security.users_file.is_some() {
+        who.push_str(" --user NAME");
+    }
     t.push_str(&format!(
-        "try: cellgate status{connect}   (every command: cellgate --help)\n"
+        "try: cellgate status{connect}{who}   (every command: cellgate --help)\n"
     ));
+    if config.security.users_file.is_some() {
+        t.push_str(&format!(
+            "     (the password of --user from --password-file or ${})\n",
+            cellgate::client::cli::PASSWORD_ENV
+        ));
+    }
     t
 }
 

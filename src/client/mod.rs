@@ -199,10 +199,13 @@ fn unreachable_message(endpoint: &str, secured: bool) -> String {
         )
     } else {
         format!(
-            "cannot connect to {endpoint}: nothing accepted a zenoh session there. Is `cellgate \
+            "cannot connect to {endpoint}: no zenoh session was accepted there. Is `cellgate \
              run` running and listening there? (it listens on tcp/127.0.0.1:7447 unless told \
-             otherwise; give its endpoint with --connect; a gateway with [security.tls] listens \
-             on tls/ and needs --tls-ca, --tls-cert and --tls-key)"
+             otherwise; give its endpoint with --connect.) A gateway with [security] refuses a \
+             client that does not say who it is: with a users file, give --user and its \
+             password (--password-file or CELLGATE_PASSWORD); with [security.tls] it listens \
+             on tls/ and needs --tls-ca (and --tls-cert, --tls-key if it requires client \
+             certificates)"
         )
     }
 }

@@ -77,3 +77,13 @@ fn every_client_command_has_json() {
         "client commands without --json: {missing:?}"
     );
 }
+
+#[test]
+fn the_first_command_to_try_carries_the_credentials_a_secured_cell_needs() {
+    let mut config = CellConfig::embedded_default();
+    assert!(!serving_text(&config).contains("--user"));
+    config.security.users_file = Some(std::path::PathBuf::from("users"));
+    let t = serving_text(&config);
+    assert!(t.contains("try: cellgate status --user NAME"), "{t}");
+    assert!(t.contains("CELLGATE_PASSWORD"), "{t}");
+}
