@@ -470,6 +470,12 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
     let (code, out, err) = run(&put).await;
     assert_eq!(code, 0, "{err}");
     assert!(err.contains("O0815.nc: stored"), "{err}");
+    // Sizes as everywhere else on the command line (and in the console).
+    let size = cellgate::client::render::bytes(program.len() as u64);
+    assert!(
+        err.contains(&format!("stored, {size}, revision 1")),
+        "{err}"
+    );
     let stored: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(stored["size"], program.len(), "{out}");
 

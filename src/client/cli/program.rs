@@ -179,7 +179,12 @@ impl ClientCommand for ProgramCommand {
                     .as_ref()
                     .map(|r| format!(", revision {}", r.number))
                     .unwrap_or_default();
-                let _ = writeln!(io.err, "{}: stored, {} bytes{rev}", info.name, info.size);
+                let _ = writeln!(
+                    io.err,
+                    "{}: stored, {}{rev}",
+                    info.name,
+                    render::bytes(info.size)
+                );
             }
             ProgramCommand::History { name, json, .. } => {
                 return records::program_history(client, io, name, *json).await;
