@@ -194,7 +194,7 @@ async fn run(command: &impl ClientCommand) -> (u8, String, String) {
 fn submit_args(gw: &Gateway, machine: &str) -> SubmitArgs {
     SubmitArgs {
         connect: gw.connect(),
-        machine: machine.to_string(),
+        machine: Some(machine.to_string()),
         file: None,
         library: None,
         revision: None,
@@ -1422,8 +1422,12 @@ async fn status_and_job_ends_say_what_happened() {
     follower.close().await;
     // Nothing to resume: it says why.
     let mut resume = submit_args(&gw, MILL_A);
-    resume.resume = Some(job);
+    resume.resume = Some(job.clone());
     let (code, _, err) = run(&resume).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("nothing of it went to the board"), "{err}");
+    // The job id names its machine, as for `cancel` and `job`: no MACHINE needed.
+    let (code, _, err) = cellgate(&["submit", "-e", &gw.endpoint, "--resume", &job]).await;
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("nothing of it went to the board"), "{err}");
     client.close().await;

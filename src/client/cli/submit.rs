@@ -5,7 +5,7 @@ use super::*;
 /// `cellgate submit`.
 #[derive(Debug, Clone, Args)]
 #[command(
-    override_usage = "cellgate submit [OPTIONS] <MACHINE> <FILE|--library <NAME>|--key <KEY>|--resume <JOB_ID>>"
+    override_usage = "cellgate submit [OPTIONS] <MACHINE> <FILE|--library <NAME>|--key <KEY>>\n       cellgate submit [OPTIONS] --resume <JOB_ID>"
 )]
 #[command(group(
     clap::ArgGroup::new("source")
@@ -15,9 +15,10 @@ use super::*;
 pub struct SubmitArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
-    /// The machine to send the program to (its name in the cell file).
-    #[arg(value_name = "MACHINE")]
-    pub machine: String,
+    /// The machine to send the program to (its name in the cell file). With --resume it may
+    /// be left out: the job id names its machine, as for `cancel` and `job`.
+    #[arg(value_name = "MACHINE", required_unless_present = "resume")]
+    pub machine: Option<String>,
     /// The program file. It is sent inline, in one message, so it is held whole in memory;
     /// for large programs put it in the library first (`cellgate program put`) and use
     /// --library.
@@ -95,6 +96,25 @@ fn parse_block(text: &str) -> Result<pb::block_start::At, ClientError> {
 }
 
 impl SubmitArgs {
+    /// The machine named, or the one the job to resume names.
+    fn machine(&self) -> Result<String, ClientError> {
+        match (&self.machine, &self.resume) {
+            (Some(m), _) => Ok(m.clone()),
+            (None, Some(job)) => crate::client::machine_of_job(job)
+                .map(str::to_string)
+                .ok_or_else(|| ClientError::InvalidArgument {
+                    what: format!("--resume {job:?}"),
+                    reason: "not a job id as `submit` printed it (MACHINE-RUN-N); name the \
+                             machine too"
+                        .to_string(),
+                }),
+            (None, None) => Err(ClientError::InvalidArgument {
+                what: "MACHINE".to_string(),
+                reason: "name the machine to send the program to".to_string(),
+            }),
+        }
+    }
+
     /// The `JobRequest` these arguments make (reads FILE).
     pub async fn request(&self, io: &mut Io<'_>) -> Result<pb::JobRequest, ClientError> {
         use pb::job_request::Program;
@@ -159,8 +179,9 @@ impl ClientCommand for SubmitArgs {
     }
 
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        let machine = self.machine()?;
         let request = self.request(io).await?;
-        let (accepted, mut follower) = client.submit(&self.machine, &request).await?;
+        let (accepted, mut follower) = client.submit(&machine, &request).await?;
         let job = accepted.job_id.clone();
         if self.json {
             let _ = writeln!(io.out, "{}", render::accepted_json(&accepted));
@@ -170,8 +191,8 @@ impl ClientCommand for SubmitArgs {
         let _ = io.out.flush();
         let _ = writeln!(
             io.err,
-            "{job}: accepted by {}, {} job(s) ahead",
-            self.machine, accepted.queue_position
+            "{job}: accepted by {machine}, {} job(s) ahead",
+            accepted.queue_position
         );
         if self.detach {
             follower.close().await;
@@ -189,7 +210,7 @@ impl ClientCommand for SubmitArgs {
                         io.err,
                         "interrupted: job {job} keeps running on {m}; follow it with \
                          `cellgate job {job} --follow`, cancel it with `cellgate cancel {job}`",
-                        m = self.machine
+                        m = machine
                     );
                     follower.close().await;
                     return Ok(EXIT_INTERRUPTED);
