@@ -104,17 +104,7 @@ impl JobsHandle {
                         pb::RevisionState::Released | pb::RevisionState::Locked
                     )
                 {
-                    let latest_released = self.library.revisions(&name).await.ok().and_then(|r| {
-                        r.revisions
-                            .iter()
-                            .find(|x| {
-                                matches!(
-                                    x.state(),
-                                    pb::RevisionState::Released | pb::RevisionState::Locked
-                                )
-                            })
-                            .map(|x| x.number)
-                    });
+                    let latest_released = self.library.latest_released(&name).await;
                     return Err(library_error(LibraryError::NotReleased {
                         machine: self.machine.to_string(),
                         name,
