@@ -501,6 +501,45 @@ fn plc_non_procedure_modes() {
     );
 }
 
+/// The start-up overview says what each mode carries (FFU120B §1-3, §5-2): memory and
+/// transfers in mode 1, memory in modes 2–3, and messages, never memory, in modes 4–5.
+#[test]
+fn plc_overview_says_what_each_mode_carries() {
+    let f = |extra: &str| {
+        format!(
+            "cell = \"c\"\n[[plcs]]\nname = \"p\"\n{extra}\n\
+             transport = {{ kind = \"sim\", line = {{ baud = 9600 }} }}\n"
+        )
+    };
+    let overview = |extra: &str| {
+        CellConfig::from_toml_str(&f(extra), "t")
+            .unwrap()
+            .overview(4)
+    };
+    let four = overview("mode = 4\nfixed_length = 12\nreceive_message = 9");
+    assert!(
+        four.contains(
+            "mode 4, simulated, 9600 baud: messages of 12 bytes both ways, to receive message 9"
+        ),
+        "{four}"
+    );
+    assert!(
+        !four.contains("memory") && !four.contains("transfers"),
+        "{four}"
+    );
+    let five = overview("mode = 5");
+    assert!(
+        five.contains(": messages both ways (variable length), to receive message 1"),
+        "{five}"
+    );
+    assert!(overview("mode = 1").contains(": memory, transfers"));
+    let three = overview("mode = 3\nstations = [1, 2]");
+    assert!(
+        three.contains(": memory") && !three.contains("transfers"),
+        "{three}"
+    );
+}
+
 #[test]
 fn plc_baud_rates() {
     let text = "cell = \"c\"\n[[plcs]]\nname = \"p\"\n\
