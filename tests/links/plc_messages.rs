@@ -1,7 +1,8 @@
 //! FFU120B non-procedure mode 4 (FFU120B §5-5; FFU120B notes 9) over the bus: the gateway is
 //! the external device of a simulated FFU120B served as a TCP serial device server
 //! (`serve_fuji_on`, the module behind `cellgate sim fuji`), through a `kind = "tcp"` PLC link.
-//! Fixed-length messages both ways: what the PLC sends is published on `…/message`, what a
+//! Fixed-length messages both ways, 2N hex characters for N bytes with code transposition on
+//! (FFU120B §4-3 items 14–15): what the PLC sends is published on `…/message`, what a
 //! client sends on `…/message/send` reaches the module's receive message number. Real time,
 //! loopback, multicast off.
 
@@ -132,7 +133,8 @@ async fn mode_4_fixed_length_messages_both_ways_over_tcp_and_the_bus() {
     let status = status.expect("the PLC routes never answered");
     assert_eq!((status.mode, status.fixed_length), (4, 12));
 
-    // What the PLC sends is published, each message whole and in order.
+    // What the PLC sends is published, each message whole and in order: 24 characters on the
+    // line are one 12-byte message, not two.
     let mut got = Vec::new();
     while got.len() < 2 {
         let s = tokio::time::timeout(Duration::from_secs(20), messages.recv_async())
@@ -146,7 +148,8 @@ async fn mode_4_fixed_length_messages_both_ways_over_tcp_and_the_bus() {
     assert_eq!(got, [b"SCAN-0000042".to_vec(), b"SCAN-0000043".to_vec()]);
 
     // A client's message goes to the module's receive message number, bare (fixed length: no
-    // start code, end code or BCC).
+    // start code, end code or BCC) and, with code transposition on (the initial value, FFU120B
+    // §4-3 items 14–15), as 24 hex characters for its 12 bytes.
     let send = keys.plc_message_send(PLC);
     let m = pb::PlcMessage {
         data: b"LOT-00000007".to_vec(),
@@ -155,7 +158,7 @@ async fn mode_4_fixed_length_messages_both_ways_over_tcp_and_the_bus() {
     let sent: pb::PlcMessageSent = get_one(&client, &send, Some(m.encode_to_vec())).await;
     assert_eq!(
         (sent.bytes, sent.line_bytes, sent.receive_message),
-        (12, 12, 9)
+        (12, 24, 9)
     );
     let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
     let received = loop {

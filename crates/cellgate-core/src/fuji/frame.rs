@@ -25,8 +25,10 @@
 //! - code transposition off, command-set modes ([`TextLength::FromHeader`]): the text is
 //!   5 + BYTEN bytes (§5-3, FFU120B notes 1), so binary data may contain the end code's byte;
 //!   the end code must follow;
-//! - non-procedure fixed length ([`TextLength::Fixed`]): every N bytes, nothing interpreted
-//!   (appendix "Difference between fixed length and variable length");
+//! - non-procedure fixed length ([`TextLength::Fixed`]): every N data bytes, no start code,
+//!   end code or BCC (appendix "Difference between fixed length and variable length"): N bytes
+//!   on the line, or 2N hex characters with code transposition on (§4-3 items 14–15, FFU120B
+//!   notes 9);
 //! - start code "none": a text starts with the first byte after the previous frame; the owner
 //!   clears the decoder after a silence (the master does so at each reply time-out), which is
 //!   how the module tells texts apart too.
@@ -507,6 +509,16 @@ impl FrameSettings {
         problems
     }
 
+    /// A fixed-length non-procedure message as it travels (§5-5, appendix): the data alone,
+    /// with no start code, end code or BCC, each byte as two hex characters of the
+    /// transmission code when code transposition is on (§4-3 items 13–15; FFU120B notes 9).
+    pub fn encode_bare(&self, text: &[u8]) -> Vec<u8> {
+        if !self.transposition {
+            return text.to_vec();
+        }
+        text.iter().flat_map(|&b| self.code.hex2(b)).collect()
+    }
+
     /// `text` as it travels: start code, text (transposed when item 14 says so), BCC and end
     /// code in the order of item 21.
     pub fn encode(&self, text: &[u8]) -> Vec<u8> {
@@ -546,7 +558,9 @@ pub enum TextLength {
     UntilEnd,
     /// 5 + BYTEN bytes, BYTEN being the fifth byte of the text (command-set texts, §5-3).
     FromHeader,
-    /// Exactly this many bytes, nothing interpreted (non-procedure fixed length, §5-5).
+    /// Exactly this many data bytes, without start code, end code or BCC (non-procedure
+    /// fixed length, §5-5): as many bytes on the line, or twice as many hex characters with
+    /// code transposition (§4-3 items 14–15).
     Fixed(usize),
 }
 
@@ -581,7 +595,7 @@ impl FrameDecoder {
         max_text: usize,
     ) -> Self {
         let length = match length {
-            TextLength::Fixed(n) => TextLength::Fixed(n.clamp(1, RX_BUFFER)),
+            TextLength::Fixed(n) => TextLength::Fixed(n.clamp(1, RX_BUFFER / settings.width())),
             other => other,
         };
         FrameDecoder {
@@ -696,10 +710,18 @@ impl FrameDecoder {
     /// One step over the buffer: a text, an error, or `None` when more bytes are needed.
     fn next(&mut self) -> Option<Decoded> {
         if let TextLength::Fixed(n) = self.length {
-            if self.buf.len() < n {
+            // N data bytes are 2N characters with transposition on; every character counts
+            // towards the message, so one that is not a hex digit spoils only its own message
+            // (text form, §5-6) and the next starts on its boundary.
+            let chars = n * self.settings.width();
+            if self.buf.len() < chars {
                 return None;
             }
-            return Some(Ok(self.buf.drain(..n).collect()));
+            let line: Vec<u8> = self.buf.drain(..chars).collect();
+            if !self.settings.transposition {
+                return Some(Ok(line));
+            }
+            return Some(untranspose_in(self.settings.code, &line));
         }
         let start_len = self.settings.start_bytes().len();
         if start_len > 0 {

@@ -25,8 +25,9 @@
 //!   work in mode 1 only (§5-4 iii).
 //!
 //! Non-procedure modes 4–5 (§5-5): no command set; [`MasterCommand::Send`] puts a message on
-//! the line (variable length: framed with start code, BCC and end code; fixed length: the data
-//! alone, exactly N bytes) and received messages come out as [`MasterEvent::Received`]. What
+//! the line (variable length: framed with start code, BCC and end code; fixed length: exactly
+//! N bytes of data alone, as 2N hex characters with code transposition on, §4-3 items 14–15)
+//! and received messages come out as [`MasterEvent::Received`]. What
 //! differs between the two modes is the line (§1-3, §3-8): mode 4 is RS-232C 1:1, so the host
 //! honours CS (the module's RTS/CTS control, §4-3 item 9); mode 5 is RS-485, a line the
 //! module shares with other devices and with no modem lines, so the host ignores CS and does
@@ -693,8 +694,9 @@ impl Master {
                     }
                     .into());
                 }
-                // Fixed length: the data alone, no start code, end code or BCC (appendix).
-                data.to_vec()
+                // Fixed length: the data alone, no start code, end code or BCC (appendix),
+                // transposed to 2N hex characters when item 14 says so (FFU120B notes 9).
+                self.settings.frame.encode_bare(data)
             }
             None => {
                 if data.is_empty() || data.len() > MAX_NON_PROCEDURE_TEXT {

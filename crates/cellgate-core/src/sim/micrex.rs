@@ -782,8 +782,9 @@ impl Micrex {
                     };
                     self.config.frame.encode(&text.encode())
                 } else if self.config.fixed_length.is_some() {
-                    // Fixed length: only the data; start, end and BCC are not added (appendix).
-                    data
+                    // Fixed length: only the data; start, end and BCC are not added (appendix),
+                    // but item 14 still makes each byte two hex characters (§4-3).
+                    self.config.frame.encode_bare(&data)
                 } else {
                     self.config.frame.encode(&data)
                 };

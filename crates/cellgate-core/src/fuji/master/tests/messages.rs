@@ -106,9 +106,13 @@ fn an_ebcdic_round_trip() {
     assert_eq!(r.a_sent.first(), Some(&0x7A), "the start code in EBCDIC");
 }
 
+/// Without code transposition (item 14 "no") a fixed-length message is its N bytes as they
+/// are, whatever they hold (appendix: start code, end code and BCC are data).
 #[test]
-fn mode_4_fixed_length_sends_and_receives_bare_data() {
-    let (m, p) = nonproc(OperationMode::Four, Some(4));
+fn mode_4_fixed_length_without_transposition_sends_and_receives_bare_data() {
+    let (mut m, mut p) = nonproc(OperationMode::Four, Some(4));
+    m.frame.transposition = false;
+    p.frame.transposition = false;
     let mut r = pair(m, p);
     r.command_a(MasterCommand::Send {
         id: 1,
@@ -145,6 +149,7 @@ fn mode_4_fixed_length_sends_and_receives_bare_data() {
 fn modes_4_5_fixed_length_realigns_after_a_silence_and_variable_refuses_the_end_code() {
     let mut st = settings(OperationMode::Five);
     st.fixed_length = Some(4);
+    st.frame.transposition = false;
     let mut s = Solo::new(st);
     s.input(b"AB");
     s.now += TIMEOUT;
@@ -223,4 +228,114 @@ fn mode_4_waits_for_cs_and_mode_5_for_a_quiet_line() {
     assert_eq!(quiet, s.now + line().time_for_chars(2));
     s.advance_to(quiet);
     assert_eq!(s.take_sent(), vec![b":41\r".to_vec()]);
+}
+
+/// Fixed length with code transposition on, the module's initial value (§4-3 items 14–15,
+/// §5-5; FFU120B notes 9): N data bytes travel as 2N hex characters, with no start code, end
+/// code or BCC. Item 14's example, one byte 12h as the two characters "1" "2", and the
+/// appendix's three cases: fewer characters than a message wait for the rest, exactly a
+/// message is one message, more start the next one.
+#[test]
+fn fixed_length_with_transposition_is_2n_hex_characters_both_ways() {
+    let mut st = settings(OperationMode::Four);
+    st.fixed_length = Some(4);
+    let mut s = Solo::new(st);
+    s.cmd(MasterCommand::Send {
+        id: 1,
+        data: vec![0x12, 0x34, 0xAB, 0xFF],
+    });
+    assert_eq!(s.take_sent().concat(), b"1234ABFF");
+    assert!(done(&s.take_events()).contains(&(1, Ok(Reply::Sent { bytes: 8 }))));
+    let received = |s: &mut Solo| -> Vec<Vec<u8>> {
+        s.take_events()
+            .into_iter()
+            .filter_map(|e| match e {
+                MasterEvent::Received { data } => Some(data),
+                _ => None,
+            })
+            .collect()
+    };
+    // Reception data < fixed length: the module (and the host) waits for the rest.
+    s.input(b"1234AB");
+    assert!(received(&mut s).is_empty());
+    // = fixed length: one message of N bytes, not two of N characters.
+    s.input(b"FF");
+    assert_eq!(received(&mut s), [vec![0x12, 0x34, 0xAB, 0xFF]]);
+    // > fixed length: N bytes, and the rest starts the next message.
+    s.input(b"00010203040506070");
+    assert_eq!(received(&mut s), [vec![0, 1, 2, 3], vec![4, 5, 6, 7]]);
+    s.input(b"8090A");
+    assert!(received(&mut s).is_empty(), "6 of 8 characters");
+    s.input(b"0B");
+    assert_eq!(received(&mut s), [vec![0x08, 0x09, 0x0A, 0x0B]]);
+    // A character that is not a hex digit spoils its own message only (text form, §5-6);
+    // the next one is read on its boundary.
+    s.input(b"12G4ABFF0000002A");
+    assert_eq!(received(&mut s), [vec![0, 0, 0, 0x2A]]);
+    let c = s.m.counters();
+    assert_eq!((c.messages_received, c.receive_errors.text_form), (5, 1));
+    // Exactly N bytes of data are taken from a client, as before.
+    s.cmd(MasterCommand::Send {
+        id: 2,
+        data: vec![1; 8],
+    });
+    let e = done(&s.take_events()).pop().unwrap().1.unwrap_err();
+    assert!(e.to_string().contains("exactly 4"), "{e}");
+}
+
+/// The same against the simulated module, in ASCII and in EBCDIC (item 13: the hex
+/// characters are the code's own): what the host sends arrives as one N-byte message in the
+/// module's receive message number, and what the PLC sends reaches the host as one message.
+#[test]
+fn fixed_length_with_transposition_against_the_simulated_module() {
+    for code in [
+        crate::fuji::frame::TransmissionCode::Ascii,
+        crate::fuji::frame::TransmissionCode::Ebcdic,
+    ] {
+        let (mut m, mut p) = nonproc(OperationMode::Four, Some(12));
+        m.frame.code = code;
+        p.frame.code = code;
+        let mut r = pair(m, p);
+        r.command_a(MasterCommand::Send {
+            id: 1,
+            data: b"LOT-00000007".to_vec(),
+        });
+        r.command_b(MicrexCommand::QueueTransfer {
+            message: 0,
+            data: b"SCAN-0000042".to_vec(),
+        });
+        r.settle(Duration::from_secs(1));
+        assert_eq!(r.a_sent.len(), 24, "{code:?}: 2N characters");
+        let hex: Vec<u8> = hex::encode_upper(b"LOT-00000007")
+            .bytes()
+            .map(|c| code.encode_char(c))
+            .collect();
+        assert_eq!(r.a_sent, hex, "{code:?}");
+        let module: Vec<_> = r
+            .take_b_events()
+            .into_iter()
+            .filter(|e| matches!(e, MicrexEvent::TransferReceived { .. }))
+            .collect();
+        assert_eq!(
+            module,
+            [MicrexEvent::TransferReceived {
+                station: 0,
+                message: 5,
+                data: b"LOT-00000007".to_vec()
+            }],
+            "{code:?}"
+        );
+        let host: Vec<_> = r
+            .take_a_events()
+            .into_iter()
+            .filter(|e| matches!(e, MasterEvent::Received { .. }))
+            .collect();
+        assert_eq!(
+            host,
+            [MasterEvent::Received {
+                data: b"SCAN-0000042".to_vec()
+            }],
+            "{code:?}"
+        );
+    }
 }
