@@ -37,6 +37,7 @@ use serde::{Deserialize, Serialize};
 
 pub use super::bcc::{Bcc, BccBytes, BccCalc, BccCode, BccKind, BccMismatch, Crc16};
 use super::bcc::{hex_value, hex2};
+use crate::engine::LineError;
 
 mod receive;
 pub use receive::{ReceiveCounts, ReceiveError, ReceiveErrorKind, TextForm};
@@ -584,6 +585,9 @@ pub struct FrameDecoder {
     counts: ReceiveCounts,
     /// Errors since the last good text; the first is logged, the rest summed up.
     burst: u64,
+    /// A character of the text under way came with this line error: the text ends as a
+    /// receive error (§5-6).
+    spoilt: Option<LineError>,
 }
 
 impl FrameDecoder {
@@ -609,6 +613,7 @@ impl FrameDecoder {
             garbage: 0,
             counts: ReceiveCounts::default(),
             burst: 0,
+            spoilt: None,
         }
     }
 
@@ -655,9 +660,50 @@ impl FrameDecoder {
     pub fn clear(&mut self) {
         self.buf.clear();
         self.discarding = false;
+        self.spoilt = None;
         if self.garbage > 0 {
             let dropped = std::mem::take(&mut self.garbage);
             self.note(&ReceiveError::StartCode { dropped });
+        }
+    }
+
+    /// A character arrived with a line error (parity, framing, overrun; the transport did not
+    /// deliver it) after the bytes already taken and before any taken later. The text it
+    /// belongs to ends as a receive error ("receiving ends to error", §5-6), and the next text
+    /// is read as usual: a fixed-length message keeps the lost character's place, so that the
+    /// next one stays on its boundary. A character outside any text (before a start code)
+    /// spoils nothing. Returns what the lost character's place completes (a fixed-length
+    /// message that ended on it), as [`FrameDecoder::decode`] does.
+    pub fn spoil(&mut self, error: LineError) -> Vec<Decoded> {
+        let lost = usize::from(!matches!(error, LineError::Overrun));
+        match self.length {
+            TextLength::Fixed(_) => {
+                // Not a hex digit either: the placeholder is never taken as data.
+                self.buf.extend(std::iter::repeat_n(0xFF, lost));
+            }
+            _ if self.buf.is_empty() && !self.settings.start_bytes().is_empty() => {
+                return Vec::new();
+            }
+            _ => {}
+        }
+        self.spoilt = Some(error);
+        self.decode(&[])
+    }
+
+    /// A finished text, or the receive error it is when a character of it was spoilt.
+    fn judge(&mut self, d: Decoded) -> Decoded {
+        match d {
+            Ok(text) => match self.spoilt.take() {
+                Some(e) => Err(ReceiveError::Character(e)),
+                None => Ok(text),
+            },
+            // Bytes dropped before a start code are not the spoilt text.
+            Err(e @ ReceiveError::StartCode { .. }) => Err(e),
+            // Whatever else is wrong with the text, the character error came first.
+            Err(e) => match self.spoilt.take() {
+                Some(line) => Err(ReceiveError::Character(line)),
+                None => Err(e),
+            },
         }
     }
 
@@ -665,13 +711,16 @@ impl FrameDecoder {
     pub fn decode(&mut self, bytes: &[u8]) -> Vec<Decoded> {
         let mut out = Vec::new();
         let mut rest = bytes;
-        while !rest.is_empty() {
+        // At least one pass, so that a place taken by a lost character ([`Self::spoil`]) is
+        // looked at too.
+        loop {
             // Never hold more than the module's buffer: take what fits, split it, go on.
             let room = RX_BUFFER.saturating_sub(self.buf.len()).max(1);
             let (now, later) = rest.split_at(room.min(rest.len()));
             rest = later;
             self.buf.extend_from_slice(now);
             while let Some(d) = self.next() {
+                let d = self.judge(d);
                 match &d {
                     Ok(_) => self.good(),
                     Err(e) => self.note(e),
@@ -685,6 +734,9 @@ impl FrameDecoder {
                 let e = ReceiveError::BufferFull { dropped };
                 self.note(&e);
                 out.push(Err(e));
+            }
+            if rest.is_empty() {
+                break;
             }
         }
         out

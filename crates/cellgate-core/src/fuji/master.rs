@@ -1069,14 +1069,18 @@ impl Engine for Master {
     }
 
     fn handle_line_error(&mut self, now: Instant, error: LineError) {
-        // Counted (§5-6 keeps them too); the text they spoil fails its BCC or form check, or
-        // never ends and times out.
+        // Counted (§5-6 keeps them too), and the text the character belonged to ends as a
+        // receive error whatever the rest of it holds: a reply is sent again, a message is
+        // dropped and the next one read as usual (§5-6 "receiving error").
         match error {
             LineError::Parity => self.line_errors.parity += 1,
             LineError::Framing => self.line_errors.framing += 1,
             LineError::Overrun => self.line_errors.overrun += 1,
         }
         tracing::debug!(%error, "FFU120B line error");
+        for decoded in self.decoder.spoil(error) {
+            self.on_decoded(now, decoded);
+        }
         self.drive(now);
     }
 

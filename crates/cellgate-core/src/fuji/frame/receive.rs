@@ -6,6 +6,7 @@ use std::fmt;
 use serde::Serialize;
 
 use super::BccMismatch;
+use crate::engine::LineError;
 
 /// The receive errors of §5-6 ("details of receiving data error", bits D–F).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
@@ -21,26 +22,32 @@ pub enum ReceiveErrorKind {
     TooLong,
     /// 7: text form unidentified.
     TextForm,
+    /// A character of the text came with a parity, framing or overrun error: the status
+    /// word's own bits, no number of bits D–F, and "receiving ends to error" (§5-6).
+    Character,
 }
 
 impl ReceiveErrorKind {
     /// Every kind, in the order of their numbers.
-    pub const ALL: [ReceiveErrorKind; 5] = [
+    pub const ALL: [ReceiveErrorKind; 6] = [
         ReceiveErrorKind::BufferFull,
         ReceiveErrorKind::StartCode,
         ReceiveErrorKind::Bcc,
         ReceiveErrorKind::TooLong,
         ReceiveErrorKind::TextForm,
+        ReceiveErrorKind::Character,
     ];
 
-    /// The error number the module shows in bits D–F of its status word (§5-6).
-    pub fn number(self) -> u8 {
+    /// The error number the module shows in bits D–F of its status word (§5-6); a character
+    /// error has bits of its own instead.
+    pub fn number(self) -> Option<u8> {
         match self {
-            ReceiveErrorKind::BufferFull => 1,
-            ReceiveErrorKind::StartCode => 2,
-            ReceiveErrorKind::Bcc => 5,
-            ReceiveErrorKind::TooLong => 6,
-            ReceiveErrorKind::TextForm => 7,
+            ReceiveErrorKind::BufferFull => Some(1),
+            ReceiveErrorKind::StartCode => Some(2),
+            ReceiveErrorKind::Bcc => Some(5),
+            ReceiveErrorKind::TooLong => Some(6),
+            ReceiveErrorKind::TextForm => Some(7),
+            ReceiveErrorKind::Character => None,
         }
     }
 
@@ -52,13 +59,17 @@ impl ReceiveErrorKind {
             ReceiveErrorKind::Bcc => "BCC error",
             ReceiveErrorKind::TooLong => "text is too long",
             ReceiveErrorKind::TextForm => "text form unidentified",
+            ReceiveErrorKind::Character => "character error (parity, framing or overrun)",
         }
     }
 }
 
 impl fmt::Display for ReceiveErrorKind {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{} (receive error {})", self.name(), self.number())
+        match self.number() {
+            Some(n) => write!(f, "{} (receive error {n})", self.name()),
+            None => write!(f, "{} (status bits, FFU120B §5-6)", self.name()),
+        }
     }
 }
 
@@ -75,6 +86,8 @@ pub struct ReceiveCounts {
     pub too_long: u64,
     /// Receive error 7: text form unidentified.
     pub text_form: u64,
+    /// Texts ended by a character with a parity, framing or overrun error.
+    pub character: u64,
 }
 
 impl ReceiveCounts {
@@ -91,6 +104,7 @@ impl ReceiveCounts {
             ReceiveErrorKind::Bcc => &mut self.bcc,
             ReceiveErrorKind::TooLong => &mut self.too_long,
             ReceiveErrorKind::TextForm => &mut self.text_form,
+            ReceiveErrorKind::Character => &mut self.character,
         }
     }
 
@@ -102,6 +116,7 @@ impl ReceiveCounts {
             ReceiveErrorKind::Bcc => self.bcc,
             ReceiveErrorKind::TooLong => self.too_long,
             ReceiveErrorKind::TextForm => self.text_form,
+            ReceiveErrorKind::Character => self.character,
         }
     }
 
@@ -199,6 +214,10 @@ pub enum ReceiveError {
     /// Receive error 7: the text's form is not recognised.
     #[error("text form unidentified: {0} (receive error 7, FFU120B §5-6)")]
     TextForm(TextForm),
+    /// A character of the text arrived with a line error: the text ends as a receive error
+    /// (§5-6 "receiving error"), whatever the rest of it holds.
+    #[error("{0}: the text it belongs to is dropped (receiving error, FFU120B §5-6)")]
+    Character(LineError),
 }
 
 impl ReceiveError {
@@ -210,6 +229,7 @@ impl ReceiveError {
             ReceiveError::Bcc(_) => ReceiveErrorKind::Bcc,
             ReceiveError::TooLong { .. } => ReceiveErrorKind::TooLong,
             ReceiveError::TextForm(_) => ReceiveErrorKind::TextForm,
+            ReceiveError::Character(_) => ReceiveErrorKind::Character,
         }
     }
 }

@@ -455,3 +455,25 @@ fn a_host_that_does_not_wait_fills_the_buffer() {
     let mut d = FrameDecoder::command_set(&h.frame);
     assert_eq!(d.decode(&bytes).len(), MAX_PENDING);
 }
+
+/// A character the module's UART received with a parity error ends its text as a receiving
+/// error (§5-6): that message is not stored (a request gets no reply), the next one is.
+#[test]
+fn a_character_error_ends_the_modules_text_and_the_next_one_is_stored() {
+    let mut cfg = MicrexConfig::new(OperationMode::Four);
+    cfg.receive_message = 9;
+    let mut h = Host::new(cfg);
+    h.plc.handle_input(h.now, b":4142");
+    h.plc.handle_line_error(h.now, LineError::Parity);
+    h.plc.handle_input(h.now, b"43\r:44\r");
+    assert_eq!(stored(&mut h, 9), vec![b"D".to_vec()]);
+    assert_eq!(h.plc.receive_counts().character, 1);
+
+    let mut h = Host::new(mode1());
+    let line = h.frame.encode(&[0, 0, 0, 5, 4, 0, 0, 2, 0]);
+    h.plc.handle_input(h.now, &line[..6]);
+    h.plc.handle_line_error(h.now, LineError::Framing);
+    h.plc.handle_input(h.now, &line[7..]);
+    assert!(h.drain().is_empty(), "no reply to a text received in error");
+    assert_eq!(h.raw(&line).len(), 1, "the next request is answered");
+}

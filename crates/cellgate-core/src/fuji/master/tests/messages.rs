@@ -339,3 +339,74 @@ fn fixed_length_with_transposition_against_the_simulated_module() {
         );
     }
 }
+
+/// The messages among `events`.
+fn messages(events: Vec<MasterEvent>) -> Vec<Vec<u8>> {
+    events
+        .into_iter()
+        .filter_map(|e| match e {
+            MasterEvent::Received { data } => Some(data),
+            _ => None,
+        })
+        .collect()
+}
+
+/// A character that came with a parity (or framing) error, reported by the serial driver or
+/// found by the gateway's own check, ends its message as a receive error (§5-6: "receiving
+/// ends to error"), even when what remains of the message would read well; the next message
+/// arrives as usual. Outside a message (before a start code) it spoils nothing.
+#[test]
+fn a_character_error_ends_its_message_and_the_next_one_arrives() {
+    // Variable length: ":4142" + a lost character + "43" would be a good 3-byte text.
+    let mut s = Solo::new(settings(OperationMode::Four));
+    s.input(b":4142");
+    s.m.handle_line_error(s.now, LineError::Parity);
+    s.input(b"43\r:44\r");
+    assert_eq!(messages(s.take_events()), [b"D".to_vec()]);
+    s.m.handle_line_error(s.now, LineError::Framing);
+    s.input(b":45\r");
+    assert_eq!(messages(s.take_events()), [b"E".to_vec()]);
+    let c = s.m.counters();
+    assert_eq!(
+        (c.receive_errors.character, c.receive_errors.total()),
+        (1, 1)
+    );
+    assert_eq!((c.line_errors.parity, c.line_errors.framing), (1, 1));
+
+    // Fixed length 2 with transposition: the lost character keeps its place, so the next
+    // message is read on its boundary.
+    let mut st = settings(OperationMode::Five);
+    st.fixed_length = Some(2);
+    let mut s = Solo::new(st);
+    s.input(b"41");
+    s.m.handle_line_error(s.now, LineError::Parity);
+    s.input(b"24344");
+    assert_eq!(messages(s.take_events()), [b"CD".to_vec()]);
+    // The lost character was the message's last: it ends there.
+    s.input(b"414");
+    s.m.handle_line_error(s.now, LineError::Parity);
+    s.input(b"4546");
+    assert_eq!(messages(s.take_events()), [b"EF".to_vec()]);
+    assert_eq!(s.m.counters().receive_errors.character, 2);
+}
+
+/// In the command set a reply with a character error is a corrupted reply: the request goes
+/// again at once, as for a BCC error, and the good reply completes it.
+#[test]
+fn a_reply_with_a_character_error_is_sent_again() {
+    let mut s = Solo::new(settings(OperationMode::One));
+    s.cmd(read(1, 0, Module::D, 0, 1));
+    let first = s.take_sent().concat();
+    let reply = b":0000000507000002000112AB\r";
+    s.input(&reply[..9]);
+    s.m.handle_line_error(s.now, LineError::Parity);
+    s.input(&reply[10..]);
+    assert_eq!(s.take_sent().concat(), first, "sent again");
+    assert!(done(&s.take_events()).is_empty());
+    s.input(reply);
+    let d = done(&s.take_events());
+    assert_eq!(words_of(&d[0].1), [0x12AB]);
+    let c = s.m.counters();
+    assert_eq!(c.stations[&0].corrupted_replies, 1);
+    assert_eq!(c.receive_errors.character, 1);
+}
