@@ -177,9 +177,22 @@ impl CellConfig {
     }
 
     /// What is allowed but likely a mistake, one line each: a listener beyond loopback on a
-    /// cell without `[security]`, where anyone who reaches the port may do anything.
+    /// cell without `[security]`, where anyone who reaches the port may do anything; a 7-bit
+    /// line over a device server that does not say where its parity bit is made.
     pub fn warnings(&self) -> Vec<String> {
         let mut out = Vec::new();
+        let links = self
+            .machines
+            .iter()
+            .map(|m| (format!("machines.{}", m.name), &m.transport))
+            .chain(
+                self.plcs
+                    .iter()
+                    .map(|p| (format!("plcs.{}", p.name), &p.transport)),
+            );
+        for (label, transport) in links {
+            out.extend(transport.parity_warning(&format!("{label}.transport")));
+        }
         let secured = self.security.tls.is_some() || self.security.users_file.is_some();
         if !secured
             && let Some(console) = &self.console

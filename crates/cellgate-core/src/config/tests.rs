@@ -280,6 +280,7 @@ fn transport_tables() {
         TransportConfig::Tcp {
             address: "h:1".to_string(),
             line: LineSettings::with_baud(19_200),
+            parity_by: None,
             window: None,
             reconnect_min_ms: 100,
             reconnect_max_ms: 5000,
@@ -537,6 +538,69 @@ fn plc_overview_says_what_each_mode_carries() {
     assert!(
         three.contains(": memory") && !three.contains("transfers"),
         "{three}"
+    );
+}
+
+/// `parity_by` (FFU120B §4-3 items 5–6): on a serial port or a device server only, "gateway"
+/// only on a line of 7 data bits with parity, whose port then runs 8 data bits and no parity;
+/// a 7-bit line over a device server without the key is warned of, with it not.
+#[test]
+fn parity_by_where_a_7_bit_lines_parity_bit_is_made() {
+    let f = |transport: &str| {
+        format!("cell = \"c\"\n[[plcs]]\nname = \"p\"\nmode = 4\ntransport = {transport}\n")
+    };
+    let seven = "line = { data_bits = 7, parity = \"odd\", stop_bits = 2 }";
+    let cfg = CellConfig::from_toml_str(
+        &f(&format!(
+            "{{ kind = \"serial\", path = \"/dev/ttyS0\", parity_by = \"gateway\", {seven} }}"
+        )),
+        "t",
+    )
+    .unwrap();
+    let t = &cfg.plcs[0].transport;
+    assert_eq!(t.parity_by(), crate::engine::parity::ParityBy::Gateway);
+    assert_eq!(t.port_line().to_string(), "9600 8N2");
+    assert!(cfg.warnings().is_empty(), "{:?}", cfg.warnings());
+    let back = CellConfig::from_toml_str(&cfg.to_toml_string().unwrap(), "t").unwrap();
+    assert_eq!(back.plcs[0].transport, *t);
+
+    let cfg = CellConfig::from_toml_str(
+        &f(&format!("{{ kind = \"tcp\", address = \"h:1\", {seven} }}")),
+        "t",
+    )
+    .unwrap();
+    assert_eq!(
+        cfg.plcs[0].transport.port_line(),
+        *cfg.plcs[0].transport.line()
+    );
+    let w = cfg.warnings();
+    assert_eq!(w.len(), 1, "{w:?}");
+    assert!(
+        w[0].starts_with("plcs.p.transport: 7 data bits with odd parity"),
+        "{w:?}"
+    );
+    let cfg = CellConfig::from_toml_str(
+        &f(&format!(
+            "{{ kind = \"tcp\", address = \"h:1\", parity_by = \"port\", {seven} }}"
+        )),
+        "t",
+    )
+    .unwrap();
+    assert!(cfg.warnings().is_empty());
+
+    let e = errors_of(&f("{ kind = \"sim\", parity_by = \"gateway\" }"));
+    assert!(
+        e[0].starts_with("plcs.p.transport.parity_by: used only with kind = \"serial\" or \"tcp\""),
+        "{e:?}"
+    );
+    let e = errors_of(&f(
+        "{ kind = \"tcp\", address = \"h:1\", parity_by = \"gateway\", line = { data_bits = 7 } }",
+    ));
+    assert!(
+        e[0].starts_with(
+            "plcs.p.transport.parity_by = \"gateway\": the gateway carries a parity bit"
+        ),
+        "{e:?}"
     );
 }
 
