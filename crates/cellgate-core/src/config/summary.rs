@@ -240,7 +240,11 @@ impl CellConfig {
                 writeln!(s, "    parameters: {}", m.params())?;
             }
             if let Some(g) = &m.g05 {
-                writeln!(s, "    {}", g.describe(m.transport.line()))?;
+                writeln!(
+                    s,
+                    "    {}",
+                    g.describe_on(m.transport.line(), m.g05_refill())
+                )?;
             }
         }
         writeln!(s, "plcs: {}", self.plcs.len())?;

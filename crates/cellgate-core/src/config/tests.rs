@@ -728,6 +728,77 @@ fn g05_rules() {
     assert!(e.len() == 1 && e[0].contains("unit_time_ms"), "{e:?}");
 }
 
+/// The priming level on a board that uses data in whole pieces covers the next piece's
+/// exchange (§9.2, §4.4.2 3, §5.2), and `check-config` warns of a line and unit time that
+/// cannot keep a stream going, from a waiting CNC or at all.
+#[test]
+fn g05_priming_and_warnings_follow_the_board() {
+    let cell = |protocol: &str, baud: u32, extra: &str, g05: &str| {
+        format!(
+            "cell = \"c1\"\n[[machines]]\nname = \"m1\"\nprotocol = \"{protocol}\"\n{extra}\n\
+             transport = {{ kind = \"sim\", line = {{ baud = {baud} }} }}\n\
+             sim = {{ axes = 8 }}\n[machines.g05]\n{g05}\n"
+        )
+    };
+    let load = |text: String| CellConfig::from_toml_str(&text, "t").unwrap();
+    // 6 axes every 4 ms at 38 400 baud, Tx = Ti = 0: a DAT of Nb − No = 1950 bytes and its
+    // GTD, 1962 characters, take 562 ms: 500 ms of blocks (125) are raised to 142.
+    let c = load(cell(
+        "a",
+        38_400,
+        "tx = 0\nti = 0",
+        "axes = 6\nunit_time_ms = 4",
+    ));
+    let (m, g) = (&c.machines[0], c.machines[0].g05.as_ref().unwrap());
+    let r = m.g05_refill().unwrap();
+    assert_eq!((r.piece, r.data, r.time.as_millis()), ("DAT", 1950, 562));
+    assert_eq!((g.prime_blocks(), g.prime_blocks_on(Some(r))), (125, 142));
+    assert!(
+        c.summary().contains("priming 125 raised to 142"),
+        "{}",
+        c.summary()
+    );
+    assert!(c.warnings().is_empty(), "{:?}", c.warnings());
+    // The board's Tx (100 ms) and Ti (10 ms between its characters) at their power-on values
+    // make every exchange 150 ms longer: a DAT's 150 blocks (600 ms) no longer last it.
+    let c = load(cell("a", 38_400, "", "axes = 6\nunit_time_ms = 4"));
+    let w = c.warnings();
+    assert!(
+        w.len() == 1
+            && w[0].starts_with("machines.m1.g05: G05 cannot keep up on this line")
+            && w[0].contains("150 blocks"),
+        "{w:?}"
+    );
+    // Keeping up, but a long `before` leaves the first DAT 111 blocks (444 ms).
+    let long = format!(
+        "axes = 6\nunit_time_ms = 4\nbefore = \"{}G05\\n\"",
+        "(X)".repeat(166) + "(Y)("
+    );
+    let c = load(cell(
+        "a",
+        38_400,
+        "tx = 0\nti = 0",
+        &long.replace("(Y)(", "(Y)\\n"),
+    ));
+    let w = c.warnings();
+    assert!(
+        w.len() == 1 && w[0].contains("started while the CNC waits runs dry"),
+        "{w:?}"
+    );
+    // Expansion A: packets back to back; Protocol B reads bytes as they come.
+    let c = load(cell(
+        "expansion-a",
+        86_400,
+        "packet_n = 2",
+        "axes = 3\nunit_time_ms = 2",
+    ));
+    let r = c.machines[0].g05_refill().unwrap();
+    assert_eq!((r.piece, r.data), ("data packet", 512));
+    assert!(c.warnings().is_empty(), "{:?}", c.warnings());
+    let c = load(cell("b", 19_200, "", "axes = 3"));
+    assert_eq!(c.machines[0].g05_refill(), None);
+}
+
 /// PEM-looking files (validation checks the blocks, zenoh the cryptography) and a cell file
 /// with `security` appended, listening on TLS.
 fn secured(dir: &std::path::Path, security: &str) -> String {
