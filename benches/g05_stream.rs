@@ -63,14 +63,7 @@ async fn run(protocol: &str, packet_n: Option<u8>, t_ms: u32, ratio: f64, millis
     }
     let (cell, token) = common::start(&config).await;
     let m = cell.machine("m1").unwrap();
-    let g = m.config.g05.clone().unwrap();
-    let desk = G05Desk::new(
-        "m1",
-        m.link.clone(),
-        Some(g),
-        *m.config.transport.line(),
-        token.child_token(),
-    );
+    let desk = G05Desk::new(&m.config, m.link.clone(), token.child_token());
     desk.allow_slow_line();
     let (handle, opened) = desk.open(None).await.unwrap();
     let blocks = millis / u64::from(t_ms);

@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use super::error::ConfigErrors;
 use super::error::{Checker, ConfigError, list_u32, q, toml_name};
-use super::g05::{G05Config, check_g05};
+use super::g05::{G05Config, Refill, check_g05};
 use super::transport::{
     RawTransport, TransportConfig, built_transport, check_transport, transport_of,
 };
@@ -211,6 +211,18 @@ impl MachineConfig {
     /// expansion protocols, RS-232-C otherwise.
     pub fn effective_interface(&self) -> Interface {
         default_interface(self.protocol, self.transport.line().baud, self.interface)
+    }
+
+    /// How this machine's board is refilled while a G05 stream runs (see [`Refill`]): with the
+    /// cell file's §4.5 values and n, which the host sets by SET before a stream may start
+    /// (protocol notes 19).
+    pub fn g05_refill(&self) -> Option<Refill> {
+        Refill::of(
+            self.protocol,
+            self.params(),
+            self.effective_packet_n(),
+            self.transport.line(),
+        )
     }
 
     /// Board simulation settings in force (defaults when the `sim` table is absent).

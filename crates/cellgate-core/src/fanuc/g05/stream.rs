@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 
 use crate::codes::BusCode;
+use crate::engine::LineSettings;
 use crate::fanuc::g05::{AuxWord, G05EncodeError, G05Format};
 use crate::fanuc::host::Chunk;
 use crate::pb;
@@ -38,6 +39,9 @@ pub struct StreamSettings {
     pub prime: u32,
     /// A producer silent this long while the CNC is estimated dry is taken as gone.
     pub idle: Duration,
+    /// The machine's line: the CNC cannot read the `G05` block before the piece carrying it
+    /// has crossed it.
+    pub line: LineSettings,
 }
 
 /// One block as the producer gives it.
@@ -216,7 +220,8 @@ pub struct Stream {
     end_reason: Option<EndReason>,
     /// Program bytes handed to the line.
     sent: u64,
-    /// When the `G05` block had gone out: the CNC's unit times count from about then.
+    /// The latest the CNC can have read the `G05` block (see [`Stream::on_sent`]): the
+    /// estimate's unit times count from then.
     g05_at: Option<Instant>,
     slots_seen: u64,
     cnc_taken: u64,
@@ -393,11 +398,23 @@ impl Stream {
         self.closing
     }
 
-    /// The program's bytes handed to the line so far (the link's progress).
+    /// The program's bytes handed to the line so far (the link's progress, reported as each
+    /// piece is handed over).
+    ///
+    /// The estimate must never count an underrun the CNC cannot have had, so its unit times
+    /// start no earlier than the CNC's: the stream starts on an idle line (the protocol ended
+    /// the program before it), so the piece carrying the `G05` block, handed over by `now`,
+    /// is whole at the board at the latest when the line has carried all of `sent` from `now`
+    /// (a board uses a DAT or packet only once it has arrived whole, §4.4.2, §5.2), and the
+    /// CNC's first unit time ends at most one T after it read the block (§9.2). Starting
+    /// earlier, at the hand-over, made the estimate run ahead of the CNC by the first piece's
+    /// line time for the whole stream: 197 underruns estimated, and alarms, where the CNC
+    /// counted none.
     pub fn on_sent(&mut self, now: Instant, sent: u64) {
         self.sent = self.sent.max(sent);
         if self.g05_at.is_none() && self.primed && self.sent >= self.settings.before.len() as u64 {
-            self.g05_at = Some(now);
+            let crossed = self.settings.line.time_for_chars(self.sent);
+            self.g05_at = Some(now + crossed + self.settings.format.unit_time_ms.duration());
         }
         self.account(now);
     }
@@ -410,8 +427,11 @@ impl Stream {
         if let Some(until) = now.checked_sub(ESTIMATE_LAG) {
             self.account(until);
         }
-        // Before the G05 block is on the line the CNC waits for nothing yet.
-        let dry = self.g05_at.is_some() && self.on_line() <= self.cnc_taken;
+        // Before the G05 block is on the line the CNC waits for nothing yet; it has run dry
+        // once a unit time found no block (not merely when the last one was taken).
+        let dry = self.g05_at.is_some()
+            && self.on_line() <= self.cnc_taken
+            && self.slots_seen > self.cnc_taken;
         let silent = now.saturating_duration_since(self.last_batch_at) >= self.settings.idle;
         if self.closing || !silent {
             return None;
@@ -423,7 +443,9 @@ impl Stream {
     }
 
     /// Takes the CNC's unit-time slots up to `until`: each takes a block on the line if there
-    /// is one, else it is an underrun (§9.2).
+    /// is one, else it is an underrun (§9.2). A block counts from when it was handed to the
+    /// line, before it can have arrived, so a slot the estimate finds empty found the CNC
+    /// empty too.
     fn account(&mut self, until: Instant) {
         if let Some(at) = self.g05_at {
             let t = self.settings.format.unit_time_ms.duration();
