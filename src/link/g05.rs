@@ -20,8 +20,9 @@ use tokio_util::sync::CancellationToken;
 use crate::link::JobId;
 use crate::link::driver::{Chunk, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use crate::link::pump::now;
+use crate::transport::sim::SimOptions;
 use cellgate_core::codes::BusCode;
-use cellgate_core::config::{G05Config, MachineConfig, Refill};
+use cellgate_core::config::{G05Config, MachineConfig, Refill, TransportConfig};
 use cellgate_core::engine::LineSettings;
 use cellgate_core::fanuc::g05::stream::{
     Batch, BatchError, EndReason, Offered, Stream, StreamFigures, StreamSettings, StreamState,
@@ -151,6 +152,8 @@ pub struct G05Desk {
     line: LineSettings,
     /// How the machine's board is refilled (Protocol A family), for the priming level.
     refill: Option<Refill>,
+    /// The most characters the machine's transport holds unsent (for the estimate).
+    in_flight: u64,
     current: Mutex<Option<StreamHandle>>,
     next: AtomicU64,
     shutdown: CancellationToken,
@@ -172,6 +175,11 @@ impl G05Desk {
             config: machine.g05.clone(),
             line: *machine.transport.line(),
             refill: machine.g05_refill(),
+            in_flight: match &machine.transport {
+                TransportConfig::Sim { .. } => SimOptions::default().fifo as u64 + 1,
+                TransportConfig::Tcp { .. } => u64::from(machine.tcp_window()),
+                TransportConfig::Serial { .. } => crate::transport::serial::DEFAULT_WINDOW as u64,
+            },
             current: Mutex::new(None),
             next: AtomicU64::new(0),
             shutdown,
@@ -242,6 +250,7 @@ impl G05Desk {
             prime: config.prime_blocks_on(self.refill),
             idle: Duration::from_millis(u64::from(config.idle_ms)),
             line: self.line,
+            in_flight: self.in_flight,
         };
         let stream = Stream::new(settings.clone(), now());
         let initial = StreamStatus {

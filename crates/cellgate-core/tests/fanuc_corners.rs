@@ -269,6 +269,7 @@ fn g05_stream(
         prime: 62,
         idle: 10 * SEC,
         line: pair.line,
+        in_flight: 4096,
     };
     let mut stream = Stream::new(settings, pair.now);
     pair.command_a(EngineCommand::StartProgram { total: None });
@@ -650,6 +651,7 @@ fn g05_from_a_waiting_cnc(
         prime,
         idle: 10 * SEC,
         line: pair.line,
+        in_flight: 4096,
     };
     let mut stream = Stream::new(settings, pair.now);
     pair.command_a(EngineCommand::StartProgram { total: None });

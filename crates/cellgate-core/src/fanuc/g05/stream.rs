@@ -42,6 +42,10 @@ pub struct StreamSettings {
     /// The machine's line: the CNC cannot read the `G05` block before the piece carrying it
     /// has crossed it.
     pub line: LineSettings,
+    /// The most characters the link's transport holds that have not left on the line yet
+    /// (its in-flight window): what was handed over has crossed the line at the latest this
+    /// many character times later.
+    pub in_flight: u64,
 }
 
 /// One block as the producer gives it.
@@ -226,6 +230,8 @@ pub struct Stream {
     slots_seen: u64,
     cnc_taken: u64,
     underruns: u64,
+    /// The last batch, or the moment credits came back after there were none: a producer
+    /// that had no credits could not send, and is not idle for it.
     last_batch_at: Instant,
     gaps: u64,
     repeats: u64,
@@ -403,17 +409,23 @@ impl Stream {
     ///
     /// The estimate must never count an underrun the CNC cannot have had, so its unit times
     /// start no earlier than the CNC's: the stream starts on an idle line (the protocol ended
-    /// the program before it), so the piece carrying the `G05` block, handed over by `now`,
-    /// is whole at the board at the latest when the line has carried all of `sent` from `now`
-    /// (a board uses a DAT or packet only once it has arrived whole, §4.4.2, §5.2), and the
-    /// CNC's first unit time ends at most one T after it read the block (§9.2). Starting
+    /// the program before it), so the piece carrying the `G05` block, all handed over by
+    /// `now`, is whole at the board at the latest when the line has carried what the
+    /// transport may still hold of it (a board uses a DAT or packet only once it has arrived
+    /// whole, §4.4.2, §5.2), and the CNC's first unit time ends at most one T after it read
+    /// the block (§9.2). Starting
     /// earlier, at the hand-over, made the estimate run ahead of the CNC by the first piece's
     /// line time for the whole stream: 197 underruns estimated, and alarms, where the CNC
     /// counted none.
     pub fn on_sent(&mut self, now: Instant, sent: u64) {
+        let had_credits = self.credits() > 0;
         self.sent = self.sent.max(sent);
+        if !had_credits && self.credits() > 0 {
+            self.last_batch_at = self.last_batch_at.max(now);
+        }
         if self.g05_at.is_none() && self.primed && self.sent >= self.settings.before.len() as u64 {
-            let crossed = self.settings.line.time_for_chars(self.sent);
+            let held = self.sent.min(self.settings.in_flight);
+            let crossed = self.settings.line.time_for_chars(held);
             self.g05_at = Some(now + crossed + self.settings.format.unit_time_ms.duration());
         }
         self.account(now);
@@ -432,7 +444,9 @@ impl Stream {
         let dry = self.g05_at.is_some()
             && self.on_line() <= self.cnc_taken
             && self.slots_seen > self.cnc_taken;
-        let silent = now.saturating_duration_since(self.last_batch_at) >= self.settings.idle;
+        // Without credits the producer may not send: that is the line's doing, not silence.
+        let silent = self.credits() > 0
+            && now.saturating_duration_since(self.last_batch_at) >= self.settings.idle;
         if self.closing || !silent {
             return None;
         }

@@ -13,6 +13,7 @@ fn settings() -> StreamSettings {
         prime: 4,
         idle: Duration::from_secs(2),
         line: LineSettings::with_baud(9600),
+        in_flight: 2048,
     }
 }
 
@@ -201,6 +202,29 @@ fn the_estimate_counts_no_underrun_the_cnc_cannot_have_had() {
         s.tick(t0 + ms(at));
     }
     assert!(s.figures().underruns > 0, "{:?}", s.figures());
+}
+
+/// A producer that has no credits cannot send: on a line too slow to take back the window's
+/// blocks for a while, its silence does not count towards the idle time until credits come
+/// back, even with the CNC dry.
+#[test]
+fn a_producer_without_credits_is_not_idle() {
+    let t0 = Instant::now();
+    let ms = Duration::from_millis;
+    let mut s = Stream::new(settings(), t0);
+    s.offer(t0, &batch(0, 10)).unwrap();
+    assert_eq!(s.credits(), 0);
+    // The G05 block on the line, none of the ten blocks yet: the CNC is dry from its first
+    // unit time, and there are no credits until two blocks go at 3 s.
+    s.on_sent(t0, 4);
+    for at in (100..3000).step_by(100) {
+        assert_eq!(s.tick(t0 + ms(at)), None, "at {at} ms");
+    }
+    assert!(s.figures().underruns > 0);
+    s.on_sent(t0 + ms(3000), 4 + 10);
+    assert_eq!(s.credits(), 2);
+    assert_eq!(s.tick(t0 + ms(4900)), None);
+    assert_eq!(s.tick(t0 + ms(5000)), Some(EndReason::ProducerIdle));
 }
 
 #[test]
