@@ -22,6 +22,7 @@ const CORE_LAYERS: &[&[&str]] = &[
     &["bounds", "history"],
     &["config"],
     &["plc", "sim"],
+    &["mtconnect"],
 ];
 
 /// The gateway's modules, lowest layer first.
