@@ -106,6 +106,7 @@ impl Gateway {
     async fn start(edit: impl FnOnce(&mut CellConfig, &std::path::Path)) -> Gateway {
         let dir = tempfile::tempdir().unwrap();
         let mut config = CellConfig::embedded_default();
+        config.mtconnect = None;
         let (port, console) = (free_port(), free_port());
         config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
         config.programs.dir = dir.path().join("programs");

@@ -15,8 +15,8 @@ use crate::pb;
 /// What a cell's gateway published or answered, for the agent.
 #[derive(Debug, Clone)]
 pub enum Update {
-    /// A machine's status.
-    Status(pb::MachineStatus),
+    /// A machine's status (boxed: it is the largest message by far).
+    Status(Box<pb::MachineStatus>),
     /// A job's event.
     Job(pb::JobEvent),
     /// A machine's queue (read at start: the running job's name).
@@ -52,6 +52,9 @@ pub struct Agent {
     /// Whether each cell's gateway is there.
     cells: HashMap<String, bool>,
 }
+
+/// A device's observations by component (index into the model's components).
+pub type Grouped<'a> = Vec<(usize, Vec<&'a Observation>)>;
 
 /// Which data items a request takes: `None` every one.
 pub type Selection = Option<Vec<bool>>;
@@ -202,7 +205,7 @@ impl Agent {
                 let Some((_, view)) = self.machines.get_mut(&k) else {
                     return 0;
                 };
-                view.status(s);
+                view.status(*s);
                 self.refresh_machine(&k, now_us)
             }
             Update::Job(e) => {
@@ -501,14 +504,15 @@ impl Agent {
     }
 
     /// `/sample`: observations from `from` (default the first kept), `count` at most
-    /// (default 100); returns the document and the `nextSequence` it gives.
+    /// (default 100); returns the document, the `nextSequence` it gives and how many
+    /// observations it holds.
     pub fn sample(
         &self,
         device: Option<usize>,
         q: &Query,
         sel: &Selection,
         now_us: u64,
-    ) -> Result<(String, u64), MtError> {
+    ) -> Result<(String, u64, usize), MtError> {
         let count = self.buffer.check_count(q.count.unwrap_or(DEFAULT_COUNT))?;
         let from = match q.from {
             Some(f) => self.buffer.check_from(f)?,
@@ -517,7 +521,11 @@ impl Agent {
         let (obs, next) = self
             .buffer
             .sample(from, count, |i| sel.as_ref().is_none_or(|m| m[i as usize]));
-        Ok((self.streams(device, &obs, next, q.format, now_us), next))
+        Ok((
+            self.streams(device, &obs, next, q.format, now_us),
+            next,
+            obs.len(),
+        ))
     }
 
     /// An MTConnectError document.
@@ -660,17 +668,14 @@ impl Agent {
     }
 
     /// The observations grouped by device and component, in model order.
-    pub fn grouped<'a>(
-        &self,
-        obs: &[&'a Observation],
-    ) -> Vec<(usize, Vec<(usize, Vec<&'a Observation>)>)> {
+    pub fn grouped<'a>(&self, obs: &[&'a Observation]) -> Vec<(usize, Grouped<'a>)> {
         let mut by_comp: Vec<Vec<&Observation>> = vec![Vec::new(); self.model.components.len()];
         for o in obs {
             if let Some(item) = self.model.items.get(o.item as usize) {
                 by_comp[item.component].push(o);
             }
         }
-        let mut out: Vec<(usize, Vec<(usize, Vec<&Observation>)>)> = Vec::new();
+        let mut out: Vec<(usize, Grouped<'_>)> = Vec::new();
         for (c, list) in by_comp.into_iter().enumerate() {
             if list.is_empty() {
                 continue;

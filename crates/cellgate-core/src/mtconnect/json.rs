@@ -39,12 +39,11 @@ fn root(kind: &str, header: J, body_key: &str, body: J) -> String {
 
 /// Pushes `value` into the array `obj[key]`.
 fn push(obj: &mut Map<String, J>, key: &str, value: J) {
-    match obj
+    if let J::Array(a) = obj
         .entry(key.to_string())
         .or_insert_with(|| J::Array(Vec::new()))
     {
-        J::Array(a) => a.push(value),
-        _ => {}
+        a.push(value);
     }
 }
 

@@ -134,7 +134,7 @@ fn execution_follows_the_link_and_the_job() {
     assert_eq!(current_value(&a, "mill-1_execution"), Value::Unavailable);
     a.update(
         "demo",
-        Update::Status(status("mill-1", pb::LinkState::Idle)),
+        Update::Status(Box::new(status("mill-1", pb::LinkState::Idle))),
         2,
     );
     assert_eq!(
@@ -162,7 +162,7 @@ fn execution_follows_the_link_and_the_job() {
     a.update("demo", Update::Job(started), 3);
     a.update(
         "demo",
-        Update::Status(status("mill-1", pb::LinkState::Sending)),
+        Update::Status(Box::new(status("mill-1", pb::LinkState::Sending))),
         4,
     );
     assert_eq!(
@@ -182,7 +182,7 @@ fn execution_follows_the_link_and_the_job() {
     a.update("demo", Update::Job(done), 5);
     a.update(
         "demo",
-        Update::Status(status("mill-1", pb::LinkState::Idle)),
+        Update::Status(Box::new(status("mill-1", pb::LinkState::Idle))),
         6,
     );
     assert_eq!(
@@ -208,7 +208,7 @@ fn a_cnc_alarm_is_a_fault_with_a_native_code_that_a_reset_clears() {
         message: "the CNC raised an alarm (NAK; §6.4)".into(),
         ..Default::default()
     });
-    a.update("demo", Update::Status(s.clone()), 2);
+    a.update("demo", Update::Status(Box::new(s.clone())), 2);
     let i = a.model().item_by_id("lathe-1_system").unwrap();
     let shown = a.buffer().state(i).unwrap().shown();
     assert_eq!(shown.len(), 1);
@@ -216,7 +216,7 @@ fn a_cnc_alarm_is_a_fault_with_a_native_code_that_a_reset_clears() {
     assert!(doc.contains("nativeCode=\"CG-NAK\""), "{doc}");
     assert!(doc.contains("<Fault"), "{doc}");
     s.link_state = pb::LinkState::Idle as i32;
-    a.update("demo", Update::Status(s), 4);
+    a.update("demo", Update::Status(Box::new(s)), 4);
     let doc = a.current(None, &Query::default(), 5).unwrap();
     assert!(!doc.contains("<Fault"), "{doc}");
 }
@@ -231,7 +231,7 @@ fn a_link_alarm_keeps_the_manual_number() {
         message: "time-out".into(),
         ..Default::default()
     });
-    a.update("demo", Update::Status(s), 2);
+    a.update("demo", Update::Status(Box::new(s)), 2);
     let doc = a.current(None, &Query::default(), 3).unwrap();
     assert!(
         doc.contains("type=\"COMMUNICATIONS\" nativeCode=\"SR0944\""),
@@ -244,7 +244,7 @@ fn part_count_comes_from_the_tag() {
     let mut a = agent();
     a.update(
         "demo",
-        Update::Status(status("mill-1", pb::LinkState::Idle)),
+        Update::Status(Box::new(status("mill-1", pb::LinkState::Idle))),
         2,
     );
     a.update(
@@ -273,13 +273,13 @@ fn unchanged_values_make_no_observation() {
     let mut a = agent();
     let n = a.update(
         "demo",
-        Update::Status(status("mill-1", pb::LinkState::Idle)),
+        Update::Status(Box::new(status("mill-1", pb::LinkState::Idle))),
         2,
     );
     assert!(n > 0);
     let again = a.update(
         "demo",
-        Update::Status(status("mill-1", pb::LinkState::Idle)),
+        Update::Status(Box::new(status("mill-1", pb::LinkState::Idle))),
         3,
     );
     assert_eq!(again, 0);
