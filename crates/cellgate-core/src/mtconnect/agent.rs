@@ -675,19 +675,17 @@ impl Agent {
                 by_comp[item.component].push(o);
             }
         }
-        let mut out: Vec<(usize, Grouped<'_>)> = Vec::new();
+        let mut by_dev: Vec<Grouped<'_>> = vec![Vec::new(); self.model.devices.len()];
         for (c, list) in by_comp.into_iter().enumerate() {
-            if list.is_empty() {
-                continue;
-            }
-            let dev = self.model.components[c].device;
-            match out.iter_mut().find(|(d, _)| *d == dev) {
-                Some((_, comps)) => comps.push((c, list)),
-                None => out.push((dev, vec![(c, list)])),
+            if !list.is_empty() {
+                by_dev[self.model.components[c].device].push((c, list));
             }
         }
-        out.sort_by_key(|(d, _)| *d);
-        out
+        by_dev
+            .into_iter()
+            .enumerate()
+            .filter(|(_, comps)| !comps.is_empty())
+            .collect()
     }
 
     fn streams(

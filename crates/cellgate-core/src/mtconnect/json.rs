@@ -2,6 +2,8 @@
 //! version 2 JSON writes it (`jsonVersion` 2): an element is an object, its attributes are
 //! members, its text is `value`, and elements of one name are gathered in an array under it.
 
+use std::fmt::Write as _;
+
 use serde_json::{Map, Value as J, json};
 
 use super::agent::Agent;
@@ -116,74 +118,154 @@ fn component(a: &Agent, c: usize) -> Map<String, J> {
     o
 }
 
-/// `/current` or `/sample` as JSON.
+/// `s` as a JSON string, quoted and escaped (RFC 8259 §7).
+fn string(out: &mut String, s: &str) {
+    out.push('"');
+    for c in s.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            c if (c as u32) < 0x20 => {
+                let _ = write!(out, "\\u{:04x}", c as u32);
+            }
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+}
+
+/// `"key":"value"`, after a comma unless `first`.
+fn member(out: &mut String, key: &str, value: &str) {
+    string(out, key);
+    out.push(':');
+    string(out, value);
+}
+
+/// One observation as its JSON object.
+fn observation(out: &mut String, a: &Agent, o: &Observation) {
+    let it = &a.model().items[o.item as usize];
+    out.push('{');
+    member(out, "dataItemId", &it.id);
+    out.push(',');
+    member(out, "timestamp", &xml::timestamp(o.time_us));
+    let _ = write!(out, ",\"sequence\":{}", o.seq);
+    if let Some(n) = &it.name {
+        out.push(',');
+        member(out, "name", n);
+    }
+    match (&o.value, it.category) {
+        (Value::Cond(c), _) => {
+            out.push(',');
+            member(out, "type", it.kind);
+            if !c.native_code.is_empty() {
+                out.push(',');
+                member(out, "nativeCode", &c.native_code);
+            }
+            if !c.text.is_empty() {
+                out.push(',');
+                member(out, "value", &c.text);
+            }
+        }
+        (_, Category::Condition) => {
+            out.push(',');
+            member(out, "type", it.kind);
+        }
+        (Value::Text(t), _) => {
+            out.push(',');
+            member(out, "value", t);
+        }
+        _ => {
+            out.push(',');
+            member(out, "value", "UNAVAILABLE");
+        }
+    }
+    out.push('}');
+}
+
+/// The element an observation is in a document.
+fn element(a: &Agent, o: &Observation) -> String {
+    let it = &a.model().items[o.item as usize];
+    match (&o.value, it.category) {
+        (Value::Cond(c), _) => c.level.element().to_string(),
+        (_, Category::Condition) => "Unavailable".to_string(),
+        _ => xml::element_of(it.kind),
+    }
+}
+
+/// `/current` or `/sample` as JSON, written straight into the text (a thousand machines'
+/// `/current` would otherwise build a tree of every member first).
 pub fn streams(a: &Agent, obs: &[&Observation], next: u64, now_us: u64) -> String {
     let m = a.model();
     let buffer = a.buffer();
-    let mut devices = Vec::new();
-    for (d, comps) in a.grouped(obs) {
+    let mut out = String::with_capacity(1024 + obs.len() * 160);
+    out.push('[');
+    for (n, (d, comps)) in a.grouped(obs).into_iter().enumerate() {
         let dev = &m.devices[d];
-        let mut cs = Vec::new();
-        for (c, list) in comps {
+        if n > 0 {
+            out.push(',');
+        }
+        out.push('{');
+        member(&mut out, "name", &dev.name);
+        out.push(',');
+        member(&mut out, "uuid", &dev.uuid);
+        out.push_str(",\"ComponentStream\":[");
+        for (k, (c, list)) in comps.into_iter().enumerate() {
             let comp = &m.components[c];
-            let mut o = Map::new();
-            o.insert("component".into(), J::from(comp.element));
-            o.insert("componentId".into(), J::from(comp.id.as_str()));
-            if let Some(n) = &comp.name {
-                o.insert("name".into(), J::from(n.as_str()));
+            if k > 0 {
+                out.push(',');
+            }
+            out.push('{');
+            member(&mut out, "component", comp.element);
+            out.push(',');
+            member(&mut out, "componentId", &comp.id);
+            if let Some(name) = &comp.name {
+                out.push(',');
+                member(&mut out, "name", name);
             }
             for (cat, wrap) in [
                 (Category::Sample, "Samples"),
                 (Category::Event, "Events"),
                 (Category::Condition, "Condition"),
             ] {
-                let mut group = Map::new();
-                for obs in list
+                // Observations of one element gathered in an array, in the order first met.
+                let mut groups: Vec<(String, Vec<&Observation>)> = Vec::new();
+                for o in list
                     .iter()
                     .filter(|o| m.items[o.item as usize].category == cat)
                 {
-                    let it = &m.items[obs.item as usize];
-                    let mut e = Map::new();
-                    e.insert("dataItemId".into(), J::from(it.id.as_str()));
-                    e.insert("timestamp".into(), J::from(xml::timestamp(obs.time_us)));
-                    e.insert("sequence".into(), J::from(obs.seq));
-                    if let Some(n) = &it.name {
-                        e.insert("name".into(), J::from(n.as_str()));
+                    let e = element(a, o);
+                    match groups.iter_mut().find(|(g, _)| *g == e) {
+                        Some((_, v)) => v.push(o),
+                        None => groups.push((e, vec![o])),
                     }
-                    let element = match (&obs.value, cat) {
-                        (Value::Cond(c), _) => {
-                            e.insert("type".into(), J::from(it.kind));
-                            if !c.native_code.is_empty() {
-                                e.insert("nativeCode".into(), J::from(&*c.native_code));
-                            }
-                            if !c.text.is_empty() {
-                                e.insert("value".into(), J::from(&*c.text));
-                            }
-                            c.level.element().to_string()
-                        }
-                        (_, Category::Condition) => {
-                            e.insert("type".into(), J::from(it.kind));
-                            "Unavailable".to_string()
-                        }
-                        (Value::Text(t), _) => {
-                            e.insert("value".into(), J::from(&**t));
-                            xml::element_of(it.kind)
-                        }
-                        _ => {
-                            e.insert("value".into(), J::from("UNAVAILABLE"));
-                            xml::element_of(it.kind)
-                        }
-                    };
-                    push(&mut group, &element, J::Object(e));
                 }
-                if !group.is_empty() {
-                    o.insert(wrap.into(), J::Object(group));
+                if groups.is_empty() {
+                    continue;
                 }
+                out.push(',');
+                string(&mut out, wrap);
+                out.push_str(":{");
+                for (g, (e, list)) in groups.iter().enumerate() {
+                    if g > 0 {
+                        out.push(',');
+                    }
+                    string(&mut out, e);
+                    out.push_str(":[");
+                    for (i, o) in list.iter().enumerate() {
+                        if i > 0 {
+                            out.push(',');
+                        }
+                        observation(&mut out, a, o);
+                    }
+                    out.push(']');
+                }
+                out.push('}');
             }
-            cs.push(J::Object(o));
+            out.push('}');
         }
-        devices.push(json!({ "name": dev.name, "uuid": dev.uuid, "ComponentStream": cs }));
+        out.push_str("]}");
     }
+    out.push(']');
     let h = header(
         a,
         now_us,
@@ -194,7 +276,10 @@ pub fn streams(a: &Agent, obs: &[&Observation], next: u64, now_us: u64) -> Strin
             ("deviceModelChangeTime", J::from(a.model_change_time())),
         ],
     );
-    root("Streams", h, "Streams", json!({ "DeviceStream": devices }))
+    // The document around the streams, as `root` writes the others.
+    format!(
+        "{{\"MTConnectStreams\":{{\"jsonVersion\":2,\"schemaVersion\":\"2.5\",\"Header\":{h},\"Streams\":{{\"DeviceStream\":{out}}}}}}}"
+    )
 }
 
 /// An error as JSON.

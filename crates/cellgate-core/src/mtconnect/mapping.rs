@@ -78,6 +78,10 @@ pub struct MachineView {
 impl MachineView {
     /// Takes a status.
     pub fn status(&mut self, s: pb::MachineStatus) {
+        // A reset ends the program (§6.4, RST §4.4.1): how the last job ended is history.
+        if history::activity(&s) == pb::MachineActivity::Reset {
+            self.job_end = None;
+        }
         self.status = Some(s);
     }
 

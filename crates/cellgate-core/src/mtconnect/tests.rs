@@ -189,7 +189,24 @@ fn execution_follows_the_link_and_the_job() {
         current_value(&a, "mill-1_execution"),
         Value::Text("PROGRAM_COMPLETED".into())
     );
-    a.update("demo", Update::Gateway(false), 7);
+    // A reset ends it: READY, and READY still once the CNC operates again.
+    let mut reset = status("mill-1", pb::LinkState::Idle);
+    reset.sat = Some(pb::Sat {
+        buffer_status: pb::BufferStatus::Reset as i32,
+        ..Default::default()
+    });
+    a.update("demo", Update::Status(Box::new(reset.clone())), 7);
+    assert_eq!(
+        current_value(&a, "mill-1_execution"),
+        Value::Text("READY".into())
+    );
+    reset.sat.as_mut().unwrap().buffer_status = pb::BufferStatus::Operating as i32;
+    a.update("demo", Update::Status(Box::new(reset)), 8);
+    assert_eq!(
+        current_value(&a, "mill-1_execution"),
+        Value::Text("READY".into())
+    );
+    a.update("demo", Update::Gateway(false), 9);
     assert_eq!(current_value(&a, "mill-1_execution"), Value::Unavailable);
     assert_eq!(
         current_value(&a, "mill-1_avail"),
@@ -362,4 +379,40 @@ fn documents_carry_the_2_5_namespaces_and_the_buffer() {
     assert!(cur.contains(&format!("nextSequence=\"{}\"", a.buffer().next())));
     let json: serde_json::Value = serde_json::from_str(&a.probe(None, Format::Json, 5)).unwrap();
     assert_eq!(json["MTConnectDevices"]["jsonVersion"], 2);
+}
+
+#[test]
+fn json_streams_escape_text_and_keep_the_structure() {
+    let mut a = agent();
+    let mut s = status("mill-1", pb::LinkState::Alarm);
+    s.last_alarm = Some(pb::AlarmEvent {
+        kind: pb::AlarmKind::CncAlarm as i32,
+        message: "quote \" backslash \\ line\nend \u{1}".into(),
+        ..Default::default()
+    });
+    a.update("demo", Update::Status(Box::new(s)), 2);
+    let q = Query {
+        format: Format::Json,
+        ..Query::default()
+    };
+    let doc = a.current(None, &q, 3).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&doc).unwrap();
+    let streams = v["MTConnectStreams"]["Streams"]["DeviceStream"]
+        .as_array()
+        .unwrap();
+    assert_eq!(streams.len(), 4, "Agent, two machines, a PLC: {doc}");
+    let mill = streams.iter().find(|d| d["name"] == "mill-1").unwrap();
+    let controller = mill["ComponentStream"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["component"] == "Controller")
+        .unwrap();
+    let fault = &controller["Condition"]["Fault"][0];
+    assert_eq!(fault["nativeCode"], "CG-ALM");
+    assert_eq!(fault["value"], "quote \" backslash \\ line\nend \u{1}");
+    assert_eq!(
+        v["MTConnectStreams"]["Header"]["nextSequence"],
+        a.buffer().next()
+    );
 }
