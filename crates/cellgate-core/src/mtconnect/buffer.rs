@@ -253,7 +253,7 @@ impl SequenceBuffer {
     /// takes the newest observations, Part 1 "sample").
     pub fn check_count(&self, count: i64) -> Result<i64, OutOfRange> {
         let max = self.size as i64;
-        if count == 0 || count.abs() > max {
+        if count == 0 || count.unsigned_abs() > max as u64 {
             return Err(OutOfRange {
                 param: "count",
                 value: count,

@@ -103,6 +103,10 @@ fn sample_count_stops_and_tells_where_to_go_on() {
     assert_eq!(next, 11);
     assert!(b.check_count(0).is_err());
     assert!(b.check_count(101).is_err());
+    assert!(
+        b.check_count(i64::MIN).is_err(),
+        "no overflow on the most negative count"
+    );
 }
 
 #[test]
@@ -415,4 +419,30 @@ fn json_streams_escape_text_and_keep_the_structure() {
         v["MTConnectStreams"]["Header"]["nextSequence"],
         a.buffer().next()
     );
+}
+
+proptest::proptest! {
+    /// Nothing a client puts in a request's query can panic the agent: every request is
+    /// answered with a document or an error.
+    #[test]
+    fn any_query_is_answered_without_a_panic(
+        key in proptest::sample::select(vec!["path", "at", "from", "count", "interval", "heartbeat", "format", "x"]),
+        value in ".{0,40}",
+        number in proptest::num::i64::ANY,
+        path in "[/@\\[\\]\"'=*|a-zA-Z_ -]{0,40}",
+    ) {
+        let a = agent();
+        let number = number.to_string();
+        for (k, v) in [(key, value.as_str()), (key, number.as_str()), ("path", path.as_str())] {
+            for r in [Request::Probe, Request::Current, Request::Sample, Request::Assets] {
+                if let Ok(q) = Query::parse(r, [(k, v)]) {
+                    let sel = a.select(None, q.path.as_deref());
+                    let _ = a.current(None, &q, 1);
+                    if let Ok(sel) = sel {
+                        let _ = a.sample(None, &q, &sel, 1);
+                    }
+                }
+            }
+        }
+    }
 }
