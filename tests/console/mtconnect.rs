@@ -370,6 +370,12 @@ async fn errors_are_mtconnect_error_documents_with_the_standard_codes() {
         ("/current?path=//DataItem[type", 400, "INVALID_PATH"),
         ("/a/b/c/d", 404, "INVALID_URI"),
         ("/asset/x1", 404, "ASSET_NOT_FOUND"),
+        // What a hostile or broken client sends is answered, never a panic.
+        ("/%FF/probe", 404, "INVALID_URI"),
+        ("/sample?count=-9223372036854775808", 400, "OUT_OF_RANGE"),
+        ("/sample?interval=99999999999", 400, "OUT_OF_RANGE"),
+        ("/current?at=1&interval=10", 400, "INVALID_REQUEST"),
+        ("/current?path=%2F%2F%5B%5B%5B", 400, "INVALID_PATH"),
     ];
     for (path, status, code) in cases {
         let (s, body) = get(&format!("{u}{path}")).await;
