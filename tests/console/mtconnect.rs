@@ -3,7 +3,8 @@
 //! shows as a Fault with its native code and clears on reset, sequence numbers run without
 //! gaps, `/sample` streams with heartbeats, errors come as MTConnectError documents with the
 //! standard's codes, every kind of document is valid against the MTConnect 2.5 schemas, the
-//! SHDR adapter answers `* PING`, and a site agent serves the cells of two gateways.
+//! SHDR adapter sends the state and each observation and answers `* PING`, a site agent
+//! serves the cells of two gateways, and the Python follower of docs/mtconnect.md reads it.
 //!
 //! Schema validation uses `xmllint` (Debian's libxml2-utils; `.ci/run` installs it); where it
 //! is missing, the validating test says it was skipped. libxml2 implements XSD 1.0 and the
@@ -563,6 +564,24 @@ async fn the_shdr_adapter_sends_the_state_and_answers_ping() {
             .any(|l| l.contains("|mill-1:mill-1_system|NORMAL|")),
         "{seen:#?}"
     );
+    // Then each observation as it is made: an alarm at the simulated CNC.
+    let client = gw.client().await;
+    client
+        .sim_control::<pb::SimDi>("mill-1", SimLeaf::Alarm, None)
+        .await
+        .unwrap();
+    let fault = tokio::time::timeout(Duration::from_secs(30), async {
+        while let Some(l) = lines.next_line().await.unwrap() {
+            if l.contains("|mill-1:mill-1_system|FAULT|") {
+                return l;
+            }
+        }
+        panic!("the adapter hung up");
+    })
+    .await
+    .expect("the fault comes as a line");
+    assert!(fault.contains("|FAULT|CG-ALM|||"), "{fault}");
+    client.close().await;
     drop(write);
     gw.stop().await;
 }
