@@ -39,6 +39,8 @@ pub mod codes {
     pub const DOWN: &str = "CG-DOWN";
     /// A PLC station does not answer (FFU120B §5-6: a missing reply is a time-out).
     pub const STATION: &str = "CG-STATION";
+    /// The open G05 stream starved the CNC: unit times without a block (§9.2).
+    pub const G05: &str = "CG-G05";
 }
 
 fn text(s: impl Into<Arc<str>>) -> Value {
@@ -73,6 +75,8 @@ pub struct MachineView {
     job_end: Option<(String, JobEnd)>,
     part_count: Option<i64>,
     g05_taken: Option<u64>,
+    /// Whether the machine's G05 stream is open (priming, streaming, ending).
+    g05_open: bool,
 }
 
 impl MachineView {
@@ -151,6 +155,10 @@ impl MachineView {
     /// Takes a G05 stream's status.
     pub fn g05(&mut self, g: &pb::G05Status) {
         self.g05_taken = Some(g.on_line.saturating_sub(g.cnc_buffer));
+        self.g05_open = matches!(
+            g.state(),
+            pb::G05State::Priming | pb::G05State::Streaming | pb::G05State::Ending
+        );
     }
 
     fn up(&self) -> Option<&pb::MachineStatus> {
@@ -269,6 +277,23 @@ impl MachineView {
         }
     }
 
+    /// The MOTION_PROGRAM condition of a G05 stream: a Warning while the open stream has
+    /// starved the CNC (unit times without a block, §9.2: the gateway's G05 alarm).
+    fn g05_starved(&self) -> Option<Vec<Cond>> {
+        let s = self.up()?;
+        let alarm = s
+            .last_alarm
+            .as_ref()
+            .filter(|a| a.kind() == pb::AlarmKind::G05 && self.g05_open);
+        Some(alarm.map_or_else(Vec::new, |a| {
+            vec![Cond {
+                level: Level::Warning,
+                native_code: codes::G05.into(),
+                text: a.message.as_str().into(),
+            }]
+        }))
+    }
+
     /// What data item `role` of this machine should show.
     pub fn wanted(&self, role: &Role) -> Option<Wanted> {
         let up = self.up();
@@ -300,6 +325,7 @@ impl MachineView {
                 _ => Value::Unavailable,
             }),
             Role::CncAlarm => Wanted::Conditions(self.cnc_alarm()),
+            Role::G05Starved => Wanted::Conditions(self.g05_starved()),
             Role::LinkFault => Wanted::Conditions(self.link_fault()),
             _ => return None,
         })

@@ -51,6 +51,8 @@ pub enum Role {
     Do,
     /// The blocks of a machine's G05 stream the CNC took (estimated, §9.2).
     G05Blocks,
+    /// A machine's G05 stream starving the CNC (MOTION_PROGRAM condition).
+    G05Starved,
     /// A PLC station's health (COMMUNICATIONS condition).
     Station(u32),
     /// A PLC tag's value.
@@ -421,6 +423,14 @@ impl Model {
                 Role::G05Blocks,
             );
             self.items[b].native_name = Some("G05".into());
+            self.item(
+                path,
+                &format!("{d}_g05"),
+                Some("g05"),
+                Category::Condition,
+                "MOTION_PROGRAM",
+                Role::G05Starved,
+            );
         }
         dev
     }

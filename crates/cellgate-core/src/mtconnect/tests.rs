@@ -446,3 +446,40 @@ proptest::proptest! {
         }
     }
 }
+
+#[test]
+fn a_starving_g05_stream_is_a_warning_while_it_is_open() {
+    let mut a = Agent::new("test", 7, 1024, 1);
+    let mut desc = cell();
+    desc.machines[0].g05 = true;
+    a.add_cell(&desc, 1);
+    a.update("demo", Update::Gateway(true), 1);
+    let mut s = status("mill-1", pb::LinkState::Sending);
+    s.last_alarm = Some(pb::AlarmEvent {
+        kind: pb::AlarmKind::G05 as i32,
+        message: "G05 stream s1 starved the CNC: 3 underruns".into(),
+        ..Default::default()
+    });
+    let stream = |state: pb::G05State| pb::G05Status {
+        machine: "mill-1".into(),
+        stream_id: "s1".into(),
+        state: state as i32,
+        on_line: 100,
+        cnc_buffer: 10,
+        ..Default::default()
+    };
+    a.update("demo", Update::G05(stream(pb::G05State::Streaming)), 2);
+    a.update("demo", Update::Status(Box::new(s)), 3);
+    let doc = a.current(None, &Query::default(), 4).unwrap();
+    assert!(
+        doc.contains("type=\"MOTION_PROGRAM\" nativeCode=\"CG-G05\""),
+        "{doc}"
+    );
+    assert_eq!(
+        current_value(&a, "mill-1_g05_blocks"),
+        Value::Text("90".into())
+    );
+    a.update("demo", Update::G05(stream(pb::G05State::Completed)), 5);
+    let doc = a.current(None, &Query::default(), 6).unwrap();
+    assert!(!doc.contains("CG-G05"), "{doc}");
+}
