@@ -24,6 +24,8 @@ use cellgate_core::config::CellConfig;
 pub struct Ready {
     /// The console's URL, when it serves one.
     pub console: Option<String>,
+    /// The MTConnect agent's URL, when it serves one.
+    pub mtconnect: Option<String>,
 }
 
 /// Why the gateway stopped with an error.
@@ -41,6 +43,9 @@ pub enum GatewayError {
     /// The console (`[console]`) could not be served.
     #[error(transparent)]
     Console(#[from] crate::console::ConsoleError),
+    /// The MTConnect agent (`[mtconnect]`) could not be served.
+    #[error(transparent)]
+    Mtconnect(#[from] crate::mtconnect::MtconnectError),
     /// The session did not close cleanly.
     #[error("closing the zenoh session: {0}")]
     Close(#[source] zenoh::Error),
@@ -194,21 +199,21 @@ async fn serve_with(
         listening,
     );
 
-    // The console, a client of the routes just announced, on this session.
-    let console_stop = CancellationToken::new();
-    let console = match &config.console {
+    // The MTConnect agent, a client of the same routes, on this session; it only reads.
+    let mtconnect_stop = CancellationToken::new();
+    let mtconnect = match &config.mtconnect {
         None => None,
-        Some(c) => {
-            let settings = crate::console::ConsoleSettings {
-                console: c.clone(),
+        Some(m) => {
+            let settings = crate::mtconnect::MtconnectSettings {
+                config: m.clone(),
                 prefix: config.bus.prefix.clone(),
-                cell: Some(config.cell.clone()),
-                security: config.security.clone(),
+                only: Some(config.cell.clone()),
+                own: Some(cellgate_core::mtconnect::CellDesc::from_config(config)),
+                sender: format!("cellgate {}", config.cell),
             };
-            match crate::console::serve(session.clone(), settings, None, console_stop.clone()).await
-            {
+            match crate::mtconnect::serve(session.clone(), settings, mtconnect_stop.clone()).await {
                 Ok(served) => {
-                    tracing::info!(url = %served.url, "console at {}", served.url);
+                    tracing::info!(url = %served.url, shdr = ?served.shdr, "MTConnect agent at {}", served.url);
                     Some(served)
                 }
                 Err(e) => {
@@ -223,9 +228,44 @@ async fn serve_with(
         }
     };
 
+    // The console, a client of the routes just announced, on this session.
+    let console_stop = CancellationToken::new();
+    let console = match &config.console {
+        None => None,
+        Some(c) => {
+            let settings = crate::console::ConsoleSettings {
+                console: c.clone(),
+                prefix: config.bus.prefix.clone(),
+                cell: Some(config.cell.clone()),
+                security: config.security.clone(),
+                mtconnect: mtconnect.as_ref().map(|m| m.url.clone()),
+            };
+            match crate::console::serve(session.clone(), settings, None, console_stop.clone()).await
+            {
+                Ok(served) => {
+                    tracing::info!(url = %served.url, "console at {}", served.url);
+                    Some(served)
+                }
+                Err(e) => {
+                    mtconnect_stop.cancel();
+                    if let Some(m) = mtconnect {
+                        m.join().await;
+                    }
+                    routes_stop.cancel();
+                    let _ = routes.await;
+                    links_stop.cancel();
+                    cell.join().await;
+                    admin.undeclare().await;
+                    return Err(e.into());
+                }
+            }
+        }
+    };
+
     if let Some(serving) = serving {
         let _ = serving.send(Ready {
             console: console.as_ref().map(|c| c.url.clone()),
+            mtconnect: mtconnect.as_ref().map(|m| m.url.clone()),
         });
     }
 
@@ -242,6 +282,10 @@ async fn serve_with(
         }
     }
 
+    mtconnect_stop.cancel();
+    if let Some(m) = mtconnect {
+        m.join().await;
+    }
     console_stop.cancel();
     if let Some(c) = console {
         c.join().await;

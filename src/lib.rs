@@ -27,7 +27,9 @@
 //!   ([`bus::serve`], [`bus::serve_plcs`]); the key grammar is the core's.
 //! - [`cell`]: the cell's links, built from the cell file; [`client`]: a client of the bus
 //!   contract, the library side of the command line.
-//! - [`console`]: the web console, a client of the bus like [`client`], served over HTTP(S).
+//! - [`console`]: the web console, a client of the bus like [`client`], served over HTTP(S);
+//!   [`mtconnect`]: the MTConnect agent, a client of the bus as well, over HTTP and SHDR (its
+//!   model and documents are the core's `mtconnect`).
 //! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves it, and stops
 //!   cleanly when the shutdown future completes.
 //!
@@ -35,7 +37,7 @@
 //!
 //! A module imports only the modules of lower layers in the list above (and the core):
 //! `tests/cli/layering.rs` checks it, for this crate and the core. Only the bus side (`bus`,
-//! `client`, `console`, `gateway`) speaks zenoh, so links, jobs and transports run without a bus (and
+//! `client`, `console`, `mtconnect`, `gateway`) speaks zenoh, so links, jobs and transports run without a bus (and
 //! in paused time).
 
 pub mod bus;
@@ -46,6 +48,7 @@ pub mod gateway;
 pub mod history;
 pub mod jobs;
 pub mod link;
+pub mod mtconnect;
 pub mod plc;
 pub mod sim;
 pub mod telemetry;

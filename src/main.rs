@@ -74,6 +74,9 @@ enum Command {
     /// Serve the web console for every cell behind an endpoint (a site view) until SIGINT or
     /// SIGTERM; a gateway serves its own cell's with `[console]` in its cell file.
     Console(cellgate::console::SiteArgs),
+    /// Serve an MTConnect agent for every cell behind an endpoint (a site view) until SIGINT
+    /// or SIGTERM; a gateway serves its own cell's with `[mtconnect]` in its cell file.
+    Mtconnect(cellgate::mtconnect::SiteArgs),
     /// The jobs of the cell's machines: the one being sent and the ones waiting (with --all,
     /// the ones that ended too).
     Jobs(client::JobsArgs),
@@ -165,6 +168,10 @@ struct RunArgs {
     /// a free one), or `off` for no console.
     #[arg(long, value_name = "ADDR|off")]
     console: Option<String>,
+    /// Where the MTConnect agent listens, ADDRESS:PORT (overrides mtconnect.listen; port 0
+    /// takes a free one), or `off` for no agent.
+    #[arg(long, value_name = "ADDR|off")]
+    mtconnect: Option<String>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -263,6 +270,7 @@ fn main() -> ExitCode {
         Command::Audit(ref args) => client_command(&cli, args),
         Command::Utilisation(ref args) => client_command(&cli, args),
         Command::Console(ref args) => site_console(args),
+        Command::Mtconnect(ref args) => site_mtconnect(args),
         Command::Jobs(ref args) => client_command(&cli, args),
         Command::Job(ref args) => client_command(&cli, args),
         Command::G05(ref args) => client_command(&cli, args),
@@ -604,6 +612,14 @@ fn apply_overrides(config: &mut CellConfig, cli: &Cli, args: &RunArgs) -> bool {
             any = true;
         }
     }
+    match args.mtconnect.as_deref() {
+        None => {}
+        Some("off") => config.mtconnect = None,
+        Some(addr) => {
+            config.mtconnect.get_or_insert_with(Default::default).listen = addr.to_string();
+            any = true;
+        }
+    }
     if let Some(format) = cli.log_format {
         config.telemetry.log_format = format.into();
     }
@@ -682,8 +698,12 @@ async fn run_async(config: CellConfig, origin: String, open_files: Option<u64>) 
                 .console
                 .map(|url| format!("console: {url}\n"))
                 .unwrap_or_default();
+            let mtconnect = ready
+                .mtconnect
+                .map(|url| format!("mtconnect: {url}\n"))
+                .unwrap_or_default();
             // A closed stdout (a service manager's) is no reason to stop.
-            let _ = write!(std::io::stdout().lock(), "{overview}{console}");
+            let _ = write!(std::io::stdout().lock(), "{overview}{console}{mtconnect}");
         }
     });
     let code = match shutdown_signal() {
@@ -784,6 +804,49 @@ fn site_console(args: &cellgate::console::SiteArgs) -> ExitCode {
         match cellgate::console::site(args, shutdown).await {
             Ok(()) => ExitCode::SUCCESS,
             Err(cellgate::console::SiteError::Config(e)) => {
+                eprintln!("cellgate: {e}");
+                ExitCode::from(EXIT_CONFIG)
+            }
+            Err(e) => {
+                eprintln!("cellgate: {e}");
+                ExitCode::from(EXIT_RUNTIME)
+            }
+        }
+    });
+    runtime.shutdown_timeout(Duration::from_secs(2));
+    code
+}
+
+/// `cellgate mtconnect`: the site agent until SIGINT or SIGTERM.
+fn site_mtconnect(args: &cellgate::mtconnect::SiteArgs) -> ExitCode {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
+            return ExitCode::from(EXIT_RUNTIME);
+        }
+    };
+    let code = runtime.block_on(async {
+        let shutdown = match shutdown_signal() {
+            Ok(s) => s,
+            Err(e) => {
+                eprintln!("cellgate: cannot watch for signals: {e}");
+                return ExitCode::from(EXIT_RUNTIME);
+            }
+        };
+        match cellgate::mtconnect::site(args, shutdown).await {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(cellgate::mtconnect::SiteError::Config(e)) => {
                 eprintln!("cellgate: {e}");
                 ExitCode::from(EXIT_CONFIG)
             }

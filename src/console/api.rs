@@ -108,6 +108,7 @@ fn me_json(c: &Console, u: &User) -> serde_json::Value {
         "csrf": u.csrf,
         "secured": c.auth.secured(),
         "expires_unix_ms": c.auth.expires_unix_ms(u).to_string(),
+        "mtconnect": c.mtconnect,
     })
 }
 

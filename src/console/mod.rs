@@ -69,6 +69,8 @@ pub struct ConsoleSettings {
     pub cell: Option<String>,
     /// Users, roles and the certificates for HTTPS.
     pub security: SecurityConfig,
+    /// The MTConnect agent's URL, when one serves the same cells: the pages link to it.
+    pub mtconnect: Option<String>,
 }
 
 /// The console's state, shared by every request.
@@ -92,6 +94,8 @@ pub struct Console {
     refusals: std::sync::Mutex<Refusals>,
     /// Audit notes to send: (cell, empty for every cell; the record).
     notes: mpsc::Sender<refusals::Out>,
+    /// The MTConnect agent's URL, if any.
+    mtconnect: Option<String>,
 }
 
 impl Console {
@@ -390,6 +394,7 @@ pub async fn serve(
         uploads: Semaphore::new(UPLOADS_AT_ONCE),
         refusals: std::sync::Mutex::new(Refusals::default()),
         notes: notes_tx,
+        mtconnect: settings.mtconnect.clone(),
     });
     tokio::spawn(notes_task(Arc::clone(&console), notes_rx, stop.clone()));
     let app = router(console).into_make_service_with_connect_info::<listen::Peer>();
@@ -501,6 +506,7 @@ pub async fn site(
         prefix: options.prefix.clone(),
         cell: options.cell.clone(),
         security,
+        mtconnect: None,
     };
     let served = match serve(session.clone(), settings, None, stop.clone()).await {
         Ok(s) => s,

@@ -69,6 +69,8 @@ async fn start_gateway_with(links: impl FnOnce(&mut Vec<bus::MachineLink>)) -> G
     let port = free_port();
     let dir = tempfile::tempdir().unwrap();
     let mut config = CellConfig::embedded_default();
+    // Its MTConnect agent would take a fixed port; this test does not look at it.
+    config.mtconnect = None;
     config.cell = CELL.to_string();
     config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
     config.bus.connect = Vec::new();
@@ -825,7 +827,15 @@ impl RunProcess {
         let endpoint = format!("tcp/127.0.0.1:{port}");
         let dir = tempfile::tempdir().unwrap();
         let child = common::cli::bin()
-            .args(["run", "-l", &endpoint, "--console", "off"])
+            .args([
+                "run",
+                "-l",
+                &endpoint,
+                "--console",
+                "off",
+                "--mtconnect",
+                "off",
+            ])
             .current_dir(dir.path())
             .env(
                 "RUST_LOG",
@@ -1314,6 +1324,8 @@ async fn a_gateway_serves_again_after_its_router_restarts() {
             "-e",
             &router_ep,
             "--console",
+            "off",
+            "--mtconnect",
             "off",
         ],
         dir.path(),

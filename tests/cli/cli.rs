@@ -38,6 +38,8 @@ fn run_then_signal(signal: &str) {
             "--no-multicast-scouting",
             "--console",
             "127.0.0.1:0",
+            "--mtconnect",
+            "127.0.0.1:0",
         ])
         .env("RUST_LOG", "info")
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
@@ -232,6 +234,8 @@ fn run_on_an_endpoint_in_use_exits_1() {
             "--listen",
             &format!("tcp/127.0.0.1:{port}"),
             "--console",
+            "off",
+            "--mtconnect",
             "off",
         ])
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")

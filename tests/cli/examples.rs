@@ -38,6 +38,10 @@ fn the_python_examples_answer_help() {
     let (code, out, err) = python("g05_circle.py", &["--help"]);
     assert_eq!(code, 0, "stdout {out}\nstderr {err}");
     assert!(out.contains("--blocks"), "{out}");
+    // The MTConnect follower needs nothing but the standard library.
+    let (code, out, err) = python("mtconnect_follow.py", &["--help"]);
+    assert_eq!(code, 0, "stdout {out}\nstderr {err}");
+    assert!(out.contains("--device"), "{out}");
 }
 
 #[test]

@@ -22,6 +22,7 @@ const CORE_LAYERS: &[&[&str]] = &[
     &["bounds", "history"],
     &["config"],
     &["plc", "sim"],
+    &["mtconnect"],
 ];
 
 /// The gateway's modules, lowest layer first.
@@ -33,12 +34,12 @@ const GATEWAY_LAYERS: &[&[&str]] = &[
     &["history"],
     &["bus"],
     &["cell", "client"],
-    &["console"],
+    &["console", "mtconnect"],
     &["gateway"],
 ];
 
 /// Gateway modules that may use zenoh.
-const ZENOH_MODULES: &[&str] = &["bus", "client", "console", "gateway"];
+const ZENOH_MODULES: &[&str] = &["bus", "client", "console", "mtconnect", "gateway"];
 
 fn sources(dir: &Path) -> Vec<PathBuf> {
     let mut out = Vec::new();

@@ -34,6 +34,8 @@ fn plc_and_tag_commands_work_against_the_default_cell() {
             "--no-multicast-scouting",
             "--console",
             "127.0.0.1:0",
+            "--mtconnect",
+            "off",
         ])
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
         .env_remove("CELLGATE_CONFIG")

@@ -32,12 +32,20 @@ impl Gateway {
         let port = free_port();
         let endpoint = format!("tcp/127.0.0.1:{port}");
         let dir = tempfile::tempdir().unwrap();
-        let mut child = command(["run", "--listen", &endpoint, "--console", "127.0.0.1:0"])
-            .current_dir(dir.path())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
+        let mut child = command([
+            "run",
+            "--listen",
+            &endpoint,
+            "--console",
+            "127.0.0.1:0",
+            "--mtconnect",
+            "127.0.0.1:0",
+        ])
+        .current_dir(dir.path())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
         let stdout = child.stdout.take().unwrap();
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {

@@ -24,6 +24,7 @@ impl Gateway {
     async fn start(edit: impl FnOnce(&mut CellConfig, &std::path::Path)) -> Gateway {
         let dir = tempfile::tempdir().unwrap();
         let mut config = CellConfig::embedded_default();
+        config.mtconnect = None;
         let port = free_port();
         let console = free_port();
         config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];

@@ -2,8 +2,9 @@
 //! WebDriver), against a gateway serving the default cell: the overview shows every
 //! machine; a program uploaded, released and sent from the pages reaches the simulated CNC
 //! and its progress bar reaches the end; an alarm raised at the simulated CNC shows without a
-//! reload; a tag's trend moves; a read-only user sees no control to send a program and a
-//! request forged from the page is refused and audited; nothing is fetched from another
+//! reload; a tag's trend moves; the top bar links to the MTConnect agent; a read-only user
+//! sees no control to send a program and a request forged from the page is refused and
+//! audited; nothing is fetched from another
 //! origin; the site console (`cellgate console -e ROUTER`) shows the cells of two gateways;
 //! and the first load of an overview of 64 machines is timed (a figure, printed). Screenshots of the pages are written to `target/console-screenshots/`, and to
 //! `docs/console/` when `CELLGATE_UPDATE_SCREENSHOTS=1`.
@@ -106,6 +107,7 @@ impl Gateway {
     async fn start(edit: impl FnOnce(&mut CellConfig, &std::path::Path)) -> Gateway {
         let dir = tempfile::tempdir().unwrap();
         let mut config = CellConfig::embedded_default();
+        config.mtconnect = None;
         let (port, console) = (free_port(), free_port());
         config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
         config.programs.dir = dir.path().join("programs");
@@ -213,8 +215,23 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
     let Some((_driver, c)) = browser().await else {
         return;
     };
-    let gw = Gateway::start(|_, _| {}).await;
+    let mtconnect = format!("127.0.0.1:{}", free_port());
+    let agent = mtconnect.clone();
+    let gw = Gateway::start(move |c, _| {
+        c.mtconnect = Some(cellgate_core::config::MtconnectConfig {
+            listen: agent,
+            ..Default::default()
+        });
+    })
+    .await;
     c.goto(&format!("{}/#/", gw.url)).await.unwrap();
+
+    // The top bar links to the cell's MTConnect agent.
+    let link = wait_css(&c, "#mtconnect").await;
+    assert_eq!(
+        link.attr("href").await.unwrap().as_deref(),
+        Some(format!("http://{mtconnect}/current").as_str())
+    );
 
     // Every machine and the PLC have a tile.
     for m in ["mill-1", "mill-2", "lathe-1"] {

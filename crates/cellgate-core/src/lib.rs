@@ -42,6 +42,7 @@ pub mod fanuc;
 pub mod fuji;
 pub mod history;
 pub mod keys;
+pub mod mtconnect;
 pub mod pb;
 pub mod plc;
 pub mod program;

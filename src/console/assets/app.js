@@ -76,6 +76,10 @@ function renderTopbar() {
     if (can('status.read')) for (const p of plcsOf(navCell)) items.push(link(`${base}/plc/${enc(p)}`, `PLC ${p}`));
     if (can('history.read') || can('audit.read')) items.push(link(`${base}/history`, 'History'));
   }
+  // The cell's MTConnect agent, where the gateway serves one (docs/mtconnect.md).
+  if (state.me.mtconnect && can('status.read')) {
+    items.push(h('a', { href: `${state.me.mtconnect}current`, id: 'mtconnect', rel: 'noopener' }, 'MTConnect'));
+  }
   nav.append(...items);
   user.append(h('span', { class: 'who', title: state.me.via ? `via ${state.me.via}` : null }, state.me.user || '(anonymous)'),
     h('button', { type: 'button', class: 'small', onclick: (e) => logout(e.currentTarget) }, 'Log out'));

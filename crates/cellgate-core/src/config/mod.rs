@@ -25,6 +25,7 @@ mod error;
 mod fanuc;
 mod g05;
 mod history;
+mod mtconnect;
 pub mod owned;
 mod plc;
 mod programs;
@@ -49,6 +50,8 @@ use self::fanuc::{RawMachine, check_machine};
 pub use self::g05::{G05Config, Refill};
 pub use self::history::HistoryConfig;
 use self::history::check_history;
+pub use self::mtconnect::MtconnectConfig;
+use self::mtconnect::check_mtconnect;
 pub use self::plc::{
     FUJI_BAUD_RATES, FUJI_MAX_STATIONS, PlcConfig, PlcSimConfig, Real, SimTick, TagConfig, TagType,
 };
@@ -84,6 +87,9 @@ pub struct CellConfig {
     /// `[console]`: the web console; none without the section.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub console: Option<ConsoleConfig>,
+    /// `[mtconnect]`: the MTConnect agent; none without the section.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mtconnect: Option<MtconnectConfig>,
 }
 
 const DEFAULT_CELL: &str = include_str!("default_cell.toml");
@@ -212,6 +218,16 @@ impl CellConfig {
                 console.listen
             ));
         }
+        if let Some(m) = &self.mtconnect
+            && !m.is_loopback()
+        {
+            out.push(format!(
+                "mtconnect.listen {:?} is reachable beyond this host: the MTConnect interface has \
+                 no login (the standard's clients use none), so anyone who reaches it may read \
+                 the cell's state; it never writes",
+                m.listen
+            ));
+        }
         if !secured {
             for ep in &self.bus.listen {
                 if !bus::is_loopback_endpoint(ep) {
@@ -272,6 +288,7 @@ struct RawCell {
     #[serde(default)]
     security: RawSecurity,
     console: Option<ConsoleConfig>,
+    mtconnect: Option<MtconnectConfig>,
 }
 
 impl From<CellConfig> for RawCell {
@@ -290,6 +307,7 @@ impl From<CellConfig> for RawCell {
             plcs: c.plcs.into_iter().map(|p| RawPlc::from(&p)).collect(),
             security: RawSecurity::from(&c.security),
             console: c.console,
+            mtconnect: c.mtconnect,
         }
     }
 }
@@ -324,6 +342,7 @@ impl RawCell {
             plcs,
             security,
             console: self.console,
+            mtconnect: self.mtconnect,
         })
     }
 }
@@ -532,6 +551,9 @@ fn check_with(raw: &RawCell, files: bool) -> Vec<ConfigError> {
     check_owned(&mut c, raw);
     if let Some(console) = &raw.console {
         check_console(&mut c, console, raw.security.is_configured());
+    }
+    if let Some(m) = &raw.mtconnect {
+        check_mtconnect(&mut c, m);
     }
 
     // Names are unique over machines and PLCs together: both are links of the cell.

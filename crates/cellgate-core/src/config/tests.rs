@@ -1066,3 +1066,29 @@ fn a_misspelt_protocol_does_not_hide_a_wrong_baud_rate() {
     assert!(e.iter().any(|m| m.contains("protocl")), "{e:?}");
     assert!(e.iter().any(|m| m.contains("line.baud = 12345")), "{e:?}");
 }
+
+#[test]
+fn mtconnect_takes_addresses_and_a_bounded_buffer() {
+    let with = |section: &str| format!("{MINIMAL}\n[mtconnect]\n{section}\n");
+    let cfg = CellConfig::from_toml_str(&with(""), "t").unwrap();
+    assert_eq!(cfg.mtconnect, Some(MtconnectConfig::default()));
+    assert!(cfg.warnings().is_empty(), "{:?}", cfg.warnings());
+    let e = errors_of(&with(
+        "listen = \"localhost\"\nbuffer_size = 10\nshdr_listen = \"x\"",
+    ));
+    assert_eq!(e.len(), 3, "{e:?}");
+    assert!(e[0].contains("mtconnect.listen"), "{e:?}");
+    assert!(e[1].contains("mtconnect.shdr_listen"), "{e:?}");
+    assert!(e[2].contains("mtconnect.buffer_size"), "{e:?}");
+    // Beyond loopback: allowed (it only reads), and warned of.
+    let cfg = CellConfig::from_toml_str(&with("listen = \"0.0.0.0:5000\""), "t").unwrap();
+    assert!(
+        cfg.warnings()
+            .iter()
+            .any(|w| w.contains("mtconnect.listen")),
+        "{:?}",
+        cfg.warnings()
+    );
+    let back = CellConfig::from_toml_str(&cfg.to_toml_string().unwrap(), "t").unwrap();
+    assert_eq!(back.mtconnect, cfg.mtconnect);
+}

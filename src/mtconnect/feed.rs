@@ -1,0 +1,219 @@
+//! What feeds the agent: the cells' publications, subscribed once, and what each gateway
+//! answers when it comes (its statuses and queues), all read with `status.read` (and
+//! `admin.read` where the role has it, for tag addresses and part counters).
+//!
+//! A gateway's liveliness token (`P/C/gateway`) says when it comes and goes: when it goes,
+//! every data item of its devices becomes UNAVAILABLE; when it comes (or comes back), the
+//! agent asks it for the state it missed.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use prost::Message;
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use zenoh::Session;
+use zenoh::sample::{Sample, SampleKind};
+
+use super::Hub;
+use crate::client::Client;
+use cellgate_core::mtconnect::{CellDesc, Update};
+use cellgate_core::pb;
+
+/// How long the agent waits for a gateway's answers.
+const ASK_TIMEOUT: Duration = Duration::from_secs(10);
+/// Publications waiting to be taken, at most; beyond, they are dropped (the next status of
+/// the same machine says it again).
+const WAITING: usize = 16_384;
+
+/// A key read back: its cell and what it carries.
+fn classify(prefix: &str, key: &str) -> Option<(String, Kind)> {
+    let rest = key.strip_prefix(prefix)?.strip_prefix('/')?;
+    let c: Vec<&str> = rest.split('/').collect();
+    let kind = match c.as_slice() {
+        [_, "machine", _, "status"] => Kind::Status,
+        [_, "machine", _, "job", _] => Kind::Job,
+        [_, "machine", _, "g05", _] => Kind::G05,
+        [_, "plc", _, "status"] => Kind::Plc,
+        [_, "plc", _, "tag", _] => Kind::Tag,
+        [_, "gateway"] => Kind::Gateway,
+        _ => return None,
+    };
+    Some((c[0].to_string(), kind))
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kind {
+    Status,
+    Job,
+    G05,
+    Plc,
+    Tag,
+    Gateway,
+}
+
+/// What a sample says, decoded; `None` for what does not decode (nothing from the bus can
+/// stop the agent).
+fn decode(kind: Kind, s: &Sample) -> Option<Update> {
+    let bytes = s.payload().to_bytes();
+    Some(match kind {
+        Kind::Gateway => Update::Gateway(s.kind() == SampleKind::Put),
+        // A delete on a job's key is a cancel request, not an event.
+        _ if s.kind() != SampleKind::Put => return None,
+        Kind::Status => Update::Status(Box::new(pb::MachineStatus::decode(bytes.as_ref()).ok()?)),
+        Kind::Job => Update::Job(pb::JobEvent::decode(bytes.as_ref()).ok()?),
+        Kind::G05 => Update::G05(pb::G05Status::decode(bytes.as_ref()).ok()?),
+        Kind::Plc => Update::Plc(pb::PlcStatus::decode(bytes.as_ref()).ok()?),
+        Kind::Tag => Update::Tag(pb::TagValue::decode(bytes.as_ref()).ok()?),
+    })
+}
+
+/// What a cell's gateway tells a newcomer: the cell's description, then its state.
+async fn ask(session: &Session, prefix: &str, cell: &str) -> Option<(CellDesc, Vec<Update>)> {
+    let admin = Client::discover(session, prefix, ASK_TIMEOUT)
+        .await
+        .ok()?
+        .into_iter()
+        .find(|(c, _)| c == cell)
+        .map_or(serde_json::Value::Null, |(_, a)| a);
+    let client = Client::attach(session.clone(), prefix, cell, admin.clone(), ASK_TIMEOUT).ok()?;
+    let (machines, plcs) = tokio::join!(client.status(None), client.plc_status(None));
+    let machines = machines.unwrap_or_default();
+    // A cell without PLCs answers nothing there: that is no error.
+    let plcs = plcs.unwrap_or_default();
+    let desc = CellDesc::from_admin(cell, &admin)
+        .unwrap_or_else(|| CellDesc::from_status(cell, &machines, &plcs));
+    let mut updates = Vec::new();
+    for m in &machines {
+        if !m.current_job_id.is_empty()
+            && let Ok(q) = client.queue(&m.machine).await
+        {
+            updates.push(Update::Queue(m.machine.clone(), q));
+        }
+    }
+    updates.extend(machines.into_iter().map(|m| Update::Status(Box::new(m))));
+    updates.extend(plcs.into_iter().map(Update::Plc));
+    Some((desc, updates))
+}
+
+/// Subscribes on `session` to the cells under `prefix` (or the one `only`), and feeds `hub`
+/// until `stop`. `own`: the description of the gateway's own cell, which needs no asking.
+pub async fn start(
+    session: Session,
+    prefix: String,
+    only: Option<String>,
+    own: Option<CellDesc>,
+    hub: Arc<Hub>,
+    stop: CancellationToken,
+) -> zenoh::Result<()> {
+    let c = only.clone().unwrap_or_else(|| "*".to_string());
+    let keys = [
+        format!("{prefix}/{c}/machine/*/status"),
+        format!("{prefix}/{c}/machine/*/job/*"),
+        format!("{prefix}/{c}/machine/*/g05/*"),
+        format!("{prefix}/{c}/plc/*/status"),
+        format!("{prefix}/{c}/plc/*/tag/*"),
+    ];
+    let (tx, mut rx) = mpsc::channel::<Sample>(WAITING);
+    let mut subscribers = Vec::new();
+    for key in keys {
+        let tx = tx.clone();
+        let sub = session
+            .declare_subscriber(key)
+            .callback(move |s| {
+                // Full: a later status says it again; never block zenoh.
+                let _ = tx.try_send(s);
+            })
+            .await?;
+        subscribers.push(sub);
+    }
+    let tokens = {
+        let tx = tx.clone();
+        session
+            .liveliness()
+            .declare_subscriber(format!("{prefix}/{c}/gateway"))
+            .history(true)
+            .callback(move |s| {
+                let _ = tx.try_send(s);
+            })
+            .await?
+    };
+    let own_cell = own.as_ref().map(|d| d.cell.clone());
+    if let Some(desc) = own {
+        let cell = desc.cell.clone();
+        let now = now_us();
+        let mut agent = hub.lock();
+        agent.add_cell(&desc, now);
+        // The gateway's own cell: it is there while the agent runs.
+        agent.update(&cell, Update::Gateway(true), now);
+        drop(agent);
+        hub.changed();
+    }
+    let (asked_tx, mut asked) = mpsc::channel::<(String, Option<(CellDesc, Vec<Update>)>)>(64);
+    if let Some(cell) = own_cell {
+        // Its state now, whether or not the session shows its own token to itself.
+        let (session, prefix, tx) = (session.clone(), prefix.clone(), asked_tx.clone());
+        tokio::spawn(async move {
+            let answer = ask(&session, &prefix, &cell).await;
+            let _ = tx.send((cell, answer)).await;
+        });
+    }
+    tokio::spawn(async move {
+        let _keep = (subscribers, tokens);
+        loop {
+            tokio::select! {
+                () = stop.cancelled() => break,
+                Some((cell, answer)) = asked.recv() => {
+                    let now = now_us();
+                    let mut agent = hub.lock();
+                    if let Some((desc, updates)) = answer {
+                        agent.add_cell(&desc, now);
+                        agent.update(&cell, Update::Gateway(true), now);
+                        for u in updates {
+                            agent.update(&cell, u, now);
+                        }
+                    }
+                    drop(agent);
+                    hub.changed();
+                }
+                s = rx.recv() => {
+                    let Some(s) = s else { break };
+                    let Some((cell, kind)) = classify(&prefix, s.key_expr().as_str()) else {
+                        continue;
+                    };
+                    let Some(update) = decode(kind, &s) else { continue };
+                    if let Update::Gateway(true) = update {
+                        // Ask what it has (again, if it came back) before marking it up.
+                        let (session, prefix, tx) = (session.clone(), prefix.clone(), asked_tx.clone());
+                        tokio::spawn(async move {
+                            let answer = ask(&session, &prefix, &cell).await;
+                            let _ = tx.send((cell, answer)).await;
+                        });
+                        continue;
+                    }
+                    let now = now_us();
+                    let mut agent = hub.lock();
+                    if !agent.has_cell(&cell) {
+                        continue;
+                    }
+                    let n = agent.update(&cell, update, now);
+                    drop(agent);
+                    if n > 0 {
+                        hub.changed();
+                    }
+                }
+            }
+        }
+    });
+    Ok(())
+}
+
+/// Now, in microseconds since the Unix epoch.
+pub fn now_us() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_micros() as u64)
+}
+
+#[cfg(test)]
+mod tests;

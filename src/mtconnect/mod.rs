@@ -1,0 +1,282 @@
+//! The MTConnect agent (docs/mtconnect.md): the cell's machines and PLCs as MTConnect 2.5
+//! devices, over the standard's HTTP interface and as an SHDR adapter, built only from the
+//! public bus contract like the console. The gateway serves it for its own cell
+//! (`[mtconnect]`), on its own session; `cellgate mtconnect` serves every cell behind a
+//! router, on a session of its own: the same code. It only reads.
+//!
+//! - [`feed`]: the subscriptions and the answers that feed the agent;
+//! - [`http`]: `/probe`, `/current`, `/sample` (streamed as multipart), `/assets`, errors;
+//! - [`shdr`]: the adapter's TCP port.
+//!
+//! The model, the mapping, the buffer and the documents are the core's
+//! ([`cellgate_core::mtconnect`]): this room only does I/O.
+
+pub mod feed;
+pub mod http;
+pub mod shdr;
+
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+
+use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+use zenoh::Session;
+
+use cellgate_core::config::MtconnectConfig;
+use cellgate_core::mtconnect::{Agent, CellDesc};
+
+/// The agent behind a lock, and a signal that says its buffer moved on.
+pub struct Hub {
+    agent: Mutex<Agent>,
+    /// The buffer's `nextSequence`, sent whenever it moves.
+    next: watch::Sender<u64>,
+}
+
+impl Hub {
+    /// A hub for `agent`.
+    pub fn new(agent: Agent) -> Arc<Hub> {
+        let next = agent.buffer().next();
+        Arc::new(Hub {
+            agent: Mutex::new(agent),
+            next: watch::Sender::new(next),
+        })
+    }
+
+    /// The agent. A panic while it was held cannot leave it half-written in a way that
+    /// matters more than stopping every request would: take it anyway.
+    pub fn lock(&self) -> MutexGuard<'_, Agent> {
+        self.agent.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Tells the streams that the buffer moved on.
+    pub fn changed(&self) {
+        let next = self.lock().buffer().next();
+        self.next.send_replace(next);
+    }
+
+    /// A receiver of the buffer's `nextSequence`.
+    pub fn watch(&self) -> watch::Receiver<u64> {
+        self.next.subscribe()
+    }
+}
+
+/// What the agent serves and how.
+#[derive(Debug, Clone)]
+pub struct MtconnectSettings {
+    pub config: MtconnectConfig,
+    /// The bus prefix `P` of the cells.
+    pub prefix: String,
+    /// The one cell served; `None`: every cell that answers (site view).
+    pub only: Option<String>,
+    /// The gateway's own cell, described by its cell file (its gateway is not asked).
+    pub own: Option<CellDesc>,
+    /// Names the agent in every document's header (`sender`).
+    pub sender: String,
+}
+
+/// Why the agent stopped.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum MtconnectError {
+    #[error("mtconnect: cannot listen on {addr}: {source}")]
+    Bind {
+        addr: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("mtconnect: subscribing to the cells' publications: {0}")]
+    Subscribe(#[source] zenoh::Error),
+    #[error("mtconnect: serving HTTP: {0}")]
+    Serve(#[source] std::io::Error),
+}
+
+/// How long the agent lets requests under way finish when it stops.
+const STOP_GRACE: Duration = Duration::from_secs(5);
+
+/// An agent listening, and the URL it is reached at.
+pub struct Served {
+    pub url: String,
+    /// The SHDR adapter's address, if it serves one.
+    pub shdr: Option<SocketAddr>,
+    pub hub: Arc<Hub>,
+    task: tokio::task::JoinHandle<Result<(), MtconnectError>>,
+}
+
+impl Served {
+    /// Waits for the agent to stop (its stop token cancelled), at most [`STOP_GRACE`].
+    pub async fn join(mut self) {
+        if tokio::time::timeout(STOP_GRACE, &mut self.task)
+            .await
+            .is_err()
+        {
+            tracing::warn!("mtconnect: requests still under way when it stopped; cut short");
+            self.task.abort();
+        }
+    }
+}
+
+async fn bind(addr: &str) -> Result<tokio::net::TcpListener, MtconnectError> {
+    tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|source| MtconnectError::Bind {
+            addr: addr.to_string(),
+            source,
+        })
+}
+
+/// Serves the agent on `session` until `stop`. Binds at once (so a port taken is an error
+/// now), then serves in tasks.
+pub async fn serve(
+    session: Session,
+    settings: MtconnectSettings,
+    stop: CancellationToken,
+) -> Result<Served, MtconnectError> {
+    let tcp = bind(&settings.config.listen).await?;
+    let local = tcp.local_addr().map_err(MtconnectError::Serve)?;
+    let shdr = match &settings.config.shdr_listen {
+        Some(addr) => Some(bind(addr).await?),
+        None => None,
+    };
+    let now = feed::now_us();
+    // The instance id changes with every start: a client whose sequence numbers belong to
+    // another instance starts over (Part 1, "instanceId").
+    let agent = Agent::new(
+        &settings.sender,
+        now / 1_000_000,
+        settings.config.buffer_size as usize,
+        now,
+    );
+    let hub = Hub::new(agent);
+    feed::start(
+        session,
+        settings.prefix.clone(),
+        settings.only.clone(),
+        settings.own.clone(),
+        Arc::clone(&hub),
+        stop.clone(),
+    )
+    .await
+    .map_err(MtconnectError::Subscribe)?;
+    let shdr_addr = match shdr {
+        Some(listener) => {
+            let addr = listener.local_addr().map_err(MtconnectError::Serve)?;
+            tokio::spawn(shdr::serve(listener, Arc::clone(&hub), stop.clone()));
+            Some(addr)
+        }
+        None => None,
+    };
+    let app = http::router(Arc::clone(&hub), stop.clone());
+    let url = format!("http://{local}/");
+    let task = tokio::spawn(async move {
+        axum::serve(tcp, app)
+            .with_graceful_shutdown(async move { stop.cancelled().await })
+            .await
+            .map_err(MtconnectError::Serve)
+    });
+    Ok(Served {
+        url,
+        shdr: shdr_addr,
+        hub,
+        task,
+    })
+}
+
+/// `cellgate mtconnect`: the site agent, every cell behind the endpoint.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SiteArgs {
+    #[command(flatten)]
+    pub connect: crate::client::cli::ConnectArgs,
+    /// Where the agent listens, ADDRESS:PORT (default 127.0.0.1:5000).
+    #[arg(long, value_name = "ADDR", default_value = MtconnectConfig::DEFAULT_LISTEN)]
+    pub listen: String,
+    /// Where an SHDR adapter listens, ADDRESS:PORT; none by default.
+    #[arg(long, value_name = "ADDR")]
+    pub shdr: Option<String>,
+    /// Observations kept (bufferSize), 1024 to 1048576.
+    #[arg(long, value_name = "N", default_value_t = MtconnectConfig::DEFAULT_BUFFER_SIZE)]
+    pub buffer_size: u32,
+}
+
+/// Why the site agent could not start.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SiteError {
+    #[error("{0}")]
+    Config(String),
+    #[error(transparent)]
+    Client(#[from] crate::client::ClientError),
+    #[error(transparent)]
+    Agent(#[from] MtconnectError),
+}
+
+/// Runs the site agent until `shutdown`: a session of its own to the endpoint, every cell
+/// under the prefix (or `--cell`'s).
+pub async fn site(
+    args: &SiteArgs,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<(), SiteError> {
+    let config = MtconnectConfig {
+        listen: args.listen.clone(),
+        buffer_size: args.buffer_size,
+        shdr_listen: args.shdr.clone(),
+    };
+    let checked = cellgate_core::config::CellConfig {
+        mtconnect: Some(config.clone()),
+        ..cellgate_core::config::CellConfig::embedded_default()
+    };
+    if let Err(e) = checked.validate() {
+        let mine: Vec<String> =
+            e.0.iter()
+                .map(ToString::to_string)
+                .filter(|m| m.contains("mtconnect."))
+                .collect();
+        if !mine.is_empty() {
+            return Err(SiteError::Config(mine.join("; ")));
+        }
+    }
+    if !config.is_loopback() {
+        tracing::warn!(
+            listen = %config.listen,
+            "the MTConnect interface has no login: anyone who reaches it may read every cell's state"
+        );
+    }
+    let options = args.connect.options()?;
+    let zenoh_config = crate::client::client_config(&options.endpoint, &options.security)?;
+    let session = zenoh::open(zenoh_config).await.map_err(|source| {
+        crate::client::ClientError::Unreachable {
+            endpoint: options.endpoint.clone(),
+            secured: !options.security.is_empty(),
+            source,
+        }
+    })?;
+    let stop = CancellationToken::new();
+    let settings = MtconnectSettings {
+        config,
+        prefix: options.prefix.clone(),
+        // A site agent asks each gateway what its cell has; with --cell, only that cell.
+        only: options.cell.clone(),
+        own: None,
+        sender: format!("cellgate site agent ({})", options.endpoint),
+    };
+    let served = match serve(session.clone(), settings, stop.clone()).await {
+        Ok(s) => s,
+        Err(e) => {
+            let _ = session.close().await;
+            return Err(e.into());
+        }
+    };
+    tracing::info!(url = %served.url, endpoint = %options.endpoint, "site MTConnect agent at {}", served.url);
+    eprintln!(
+        "cellgate mtconnect at {} (cells behind {})",
+        served.url, options.endpoint
+    );
+    if let Some(a) = served.shdr {
+        eprintln!("SHDR adapter at {a}");
+    }
+    shutdown.await;
+    stop.cancel();
+    served.join().await;
+    let _ = session.close().await;
+    Ok(())
+}
