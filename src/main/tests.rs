@@ -66,8 +66,9 @@ fn every_client_command_has_json() {
             && c.get_subcommands().next().is_none()
             && path != "router"
             && path != "run"
-            // A server: it prints its URL, and serves JSON over HTTP.
-            && path != "console";
+            // Servers: they print their URL, and serve JSON over HTTP.
+            && path != "console"
+            && path != "mtconnect";
         if client && !c.get_arguments().any(|a| a.get_id() == "json") {
             missing.push(path);
         }
