@@ -76,8 +76,9 @@ enum Producer {
     Eager,
     /// Bursts and pauses up to half the credit window (§6 of the G05 issue).
     Jittery,
-    /// Batches of this many blocks, each as soon as the credits allow it.
-    Batches(u64),
+    /// The priming level first, then at once every block the credits allow, so that the DAT
+    /// after the one carrying the `G05` block is a full one.
+    PrimeThenEager,
 }
 
 struct Outcome {
@@ -142,11 +143,10 @@ async fn stream_from(
     while sent < blocks {
         let credits = u64::from(wait_credits(&handle, 1).await);
         let mut n = credits.min(blocks - sent);
-        if let Producer::Batches(size) = producer {
-            if credits < size.min(blocks - sent) {
-                wait_credits(&handle, size.min(blocks - sent) as u32).await;
-            }
-            n = size.min(blocks - sent);
+        if let Producer::PrimeThenEager = producer
+            && seq == 0
+        {
+            n = u64::from(opened.prime).min(blocks);
         }
         if let Producer::Jittery = producer {
             jitter = jitter
@@ -289,12 +289,14 @@ async fn expansion_b_takes_100_000_blocks_and_their_m_codes_without_an_underrun(
     assert_eq!(o.stats.aux.first(), Some(&1));
 }
 
-/// G05 opened on Protocol A while the CNC waits (FFU120B's neighbour issue's third corner,
-/// §9.2): 6 axes every 4 ms, 13-byte blocks, 35 750 baud required; 38 400 is 1.07× that. The
-/// board uses a DAT only once all of it has arrived, so the CNC starts with the blocks of the
-/// first DAT and needs the second whole before they run out: 500 ms of blocks (the `prime_ms`
-/// default) followed by a full DAT of 1950 bytes (562 ms with its GTD) ran it dry, 16 unit
-/// times. The priming now covers that; the CNC and the estimate count no underrun.
+/// G05 opened on Protocol A while the CNC waits (§9.2): 6 axes every 4 ms, 13-byte blocks,
+/// 35 750 baud required; 38 400 is 1.07× that. The board asks again at once after a WAT
+/// (Tw = 0), so a GTD is waiting when the priming level is reached and the first DAT carries
+/// it alone; the producer then tops the window up at once, so the next DAT is full. The board
+/// uses a DAT only once all of it has arrived: the CNC starts with the blocks of the first
+/// and needs the second whole before they run out. 500 ms of blocks (the `prime_ms` default)
+/// followed by a full DAT of 1950 bytes (562 ms with its GTD) ran it dry; the priming in force
+/// covers that, and the CNC and the estimate count no underrun.
 #[tokio::test(start_paused = true)]
 async fn protocol_a_from_a_waiting_cnc_never_runs_dry() {
     let config = g05_cell(
@@ -302,13 +304,13 @@ async fn protocol_a_from_a_waiting_cnc_never_runs_dry() {
         None,
         38_400,
         "axes = 6\nunit_time_ms = 4",
-        "tx = 0\nti = 0",
+        "tx = 0\nti = 0\ntw = 0",
     );
     let m = &config.machines[0];
     let g = m.g05.as_ref().unwrap();
     assert!(g.prime_blocks_on(m.g05_refill()) > g.prime_blocks());
     assert_eq!(config.warnings(), Vec::<String>::new());
-    let o = stream_from(&config, 20_000, Producer::Batches(125), true).await;
+    let o = stream_from(&config, 20_000, Producer::PrimeThenEager, true).await;
     assert_exact(&o, 20_000);
     assert_no_underrun(&o);
 }
