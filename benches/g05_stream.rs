@@ -2,8 +2,10 @@
 //! underruns the simulated CNC counted, the stream's own estimate, and the fewest blocks the
 //! CNC had in its buffer, at 0.95×, 1.0×, 1.05× and 1.2× the §9.2 requirement, for 3 axes at
 //! T = 2 ms and 8 ms, through Protocol A, Expansion A, B and Expansion B, over two virtual
-//! minutes each. Everything runs in virtual time, so the figures do not depend on the machine
-//! or the build profile (`cargo bench --profile dev` gives the same table).
+//! minutes each; and Protocol A opened while the CNC already waits for data, the producer's
+//! first batch exactly the priming level (the board takes a DAT only whole, §9.2). Everything
+//! runs in virtual time, so the figures do not depend on the machine or the build profile
+//! (`cargo bench --profile dev` gives the same table).
 //!
 //! `cargo bench --bench g05_stream` prints the table; under `cargo test` a short smoke run
 //! checks that the benchmark still works.
@@ -30,8 +32,16 @@ struct Row {
     end: String,
 }
 
-/// One stream of `minutes` virtual minutes at `ratio` × the required baud.
-async fn run(protocol: &str, packet_n: Option<u8>, t_ms: u32, ratio: f64, millis: u64) -> Row {
+/// One stream of `millis` virtual milliseconds at `ratio` × the required baud; with `waiting`,
+/// opened once the CNC has been waiting for data a while, the first batch the priming level.
+async fn run(
+    protocol: &str,
+    packet_n: Option<u8>,
+    t_ms: u32,
+    ratio: f64,
+    millis: u64,
+    waiting: bool,
+) -> Row {
     let format = {
         let mut f = G05Format::new(3);
         f.unit_time_ms = cellgate_core::fanuc::g05::UnitTime::from_ms(t_ms).expect("a unit time");
@@ -57,20 +67,24 @@ async fn run(protocol: &str, packet_n: Option<u8>, t_ms: u32, ratio: f64, millis
         "expansion-b" => text.replace("tx = 0\nti = 0\n", ""),
         _ => text,
     };
+    // A waiting CNC's board asks again at once after a WAT (Tw = 0), so that a GTD is
+    // waiting when the priming level is reached and the first DAT carries only it.
+    let text = if waiting {
+        text.replace("tx = 0\n", "tx = 0\ntw = 0\n")
+    } else {
+        text
+    };
     let mut config = CellConfig::from_toml_str(&text, "bench").unwrap_or_else(|e| panic!("{e}"));
     if let TransportConfig::Sim { line } = &mut config.machines[0].transport {
         line.baud = baud;
     }
     let (cell, token) = common::start(&config).await;
     let m = cell.machine("m1").unwrap();
-    let g = m.config.g05.clone().unwrap();
-    let desk = G05Desk::new(
-        "m1",
-        m.link.clone(),
-        Some(g),
-        *m.config.transport.line(),
-        token.child_token(),
-    );
+    if waiting {
+        m.board.as_ref().unwrap().wait_for(|s| s.reading).await;
+        tokio::time::sleep(Duration::from_secs(3)).await;
+    }
+    let desk = G05Desk::new(&m.config, m.link.clone(), token.child_token());
     desk.allow_slow_line();
     let (handle, opened) = desk.open(None).await.unwrap();
     let blocks = millis / u64::from(t_ms);
@@ -98,9 +112,18 @@ async fn run(protocol: &str, packet_n: Option<u8>, t_ms: u32, ratio: f64, millis
         // block the credits allow. The blocks in the window cover the pause, so the CNC
         // starves only if the line cannot carry them in time.
         let pause = ((x >> 13) % (window / 4 + 1) * u64::from(t_ms)).min(500);
-        tokio::time::sleep(Duration::from_millis(pause)).await;
+        // From a waiting CNC: the priming level first, then at once every block the credits
+        // allow, so that the DAT after the first is a full one.
+        let first = waiting && seq == 0;
+        if !(waiting && seq <= 1) {
+            tokio::time::sleep(Duration::from_millis(pause)).await;
+        }
         let credits = u64::from(status.borrow_and_update().figures.credits).max(credits);
-        let burst = credits.min(blocks - sent);
+        let burst = if first {
+            u64::from(opened.prime).min(blocks)
+        } else {
+            credits.min(blocks - sent)
+        };
         let batch: Vec<BlockIn> = (0..burst)
             .map(|i| BlockIn {
                 travels: vec![1 + (i % 3) as i32, -2, 3],
@@ -143,6 +166,7 @@ async fn run(protocol: &str, packet_n: Option<u8>, t_ms: u32, ratio: f64, millis
     cell.join().await;
     let label = match packet_n {
         Some(n) => format!("{protocol} n={n}"),
+        None if waiting => format!("{protocol} CNC waiting"),
         None => protocol.to_string(),
     };
     Row {
@@ -169,11 +193,12 @@ fn virtual_time(millis: u64, ratios: &[f64], times: &[u32]) {
     );
     for &t in times {
         for &ratio in ratios {
-            for (protocol, n) in [
-                ("a", None),
-                ("expansion-a", Some(2)),
-                ("b", None),
-                ("expansion-b", None),
+            for (protocol, n, waiting) in [
+                ("a", None, false),
+                ("a", None, true),
+                ("expansion-a", Some(2), false),
+                ("b", None, false),
+                ("expansion-b", None, false),
             ] {
                 let format = {
                     let mut f = G05Format::new(3);
@@ -195,7 +220,7 @@ fn virtual_time(millis: u64, ratios: &[f64], times: &[u32]) {
                     .start_paused(true)
                     .build()
                     .expect("tokio runtime");
-                let r = rt.block_on(run(protocol, n, t, ratio, millis));
+                let r = rt.block_on(run(protocol, n, t, ratio, millis, waiting));
                 println!(
                     "{:<16} {:>5} {:>5.2} {:>8} {:>10} {:>10} {:>11}  {}",
                     r.label,

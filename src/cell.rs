@@ -12,12 +12,14 @@ use crate::link::pump::now;
 use crate::plc::{PlcHandle, TagTable};
 use crate::sim;
 use crate::sim::micrex_handle::MicrexHandle;
+use crate::transport::parity::GatewayParity;
 use crate::transport::serial::ReopeningSerial;
 use crate::transport::sim::SimLine;
 use crate::transport::tcp::{TcpOptions, TcpTransport};
 use crate::transport::{Transport, TransportError};
 use cellgate_core::config::G05Config;
 use cellgate_core::config::{CellConfig, MachineConfig, PlcConfig, TransportConfig};
+use cellgate_core::engine::parity::{ParityBy, ParityCodec};
 use cellgate_core::fanuc::message::Framing;
 use cellgate_core::fanuc::protocol_a::ProtocolAHost;
 use cellgate_core::fanuc::protocol_b::ProtocolBHost;
@@ -270,7 +272,7 @@ impl Cell {
 /// Opens a serial port or connects to a device server (not a `sim` transport, whose far end
 /// the caller builds). `default_window` is the in-flight bound of a `tcp` transport whose file
 /// sets none (the machine's protocol's, or the PLC's).
-async fn open_transport(
+pub async fn open_transport(
     name: &str,
     config: &TransportConfig,
     default_window: u32,
@@ -279,16 +281,17 @@ async fn open_transport(
         machine: name.to_string(),
         source,
     };
-    Ok(match config {
+    let transport: Box<dyn Transport> = match config {
         TransportConfig::Serial {
             path,
-            line,
             reconnect_min_ms,
             reconnect_max_ms,
+            ..
         } => Box::new(
+            // With the parity made by the gateway the port runs 8 data bits, no parity.
             ReopeningSerial::open(
                 path.clone(),
-                *line,
+                config.port_line(),
                 Duration::from_millis(*reconnect_min_ms),
                 Duration::from_millis(*reconnect_max_ms),
             )
@@ -297,9 +300,9 @@ async fn open_transport(
         TransportConfig::Tcp {
             address,
             line,
-            window: _,
             reconnect_min_ms,
             reconnect_max_ms,
+            ..
         } => {
             let opts = TcpOptions {
                 window: config.window_or(default_window) as usize,
@@ -314,7 +317,17 @@ async fn open_transport(
             )
         }
         TransportConfig::Sim { line } => Box::new(crate::transport::sim::line(*line).0),
-    })
+    };
+    // A port that passes whole 8-bit frames: the gateway makes and checks the parity bit
+    // (FFU120B §4-3 items 5-6; the configuration refuses it without 7 data bits and parity).
+    Ok(
+        match ParityCodec::new(config.line().parity)
+            .filter(|_| config.parity_by() == ParityBy::Gateway)
+        {
+            Some(codec) => Box::new(GatewayParity::new(transport, codec)),
+            None => transport,
+        },
+    )
 }
 
 /// The simulated board for a `sim` machine. It powers on with the machine's configured §4.5

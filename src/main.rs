@@ -66,11 +66,11 @@ enum Command {
     Cancel(client::CancelArgs),
     /// The cell's history: jobs (with the revision each sent), alarms, link and CNC states,
     /// PLC stations, G05 streams, tag values.
-    History(cellgate::client::records::HistoryCommand),
+    History(cellgate::client::cli::records::HistoryCommand),
     /// The audit trail: every write the gateway took, who asked, and what came of it.
-    Audit(cellgate::client::records::AuditCommand),
+    Audit(cellgate::client::cli::records::AuditCommand),
     /// Time shares per machine and hour or shift: reading, idle, alarm, link down; parts.
-    Utilisation(cellgate::client::records::UtilisationArgs),
+    Utilisation(cellgate::client::cli::records::UtilisationArgs),
     /// Serve the web console for every cell behind an endpoint (a site view) until SIGINT or
     /// SIGTERM; a gateway serves its own cell's with `[console]` in its cell file.
     Console(cellgate::console::SiteArgs),
@@ -348,6 +348,7 @@ fn client_command(cli: &Cli, command: &impl client::ClientCommand) -> ExitCode {
         let _ = tracing_subscriber::fmt()
             .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
             .with_writer(std::io::stderr)
+            .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
             .try_init();
     }
     client::execute(command)
@@ -748,9 +749,26 @@ fn serving_text(config: &CellConfig) -> String {
         Some(ep) => format!(" -e {ep}"),
         None => " -e ENDPOINT".to_string(),
     };
+    // A secured cell takes no client without its credentials: the hint says which.
+    let mut who = String::new();
+    if let Some(tls) = &config.security.tls {
+        who.push_str(&format!(" --tls-ca {}", tls.ca.display()));
+        if tls.require_client_certificates {
+            who.push_str(" --tls-cert CERT --tls-key KEY");
+        }
+    }
+    if config.security.users_file.is_some() {
+        who.push_str(" --user NAME");
+    }
     t.push_str(&format!(
-        "try: cellgate status{connect}   (every command: cellgate --help)\n"
+        "try: cellgate status{connect}{who}   (every command: cellgate --help)\n"
     ));
+    if config.security.users_file.is_some() {
+        t.push_str(&format!(
+            "     (the password of --user from --password-file or ${})\n",
+            cellgate::client::cli::PASSWORD_ENV
+        ));
+    }
     t
 }
 
@@ -762,6 +780,8 @@ fn site_console(args: &cellgate::console::SiteArgs) -> ExitCode {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        // Colours only for a terminal: a log file or journal gets plain text.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -805,6 +825,7 @@ fn site_mtconnect(args: &cellgate::mtconnect::SiteArgs) -> ExitCode {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()

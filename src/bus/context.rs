@@ -275,7 +275,48 @@ pub(crate) struct RouteContext {
     pub history: History,
     /// Who may have sent a write, for the audit.
     pub auditor: Arc<Auditor>,
+    /// The cell's link and tag names, for questions about records that name them.
+    pub names: Arc<CellNames>,
     slots: Arc<[Arc<Semaphore>]>,
+}
+
+/// The names a question about the cell's records may use: its machines and PLC links, and
+/// its tags as `PLC/TAG`. Empty when not known (then names are not checked).
+#[derive(Debug, Default)]
+pub(crate) struct CellNames {
+    pub links: std::collections::BTreeSet<String>,
+    pub tags: std::collections::BTreeSet<String>,
+}
+
+impl CellNames {
+    pub fn of(config: &cellgate_core::config::CellConfig) -> Self {
+        CellNames {
+            links: config
+                .machines
+                .iter()
+                .map(|m| m.name.clone())
+                .chain(config.plcs.iter().map(|p| p.name.clone()))
+                .collect(),
+            tags: config
+                .plcs
+                .iter()
+                .flat_map(|p| p.tags.iter().map(move |t| format!("{}/{}", p.name, t.name)))
+                .collect(),
+        }
+    }
+
+    /// The first of `asked` that is not one of `known`, with the known ones for the message.
+    pub fn unknown<'a>(
+        known: &std::collections::BTreeSet<String>,
+        asked: impl IntoIterator<Item = &'a String>,
+    ) -> Option<(&'a String, String)> {
+        if known.is_empty() {
+            return None;
+        }
+        let unknown = asked.into_iter().find(|n| !known.contains(*n))?;
+        let list: Vec<&str> = known.iter().map(String::as_str).collect();
+        Some((unknown, list.join(", ")))
+    }
 }
 
 /// What a request's key names.
@@ -312,6 +353,12 @@ pub(crate) enum RequestError {
     /// A request sent to a key that does not take it (a write on a read key).
     #[error("{0}")]
     WrongKey(String),
+    /// A question about records that names a machine or PLC the cell lacks.
+    #[error("{0}")]
+    UnknownLink(String),
+    /// A question about records that names a tag the cell lacks.
+    #[error("{0}")]
+    UnknownTag(String),
     /// The cell file does not allow what the request asks for.
     #[error("{0}")]
     NotPermitted(String),
@@ -399,7 +446,10 @@ fn not_to(got: &Option<String>) -> String {
 impl BusCode for RequestError {
     fn code(&self) -> pb::ErrorCode {
         match self {
-            RequestError::UnknownMachine { .. } => pb::ErrorCode::UnknownMachine,
+            RequestError::UnknownMachine { .. } | RequestError::UnknownLink(_) => {
+                pb::ErrorCode::UnknownMachine
+            }
+            RequestError::UnknownTag(_) => pb::ErrorCode::NotFound,
             RequestError::OneMachine { .. }
             | RequestError::Payload { .. }
             | RequestError::Invalid { .. }
@@ -450,6 +500,7 @@ impl RouteContext {
             fetches: Arc::new(Semaphore::new(MAX_FETCHES)),
             history: History::disabled(),
             auditor: Arc::default(),
+            names: Arc::default(),
             slots: Pool::ALL
                 .iter()
                 .map(|p| Arc::new(Semaphore::new(p.slots())))
@@ -483,6 +534,12 @@ impl RouteContext {
     /// Records an audited write and its outcome.
     pub fn audit<E: BusCode + std::fmt::Display>(&self, a: Audit<'_>, outcome: Result<(), &E>) {
         self.auditor.record(&self.history, a, outcome);
+    }
+
+    /// The same context, knowing the cell's link and tag names.
+    pub fn with_names(mut self, names: CellNames) -> Self {
+        self.names = Arc::new(names);
+        self
     }
 
     /// The same context, allowing `JobRequest.key` under these prefixes.

@@ -196,13 +196,7 @@ pub async fn serve_recorded(
         });
         let feeds = MachineFeeds::subscribe(&link, &jobs, job_events);
         // Streams end (with their end block) when the gateway stops, with the job managers.
-        let g05 = G05Desk::new(
-            &mc.name,
-            link.clone(),
-            mc.g05.clone(),
-            *mc.transport.line(),
-            jobs_stop.clone(),
-        );
+        let g05 = G05Desk::new(&mc, link.clone(), jobs_stop.clone());
         let machine = Arc::new(Machine::new(mc, link, jobs, g05, sim));
         by_name.insert(machine.name().to_string(), Arc::clone(&machine));
         started.push((machine, feeds));
@@ -215,6 +209,7 @@ pub async fn serve_recorded(
         config.programs.max_inline.min(config.programs.max_size),
     )
     .with_fetch_prefixes(&config.programs.fetch_prefixes)
+    .with_names(context::CellNames::of(config))
     .with_history(history, Auditor::new(&config.security));
 
     let mut machine_tasks = JoinSet::new();

@@ -82,9 +82,17 @@ impl Recorder {
         if !history.enabled() {
             return;
         }
-        if let Some(Kind::Started(s)) = &event.kind {
-            self.totals
-                .insert(event.job_id.clone(), s.bytes_total.unwrap_or(0));
+        // The size is known from acceptance (`queued`), so a job that ends before it
+        // starts keeps it too; `started` says it again.
+        let total = match &event.kind {
+            Some(Kind::Queued(q)) => Some(q.bytes_total),
+            Some(Kind::Started(s)) => Some(s.bytes_total),
+            _ => None,
+        };
+        if let Some(total) = total {
+            if let Some(t) = total {
+                self.totals.insert(event.job_id.clone(), t);
+            }
             return;
         }
         if let Some(mut h) = job_history(event) {

@@ -15,7 +15,9 @@ use zenoh::query::{Query, Queryable};
 use zenoh_util::time_range::{TimeBound, TimeRange};
 
 use super::BusError;
-use super::context::{Endpoint, Pool, RequestError, RouteContext, reply, reply_err, serve_route};
+use super::context::{
+    CellNames, Endpoint, Pool, RequestError, RouteContext, reply, reply_err, serve_route,
+};
 use crate::history::Log;
 use cellgate_core::history::{self, HistoryQuery, Store};
 use cellgate_core::pb;
@@ -110,6 +112,25 @@ async fn page(ctx: &RouteContext, q: &Query, store: Store) {
         Ok(x) => x,
         Err(e) => return reply_err(q, &e).await,
     };
+    // A name the cell does not have would read as "no records": say so instead.
+    let names = &ctx.names;
+    let unknown = query
+        .machines
+        .as_ref()
+        .and_then(|m| CellNames::unknown(&names.links, m.iter().filter(|n| !n.is_empty())))
+        .map(|(n, known)| {
+            RequestError::UnknownLink(format!(
+                "the cell has no machine or PLC {n:?}; it has: {known}"
+            ))
+        })
+        .or_else(|| {
+            CellNames::unknown(&names.tags, &query.tags).map(|(n, known)| {
+                RequestError::UnknownTag(format!("the cell has no tag {n:?}; it has: {known}"))
+            })
+        });
+    if let Some(e) = unknown {
+        return reply_err(q, &e).await;
+    }
     let log = if store == Store::Audit {
         Log::Audit
     } else {

@@ -679,6 +679,7 @@ pub(crate) fn status_message(link: &PlcLink, snap: &PlcSnapshot) -> pb::PlcStatu
             ("bcc", r.bcc),
             ("too_long", r.too_long),
             ("text_form", r.text_form),
+            ("character", r.character),
         ]
         .into_iter()
         .map(|(k, v)| (k.to_string(), v))

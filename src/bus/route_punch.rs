@@ -337,20 +337,9 @@ impl PunchDesk {
             // A machine that takes only released revisions gets the latest released one.
             let revision = if jobs.accept() == cellgate_core::config::Accept::Released {
                 jobs.library()
-                    .revisions(name)
+                    .latest_released(name)
                     .await
-                    .ok()
-                    .and_then(|r| {
-                        r.revisions
-                            .iter()
-                            .find(|x| {
-                                matches!(
-                                    x.state(),
-                                    pb::RevisionState::Released | pb::RevisionState::Locked
-                                )
-                            })
-                            .map(|x| x.number.to_string())
-                    })
+                    .map(|n| n.to_string())
                     .unwrap_or_default()
             } else {
                 String::new()

@@ -106,17 +106,19 @@ async fn write_tag(
     }
     let w: pb::TagWrite = super::route_plc::decode_payload(plc, bytes)?;
     let link = ctx.plc(plc)?;
-    link.link
-        .write_tag(name, w.value)
-        .await?
-        .map_err(|error| PlcRequestError::TagWrite {
-            plc: plc.to_string(),
-            error,
-        })?;
+    let written =
+        link.link
+            .write_tag(name, w.value)
+            .await?
+            .map_err(|error| PlcRequestError::TagWrite {
+                plc: plc.to_string(),
+                error,
+            })?;
+    // What the tag now reads as, rounded to its scale, not what was asked.
     Ok(pb::TagWritten {
         plc: plc.to_string(),
         name: name.to_string(),
-        value: w.value,
+        value: written.value(),
     })
 }
 

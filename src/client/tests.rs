@@ -125,3 +125,13 @@ fn a_bad_endpoint_says_what_an_endpoint_looks_like() {
         assert_eq!(e.exit_code(), 2);
     }
 }
+
+#[test]
+fn a_refused_session_without_credentials_names_them() {
+    let m = unreachable_message("tcp/127.0.0.1:7447", false);
+    assert!(
+        m.contains("--user") && m.contains("CELLGATE_PASSWORD"),
+        "{m}"
+    );
+    assert!(!m.contains("nothing accepted"), "{m}");
+}

@@ -315,7 +315,7 @@ pub async fn submit(
         revision: body.revision,
         priority: body.priority,
         name: body.name,
-        request_id: crate::client::cli::new_request_id(),
+        request_id: crate::client::new_request_id(),
         ..Default::default()
     };
     let (accepted, follower) = client.submit(&m, &request).await?;

@@ -943,6 +943,16 @@ impl ProgramLibrary {
         })
     }
 
+    /// The number of the latest released (or locked) revision of `name`: what a machine with
+    /// `accept = "released"` is sent. `None` when it has none, or no such program.
+    pub async fn latest_released(&self, name: &str) -> Option<u32> {
+        let all = self.revisions(name).await.ok()?;
+        all.revisions
+            .iter()
+            .find(|r| is_released(r))
+            .map(|r| r.number)
+    }
+
     /// The revision `rev` names (a number, a SHA-256, or empty for the latest) and the path
     /// of its content, which never changes.
     pub async fn revision(

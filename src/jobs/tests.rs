@@ -343,6 +343,11 @@ async fn a_job_runs_through_queued_started_completed() {
         Some(Kind::Completed(c)) => assert_eq!(c.bytes_sent, 13),
         other => panic!("{other:?}"),
     }
+    // The size is known from acceptance: a job that ends before it starts keeps it too.
+    match &events[0].kind {
+        Some(Kind::Queued(q)) => assert_eq!(q.bytes_total, Some(13)),
+        other => panic!("{other:?}"),
+    }
     assert!(events.iter().all(|e| e.machine == "m1"));
     let log = r.log.lock().unwrap().clone();
     assert_eq!(

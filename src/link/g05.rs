@@ -20,8 +20,9 @@ use tokio_util::sync::CancellationToken;
 use crate::link::JobId;
 use crate::link::driver::{Chunk, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use crate::link::pump::now;
+use crate::transport::sim::SimOptions;
 use cellgate_core::codes::BusCode;
-use cellgate_core::config::G05Config;
+use cellgate_core::config::{G05Config, MachineConfig, Refill, TransportConfig};
 use cellgate_core::engine::LineSettings;
 use cellgate_core::fanuc::g05::stream::{
     Batch, BatchError, EndReason, Offered, Stream, StreamFigures, StreamSettings, StreamState,
@@ -34,8 +35,11 @@ pub const STREAM_JOB_BASE: JobId = 1 << 48;
 /// A stream's status is brought up to date at least this often while it is open.
 pub const STATUS_INTERVAL: Duration = Duration::from_millis(100);
 
-/// How often the link reports a stream's progress (its blocks on the line).
-const PROGRESS_INTERVAL: Duration = Duration::from_millis(20);
+/// How often the link reports a stream's progress (its blocks on the line): at every piece
+/// handed over. The underrun estimate counts a block as the CNC's from its hand-over; a
+/// piece reported late (the last of a burst, before a pause of the producer) would have made
+/// it count underruns the CNC cannot have had.
+const PROGRESS_INTERVAL: Duration = Duration::ZERO;
 
 /// Why a stream could not be opened.
 #[derive(Debug, Clone, thiserror::Error)]
@@ -146,6 +150,10 @@ pub struct G05Desk {
     link: LinkHandle,
     config: Option<G05Config>,
     line: LineSettings,
+    /// How the machine's board is refilled (Protocol A family), for the priming level.
+    refill: Option<Refill>,
+    /// The most characters the machine's transport holds unsent (for the estimate).
+    in_flight: u64,
     current: Mutex<Option<StreamHandle>>,
     next: AtomicU64,
     shutdown: CancellationToken,
@@ -154,18 +162,24 @@ pub struct G05Desk {
 }
 
 impl G05Desk {
+    /// The desk of `machine`, whose streams go through `link`: its `g05` table, line and
+    /// board decide the streams' encoding, pace and priming.
     pub fn new(
-        machine: &str,
+        machine: &MachineConfig,
         link: LinkHandle,
-        config: Option<G05Config>,
-        line: LineSettings,
         shutdown: CancellationToken,
     ) -> Arc<Self> {
         Arc::new(G05Desk {
-            machine: machine.to_string(),
+            machine: machine.name.clone(),
             link,
-            config,
-            line,
+            config: machine.g05.clone(),
+            line: *machine.transport.line(),
+            refill: machine.g05_refill(),
+            in_flight: match &machine.transport {
+                TransportConfig::Sim { .. } => SimOptions::default().fifo as u64 + 1,
+                TransportConfig::Tcp { .. } => u64::from(machine.tcp_window()),
+                TransportConfig::Serial { .. } => crate::transport::serial::DEFAULT_WINDOW as u64,
+            },
             current: Mutex::new(None),
             next: AtomicU64::new(0),
             shutdown,
@@ -233,8 +247,10 @@ impl G05Desk {
             before: Bytes::from(config.before.clone().into_bytes()),
             after: Bytes::from(config.after.clone().into_bytes()),
             window: config.window_blocks(),
-            prime: config.prime_blocks(),
+            prime: config.prime_blocks_on(self.refill),
             idle: Duration::from_millis(u64::from(config.idle_ms)),
+            line: self.line,
+            in_flight: self.in_flight,
         };
         let stream = Stream::new(settings.clone(), now());
         let initial = StreamStatus {

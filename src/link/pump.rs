@@ -225,6 +225,12 @@ impl<E: Engine, T: Transport> Pump<E, T> {
                         return Err(PumpError::Closed);
                     }
                     self.bytes_in += n as u64;
+                    // A read never spans a line error, and the errors it met come before its
+                    // bytes: the engine must see them in line order, so that it knows which
+                    // text the bad character belonged to (FFU120B §5-6, §4.6).
+                    while let Some(err) = self.transport.take_line_error() {
+                        self.engine.handle_line_error(now, err);
+                    }
                     self.engine.handle_input(now, &self.rx[..n]);
                     moved = true;
                 }

@@ -66,8 +66,9 @@ fn every_client_command_has_json() {
             && c.get_subcommands().next().is_none()
             && path != "router"
             && path != "run"
-            // A server: it prints its URL, and serves JSON over HTTP.
-            && path != "console";
+            // Servers: they print their URL, and serve JSON over HTTP.
+            && path != "console"
+            && path != "mtconnect";
         if client && !c.get_arguments().any(|a| a.get_id() == "json") {
             missing.push(path);
         }
@@ -76,4 +77,14 @@ fn every_client_command_has_json() {
         missing.is_empty(),
         "client commands without --json: {missing:?}"
     );
+}
+
+#[test]
+fn the_first_command_to_try_carries_the_credentials_a_secured_cell_needs() {
+    let mut config = CellConfig::embedded_default();
+    assert!(!serving_text(&config).contains("--user"));
+    config.security.users_file = Some(std::path::PathBuf::from("users"));
+    let t = serving_text(&config);
+    assert!(t.contains("try: cellgate status --user NAME"), "{t}");
+    assert!(t.contains("CELLGATE_PASSWORD"), "{t}");
 }

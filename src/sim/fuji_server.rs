@@ -34,8 +34,10 @@ use tokio::sync::broadcast;
 
 use super::micrex_handle::MicrexHandle;
 use super::server::{EventSink, PacedLine, serve_one_at_a_time};
+use crate::transport::parity::GatewayParity;
 use crate::transport::{DataBits, LineSettings, Parity, StopBits};
 use cellgate_core::config::{PlcConfig, PlcSimConfig, TransportConfig};
+use cellgate_core::engine::parity::{ParityBy, ParityCodec};
 use cellgate_core::fuji::command::{FileType, Sta};
 use cellgate_core::fuji::frame::{
     BccCalc, BccCode, BccKind, BccRange, EndCode as PlcEndCode, FrameSettings,
@@ -197,6 +199,16 @@ pub struct SimFujiArgs {
     /// How long after a connection the --transfer messages go out, ms.
     #[arg(long, default_value_t = 1000)]
     pub transfer_after_ms: u64,
+    /// Where the parity bit of a 7-bit line is made: port (the device server's serial side
+    /// is set to the line and passes 7-bit characters) or gateway (it passes whole 8-bit
+    /// frames, the parity bit in bit 7, which the module's UART checks: a wrong one is a
+    /// parity error and its text a receive error, FFU120B §5-6).
+    #[arg(long, value_parser = cell_value::<ParityBy>, default_value = "port")]
+    pub parity_by: ParityBy,
+    /// A fault on the line, with --parity-by gateway: the module's character numbered N
+    /// after each connection (0 first) goes out with its parity bit wrong. Repeatable.
+    #[arg(long = "spoil-parity", value_name = "N")]
+    pub spoil_parity: Vec<u64>,
 }
 
 impl SimFujiArgs {
@@ -277,6 +289,11 @@ pub enum SimFujiError {
     },
     #[error("simulator: {0}")]
     Io(#[source] std::io::Error),
+    #[error(
+        "--parity-by gateway carries the parity bit in bit 7 of each byte: it needs --data-bits 7 \
+         and --parity odd or even, not {line} (FFU120B §4-3 items 5-6)"
+    )]
+    ParityBy { line: LineSettings },
 }
 
 /// Serves the module on `args.listen` until `shutdown` completes, printing one JSON event per
@@ -301,31 +318,45 @@ pub async fn serve_fuji(
         // A closed stdout must not stop the simulator.
         let _ = writeln!(out, "{v}").and_then(|()| out.flush());
     });
-    let plan = TransferPlan {
+    let plan = SessionPlan {
         transfers: args.transfers.clone(),
         after: Duration::from_millis(args.transfer_after_ms),
+        parity_by: args.parity_by,
+        spoil_parity: args.spoil_parity.clone(),
     };
     serve_fuji_on(listener, config, plan, sink, shutdown).await
 }
 
-/// Transfers the simulated PLC sends after each connection.
+/// What each connection gets: the transfers the simulated PLC sends, and how the device
+/// server passes the line.
 #[derive(Debug, Clone, Default)]
-pub struct TransferPlan {
+pub struct SessionPlan {
+    /// Transfers sent `after` each connection.
     pub transfers: Vec<TransferArg>,
     pub after: Duration,
+    /// Where a 7-bit line's parity bit is made (see [`SimFujiArgs::parity_by`]).
+    pub parity_by: ParityBy,
+    /// Characters of the module's output sent with a wrong parity bit (with
+    /// [`ParityBy::Gateway`]), counted from 0 in each connection.
+    pub spoil_parity: Vec<u64>,
 }
 
 /// Serves the module on a bound listener (tests bind port 0), sending JSON events to `sink`.
 pub async fn serve_fuji_on(
     listener: TcpListener,
     config: MicrexConfig,
-    plan: TransferPlan,
+    plan: SessionPlan,
     sink: EventSink,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), SimFujiError> {
     cellgate_core::sim::micrex::Micrex::new(config.clone())?;
-    let addr = listener.local_addr().map_err(SimFujiError::Io)?;
     let line = config.line;
+    if plan.parity_by == ParityBy::Gateway
+        && (line.data_bits != DataBits::Seven || line.parity == Parity::None)
+    {
+        return Err(SimFujiError::ParityBy { line });
+    }
+    let addr = listener.local_addr().map_err(SimFujiError::Io)?;
     sink(&json!({
         "event": "listening",
         "addr": addr.to_string(),
@@ -333,6 +364,7 @@ pub async fn serve_fuji_on(
         "stations": config.stations,
         "baud": line.baud,
         "line": line.to_string(),
+        "parity_by": plan.parity_by.name(),
         "messages": config.messages,
     }));
     serve_one_at_a_time(
@@ -351,14 +383,35 @@ async fn run_session(
     stream: TcpStream,
     peer: SocketAddr,
     config: MicrexConfig,
-    plan: TransferPlan,
+    plan: SessionPlan,
     sink: EventSink,
 ) -> String {
     // Small texts must not wait for Nagle.
     let _ = stream.set_nodelay(true);
     let line = config.line;
-    let paced = PacedLine::new(stream, line, format!("tcp {peer} paced at {line}"));
-    let (module, mut events) = match MicrexHandle::spawn_subscribed(config, Vec::new(), paced) {
+    let codec = ParityCodec::new(line.parity).filter(|_| plan.parity_by == ParityBy::Gateway);
+    let spawned = match codec {
+        // The device server passes the frames as they are: 8 bits a character on its TCP
+        // side, the parity bit in bit 7, made and checked at the module's UART.
+        Some(codec) if line.data_bits == DataBits::Seven => {
+            let port = LineSettings {
+                data_bits: DataBits::Eight,
+                parity: Parity::None,
+                ..line
+            };
+            let paced = PacedLine::new(stream, port, format!("tcp {peer} paced at {line}"));
+            let mut framed = GatewayParity::new(paced, codec);
+            for &i in &plan.spoil_parity {
+                framed.spoil_sent(i);
+            }
+            MicrexHandle::spawn_subscribed(config, Vec::new(), framed)
+        }
+        _ => {
+            let paced = PacedLine::new(stream, line, format!("tcp {peer} paced at {line}"));
+            MicrexHandle::spawn_subscribed(config, Vec::new(), paced)
+        }
+    };
+    let (module, mut events) = match spawned {
         Ok(m) => m,
         Err(e) => return e.to_string(),
     };

@@ -674,6 +674,9 @@ pub struct PacedLine<S> {
     rx_queue: VecDeque<(std::time::Instant, Vec<u8>)>,
     rx_sleep: Pin<Box<Sleep>>,
     rx_eof: bool,
+    /// The board's UART reads this many data bits: on a 7-bit line, bit 7 of what comes over
+    /// TCP never reaches it (a device server set to the line sends 7 of the 8).
+    mask: u8,
     name: String,
 }
 
@@ -693,6 +696,7 @@ impl<S> PacedLine<S> {
             rx_queue: VecDeque::new(),
             rx_sleep: Box::pin(tokio::time::sleep_until(Instant::now())),
             rx_eof: false,
+            mask: settings.data_mask(),
             name,
         }
     }
@@ -746,6 +750,11 @@ impl<S: AsyncRead + Unpin> AsyncRead for PacedLine<S> {
             return Poll::Pending;
         };
         let n = piece.len().min(buf.remaining());
+        if this.mask != 0xFF {
+            for b in &mut piece[..n] {
+                *b &= this.mask;
+            }
+        }
         buf.put_slice(&piece[..n]);
         if n < piece.len() {
             let at = Instant::now().into_std();

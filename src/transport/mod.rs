@@ -8,7 +8,9 @@
 //! - [`tcp`]: a raw TCP connection to a serial device server, reconnecting with backoff and
 //!   writing through a bounded in-flight window;
 //! - [`sim`]: an in-memory line to a simulated board, paced at the configured baud rate, with
-//!   fault injection.
+//!   fault injection;
+//! - [`parity`]: around either of the first two, the parity bit of a 7-bit line made and
+//!   checked by the gateway where the port passes whole 8-bit frames.
 //!
 //! All three bound how far a writer can run ahead of the line with a [`Pacer`], so that a stop
 //! code (DC3) from the peer takes effect within a few characters (§6.3), not after whatever a
@@ -18,6 +20,7 @@
 //! [`Transport::take_line_error`]; a cut line or a lost device server shows as DR (and CD) off in
 //! [`Transport::modem`] (alarm SR0855). Neither is an I/O error, and nothing panics on line input.
 
+pub mod parity;
 mod redial;
 pub mod serial;
 pub mod sim;

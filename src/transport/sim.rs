@@ -413,6 +413,7 @@ pub fn line_with(settings: LineSettings, opts: SimOptions) -> (SimPort, SimPort,
         read_sleep: None,
         write_sleep: None,
         shut_down: false,
+        read_stopped_at_error: false,
     };
     (
         port(End::Host),
@@ -431,6 +432,9 @@ pub struct SimPort {
     read_sleep: Option<Pin<Box<Sleep>>>,
     write_sleep: Option<Pin<Box<Sleep>>>,
     shut_down: bool,
+    /// The last read stopped at an errored character: that error lies after the bytes it
+    /// returned, so it is for the next read to take, not for [`Transport::take_line_error`].
+    read_stopped_at_error: bool,
 }
 
 impl fmt::Debug for SimPort {
@@ -470,6 +474,7 @@ impl AsyncRead for SimPort {
             return Poll::Ready(Ok(()));
         }
         let this = &mut *self;
+        this.read_stopped_at_error = false;
         loop {
             let now = Instant::now();
             let mut guard = lock(&this.shared);
@@ -483,7 +488,11 @@ impl AsyncRead for SimPort {
                     break;
                 };
                 if seg.error.is_some() {
-                    if n > 0 || !d.take_arrived_error(&line, now) {
+                    if n > 0 {
+                        this.read_stopped_at_error = true;
+                        break;
+                    }
+                    if !d.take_arrived_error(&line, now) {
                         break;
                     }
                     continue;
@@ -727,7 +736,7 @@ impl Transport for SimPort {
         let mut guard = lock(&self.shared);
         let line = guard.settings;
         let d = guard.dir(self.end.rx());
-        if d.errors.is_empty() {
+        if d.errors.is_empty() && !self.read_stopped_at_error {
             d.take_arrived_error(&line, now);
         }
         d.errors.pop_front()

@@ -196,7 +196,7 @@ async fn run(command: &impl ClientCommand) -> (u8, String, String) {
 fn submit_args(gw: &Gateway, machine: &str) -> SubmitArgs {
     SubmitArgs {
         connect: gw.connect(),
-        machine: machine.to_string(),
+        machine: Some(machine.to_string()),
         file: None,
         library: None,
         revision: None,
@@ -386,6 +386,15 @@ async fn status_shows_every_machine_as_a_table_and_as_json() {
     let (code, _, err) = run(&args).await;
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("ERROR_CODE_UNKNOWN_MACHINE"), "{err}");
+    // `jobs` of a machine the cell lacks speaks of its queue, not of a status.
+    let ep = gw.endpoint.clone();
+    let (code, _, err) = cellgate(&["jobs", "-e", &ep, "nosuch"]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("ERROR_CODE_UNKNOWN_MACHINE"), "{err}");
+    assert!(
+        err.contains("queue of nosuch") && !err.contains("status of"),
+        "{err}"
+    );
     gw.stop().await;
 }
 
@@ -463,6 +472,12 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
     let (code, out, err) = run(&put).await;
     assert_eq!(code, 0, "{err}");
     assert!(err.contains("O0815.nc: stored"), "{err}");
+    // Sizes as everywhere else on the command line (and in the console).
+    let size = cellgate::client::render::bytes(program.len() as u64);
+    assert!(
+        err.contains(&format!("stored, {size}, revision 1")),
+        "{err}"
+    );
     let stored: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(stored["size"], program.len(), "{out}");
 
@@ -1419,8 +1434,12 @@ async fn status_and_job_ends_say_what_happened() {
     follower.close().await;
     // Nothing to resume: it says why.
     let mut resume = submit_args(&gw, MILL_A);
-    resume.resume = Some(job);
+    resume.resume = Some(job.clone());
     let (code, _, err) = run(&resume).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("nothing of it went to the board"), "{err}");
+    // The job id names its machine, as for `cancel` and `job`: no MACHINE needed.
+    let (code, _, err) = cellgate(&["submit", "-e", &gw.endpoint, "--resume", &job]).await;
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("nothing of it went to the board"), "{err}");
     client.close().await;
@@ -1637,5 +1656,36 @@ async fn simulation_controls_refuse_what_the_machine_cannot_take() {
     assert_eq!(code, 0, "{err}");
     assert!(out.contains("no alarm"), "{out}");
     assert!(!gw.board(MILL_A).snapshot().alarm);
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_user_in_the_environment_records_still_name_who_ran_the_command() {
+    let gw = start_gateway().await;
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("O7777.nc");
+    std::fs::write(&file, b"%\nO7777\nG00X0\nM30\n%\n").unwrap();
+    let ep = gw.endpoint.clone();
+    let out = tokio::task::spawn_blocking(move || {
+        common::cli::command(["program", "put", "-e", &ep, "O7777"])
+            .arg(&file)
+            .env_remove("USER")
+            .env_remove("LOGNAME")
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(out.status.success(), "{}", common::cli::text(&out));
+    let (code, json, err) =
+        cellgate(&["program", "history", "-e", &gw.endpoint, "O7777", "--json"]).await;
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let by = &v["revisions"][0]["by"];
+    assert_eq!(by["via"], "cli", "{v}");
+    assert!(
+        by["user"].as_str().is_some_and(|u| !u.is_empty()),
+        "the record names somebody: {v}"
+    );
     gw.stop().await;
 }

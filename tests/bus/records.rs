@@ -587,3 +587,34 @@ async fn a_put_or_delete_on_a_read_key_is_logged_counted_and_audited_never_silen
     assert_eq!(e.code(), pb::ErrorCode::NotFound);
     cell.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_question_about_a_name_the_cell_lacks_is_refused_not_answered_empty() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let history = cell.keys.history();
+    let audit = cell.keys.audit();
+    for (key, code) in [
+        (
+            format!("{history}?machine=mill-9"),
+            pb::ErrorCode::UnknownMachine,
+        ),
+        (
+            format!("{audit}?machine=mill-9"),
+            pb::ErrorCode::UnknownMachine,
+        ),
+        (format!("{history}?tag=plc-1/nope"), pb::ErrorCode::NotFound),
+    ] {
+        let e = get_err(&cell.client, &key, None).await;
+        assert_eq!(e.code(), code, "{key}: {}", e.message);
+        assert!(e.message.contains("it has: "), "{}", e.message);
+    }
+    // Known names, a PLC's among them, are answered.
+    for key in [
+        format!("{history}?machine={MILL}"),
+        format!("{history}?machine=plc-1"),
+        format!("{history}?tag=plc-1/parts"),
+    ] {
+        let _: pb::HistoryPage = get_one(&cell.client, &key, None).await;
+    }
+    cell.stop().await;
+}

@@ -132,6 +132,63 @@ fn check_config_rejects_a_bad_file_with_exit_code_2() {
     assert!(out.stdout.is_empty());
 }
 
+/// 7 data bits over a device server: `check-config` says where the parity bit is made, and
+/// what to set if the device server passes whole frames (FFU120B §4-3 items 5–6); with
+/// `parity_by` set it says nothing more than the summary does, and `parity_by = "gateway"` on
+/// an 8-bit line is refused.
+#[test]
+fn check_config_explains_where_a_7_bit_lines_parity_is_made() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cell.toml");
+    let file = |transport_extra: &str, line: &str| {
+        format!(
+            "cell = \"c\"\n[[plcs]]\nname = \"p\"\nmode = 4\n\
+             transport = {{ kind = \"tcp\", address = \"127.0.0.1:4001\"{transport_extra}, \
+             line = {{ baud = 9600, {line} }} }}\n"
+        )
+    };
+    let check = |text: String| {
+        std::fs::write(&path, text).unwrap();
+        let out = common::cli::bin()
+            .args(["check-config", path.to_str().unwrap()])
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8(out.stdout).unwrap(),
+            String::from_utf8(out.stderr).unwrap(),
+        )
+    };
+    let seven = "data_bits = 7, parity = \"even\", stop_bits = 1";
+    let (code, stdout, stderr) = check(file("", seven));
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(
+        stderr.contains(
+            "warning: plcs.p.transport: 7 data bits with even parity over a device server"
+        ) && stderr.contains("parity_by = \"gateway\""),
+        "{stderr}"
+    );
+    assert!(
+        stdout.contains("parity made and checked by the device server"),
+        "{stdout}"
+    );
+    let (code, stdout, stderr) = check(file(", parity_by = \"gateway\"", seven));
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(!stderr.contains("warning"), "{stderr}");
+    assert!(
+        stdout.contains("parity made and checked by the gateway (the device server passes 8-bit frames, 9600 8N1)"),
+        "{stdout}"
+    );
+    let (code, _, stderr) = check(file(", parity_by = \"gateway\"", "data_bits = 8"));
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(
+        stderr.contains(
+            "plcs.p.transport.parity_by = \"gateway\": the gateway carries a parity bit in bit 7"
+        ),
+        "{stderr}"
+    );
+}
+
 #[test]
 fn check_config_on_a_missing_file_exits_2() {
     let out = common::cli::bin()
@@ -198,4 +255,22 @@ fn run_on_an_endpoint_in_use_exits_1() {
     let status = status.unwrap_or_else(|| panic!("cellgate kept running on a taken port:\n{log}"));
     assert_eq!(status.code(), Some(1), "{log}");
     drop(taken);
+}
+
+#[test]
+fn logs_to_a_pipe_carry_no_terminal_colours() {
+    // The site console on an endpoint where nothing listens: it logs, then gives up.
+    let out = common::cli::command([
+        "console",
+        "-e",
+        "tcp/127.0.0.1:1",
+        "--listen",
+        "127.0.0.1:0",
+    ])
+    .env("RUST_LOG", "info")
+    .output()
+    .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.is_empty(), "it logged something");
+    assert!(!err.contains('\u{1b}'), "{err}");
 }

@@ -373,7 +373,7 @@ fn summary_of_the_example() {
         "  plc-1: FFU120B mode 2, stations 01, 02",
         "    start code ':', end code CR, code transposition on, reply time-out 2000 ms",
         "    BCC add (set1, high byte first), over start+text+end, as transmission-code",
-        "    transport: serial /dev/ttyS1, 9600 7E1, reopened every 100..5000 ms while away",
+        "    transport: serial /dev/ttyS1, 9600 7E1, parity made and checked by the port, reopened every 100..5000 ms while away",
     ] {
         assert!(
             s.lines().any(|l| l == expected),

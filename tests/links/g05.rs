@@ -76,6 +76,8 @@ enum Producer {
     Eager,
     /// Bursts and pauses up to half the credit window (§6 of the G05 issue).
     Jittery,
+    /// Batches of this many blocks, each as soon as the credits allow it.
+    Batches(u64),
 }
 
 struct Outcome {
@@ -86,6 +88,17 @@ struct Outcome {
 
 /// Streams `blocks` blocks to machine m1 of `config` and waits for the stream to end.
 async fn stream(config: &CellConfig, blocks: u64, producer: Producer) -> Outcome {
+    stream_from(config, blocks, producer, false).await
+}
+
+/// [`stream`], opened once the link is ready or, with `standing`, once the CNC has been
+/// waiting for data a while (its board asking with GTD and getting WAT).
+async fn stream_from(
+    config: &CellConfig,
+    blocks: u64,
+    producer: Producer,
+    standing: bool,
+) -> Outcome {
     let (cell, token) = start(config).await;
     let m = cell.machine("m1").unwrap();
     let board = m.board.as_ref().unwrap();
@@ -100,14 +113,12 @@ async fn stream(config: &CellConfig, blocks: u64, producer: Producer) -> Outcome
         .then_some(())
     })
     .await;
+    if standing {
+        board.wait_for(|s| s.reading).await;
+        tokio::time::sleep(Duration::from_secs(3)).await;
+    }
     let g = m.config.g05.clone().unwrap();
-    let desk = G05Desk::new(
-        "m1",
-        m.link.clone(),
-        Some(g.clone()),
-        *m.config.transport.line(),
-        token.child_token(),
-    );
+    let desk = G05Desk::new(&m.config, m.link.clone(), token.child_token());
     desk.allow_slow_line();
     let (handle, opened) = desk.open(Some("test".into())).await.unwrap();
     assert_eq!(opened.window, g.window_blocks());
@@ -131,6 +142,12 @@ async fn stream(config: &CellConfig, blocks: u64, producer: Producer) -> Outcome
     while sent < blocks {
         let credits = u64::from(wait_credits(&handle, 1).await);
         let mut n = credits.min(blocks - sent);
+        if let Producer::Batches(size) = producer {
+            if credits < size.min(blocks - sent) {
+                wait_credits(&handle, size.min(blocks - sent) as u32).await;
+            }
+            n = size.min(blocks - sent);
+        }
         if let Producer::Jittery = producer {
             jitter = jitter
                 .wrapping_mul(2_862_933_555_777_941_757)
@@ -272,6 +289,30 @@ async fn expansion_b_takes_100_000_blocks_and_their_m_codes_without_an_underrun(
     assert_eq!(o.stats.aux.first(), Some(&1));
 }
 
+/// G05 opened on Protocol A while the CNC waits (FFU120B's neighbour issue's third corner,
+/// §9.2): 6 axes every 4 ms, 13-byte blocks, 35 750 baud required; 38 400 is 1.07× that. The
+/// board uses a DAT only once all of it has arrived, so the CNC starts with the blocks of the
+/// first DAT and needs the second whole before they run out: 500 ms of blocks (the `prime_ms`
+/// default) followed by a full DAT of 1950 bytes (562 ms with its GTD) ran it dry, 16 unit
+/// times. The priming now covers that; the CNC and the estimate count no underrun.
+#[tokio::test(start_paused = true)]
+async fn protocol_a_from_a_waiting_cnc_never_runs_dry() {
+    let config = g05_cell(
+        "a",
+        None,
+        38_400,
+        "axes = 6\nunit_time_ms = 4",
+        "tx = 0\nti = 0",
+    );
+    let m = &config.machines[0];
+    let g = m.g05.as_ref().unwrap();
+    assert!(g.prime_blocks_on(m.g05_refill()) > g.prime_blocks());
+    assert_eq!(config.warnings(), Vec::<String>::new());
+    let o = stream_from(&config, 20_000, Producer::Batches(125), true).await;
+    assert_exact(&o, 20_000);
+    assert_no_underrun(&o);
+}
+
 /// 7 axes every 8 ms need 20 625 baud; at 19 200 (0.93×) the CNC waits, and the stream's
 /// estimate says so rather than hiding it.
 #[tokio::test(start_paused = true)]
@@ -299,13 +340,7 @@ async fn open_b() -> (
     let config = g05_cell("b", None, 19_200, SIX_AXES_8MS, "");
     let (cell, token) = start(&config).await;
     let m = cell.machine("m1").unwrap();
-    let desk = G05Desk::new(
-        "m1",
-        m.link.clone(),
-        m.config.g05.clone(),
-        *m.config.transport.line(),
-        token.child_token(),
-    );
+    let desk = G05Desk::new(&m.config, m.link.clone(), token.child_token());
     let (handle, _) = desk.open(None).await.unwrap();
     (cell, token, desk, handle)
 }
@@ -431,13 +466,9 @@ async fn a_busy_or_unconfigured_machine_refuses_to_open() {
     let e = desk.open(None).await.unwrap_err();
     assert!(e.to_string().contains(&h.id), "{e}");
     let m = cell.machine("m1").unwrap();
-    let plain = G05Desk::new(
-        "m1",
-        m.link.clone(),
-        None,
-        *m.config.transport.line(),
-        token.child_token(),
-    );
+    let mut unconfigured = m.config.clone();
+    unconfigured.g05 = None;
+    let plain = G05Desk::new(&unconfigured, m.link.clone(), token.child_token());
     let e = plain.open(None).await.unwrap_err();
     assert!(e.to_string().contains("[machines.g05]"), "{e}");
     token.cancel();

@@ -222,6 +222,89 @@ async fn mode_5_messages_both_ways_and_a_spoilt_one_is_dropped() {
     stop.cancel();
 }
 
+/// Mode 4, fixed length 6 with transposition (12 characters a message), on a 7E1 line whose
+/// UART makes and checks parity, as a serial port's does: a character that arrives with a
+/// parity error, reported by the driver, ends its message as a receive error (FFU120B §5-6)
+/// and keeps its place, so the next message still arrives whole; both ways.
+#[tokio::test(start_paused = true)]
+async fn a_parity_error_drops_its_message_and_the_next_one_arrives() {
+    use cellgate::transport::{DataBits, Parity, StopBits};
+    let line = LineSettings {
+        baud: 9600,
+        data_bits: DataBits::Seven,
+        parity: Parity::Even,
+        stop_bits: StopBits::One,
+        ..LineSettings::default()
+    };
+    let mut mc = MicrexConfig::new(OperationMode::Four);
+    mc.line = line;
+    mc.fixed_length = Some(6);
+    mc.receive_message = 7;
+    let frame = mc.frame.clone();
+    let (host, device, control) = cellgate::transport::sim::line(line);
+    let (sim, mut sim_events) = MicrexHandle::spawn_subscribed(mc, Vec::new(), device).unwrap();
+    let mut ms = MasterSettings::new(OperationMode::Four);
+    ms.line = line;
+    ms.frame = frame;
+    ms.fixed_length = Some(6);
+    let stop = CancellationToken::new();
+    let (plc, _task) = spawn(
+        "plc",
+        Master::new(ms).unwrap(),
+        TagTable::new("plc", &[]),
+        host,
+        stop.clone(),
+    );
+    let mut events = plc.subscribe();
+    let to_device = cellgate::transport::sim::End::Host.tx();
+    let from_device = cellgate::transport::sim::End::Device.tx();
+    let mut received = Vec::new();
+    for data in [b"FIRST!", b"SECOND", b"THIRD!"] {
+        if data == b"SECOND" {
+            // Its first character arrives with a parity error (not delivered): the eleven
+            // after it are no message, and the next message starts after them.
+            control.error_next(to_device, cellgate::transport::LineError::Parity);
+            control.error_next(from_device, cellgate::transport::LineError::Parity);
+        }
+        sim.command(MicrexCommand::QueueTransfer {
+            message: 0,
+            data: data.to_vec(),
+        });
+        let r = plc.send_message(data.to_vec()).await.unwrap();
+        assert_eq!(r, Ok(Reply::Sent { bytes: 12 }));
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    while received.len() < 2 {
+        match tokio::time::timeout(Duration::from_secs(10), events.recv()).await {
+            Ok(Ok(PlcEvent::Message { data, .. })) => received.push(data),
+            Ok(Ok(_)) => {}
+            other => panic!("no message from the PLC: {other:?}"),
+        }
+    }
+    assert_eq!(received, [b"FIRST!".to_vec(), b"THIRD!".to_vec()]);
+    let c = plc.snapshot().await.unwrap().counters;
+    assert_eq!(c.messages_received, 2);
+    assert_eq!(
+        (c.receive_errors.character, c.receive_errors.total()),
+        (1, 1),
+        "{:?}",
+        c.receive_errors
+    );
+    assert_eq!(c.line_errors.parity, 1);
+    // The module stored the first and the third of the gateway's messages.
+    let mut stored = Vec::new();
+    while let Ok(e) = sim_events.try_recv() {
+        if let MicrexEvent::TransferReceived {
+            message: 7, data, ..
+        } = e
+        {
+            stored.push(data);
+        }
+    }
+    assert_eq!(stored, [b"FIRST!".to_vec(), b"THIRD!".to_vec()]);
+    stop.cancel();
+}
+
 /// A confirmed tag write is the tag's value at once: a get right after it answers what was
 /// written, not the value of the last poll, and the change is published.
 #[tokio::test(start_paused = true)]

@@ -268,6 +268,8 @@ fn g05_stream(
         window: 1000,
         prime: 62,
         idle: 10 * SEC,
+        line: pair.line,
+        in_flight: 4096,
     };
     let mut stream = Stream::new(settings, pair.now);
     pair.command_a(EngineCommand::StartProgram { total: None });
@@ -629,4 +631,131 @@ fn expansion_b_ends_a_program_on_a_line_running_fast() {
         dc3.dc3_sent > 20,
         "the test does not exercise flow control: {dc3:?}"
     );
+}
+
+/// Streams `blocks` blocks of `format` through `pair` from a CNC already waiting for data:
+/// the producer's first batch is the priming level exactly, and only once the DAT carrying
+/// the `G05` block has gone does it top the window up, so that the next DAT is a full one.
+/// Returns the CNC's totals and the stream's own figures.
+fn g05_from_a_waiting_cnc(
+    pair: &mut Pair<ProtocolAHost, FanucBoard>,
+    format: G05Format,
+    prime: u32,
+    blocks: u64,
+) -> (G05Stats, cellgate_core::fanuc::g05::stream::StreamFigures) {
+    let settings = StreamSettings {
+        format,
+        before: Bytes::from_static(b"G05\n"),
+        after: Bytes::from_static(b"M30\n"),
+        window: 1000,
+        prime,
+        idle: 10 * SEC,
+        line: pair.line,
+        in_flight: 4096,
+    };
+    let mut stream = Stream::new(settings, pair.now);
+    pair.command_a(EngineCommand::StartProgram { total: None });
+    pair.command_a(EngineCommand::Streaming);
+    let block = |i: u64| BlockIn {
+        travels: vec![1, 2, 3, -4, (i % 7) as i32 - 3, 5],
+        aux: None,
+    };
+    let first = Batch {
+        seq: 0,
+        blocks: (0..u64::from(prime)).map(block).collect(),
+        end: false,
+    };
+    assert_eq!(stream.offer(pair.now, &first), Ok(Offered::Accepted));
+    feed_chunks(pair, stream.take_chunks());
+    let (mut seq, mut sent, mut on_line) = (1u64, u64::from(prime), 0u64);
+    let end = pair.now + 600 * SEC;
+    let mut seen = Vec::new();
+    while pair.now < end {
+        let credits = u64::from(stream.credits()).min(blocks - sent);
+        if on_line > 0 && credits > 0 && !stream.is_closing() {
+            let batch = Batch {
+                seq,
+                blocks: (sent..sent + credits).map(block).collect(),
+                end: sent + credits == blocks,
+            };
+            sent += credits;
+            seq += 1;
+            assert_eq!(stream.offer(pair.now, &batch), Ok(Offered::Accepted));
+            feed_chunks(pair, stream.take_chunks());
+            if stream.is_closing() {
+                pair.command_a(EngineCommand::ProgramEnd);
+            }
+        }
+        pair.run_for(MS);
+        for e in pair.take_a_events() {
+            if let EngineEvent::DataSent { bytes } = e {
+                on_line += bytes;
+                stream.on_sent(pair.now, on_line);
+            }
+        }
+        stream.tick(pair.now);
+        for e in pair.take_b_events() {
+            if let BoardEvent::G05Ended { stats, .. } = &e {
+                return (stats.clone(), stream.figures());
+            }
+            seen.push(e);
+        }
+    }
+    panic!("the CNC never left binary mode: {seen:?}");
+}
+
+/// Corner 6 (§9.2, §4.4.2 3): G05 opened on Protocol A while the CNC waits, 6 axes every
+/// 4 ms at 38 400 baud (1.07× §9.2). The board uses a DAT only once all of it has arrived,
+/// so the CNC starts with the blocks of the first DAT and needs the next DAT whole before
+/// they run out: the `prime_ms` default, 500 ms of blocks, followed by a full DAT of 1950
+/// bytes (562 ms with the GTD that asks for it) ran it dry. The priming level in force covers
+/// that exchange, and the CNC never waits. Either way the stream's estimate counts no more
+/// underruns than the CNC did.
+#[test]
+fn g05_on_protocol_a_from_a_waiting_cnc_is_primed_for_the_next_dat() {
+    let params = Params {
+        tx: 0,
+        ti: 0,
+        ..Params::POWER_ON
+    };
+    let line = LineSettings::with_baud(38_400);
+    let g05: cellgate_core::config::G05Config =
+        toml::from_str("axes = 6\nunit_time_ms = 4").unwrap();
+    let refill = cellgate_core::config::Refill::of(Protocol::A, params, 0, &line);
+    assert_eq!(refill.map(|r| r.data), Some(1950));
+    assert_eq!(g05.standing_start(refill), None, "this line keeps up");
+    let primes = [
+        (g05.prime_blocks(), "the prime_ms default"),
+        (g05.prime_blocks_on(refill), "the priming in force"),
+    ];
+    assert_eq!(primes[0].0, 125);
+    let mut counted = Vec::new();
+    for (prime, what) in primes {
+        let mut pair = pair_a(Protocol::A, 0, params, 38_400, |c| {
+            c.g05 = Some(g05.format());
+        });
+        let mut seen = Vec::new();
+        until_b(&mut pair, 30 * SEC, &mut seen, |e| {
+            matches!(e, BoardEvent::ParamsChanged { .. }).then_some(())
+        })
+        .expect("the host's SET");
+        until_b(&mut pair, 30 * SEC, &mut seen, |e| {
+            matches!(e, BoardEvent::MessageSent(Command::Gtd)).then_some(())
+        })
+        .expect("the CNC asks for data");
+        let (stats, figures) = g05_from_a_waiting_cnc(&mut pair, g05.format(), prime, 6000);
+        assert_eq!(stats.blocks, 6000, "{what}: {stats:?}");
+        assert!(
+            figures.underruns <= stats.underruns,
+            "{what}: the estimate said {} where the CNC counted {}",
+            figures.underruns,
+            stats.underruns
+        );
+        counted.push(stats.underruns);
+    }
+    assert!(
+        counted[0] > 0,
+        "500 ms of blocks ran the CNC dry: {counted:?}"
+    );
+    assert_eq!(counted[1], 0, "primed for the next DAT: {counted:?}");
 }

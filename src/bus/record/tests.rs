@@ -47,3 +47,56 @@ fn a_job_is_recorded_once_it_ended() {
     .unwrap();
     assert_eq!(cancelled.reason, "cancelled by bus");
 }
+
+#[tokio::test]
+async fn a_job_that_ends_before_it_starts_keeps_its_size() {
+    let dir = tempfile::tempdir().unwrap();
+    let stop = tokio_util::sync::CancellationToken::new();
+    let config = cellgate_core::config::HistoryConfig::default();
+    let (h, writer) = History::open(dir.path(), &config, stop.clone())
+        .await
+        .unwrap();
+    let mut r = Recorder::default();
+    r.job(
+        &h,
+        "m",
+        &event(Kind::Queued(pb::job_event::Queued {
+            queue_position: 0,
+            bytes_total: Some(40_550),
+        })),
+    );
+    r.job(
+        &h,
+        "m",
+        &event(Kind::Cancelled(pb::job_event::Cancelled {
+            by: "request".to_string(),
+            ..Default::default()
+        })),
+    );
+    let page = loop {
+        use cellgate_core::history::{HistoryQuery, Store};
+        let q = HistoryQuery::parse(
+            Store::History,
+            [],
+            |_| Err(String::new()),
+            pb::now_ms() + 1000,
+        )
+        .unwrap();
+        let page = h.query(crate::history::Log::History, q).await.unwrap();
+        if page
+            .records
+            .iter()
+            .any(|r| matches!(r.record, Some(Record::Job(_))))
+        {
+            break page;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    };
+    let job = page.records.iter().find_map(|r| match &r.record {
+        Some(Record::Job(j)) => Some(j),
+        _ => None,
+    });
+    assert_eq!(job.unwrap().bytes_total, 40_550);
+    stop.cancel();
+    writer.await.unwrap();
+}

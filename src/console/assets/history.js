@@ -145,7 +145,7 @@ function jobText(j) {
   const outcome = {
     JOB_OUTCOME_COMPLETED: 'completed',
     JOB_OUTCOME_FAILED: `failed: ${j.alarm_number ? j.alarm_number + ' ' : ''}${j.reason}`,
-    JOB_OUTCOME_CANCELLED: `cancelled ${j.reason}`,
+    JOB_OUTCOME_CANCELLED: j.reason || 'cancelled',
   }[j.outcome] || 'ended';
   return `Job ${j.job_id} ${src}, ${bytes(j.bytes_sent)} of ${bytes(j.bytes_total)} sent, by ${who(o.submitted_by)}: ${outcome}`;
 }

@@ -223,12 +223,14 @@ export async function act(button, fn) {
 // 64-bit integers arrive as strings.
 export const num = (x) => (x == null || x === '' ? 0 : Number(x));
 
+// As the command line writes sizes: bytes, then KiB, MiB, GiB.
 export function bytes(n) {
   n = num(n);
-  if (n < 10000) return `${n} B`;
-  if (n < 1e6) return `${(n / 1000).toFixed(1)} kB`;
-  if (n < 1e9) return `${(n / 1e6).toFixed(1)} MB`;
-  return `${(n / 1e9).toFixed(2)} GB`;
+  const K = 1024;
+  if (n < K) return `${n} B`;
+  if (n < K * K) return `${(n / K).toFixed(1)} KiB`;
+  if (n < K * K * K) return `${(n / (K * K)).toFixed(1)} MiB`;
+  return `${(n / (K * K * K)).toFixed(1)} GiB`;
 }
 
 export const rate = (bps) => `${bytes(bps)}/s`;

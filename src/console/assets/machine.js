@@ -566,7 +566,8 @@ function utilisationView(u, name) {
   const t = table(['From', ...UTIL.map(([, l]) => l), 'Parts', 'Jobs ok / failed'], 'util-table');
   t.setAttribute('aria-label', 'Utilisation figures');
   for (const b of bs) {
-    const len = Math.max(1, num(b.end_unix_ms) - num(b.start_unix_ms));
+    // Shares of the time that has passed: the current bucket has not ended yet.
+    const len = Math.max(1, UTIL.reduce((sum, [, , f]) => sum + f(b), 0));
     t.tbody.append(h('tr', null, h('td', null, clock(b.start_unix_ms)),
       UTIL.map(([, , f]) => h('td', { class: 'num' }, `${Math.round((100 * f(b)) / len)}%`)),
       h('td', { class: 'num' }, b.parts == null ? '—' : Math.round(b.parts)), h('td', { class: 'num' }, `${b.jobs_completed} / ${b.jobs_failed}`)));

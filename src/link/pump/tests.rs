@@ -1,5 +1,5 @@
 use super::*;
-use cellgate_core::engine::LineError;
+use cellgate_core::engine::{LineError, LineSettings};
 use std::collections::VecDeque;
 use tokio::io::DuplexStream;
 
@@ -227,4 +227,54 @@ async fn reports_closed_line() {
         .await
         .expect("the pump did not notice the closed line");
     assert!(matches!(err, PumpError::Closed), "{err}");
+}
+
+/// Records what reaches it, in order.
+#[derive(Default)]
+struct Recorder(Vec<String>);
+
+impl Engine for Recorder {
+    type Command = ();
+    type Event = ();
+    fn handle_input(&mut self, _: Instant, bytes: &[u8]) {
+        self.0.push(String::from_utf8_lossy(bytes).into_owned());
+    }
+    fn handle_line_error(&mut self, _: Instant, e: LineError) {
+        self.0.push(format!("<{e}>"));
+    }
+    fn handle_modem(&mut self, _: Instant, _: ModemIn) {}
+    fn handle_command(&mut self, _: Instant, _: ()) {}
+    fn handle_timeout(&mut self, _: Instant) {}
+    fn poll_transmit(&mut self, _: Instant) -> Option<Vec<u8>> {
+        None
+    }
+    fn poll_event(&mut self) -> Option<()> {
+        None
+    }
+    fn poll_timeout(&self) -> Option<Instant> {
+        None
+    }
+}
+
+/// Bytes, a character received with a parity error, more bytes, all arrived before the pump
+/// reads: the engine sees the error between the bytes around it, as they were on the line,
+/// not after them (a read never spans an error; the ones it met come before its bytes).
+#[tokio::test(start_paused = true)]
+async fn a_line_error_reaches_the_engine_between_the_bytes_around_it() {
+    use tokio::io::AsyncWriteExt;
+    let settings = LineSettings::with_baud(9600);
+    let (host, mut device, sim) = crate::transport::sim::line(settings);
+    device.write_all(b"ab").await.unwrap();
+    sim.error_next(crate::transport::sim::Dir::DeviceToHost, LineError::Parity);
+    device.write_all(b"Xcd").await.unwrap();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let mut pump = Pump::new(Recorder::default(), host);
+    while pump.engine().0.concat().len() < "ab<>cd".len() + LineError::Parity.to_string().len() {
+        tokio::time::timeout(Duration::from_secs(1), pump.step())
+            .await
+            .expect("the pump reads what arrived")
+            .unwrap();
+    }
+    let seen = pump.engine().0.concat();
+    assert_eq!(seen, format!("ab<{}>cd", LineError::Parity));
 }

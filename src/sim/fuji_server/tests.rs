@@ -65,6 +65,32 @@ fn options_take_the_cell_file_values() {
     assert_eq!(c.messages, vec![1, 7]);
 }
 
+/// `--parity-by gateway` (the device server passes 8-bit frames) as the cell file writes it,
+/// and refused where a byte has no bit 7 to carry the parity in.
+#[tokio::test]
+async fn parity_by_gateway_needs_a_7_bit_line_with_parity() {
+    let cli =
+        Cli::try_parse_from(["sim", "--parity-by", "gateway", "--spoil-parity", "3"]).unwrap();
+    assert_eq!(cli.args.parity_by, ParityBy::Gateway);
+    assert_eq!(cli.args.spoil_parity, [3]);
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let plan = SessionPlan {
+        parity_by: ParityBy::Gateway,
+        ..SessionPlan::default()
+    };
+    let sink: EventSink = Arc::new(|_: &Value| {});
+    let e = serve_fuji_on(
+        listener,
+        cli.args.micrex_config().unwrap(),
+        plan,
+        sink,
+        std::future::ready(()),
+    )
+    .await
+    .unwrap_err();
+    assert!(e.to_string().contains("--data-bits 7"), "{e}");
+}
+
 #[test]
 fn bad_options_are_refused_with_a_reason() {
     for (args, want) in [

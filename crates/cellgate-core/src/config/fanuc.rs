@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use super::error::ConfigErrors;
 use super::error::{Checker, ConfigError, list_u32, q, toml_name};
-use super::g05::{G05Config, check_g05};
+use super::g05::{G05Config, Refill, check_g05};
 use super::transport::{
     RawTransport, TransportConfig, built_transport, check_transport, transport_of,
 };
@@ -213,6 +213,18 @@ impl MachineConfig {
         default_interface(self.protocol, self.transport.line().baud, self.interface)
     }
 
+    /// How this machine's board is refilled while a G05 stream runs (see [`Refill`]): with the
+    /// cell file's §4.5 values and n, which the host sets by SET before a stream may start
+    /// (protocol notes 19).
+    pub fn g05_refill(&self) -> Option<Refill> {
+        Refill::of(
+            self.protocol,
+            self.params(),
+            self.effective_packet_n(),
+            self.transport.line(),
+        )
+    }
+
     /// Board simulation settings in force (defaults when the `sim` table is absent).
     pub fn board_sim(&self) -> BoardSimConfig {
         self.sim.unwrap_or_default()
@@ -345,6 +357,21 @@ pub const FANUC_BAUD_RATES: [u32; 15] = [
     50, 100, 110, 150, 200, 300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 76800, 86400,
 ];
 
+/// A baud rate the board can be set to at all (§10.2 parameters 5073 / 5083).
+fn check_fanuc_rate(c: &mut Checker, tpath: &str, baud: u32) {
+    if !FANUC_BAUD_RATES.contains(&baud) {
+        c.invalid(
+            format!("{tpath}.line.baud"),
+            baud.to_string(),
+            format!(
+                "must be one of the rates of parameters 5073 / 5083: {}",
+                list_u32(&FANUC_BAUD_RATES)
+            ),
+            "§10.2",
+        );
+    }
+}
+
 pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
     let Some(protocol) = m.protocol else {
         c.missing(
@@ -352,10 +379,13 @@ pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
             "one of \"a\", \"expansion-a\", \"b\", \"expansion-b\" as set on the CNC by \
              parameter 5074 / 5084 (§2.2, §10.2)",
         );
-        // Without the protocol, only the protocol-independent checks can run.
+        // Without the protocol, only the protocol-independent checks can run: a misspelt
+        // `protocol` must not hide a wrong baud rate on the same machine.
         check_params(c, label, m);
         if let Some(t) = transport_of(c, label, m.transport.as_ref()) {
-            check_transport(c, &format!("{label}.transport"), &t);
+            let tpath = format!("{label}.transport");
+            check_transport(c, &tpath, &t);
+            check_fanuc_rate(c, &tpath, t.line().baud);
         }
         return;
     };
@@ -457,15 +487,7 @@ pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
     let interface = default_interface(protocol, baud, m.interface);
     let baud_path = || format!("{tpath}.line.baud");
     if !FANUC_BAUD_RATES.contains(&baud) {
-        c.invalid(
-            baud_path(),
-            baud.to_string(),
-            format!(
-                "must be one of the rates of parameters 5073 / 5083: {}",
-                list_u32(&FANUC_BAUD_RATES)
-            ),
-            "§10.2",
-        );
+        check_fanuc_rate(c, &tpath, baud);
     } else if baud > interface.max_baud() {
         c.invalid(
             baud_path(),

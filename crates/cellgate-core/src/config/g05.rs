@@ -14,6 +14,8 @@
 //! idle_ms = 2000           # a producer silent this long while the CNC runs dry ends the stream
 //! ```
 
+use std::time::Duration;
+
 use serde::{Deserialize, Serialize};
 
 use super::error::{Checker, q};
@@ -22,11 +24,67 @@ use crate::fanuc::Protocol;
 use crate::fanuc::g05::{
     AuxFunction, AuxOrder, DataFormat, G05Entry, G05Format, UnitTime, required_baud,
 };
+use crate::fanuc::sat::Params;
 
 /// The credit window holds at least this many bytes of blocks, so that a whole DAT or data
 /// packet can always be filled (min(4096, Nb − No), §4.4.2 3; 256·n, §5.2) while another is on
 /// the line: a window smaller than a DAT would make every GTD wait.
 pub const MIN_WINDOW_BYTES: u32 = 8192;
+
+/// Characters of a Protocol A message around its data part: checksum (2), command (3), end
+/// code (1) (§4.1; protocol notes 1). The board's GTD is one such message without data.
+const MESSAGE_FRAME: u64 = 6;
+/// Characters of an Expansion A data packet around its data: packet number (1), checksum
+/// (2), CR (1) (§5.2; protocol notes 9).
+const PACKET_FRAME: u64 = 4;
+
+/// How a board that uses data only in whole pieces is refilled while a G05 stream runs
+/// (§9.2): the board stores a DAT (Protocol A, §4.4.2 3) or a data packet (Expansion A,
+/// §5.2) only once all of it has arrived, so the CNC cannot read a block before the whole
+/// piece carrying it is in, and the blocks it holds must last until the next piece is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Refill {
+    /// `"DAT"` or `"data packet"`.
+    pub piece: &'static str,
+    /// Program bytes in the longest piece: min(4096, Nb − No) for a DAT, 256·n for a packet.
+    pub data: usize,
+    /// From the moment the board has one piece to the moment it can have the next longest one
+    /// whole: for a DAT, the board's Tx and its GTD (Ti between its characters), then the DAT
+    /// on the line; for a packet, the packet on the line (the host sends them back to back).
+    pub time: Duration,
+}
+
+impl Refill {
+    /// The refill of a board of `protocol` with the §4.5 `params` and packet length `n`
+    /// (the cell file's: the host sets them by SET), on `line`; `None` where the CNC reads the
+    /// bytes as they come (Protocol B and Expansion B).
+    pub fn of(protocol: Protocol, params: Params, n: u8, line: &LineSettings) -> Option<Refill> {
+        match protocol {
+            Protocol::A => {
+                let data = usize::from(params.nb.saturating_sub(params.no))
+                    .clamp(1, crate::fanuc::message::MAX_DAT_DATA);
+                let chars = 2 * MESSAGE_FRAME + data as u64;
+                let board = Duration::from_millis(
+                    u64::from(params.tx) + (MESSAGE_FRAME - 1) * u64::from(params.ti),
+                );
+                Some(Refill {
+                    piece: "DAT",
+                    data,
+                    time: board + line.time_for_chars(chars),
+                })
+            }
+            Protocol::ExpansionA => {
+                let data = 256 * usize::from(n.max(1));
+                Some(Refill {
+                    piece: "data packet",
+                    data,
+                    time: line.time_for_chars(data as u64 + PACKET_FRAME),
+                })
+            }
+            _ => None,
+        }
+    }
+}
 
 /// G05 binary input on a machine (`[machines.g05]`).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -108,9 +166,89 @@ impl G05Config {
         self.blocks_in(self.prime_ms).min(self.window_blocks())
     }
 
+    /// Whole blocks in `bytes` of the stream's program after `before`.
+    fn blocks_of(&self, bytes: usize) -> u64 {
+        let block = self.format().block_len().max(1);
+        (bytes / block) as u64
+    }
+
+    /// The priming level in blocks on a board refilled as `refill` says: `prime_ms` of
+    /// blocks, raised so that they last the CNC, from the moment it reads the `G05` block,
+    /// until the next longest piece can have arrived whole, plus one unit time for the phase
+    /// of the CNC's clock (§9.2). Without it a stream opened while the CNC waits got a first
+    /// DAT with 500 ms of blocks followed by a 1931-byte one taking 553 ms at 38 400 baud.
+    /// (The first piece carries as many of them as fit; see [`G05Config::standing_start`].)
+    pub fn prime_blocks_on(&self, refill: Option<Refill>) -> u32 {
+        let t = self.unit_time_ms.duration();
+        let needed = refill.map_or(0, |r| {
+            u32::try_from(r.time.as_nanos().div_ceil(t.as_nanos().max(1)))
+                .unwrap_or(u32::MAX)
+                .saturating_add(1)
+        });
+        self.prime_blocks().max(needed).min(self.window_blocks())
+    }
+
+    /// Why a stream started while the CNC waits would run dry on a board refilled as
+    /// `refill` says, whatever the priming: the first piece holds the `G05` block and as
+    /// many blocks as fit, and they run out before the next piece can be whole; or a piece
+    /// brings the CNC less time than its exchange takes, so every stream runs dry once what
+    /// the board held is used. `None` when neither happens.
+    pub fn standing_start(&self, refill: Option<Refill>) -> Option<String> {
+        let r = refill?;
+        let t = self.unit_time_ms.duration();
+        let ms = |d: Duration| d.as_secs_f64() * 1000.0;
+        let steady = self.blocks_of(r.data);
+        if t * u32::try_from(steady).unwrap_or(u32::MAX) < r.time {
+            return Some(format!(
+                "G05 cannot keep up on this line: a {} of {} bytes brings the CNC {steady} blocks, \
+                 {:.0} ms at T = {} ms, but the next one takes {:.0} ms to arrive whole (§9.2, \
+                 §4.4.2, §5.2): every stream runs dry; raise the baud rate, Nb − No or n, or \
+                 lower Tx and Ti",
+                r.piece,
+                r.data,
+                ms(t * u32::try_from(steady).unwrap_or(u32::MAX)),
+                t.as_millis(),
+                ms(r.time),
+            ));
+        }
+        let first = self.blocks_of(r.data.saturating_sub(self.before.len()));
+        let lasts = t * u32::try_from(first).unwrap_or(u32::MAX);
+        if lasts < r.time {
+            return Some(format!(
+                "a G05 stream started while the CNC waits runs dry: the board uses a {} only \
+                 once all of it has arrived, and the first one ({} bytes: `before` and {first} \
+                 blocks, {:.0} ms at T = {} ms) runs out before the next can be whole ({:.0} ms) \
+                 (§9.2)",
+                r.piece,
+                r.data,
+                ms(lasts),
+                t.as_millis(),
+                ms(r.time),
+            ));
+        }
+        None
+    }
+
     /// The §9.2 requirement on a line framed as `line`.
     pub fn required_baud(&self, line: &LineSettings) -> u32 {
         required_baud(&self.format(), line.bits_per_char())
+    }
+
+    /// One line for `check-config` and the start-up log, with the priming in force on a
+    /// board refilled as `refill` says.
+    pub fn describe_on(&self, line: &LineSettings, refill: Option<Refill>) -> String {
+        let mut s = self.describe(line);
+        let prime = self.prime_blocks_on(refill);
+        if let Some(r) = refill
+            && prime > self.prime_blocks()
+        {
+            s.push_str(&format!(
+                " raised to {prime}: they last until the next {} can be whole ({:.0} ms)",
+                r.piece,
+                r.time.as_secs_f64() * 1000.0
+            ));
+        }
+        s
     }
 
     /// One line for `check-config` and the start-up log.

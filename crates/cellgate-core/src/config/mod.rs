@@ -47,7 +47,7 @@ use self::error::{Checker, q};
 pub use self::error::{ConfigError, ConfigErrors};
 pub use self::fanuc::{Accept, BoardSimConfig, FANUC_BAUD_RATES, Interface, MachineConfig};
 use self::fanuc::{RawMachine, check_machine};
-pub use self::g05::G05Config;
+pub use self::g05::{G05Config, Refill};
 pub use self::history::HistoryConfig;
 use self::history::check_history;
 pub use self::mtconnect::MtconnectConfig;
@@ -183,9 +183,30 @@ impl CellConfig {
     }
 
     /// What is allowed but likely a mistake, one line each: a listener beyond loopback on a
-    /// cell without `[security]`, where anyone who reaches the port may do anything.
+    /// cell without `[security]`, where anyone who reaches the port may do anything; a 7-bit
+    /// line over a device server that does not say where its parity bit is made; a G05
+    /// machine whose line, unit time and board cannot keep a stream going (§9.2).
     pub fn warnings(&self) -> Vec<String> {
         let mut out = Vec::new();
+        let links = self
+            .machines
+            .iter()
+            .map(|m| (format!("machines.{}", m.name), &m.transport))
+            .chain(
+                self.plcs
+                    .iter()
+                    .map(|p| (format!("plcs.{}", p.name), &p.transport)),
+            );
+        for (label, transport) in links {
+            out.extend(transport.parity_warning(&format!("{label}.transport")));
+        }
+        for m in &self.machines {
+            if let Some(g) = &m.g05
+                && let Some(w) = g.standing_start(m.g05_refill())
+            {
+                out.push(format!("machines.{}.g05: {w}", m.name));
+            }
+        }
         let secured = self.security.tls.is_some() || self.security.users_file.is_some();
         if !secured
             && let Some(console) = &self.console

@@ -64,8 +64,24 @@ impl CellConfig {
                     }
                 })
                 .collect();
+            // What each mode carries (FFU120B §1-3, §5-2): the command set reads and writes
+            // memory, transfers only in mode 1 (1:1); modes 4 and 5 carry messages only.
+            let carries = match p.mode {
+                1 => "memory, transfers".to_string(),
+                2 | 3 => "memory".to_string(),
+                _ => match p.fixed_length.filter(|n| *n != 0) {
+                    Some(n) => format!(
+                        "messages of {n} bytes both ways, to receive message {}",
+                        p.receive_message
+                    ),
+                    None => format!(
+                        "messages both ways (variable length), to receive message {}",
+                        p.receive_message
+                    ),
+                },
+            };
             let mut what = format!(
-                "MICREX-F PLC, FFU120B mode {}, {}: memory, transfers",
+                "MICREX-F PLC, FFU120B mode {}, {}: {carries}",
                 p.mode,
                 where_(&p.transport)
             );
@@ -224,7 +240,11 @@ impl CellConfig {
                 writeln!(s, "    parameters: {}", m.params())?;
             }
             if let Some(g) = &m.g05 {
-                writeln!(s, "    {}", g.describe(m.transport.line()))?;
+                writeln!(
+                    s,
+                    "    {}",
+                    g.describe_on(m.transport.line(), m.g05_refill())
+                )?;
             }
         }
         writeln!(s, "plcs: {}", self.plcs.len())?;

@@ -280,6 +280,7 @@ fn transport_tables() {
         TransportConfig::Tcp {
             address: "h:1".to_string(),
             line: LineSettings::with_baud(19_200),
+            parity_by: None,
             window: None,
             reconnect_min_ms: 100,
             reconnect_max_ms: 5000,
@@ -501,6 +502,108 @@ fn plc_non_procedure_modes() {
     );
 }
 
+/// The start-up overview says what each mode carries (FFU120B §1-3, §5-2): memory and
+/// transfers in mode 1, memory in modes 2–3, and messages, never memory, in modes 4–5.
+#[test]
+fn plc_overview_says_what_each_mode_carries() {
+    let f = |extra: &str| {
+        format!(
+            "cell = \"c\"\n[[plcs]]\nname = \"p\"\n{extra}\n\
+             transport = {{ kind = \"sim\", line = {{ baud = 9600 }} }}\n"
+        )
+    };
+    let overview = |extra: &str| {
+        CellConfig::from_toml_str(&f(extra), "t")
+            .unwrap()
+            .overview(4)
+    };
+    let four = overview("mode = 4\nfixed_length = 12\nreceive_message = 9");
+    assert!(
+        four.contains(
+            "mode 4, simulated, 9600 baud: messages of 12 bytes both ways, to receive message 9"
+        ),
+        "{four}"
+    );
+    assert!(
+        !four.contains("memory") && !four.contains("transfers"),
+        "{four}"
+    );
+    let five = overview("mode = 5");
+    assert!(
+        five.contains(": messages both ways (variable length), to receive message 1"),
+        "{five}"
+    );
+    assert!(overview("mode = 1").contains(": memory, transfers"));
+    let three = overview("mode = 3\nstations = [1, 2]");
+    assert!(
+        three.contains(": memory") && !three.contains("transfers"),
+        "{three}"
+    );
+}
+
+/// `parity_by` (FFU120B §4-3 items 5–6): on a serial port or a device server only, "gateway"
+/// only on a line of 7 data bits with parity, whose port then runs 8 data bits and no parity;
+/// a 7-bit line over a device server without the key is warned of, with it not.
+#[test]
+fn parity_by_where_a_7_bit_lines_parity_bit_is_made() {
+    let f = |transport: &str| {
+        format!("cell = \"c\"\n[[plcs]]\nname = \"p\"\nmode = 4\ntransport = {transport}\n")
+    };
+    let seven = "line = { data_bits = 7, parity = \"odd\", stop_bits = 2 }";
+    let cfg = CellConfig::from_toml_str(
+        &f(&format!(
+            "{{ kind = \"serial\", path = \"/dev/ttyS0\", parity_by = \"gateway\", {seven} }}"
+        )),
+        "t",
+    )
+    .unwrap();
+    let t = &cfg.plcs[0].transport;
+    assert_eq!(t.parity_by(), crate::engine::parity::ParityBy::Gateway);
+    assert_eq!(t.port_line().to_string(), "9600 8N2");
+    assert!(cfg.warnings().is_empty(), "{:?}", cfg.warnings());
+    let back = CellConfig::from_toml_str(&cfg.to_toml_string().unwrap(), "t").unwrap();
+    assert_eq!(back.plcs[0].transport, *t);
+
+    let cfg = CellConfig::from_toml_str(
+        &f(&format!("{{ kind = \"tcp\", address = \"h:1\", {seven} }}")),
+        "t",
+    )
+    .unwrap();
+    assert_eq!(
+        cfg.plcs[0].transport.port_line(),
+        *cfg.plcs[0].transport.line()
+    );
+    let w = cfg.warnings();
+    assert_eq!(w.len(), 1, "{w:?}");
+    assert!(
+        w[0].starts_with("plcs.p.transport: 7 data bits with odd parity"),
+        "{w:?}"
+    );
+    let cfg = CellConfig::from_toml_str(
+        &f(&format!(
+            "{{ kind = \"tcp\", address = \"h:1\", parity_by = \"port\", {seven} }}"
+        )),
+        "t",
+    )
+    .unwrap();
+    assert!(cfg.warnings().is_empty());
+
+    let e = errors_of(&f("{ kind = \"sim\", parity_by = \"gateway\" }"));
+    assert!(
+        e[0].starts_with("plcs.p.transport.parity_by: used only with kind = \"serial\" or \"tcp\""),
+        "{e:?}"
+    );
+    let e = errors_of(&f(
+        "{ kind = \"tcp\", address = \"h:1\", parity_by = \"gateway\", line = { data_bits = 7 } }",
+    ));
+    assert!(
+        e[0].starts_with(
+            "plcs.p.transport.parity_by = \"gateway\": the gateway carries a parity bit"
+        ),
+        "{e:?}"
+    );
+}
+
 #[test]
 fn plc_baud_rates() {
     let text = "cell = \"c\"\n[[plcs]]\nname = \"p\"\n\
@@ -623,6 +726,77 @@ fn g05_rules() {
     assert!(e.len() == 1 && e[0].contains("g05.after"), "{e:?}");
     let e = errors_of(&cell("b", 19_200, "axes = 3\nunit_time_ms = 3"));
     assert!(e.len() == 1 && e[0].contains("unit_time_ms"), "{e:?}");
+}
+
+/// The priming level on a board that uses data in whole pieces covers the next piece's
+/// exchange (§9.2, §4.4.2 3, §5.2), and `check-config` warns of a line and unit time that
+/// cannot keep a stream going, from a waiting CNC or at all.
+#[test]
+fn g05_priming_and_warnings_follow_the_board() {
+    let cell = |protocol: &str, baud: u32, extra: &str, g05: &str| {
+        format!(
+            "cell = \"c1\"\n[[machines]]\nname = \"m1\"\nprotocol = \"{protocol}\"\n{extra}\n\
+             transport = {{ kind = \"sim\", line = {{ baud = {baud} }} }}\n\
+             sim = {{ axes = 8 }}\n[machines.g05]\n{g05}\n"
+        )
+    };
+    let load = |text: String| CellConfig::from_toml_str(&text, "t").unwrap();
+    // 6 axes every 4 ms at 38 400 baud, Tx = Ti = 0: a DAT of Nb − No = 1950 bytes and its
+    // GTD, 1962 characters, take 562 ms: 500 ms of blocks (125) are raised to 142.
+    let c = load(cell(
+        "a",
+        38_400,
+        "tx = 0\nti = 0",
+        "axes = 6\nunit_time_ms = 4",
+    ));
+    let (m, g) = (&c.machines[0], c.machines[0].g05.as_ref().unwrap());
+    let r = m.g05_refill().unwrap();
+    assert_eq!((r.piece, r.data, r.time.as_millis()), ("DAT", 1950, 562));
+    assert_eq!((g.prime_blocks(), g.prime_blocks_on(Some(r))), (125, 142));
+    assert!(
+        c.summary().contains("priming 125 raised to 142"),
+        "{}",
+        c.summary()
+    );
+    assert!(c.warnings().is_empty(), "{:?}", c.warnings());
+    // The board's Tx (100 ms) and Ti (10 ms between its characters) at their power-on values
+    // make every exchange 150 ms longer: a DAT's 150 blocks (600 ms) no longer last it.
+    let c = load(cell("a", 38_400, "", "axes = 6\nunit_time_ms = 4"));
+    let w = c.warnings();
+    assert!(
+        w.len() == 1
+            && w[0].starts_with("machines.m1.g05: G05 cannot keep up on this line")
+            && w[0].contains("150 blocks"),
+        "{w:?}"
+    );
+    // Keeping up, but a long `before` leaves the first DAT 111 blocks (444 ms).
+    let long = format!(
+        "axes = 6\nunit_time_ms = 4\nbefore = \"{}G05\\n\"",
+        "(X)".repeat(166) + "(Y)("
+    );
+    let c = load(cell(
+        "a",
+        38_400,
+        "tx = 0\nti = 0",
+        &long.replace("(Y)(", "(Y)\\n"),
+    ));
+    let w = c.warnings();
+    assert!(
+        w.len() == 1 && w[0].contains("started while the CNC waits runs dry"),
+        "{w:?}"
+    );
+    // Expansion A: packets back to back; Protocol B reads bytes as they come.
+    let c = load(cell(
+        "expansion-a",
+        86_400,
+        "packet_n = 2",
+        "axes = 3\nunit_time_ms = 2",
+    ));
+    let r = c.machines[0].g05_refill().unwrap();
+    assert_eq!((r.piece, r.data), ("data packet", 512));
+    assert!(c.warnings().is_empty(), "{:?}", c.warnings());
+    let c = load(cell("b", 19_200, "", "axes = 3"));
+    assert_eq!(c.machines[0].g05_refill(), None);
 }
 
 /// PEM-looking files (validation checks the blocks, zenoh the cryptography) and a cell file
@@ -881,6 +1055,16 @@ fn a_cell_file_inside_the_library_is_refused() {
     assert!(e.to_string().contains("holds the cell file"), "{e}");
     std::fs::write(dir.path().join("cell.toml"), &text).unwrap();
     assert!(CellConfig::load(&dir.path().join("cell.toml")).is_ok());
+}
+
+#[test]
+fn a_misspelt_protocol_does_not_hide_a_wrong_baud_rate() {
+    let e = errors_of(
+        "cell = \"c\"\n[[machines]]\nname = \"m1\"\nprotocl = \"a\"\n\
+         transport = { kind = \"sim\", line = { baud = 12345 } }\n",
+    );
+    assert!(e.iter().any(|m| m.contains("protocl")), "{e:?}");
+    assert!(e.iter().any(|m| m.contains("line.baud = 12345")), "{e:?}");
 }
 
 #[test]

@@ -4,6 +4,8 @@ use serde::{Deserialize, Serialize};
 
 use super::error::{Checker, ConfigErrors, q};
 use crate::engine::LineSettings;
+use crate::engine::line::{DataBits, Parity};
+use crate::engine::parity::ParityBy;
 
 /// What carries a link's bytes (`transport` table of a machine or PLC), selected by `kind`.
 ///
@@ -23,6 +25,10 @@ pub enum TransportConfig {
         path: String,
         /// Character framing of the serial line.
         line: LineSettings,
+        /// Who makes and checks the parity bit of a 7-bit line: the port's UART (`None`, the
+        /// default) or the gateway, on a port opened with 8 data bits and no parity.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        parity_by: Option<ParityBy>,
         /// First wait before opening the port again, ms; doubles on each failure.
         reconnect_min_ms: u64,
         /// Longest wait between attempts, ms.
@@ -34,6 +40,10 @@ pub enum TransportConfig {
         address: String,
         /// Character framing of the device server's serial side, which sets the pace.
         line: LineSettings,
+        /// Who makes and checks the parity bit of a 7-bit line: the device server's UART
+        /// (`None`, the default) or the gateway, the device server passing 8-bit frames.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        parity_by: Option<ParityBy>,
         /// Bytes handed to the device server and not yet on the line, at most; `None`: the
         /// link's default ([`TransportConfig::DEFAULT_WINDOW`], or the machine's protocol's,
         /// see `MachineConfig::tcp_window`).
@@ -89,6 +99,7 @@ pub(super) struct RawTransport {
     path: Option<String>,
     address: Option<String>,
     line: Option<LineSettings>,
+    parity_by: Option<ParityBy>,
     window: Option<u32>,
     reconnect_min_ms: Option<u64>,
     reconnect_max_ms: Option<u64>,
@@ -104,10 +115,11 @@ pub(super) struct TransportProblem {
 
 impl RawTransport {
     /// The keys each kind uses, for "used only with kind = ..." messages.
-    const KEYS: [(&'static str, &'static [TransportKind]); 5] = [
+    const KEYS: [(&'static str, &'static [TransportKind]); 6] = [
         ("path", &[TransportKind::Serial]),
         ("address", &[TransportKind::Tcp]),
         ("window", &[TransportKind::Tcp]),
+        ("parity_by", &[TransportKind::Serial, TransportKind::Tcp]),
         (
             "reconnect_min_ms",
             &[TransportKind::Serial, TransportKind::Tcp],
@@ -123,6 +135,7 @@ impl RawTransport {
             "path" => self.path.is_some(),
             "address" => self.address.is_some(),
             "window" => self.window.is_some(),
+            "parity_by" => self.parity_by.is_some(),
             "reconnect_min_ms" => self.reconnect_min_ms.is_some(),
             "reconnect_max_ms" => self.reconnect_max_ms.is_some(),
             _ => false,
@@ -164,12 +177,14 @@ impl RawTransport {
             TransportKind::Serial => self.path.clone().map(|path| TransportConfig::Serial {
                 path,
                 line,
+                parity_by: self.parity_by,
                 reconnect_min_ms,
                 reconnect_max_ms,
             }),
             TransportKind::Tcp => self.address.clone().map(|address| TransportConfig::Tcp {
                 address,
                 line,
+                parity_by: self.parity_by,
                 window: self.window,
                 reconnect_min_ms,
                 reconnect_max_ms,
@@ -205,12 +220,14 @@ impl From<&TransportConfig> for RawTransport {
             TransportConfig::Serial {
                 path,
                 line,
+                parity_by,
                 reconnect_min_ms,
                 reconnect_max_ms,
             } => RawTransport {
                 kind: Some(TransportKind::Serial),
                 path: Some(path),
                 line: Some(line),
+                parity_by,
                 reconnect_min_ms: Some(reconnect_min_ms),
                 reconnect_max_ms: Some(reconnect_max_ms),
                 ..RawTransport::default()
@@ -218,6 +235,7 @@ impl From<&TransportConfig> for RawTransport {
             TransportConfig::Tcp {
                 address,
                 line,
+                parity_by,
                 window,
                 reconnect_min_ms,
                 reconnect_max_ms,
@@ -225,6 +243,7 @@ impl From<&TransportConfig> for RawTransport {
                 kind: Some(TransportKind::Tcp),
                 address: Some(address),
                 line: Some(line),
+                parity_by,
                 window,
                 reconnect_min_ms: Some(reconnect_min_ms),
                 reconnect_max_ms: Some(reconnect_max_ms),
@@ -287,6 +306,32 @@ impl TransportConfig {
         }
     }
 
+    /// Who makes and checks the parity bit: the port's UART unless the file says the
+    /// gateway (a `sim` line has no port: its own model makes it).
+    pub fn parity_by(&self) -> ParityBy {
+        match self {
+            TransportConfig::Serial { parity_by, .. } | TransportConfig::Tcp { parity_by, .. } => {
+                parity_by.unwrap_or_default()
+            }
+            TransportConfig::Sim { .. } => ParityBy::Port,
+        }
+    }
+
+    /// The framing the port itself is set to: the line's, or with the parity made by the
+    /// gateway, 8 data bits and no parity with the line's stop bits (the same bits a
+    /// character, the parity bit carried as bit 7).
+    pub fn port_line(&self) -> LineSettings {
+        let line = *self.line();
+        match self.parity_by() {
+            ParityBy::Port => line,
+            ParityBy::Gateway => LineSettings {
+                data_bits: DataBits::Eight,
+                parity: Parity::None,
+                ..line
+            },
+        }
+    }
+
     /// `"serial"`, `"tcp"` or `"sim"`.
     pub fn kind(&self) -> TransportKind {
         match self {
@@ -310,9 +355,11 @@ impl TransportConfig {
                 line,
                 reconnect_min_ms,
                 reconnect_max_ms,
+                ..
             } => format!(
-                "serial {path}, {line}, reopened every {reconnect_min_ms}..{reconnect_max_ms} ms \
-                 while away"
+                "serial {path}, {line}{}, reopened every {reconnect_min_ms}..{reconnect_max_ms} \
+                 ms while away",
+                self.parity_note("the port")
             ),
             TransportConfig::Tcp {
                 address,
@@ -320,18 +367,68 @@ impl TransportConfig {
                 window,
                 reconnect_min_ms,
                 reconnect_max_ms,
+                ..
             } => {
                 let window = match window {
                     Some(w) => format!("{w} bytes"),
                     None => format!("{default_window} bytes (default)"),
                 };
                 format!(
-                    "tcp {address}, serial side {line}, window {window}, \
-                     reconnect every {reconnect_min_ms}..{reconnect_max_ms} ms"
+                    "tcp {address}, serial side {line}{}, window {window}, \
+                     reconnect every {reconnect_min_ms}..{reconnect_max_ms} ms",
+                    self.parity_note("the device server")
                 )
             }
             TransportConfig::Sim { line } => format!("sim, {line}"),
         }
+    }
+}
+
+impl TransportConfig {
+    /// Where a 7-bit line's parity bit is made, for [`describe`](Self::describe): empty for
+    /// a line without one.
+    fn parity_note(&self, port: &str) -> String {
+        let line = self.line();
+        if line.data_bits != DataBits::Seven || line.parity == Parity::None {
+            return String::new();
+        }
+        match self.parity_by() {
+            ParityBy::Port => format!(", parity made and checked by {port}"),
+            ParityBy::Gateway => format!(
+                ", parity made and checked by the gateway ({port} passes 8-bit frames, {})",
+                self.port_line()
+            ),
+        }
+    }
+
+    /// What `check-config` says of a 7-bit line over a device server whose cell file leaves
+    /// `parity_by` out: either reading may be right, and only the device server's setting
+    /// tells (FFU120B §4-3 items 5–6; FFU120B notes 10).
+    pub fn parity_warning(&self, path: &str) -> Option<String> {
+        let TransportConfig::Tcp {
+            parity_by: None,
+            line,
+            ..
+        } = self
+        else {
+            return None;
+        };
+        if line.data_bits != DataBits::Seven {
+            return None;
+        }
+        let parity = match line.parity {
+            Parity::None => "no parity",
+            Parity::Even => "even parity",
+            Parity::Odd => "odd parity",
+        };
+        Some(format!(
+            "{path}: 7 data bits with {parity} over a device server, parity_by left out: the \
+             gateway takes the device server's serial side to be set to the line ({line}), \
+             making and checking the parity bit itself and passing 7-bit characters. If it \
+             passes whole 8-bit frames instead (set to 8N1 on a 7E1 line), the parity bit \
+             arrives as bit 7 and every message is lost: then set parity_by = \"gateway\". \
+             Set parity_by = \"port\" to say the first is meant (FFU120B §4-3 items 5-6)"
+        ))
     }
 }
 
@@ -429,6 +526,21 @@ pub(super) fn check_transport(c: &mut Checker, path: &str, t: &TransportConfig) 
             check_backoff(c, path, *reconnect_min_ms, *reconnect_max_ms);
         }
         TransportConfig::Sim { .. } => {}
+    }
+    let line = t.line();
+    if t.parity_by() == ParityBy::Gateway
+        && (line.data_bits != DataBits::Seven || line.parity == Parity::None)
+    {
+        c.invalid(
+            format!("{path}.parity_by"),
+            q("gateway"),
+            format!(
+                "the gateway carries a parity bit in bit 7 of each byte, so the line must have \
+                 7 data bits and odd or even parity, not {line}; remove the key or set \
+                 line = {{ data_bits = 7, parity = \"even\" }}"
+            ),
+            "FFU120B §4-3 items 5-6",
+        );
     }
 }
 

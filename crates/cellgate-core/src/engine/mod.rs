@@ -11,10 +11,13 @@
 //! - [`line`]: the plain data it speaks of: character framing, modem lines, line errors;
 //! - [`pacer`]: what a line may still take at its rate, for transports whose peer buffers
 //!   (a TCP device server), so a stop code is never overrun by more than a window;
-//! - [`parmrk`]: the kernel's parity marks of a serial port, decoded into line errors.
+//! - [`parmrk`]: the kernel's parity marks of a serial port, decoded into line errors;
+//! - [`parity`]: the parity bit made and checked by the gateway, where a device server passes
+//!   whole 8-bit frames of a 7-bit line.
 
 pub mod line;
 pub mod pacer;
+pub mod parity;
 pub mod parmrk;
 
 use std::time::Instant;

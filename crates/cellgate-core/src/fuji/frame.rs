@@ -25,18 +25,22 @@
 //! - code transposition off, command-set modes ([`TextLength::FromHeader`]): the text is
 //!   5 + BYTEN bytes (§5-3, FFU120B notes 1), so binary data may contain the end code's byte;
 //!   the end code must follow;
-//! - non-procedure fixed length ([`TextLength::Fixed`]): every N bytes, nothing interpreted
-//!   (appendix "Difference between fixed length and variable length");
+//! - non-procedure fixed length ([`TextLength::Fixed`]): every N data bytes, no start code,
+//!   end code or BCC (appendix "Difference between fixed length and variable length"): N bytes
+//!   on the line, or 2N hex characters with code transposition on (§4-3 items 14–15, FFU120B
+//!   notes 9);
 //! - start code "none": a text starts with the first byte after the previous frame; the owner
 //!   clears the decoder after a silence (the master does so at each reply time-out), which is
 //!   how the module tells texts apart too.
-
-use std::fmt;
 
 use serde::{Deserialize, Serialize};
 
 pub use super::bcc::{Bcc, BccBytes, BccCalc, BccCode, BccKind, BccMismatch, Crc16};
 use super::bcc::{hex_value, hex2};
+use crate::engine::LineError;
+
+mod receive;
+pub use receive::{ReceiveCounts, ReceiveError, ReceiveErrorKind, TextForm};
 
 /// The module's receive buffer (§5-6 receive error 1: "Receiving buffer full (512 bytes)").
 pub const RX_BUFFER: usize = 512;
@@ -506,6 +510,16 @@ impl FrameSettings {
         problems
     }
 
+    /// A fixed-length non-procedure message as it travels (§5-5, appendix): the data alone,
+    /// with no start code, end code or BCC, each byte as two hex characters of the
+    /// transmission code when code transposition is on (§4-3 items 13–15; FFU120B notes 9).
+    pub fn encode_bare(&self, text: &[u8]) -> Vec<u8> {
+        if !self.transposition {
+            return text.to_vec();
+        }
+        text.iter().flat_map(|&b| self.code.hex2(b)).collect()
+    }
+
     /// `text` as it travels: start code, text (transposed when item 14 says so), BCC and end
     /// code in the order of item 21.
     pub fn encode(&self, text: &[u8]) -> Vec<u8> {
@@ -538,213 +552,6 @@ impl FrameSettings {
     }
 }
 
-/// The receive errors of §5-6 ("details of receiving data error", bits D–F).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum ReceiveErrorKind {
-    /// 1: receiving buffer full (512 bytes).
-    BufferFull,
-    /// 2: start code unidentified.
-    StartCode,
-    /// 5: BCC error.
-    Bcc,
-    /// 6: text is too long.
-    TooLong,
-    /// 7: text form unidentified.
-    TextForm,
-}
-
-impl ReceiveErrorKind {
-    /// Every kind, in the order of their numbers.
-    pub const ALL: [ReceiveErrorKind; 5] = [
-        ReceiveErrorKind::BufferFull,
-        ReceiveErrorKind::StartCode,
-        ReceiveErrorKind::Bcc,
-        ReceiveErrorKind::TooLong,
-        ReceiveErrorKind::TextForm,
-    ];
-
-    /// The error number the module shows in bits D–F of its status word (§5-6).
-    pub fn number(self) -> u8 {
-        match self {
-            ReceiveErrorKind::BufferFull => 1,
-            ReceiveErrorKind::StartCode => 2,
-            ReceiveErrorKind::Bcc => 5,
-            ReceiveErrorKind::TooLong => 6,
-            ReceiveErrorKind::TextForm => 7,
-        }
-    }
-
-    /// The manual's name of the error.
-    pub fn name(self) -> &'static str {
-        match self {
-            ReceiveErrorKind::BufferFull => "receiving buffer full",
-            ReceiveErrorKind::StartCode => "start code unidentified",
-            ReceiveErrorKind::Bcc => "BCC error",
-            ReceiveErrorKind::TooLong => "text is too long",
-            ReceiveErrorKind::TextForm => "text form unidentified",
-        }
-    }
-}
-
-impl fmt::Display for ReceiveErrorKind {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{} (receive error {})", self.name(), self.number())
-    }
-}
-
-/// Receive errors counted by kind (§5-6).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
-pub struct ReceiveCounts {
-    /// Receive error 1: receiving buffer full.
-    pub buffer_full: u64,
-    /// Receive error 2: start code unidentified.
-    pub start_code: u64,
-    /// Receive error 5: BCC error.
-    pub bcc: u64,
-    /// Receive error 6: text too long.
-    pub too_long: u64,
-    /// Receive error 7: text form unidentified.
-    pub text_form: u64,
-}
-
-impl ReceiveCounts {
-    /// Counts one error of `kind`.
-    pub fn add(&mut self, kind: ReceiveErrorKind) {
-        let c = self.slot(kind);
-        *c = c.saturating_add(1);
-    }
-
-    fn slot(&mut self, kind: ReceiveErrorKind) -> &mut u64 {
-        match kind {
-            ReceiveErrorKind::BufferFull => &mut self.buffer_full,
-            ReceiveErrorKind::StartCode => &mut self.start_code,
-            ReceiveErrorKind::Bcc => &mut self.bcc,
-            ReceiveErrorKind::TooLong => &mut self.too_long,
-            ReceiveErrorKind::TextForm => &mut self.text_form,
-        }
-    }
-
-    /// The count of `kind`.
-    pub fn get(&self, kind: ReceiveErrorKind) -> u64 {
-        match kind {
-            ReceiveErrorKind::BufferFull => self.buffer_full,
-            ReceiveErrorKind::StartCode => self.start_code,
-            ReceiveErrorKind::Bcc => self.bcc,
-            ReceiveErrorKind::TooLong => self.too_long,
-            ReceiveErrorKind::TextForm => self.text_form,
-        }
-    }
-
-    /// Both sets of counts added up.
-    pub fn merged(mut self, other: &ReceiveCounts) -> ReceiveCounts {
-        for kind in ReceiveErrorKind::ALL {
-            let c = self.slot(kind);
-            *c = c.saturating_add(other.get(kind));
-        }
-        self
-    }
-
-    /// Every error counted, of all kinds.
-    pub fn total(&self) -> u64 {
-        ReceiveErrorKind::ALL.iter().map(|k| self.get(*k)).sum()
-    }
-}
-
-/// Why a text's form was not recognised (§5-6 receive error 7).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-#[non_exhaustive]
-pub enum TextForm {
-    /// A transposed text with an odd number of characters.
-    #[error("transposed text has an odd number ({len}) of characters")]
-    OddLength {
-        /// Characters in the transposed text.
-        len: usize,
-    },
-    /// A character of a transposed text that is not an upper-case hex digit.
-    #[error("character {byte:#04x} at offset {offset} of the text is not an upper-case hex digit")]
-    NotHex {
-        /// The character's offset in the transposed text.
-        offset: usize,
-        /// The character.
-        byte: u8,
-    },
-    /// A text shorter than the shortest allowed.
-    #[error("text of {len} bytes is shorter than {min}")]
-    TooShort {
-        /// The text's length, bytes.
-        len: usize,
-        /// The shortest text allowed, bytes.
-        min: usize,
-    },
-    /// No end code where BYTEN says the text ends.
-    #[error("no end code where BYTEN says the text ends")]
-    NoEndCode,
-    /// A new start code arrived inside a text.
-    #[error("a new start code arrived {after} bytes into a text")]
-    Truncated {
-        /// Characters of the text before the new start code.
-        after: usize,
-    },
-    /// BYTEN does not count the bytes that follow it.
-    #[error("BYTEN {byten} does not match the {actual} bytes that follow it")]
-    Byten {
-        /// BYTEN as received.
-        byten: u8,
-        /// Bytes that follow BYTEN.
-        actual: usize,
-    },
-}
-
-/// A received frame that was dropped, classified as §5-6 does.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-#[non_exhaustive]
-pub enum ReceiveError {
-    /// Receive error 1: the buffer ([`RX_BUFFER`]) filled without a whole text.
-    #[error("receive buffer full: {dropped} bytes dropped (receive error 1, FFU120B §5-6)")]
-    BufferFull {
-        /// Bytes dropped.
-        dropped: usize,
-    },
-    /// Receive error 2: bytes without a start code.
-    #[error(
-        "{dropped} byte(s) without a start code dropped (start code unidentified, receive error 2, FFU120B §5-6)"
-    )]
-    StartCode {
-        /// Bytes dropped.
-        dropped: usize,
-    },
-    /// Receive error 5: the BCC does not match.
-    #[error("{0} (receive error 5)")]
-    Bcc(BccMismatch),
-    /// Receive error 6: the text is longer than the decoder takes.
-    #[error(
-        "text of {len} bytes or more exceeds {max} (text too long, receive error 6, FFU120B §5-6)"
-    )]
-    TooLong {
-        /// The text's length, bytes, or as much of it as had arrived.
-        len: usize,
-        /// The longest text the decoder takes, bytes.
-        max: usize,
-    },
-    /// Receive error 7: the text's form is not recognised.
-    #[error("text form unidentified: {0} (receive error 7, FFU120B §5-6)")]
-    TextForm(TextForm),
-}
-
-impl ReceiveError {
-    /// The §5-6 kind of this error.
-    pub fn kind(&self) -> ReceiveErrorKind {
-        match self {
-            ReceiveError::BufferFull { .. } => ReceiveErrorKind::BufferFull,
-            ReceiveError::StartCode { .. } => ReceiveErrorKind::StartCode,
-            ReceiveError::Bcc(_) => ReceiveErrorKind::Bcc,
-            ReceiveError::TooLong { .. } => ReceiveErrorKind::TooLong,
-            ReceiveError::TextForm(_) => ReceiveErrorKind::TextForm,
-        }
-    }
-}
-
 /// How the decoder finds where a text ends.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum TextLength {
@@ -752,7 +559,9 @@ pub enum TextLength {
     UntilEnd,
     /// 5 + BYTEN bytes, BYTEN being the fifth byte of the text (command-set texts, §5-3).
     FromHeader,
-    /// Exactly this many bytes, nothing interpreted (non-procedure fixed length, §5-5).
+    /// Exactly this many data bytes, without start code, end code or BCC (non-procedure
+    /// fixed length, §5-5): as many bytes on the line, or twice as many hex characters with
+    /// code transposition (§4-3 items 14–15).
     Fixed(usize),
 }
 
@@ -776,6 +585,9 @@ pub struct FrameDecoder {
     counts: ReceiveCounts,
     /// Errors since the last good text; the first is logged, the rest summed up.
     burst: u64,
+    /// A character of the text under way came with this line error: the text ends as a
+    /// receive error (§5-6).
+    spoilt: Option<LineError>,
 }
 
 impl FrameDecoder {
@@ -787,7 +599,7 @@ impl FrameDecoder {
         max_text: usize,
     ) -> Self {
         let length = match length {
-            TextLength::Fixed(n) => TextLength::Fixed(n.clamp(1, RX_BUFFER)),
+            TextLength::Fixed(n) => TextLength::Fixed(n.clamp(1, RX_BUFFER / settings.width())),
             other => other,
         };
         FrameDecoder {
@@ -801,6 +613,7 @@ impl FrameDecoder {
             garbage: 0,
             counts: ReceiveCounts::default(),
             burst: 0,
+            spoilt: None,
         }
     }
 
@@ -847,9 +660,50 @@ impl FrameDecoder {
     pub fn clear(&mut self) {
         self.buf.clear();
         self.discarding = false;
+        self.spoilt = None;
         if self.garbage > 0 {
             let dropped = std::mem::take(&mut self.garbage);
             self.note(&ReceiveError::StartCode { dropped });
+        }
+    }
+
+    /// A character arrived with a line error (parity, framing, overrun; the transport did not
+    /// deliver it) after the bytes already taken and before any taken later. The text it
+    /// belongs to ends as a receive error ("receiving ends to error", §5-6), and the next text
+    /// is read as usual: a fixed-length message keeps the lost character's place, so that the
+    /// next one stays on its boundary. A character outside any text (before a start code)
+    /// spoils nothing. Returns what the lost character's place completes (a fixed-length
+    /// message that ended on it), as [`FrameDecoder::decode`] does.
+    pub fn spoil(&mut self, error: LineError) -> Vec<Decoded> {
+        let lost = usize::from(!matches!(error, LineError::Overrun));
+        match self.length {
+            TextLength::Fixed(_) => {
+                // Not a hex digit either: the placeholder is never taken as data.
+                self.buf.extend(std::iter::repeat_n(0xFF, lost));
+            }
+            _ if self.buf.is_empty() && !self.settings.start_bytes().is_empty() => {
+                return Vec::new();
+            }
+            _ => {}
+        }
+        self.spoilt = Some(error);
+        self.decode(&[])
+    }
+
+    /// A finished text, or the receive error it is when a character of it was spoilt.
+    fn judge(&mut self, d: Decoded) -> Decoded {
+        match d {
+            Ok(text) => match self.spoilt.take() {
+                Some(e) => Err(ReceiveError::Character(e)),
+                None => Ok(text),
+            },
+            // Bytes dropped before a start code are not the spoilt text.
+            Err(e @ ReceiveError::StartCode { .. }) => Err(e),
+            // Whatever else is wrong with the text, the character error came first.
+            Err(e) => match self.spoilt.take() {
+                Some(line) => Err(ReceiveError::Character(line)),
+                None => Err(e),
+            },
         }
     }
 
@@ -857,13 +711,16 @@ impl FrameDecoder {
     pub fn decode(&mut self, bytes: &[u8]) -> Vec<Decoded> {
         let mut out = Vec::new();
         let mut rest = bytes;
-        while !rest.is_empty() {
+        // At least one pass, so that a place taken by a lost character ([`Self::spoil`]) is
+        // looked at too.
+        loop {
             // Never hold more than the module's buffer: take what fits, split it, go on.
             let room = RX_BUFFER.saturating_sub(self.buf.len()).max(1);
             let (now, later) = rest.split_at(room.min(rest.len()));
             rest = later;
             self.buf.extend_from_slice(now);
             while let Some(d) = self.next() {
+                let d = self.judge(d);
                 match &d {
                     Ok(_) => self.good(),
                     Err(e) => self.note(e),
@@ -877,6 +734,9 @@ impl FrameDecoder {
                 let e = ReceiveError::BufferFull { dropped };
                 self.note(&e);
                 out.push(Err(e));
+            }
+            if rest.is_empty() {
+                break;
             }
         }
         out
@@ -902,10 +762,18 @@ impl FrameDecoder {
     /// One step over the buffer: a text, an error, or `None` when more bytes are needed.
     fn next(&mut self) -> Option<Decoded> {
         if let TextLength::Fixed(n) = self.length {
-            if self.buf.len() < n {
+            // N data bytes are 2N characters with transposition on; every character counts
+            // towards the message, so one that is not a hex digit spoils only its own message
+            // (text form, §5-6) and the next starts on its boundary.
+            let chars = n * self.settings.width();
+            if self.buf.len() < chars {
                 return None;
             }
-            return Some(Ok(self.buf.drain(..n).collect()));
+            let line: Vec<u8> = self.buf.drain(..chars).collect();
+            if !self.settings.transposition {
+                return Some(Ok(line));
+            }
+            return Some(untranspose_in(self.settings.code, &line));
         }
         let start_len = self.settings.start_bytes().len();
         if start_len > 0 {

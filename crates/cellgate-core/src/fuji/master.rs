@@ -25,8 +25,9 @@
 //!   work in mode 1 only (§5-4 iii).
 //!
 //! Non-procedure modes 4–5 (§5-5): no command set; [`MasterCommand::Send`] puts a message on
-//! the line (variable length: framed with start code, BCC and end code; fixed length: the data
-//! alone, exactly N bytes) and received messages come out as [`MasterEvent::Received`]. What
+//! the line (variable length: framed with start code, BCC and end code; fixed length: exactly
+//! N bytes of data alone, as 2N hex characters with code transposition on, §4-3 items 14–15)
+//! and received messages come out as [`MasterEvent::Received`]. What
 //! differs between the two modes is the line (§1-3, §3-8): mode 4 is RS-232C 1:1, so the host
 //! honours CS (the module's RTS/CTS control, §4-3 item 9); mode 5 is RS-485, a line the
 //! module shares with other devices and with no modem lines, so the host ignores CS and does
@@ -693,8 +694,9 @@ impl Master {
                     }
                     .into());
                 }
-                // Fixed length: the data alone, no start code, end code or BCC (appendix).
-                data.to_vec()
+                // Fixed length: the data alone, no start code, end code or BCC (appendix),
+                // transposed to 2N hex characters when item 14 says so (FFU120B notes 9).
+                self.settings.frame.encode_bare(data)
             }
             None => {
                 if data.is_empty() || data.len() > MAX_NON_PROCEDURE_TEXT {
@@ -1067,14 +1069,18 @@ impl Engine for Master {
     }
 
     fn handle_line_error(&mut self, now: Instant, error: LineError) {
-        // Counted (§5-6 keeps them too); the text they spoil fails its BCC or form check, or
-        // never ends and times out.
+        // Counted (§5-6 keeps them too), and the text the character belonged to ends as a
+        // receive error whatever the rest of it holds: a reply is sent again, a message is
+        // dropped and the next one read as usual (§5-6 "receiving error").
         match error {
             LineError::Parity => self.line_errors.parity += 1,
             LineError::Framing => self.line_errors.framing += 1,
             LineError::Overrun => self.line_errors.overrun += 1,
         }
         tracing::debug!(%error, "FFU120B line error");
+        for decoded in self.decoder.spoil(error) {
+            self.on_decoded(now, decoded);
+        }
         self.drive(now);
     }
 

@@ -125,6 +125,8 @@ pub struct TagWrite {
     /// The raw value written (before the scale), which the tag reads as once the module
     /// confirmed the write.
     pub raw: i64,
+    /// The tag's scale, for [`TagWrite::value`].
+    pub scale: crate::config::Real,
     /// The tag's station.
     pub station: u8,
     /// The tag's module.
@@ -167,6 +169,14 @@ fn type_name(kind: TagType) -> &'static str {
         TagType::U32 => "u32",
         TagType::I32 => "i32",
         TagType::Bcd => "bcd",
+    }
+}
+
+impl TagWrite {
+    /// The value the tag reads as once written: `raw` times the scale, so a value finer than
+    /// the scale comes back rounded (12.34 to a tag of scale 0.1 is 12.3).
+    pub fn value(&self) -> f64 {
+        self.raw as f64 * self.scale.0
     }
 }
 
@@ -333,7 +343,11 @@ impl TagTable {
             max: max as f64,
             scale: c.scale.0,
         };
-        if !raw.is_finite() || raw < min as f64 || raw > max as f64 {
+        // The value as given must lie in the type's range, not only once rounded: -0.4 is no
+        // value of an unsigned tag, though it rounds to 0. (A hair of slack for the scale's
+        // binary fractions: 6553.5 / 0.1 is 65535.000000000007.)
+        const SLACK: f64 = 1e-6;
+        if !raw.is_finite() || scaled < min as f64 - SLACK || scaled > max as f64 + SLACK {
             return Err(out_of_range());
         }
         let raw = raw as i64;
@@ -348,6 +362,7 @@ impl TagTable {
         Ok(TagWrite {
             name: name.to_string(),
             raw,
+            scale: c.scale,
             station: c.station,
             module: c.module,
             address: c.address,

@@ -782,8 +782,9 @@ impl Micrex {
                     };
                     self.config.frame.encode(&text.encode())
                 } else if self.config.fixed_length.is_some() {
-                    // Fixed length: only the data; start, end and BCC are not added (appendix).
-                    data
+                    // Fixed length: only the data; start, end and BCC are not added (appendix),
+                    // but item 14 still makes each byte two hex characters (§4-3).
+                    self.config.frame.encode_bare(&data)
                 } else {
                     self.config.frame.encode(&data)
                 };
@@ -835,28 +836,16 @@ impl Engine for Micrex {
             self.decoder.clear();
         }
         self.last_rx = Some(now);
-        for decoded in self.decoder.decode(bytes) {
-            match decoded {
-                Ok(text) if self.config.mode.is_command_set() => self.on_request(now, &text),
-                Ok(data) => {
-                    let (station, message) = (
-                        self.config.stations.first().copied().unwrap_or(0),
-                        self.config.receive_message,
-                    );
-                    self.event(MicrexEvent::TransferReceived {
-                        station,
-                        message,
-                        data,
-                    });
-                }
-                Err(error) => self.event(MicrexEvent::ReceiveError { error }),
-            }
-        }
-        self.release(now);
+        let decoded = self.decoder.decode(bytes);
+        self.on_decoded(now, decoded);
     }
 
-    fn handle_line_error(&mut self, _now: Instant, error: LineError) {
+    fn handle_line_error(&mut self, now: Instant, error: LineError) {
         self.event(MicrexEvent::LineError { error });
+        // The module's receiving ends in error (§5-6): the text the character belonged to
+        // gets no reply, is not stored, and the next one is read as usual.
+        let spoilt = self.decoder.spoil(error);
+        self.on_decoded(now, spoilt);
     }
 
     fn handle_modem(&mut self, _now: Instant, _modem: ModemIn) {}
@@ -979,6 +968,30 @@ impl Engine for Micrex {
 
     fn poll_timeout(&self) -> Option<Instant> {
         self.pending.front().map(|(due, _, _)| *due)
+    }
+}
+
+impl Micrex {
+    /// Acts on what the decoder made of the line: requests, messages, receive errors.
+    fn on_decoded(&mut self, now: Instant, decoded: Vec<crate::fuji::frame::Decoded>) {
+        for decoded in decoded {
+            match decoded {
+                Ok(text) if self.config.mode.is_command_set() => self.on_request(now, &text),
+                Ok(data) => {
+                    let (station, message) = (
+                        self.config.stations.first().copied().unwrap_or(0),
+                        self.config.receive_message,
+                    );
+                    self.event(MicrexEvent::TransferReceived {
+                        station,
+                        message,
+                        data,
+                    });
+                }
+                Err(error) => self.event(MicrexEvent::ReceiveError { error }),
+            }
+        }
+        self.release(now);
     }
 }
 

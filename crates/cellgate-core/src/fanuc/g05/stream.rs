@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 
 use crate::codes::BusCode;
+use crate::engine::LineSettings;
 use crate::fanuc::g05::{AuxWord, G05EncodeError, G05Format};
 use crate::fanuc::host::Chunk;
 use crate::pb;
@@ -38,6 +39,13 @@ pub struct StreamSettings {
     pub prime: u32,
     /// A producer silent this long while the CNC is estimated dry is taken as gone.
     pub idle: Duration,
+    /// The machine's line: the CNC cannot read the `G05` block before the piece carrying it
+    /// has crossed it.
+    pub line: LineSettings,
+    /// The most characters the link's transport holds that have not left on the line yet
+    /// (its in-flight window): what was handed over has crossed the line at the latest this
+    /// many character times later.
+    pub in_flight: u64,
 }
 
 /// One block as the producer gives it.
@@ -216,11 +224,14 @@ pub struct Stream {
     end_reason: Option<EndReason>,
     /// Program bytes handed to the line.
     sent: u64,
-    /// When the `G05` block had gone out: the CNC's unit times count from about then.
+    /// The latest the CNC can have read the `G05` block (see [`Stream::on_sent`]): the
+    /// estimate's unit times count from then.
     g05_at: Option<Instant>,
     slots_seen: u64,
     cnc_taken: u64,
     underruns: u64,
+    /// The last batch, or the moment credits came back after there were none: a producer
+    /// that had no credits could not send, and is not idle for it.
     last_batch_at: Instant,
     gaps: u64,
     repeats: u64,
@@ -393,11 +404,29 @@ impl Stream {
         self.closing
     }
 
-    /// The program's bytes handed to the line so far (the link's progress).
+    /// The program's bytes handed to the line so far (the link's progress, reported as each
+    /// piece is handed over).
+    ///
+    /// The estimate must never count an underrun the CNC cannot have had, so its unit times
+    /// start no earlier than the CNC's: the stream starts on an idle line (the protocol ended
+    /// the program before it), so the piece carrying the `G05` block, all handed over by
+    /// `now`, is whole at the board at the latest when the line has carried what the
+    /// transport may still hold of it (a board uses a DAT or packet only once it has arrived
+    /// whole, §4.4.2, §5.2), and the CNC's first unit time ends at most one T after it read
+    /// the block (§9.2). Starting
+    /// earlier, at the hand-over, made the estimate run ahead of the CNC by the first piece's
+    /// line time for the whole stream: 197 underruns estimated, and alarms, where the CNC
+    /// counted none.
     pub fn on_sent(&mut self, now: Instant, sent: u64) {
+        let had_credits = self.credits() > 0;
         self.sent = self.sent.max(sent);
+        if !had_credits && self.credits() > 0 {
+            self.last_batch_at = self.last_batch_at.max(now);
+        }
         if self.g05_at.is_none() && self.primed && self.sent >= self.settings.before.len() as u64 {
-            self.g05_at = Some(now);
+            let held = self.sent.min(self.settings.in_flight);
+            let crossed = self.settings.line.time_for_chars(held);
+            self.g05_at = Some(now + crossed + self.settings.format.unit_time_ms.duration());
         }
         self.account(now);
     }
@@ -410,9 +439,14 @@ impl Stream {
         if let Some(until) = now.checked_sub(ESTIMATE_LAG) {
             self.account(until);
         }
-        // Before the G05 block is on the line the CNC waits for nothing yet.
-        let dry = self.g05_at.is_some() && self.on_line() <= self.cnc_taken;
-        let silent = now.saturating_duration_since(self.last_batch_at) >= self.settings.idle;
+        // Before the G05 block is on the line the CNC waits for nothing yet; it has run dry
+        // once a unit time found no block (not merely when the last one was taken).
+        let dry = self.g05_at.is_some()
+            && self.on_line() <= self.cnc_taken
+            && self.slots_seen > self.cnc_taken;
+        // Without credits the producer may not send: that is the line's doing, not silence.
+        let silent = self.credits() > 0
+            && now.saturating_duration_since(self.last_batch_at) >= self.settings.idle;
         if self.closing || !silent {
             return None;
         }
@@ -423,7 +457,9 @@ impl Stream {
     }
 
     /// Takes the CNC's unit-time slots up to `until`: each takes a block on the line if there
-    /// is one, else it is an underrun (§9.2).
+    /// is one, else it is an underrun (§9.2). A block counts from when it was handed to the
+    /// line, before it can have arrived, so a slot the estimate finds empty found the CNC
+    /// empty too.
     fn account(&mut self, until: Instant) {
         if let Some(at) = self.g05_at {
             let t = self.settings.format.unit_time_ms.duration();

@@ -396,11 +396,36 @@ fn start_code_none_frames_follow_each_other() {
 #[test]
 fn non_procedure_fixed_and_variable_length() {
     let s = FrameSettings::default();
-    // Fixed length: every 4 bytes, start and end codes are data (appendix).
-    let mut d = FrameDecoder::non_procedure(&s, Some(4));
+    // Fixed length without transposition: every 4 bytes, start and end codes are data
+    // (appendix).
+    let raw = FrameSettings {
+        transposition: false,
+        ..FrameSettings::default()
+    };
+    let mut d = FrameDecoder::non_procedure(&raw, Some(4));
     let out = oks(d.decode(b":AB\rXYZ"));
     assert_eq!(out, vec![b":AB\r".to_vec()]);
     assert_eq!(oks(d.decode(b"W")), vec![b"XYZW".to_vec()]);
+    assert_eq!(raw.encode_bare(b":AB\r"), b":AB\r");
+    // With transposition (the initial value): 2N hex characters a message, nothing else
+    // (§4-3 items 14–15); item 14's example: 12h travels as "1" "2".
+    assert_eq!(s.encode_bare(&[0x12, 0x3A, 0x0D, 0xFF]), b"123A0DFF");
+    let mut d = FrameDecoder::non_procedure(&s, Some(4));
+    assert!(d.decode(b"123A0D").is_empty());
+    assert_eq!(oks(d.decode(b"FF3")), vec![vec![0x12, 0x3A, 0x0D, 0xFF]]);
+    assert_eq!(
+        errs(&d.decode(b"a3A0DFF")),
+        vec![ReceiveErrorKind::TextForm]
+    );
+    assert_eq!(oks(d.decode(b"00000000")), vec![vec![0; 4]]);
+    // The longest: 216 bytes, 432 characters, within the module's 512-byte buffer.
+    let mut d = FrameDecoder::non_procedure(&s, Some(MAX_NON_PROCEDURE_TEXT));
+    let long = s.encode_bare(&[0xA5; MAX_NON_PROCEDURE_TEXT]);
+    assert_eq!(long.len(), 2 * MAX_NON_PROCEDURE_TEXT);
+    assert_eq!(
+        oks(d.decode(&long)),
+        vec![vec![0xA5; MAX_NON_PROCEDURE_TEXT]]
+    );
     // Variable length: up to the end code, 1..=216 bytes.
     let mut d = FrameDecoder::non_procedure(&s, None);
     let msg = s.encode(b"hello");

@@ -155,3 +155,30 @@ fn writes_undo_the_scale_check_the_range_and_refuse_read_only_tags() {
         Err(TagError::Unknown { .. })
     ));
 }
+
+#[test]
+fn a_write_is_in_range_as_given_and_echoed_as_the_tag_will_read() {
+    let mut recipe = tag("recipe", Module::D, 0, TagType::U16);
+    recipe.writable = true;
+    let mut temp = tag("temp", Module::D, 1, TagType::I16);
+    temp.scale = Real(0.1);
+    temp.writable = true;
+    let table = TagTable::new("plc", &[recipe, temp]);
+    // Rounded into range is not in range: an unsigned tag takes no -0.4, nor 65535.4.
+    for v in [-0.4, 65_535.4] {
+        assert!(
+            matches!(
+                table.plan_write("recipe", v),
+                Err(TagError::OutOfRange { .. })
+            ),
+            "{v}"
+        );
+    }
+    assert_eq!(table.plan_write("recipe", 65_535.0).unwrap().raw, 65_535);
+    // Finer than the scale: written rounded, and said so.
+    let w = table.plan_write("temp", 12.34).unwrap();
+    assert_eq!(w.raw, 123);
+    assert!((w.value() - 12.3).abs() < 1e-9, "{}", w.value());
+    // The scale's binary fractions do not push the top of the range out.
+    assert_eq!(table.plan_write("temp", 3276.7).unwrap().raw, 32_767);
+}

@@ -367,25 +367,53 @@ fn start_code_none_forgets_a_partial_text_after_a_silence() {
     assert_eq!(h.raw(&line).len(), 1);
 }
 
+/// The messages the module stored in its receive message number.
+fn stored(h: &mut Host, message: u8) -> Vec<Vec<u8>> {
+    h.events()
+        .into_iter()
+        .filter_map(|e| match e {
+            MicrexEvent::TransferReceived {
+                message: m, data, ..
+            } if m == message => Some(data),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Fixed length N without transposition: every N bytes are a message, whatever they hold
+/// (appendix), and bytes beyond N start the next one.
 #[test]
 fn non_procedure_fixed_length_messages_arrive_whole() {
     let mut cfg = MicrexConfig::new(OperationMode::Five);
     cfg.fixed_length = Some(3);
+    cfg.frame.transposition = false;
     cfg.receive_message = 9;
     let mut h = Host::new(cfg);
     h.plc.handle_input(h.now, b"AB");
     h.plc.handle_input(h.now, b"CDEFG");
-    let received: Vec<Vec<u8>> = h
-        .events()
-        .into_iter()
-        .filter_map(|e| match e {
-            MicrexEvent::TransferReceived {
-                message: 9, data, ..
-            } => Some(data),
-            _ => None,
-        })
-        .collect();
-    assert_eq!(received, vec![b"ABC".to_vec(), b"DEF".to_vec()]);
+    assert_eq!(stored(&mut h, 9), vec![b"ABC".to_vec(), b"DEF".to_vec()]);
+}
+
+/// With code transposition on (the initial value, §4-3 items 14–15) the module takes 2N hex
+/// characters as one N-byte message, and sends N bytes as 2N characters; a character that is
+/// not a hex digit is a text form error (§5-6) of that message alone.
+#[test]
+fn non_procedure_fixed_length_with_transposition_is_2n_characters() {
+    let mut cfg = MicrexConfig::new(OperationMode::Four);
+    cfg.fixed_length = Some(3);
+    cfg.receive_message = 9;
+    let mut h = Host::new(cfg);
+    h.plc.handle_input(h.now, b"AB");
+    h.plc.handle_input(h.now, b"CDEF");
+    assert_eq!(stored(&mut h, 9), vec![vec![0xAB, 0xCD, 0xEF]]);
+    h.plc.handle_input(h.now, b"1Z3456414243");
+    assert_eq!(stored(&mut h, 9), vec![b"ABC".to_vec()]);
+    assert_eq!(h.plc.receive_counts().text_form, 1);
+    h.command(MicrexCommand::QueueTransfer {
+        message: 0,
+        data: vec![0x12, 0x00, 0xFE],
+    });
+    assert_eq!(h.drain(), b"1200FE");
 }
 
 #[test]
@@ -426,4 +454,26 @@ fn a_host_that_does_not_wait_fills_the_buffer() {
     let bytes = h.drain();
     let mut d = FrameDecoder::command_set(&h.frame);
     assert_eq!(d.decode(&bytes).len(), MAX_PENDING);
+}
+
+/// A character the module's UART received with a parity error ends its text as a receiving
+/// error (§5-6): that message is not stored (a request gets no reply), the next one is.
+#[test]
+fn a_character_error_ends_the_modules_text_and_the_next_one_is_stored() {
+    let mut cfg = MicrexConfig::new(OperationMode::Four);
+    cfg.receive_message = 9;
+    let mut h = Host::new(cfg);
+    h.plc.handle_input(h.now, b":4142");
+    h.plc.handle_line_error(h.now, LineError::Parity);
+    h.plc.handle_input(h.now, b"43\r:44\r");
+    assert_eq!(stored(&mut h, 9), vec![b"D".to_vec()]);
+    assert_eq!(h.plc.receive_counts().character, 1);
+
+    let mut h = Host::new(mode1());
+    let line = h.frame.encode(&[0, 0, 0, 5, 4, 0, 0, 2, 0]);
+    h.plc.handle_input(h.now, &line[..6]);
+    h.plc.handle_line_error(h.now, LineError::Framing);
+    h.plc.handle_input(h.now, &line[7..]);
+    assert!(h.drain().is_empty(), "no reply to a text received in error");
+    assert_eq!(h.raw(&line).len(), 1, "the next request is answered");
 }

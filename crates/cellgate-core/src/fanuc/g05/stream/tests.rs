@@ -1,4 +1,5 @@
 use super::*;
+use crate::engine::LineSettings;
 use crate::fanuc::g05::UnitTime;
 
 fn settings() -> StreamSettings {
@@ -11,6 +12,8 @@ fn settings() -> StreamSettings {
         window: 10,
         prime: 4,
         idle: Duration::from_secs(2),
+        line: LineSettings::with_baud(9600),
+        in_flight: 2048,
     }
 }
 
@@ -146,16 +149,82 @@ fn underruns_are_estimated_from_the_line_and_the_unit_time() {
     let mut s = Stream::new(settings(), t0);
     s.offer(t0, &batch(0, 4)).unwrap();
     s.take_chunks();
-    // The G05 block and four blocks on the line at t0.
+    // The G05 block and four blocks handed to the line at t0: 24 characters, 27.5 ms at
+    // 9600 baud, so the CNC has read the G05 block by 27.5 ms and taken its first block
+    // one T (8 ms) later at the latest: its unit times are counted from 35.5 ms.
     s.on_sent(t0, 4 + 20);
-    // 8 ms slots: at 40 ms five slots have passed, four found a block (judged with the
+    // 8 ms slots: at 76 ms five slots have passed, four found a block (judged with the
     // estimate's lag).
-    s.tick(t0 + ms(40) + ESTIMATE_LAG);
+    s.tick(t0 + ms(76) + ESTIMATE_LAG);
     let f = s.figures();
     assert_eq!((f.cnc_buffer, f.underruns), (0, 1));
     // A producer silent for the idle time with the CNC dry is taken as gone.
     assert_eq!(s.tick(t0 + ms(1000)), None);
     assert_eq!(s.tick(t0 + ms(2000)), Some(EndReason::ProducerIdle));
+}
+
+/// The estimate never counts an underrun the CNC cannot have had. A stream opened while the
+/// CNC waits: 100 blocks of 8 ms (800 ms of the CNC's time) go out with the `G05` block in one
+/// piece of 504 characters, which the board takes only once it has arrived whole, 578 ms
+/// later at 9600 baud; the producer's next 50 blocks are handed over at 1000 ms and have
+/// arrived by 1287 ms, before the CNC, which started at 578 ms, has used the first 100. The
+/// estimate once counted from the hand-over and said 25 unit times found the CNC empty.
+#[test]
+fn the_estimate_counts_no_underrun_the_cnc_cannot_have_had() {
+    let t0 = Instant::now();
+    let ms = Duration::from_millis;
+    let mut s = Stream::new(
+        StreamSettings {
+            window: 1000,
+            prime: 100,
+            ..settings()
+        },
+        t0,
+    );
+    s.offer(t0, &batch(0, 100)).unwrap();
+    s.take_chunks();
+    s.on_sent(t0, 4 + 500);
+    for at in (0..1000).step_by(100) {
+        s.tick(t0 + ms(at));
+    }
+    s.offer(t0 + ms(1000), &batch(1, 50)).unwrap();
+    s.on_sent(t0 + ms(1000), 4 + 750);
+    for at in (1000..1600).step_by(20) {
+        s.tick(t0 + ms(at));
+    }
+    let f = s.figures();
+    assert_eq!(f.underruns, 0, "{f:?}");
+    // Slots from 585.5 ms (577.5 ms on the line, one T): 118 by 1530 ms, the last tick less
+    // the estimate's lag.
+    assert_eq!(f.cnc_buffer, 150 - 118, "{f:?}");
+    // Past the 150 blocks, the CNC does run dry, and the estimate says so.
+    for at in (1600..2200).step_by(20) {
+        s.tick(t0 + ms(at));
+    }
+    assert!(s.figures().underruns > 0, "{:?}", s.figures());
+}
+
+/// A producer that has no credits cannot send: on a line too slow to take back the window's
+/// blocks for a while, its silence does not count towards the idle time until credits come
+/// back, even with the CNC dry.
+#[test]
+fn a_producer_without_credits_is_not_idle() {
+    let t0 = Instant::now();
+    let ms = Duration::from_millis;
+    let mut s = Stream::new(settings(), t0);
+    s.offer(t0, &batch(0, 10)).unwrap();
+    assert_eq!(s.credits(), 0);
+    // The G05 block on the line, none of the ten blocks yet: the CNC is dry from its first
+    // unit time, and there are no credits until two blocks go at 3 s.
+    s.on_sent(t0, 4);
+    for at in (100..3000).step_by(100) {
+        assert_eq!(s.tick(t0 + ms(at)), None, "at {at} ms");
+    }
+    assert!(s.figures().underruns > 0);
+    s.on_sent(t0 + ms(3000), 4 + 10);
+    assert_eq!(s.credits(), 2);
+    assert_eq!(s.tick(t0 + ms(4900)), None);
+    assert_eq!(s.tick(t0 + ms(5000)), Some(EndReason::ProducerIdle));
 }
 
 #[test]

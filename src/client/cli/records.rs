@@ -5,9 +5,9 @@ use std::fmt::Write as _;
 
 use clap::Args;
 
-use super::cli::{ClientCommand, ConnectArgs, Io};
-use super::render::{bytes, date_time, table};
-use super::{Client, ClientError};
+use super::{ClientCommand, ConnectArgs, Io};
+use crate::client::render::{bytes, date_time, table};
+use crate::client::{Client, ClientError};
 use cellgate_core::pb;
 
 /// JSON of any contract message (the proto3 JSON mapping), one object.
@@ -459,12 +459,25 @@ fn share(ms: u64, of: u64) -> String {
     format!("{:.0}%", ms as f64 * 100.0 / of as f64)
 }
 
+/// The time of `b` that has passed: every state's time and the unknown time (the gateway
+/// counts only up to now, so for the current bucket this is less than its length).
+pub fn elapsed_ms(b: &pb::UtilisationBucket) -> u64 {
+    b.reading_ms
+        + b.idle_ms
+        + b.alarm_ms
+        + b.reset_ms
+        + b.punching_ms
+        + b.link_down_ms
+        + b.unknown_ms
+}
+
 /// Utilisation as a table: one row per machine and bucket.
 pub fn utilisation_text(u: &pb::Utilisation) -> String {
     let mut rows = Vec::new();
     for m in &u.machines {
         for b in &m.buckets {
-            let len = b.end_unix_ms.saturating_sub(b.start_unix_ms);
+            // Of the time that has passed: the current bucket has not ended yet.
+            let len = elapsed_ms(b);
             let known = len.saturating_sub(b.unknown_ms);
             rows.push(vec![
                 m.machine.clone(),
@@ -498,7 +511,7 @@ pub fn utilisation_text(u: &pb::Utilisation) -> String {
     );
     out.push_str(
         "shares of the time the gateway knew the machine's state (SAT and link, §4.4.2); \
-         UNKNOWN: of the whole bucket\n",
+         UNKNOWN: of the time that has passed in the bucket\n",
     );
     out
 }

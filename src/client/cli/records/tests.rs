@@ -92,3 +92,33 @@ fn audit_records_say_who_and_whether_the_roles_vouch_for_it() {
     assert!(t.contains("alice (cli) [operator-1]: ok"), "{t}");
     assert!(t.contains("#7"), "{t}");
 }
+
+#[test]
+fn the_current_bucket_is_shared_over_the_time_that_has_passed() {
+    // An hour's bucket ten minutes in: 5 reading, 4 idle, 1 unknown.
+    let min = 60_000;
+    let u = pb::Utilisation {
+        machines: vec![pb::MachineUtilisation {
+            machine: "mill-1".into(),
+            buckets: vec![pb::UtilisationBucket {
+                start_unix_ms: 0,
+                end_unix_ms: 60 * min,
+                reading_ms: 5 * min,
+                idle_ms: 4 * min,
+                unknown_ms: min,
+                ..Default::default()
+            }],
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    let text = utilisation_text(&u);
+    let row = text.lines().find(|l| l.starts_with("mill-1")).unwrap();
+    let cells: Vec<&str> = row.split_whitespace().collect();
+    assert!(
+        cells.contains(&"56%"),
+        "reading 5 of 9 known minutes: {text}"
+    );
+    assert!(cells.contains(&"44%"), "idle 4 of 9: {text}");
+    assert!(cells.contains(&"10%"), "unknown 1 of 10 passed: {text}");
+}

@@ -1,0 +1,287 @@
+//! `cellgate submit`: a job, its progress, and how it ended.
+
+use super::*;
+
+/// `cellgate submit`.
+#[derive(Debug, Clone, Args)]
+#[command(
+    override_usage = "cellgate submit [OPTIONS] <MACHINE> <FILE|--library <NAME>|--key <KEY>>\n       cellgate submit [OPTIONS] --resume <JOB_ID>"
+)]
+#[command(group(
+    clap::ArgGroup::new("source")
+        .required(true)
+        .args(["file", "library", "key", "resume"])
+))]
+pub struct SubmitArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// The machine to send the program to (its name in the cell file). With --resume it may
+    /// be left out: the job id names its machine, as for `cancel` and `job`.
+    #[arg(value_name = "MACHINE", required_unless_present = "resume")]
+    pub machine: Option<String>,
+    /// The program file. It is sent inline, in one message, so it is held whole in memory;
+    /// for large programs put it in the library first (`cellgate program put`) and use
+    /// --library.
+    #[arg(value_name = "FILE")]
+    pub file: Option<PathBuf>,
+    /// A program of the gateway's library instead of a file.
+    #[arg(long, value_name = "NAME")]
+    pub library: Option<String>,
+    /// With --library: the revision to send, by number or SHA-256 (default: the latest; a
+    /// machine with `accept = "released"` takes only released ones).
+    #[arg(long, value_name = "REV", requires = "library")]
+    pub revision: Option<String>,
+    /// A zenoh key the gateway fetches the program from (one get), instead of a file.
+    #[arg(long, value_name = "KEY")]
+    pub key: Option<String>,
+    /// Higher runs first; equal priorities run in arrival order.
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    pub priority: i32,
+    /// The name shown in status and events (default: derived by the gateway from the
+    /// library name, the key or the program's O-number).
+    #[arg(long, value_name = "DISPLAY")]
+    pub name: Option<String>,
+    /// Append the EOR code `%` if the program does not end with one (§4.4.2).
+    #[arg(long)]
+    pub append_eor: bool,
+    /// Print the job id once accepted and return, without following the job.
+    #[arg(long)]
+    pub detach: bool,
+    /// Send the program of an earlier job that failed or was cancelled again, from the
+    /// first block the board did not acknowledge whole, with the program's header first.
+    #[arg(long, value_name = "JOB_ID")]
+    pub resume: Option<String>,
+    /// Start at a block: `N1234` (its sequence number) or a line number; the program's
+    /// header (its lines before the first numbered block) goes first.
+    #[arg(long, value_name = "BLOCK")]
+    pub from_block: Option<String>,
+    /// Lines of the program's start that make its header (default: up to its first
+    /// numbered block).
+    #[arg(long, value_name = "LINES", default_value_t = 0)]
+    pub header_lines: u32,
+    /// If the gateway restarts while sending this job, resume it from the first block the
+    /// board did not acknowledge whole instead of failing it.
+    #[arg(long)]
+    pub resume_after_restart: bool,
+    /// Fail the job if it has not completed this many seconds after it started (a CNC that
+    /// never asks for data): it fails at what the board acknowledged.
+    #[arg(long, value_name = "SECS", default_value_t = 0)]
+    pub deadline: u32,
+    /// The request id that makes the submit idempotent (default: a new one for each run):
+    /// a retry with the same id queues nothing twice.
+    #[arg(long, value_name = "ID")]
+    pub request_id: Option<String>,
+    /// Print JSON on stdout: the acceptance (job_id, queue_position), then the job's last
+    /// event, one object a line, instead of the job id.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `N1234` or `1234` → the block, by sequence number or line.
+fn parse_block(text: &str) -> Result<pb::block_start::At, ClientError> {
+    let bad = || ClientError::InvalidArgument {
+        what: format!("--from-block {text}"),
+        reason: "give N and a sequence number (N1234) or a line number (57)".to_string(),
+    };
+    match text.strip_prefix(['N', 'n']) {
+        Some(digits) => digits
+            .parse()
+            .map(pb::block_start::At::SequenceNumber)
+            .map_err(|_| bad()),
+        None => text
+            .parse()
+            .map(pb::block_start::At::Line)
+            .map_err(|_| bad()),
+    }
+}
+
+impl SubmitArgs {
+    /// The machine named, or the one the job to resume names.
+    fn machine(&self) -> Result<String, ClientError> {
+        match (&self.machine, &self.resume) {
+            (Some(m), _) => Ok(m.clone()),
+            (None, Some(job)) => crate::client::machine_of_job(job)
+                .map(str::to_string)
+                .ok_or_else(|| ClientError::InvalidArgument {
+                    what: format!("--resume {job:?}"),
+                    reason: "not a job id as `submit` printed it (MACHINE-RUN-N); name the \
+                             machine too"
+                        .to_string(),
+                }),
+            (None, None) => Err(ClientError::InvalidArgument {
+                what: "MACHINE".to_string(),
+                reason: "name the machine to send the program to".to_string(),
+            }),
+        }
+    }
+
+    /// The `JobRequest` these arguments make (reads FILE).
+    pub async fn request(&self, io: &mut Io<'_>) -> Result<pb::JobRequest, ClientError> {
+        use pb::job_request::Program;
+        let program = if let Some(path) = &self.file {
+            let data = tokio::fs::read(path)
+                .await
+                .map_err(|source| ClientError::File {
+                    path: path.clone(),
+                    op: "read",
+                    source,
+                })?;
+            if data.len() as u64 > INLINE_HINT {
+                let _ = writeln!(
+                    io.err,
+                    "note: {} is {} and goes inline in one message; for large programs, \
+                     `cellgate program put NAME {}` once and submit --library NAME",
+                    path.display(),
+                    render::bytes(data.len() as u64),
+                    path.display()
+                );
+            }
+            Program::Inline(data)
+        } else if let Some(name) = &self.library {
+            Program::Library(name.clone())
+        } else if let Some(key) = &self.key {
+            Program::Key(key.clone())
+        } else if let Some(job) = &self.resume {
+            Program::ResumeJob(job.clone())
+        } else {
+            return Err(ClientError::InvalidArgument {
+                what: "submit".to_string(),
+                reason: "give a FILE, --library NAME, --key KEY or --resume JOB_ID".to_string(),
+            });
+        };
+        let start_at = match &self.from_block {
+            Some(block) => Some(pb::BlockStart {
+                at: Some(parse_block(block)?),
+                header_lines: self.header_lines,
+            }),
+            None => None,
+        };
+        Ok(pb::JobRequest {
+            program: Some(program),
+            name: self.name.clone().unwrap_or_default(),
+            priority: self.priority,
+            append_eor: self.append_eor,
+            request_id: self
+                .request_id
+                .clone()
+                .unwrap_or_else(crate::client::new_request_id),
+            start_at,
+            resume_after_restart: self.resume_after_restart,
+            deadline_s: self.deadline,
+            revision: self.revision.clone().unwrap_or_default(),
+        })
+    }
+}
+
+impl ClientCommand for SubmitArgs {
+    fn connect_args(&self) -> &ConnectArgs {
+        &self.connect
+    }
+
+    async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        let machine = self.machine()?;
+        let request = self.request(io).await?;
+        let (accepted, mut follower) = client.submit(&machine, &request).await?;
+        let job = accepted.job_id.clone();
+        if self.json {
+            let _ = writeln!(io.out, "{}", render::accepted_json(&accepted));
+        } else {
+            let _ = writeln!(io.out, "{job}");
+        }
+        let _ = io.out.flush();
+        let _ = writeln!(
+            io.err,
+            "{job}: accepted by {machine}, {} job(s) ahead",
+            accepted.queue_position
+        );
+        if self.detach {
+            follower.close().await;
+            return Ok(0);
+        }
+        let bar = progress_bar(io.progress_bar, &job);
+        let interrupt = tokio::signal::ctrl_c();
+        tokio::pin!(interrupt);
+        let outcome = loop {
+            let event = tokio::select! {
+                e = follower.next() => e,
+                _ = &mut interrupt => {
+                    bar.abandon();
+                    let _ = writeln!(
+                        io.err,
+                        "interrupted: job {job} keeps running on {m}; follow it with \
+                         `cellgate job {job} --follow`, cancel it with `cellgate cancel {job}`",
+                        m = machine
+                    );
+                    follower.close().await;
+                    return Ok(EXIT_INTERRUPTED);
+                }
+            };
+            let event = match event {
+                Ok(Some(e)) => e,
+                Ok(None) => break None,
+                Err(e) => {
+                    bar.abandon();
+                    follower.close().await;
+                    return Err(e);
+                }
+            };
+            show_progress(&bar, io, &event);
+            if let Some(outcome) = JobOutcome::of(&event) {
+                if self.json {
+                    let _ = writeln!(io.out, "{}", render::job_event_json(&event));
+                }
+                break Some(outcome);
+            }
+        };
+        follower.close().await;
+        Ok(outcome.map_or(1, |o| o.exit_code()))
+    }
+}
+
+fn progress_bar(visible: bool, job: &str) -> ProgressBar {
+    if !visible {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::stderr());
+    let style = ProgressStyle::with_template(
+        "{prefix} {msg:24} [{wide_bar}] {bytes}/{total_bytes} {elapsed_precise} eta {eta}",
+    )
+    .map(|s| s.progress_chars("=> "))
+    .unwrap_or_else(|_| ProgressStyle::default_bar());
+    bar.set_style(style);
+    bar.set_prefix(job.to_string());
+    bar.enable_steady_tick(Duration::from_millis(200));
+    bar
+}
+
+/// Shows one job event: on the bar when there is one; otherwise as a line for each step but
+/// the progress events.
+fn show_progress(bar: &ProgressBar, io: &mut Io<'_>, event: &pb::JobEvent) {
+    let line = format!("{}: {}", event.job_id, render::job_kind_text(event));
+    match &event.kind {
+        Some(Kind::Queued(q)) => bar.set_message(format!("queued, {} ahead", q.queue_position)),
+        Some(Kind::Started(s)) => {
+            if let Some(total) = s.bytes_total {
+                bar.set_length(total);
+            }
+            bar.reset_elapsed();
+            bar.set_message("sending");
+        }
+        Some(Kind::Progress(p)) => {
+            if let Some(total) = p.bytes_total {
+                bar.set_length(total);
+            }
+            bar.set_position(p.bytes_sent);
+            bar.set_message(format!("sending, {} B/s", p.rate_bps));
+            return; // no line per progress event
+        }
+        Some(Kind::Completed(c)) => {
+            bar.set_position(c.bytes_sent);
+            bar.finish_and_clear();
+        }
+        Some(Kind::Failed(_) | Kind::Cancelled(_)) | None => bar.abandon(),
+    }
+    if bar.is_hidden() || JobOutcome::of(event).is_some() {
+        let _ = writeln!(io.err, "{line}");
+    }
+}

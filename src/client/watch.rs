@@ -1,0 +1,261 @@
+//! Everything the cell publishes, and its liveliness, as one stream of events.
+
+use super::*;
+
+impl Client {
+    /// Subscribes to everything the cell publishes (`P/C/**`) and to its liveliness tokens.
+    /// The tokens standing now come first (as `Gateway` / `Link` events with `up`).
+    pub async fn watch(&self) -> Result<Watch, ClientError> {
+        let all = self.keys.all();
+        let data = self
+            .session
+            .declare_subscriber(all.as_str())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("subscribe to {all}"),
+                source,
+            })?;
+        let tokens = self
+            .session
+            .liveliness()
+            .declare_subscriber(all.as_str())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("subscribe to the liveliness tokens {all}"),
+                source,
+            })?;
+        let mut watch = Watch {
+            keys: self.keys.clone(),
+            data,
+            tokens,
+            pending: VecDeque::new(),
+        };
+        // The standing tokens, asked for after subscribing so that no change is missed
+        // (one may show twice).
+        let replies = self
+            .session
+            .liveliness()
+            .get(all.as_str())
+            .timeout(self.timeout)
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("get the liveliness tokens {all}"),
+                source,
+            })?;
+        let mut standing = Vec::new();
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result()
+                && let Some(event) = watch.token_event(sample)
+            {
+                standing.push(event);
+            }
+        }
+        // The gateway first, then the machines by name.
+        standing.sort_by_key(|e| match e {
+            WatchEvent::Link { machine, .. } => (1, machine.clone()),
+            _ => (0, String::new()),
+        });
+        watch.pending.extend(standing);
+        Ok(watch)
+    }
+}
+
+/// One thing seen on the cell's keys.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum WatchEvent {
+    Status(Box<pb::MachineStatus>),
+    Job(pb::JobEvent),
+    Alarm(pb::AlarmEvent),
+    Di(pb::DiImage),
+    /// A program the CNC punched out (and the remote request it carried, if any).
+    Punched(Box<pb::PunchedProgram>),
+    /// A `DoCommand` put by some client.
+    DoCommand {
+        machine: String,
+        command: pb::DoCommand,
+    },
+    /// A delete on a job key: a cancel request.
+    CancelRequested {
+        machine: String,
+        job_id: String,
+    },
+    /// A G05 stream ended.
+    G05(pb::G05Status),
+    /// A program put into the library.
+    ProgramPut {
+        name: String,
+        size: u64,
+    },
+    /// A delete on a program: removal requested.
+    ProgramDeleted {
+        name: String,
+    },
+    /// A machine's liveliness token: its link came up (`up`) or went down.
+    Link {
+        machine: String,
+        up: bool,
+    },
+    /// The gateway's liveliness token.
+    Gateway {
+        up: bool,
+    },
+    /// A PLC tag changed.
+    Tag(pb::TagValue),
+    /// A transfer: from the PLC (published by the gateway), or one a client put to it.
+    Transfer(pb::PlcTransfer),
+    /// A non-procedure message (modes 4–5): from the PLC, or one a client put to it.
+    PlcMessage(pb::PlcMessage),
+    /// A PLC station's liveliness token: it answers (`up`) or was marked down.
+    PlcStation {
+        plc: String,
+        station: String,
+        up: bool,
+    },
+    /// A sample on the cell's keys that is not what the contract puts there.
+    Unexpected {
+        key: String,
+        detail: String,
+    },
+}
+
+/// The cell's publications, as [`Client::watch`] subscribed to them.
+pub struct Watch {
+    keys: CellKeys,
+    data: Subscriber<FifoChannelHandler<Sample>>,
+    tokens: Subscriber<FifoChannelHandler<Sample>>,
+    pending: VecDeque<WatchEvent>,
+}
+
+impl Watch {
+    /// The next event; `None` when the session closed.
+    pub async fn next(&mut self) -> Option<WatchEvent> {
+        if let Some(e) = self.pending.pop_front() {
+            return Some(e);
+        }
+        loop {
+            let (sample, token) = tokio::select! {
+                s = self.tokens.recv_async() => (s.ok()?, true),
+                s = self.data.recv_async() => (s.ok()?, false),
+            };
+            let event = if token {
+                self.token_event(&sample)
+            } else {
+                self.data_event(&sample)
+            };
+            if let Some(e) = event {
+                return Some(e);
+            }
+        }
+    }
+
+    fn token_event(&self, sample: &Sample) -> Option<WatchEvent> {
+        let up = sample.kind() == SampleKind::Put;
+        let key = sample.key_expr().as_str();
+        if let Some(crate::bus::keys::PlcKey::Station { plc, station }) = self.keys.parse_plc(key) {
+            return Some(WatchEvent::PlcStation {
+                plc: plc.to_string(),
+                station: station.to_string(),
+                up,
+            });
+        }
+        match self.keys.parse(key) {
+            Some(CellKey::Gateway) => Some(WatchEvent::Gateway { up }),
+            Some(CellKey::Machine { machine }) => Some(WatchEvent::Link {
+                machine: machine.to_string(),
+                up,
+            }),
+            _ => None,
+        }
+    }
+
+    fn data_event(&self, sample: &Sample) -> Option<WatchEvent> {
+        let key = sample.key_expr().as_str();
+        let bytes = sample.payload().to_bytes();
+        let enc = sample.encoding();
+        let put = sample.kind() == SampleKind::Put;
+        if let Some(plc_key) = self.keys.parse_plc(key) {
+            use crate::bus::keys::PlcKey;
+            let schema = schema_of(enc);
+            let event = match plc_key {
+                PlcKey::Tag { .. } if put && schema.as_deref() == Some(pb::TagValue::SCHEMA) => {
+                    decode(key, key, &bytes, enc).map(WatchEvent::Tag)
+                }
+                PlcKey::Transfer { .. }
+                    if put && schema.as_deref() == Some(pb::PlcTransfer::SCHEMA) =>
+                {
+                    decode(key, key, &bytes, enc).map(WatchEvent::Transfer)
+                }
+                PlcKey::Message { .. }
+                    if put && schema.as_deref() == Some(pb::PlcMessage::SCHEMA) =>
+                {
+                    decode(key, key, &bytes, enc).map(WatchEvent::PlcMessage)
+                }
+                // Status every few seconds, writes by other clients: not shown.
+                _ => return None,
+            };
+            return Some(event.unwrap_or_else(|e| WatchEvent::Unexpected {
+                key: key.to_string(),
+                detail: e.to_string(),
+            }));
+        }
+        let parsed = self.keys.parse(key)?;
+        let event = match parsed {
+            CellKey::Leaf { leaf, machine } if put => match leaf {
+                MachineLeaf::Status => {
+                    decode(key, key, &bytes, enc).map(|s| WatchEvent::Status(Box::new(s)))
+                }
+                MachineLeaf::Alarm => decode(key, key, &bytes, enc).map(WatchEvent::Alarm),
+                MachineLeaf::Di => decode(key, key, &bytes, enc).map(WatchEvent::Di),
+                MachineLeaf::Punch => {
+                    decode(key, key, &bytes, enc).map(|p| WatchEvent::Punched(Box::new(p)))
+                }
+                MachineLeaf::Do => {
+                    decode(key, key, &bytes, enc).map(|command| WatchEvent::DoCommand {
+                        machine: machine.to_string(),
+                        command,
+                    })
+                }
+                // Job requests and G05 opens are gets, not puts.
+                MachineLeaf::Job | MachineLeaf::Submit | MachineLeaf::G05 => return None,
+            },
+            // A stream's status comes ten times a second: only its end is shown.
+            CellKey::G05 {
+                part: crate::bus::keys::G05Part::Status,
+                ..
+            } if put => match decode::<pb::G05Status>(key, key, &bytes, enc) {
+                Ok(s)
+                    if s.state() == pb::G05State::Completed
+                        || s.state() == pb::G05State::Failed =>
+                {
+                    Ok(WatchEvent::G05(s))
+                }
+                Ok(_) => return None,
+                Err(e) => Err(e),
+            },
+            CellKey::JobEvents { .. } if put => decode(key, key, &bytes, enc).map(WatchEvent::Job),
+            CellKey::JobEvents { machine, job } => Ok(WatchEvent::CancelRequested {
+                machine: machine.to_string(),
+                job_id: job.to_string(),
+            }),
+            CellKey::ProgramWrite { name } if put => Ok(WatchEvent::ProgramPut {
+                name: name.to_string(),
+                size: bytes.len() as u64,
+            }),
+            CellKey::ProgramWrite { name } => Ok(WatchEvent::ProgramDeleted {
+                name: name.to_string(),
+            }),
+            _ => return None,
+        };
+        Some(event.unwrap_or_else(|e| WatchEvent::Unexpected {
+            key: key.to_string(),
+            detail: e.to_string(),
+        }))
+    }
+
+    /// Undeclares both subscriptions.
+    pub async fn close(self) {
+        let _ = self.data.undeclare().await;
+        let _ = self.tokens.undeclare().await;
+    }
+}

@@ -1,0 +1,282 @@
+//! The job intake: a submission checked, its program read and staged in the journal's store,
+//! then handed to the manager, which queues it. What a client waits for between `submit` and
+//! `JobAccepted`, and why a submission is refused.
+
+use super::*;
+
+impl JobsHandle {
+    /// Checks the program, writes it and the job to the journal, and queues the job. On
+    /// success the job's `queued` event is out and the job is journalled before this
+    /// returns. The check reads a library program once through; it runs in the caller's task.
+    pub async fn submit(&self, submission: JobSubmission) -> Result<pb::JobAccepted, JobError> {
+        if submission.request_id.len() > REQUEST_ID_MAX {
+            return Err(JobError::RequestId {
+                machine: self.machine.to_string(),
+                len: submission.request_id.len(),
+            });
+        }
+        let seq = self.journal.next_seq().map_err(|e| self.journal_error(e))?;
+        let file = seq.to_string();
+        let record = match self.stage(seq, &file, submission).await {
+            Ok(record) => record,
+            Err(e) => {
+                let _ = std::fs::remove_file(self.journal.file_path(&file));
+                return Err(e);
+            }
+        };
+        let (reply, answer) = oneshot::channel();
+        self.requests
+            .send(Request::Submit {
+                record: Box::new(record),
+                reply,
+            })
+            .await
+            .map_err(|_| self.stopped())?;
+        let accepted = answer.await.map_err(|_| self.stopped())?;
+        if accepted.is_err() {
+            let _ = std::fs::remove_file(self.journal.file_path(&file));
+        }
+        accepted
+    }
+
+    /// The program in the journal's store, checked, and the job's record.
+    async fn stage(&self, seq: u64, file: &str, s: JobSubmission) -> Result<JobRecord, JobError> {
+        let mut start = s.start_at;
+        let mut origin = JobOriginRecord {
+            user: s.submitted_by.user.clone(),
+            via: s.submitted_by.via.clone(),
+            ..JobOriginRecord::default()
+        };
+        if !s.revision.is_empty() && !matches!(s.input, ProgramInput::Library(_)) {
+            return Err(JobError::RevisionWithoutLibrary {
+                machine: self.machine.to_string(),
+            });
+        }
+        if self.accept == Accept::Released {
+            let what = match &s.input {
+                ProgramInput::Inline(_) => Some("an inline program"),
+                ProgramInput::Fetched { .. } => Some("a program fetched from a key"),
+                ProgramInput::Library(_) | ProgramInput::Resume(_) => None,
+            };
+            if let Some(what) = what {
+                return Err(JobError::OnlyReleased {
+                    machine: self.machine.to_string(),
+                    what,
+                });
+            }
+        }
+        let (default_name, file_len, suffix) = match s.input {
+            ProgramInput::Inline(bytes) => {
+                origin.sha256 = library::sha256_hex(&bytes);
+                let report = source::scan(self.rules, &bytes);
+                let suffix = self.checked_suffix(&report, s.append_eor)?;
+                let len = self
+                    .journal
+                    .store_bytes(file, &[&bytes, suffix])
+                    .map_err(|e| self.journal_error(e))?;
+                (report.ok().and_then(|r| r.o_number), len, Vec::new())
+            }
+            ProgramInput::Fetched { key, bytes } => {
+                origin.sha256 = library::sha256_hex(&bytes);
+                let suffix =
+                    self.checked_suffix(&source::scan(self.rules, &bytes), s.append_eor)?;
+                let len = self
+                    .journal
+                    .store_bytes(file, &[&bytes, suffix])
+                    .map_err(|e| self.journal_error(e))?;
+                (Some(key), len, Vec::new())
+            }
+            ProgramInput::Library(name) => {
+                let library_error = |error| JobError::Library {
+                    machine: self.machine.to_string(),
+                    error,
+                };
+                // The revision's content never changes: the version checked is the version
+                // sent, even if the library stores a new one meanwhile.
+                let (revision, path) = self
+                    .library
+                    .revision(&name, &s.revision)
+                    .await
+                    .map_err(library_error)?;
+                if self.accept == Accept::Released
+                    && !matches!(
+                        revision.state(),
+                        pb::RevisionState::Released | pb::RevisionState::Locked
+                    )
+                {
+                    let latest_released = self.library.latest_released(&name).await;
+                    return Err(library_error(LibraryError::NotReleased {
+                        machine: self.machine.to_string(),
+                        name,
+                        number: revision.number,
+                        latest_released,
+                    }));
+                }
+                origin.library = name.clone();
+                origin.revision = revision.number;
+                origin.sha256 = revision.sha256.clone();
+                let len = self
+                    .journal
+                    .store_file(file, &path)
+                    .map_err(|e| self.journal_error(e))?;
+                if len > self.rules.max_size {
+                    return Err(self.program_error(ProgramError::TooLarge {
+                        size: len,
+                        max: self.rules.max_size,
+                    }));
+                }
+                let report = source::scan_file(self.rules, &self.journal.file_path(file))
+                    .await
+                    .map_err(|e| match e {
+                        source::ScanFileError::Program(e) => self.program_error(e),
+                        source::ScanFileError::Io(error) => JobError::Library {
+                            machine: self.machine.to_string(),
+                            error: self.library.io_error(&name, "read", error),
+                        },
+                    })?;
+                let suffix = self.checked_suffix(&Ok(report), s.append_eor)?;
+                (Some(name), len, suffix.to_vec())
+            }
+            ProgramInput::Resume(job) => {
+                let (earlier, next) = self.resumable(&job).await?;
+                // A job that sent no library revision cannot go to such a machine again.
+                if self.accept == Accept::Released && earlier.origin.revision == 0 {
+                    return Err(JobError::OnlyReleased {
+                        machine: self.machine.to_string(),
+                        what: "a job that did not send a library revision",
+                    });
+                }
+                origin.library = earlier.origin.library.clone();
+                origin.revision = earlier.origin.revision;
+                origin.sha256 = earlier.origin.sha256.clone();
+                let len = self
+                    .journal
+                    .store_file(file, &self.journal.file_path(&earlier.file))
+                    .map_err(|e| self.journal_error(e))?;
+                start.get_or_insert((StartAt::Line(next.line), 0));
+                (Some(earlier.name.clone()), len, earlier.suffix.clone())
+            }
+        };
+        let size = file_len + suffix.len() as u64;
+        if size > self.rules.max_size {
+            return Err(self.program_error(ProgramError::TooLarge {
+                size,
+                max: self.rules.max_size,
+            }));
+        }
+        let start = match start {
+            None => None,
+            Some((at, header_lines)) => {
+                let program = source::open_program(&self.journal.file_path(file), &suffix)
+                    .await
+                    .map_err(|e| JobError::Start {
+                        machine: self.machine.to_string(),
+                        error: BlockError::Read(e.to_string()),
+                    })?;
+                let (header_end, block) = source::find_start(program, at, header_lines)
+                    .await
+                    .map_err(|error| JobError::Start {
+                        machine: self.machine.to_string(),
+                        error,
+                    })?;
+                Some(StartPoint {
+                    header_end,
+                    body_start: block.offset,
+                })
+            }
+        };
+        let name = if s.name.is_empty() {
+            default_name.unwrap_or_else(|| "program".to_string())
+        } else {
+            s.name
+        };
+        Ok(JobRecord {
+            seq,
+            id: String::new(),
+            machine: self.machine.to_string(),
+            request_id: s.request_id,
+            name,
+            priority: s.priority,
+            accepted_unix_ms: pb::now_ms(),
+            file: file.to_string(),
+            file_len,
+            suffix,
+            start,
+            resume_after_restart: s.resume_after_restart,
+            deadline_s: s.deadline_s,
+            state: JobState::Waiting,
+            acked: 0,
+            last_event: Vec::new(),
+            origin,
+        })
+    }
+
+    /// The EOR to append, or why the program is refused.
+    fn checked_suffix(
+        &self,
+        report: &Result<source::ScanReport, ProgramError>,
+        append_eor: bool,
+    ) -> Result<&'static [u8], JobError> {
+        let report = report.clone().map_err(|e| self.program_error(e))?;
+        let suffix = source::eor_suffix(&report);
+        if !suffix.is_empty() && !append_eor {
+            return Err(self.program_error(ProgramError::MissingEor));
+        }
+        Ok(suffix)
+    }
+
+    /// An earlier job that a resume can start from, and its next block.
+    async fn resumable(&self, job: &str) -> Result<(JobRecord, Block), JobError> {
+        let not = |why| JobError::NotResumable {
+            machine: self.machine.to_string(),
+            job: job.to_string(),
+            why,
+        };
+        let (reply, answer) = oneshot::channel();
+        self.requests
+            .send(Request::Find {
+                id: job.to_string(),
+                reply,
+            })
+            .await
+            .map_err(|_| self.stopped())?;
+        let record =
+            answer
+                .await
+                .map_err(|_| self.stopped())?
+                .ok_or_else(|| JobError::UnknownJob {
+                    machine: self.machine.to_string(),
+                    job: job.to_string(),
+                })?;
+        if record.state != JobState::Ended {
+            return Err(not("it has not ended"));
+        }
+        let event = pb::JobEvent::decode(record.last_event.as_slice())
+            .map_err(|_| not("its last event is unreadable"))?;
+        let (next, on_line) = match event.kind {
+            Some(Kind::Failed(f)) => (f.next_block, f.bytes_on_line),
+            Some(Kind::Cancelled(c)) => (c.next_block, c.bytes_on_line),
+            Some(Kind::Completed(_)) => return Err(not("it completed")),
+            _ => (None, 0),
+        };
+        let next = next.ok_or_else(|| {
+            if on_line == 0 {
+                not("nothing of it went to the board (the CNC never asked for it): submit its program again")
+            } else {
+                not("no block is known where it stopped")
+            }
+        })?;
+        if !self.journal.file_path(&record.file).exists() {
+            return Err(not(
+                "its program is no longer kept: only the latest 8 ended jobs of a machine keep \
+                 theirs; submit the program again, starting at the block (start_at)",
+            ));
+        }
+        let block = Block {
+            line: next.line,
+            sequence: (!next.sequence_number.is_empty()).then_some(next.sequence_number),
+            offset: next.byte_offset,
+        };
+        Ok((record, block))
+    }
+}
