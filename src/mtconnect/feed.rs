@@ -34,6 +34,7 @@ fn classify(prefix: &str, key: &str) -> Option<(String, Kind)> {
         [_, "machine", _, "status"] => Kind::Status,
         [_, "machine", _, "job", _] => Kind::Job,
         [_, "machine", _, "g05", _] => Kind::G05,
+        [_, "machine", _, "punch"] => Kind::Punch,
         [_, "plc", _, "status"] => Kind::Plc,
         [_, "plc", _, "tag", _] => Kind::Tag,
         [_, "gateway"] => Kind::Gateway,
@@ -47,14 +48,15 @@ enum Kind {
     Status,
     Job,
     G05,
+    Punch,
     Plc,
     Tag,
     Gateway,
 }
 
-/// What a sample says, decoded; `None` for what does not decode (nothing from the bus can
-/// stop the agent).
-fn decode(kind: Kind, s: &Sample) -> Option<Update> {
+/// What a sample of `cell` says, decoded; `None` for what does not decode (nothing from the
+/// bus can stop the agent).
+fn decode(prefix: &str, cell: &str, kind: Kind, s: &Sample) -> Option<Update> {
     let bytes = s.payload().to_bytes();
     Some(match kind {
         Kind::Gateway => Update::Gateway(s.kind() == SampleKind::Put),
@@ -63,6 +65,13 @@ fn decode(kind: Kind, s: &Sample) -> Option<Update> {
         Kind::Status => Update::Status(Box::new(pb::MachineStatus::decode(bytes.as_ref()).ok()?)),
         Kind::Job => Update::Job(pb::JobEvent::decode(bytes.as_ref()).ok()?),
         Kind::G05 => Update::G05(pb::G05Status::decode(bytes.as_ref()).ok()?),
+        Kind::Punch => {
+            let p = pb::PunchedProgram::decode(bytes.as_ref()).ok()?;
+            // Where the library keeps it: its key on the bus (an asset's FileLocation).
+            let keys = crate::bus::keys::CellKeys::new(prefix, cell).ok()?;
+            let location = keys.program(&p.library_name);
+            Update::Punch(Box::new(p), location)
+        }
         Kind::Plc => Update::Plc(pb::PlcStatus::decode(bytes.as_ref()).ok()?),
         Kind::Tag => Update::Tag(pb::TagValue::decode(bytes.as_ref()).ok()?),
     })
@@ -111,6 +120,7 @@ pub async fn start(
         format!("{prefix}/{c}/machine/*/status"),
         format!("{prefix}/{c}/machine/*/job/*"),
         format!("{prefix}/{c}/machine/*/g05/*"),
+        format!("{prefix}/{c}/machine/*/punch"),
         format!("{prefix}/{c}/plc/*/status"),
         format!("{prefix}/{c}/plc/*/tag/*"),
     ];
@@ -181,7 +191,7 @@ pub async fn start(
                     let Some((cell, kind)) = classify(&prefix, s.key_expr().as_str()) else {
                         continue;
                     };
-                    let Some(update) = decode(kind, &s) else { continue };
+                    let Some(update) = decode(&prefix, &cell, kind, &s) else { continue };
                     if let Update::Gateway(true) = update {
                         // Ask what it has (again, if it came back) before marking it up.
                         let (session, prefix, tx) = (session.clone(), prefix.clone(), asked_tx.clone());

@@ -135,7 +135,7 @@ fn answer(http: &Http, request: Request, device: Option<String>, raw: Option<Str
     };
     let done = match request {
         Request::Probe => Ok(agent.probe(dev, q.format, now)),
-        Request::Assets => Ok(agent.assets(q.format, now)),
+        Request::Assets => agent.assets(dev, None, &q, now),
         Request::Current if q.interval.is_some() => {
             return match agent.select(dev, q.path.as_deref()) {
                 Ok(_) => Answer::Stream(dev, q.clone(), None),
@@ -231,16 +231,22 @@ async fn asset(
     id: Result<Path<String>, PathRejection>,
     RawQuery(q): RawQuery,
 ) -> Response {
-    let format = match query(Request::Assets, q.as_deref()) {
-        Ok(q) => q.format,
+    let q = match query(Request::Assets, q.as_deref()) {
+        Ok(q) => q,
         Err((e, f)) => return error(&h, &e, f),
     };
-    let id = id.map(|Path(i)| i).unwrap_or_default();
-    let e = MtError::new(
-        ErrorCode::AssetNotFound,
-        format!("no asset {id:?}: this agent keeps no assets"),
-    );
-    error(&h, &e, format)
+    let id = match id {
+        Ok(Path(id)) => id,
+        Err(e) => {
+            let e = MtError::new(ErrorCode::InvalidUri, format!("the URI: {e}"));
+            return error(&h, &e, q.format);
+        }
+    };
+    let answer = h.hub.lock().assets(None, Some(&id), &q, now_us());
+    match answer {
+        Ok(body) => document(200, q.format, body),
+        Err(e) => error(&h, &e, q.format),
+    }
 }
 
 async fn invalid_uri(State(h): St, uri: axum::http::Uri) -> Response {

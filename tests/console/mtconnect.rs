@@ -472,6 +472,15 @@ async fn every_kind_of_document_is_valid_against_the_2_5_schemas() {
         .await
         .unwrap();
     let current = wait_for(&u, "/current", |d| d.contains("<Fault")).await;
+    // A File asset too: a program the Protocol B lathe punches out.
+    let punch = pb::SimPunch {
+        program: b"%\nO5555(BRACKET)\nG00X0Y0\nM30\n%\n".to_vec(),
+    };
+    client
+        .sim_control("lathe-1", SimLeaf::Punch, Some(&punch))
+        .await
+        .unwrap();
+    let assets = wait_for(&u, "/assets", |d| d.contains("<File ")).await;
     let work = tempfile::tempdir().unwrap();
     let mut docs = vec![
         ("Devices", "probe", get(&format!("{u}/probe")).await.1),
@@ -491,7 +500,12 @@ async fn every_kind_of_document_is_valid_against_the_2_5_schemas() {
             "current-at",
             get(&format!("{u}/current?at=5")).await.1,
         ),
-        ("Assets", "assets", get(&format!("{u}/assets")).await.1),
+        ("Assets", "assets", assets),
+        (
+            "Assets",
+            "no-assets",
+            get(&format!("{u}/mill-1/assets")).await.1,
+        ),
         ("Error", "error", get(&format!("{u}/nosuch/probe")).await.1),
         (
             "Error",
@@ -697,5 +711,65 @@ async fn the_python_follower_and_json_read_the_agent() {
         .find(|c| c["component"] == "Path")
         .unwrap();
     assert_eq!(path["Events"]["Execution"][0]["value"], "READY", "{path}");
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_punched_program_is_a_file_asset_of_its_machine() {
+    let gw = Gateway::start(|_| {}).await;
+    let u = gw.url.clone();
+    wait_for(&u, "/current", |d| {
+        value_of(d, "lathe-1_execution").is_some_and(|v| v.2 == "READY")
+    })
+    .await;
+    let (s, none) = get(&format!("{u}/assets")).await;
+    assert_eq!(s, 200, "{none}");
+    assert!(none.contains("assetCount=\"0\""), "{none}");
+    let client = gw.client().await;
+    let program = b"%\nO5556\nG00X0Y0\nG01X10.F100\nM30\n%\n".to_vec();
+    client
+        .sim_control(
+            "lathe-1",
+            SimLeaf::Punch,
+            Some(&pb::SimPunch {
+                program: program.clone(),
+            }),
+        )
+        .await
+        .unwrap();
+    let assets = wait_for(&u, "/lathe-1/assets", |d| d.contains("<File ")).await;
+    let file = &assets[assets.find("<File ").unwrap()..];
+    let file = &file[..file.find('>').unwrap()];
+    let id = attr(file, "assetId").unwrap();
+    assert!(id.starts_with("demo.lathe-1."), "{file}");
+    assert_eq!(
+        attr(file, "applicationType").as_deref(),
+        Some("PRODUCTION_PROGRAM")
+    );
+    assert!(
+        attr(file, "size").unwrap().parse::<u64>().unwrap() > 0,
+        "{file}"
+    );
+    assert!(
+        assets.contains("<FileLocation href=\"cellgate/demo/program/"),
+        "{assets}"
+    );
+    // The machine's ASSET_CHANGED names it; /asset/ID answers it; another is not found.
+    let current = get(&format!("{u}/lathe-1/current")).await.1;
+    let (element, attrs, value) = value_of(&current, "lathe-1_asset_chg").unwrap();
+    assert_eq!(
+        (element.as_str(), value.as_str()),
+        ("AssetChanged", id.as_str())
+    );
+    assert_eq!(attr(&attrs, "assetType").as_deref(), Some("File"));
+    let (s, one) = get(&format!("{u}/asset/{id}")).await;
+    assert_eq!(s, 200, "{one}");
+    assert!(one.contains(&format!("assetId=\"{id}\"")), "{one}");
+    let (s, _) = get(&format!("{u}/asset/demo.lathe-1.nope")).await;
+    assert_eq!(s, 404);
+    // Not another machine's.
+    let mill = get(&format!("{u}/mill-1/assets")).await.1;
+    assert!(!mill.contains("<File "), "{mill}");
+    client.close().await;
     gw.stop().await;
 }

@@ -4,6 +4,7 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
+use super::assets::{Assets, FileAsset};
 use super::buffer::{Cond, ItemState, Level, Observation, SequenceBuffer, Value};
 use super::desc::CellDesc;
 use super::mapping::{MachineView, PlcView, Wanted};
@@ -27,13 +28,13 @@ pub enum Update {
     Plc(pb::PlcStatus),
     /// A tag's value.
     Tag(pb::TagValue),
+    /// A program the CNC punched out, and its library key on the bus.
+    Punch(Box<pb::PunchedProgram>, String),
     /// The gateway came (true) or went (false).
     Gateway(bool),
 }
 
-/// Assets the agent would keep (the schema wants at least 1); it keeps none yet.
-pub const ASSET_BUFFER_SIZE: u32 = 1024;
-const ASSET_BUFFER_SIZE_TEXT: &str = "1024";
+pub use super::assets::ASSET_BUFFER_SIZE;
 
 /// The `/sample` default count (Part 1).
 pub const DEFAULT_COUNT: i64 = 100;
@@ -51,6 +52,7 @@ pub struct Agent {
     counters: HashMap<(String, String, String), Vec<String>>,
     /// Whether each cell's gateway is there.
     cells: HashMap<String, bool>,
+    assets: Assets,
 }
 
 /// A device's observations by component (index into the model's components).
@@ -72,6 +74,7 @@ impl Agent {
             plcs: HashMap::new(),
             counters: HashMap::new(),
             cells: HashMap::new(),
+            assets: Assets::default(),
         };
         for i in 0..a.model.items.len() {
             let v = match a.model.items[i].role {
@@ -243,6 +246,24 @@ impl Agent {
                 };
                 view.status(&s);
                 n + self.refresh_plc(&k, now_us)
+            }
+            Update::Punch(p, location) => {
+                let Some((dev, _)) = self.machines.get(&key(&p.machine)) else {
+                    return 0;
+                };
+                let dev = *dev;
+                let Some(asset) = FileAsset::of_punched(&p, cell, dev, location, now_us) else {
+                    return 0;
+                };
+                let id: Arc<str> = asset.asset_id.as_str().into();
+                self.assets.put(asset);
+                match self.model.item_of(dev, &Role::AssetChanged) {
+                    Some(i) => {
+                        self.buffer.push(i as u32, now_us, Value::Text(id));
+                        1
+                    }
+                    None => 0,
+                }
             }
             Update::Tag(t) => {
                 let k = key(&t.plc);
@@ -543,13 +564,46 @@ impl Agent {
         }
     }
 
-    /// `/assets`: the agent keeps no assets yet, so every list is empty.
-    pub fn assets(&self, format: Format, now_us: u64) -> String {
-        match format {
-            Format::Json => json::assets(self, now_us),
+    /// The assets kept.
+    pub fn kept_assets(&self) -> &Assets {
+        &self.assets
+    }
+
+    /// `/assets` (of `device`, newest first, `count` at most, of `type` File only), or
+    /// `/asset/ID` (`id`): an Assets document, or ASSET_NOT_FOUND.
+    pub fn assets(
+        &self,
+        device: Option<usize>,
+        id: Option<&str>,
+        q: &Query,
+        now_us: u64,
+    ) -> Result<String, MtError> {
+        let list: Vec<&FileAsset> = match id {
+            Some(id) => vec![self.assets.get(id).ok_or_else(|| {
+                MtError::new(ErrorCode::AssetNotFound, format!("no asset {id:?} is kept"))
+            })?],
+            None => {
+                let count = q.count.unwrap_or(DEFAULT_COUNT);
+                if count < 1 || count > ASSET_BUFFER_SIZE as i64 {
+                    return Err(MtError::new(
+                        ErrorCode::OutOfRange,
+                        format!(
+                            "'count' must be between 1 and {ASSET_BUFFER_SIZE}; {count} is not"
+                        ),
+                    ));
+                }
+                match q.asset_type.as_deref() {
+                    Some(t) if t != "File" => Vec::new(),
+                    _ => self.assets.newest(device, count as usize),
+                }
+            }
+        };
+        Ok(match q.format {
+            Format::Json => json::assets(self, &list, now_us),
             Format::Xml => {
-                let mut x = xml::Xml::new("Assets", 512);
+                let mut x = xml::Xml::new("Assets", 512 + list.len() * 512);
                 let size = ASSET_BUFFER_SIZE.to_string();
+                let count = self.assets.len().to_string();
                 let mt = self.model_change_time();
                 let mut attrs = self.header_attrs(now_us);
                 attrs.retain(|(k, _)| *k != "bufferSize");
@@ -557,14 +611,42 @@ impl Agent {
                     attrs.iter().map(|(k, v)| (*k, v.as_str())).collect();
                 attrs.extend([
                     ("assetBufferSize", size.as_str()),
-                    ("assetCount", "0"),
+                    ("assetCount", count.as_str()),
                     ("deviceModelChangeTime", mt.as_str()),
                 ]);
                 x.empty("Header", &attrs);
-                x.empty("Assets", &[]);
+                x.open("Assets", &[]);
+                for a in list {
+                    self.file_xml(&mut x, a);
+                }
+                x.close("Assets");
                 x.finish("Assets")
             }
-        }
+        })
+    }
+
+    /// A File asset (Part 4 "File").
+    fn file_xml(&self, x: &mut xml::Xml, a: &FileAsset) {
+        let ts = xml::timestamp(a.time_us);
+        let size = a.size.to_string();
+        x.open(
+            "File",
+            &[
+                ("assetId", &a.asset_id),
+                ("timestamp", &ts),
+                ("deviceUuid", &self.model.devices[a.device].uuid),
+                ("name", &a.name),
+                ("mediaType", "text/plain"),
+                ("applicationCategory", "DEVICE"),
+                ("applicationType", "PRODUCTION_PROGRAM"),
+                ("size", &size),
+                ("versionId", &a.version),
+                ("state", a.state()),
+            ],
+        );
+        x.empty("FileLocation", &[("href", &a.location)]);
+        x.text("CreationTime", &[], &ts);
+        x.close("File");
     }
 
     /// The header's attributes common to every document.
@@ -593,14 +675,16 @@ impl Agent {
     }
 
     fn probe_xml(&self, device: Option<usize>, now_us: u64) -> String {
+        let asset_size = ASSET_BUFFER_SIZE.to_string();
+        let asset_count = self.assets.len().to_string();
         let mut x = xml::Xml::new("Devices", 4096 + 1024 * self.model.items.len() / 4);
         let mt = self.model_change_time();
         self.header(
             &mut x,
             now_us,
             Some(&[
-                ("assetBufferSize", ASSET_BUFFER_SIZE_TEXT),
-                ("assetCount", "0"),
+                ("assetBufferSize", asset_size.as_str()),
+                ("assetCount", asset_count.as_str()),
                 ("deviceModelChangeTime", mt.as_str()),
             ]),
         );
@@ -788,8 +872,12 @@ impl Agent {
         }
         let element = xml::element_of(item.kind);
         if matches!(item.role, Role::AssetChanged | Role::AssetRemoved) {
-            // The schema wants the asset's type; no asset is kept, so none is known.
-            attrs.push(("assetType", "UNAVAILABLE"));
+            // The schema wants the asset's type: File, the only kind kept; none when none.
+            let kind = match o.value {
+                Value::Text(_) => "File",
+                _ => "UNAVAILABLE",
+            };
+            attrs.push(("assetType", kind));
         }
         match &o.value {
             Value::Text(t) => x.text(&element, &attrs, t),

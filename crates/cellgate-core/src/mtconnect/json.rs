@@ -68,7 +68,7 @@ pub fn probe(a: &Agent, device: Option<usize>, now_us: u64) -> String {
         now_us,
         &[
             ("assetBufferSize", J::from(super::agent::ASSET_BUFFER_SIZE)),
-            ("assetCount", J::from(0)),
+            ("assetCount", J::from(a.kept_assets().len())),
             ("deviceModelChangeTime", J::from(a.model_change_time())),
         ],
     );
@@ -293,15 +293,39 @@ pub fn error(a: &Agent, e: &MtError, now_us: u64) -> String {
     )
 }
 
-/// `/assets` as JSON: none kept.
-pub fn assets(a: &Agent, now_us: u64) -> String {
+/// `/assets` as JSON.
+pub fn assets(a: &Agent, list: &[&super::assets::FileAsset], now_us: u64) -> String {
     let h = header(
         a,
         now_us,
         &[
             ("assetBufferSize", J::from(super::agent::ASSET_BUFFER_SIZE)),
-            ("assetCount", J::from(0)),
+            ("assetCount", J::from(a.kept_assets().len())),
         ],
     );
-    root("Assets", h, "Assets", json!({}))
+    let files: Vec<J> = list
+        .iter()
+        .map(|f| {
+            json!({
+                "assetId": f.asset_id,
+                "timestamp": xml::timestamp(f.time_us),
+                "deviceUuid": a.model().devices[f.device].uuid,
+                "name": f.name,
+                "mediaType": "text/plain",
+                "applicationCategory": "DEVICE",
+                "applicationType": "PRODUCTION_PROGRAM",
+                "size": f.size,
+                "versionId": f.version,
+                "state": f.state(),
+                "FileLocation": { "href": f.location },
+                "CreationTime": xml::timestamp(f.time_us),
+            })
+        })
+        .collect();
+    let body = if files.is_empty() {
+        json!({})
+    } else {
+        json!({ "File": files })
+    };
+    root("Assets", h, "Assets", body)
 }

@@ -8,10 +8,12 @@
 //! - [`mapping`]: what each message says of each data item (docs/mtconnect.md);
 //! - [`buffer`]: observations numbered without gaps, bounded in memory;
 //! - [`agent`]: all of it together, answering `/probe`, `/current`, `/sample`;
+//! - [`assets`]: punched programs kept as File assets;
 //! - [`request`]: query parameters, `path` filters, errors and their codes;
 //! - [`xml`], [`json`]: the documents; [`shdr`]: the adapter's line format.
 
 pub mod agent;
+pub mod assets;
 pub mod buffer;
 pub mod desc;
 pub mod json;

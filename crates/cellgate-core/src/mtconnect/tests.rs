@@ -483,3 +483,42 @@ fn a_starving_g05_stream_is_a_warning_while_it_is_open() {
     let doc = a.current(None, &Query::default(), 6).unwrap();
     assert!(!doc.contains("CG-G05"), "{doc}");
 }
+
+#[test]
+fn assets_are_bounded_and_a_punch_again_replaces_its_asset() {
+    use super::assets::{ASSET_BUFFER_SIZE, Assets, FileAsset};
+    let punched = |name: &str, text: &[u8]| pb::PunchedProgram {
+        machine: "lathe-1".into(),
+        library_name: name.into(),
+        program: text.to_vec(),
+        ..Default::default()
+    };
+    let a = FileAsset::of_punched(&punched("O1", b"%\nO1\n%\n"), "demo", 2, "k".into(), 1).unwrap();
+    assert_eq!(a.asset_id, "demo.lathe-1.O1");
+    assert_eq!(a.state(), "REVISION");
+    let damaged = pb::PunchedProgram {
+        damaged: true,
+        ..punched("O2", b"%\n%\n")
+    };
+    assert!(FileAsset::of_punched(&damaged, "demo", 2, "k".into(), 1).is_none());
+    assert!(FileAsset::of_punched(&punched("", b"%\n%\n"), "demo", 2, "k".into(), 1).is_none());
+    let mut assets = Assets::default();
+    assets.put(a.clone());
+    let again = FileAsset::of_punched(&punched("O1", b"%\nO1\nM30\n%\n"), "demo", 2, "k".into(), 2)
+        .unwrap();
+    assert_ne!(again.version, a.version, "a version per content");
+    assets.put(again.clone());
+    assert_eq!(assets.len(), 1);
+    assert_eq!(assets.get("demo.lathe-1.O1"), Some(&again));
+    for n in 0..ASSET_BUFFER_SIZE + 10 {
+        let mut f = a.clone();
+        f.asset_id = format!("x{n}");
+        assets.put(f);
+    }
+    assert_eq!(assets.len(), ASSET_BUFFER_SIZE);
+    assert_eq!(
+        assets.newest(None, 1)[0].asset_id,
+        format!("x{}", ASSET_BUFFER_SIZE + 9)
+    );
+    assert!(assets.get("demo.lathe-1.O1").is_none(), "the oldest went");
+}
