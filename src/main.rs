@@ -774,51 +774,33 @@ fn serving_text(config: &CellConfig) -> String {
 
 /// `cellgate console`: the site view until SIGINT or SIGTERM.
 fn site_console(args: &cellgate::console::SiteArgs) -> ExitCode {
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        // Colours only for a terminal: a log file or journal gets plain text.
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .try_init();
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-    {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
-            return ExitCode::from(EXIT_RUNTIME);
-        }
-    };
-    let code = runtime.block_on(async {
-        let shutdown = match shutdown_signal() {
-            Ok(s) => s,
-            Err(e) => {
-                eprintln!("cellgate: cannot watch for signals: {e}");
-                return ExitCode::from(EXIT_RUNTIME);
-            }
-        };
+    run_site(|shutdown| async move {
         match cellgate::console::site(args, shutdown).await {
-            Ok(()) => ExitCode::SUCCESS,
-            Err(cellgate::console::SiteError::Config(e)) => {
-                eprintln!("cellgate: {e}");
-                ExitCode::from(EXIT_CONFIG)
-            }
-            Err(e) => {
-                eprintln!("cellgate: {e}");
-                ExitCode::from(EXIT_RUNTIME)
-            }
+            Ok(()) => Ok(()),
+            Err(cellgate::console::SiteError::Config(e)) => Err((EXIT_CONFIG, e.to_string())),
+            Err(e) => Err((EXIT_RUNTIME, e.to_string())),
         }
-    });
-    runtime.shutdown_timeout(Duration::from_secs(2));
-    code
+    })
 }
 
 /// `cellgate mtconnect`: the site agent until SIGINT or SIGTERM.
 fn site_mtconnect(args: &cellgate::mtconnect::SiteArgs) -> ExitCode {
+    run_site(|shutdown| async move {
+        match cellgate::mtconnect::site(args, shutdown).await {
+            Ok(()) => Ok(()),
+            Err(cellgate::mtconnect::SiteError::Config(e)) => Err((EXIT_CONFIG, e.to_string())),
+            Err(e) => Err((EXIT_RUNTIME, e.to_string())),
+        }
+    })
+}
+
+/// A site process (console, MTConnect agent): logs to stderr (colours only for a terminal),
+/// a runtime, `serve` until SIGINT or SIGTERM; an error is printed with its exit code.
+fn run_site<F, Fut>(serve: F) -> ExitCode
+where
+    F: FnOnce(std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>) -> Fut,
+    Fut: std::future::Future<Output = Result<(), (u8, String)>>,
+{
     let _ = tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -845,15 +827,11 @@ fn site_mtconnect(args: &cellgate::mtconnect::SiteArgs) -> ExitCode {
                 return ExitCode::from(EXIT_RUNTIME);
             }
         };
-        match cellgate::mtconnect::site(args, shutdown).await {
+        match serve(Box::pin(shutdown)).await {
             Ok(()) => ExitCode::SUCCESS,
-            Err(cellgate::mtconnect::SiteError::Config(e)) => {
-                eprintln!("cellgate: {e}");
-                ExitCode::from(EXIT_CONFIG)
-            }
-            Err(e) => {
-                eprintln!("cellgate: {e}");
-                ExitCode::from(EXIT_RUNTIME)
+            Err((code, message)) => {
+                eprintln!("cellgate: {message}");
+                ExitCode::from(code)
             }
         }
     });
