@@ -1,6 +1,8 @@
 //! `[[machines]]`: one FANUC CNC behind a remote buffer, the settings its board and the host
 //! must agree on, and their checks against the manual.
 
+use std::path::PathBuf;
+
 use serde::{Deserialize, Serialize};
 
 use super::error::ConfigErrors;
@@ -143,6 +145,15 @@ pub struct MachineConfig {
     /// utilisation shows parts made beside the time shares.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub part_counter: Option<String>,
+    /// A folder whose complete files are queued to this machine as jobs (what DNC products
+    /// call auto-send); each file goes to `sent/` or `refused/` inside it once taken.
+    /// `None` (the default): no drop folder. Whoever may write it holds `job.submit` in effect.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub drop_dir: Option<PathBuf>,
+    /// A folder each program the machine punches out is written into as a file, beside the
+    /// library's copy. `None` (the default): none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub receive_dir: Option<PathBuf>,
 }
 
 /// Which library revisions a machine takes (`accept` of a `[[machines]]` entry).
@@ -350,6 +361,8 @@ pub(super) struct RawMachine {
     #[serde(default)]
     accept: Accept,
     pub(super) part_counter: Option<String>,
+    pub(super) drop_dir: Option<PathBuf>,
+    pub(super) receive_dir: Option<PathBuf>,
 }
 
 /// Baud rates of parameters 5073 (RS-422, settings 1–15) and 5083 (RS-232-C, 1–12) (§10.2).
@@ -689,6 +702,8 @@ impl From<&MachineConfig> for RawMachine {
             g05: c.g05.clone(),
             accept: c.accept,
             part_counter: c.part_counter.clone(),
+            drop_dir: c.drop_dir.clone(),
+            receive_dir: c.receive_dir.clone(),
         }
     }
 }
@@ -724,6 +739,8 @@ impl RawMachine {
             g05: self.g05,
             accept: self.accept,
             part_counter: self.part_counter,
+            drop_dir: self.drop_dir,
+            receive_dir: self.receive_dir,
         })
     }
 }

@@ -57,7 +57,7 @@ pub use self::plc::{
 };
 use self::plc::{RawPlc, check_plc};
 use self::programs::check_programs;
-pub use self::programs::{DEFAULT_KEEP_JOBS, DamagedJournal, ProgramsConfig};
+pub use self::programs::{DEFAULT_KEEP_JOBS, DamagedJournal, ProgramsConfig, Watch};
 pub use self::security::{Permission, Role, SecurityConfig, TlsConfig};
 use self::security::{RawSecurity, check_security};
 pub use self::transport::{TransportConfig, TransportKind};
@@ -578,10 +578,44 @@ fn check_with(raw: &RawCell, files: bool) -> Vec<ConfigError> {
             check_part_counter(&mut c, label, counter, &raw.plcs);
         }
     }
+    check_folders(&mut c, &raw.programs.dir, raw.machines.iter().zip(machine_labels));
     for (p, label) in raw.plcs.iter().zip(plc_labels) {
         check_plc(&mut c, label, p);
     }
     c.errors
+}
+
+/// The machines' drop and receive folders: each a folder of its own, never the library's.
+fn check_folders<'a>(
+    c: &mut Checker,
+    library: &std::path::Path,
+    machines: impl Iterator<Item = (&'a RawMachine, &'a String)>,
+) {
+    let mut taken: HashMap<std::path::PathBuf, String> = HashMap::new();
+    taken.insert(library.to_path_buf(), "programs.dir".to_string());
+    for (m, label) in machines {
+        for (key, dir) in [("drop_dir", &m.drop_dir), ("receive_dir", &m.receive_dir)] {
+            let Some(dir) = dir else { continue };
+            let path = format!("{label}.{key}");
+            if dir.as_os_str().is_empty() {
+                c.invalid(path, "\"\"".to_string(), "must name a folder".to_string(), "");
+                continue;
+            }
+            if let Some(other) = taken.get(dir) {
+                c.invalid(
+                    path,
+                    error::q(&dir.display().to_string()),
+                    format!(
+                        "is {other} already: a file there would be taken twice; give each \
+                         folder one use"
+                    ),
+                    "",
+                );
+                continue;
+            }
+            taken.insert(dir.clone(), path);
+        }
+    }
 }
 
 /// A machine's `part_counter` names a tag of the cell's PLCs that keeps history.

@@ -64,6 +64,32 @@ pub struct ProgramsConfig {
     /// None: kept however old.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub keep_revision_days: Option<u32>,
+    /// How the library follows its folder while the gateway runs: `"auto"` (inotify, with a
+    /// rescan now and then), `"poll"` (a listing every `poll_ms`, for network shares whose
+    /// changes raise no events here) or `"off"` (the folder is read once, at start).
+    pub watch: Watch,
+    /// Extensions a CAM system writes that are not part of a program's name (`O5555.nc` is
+    /// program `O5555`); compared without regard to case.
+    pub extensions: Vec<String>,
+    /// How long a file in the folder must stay the same (size and modification time) before
+    /// it is taken, ms: a file still being written is never a revision.
+    pub settle_ms: u32,
+    /// How often the folder is listed: every poll with `watch = "poll"`; with `"auto"`, the
+    /// rescan that catches what the events missed is every 30 of these.
+    pub poll_ms: u32,
+}
+
+/// How the library follows its folder (`programs.watch`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Watch {
+    /// The system's change events (inotify), and a rescan every 30 × `poll_ms`.
+    #[default]
+    Auto,
+    /// A listing every `poll_ms`.
+    Poll,
+    /// Read once when the gateway starts.
+    Off,
 }
 
 /// What the gateway does with a damaged job journal (`programs.damaged_journal`).
@@ -85,6 +111,23 @@ impl ProgramsConfig {
     pub const DEFAULT_MAX_INLINE: u64 = 16 * 1024 * 1024;
     /// Default of `keep_revisions`.
     pub const DEFAULT_KEEP_REVISIONS: u32 = 20;
+    /// Default of `settle_ms`.
+    pub const DEFAULT_SETTLE_MS: u32 = 1000;
+    /// Default of `poll_ms`.
+    pub const DEFAULT_POLL_MS: u32 = 2000;
+
+    /// The default `extensions`.
+    pub fn default_extensions() -> Vec<String> {
+        ["nc", "tap", "txt"].map(String::from).to_vec()
+    }
+
+    /// What the folder takes, as the core's [`crate::program::folder`] reads it.
+    pub fn folder_rules(&self) -> crate::program::folder::FolderRules {
+        crate::program::folder::FolderRules {
+            extensions: self.extensions.clone(),
+            settle_ms: u64::from(self.settle_ms),
+        }
+    }
 
     /// The journal's directory in force.
     pub fn journal_dir(&self) -> PathBuf {
@@ -119,6 +162,10 @@ impl Default for ProgramsConfig {
             fetch_prefixes: Vec::new(),
             keep_revisions: Self::DEFAULT_KEEP_REVISIONS,
             keep_revision_days: None,
+            watch: Watch::Auto,
+            extensions: Self::default_extensions(),
+            settle_ms: Self::DEFAULT_SETTLE_MS,
+            poll_ms: Self::DEFAULT_POLL_MS,
         }
     }
 }
@@ -182,6 +229,33 @@ pub(super) fn check_programs(c: &mut Checker, p: &ProgramsConfig) {
             "must be at least 1 byte".to_string(),
             "",
         );
+    }
+    c.range(
+        || "programs.settle_ms".to_string(),
+        p.settle_ms as usize,
+        50,
+        600_000,
+        " ms",
+        "",
+    );
+    c.range(
+        || "programs.poll_ms".to_string(),
+        p.poll_ms as usize,
+        100,
+        3_600_000,
+        " ms",
+        "",
+    );
+    for (i, ext) in p.extensions.iter().enumerate() {
+        if ext.is_empty() || ext.len() > 16 || !ext.bytes().all(|b| b.is_ascii_alphanumeric()) {
+            c.invalid(
+                format!("programs.extensions[{i}]"),
+                q(ext),
+                "must be 1 to 16 letters or digits, without the dot (\"nc\", not \".nc\")"
+                    .to_string(),
+                "",
+            );
+        }
     }
     for (i, prefix) in p.fetch_prefixes.iter().enumerate() {
         let chunks_ok = prefix.split('/').all(crate::keys::is_plain_chunk);

@@ -6,6 +6,7 @@
 //! - [`blocks`]: blocks, their lines and sequence numbers, where a job starts or resumes;
 //! - [`diff`]: two programs compared block by block (revisions, a punched program against
 //!   the library's);
+//! - [`folder`]: the DNC folder: which files are programs, and when a file is complete;
 //! - [`name`]: program names, safe as a key chunk and a file name;
 //! - [`tape`]: punch codes ISO / ASCII / EIA, conversion and recognition (§10 0000#2, #4);
 //! - [`punch`]: a punch-out split into programs, named for the library, and remote requests
@@ -15,6 +16,7 @@
 
 pub mod blocks;
 pub mod diff;
+pub mod folder;
 pub mod name;
 pub mod punch;
 pub mod scan;
