@@ -78,7 +78,7 @@ impl MachineTask {
             di: route_io::declare_di_publisher(ctx, &name).await?,
             alarm: route_alarm::declare_publisher(ctx, &name).await?,
             punch: route_punch::declare_publisher(ctx, &name).await?,
-            desk: PunchDesk::new(&name, punch),
+            desk: PunchDesk::new(&name, punch).receiving(machine.config.receive_dir.clone()),
             token: None,
             ctx: ctx.clone(),
             machine,

@@ -38,6 +38,7 @@ mod machine_task;
 pub mod payload;
 mod record;
 mod route_alarm;
+mod route_folder;
 mod route_g05;
 mod route_history;
 mod route_io;
@@ -213,6 +214,7 @@ pub async fn serve_recorded(
     .with_history(history, Auditor::new(&config.security));
 
     let mut machine_tasks = JoinSet::new();
+    let mut folder_tasks = JoinSet::new();
     let mut route_tasks = JoinSet::new();
     let served = async {
         library
@@ -222,6 +224,7 @@ pub async fn serve_recorded(
                 dir: library.dir().to_path_buf(),
                 source,
             })?;
+        folder_tasks = route_folder::spawn(&ctx, config, &routes_stop);
         let punch = PunchSettings::from_config(&config.programs);
         for (machine, feeds) in started {
             let task = MachineTask::declare(&ctx, machine, feeds, punch.clone()).await?;
@@ -263,6 +266,7 @@ pub async fn serve_recorded(
     // job managers report their last events, then the machine tasks publish them and withdraw.
     routes_stop.cancel();
     while route_tasks.join_next().await.is_some() {}
+    while folder_tasks.join_next().await.is_some() {}
     jobs_stop.cancel();
     while job_tasks.join_next().await.is_some() {}
     machines_stop.cancel();

@@ -64,6 +64,7 @@ bus_messages!(
     SimAutostart,
     SimPunch,
     SimState,
+    LibraryEvent,
 );
 
 /// `application/protobuf;<schema>` for `M`.

@@ -315,6 +315,7 @@ async fn program_write(ctx: &RouteContext, q: &Query) {
         };
     }
     let by = origin.clone().unwrap_or_default();
+    let by_again = origin.clone();
     let (action, detail, done) = match write.op {
         Some(pb::program_write::Op::Store(bytes)) => (
             "program.store",
@@ -382,10 +383,36 @@ async fn program_write(ctx: &RouteContext, q: &Query) {
     match done {
         Ok(entry) => {
             tracing::info!(program = %entry.name, size = entry.size, action, "program library changed");
+            publish_change(ctx, action, &entry, by_again).await;
             reply(q, q.key_expr().to_string(), &entry.info()).await;
         }
         Err(e) => reply_err(q, &e).await,
     }
+}
+
+/// The library's event of a change through the write key: a store that made no new revision
+/// (the same bytes again) is no event.
+async fn publish_change(
+    ctx: &RouteContext,
+    action: &str,
+    entry: &crate::jobs::library::ProgramEntry,
+    by: Option<pb::RequestOrigin>,
+) {
+    let kind = if action == "program.remove" {
+        pb::LibraryEventKind::Removed
+    } else {
+        pb::LibraryEventKind::Stored
+    };
+    if kind == pb::LibraryEventKind::Stored
+        && entry
+            .latest
+            .as_ref()
+            .is_some_and(|r| r.unix_ms + 5_000 < pb::now_ms())
+    {
+        return;
+    }
+    super::route_folder::publish_library_event(ctx, super::route_folder::changed(kind, entry, by))
+        .await;
 }
 
 fn audit_write(
@@ -427,6 +454,7 @@ async fn program_sample(ctx: &RouteContext, sample: &Sample) {
     };
     let origin = origin_of(sample.attachment());
     let by = origin.clone().unwrap_or_default();
+    let origin_again = origin.clone();
     let (action, result) = match sample.kind() {
         SampleKind::Put => {
             let program = sample.payload().to_bytes();
@@ -465,7 +493,8 @@ async fn program_sample(ctx: &RouteContext, sample: &Sample) {
     );
     match result {
         Ok(e) => {
-            tracing::info!(program = %e.name, size = e.size, action, "program library changed")
+            tracing::info!(program = %e.name, size = e.size, action, "program library changed");
+            publish_change(ctx, action, &e, origin_again).await;
         }
         Err(e) => tracing::warn!(%key, error = %e, "program library request refused"),
     }

@@ -80,6 +80,8 @@ pub(crate) struct PunchDesk {
     machine: String,
     settings: PunchSettings,
     assembler: PunchAssembler,
+    /// The machine's receive folder (`receive_dir`): each punched program also as a file.
+    receive_dir: Option<std::path::PathBuf>,
 }
 
 impl PunchDesk {
@@ -88,7 +90,14 @@ impl PunchDesk {
             machine: machine.to_string(),
             assembler: PunchAssembler::new(settings.max_program),
             settings,
+            receive_dir: None,
         }
+    }
+
+    /// The same desk, writing each punched program into `dir` as a file too.
+    pub fn receiving(mut self, dir: Option<std::path::PathBuf>) -> Self {
+        self.receive_dir = dir;
+        self
     }
 
     /// Takes a piece of punched data; handles every program that ended in it.
@@ -217,10 +226,61 @@ impl PunchDesk {
                 }
             }
         }
+        if program.damage.is_none()
+            && punched.request.is_none()
+            && let Some(dir) = &self.receive_dir
+        {
+            match self.receive(dir, &program, &punched.library_name, unix_ms).await {
+                Ok(file) => {
+                    tracing::info!(machine = %self.machine, file = %file.display(), "punched program written to the receive folder");
+                }
+                Err(e) => {
+                    tracing::warn!(machine = %self.machine, dir = %dir.display(), error = %e, "punched program not written to the receive folder");
+                    alarm.get_or_insert((
+                        format!(
+                            "punched program not written to the receive folder {}: {e}",
+                            dir.display()
+                        ),
+                        pb::AlarmKind::LinkAlarm,
+                    ));
+                }
+            }
+        }
         Outcome {
             punched: Some(punched),
             alarm,
         }
+    }
+
+    /// Writes the punched program into the receive folder under its library name (or the
+    /// name it would have had), never over a file already there.
+    async fn receive(
+        &self,
+        dir: &std::path::Path,
+        program: &PunchedText,
+        stored_as: &str,
+        unix_ms: u64,
+    ) -> std::io::Result<std::path::PathBuf> {
+        let dir = dir.to_path_buf();
+        let machine = self.machine.clone();
+        let o_number = program.o_number.clone();
+        let text = program.text.clone();
+        let stored_as = stored_as.to_string();
+        tokio::task::spawn_blocking(move || {
+            std::fs::create_dir_all(&dir)?;
+            let first = (!stored_as.is_empty() && !dir.join(&stored_as).exists())
+                .then_some(stored_as);
+            let name = first
+                .or_else(|| {
+                    library_name(&machine, o_number.as_deref(), unix_ms, |n| dir.join(n).exists())
+                })
+                .ok_or_else(|| std::io::Error::other("every name for it is taken"))?;
+            let path = dir.join(name);
+            crate::jobs::library::write_atomically(&path, &[&text], false)?;
+            Ok(path)
+        })
+        .await
+        .unwrap_or_else(|e| Err(std::io::Error::other(e.to_string())))
     }
 
     /// The punched program against the library's program of its O-number (FANUC counts

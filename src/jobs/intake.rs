@@ -56,6 +56,7 @@ impl JobsHandle {
             let what = match &s.input {
                 ProgramInput::Inline(_) => Some("an inline program"),
                 ProgramInput::Fetched { .. } => Some("a program fetched from a key"),
+                ProgramInput::File(_) => Some("a file of its drop folder"),
                 ProgramInput::Library(_) | ProgramInput::Resume(_) => None,
             };
             if let Some(what) = what {
@@ -136,6 +137,37 @@ impl JobsHandle {
                     })?;
                 let suffix = self.checked_suffix(&Ok(report), s.append_eor)?;
                 (Some(name), len, suffix.to_vec())
+            }
+            ProgramInput::File(path) => {
+                let read_error = |error: std::io::Error| JobError::Start {
+                    machine: self.machine.to_string(),
+                    error: BlockError::Read(format!("{}: {error}", path.display())),
+                };
+                let size = std::fs::metadata(&path).map_err(read_error)?.len();
+                if size > self.rules.max_size {
+                    return Err(self.program_error(ProgramError::TooLarge {
+                        size,
+                        max: self.rules.max_size,
+                    }));
+                }
+                let len = self
+                    .journal
+                    .store_file(file, &path)
+                    .map_err(|e| self.journal_error(e))?;
+                // The copy is checked: the file may change after it was copied.
+                let report = source::scan_file(self.rules, &self.journal.file_path(file))
+                    .await
+                    .map_err(|e| match e {
+                        source::ScanFileError::Program(e) => self.program_error(e),
+                        source::ScanFileError::Io(error) => read_error(error),
+                    })?;
+                origin.sha256 =
+                    library::sha256_file(&self.journal.file_path(file)).map_err(read_error)?;
+                let suffix = self.checked_suffix(&Ok(report.clone()), s.append_eor)?;
+                let stem = path
+                    .file_stem()
+                    .map(|n| n.to_string_lossy().into_owned());
+                (report.o_number.or(stem), len, suffix.to_vec())
             }
             ProgramInput::Resume(job) => {
                 let (earlier, next) = self.resumable(&job).await?;

@@ -26,6 +26,7 @@
 //! Optional quotas bound the library ([`Quota`]): the bytes of every revision's content kept
 //! (once per hash) and the number of programs.
 
+mod files;
 mod index;
 
 use std::collections::BTreeSet;
@@ -39,8 +40,10 @@ use sha2::{Digest, Sha256};
 use cellgate_core::codes::BusCode;
 use cellgate_core::pb::{self, RevisionState};
 
+pub use self::files::{FolderFile, Taken};
 use self::index::Index;
 pub use self::index::IndexError;
+use cellgate_core::program::folder::FolderRules;
 pub use cellgate_core::program::name::NAME_MAX;
 use cellgate_core::program::name::check_name;
 
@@ -132,6 +135,13 @@ pub enum LibraryError {
         number: u32,
         latest_released: Option<u32>,
     },
+    /// Two files of the folder give one program name: neither is taken.
+    #[error(
+        "program {name:?}: the files {files} in the library's folder all give this name \
+         (programs.extensions are not part of a name); neither is taken until one is removed \
+         or renamed"
+    )]
+    Conflict { name: String, files: String },
     #[error(transparent)]
     Index(#[from] IndexError),
 }
@@ -147,6 +157,10 @@ pub struct ProgramEntry {
     pub latest: Option<pb::ProgramRevision>,
     /// Its latest released (or locked) revision, 0 if none.
     pub latest_released: u32,
+    /// The file of the folder that holds it (`O5555.nc`), empty if none.
+    pub file: String,
+    /// Why the file is not the latest revision, when it is not.
+    pub note: String,
 }
 
 impl ProgramEntry {
@@ -158,6 +172,8 @@ impl ProgramEntry {
             modified_unix_ms: self.modified_unix_ms,
             latest: self.latest,
             latest_released: self.latest_released,
+            file: self.file,
+            note: self.note,
         }
     }
 }
@@ -218,6 +234,11 @@ pub struct ProgramLibrary {
     ///
     /// [`CellConfig::owned_files`]: cellgate_core::config::CellConfig::owned_files
     owned: Arc<[PathBuf]>,
+    /// Which files of the folder are programs (`programs.extensions`).
+    folder: Arc<FolderRules>,
+    /// Why a program's file is not its latest revision, as the folder's watcher found
+    /// (a conflict, an edit of a locked revision refused): shown in the listing.
+    notes: Arc<std::sync::Mutex<std::collections::BTreeMap<String, String>>>,
 }
 
 /// Writes `parts` to `path` atomically and durably: into a hidden temporary file beside it,
@@ -268,6 +289,13 @@ pub fn validate_name(name: &str) -> Result<(), LibraryError> {
         name: e.name,
         reason: e.reason,
     })
+}
+
+/// The SHA-256 of the file at `path`, read in pieces, in lower-case hex. Blocking.
+pub fn sha256_file(path: &Path) -> std::io::Result<String> {
+    let mut hasher = Sha256::new();
+    std::io::copy(&mut std::fs::File::open(path)?, &mut hasher)?;
+    Ok(hex::encode(hasher.finalize()))
 }
 
 /// The SHA-256 of `bytes`, in lower-case hex.
@@ -331,7 +359,20 @@ impl ProgramLibrary {
             retention: Retention::default(),
             index: Arc::default(),
             owned: Arc::new([]),
+            folder: Arc::new(cellgate_core::config::ProgramsConfig::default().folder_rules()),
+            notes: Arc::default(),
         }
+    }
+
+    /// The same library, taking the folder's files as `rules` say.
+    pub fn with_folder(mut self, rules: FolderRules) -> Self {
+        self.folder = Arc::new(rules);
+        self
+    }
+
+    /// What the folder takes.
+    pub fn folder_rules(&self) -> &FolderRules {
+        &self.folder
     }
 
     /// The same library, never taking `owned` (the gateway's journal, history, keys) for
@@ -350,6 +391,14 @@ impl ProgramLibrary {
                 name: name.to_string(),
                 reason: "it is a file of the gateway's own (its job journal, history or keys), \
                          never a program",
+            });
+        }
+        if self.folder.ends_in_extension(name) {
+            return Err(LibraryError::InvalidName {
+                name: name.to_string(),
+                reason: "it ends in one of programs.extensions, which the library's folder \
+                         takes as a file's extension, not part of a name: name the program \
+                         without it",
             });
         }
         Ok(())
@@ -431,73 +480,17 @@ impl ProgramLibrary {
             .cloned()
     }
 
-    /// Opens the index and gives every program file it does not know (or whose content is
-    /// not its latest revision's: edited by hand) a revision. Blocking.
+    /// Opens the index. The folder's files are taken in by [`Self::take_file`]: the folder's
+    /// watcher, at start and while the gateway runs. Blocking.
     fn open_index(&self) -> Result<Arc<Index>, LibraryError> {
-        let io = |op, path: &Path| {
-            let path = path.to_path_buf();
-            move |source| LibraryError::Io {
-                name: String::new(),
-                op,
-                path,
-                source,
-            }
-        };
         let objects = self.objects_dir();
-        std::fs::create_dir_all(&objects).map_err(io("create", &objects))?;
-        let index = Index::open(&self.revisions_dir().join("index.redb"))?;
-        let latest: std::collections::BTreeMap<String, pb::ProgramRevision> = index
-            .latest_all()?
-            .into_iter()
-            .map(|r| (r.name.clone(), r))
-            .collect();
-        let mut adopted = Vec::new();
-        let dir = match std::fs::read_dir(self.dir.as_path()) {
-            Ok(d) => d,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Arc::new(index)),
-            Err(e) => return Err(io("list", self.dir.as_path())(e)),
-        };
-        for item in dir.flatten() {
-            let Ok(name) = item.file_name().into_string() else {
-                continue;
-            };
-            if self.check_name(&name).is_err() || !item.path().is_file() {
-                continue;
-            }
-            let bytes = std::fs::read(item.path()).map_err(io("read", &item.path()))?;
-            let sha = sha256_hex(&bytes);
-            let known = latest.get(&name);
-            if known.is_some_and(|r| r.sha256 == sha && !r.removed) {
-                if !self.object_path(&sha).exists() {
-                    self.write_object(&name, &sha, &bytes)?;
-                }
-                continue;
-            }
-            self.write_object(&name, &sha, &bytes)?;
-            let revision = pb::ProgramRevision {
-                name: name.clone(),
-                number: known.map_or(1, |r| r.number + 1),
-                sha256: sha,
-                size: bytes.len() as u64,
-                unix_ms: modified_ms(&item.metadata().map_err(io("read", &item.path()))?),
-                by: Some(pb::RequestOrigin {
-                    user: "(file)".to_string(),
-                    via: String::new(),
-                }),
-                comment: "found in programs.dir".to_string(),
-                state: RevisionState::Draft as i32,
-                ..Default::default()
-            };
-            adopted.push(revision);
-        }
-        if !adopted.is_empty() {
-            index.put(&adopted, &[])?;
-            tracing::info!(
-                programs = adopted.len(),
-                "program library: files found in the directory taken in as revisions"
-            );
-        }
-        Ok(Arc::new(index))
+        std::fs::create_dir_all(&objects).map_err(|source| LibraryError::Io {
+            name: String::new(),
+            op: "create",
+            path: objects.clone(),
+            source,
+        })?;
+        Ok(Arc::new(Index::open(&self.revisions_dir().join("index.redb"))?))
     }
 
     /// Writes content under its hash, once. Blocking.
@@ -538,9 +531,32 @@ impl ProgramLibrary {
             .await
     }
 
+    /// The file that holds `name`: `NAME`, or `NAME.EXT` for one of `programs.extensions`
+    /// (lower or upper case) when the folder has one; two of them are a conflict. Blocking
+    /// (a few `stat`s).
     pub(crate) fn path_of(&self, name: &str) -> Result<PathBuf, LibraryError> {
         self.check_name(name)?;
-        Ok(self.dir.join(name))
+        let mut found = Vec::new();
+        let plain = self.dir.join(name);
+        if plain.is_file() {
+            found.push(plain.clone());
+        }
+        for ext in self.folder.extensions.iter() {
+            for e in [ext.to_ascii_lowercase(), ext.to_ascii_uppercase()] {
+                let p = self.dir.join(format!("{name}.{e}"));
+                if !found.contains(&p) && p.is_file() {
+                    found.push(p);
+                }
+            }
+        }
+        match found.len() {
+            0 => Ok(plain),
+            1 => Ok(found.swap_remove(0)),
+            _ => Err(LibraryError::Conflict {
+                name: name.to_string(),
+                files: files::file_list(&found),
+            }),
+        }
     }
 
     pub(crate) fn io_error(&self, name: &str, op: &'static str, e: std::io::Error) -> LibraryError {
@@ -847,7 +863,7 @@ impl ProgramLibrary {
         let programs = index
             .latest_all()?
             .iter()
-            .filter(|r| !r.removed && self.dir.join(&r.name).is_file())
+            .filter(|r| !r.removed)
             .count() as u64
             + u64::from(new_program);
         for (what, limit, would) in [
@@ -868,25 +884,39 @@ impl ProgramLibrary {
         Ok(())
     }
 
+    /// The program as it stands: its latest revision (size and time are the revision's) and
+    /// its file, if the folder has one. Not found when it has neither a revision that is not
+    /// removed nor a file.
     fn entry_blocking(&self, name: &str, index: &Index) -> Result<ProgramEntry, LibraryError> {
         let path = self.path_of(name)?;
-        let meta = std::fs::metadata(&path).map_err(|e| self.io_error(name, "read", e))?;
-        if !meta.is_file() {
-            return Err(LibraryError::NotFound {
-                name: name.to_string(),
-            });
-        }
+        let meta = std::fs::metadata(&path).ok().filter(std::fs::Metadata::is_file);
         let revisions = index.revisions(name)?;
+        let latest = revisions.last().filter(|r| !r.removed);
+        let (size, modified_unix_ms) = match (latest, &meta) {
+            (Some(r), _) => (r.size, r.unix_ms),
+            (None, Some(m)) => (m.len(), modified_ms(m)),
+            (None, None) => {
+                return Err(LibraryError::NotFound {
+                    name: name.to_string(),
+                });
+            }
+        };
         Ok(ProgramEntry {
             name: name.to_string(),
-            size: meta.len(),
-            modified_unix_ms: modified_ms(&meta),
+            size,
+            modified_unix_ms,
             latest_released: revisions
                 .iter()
                 .rev()
                 .find(|r| is_released(r))
                 .map_or(0, |r| r.number),
             latest: revisions.last().cloned(),
+            file: if meta.is_some() {
+                files::file_name(&path)
+            } else {
+                String::new()
+            },
+            note: self.note_of(name),
         })
     }
 
@@ -919,7 +949,7 @@ impl ProgramLibrary {
     /// Reads a whole program, its latest revision, for a bus reply (whose payload is one
     /// message anyway): the content a job sends. Refuses one larger than `programs.max_size`.
     pub async fn read(&self, name: &str) -> Result<Vec<u8>, LibraryError> {
-        self.path_of(name)?;
+        self.check_name(name)?;
         Ok(self.read_revision(name, "").await?.1)
     }
 
@@ -1069,9 +1099,12 @@ impl ProgramLibrary {
         }
         let index = self.index().await?;
         let _store = self.stores.lock().await;
-        tokio::fs::remove_file(&path)
-            .await
-            .map_err(|e| self.io_error(name, "remove", e))?;
+        // Already gone from the folder (its watcher off): the revision is marked all the same.
+        match tokio::fs::remove_file(&path).await {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => return Err(self.io_error(name, "remove", e)),
+        }
         self.sync_dir()
             .await
             .map_err(|e| self.io_error(name, "sync the directory after removing", e))?;
@@ -1082,65 +1115,12 @@ impl ProgramLibrary {
         Ok(entry)
     }
 
-    /// Every program, by name. Files whose names are not valid library names are skipped.
+    /// Every program, by name: those with a revision that is not removed, and the folder's
+    /// files not yet taken. Files whose names give no program name are skipped.
     pub async fn list(&self) -> Result<Vec<ProgramEntry>, LibraryError> {
-        let dir_error = |e| LibraryError::Io {
-            name: String::new(),
-            op: "list",
-            path: self.dir.as_path().to_path_buf(),
-            source: e,
-        };
         let index = self.index().await?;
-        let latest: std::collections::BTreeMap<String, (pb::ProgramRevision, u32)> = {
-            let index = Arc::clone(&index);
-            blocking(move || {
-                let all = index.latest_all()?;
-                let mut out = std::collections::BTreeMap::new();
-                for r in all {
-                    let released = index
-                        .revisions(&r.name)?
-                        .iter()
-                        .rev()
-                        .find(|x| is_released(x))
-                        .map_or(0, |x| x.number);
-                    out.insert(r.name.clone(), (r, released));
-                }
-                Ok(out)
-            })
-            .await?
-        };
-        let mut entries = Vec::new();
-        let mut dir = match tokio::fs::read_dir(self.dir.as_path()).await {
-            Ok(d) => d,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(entries),
-            Err(e) => return Err(dir_error(e)),
-        };
-        while let Some(item) = dir.next_entry().await.map_err(dir_error)? {
-            let Ok(name) = item.file_name().into_string() else {
-                continue;
-            };
-            if self.check_name(&name).is_err() {
-                continue;
-            }
-            let Ok(meta) = item.metadata().await else {
-                continue;
-            };
-            if meta.is_file() {
-                let (latest, latest_released) = match latest.get(&name) {
-                    Some((r, n)) => (Some(r.clone()), *n),
-                    None => (None, 0),
-                };
-                entries.push(ProgramEntry {
-                    name,
-                    size: meta.len(),
-                    modified_unix_ms: modified_ms(&meta),
-                    latest,
-                    latest_released,
-                });
-            }
-        }
-        entries.sort_by(|a, b| a.name.cmp(&b.name));
-        Ok(entries)
+        let lib = self.clone();
+        blocking(move || lib.list_blocking(&index)).await
     }
 }
 
@@ -1175,6 +1155,7 @@ impl BusCode for LibraryError {
             | LibraryError::TooLarge { .. }
             | LibraryError::Exists { .. }
             | LibraryError::Transition { .. } => pb::ErrorCode::InvalidRequest,
+            LibraryError::Conflict { .. } => pb::ErrorCode::Conflict,
             LibraryError::QuotaExceeded { .. } => pb::ErrorCode::QuotaExceeded,
             LibraryError::StorageFull { .. } => pb::ErrorCode::StorageFull,
             LibraryError::Io { .. } | LibraryError::Index(_) => pb::ErrorCode::StorageFailed,

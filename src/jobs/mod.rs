@@ -36,6 +36,7 @@
 //! and the bus routes put them on their keys. It runs in tokio time, so it is tested under
 //! paused time with a stand-in link.
 
+pub mod folder;
 mod intake;
 pub mod journal;
 pub mod library;

@@ -28,6 +28,8 @@ pub enum ProgramInput {
     Fetched { key: String, bytes: Bytes },
     /// The program of an earlier job, by its id, from where that job stopped.
     Resume(String),
+    /// A file of the machine's drop folder, complete: copied into the journal as it is.
+    File(std::path::PathBuf),
 }
 
 impl Default for ProgramInput {

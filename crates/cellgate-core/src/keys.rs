@@ -510,6 +510,12 @@ impl CellKeys {
         format!("{}/program/{name}/release", self.root)
     }
 
+    /// `P/C/program/@events`: what happens to the library (`LibraryEvent`). `@` makes the
+    /// chunk verbatim: no program name is spelt so, and no `*` or `**` takes it.
+    pub fn program_events(&self) -> String {
+        format!("{}/program/@events", self.root)
+    }
+
     /// Every key that reads the library: `P/C/program/*`, `…/*/revisions`, `…/*/rev/*`,
     /// `…/*/diff`.
     pub fn any_program_read(&self) -> Vec<String> {

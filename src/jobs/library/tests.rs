@@ -381,24 +381,124 @@ async fn a_program_is_adopted_from_another_and_says_where_from() {
     assert_eq!(lib.read("O5").await.unwrap(), b"%\nPUNCHED\n%");
 }
 
+fn folder(file: &str) -> FolderFile {
+    FolderFile {
+        file: file.to_string(),
+        by: pb::RequestOrigin {
+            user: "cam".to_string(),
+            via: "folder".to_string(),
+        },
+    }
+}
+
 #[tokio::test]
-async fn files_put_in_the_directory_by_hand_become_revisions_at_start() {
+async fn files_of_the_folder_become_revisions_under_their_name_without_extension() {
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("O6"), b"%\nHAND\n%").unwrap();
     let lib = ProgramLibrary::new(dir.path(), 1000);
     lib.create_dir().await.unwrap();
-    let r = lib.revisions("O6").await.unwrap();
-    assert_eq!(r.revisions.len(), 1);
-    assert_eq!(r.revisions[0].by.as_ref().unwrap().user, "(file)");
-    drop(lib);
-    // Edited by hand while the gateway was stopped: the next start makes revision 2.
-    std::fs::write(dir.path().join("O6"), b"%\nHAND 2\n%").unwrap();
+    std::fs::write(dir.path().join("O6.nc"), b"%\nHAND\n%").unwrap();
+    let Taken::Revision(e) = lib.take_file(folder("O6.nc")).await.unwrap() else {
+        panic!("not taken");
+    };
+    assert_eq!(e.name, "O6");
+    assert_eq!(e.file, "O6.nc");
+    let r = e.latest.unwrap();
+    assert_eq!((r.number, r.by.unwrap().user), (1, "cam".to_string()));
+    assert_eq!(r.comment, "from the folder: O6.nc");
+    // The same content again (the gateway's own write, a touch) is no revision.
+    assert_eq!(lib.take_file(folder("O6.nc")).await.unwrap(), Taken::Unchanged);
+    // Edited: the next revision; a job sends it.
+    std::fs::write(dir.path().join("O6.nc"), b"%\nHAND 2\n%").unwrap();
+    assert!(matches!(lib.take_file(folder("O6.nc")).await.unwrap(), Taken::Revision(_)));
+    assert_eq!(lib.read("O6").await.unwrap(), b"%\nHAND 2\n%");
+    // A store through the bus writes the file the folder has, not a second one.
+    lib.store("O6", b"%\nBUS\n%").await.unwrap();
+    assert_eq!(std::fs::read(dir.path().join("O6.nc")).unwrap(), b"%\nBUS\n%");
+    assert!(!dir.path().join("O6").exists());
+    // The listing gives the revision's size and the file.
+    let listed = lib.list().await.unwrap();
+    assert_eq!(listed.len(), 1);
+    assert_eq!((listed[0].size, listed[0].file.as_str()), (7, "O6.nc"));
+    // A name that ends in an extension is never a program of its own.
+    assert!(matches!(
+        lib.store("O7.nc", b"%\n%").await,
+        Err(LibraryError::InvalidName { .. })
+    ));
+}
+
+#[tokio::test]
+async fn a_locked_program_is_not_replaced_or_removed_from_the_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    lib.store("O8", b"%\nLOCKED\n%").await.unwrap();
+    lib.set_state("O8", "", RevisionState::Locked, by("lead"), String::new())
+        .await
+        .unwrap();
+    std::fs::write(dir.path().join("O8"), b"%\nEDITED\n%").unwrap();
+    let e = lib.take_file(folder("O8")).await.unwrap_err();
+    assert!(matches!(e, LibraryError::Locked { number: 1, .. }), "{e}");
+    // The file is left as written; the library keeps sending the locked revision.
+    assert_eq!(std::fs::read(dir.path().join("O8")).unwrap(), b"%\nEDITED\n%");
+    assert_eq!(lib.read("O8").await.unwrap(), b"%\nLOCKED\n%");
+    let listed = lib.list().await.unwrap();
+    assert!(listed[0].note.contains("locked"), "{}", listed[0].note);
+    std::fs::remove_file(dir.path().join("O8")).unwrap();
+    assert!(matches!(
+        lib.file_gone("O8").await,
+        Err(LibraryError::Locked { .. })
+    ));
+    assert_eq!(lib.read("O8").await.unwrap(), b"%\nLOCKED\n%");
+    assert_eq!(lib.list().await.unwrap().len(), 1, "still listed without a file");
+}
+
+#[tokio::test]
+async fn a_deleted_file_removes_its_program_and_posting_it_again_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
     let lib = ProgramLibrary::new(dir.path(), 1000);
     lib.create_dir().await.unwrap();
-    let r = lib.revisions("O6").await.unwrap();
-    assert_eq!(r.revisions[0].number, 2);
-    let (_, old) = lib.read_revision("O6", "1").await.unwrap();
-    assert_eq!(old, b"%\nHAND\n%");
+    std::fs::write(dir.path().join("O9.tap"), b"%\nONE\n%").unwrap();
+    lib.take_file(folder("O9.tap")).await.unwrap();
+    std::fs::remove_file(dir.path().join("O9.tap")).unwrap();
+    let Taken::Removed(e) = lib.file_gone("O9.tap").await.unwrap() else {
+        panic!("not removed");
+    };
+    assert!(e.latest.unwrap().removed);
+    assert!(matches!(lib.read("O9").await, Err(LibraryError::NotFound { .. })));
+    assert_eq!(lib.file_gone("O9.tap").await.unwrap(), Taken::Nothing);
+    std::fs::write(dir.path().join("O9.tap"), b"%\nTWO\n%").unwrap();
+    let Taken::Revision(e) = lib.take_file(folder("O9.tap")).await.unwrap() else {
+        panic!("not taken");
+    };
+    assert_eq!(e.latest.unwrap().number, 2);
+    // Deleted while the gateway was stopped: found missing at the next start.
+    std::fs::remove_file(dir.path().join("O9.tap")).unwrap();
+    assert_eq!(lib.files_missing().await.unwrap(), vec!["O9".to_string()]);
+}
+
+#[tokio::test]
+async fn two_files_giving_one_name_are_a_conflict_and_neither_is_taken() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    lib.create_dir().await.unwrap();
+    std::fs::write(dir.path().join("O10.nc"), b"%\nA\n%").unwrap();
+    std::fs::write(dir.path().join("O10.TAP"), b"%\nB\n%").unwrap();
+    for f in ["O10.nc", "O10.TAP"] {
+        let e = lib.take_file(folder(f)).await.unwrap_err();
+        assert!(matches!(&e, LibraryError::Conflict { .. }), "{e}");
+        assert_eq!(e.code(), pb::ErrorCode::Conflict);
+    }
+    assert!(matches!(lib.read("O10").await, Err(LibraryError::NotFound { .. })));
+    let listed = lib.list().await.unwrap();
+    assert!(listed[0].note.contains("O10.TAP"), "{}", listed[0].note);
+    assert!(matches!(
+        lib.store("O10", b"%\nC\n%").await,
+        Err(LibraryError::Conflict { .. })
+    ));
+    // One goes: the other stands.
+    std::fs::remove_file(dir.path().join("O10.TAP")).unwrap();
+    assert_eq!(lib.file_gone("O10.TAP").await.unwrap(), Taken::Nothing);
+    assert_eq!(lib.file_of("O10").await.unwrap().as_deref(), Some("O10.nc"));
+    assert!(matches!(lib.take_file(folder("O10.nc")).await.unwrap(), Taken::Revision(_)));
 }
 
 #[tokio::test]

@@ -1,0 +1,335 @@
+//! A watched folder: the library's (`programs.dir`) or a machine's drop folder. Lists the
+//! folder, follows its change events (inotify through `notify`) or polls it, and hands on each
+//! file once it is complete, and each file that went away. When a file is complete is the
+//! core's rule ([`cellgate_core::program::folder`]); this is the shell that feeds it the
+//! listings, the events and the clock.
+//!
+//! Events are a hint, never the record: every event only makes the watcher look at the file
+//! again, and a full listing now and then (every `poll_ms` when polling, every 30 of them
+//! otherwise) catches whatever the events missed. An event queue that overflowed, a watcher
+//! that fails, or a folder that cannot be read (an unmounted share) all fall back to that
+//! listing, and say so; nothing is lost, only later.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use notify::{EventKind, RecursiveMode, Watcher as _};
+use tokio::sync::{Notify, mpsc};
+use tokio_util::sync::CancellationToken;
+
+use cellgate_core::config::Watch;
+use cellgate_core::pb;
+use cellgate_core::program::folder::{Settle, Stat};
+
+/// Events the watcher holds before it overflows to a rescan.
+const EVENT_QUEUE: usize = 4096;
+/// With change events, a full listing every this many `poll_ms`.
+const RESCAN_POLLS: u32 = 30;
+
+/// What the watcher saw.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Seen {
+    /// A file is complete (still for `settle_ms`, closed by its writer).
+    Complete { file: String },
+    /// A file went away (deleted, or renamed to a name that is not taken).
+    Gone { file: String },
+    /// The folder could not be read (`error`); it is tried again at every listing.
+    Unreadable { error: String },
+    /// It can be read again.
+    Readable,
+    /// A full listing was made (the first at start): what is not there is gone.
+    Listed,
+}
+
+/// A folder being followed.
+#[derive(Debug)]
+pub struct Followed {
+    /// What the watcher sees.
+    pub seen: mpsc::Receiver<Seen>,
+    /// A file to look at again once it is still (the other file of a conflict, once one
+    /// went).
+    pub retry: mpsc::UnboundedSender<String>,
+    pub task: tokio::task::JoinHandle<()>,
+}
+
+/// What to watch and how.
+#[derive(Clone)]
+pub struct FolderWatch {
+    pub dir: PathBuf,
+    pub watch: Watch,
+    pub settle_ms: u64,
+    pub poll: Duration,
+    /// Which file names count (the rest are passed over without a word).
+    pub takes: Arc<dyn Fn(&str) -> bool + Send + Sync>,
+}
+
+impl std::fmt::Debug for FolderWatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FolderWatch")
+            .field("dir", &self.dir)
+            .field("watch", &self.watch)
+            .field("settle_ms", &self.settle_ms)
+            .finish_non_exhaustive()
+    }
+}
+
+/// One entry of a listing.
+fn stat_of(meta: &std::fs::Metadata) -> Stat {
+    Stat {
+        size: meta.len(),
+        modified_ms: meta
+            .modified()
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX)),
+    }
+}
+
+/// The folder's files that count, with what they are now. Blocking.
+fn list(dir: &Path, takes: &(dyn Fn(&str) -> bool + Send + Sync)) -> std::io::Result<BTreeMap<String, Stat>> {
+    let mut out = BTreeMap::new();
+    for item in std::fs::read_dir(dir)? {
+        let item = item?;
+        let Ok(file) = item.file_name().into_string() else {
+            continue;
+        };
+        if !takes(&file) {
+            continue;
+        }
+        // A file removed between the listing and its stat is simply not there.
+        if let Ok(meta) = std::fs::metadata(item.path())
+            && meta.is_file()
+        {
+            out.insert(file, stat_of(&meta));
+        }
+    }
+    Ok(out)
+}
+
+/// What a change event says of a file.
+enum Hint {
+    Look(String),
+    Writing(String),
+    Closed(String),
+}
+
+impl FolderWatch {
+    /// Lists the folder once and reports its complete files on the returned channel, then
+    /// follows it until `stop` (with `watch = "off"`, only until the files there at start
+    /// are complete).
+    pub fn spawn(self, stop: CancellationToken) -> Followed {
+        let (tx, seen) = mpsc::channel(1024);
+        let (retry, retries) = mpsc::unbounded_channel();
+        let task = tokio::spawn(self.run(tx, retries, stop));
+        Followed { seen, retry, task }
+    }
+
+    async fn run(
+        self,
+        out: mpsc::Sender<Seen>,
+        mut retry: mpsc::UnboundedReceiver<String>,
+        stop: CancellationToken,
+    ) {
+        let (hints_tx, mut hints) = mpsc::channel::<Hint>(EVENT_QUEUE);
+        let overflowed = Arc::new(AtomicBool::new(false));
+        let woken = Arc::new(Notify::new());
+        let mut watcher = None;
+        if self.watch == Watch::Auto {
+            watcher = self.watcher(hints_tx, Arc::clone(&overflowed), Arc::clone(&woken));
+        }
+        let every = if self.watch == Watch::Poll || watcher.is_none() {
+            self.poll
+        } else {
+            self.poll * RESCAN_POLLS
+        };
+        let mut settle = Settle::new(self.settle_ms);
+        let mut known: BTreeSet<String> = BTreeSet::new();
+        let mut readable = true;
+        let mut placed = false;
+        let mut first = true;
+        let mut next_scan = tokio::time::Instant::now();
+        loop {
+            let now_ms = pb::now_ms();
+            if tokio::time::Instant::now() >= next_scan || overflowed.swap(false, Ordering::Relaxed) {
+                let dir = self.dir.clone();
+                let takes = Arc::clone(&self.takes);
+                let listed = tokio::task::spawn_blocking(move || list(&dir, takes.as_ref()))
+                    .await
+                    .unwrap_or_else(|e| Err(std::io::Error::other(e.to_string())));
+                match listed {
+                    Ok(files) => {
+                        if !readable {
+                            readable = true;
+                            tracing::info!(dir = %self.dir.display(), "folder readable again");
+                            let _ = out.send(Seen::Readable).await;
+                        }
+                        // The watch is placed once the folder exists (it may have been missing).
+                        if !placed && let Some(w) = watcher.as_mut() {
+                            match w.watch(&self.dir, RecursiveMode::NonRecursive) {
+                                Ok(()) => placed = true,
+                                Err(e) => tracing::warn!(
+                                    dir = %self.dir.display(), error = %e,
+                                    "no change events for the folder yet: it is listed now and then"
+                                ),
+                            }
+                        }
+                        for gone in known.iter().filter(|f| !files.contains_key(*f)) {
+                            let _ = out.send(Seen::Gone { file: gone.clone() }).await;
+                        }
+                        known = files.keys().cloned().collect();
+                        settle.retain(&known);
+                        for (file, stat) in files {
+                            settle.observe(&file, stat, now_ms);
+                        }
+                        let _ = out.send(Seen::Listed).await;
+                    }
+                    Err(e) => {
+                        if readable || first {
+                            readable = false;
+                            placed = false;
+                            tracing::warn!(
+                                dir = %self.dir.display(), error = %e,
+                                "the folder cannot be read: nothing in it is taken until it can; \
+                                 the library keeps what it has"
+                            );
+                            let _ = out.send(Seen::Unreadable { error: e.to_string() }).await;
+                        }
+                    }
+                }
+                next_scan = tokio::time::Instant::now() + every;
+            }
+            for (file, _) in settle.due(pb::now_ms()) {
+                if out.send(Seen::Complete { file }).await.is_err() {
+                    return;
+                }
+            }
+            first = false;
+            // Off: the folder is read at start only, until what was there then is taken.
+            if self.watch == Watch::Off && settle.next_deadline().is_none() {
+                return;
+            }
+            let deadline = settle
+                .next_deadline()
+                .map(|at| Duration::from_millis(at.saturating_sub(pb::now_ms())))
+                .map(|d| tokio::time::Instant::now() + d)
+                .map_or(next_scan, |at| at.min(next_scan));
+            tokio::select! {
+                () = stop.cancelled() => return,
+                () = tokio::time::sleep_until(deadline) => {}
+                () = woken.notified() => {}
+                Some(file) = retry.recv() => settle.retry(&file, pb::now_ms()),
+                Some(hint) = hints.recv() => {
+                    let mut batch = vec![hint];
+                    while let Ok(h) = hints.try_recv() {
+                        batch.push(h);
+                    }
+                    self.apply(&mut settle, &mut known, batch, &out).await;
+                }
+            }
+        }
+    }
+
+    /// Looks at the files the events named.
+    async fn apply(
+        &self,
+        settle: &mut Settle,
+        known: &mut BTreeSet<String>,
+        batch: Vec<Hint>,
+        out: &mpsc::Sender<Seen>,
+    ) {
+        let mut look = BTreeSet::new();
+        let now = pb::now_ms();
+        for h in batch {
+            match h {
+                Hint::Look(f) => {
+                    look.insert(f);
+                }
+                Hint::Writing(f) => {
+                    settle.writing(&f, now);
+                    look.insert(f);
+                }
+                Hint::Closed(f) => {
+                    settle.closed(&f);
+                    look.insert(f);
+                }
+            }
+        }
+        for file in look {
+            match std::fs::metadata(self.dir.join(&file)) {
+                Ok(meta) if meta.is_file() => {
+                    known.insert(file.clone());
+                    settle.observe(&file, stat_of(&meta), now);
+                }
+                _ => {
+                    settle.gone(&file);
+                    if known.remove(&file) {
+                        let _ = out.send(Seen::Gone { file }).await;
+                    }
+                }
+            }
+        }
+    }
+
+    /// The change-event watcher, or `None` (polling, and saying why) if the system will not
+    /// give one (inotify's watch limit, a file system without events).
+    fn watcher(
+        &self,
+        hints: mpsc::Sender<Hint>,
+        overflowed: Arc<AtomicBool>,
+        woken: Arc<Notify>,
+    ) -> Option<notify::RecommendedWatcher> {
+        let takes = Arc::clone(&self.takes);
+        let dir = self.dir.clone();
+        let handler = move |event: notify::Result<notify::Event>| {
+            let event = match event {
+                Ok(e) if !e.need_rescan() => e,
+                Ok(_) | Err(_) => {
+                    overflowed.store(true, Ordering::Relaxed);
+                    woken.notify_one();
+                    return;
+                }
+            };
+            for path in &event.paths {
+                if path.parent() != Some(dir.as_path()) {
+                    continue;
+                }
+                let Some(file) = path.file_name().and_then(|f| f.to_str()) else {
+                    continue;
+                };
+                if !takes(file) {
+                    continue;
+                }
+                let file = file.to_string();
+                let hint = match event.kind {
+                    EventKind::Modify(notify::event::ModifyKind::Data(_)) => Hint::Writing(file),
+                    EventKind::Access(notify::event::AccessKind::Close(
+                        notify::event::AccessMode::Write,
+                    )) => Hint::Closed(file),
+                    EventKind::Access(_) => continue,
+                    _ => Hint::Look(file),
+                };
+                if hints.try_send(hint).is_err() {
+                    // More than the queue holds at once: a full listing instead.
+                    overflowed.store(true, Ordering::Relaxed);
+                    woken.notify_one();
+                }
+            }
+        };
+        match notify::recommended_watcher(handler) {
+            Ok(w) => Some(w),
+            Err(e) => {
+                tracing::warn!(
+                    dir = %self.dir.display(), error = %e,
+                    "no change events for the folder: it is listed every poll_ms instead"
+                );
+                None
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;
