@@ -217,13 +217,15 @@ pub async fn serve_recorded(
     let mut folder_tasks = JoinSet::new();
     let mut route_tasks = JoinSet::new();
     let served = async {
-        library
-            .create_dir()
-            .await
-            .map_err(|source| BusError::ProgramDir {
-                dir: library.dir().to_path_buf(),
-                source,
-            })?;
+        // A folder that cannot be opened (a share not mounted yet) does not stop the cell:
+        // its watcher says so and takes it in once it can; the library answers with the
+        // error meanwhile (its index opens on first use).
+        if let Err(e) = library.create_dir().await {
+            tracing::error!(
+                dir = %library.dir().display(), error = %e,
+                "the program library's folder cannot be opened: library requests fail until it can"
+            );
+        }
         folder_tasks = route_folder::spawn(&ctx, config, &routes_stop);
         let punch = PunchSettings::from_config(&config.programs);
         for (machine, feeds) in started {

@@ -116,6 +116,9 @@ pub(crate) fn spawn(ctx: &RouteContext, config: &CellConfig, stop: &Cancellation
         let Some(dir) = m.config.drop_dir.clone() else {
             continue;
         };
+        if let Err(e) = std::fs::create_dir_all(&dir) {
+            tracing::warn!(machine = %m.name(), dir = %dir.display(), error = %e, "drop folder not created; it is followed once it is there");
+        }
         let watch = FolderWatch {
             dir: dir.clone(),
             watch: programs.watch,

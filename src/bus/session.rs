@@ -67,13 +67,6 @@ pub enum BusError {
         #[source]
         source: zenoh::Error,
     },
-    /// The program library's directory (`programs.dir`) cannot be created.
-    #[error("program library {}: cannot create the directory: {source}", dir.display())]
-    ProgramDir {
-        dir: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
     /// The job journal could not be opened.
     #[error(transparent)]
     Journal(#[from] crate::jobs::journal::JournalError),

@@ -199,7 +199,8 @@ impl FolderWatch {
                         }
                     }
                 }
-                next_scan = tokio::time::Instant::now() + every;
+                // A folder that cannot be read is tried again soon: a share coming back.
+                next_scan = tokio::time::Instant::now() + if readable { every } else { self.poll };
             }
             for (file, _) in settle.due(pb::now_ms()) {
                 if out.send(Seen::Complete { file }).await.is_err() {

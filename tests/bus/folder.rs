@@ -1,0 +1,313 @@
+//! The DNC folder on a running gateway, with real files: programs posted into the library's
+//! folder (whole, renamed into place, written slowly, edited, deleted, locked, two files of
+//! one name), a machine's drop folder queuing its files as jobs, and the receive folder.
+
+use crate::common;
+
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use cellgate::bus::keys::MachineLeaf;
+use cellgate_core::config::CellConfig;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
+use common::bus::{RunningCell, Sub, follow, get, get_err, get_one};
+use prost::Message;
+
+fn cell_config(port: u16, dir: &Path) -> CellConfig {
+    let text = format!(
+        r#"
+cell = "folder"
+[bus]
+listen = ["tcp/127.0.0.1:{port}"]
+[programs]
+dir = {:?}
+settle_ms = 300
+[[machines]]
+name = "mill-1"
+protocol = "a"
+transport = {{ kind = "sim", line = {{ baud = 19200 }} }}
+sim = {{ consume_rate = 4000 }}
+drop_dir = {:?}
+[[machines]]
+name = "lathe-1"
+protocol = "b"
+code = "iso"
+transport = {{ kind = "sim", line = {{ baud = 19200 }} }}
+receive_dir = {:?}
+"#,
+        dir.join("programs"),
+        dir.join("drop-mill-1"),
+        dir.join("received-lathe-1"),
+    );
+    CellConfig::from_toml_str(&text, "folder cell").unwrap_or_else(|e| panic!("{e}"))
+}
+
+fn programs(cell: &RunningCell) -> PathBuf {
+    cell.dir.path().join("programs")
+}
+
+/// The next library event other than `skip`, within 10 s.
+async fn event(events: &Sub) -> pb::LibraryEvent {
+    let sample = tokio::time::timeout(Duration::from_secs(10), events.recv_async())
+        .await
+        .expect("a library event within 10 s")
+        .unwrap();
+    pb::LibraryEvent::decode(sample.payload().to_bytes().as_ref()).unwrap()
+}
+
+/// No library event for `ms`.
+async fn quiet(events: &Sub, ms: u64) {
+    if let Ok(Ok(s)) = tokio::time::timeout(Duration::from_millis(ms), events.recv_async()).await
+    {
+        let e = pb::LibraryEvent::decode(s.payload().to_bytes().as_ref()).unwrap();
+        panic!("unexpected library event {e:?}");
+    }
+}
+
+fn program(o: u32, lines: usize) -> Vec<u8> {
+    let mut p = format!("%\nO{o}\n").into_bytes();
+    for i in 0..lines {
+        p.extend_from_slice(format!("N{i} G01 X{i}.5 F100\n").as_bytes());
+    }
+    p.extend_from_slice(b"M30\n%\n");
+    p
+}
+
+/// Reads the audit until `check` holds of its records (5 s at most).
+async fn audit_until(cell: &RunningCell, check: impl Fn(&[pb::AuditRecord]) -> bool) {
+    let mut records = Vec::new();
+    for _ in 0..50 {
+        let page: pb::HistoryPage = get_one(&cell.client, &cell.keys.audit(), None).await;
+        records = page
+            .records
+            .into_iter()
+            .filter_map(|r| match r.record {
+                Some(pb::history_record::Record::Audit(a)) => Some(a),
+                _ => None,
+            })
+            .collect();
+        if check(&records) {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    panic!("the audit never showed it: {records:#?}");
+}
+
+async fn read(cell: &RunningCell, name: &str) -> Vec<u8> {
+    match get(&cell.client, &cell.keys.program(name), None).await.as_slice() {
+        [Ok((_, bytes, _))] => bytes.clone(),
+        other => panic!("{name}: {other:?}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let events = cell.subscribe(cell.keys.program_events()).await;
+    let dir = programs(&cell);
+
+    // Posted whole: program O5555 (the extension is not part of the name), at once.
+    let v1 = program(5555, 20);
+    std::fs::write(dir.join("O5555.nc"), &v1).unwrap();
+    let e = event(&events).await;
+    assert_eq!(e.kind(), pb::LibraryEventKind::Stored);
+    assert_eq!((e.name.as_str(), e.file.as_str()), ("O5555", "O5555.nc"));
+    let by = e.by.unwrap();
+    assert_eq!(by.via, "folder");
+    assert!(!by.user.is_empty());
+    assert_eq!(e.revision.unwrap().number, 1);
+    assert_eq!(read(&cell, "O5555").await, v1);
+
+    // A job names it as the library has it.
+    let events_m = cell
+        .subscribe(cell.keys.job_events("mill-1", "*"))
+        .await;
+    let request = pb::JobRequest {
+        program: Some(pb::job_request::Program::Library("O5555".to_string())),
+        ..Default::default()
+    };
+    let accepted: pb::JobAccepted = get_one(
+        &cell.client,
+        &cell.keys.leaf("mill-1", MachineLeaf::Submit),
+        Some(request.encode_to_vec()),
+    )
+    .await;
+    let kinds = follow(&events_m, &accepted.job_id, Duration::from_secs(60)).await;
+    assert!(matches!(kinds.last(), Some(Kind::Completed(_))), "{kinds:?}");
+
+    // Written to a temporary name and renamed into place: the temporary is never taken.
+    let v2 = program(5556, 30);
+    std::fs::write(dir.join("O5556.nc.tmp"), &v2).unwrap();
+    tokio::time::sleep(Duration::from_millis(700)).await;
+    std::fs::rename(dir.join("O5556.nc.tmp"), dir.join("O5556.nc")).unwrap();
+    let e = event(&events).await;
+    assert_eq!((e.name.as_str(), e.kind()), ("O5556", pb::LibraryEventKind::Stored));
+    assert_eq!(read(&cell, "O5556").await, v2);
+
+    // Written in place over about 1.5 s: one revision, of the whole file.
+    let v3 = program(5557, 2000);
+    let mut f = std::fs::File::create(dir.join("O5557")).unwrap();
+    for piece in v3.chunks(v3.len().div_ceil(10)) {
+        f.write_all(piece).unwrap();
+        f.flush().unwrap();
+        tokio::time::sleep(Duration::from_millis(150)).await;
+    }
+    drop(f);
+    let e = event(&events).await;
+    assert_eq!((e.name.as_str(), e.kind()), ("O5557", pb::LibraryEventKind::Stored));
+    assert_eq!(e.revision.unwrap().size, v3.len() as u64);
+    assert_eq!(read(&cell, "O5557").await, v3);
+    quiet(&events, 800).await;
+
+    // Edited: the next revision, and the listing gives the revision's size and the file.
+    let v1b = program(5555, 25);
+    std::fs::write(dir.join("O5555.nc"), &v1b).unwrap();
+    let e = event(&events).await;
+    assert_eq!((e.name.as_str(), e.revision.unwrap().number), ("O5555", 2));
+    assert_eq!(read(&cell, "O5555").await, v1b);
+    let listed: Vec<pb::ProgramInfo> = get(&cell.client, &cell.keys.any_program(), None)
+        .await
+        .into_iter()
+        .filter_map(|r| r.ok())
+        .map(|(_, bytes, _)| pb::ProgramInfo::decode(bytes.as_slice()).unwrap())
+        .collect();
+    let o5555 = listed.iter().find(|p| p.name == "O5555").unwrap();
+    assert_eq!((o5555.size, o5555.file.as_str()), (v1b.len() as u64, "O5555.nc"));
+
+    // Deleted: the program is removed, its revisions kept.
+    std::fs::remove_file(dir.join("O5556.nc")).unwrap();
+    let e = event(&events).await;
+    assert_eq!((e.name.as_str(), e.kind()), ("O5556", pb::LibraryEventKind::Removed));
+    let err = get_err(&cell.client, &cell.keys.program("O5556"), None).await;
+    assert_eq!(err.code(), pb::ErrorCode::NotFound);
+    let kept: pb::ProgramRevisions =
+        get_one(&cell.client, &cell.keys.program_revisions("O5556"), None).await;
+    assert!(kept.removed);
+
+    // Locked: an edit is refused, the file left as written, the locked revision served.
+    let release = pb::ProgramRelease {
+        state: pb::RevisionState::Locked as i32,
+        ..Default::default()
+    };
+    let _: pb::ProgramRevision = get_one(
+        &cell.client,
+        &cell.keys.program_release("O5555"),
+        Some(release.encode_to_vec()),
+    )
+    .await;
+    let edit = program(5555, 3);
+    std::fs::write(dir.join("O5555.nc"), &edit).unwrap();
+    let e = event(&events).await;
+    assert_eq!(e.kind(), pb::LibraryEventKind::Refused, "{e:?}");
+    assert_eq!(e.code(), pb::ErrorCode::Locked);
+    assert!(e.error.contains("locked"), "{}", e.error);
+    assert_eq!(std::fs::read(dir.join("O5555.nc")).unwrap(), edit);
+    assert_eq!(read(&cell, "O5555").await, v1b);
+
+    // Two files of one name: neither taken, said.
+    std::fs::write(dir.join("O5558.nc"), program(5558, 1)).unwrap();
+    std::fs::write(dir.join("O5558.tap"), program(5558, 2)).unwrap();
+    let e = event(&events).await;
+    assert_eq!((e.kind(), e.code()), (pb::LibraryEventKind::Refused, pb::ErrorCode::Conflict));
+    let e = event(&events).await;
+    assert_eq!(e.code(), pb::ErrorCode::Conflict);
+    // One removed: the other is taken.
+    std::fs::remove_file(dir.join("O5558.tap")).unwrap();
+    let e = event(&events).await;
+    assert_eq!((e.name.as_str(), e.file.as_str(), e.kind()), ("O5558", "O5558.nc", pb::LibraryEventKind::Stored));
+
+    // Every one of them in the audit, the folder as the origin (the history is written a
+    // moment later).
+    audit_until(&cell, |records| {
+        let from_folder: Vec<&pb::AuditRecord> =
+            records.iter().filter(|a| a.key.starts_with("folder:")).collect();
+        from_folder
+            .iter()
+            .any(|a| a.action == "program.remove" && a.target == "O5556" && a.ok)
+            && from_folder.iter().any(|a| {
+                a.action == "program.store"
+                    && a.target == "O5555"
+                    && !a.ok
+                    && a.code == pb::ErrorCode::Locked as i32
+            })
+            && from_folder
+                .iter()
+                .filter(|a| a.action == "program.store" && a.ok)
+                .count()
+                >= 5
+    })
+    .await;
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_drop_folder_queues_its_files_to_the_machine_and_says_what_it_refused() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let drop_dir = cell.dir.path().join("drop-mill-1");
+    let events = cell.subscribe(cell.keys.job_events("mill-1", "*")).await;
+    std::fs::create_dir_all(&drop_dir).unwrap();
+    let part = program(7001, 40);
+    std::fs::write(drop_dir.join("O7001.nc"), &part).unwrap();
+    let sample = tokio::time::timeout(Duration::from_secs(10), events.recv_async())
+        .await
+        .expect("a job from the drop folder")
+        .unwrap();
+    let queued = pb::JobEvent::decode(sample.payload().to_bytes().as_ref()).unwrap();
+    let kinds = follow(&events, &queued.job_id, Duration::from_secs(60)).await;
+    assert!(matches!(kinds.last(), Some(Kind::Completed(_))), "{kinds:?}");
+    // Moved aside once queued: never sent twice.
+    common::bus::eventually("the file is in sent/", || {
+        drop_dir.join("sent/O7001.nc").is_file() && !drop_dir.join("O7001.nc").exists()
+    })
+    .await;
+    assert_eq!(std::fs::read(drop_dir.join("sent/O7001.nc")).unwrap(), part);
+
+    // A file that is no program for this machine (no end of record): refused, said beside it.
+    std::fs::write(drop_dir.join("broken.nc"), b"O7002\nG01 X1\n").unwrap();
+    common::bus::eventually("the file is in refused/", || {
+        drop_dir.join("refused/broken.nc").is_file()
+    })
+    .await;
+    let why = std::fs::read_to_string(drop_dir.join("refused/broken.nc.why.txt")).unwrap();
+    assert!(why.contains("mill-1"), "{why}");
+
+    let job = queued.job_id.clone();
+    audit_until(&cell, move |records| {
+        let submits: Vec<&pb::AuditRecord> =
+            records.iter().filter(|a| a.action == "job.submit").collect();
+        submits.iter().any(|a| a.ok && a.detail.contains(&job))
+            && submits.iter().any(|a| !a.ok && a.target == "broken.nc")
+            && submits.iter().all(|a| {
+                a.origin
+                    .as_ref()
+                    .is_some_and(|o| o.via.starts_with("drop folder"))
+            })
+    })
+    .await;
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_punched_program_is_written_into_the_receive_folder_too() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let punched = cell
+        .subscribe(cell.keys.leaf("lathe-1", MachineLeaf::Punch))
+        .await;
+    let part = b"%\nO1234(SHAFT 7)\nG00X10.Y2.5\nM30\n%".to_vec();
+    cell.board("lathe-1").punch(part.clone());
+    let sample = tokio::time::timeout(Duration::from_secs(30), punched.recv_async())
+        .await
+        .expect("a punched program")
+        .unwrap();
+    let p = pb::PunchedProgram::decode(sample.payload().to_bytes().as_ref()).unwrap();
+    let file = cell
+        .dir
+        .path()
+        .join("received-lathe-1")
+        .join(&p.library_name);
+    assert_eq!(std::fs::read(&file).unwrap(), part);
+    cell.stop().await;
+}
