@@ -281,7 +281,12 @@ export const PROTOCOL = {
 };
 export const protocolName = (p) => PROTOCOL[p] || enumWord(p, 'PROTOCOL_') || '—';
 export const isProtocolA = (p) => p === 'PROTOCOL_A' || p === 'PROTOCOL_EXPANSION_A';
-export const linkUp = (s) => s === 'LINK_STATE_IDLE' || s === 'LINK_STATE_SENDING' || s === 'LINK_STATE_RECEIVING';
+// A link is up while the remote buffer answers: in alarm too (it answers with its alarm),
+// which is counted apart as the machine's state, not as a link lost.
+export const linkUp = (s) => s === 'LINK_STATE_IDLE' || s === 'LINK_STATE_SENDING' || s === 'LINK_STATE_RECEIVING' || s === 'LINK_STATE_ALARM';
+export const inAlarm = (s) => s === 'LINK_STATE_ALARM';
+// Whether an AlarmEvent reports an alarm (a reset reports the end of one).
+export const isAlarm = (a) => !!a && a.kind !== 'ALARM_KIND_CNC_RESET';
 
 export function who(o) {
   if (!o || (!o.user && !o.via)) return '—';

@@ -3,7 +3,7 @@
 import {
   h, fill, api, can, enc, cellPath, query, schedule, unschedule, setText, field, select, table, scroller,
   act, notice, num, bytes, rate, dateTime, clock, duration, linkWord, protocolName, isProtocolA,
-  alarmText, enumWord, jobKind, who, b64text, revState, svg, polyPoints, extent,
+  alarmText, enumWord, jobKind, who, b64text, revState, svg, polyPoints, extent, inAlarm, isAlarm,
 } from './lib.js';
 
 export async function renderMachine(ctx, cell, name) {
@@ -43,6 +43,9 @@ export async function renderMachine(ctx, cell, name) {
       h('span', null, protocolName(st.protocol)),
       st.waiting_for ? h('span', { class: 'muted' }, `waiting for ${st.waiting_for} since ${clock(st.waiting_since_unix_ms)}`) : null,
       h('span', { class: 'muted' }, `as of ${clock(st.unix_ms)}`)),
+    // The alarm the machine is in, whole; none after a reset.
+    inAlarm(st.link_state) ? h('p', { class: 'warn-text', 'data-field': 'alarm' }, 'In alarm: ',
+      isAlarm(st.last_alarm) ? `${alarmText(st.last_alarm)} (since ${clock(st.last_alarm.unix_ms)})` : 'the machine reports an alarm') : null,
     st.storage_fault ? h('p', { class: 'warn-text' }, `Storage fault: ${st.storage_fault} — submits are refused meanwhile.`) : null]);
     fill(statusBox, satView(st), countersView(st.counters || {}), ioView(st));
   };
@@ -299,7 +302,8 @@ function satView(st) {
   return h('div', null, h('h3', null, 'Last SAT'), dl([
     ['Operation', opt(s.remote, (r) => (r ? 'remote' : 'tape'))],
     ['Buffer status', h('span', { class: s.buffer_status === 'BUFFER_STATUS_ALARM' ? 'warn-text' : null }, bufWord + digit(s.buffer_status_digit))],
-    ['Alarm cause', s.buffer_status === 'BUFFER_STATUS_ALARM' ? enumWord(s.alarm_cause, 'ALARM_CAUSE_') + digit(s.alarm_cause_digit) : `— (${enumWord(s.alarm_cause, 'ALARM_CAUSE_')})`],
+    // SAT byte 3 means something only in alarm status (§4.4.2): elsewhere it is no cause.
+    s.buffer_status === 'BUFFER_STATUS_ALARM' ? ['Alarm cause', h('span', { class: 'warn-text' }, enumWord(s.alarm_cause, 'ALARM_CAUSE_') + digit(s.alarm_cause_digit))] : null,
     ['Bytes buffered', opt(s.bytes_buffered, bytes)],
     ['Packet length', opt(s.packet_n, (n) => (Number(n) === 0 ? 'Protocol A' : `${256 * n} bytes (n = ${n})`))],
   ]), scroller(params));
