@@ -75,7 +75,11 @@ export async function renderOverview(ctx, onlyCell) {
       alarms.length ? h('p', { class: 'health-main', 'data-field': 'alarms' }, h('span', { class: 'icon', 'aria-hidden': 'true' }, '⚠'),
         `${alarms.length} machine${alarms.length === 1 ? '' : 's'} in alarm: ${alarms.join(', ')}`) : null,
       models.length > 1 ? h('ul', null, rows.map((r) => h('li', null, r.text))) : null);
-    for (const [i, m] of models.entries()) setText(m.healthLine, rows[i].text);
+    // With one cell the banner says it all; the cell's own line would repeat it.
+    for (const [i, m] of models.entries()) {
+      setText(m.healthLine, rows[i].text);
+      m.healthLine.hidden = models.length === 1;
+    }
   };
   for (const m of models) {
     m.touch = (name) => {
@@ -267,7 +271,10 @@ function renderTiles(m) {
   m.tilesBox.replaceChildren(frag);
   if (m.failed) m.tilesBox.append(h('p', { class: 'muted' }, 'This cell could not be read: see the message above.'));
   else if (!names.length) m.tilesBox.append(h('p', { class: 'muted' }, m.machines.size ? 'No machine matches the filter.' : 'This cell has no machines.'));
-  for (const pager of [m.pagerTop, m.pagerBottom]) renderPager(m, pager, names.length, pages);
+  renderPager(m, m.pagerTop, names.length, pages);
+  // A second pager under the tiles only when there are pages to turn.
+  m.pagerBottom.hidden = pages < 2;
+  if (pages > 1) renderPager(m, m.pagerBottom, names.length, pages);
 
   m.plcTiles = new Map();
   m.plcBox.replaceChildren();
