@@ -10,6 +10,8 @@ const names = (list) => (list || []).map((x) => (typeof x === 'string' ? x : x.m
 export const cellInfo = (cell) => state.cells.find((c) => c.cell === cell);
 export const machinesOf = (cell) => names(cellInfo(cell)?.machines);
 export const plcsOf = (cell) => names(cellInfo(cell)?.plcs);
+// Whether a machine takes G05 streams (its cell file has a g05 table), or showed one.
+export const takesG05 = (cell, machine, status) => !!status?.g05 || (cellInfo(cell)?.g05 || []).includes(machine);
 
 // ---- DOM ----------------------------------------------------------------------------
 

@@ -3,7 +3,7 @@
 import {
   h, fill, api, can, enc, cellPath, query, schedule, unschedule, setText, field, select, table, scroller,
   act, notice, num, bytes, rate, dateTime, clock, duration, linkWord, protocolName, isProtocolA,
-  alarmText, enumWord, jobKind, who, b64text, revState, svg, polyPoints, extent, inAlarm, isAlarm,
+  alarmText, enumWord, jobKind, who, b64text, revState, svg, polyPoints, extent, inAlarm, isAlarm, takesG05,
 } from './lib.js';
 
 export async function renderMachine(ctx, cell, name) {
@@ -162,9 +162,9 @@ export async function renderMachine(ctx, cell, name) {
   const punched = snap.punched || [];
   const renderPunched = () => punchBox.replaceChildren(punchedView(cell, name, punched));
 
-  // ---- G05
+  // ---- G05, where the machine takes G05 streams
   const g05 = g05Panel();
-  colB.append(sec('G05 stream', 'sec-g05', g05.el));
+  if (takesG05(cell, name, snap.status)) colB.append(sec('G05 stream', 'sec-g05', g05.el));
   if (snap.status?.g05) g05.push(snap.status.g05);
 
   // ---- utilisation

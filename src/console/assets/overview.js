@@ -4,7 +4,7 @@
 import {
   h, fill, api, enc, cellPath, cellNames, cellInfo, machinesOf, plcsOf, schedule, unschedule, setText,
   field, select, num, bytes, rate, linkWord, linkUp, inAlarm, isAlarm, protocolName, alarmText, enumWord, isProtocolA,
-  dateTime, clock, nextId,
+  dateTime, clock, nextId, takesG05,
 } from './lib.js';
 
 const PAGE = 96;
@@ -376,15 +376,17 @@ function buildTile(cell, mm) {
   r.di = bitsBox('DI');
   r.do = bitsBox('DO');
   r.g05 = h('span', { 'data-field': 'g05' });
+  r.g05Row = h('div', { class: 'g05-row', hidden: true }, h('span', { class: 'muted' }, 'G05: '), r.g05);
   r.wait = h('div', { class: 'muted small-text', 'data-field': 'waiting' });
   r.el = h('article', { 'data-tile': 'machine', 'data-cell': cell, 'data-name': mm.name, class: 'tile' },
     h('h3', null, h('a', { href: `#/cell/${enc(cell)}/machine/${enc(mm.name)}` }, mm.name)),
     h('div', { class: 'row' }, r.link, r.protocol, r.queue),
     r.jobBox, r.jobTail,
     r.alarmRow,
-    h('div', { class: 'row io-row' }, r.di.row, r.do.row),
-    h('div', { class: 'g05-row' }, h('span', { class: 'muted' }, 'G05: '), r.g05),
+    r.ioRow = h('div', { class: 'row io-row' }, r.di.row, r.do.row),
+    r.g05Row,
     r.wait);
+  r.cell = cell;
   updateTile(r, mm);
   return r;
 }
@@ -442,15 +444,16 @@ function updateTile(r, mm) {
   // The whole text wraps on the tile; the title holds it with its time as well.
   r.alarmRow.title = shown && isAlarm(a) ? `${alarmText(a)} (${dateTime(a.unix_ms)})` : '';
   r.alarmRow.classList.toggle('has-alarm', !!shown?.active);
+  // DI and DO exist in the Protocol A family only (§4.4.1): elsewhere no row at all.
+  r.ioRow.hidden = !isProtocolA(st.protocol);
   if (isProtocolA(st.protocol)) {
     setBits(r.di, st.di_image, 'not read');
     setBits(r.do, st.do_image, 'not set');
-  } else {
-    setBits(r.di, null, 'n/a');
-    setBits(r.do, null, 'n/a');
   }
+  // G05 only where the machine takes G05 streams: elsewhere "none" would say nothing.
   const g = st.g05;
-  const g05 = g ? `${enumWord(g.state, 'G05_STATE_')} · buffer ${num(g.cnc_buffer)} · ${num(g.underruns)} underruns` : 'none';
+  r.g05Row.hidden = !takesG05(r.cell, mm.name, st);
+  const g05 = g ? `${enumWord(g.state, 'G05_STATE_')} · buffer ${num(g.cnc_buffer)} · ${num(g.underruns)} underruns` : 'no stream yet';
   setText(r.g05, g05);
   r.g05.title = g05;
   setText(r.wait, st.storage_fault ? `Storage fault: ${st.storage_fault}` : st.waiting_for ? `Waiting for ${st.waiting_for}` : '');
