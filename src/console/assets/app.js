@@ -103,9 +103,10 @@ async function logout(btn) {
   });
 }
 
-onConnectionChange(({ state: s, text }) => {
+onConnectionChange(({ state: s, text, title }) => {
   const el = $('#conn');
   el.dataset.state = s;
+  el.title = title || '';
   setText($('.conn-text', el), text);
 });
 

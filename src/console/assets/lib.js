@@ -370,11 +370,12 @@ export const onConnectionChange = (fn) => { connListener = fn; };
 
 function connSummary() {
   const all = Array.from(lives);
-  if (!all.length) return { state: 'none', text: 'Live: off' };
-  if (all.every((l) => l.open)) return { state: 'ok', text: 'Live: connected' };
+  // A page without an event stream is not a lost connection: say what it is.
+  if (!all.length) return { state: 'none', text: 'Not live', title: 'This page shows what it read when it opened and does not update by itself: reload it for the latest.' };
+  if (all.every((l) => l.open)) return { state: 'ok', text: 'Live: connected', title: 'This page updates as the cell publishes.' };
   const next = Math.min(...all.filter((l) => !l.open).map((l) => l.retryAt || Date.now()));
   const s = Math.max(0, Math.round((next - Date.now()) / 1000));
-  return { state: 'bad', text: s > 0 ? `Live: reconnecting in ${s} s` : 'Live: connecting…' };
+  return { state: 'bad', text: s > 0 ? `Live: reconnecting in ${s} s` : 'Live: connecting…', title: 'The page lost its event stream: what it shows may be out of date until it is back.' };
 }
 export const connectionChanged = () => connListener(connSummary());
 
