@@ -229,11 +229,23 @@ pub async fn cells(State(c): State<Arc<Console>>, _: Caller<ReadStatus>) -> ApiR
                     })
                     .unwrap_or_default()
             };
+            // The machines that take G05 streams (a `g05` table in the cell file): the pages
+            // show G05 for those only.
+            let g05: Vec<String> = admin["config"]["machines"]
+                .as_array()
+                .map(|a| {
+                    a.iter()
+                        .filter(|m| m["g05"].is_object())
+                        .filter_map(|m| m["name"].as_str().map(str::to_string))
+                        .collect()
+                })
+                .unwrap_or_default();
             json!({
                 "cell": name,
                 "version": admin["version"],
                 "machines": names("machines"),
                 "plcs": names("plcs"),
+                "g05": g05,
                 "started_unix_ms": admin["started_unix_ms"],
             })
         })

@@ -16,6 +16,7 @@ fn kind(name: &str) -> &'static str {
         Some("css") => "text/css; charset=utf-8",
         Some("svg") => "image/svg+xml",
         Some("png") => "image/png",
+        Some("ico") => "image/x-icon",
         _ => "application/octet-stream",
     }
 }
@@ -34,6 +35,12 @@ fn serve(name: &str) -> Response {
 /// `/`: the single page.
 pub async fn index() -> Response {
     serve("index.html")
+}
+
+/// `/favicon.ico`: where a browser looks for the icon when a page names none (the pages
+/// name `/assets/favicon.svg`), so that the request never ends in a 404.
+pub async fn favicon() -> Response {
+    serve("favicon.ico")
 }
 
 /// `/assets/FILE`.

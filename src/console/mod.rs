@@ -277,6 +277,7 @@ pub fn router(console: Arc<Console>) -> Router {
     Router::new()
         .route("/", get(assets::index))
         .route("/assets/{file}", get(assets::file))
+        .route("/favicon.ico", get(assets::favicon))
         .route("/health", get(health))
         .route("/metrics", get(metrics))
         .route("/api/v1/me", get(me))

@@ -553,5 +553,49 @@ async fn the_overview_of_a_cell_of_300_machines_answers_and_the_status_route_liv
     gw.stop().await;
 }
 
+/// What the pages need to show each machine as it is: the machines that take G05 streams
+/// (the others show no G05 at all), and the icon a browser asks for, served from the binary
+/// rather than answered 404.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_cells_say_which_machines_take_g05_and_the_favicon_is_served() {
+    let gw = Gateway::start(|_, _| {}).await;
+    let mut b = Browser::new(&gw.url);
+    b.me().await;
+    let (_, cells) = b.get("/api/v1/cells").await;
+    // mill-2 alone has a g05 table in the default cell.
+    assert_eq!(cells[0]["g05"], json!(["mill-2"]), "{cells}");
+
+    for (path, kind) in [
+        ("/favicon.ico", "image/x-icon"),
+        ("/assets/favicon.svg", "image/svg+xml"),
+    ] {
+        let r = b.http.get(format!("{}{path}", gw.url)).send().await.unwrap();
+        assert_eq!(r.status(), 200, "{path}");
+        assert_eq!(
+            r.headers()[reqwest::header::CONTENT_TYPE].to_str().unwrap(),
+            kind,
+            "{path}"
+        );
+        let body = r.bytes().await.unwrap();
+        if path.ends_with(".ico") {
+            // An ICO directory of one image, a PNG.
+            assert_eq!(&body[..4], &[0, 0, 1, 0], "{path}");
+            assert!(body.windows(3).any(|w| w == b"PNG"), "{path}");
+        } else {
+            assert!(body.starts_with(b"<svg"), "{path}");
+        }
+    }
+    // The page names its icon, on its own origin.
+    let (_, index) = b.get("/").await;
+    assert!(
+        index
+            .as_str()
+            .unwrap()
+            .contains(r#"<link rel="icon" href="/assets/favicon.svg""#),
+        "{index}"
+    );
+    gw.stop().await;
+}
+
 #[path = "door.rs"]
 mod door;

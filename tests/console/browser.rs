@@ -349,6 +349,16 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
     .await
     .unwrap();
     let keys = cellgate::bus::keys::CellKeys::new("cellgate", "demo").unwrap();
+    // Its simulated operator would reset it at once: keep it in alarm for the pictures.
+    let off = cellgate_core::pb::SimAutostart { on: false };
+    let replies = session
+        .get(keys.sim("mill-1", cellgate::bus::keys::SimLeaf::Autostart))
+        .payload(prost::Message::encode_to_vec(&off))
+        .encoding(cellgate::bus::payload::encoding::<cellgate_core::pb::SimAutostart>())
+        .timeout(Duration::from_secs(10))
+        .await
+        .unwrap();
+    while replies.recv_async().await.is_ok() {}
     let replies = session
         .get(keys.sim("mill-1", cellgate::bus::keys::SimLeaf::Alarm))
         .timeout(Duration::from_secs(10))
@@ -358,7 +368,8 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
     wait_js(
         &c,
         "the alarm shows on mill-1's tile",
-        "(document.querySelector('[data-tile=machine][data-name=\"mill-1\"] [data-field=alarm]')||{}).textContent",
+        "(document.querySelector('[data-tile=machine][data-name=\"mill-1\"] [data-field=alarm]')||{}).textContent && \
+         document.querySelector('#health [data-field=alarms]')",
     )
     .await;
     screenshot(&c, "overview-alarm").await;
@@ -690,4 +701,236 @@ async fn the_site_console_shows_two_gateways_cells_in_the_browser() {
         gw.stop().await;
     }
     router.close().await.unwrap();
+}
+
+/// The state at a glance, without a contradiction: at rest no tile shows an alarm label, the
+/// machine count is said once, G05 shows only on the machine that takes G05 streams, and a
+/// console without users offers no "Log out". With mill-1 in alarm the banner still says
+/// every link is up and names the alarm on a line of its own, the tile holds the alarm's
+/// whole text, and the machine page says it; after a reset, none of it. Right after a short
+/// job ends, the machine page shows its end at once: out of the queue (no "ACTIVE" left
+/// behind), in the recent jobs as completed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
+    use cellgate::bus::keys::SimLeaf;
+    use cellgate::client::{Client as BusClient, ConnectOptions};
+    use cellgate_core::pb;
+
+    provider();
+    let Some((_driver, c)) = browser().await else {
+        return;
+    };
+    let gw = Gateway::start(|_, _| {}).await;
+    let bus = BusClient::connect(&ConnectOptions {
+        endpoint: gw.bus.clone(),
+        ..ConnectOptions::default()
+    })
+    .await
+    .unwrap();
+    let no = None::<&pb::SimAutostart>;
+
+    c.goto(&format!("{}/#/", gw.url)).await.unwrap();
+    wait_js(
+        &c,
+        "every link is up",
+        "(document.querySelector('#health [data-field=links]')||{}).textContent?.includes('All 3 machine links up')",
+    )
+    .await;
+    let at_rest = c
+        .execute(
+            "const shown = (el) => el && el.offsetParent !== null;
+             const tiles = [...document.querySelectorAll('article[data-tile=machine]')];
+             return {
+               alarmLabels: tiles.filter((t) => shown(t.querySelector('.alarm-row'))).map((t) => t.dataset.name),
+               g05: tiles.filter((t) => shown(t.querySelector('.g05-row'))).map((t) => t.dataset.name),
+               counts: [...document.querySelectorAll('main *')].filter((e) => shown(e) && e.children.length === 0 && /^3 machines$/.test(e.textContent.trim())).length,
+               alarmsLine: !!document.querySelector('#health [data-field=alarms]'),
+               logout: !!document.querySelector('#logout') || [...document.querySelectorAll('#user button')].some((b) => b.textContent.includes('Log out')),
+               noLogin: document.querySelector('#no-login')?.textContent,
+             };",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(at_rest["alarmLabels"], json!([]), "{at_rest}");
+    assert_eq!(at_rest["g05"], json!(["mill-2"]), "{at_rest}");
+    assert_eq!(at_rest["counts"], 1, "the machine count once: {at_rest}");
+    assert_eq!(at_rest["alarmsLine"], false, "{at_rest}");
+    assert_eq!(at_rest["logout"], false, "{at_rest}");
+    assert_eq!(at_rest["noLogin"], "No login", "{at_rest}");
+
+    // mill-1 in alarm, its operator away (autostart off) so that it stays.
+    bus.sim_control(
+        "mill-1",
+        SimLeaf::Autostart,
+        Some(&pb::SimAutostart { on: false }),
+    )
+    .await
+    .unwrap();
+    bus.sim_control("mill-1", SimLeaf::Alarm, no).await.unwrap();
+    wait_js(
+        &c,
+        "the banner names the alarm apart from the links",
+        "(document.querySelector('#health [data-field=alarms]')||{}).textContent?.includes('1 machine in alarm: mill-1')",
+    )
+    .await;
+    let banner = c
+        .execute(
+            "return document.querySelector('#health [data-field=links]').textContent;",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert!(
+        banner.as_str().unwrap().contains("All 3 machine links up"),
+        "a machine in alarm has its link up: {banner}"
+    );
+    let message = bus
+        .status(Some("mill-1"))
+        .await
+        .unwrap()
+        .remove(0)
+        .last_alarm
+        .expect("mill-1's alarm in its status")
+        .message;
+    let tile = wait_js(
+        &c,
+        "the tile holds the alarm",
+        "(() => { const r = document.querySelector('[data-tile=machine][data-name=\"mill-1\"] .alarm-row');
+           if (!r || r.hidden || !r.textContent.includes('In alarm')) return null;
+           const t = r.querySelector('[data-field=alarm]');
+           return { text: r.textContent, title: r.title, clipped: t.scrollWidth > t.clientWidth + 1 || r.scrollWidth > r.clientWidth + 1 }; })()",
+    )
+    .await;
+    assert!(
+        tile["text"].as_str().unwrap().contains(&message),
+        "the whole alarm text {message:?}: {tile}"
+    );
+    assert!(
+        tile["title"].as_str().unwrap().contains(&message),
+        "{tile}"
+    );
+    assert_eq!(tile["clipped"], false, "{tile}");
+    c.goto(&format!("{}/#/cell/demo/machine/mill-1", gw.url))
+        .await
+        .unwrap();
+    wait_js(
+        &c,
+        "the machine page says the alarm and its cause",
+        "(document.querySelector('.page-head [data-field=alarm]')||{}).textContent?.includes('In alarm') && \
+         [...document.querySelectorAll('dt')].some((d) => d.textContent === 'Alarm cause')",
+    )
+    .await;
+
+    // After a reset: no alarm anywhere, and no alarm cause on the machine page.
+    bus.sim_control("mill-1", SimLeaf::Reset, no).await.unwrap();
+    wait_js(
+        &c,
+        "the machine page shows no alarm after the reset",
+        "!document.querySelector('.page-head [data-field=alarm]') && \
+         (document.querySelector('.page-head [data-field=link]')||{}).textContent === 'IDLE' && \
+         ![...document.querySelectorAll('dt')].some((d) => d.textContent === 'Alarm cause')",
+    )
+    .await;
+    c.goto(&format!("{}/#/", gw.url)).await.unwrap();
+    wait_js(
+        &c,
+        "the overview shows no alarm after the reset",
+        "(() => { const r = document.querySelector('[data-tile=machine][data-name=\"mill-1\"] .alarm-row');
+           return r && r.hidden && !document.querySelector('#health [data-field=alarms]')
+             && document.querySelector('#health').classList.contains('ok'); })()",
+    )
+    .await;
+
+    // A short job: it waits for the CNC to read (the operator is away), then is read at once.
+    bus.program_put("O7001", PROGRAM.as_bytes()).await.unwrap();
+    bus.program_release("O7001", "1", pb::RevisionState::Released, String::new())
+        .await
+        .unwrap();
+    c.goto(&format!("{}/#/cell/demo/machine/mill-1", gw.url))
+        .await
+        .unwrap();
+    wait_css(&c, "#sec-queue").await;
+    let request = pb::JobRequest {
+        program: Some(pb::job_request::Program::Library("O7001".to_string())),
+        request_id: cellgate::client::new_request_id(),
+        ..Default::default()
+    };
+    let (accepted, follower) = bus.submit("mill-1", &request).await.unwrap();
+    follower.close().await;
+    let job = accepted.job_id;
+    wait_css(&c, &format!("tr.active[data-job=\"{job}\"]")).await;
+    // The page's own clock: when the job's end reached the browser (on a stream of its own),
+    // and when the page stopped showing the job as active and showed it completed.
+    c.execute(
+        "const id = arguments[0];
+         const rec = window.__rec = { t0: null, gone: null, done: null, open: false };
+         const es = new EventSource('/api/v1/cells/demo/events?machine=mill-1');
+         es.onopen = () => { rec.open = true; };
+         es.addEventListener('job', (e) => {
+           const ev = JSON.parse(e.data);
+           if (ev.job_id === id && ev.completed && rec.t0 === null) rec.t0 = performance.now();
+         });
+         const check = () => {
+           const now = performance.now();
+           const active = document.querySelector(`#sec-queue ~ * tr[data-job=\"${id}\"], [data-field=active-job]`);
+           if (!active && rec.gone === null) rec.gone = now;
+           if (document.querySelector(`tr[data-job=\"${id}\"][data-state=completed]`) && rec.done === null) rec.done = now;
+         };
+         new MutationObserver(check).observe(document.querySelector('main'), { subtree: true, childList: true, characterData: true });
+         return true;",
+        vec![json!(job)],
+    )
+    .await
+    .unwrap();
+    wait_js(&c, "the recorder's stream is open", "window.__rec.open").await;
+    bus.sim_control("mill-1", SimLeaf::Read, no).await.unwrap();
+    let rec = wait_js(
+        &c,
+        "the job ended on the page",
+        "window.__rec.t0 !== null && window.__rec.gone !== null && window.__rec.done !== null && window.__rec",
+    )
+    .await;
+    let after = |k: &str| rec[k].as_f64().unwrap() - rec["t0"].as_f64().unwrap();
+    // One render after the event (at most 4 a second), not the page's re-read 600 ms later.
+    assert!(
+        after("gone") < 450.0,
+        "the queue showed the ended job as active {:.0} ms on: {rec}",
+        after("gone")
+    );
+    assert!(
+        after("done") < 450.0,
+        "the recent jobs showed the job completed {:.0} ms on: {rec}",
+        after("done")
+    );
+    let page = c
+        .execute(
+            "return document.querySelector('main').innerText;",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert!(!page.as_str().unwrap().contains("ACTIVE"), "{page}");
+
+    // Pages that do not stream say so, not "off".
+    c.goto(&format!("{}/#/cell/demo/programs", gw.url))
+        .await
+        .unwrap();
+    wait_css(&c, "tr[data-program=\"O7001\"]").await;
+    let conn = c
+        .execute(
+            "return [document.querySelector('#conn .conn-text').textContent, document.querySelector('#conn').title];",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(conn[0], "Not live", "{conn}");
+    assert!(
+        conn[1].as_str().unwrap().contains("does not update by itself"),
+        "{conn}"
+    );
+    only_own_origin(&c, &gw.url).await;
+    c.close().await.unwrap();
+    bus.close().await;
+    gw.stop().await;
 }

@@ -81,8 +81,14 @@ function renderTopbar() {
     items.push(h('a', { href: `${state.me.mtconnect}current`, id: 'mtconnect', rel: 'noopener' }, 'MTConnect'));
   }
   nav.append(...items);
+  // Only a password login can be ended: a console without users has none, and a client
+  // certificate logs the browser in again at once.
+  if (state.me.via === 'none') {
+    user.append(h('span', { class: 'who muted', id: 'no-login', title: 'This console has no users: anyone who reaches it may do everything (docs/console.md, Who may do what).' }, 'No login'));
+    return;
+  }
   user.append(h('span', { class: 'who', title: state.me.via ? `via ${state.me.via}` : null }, state.me.user || '(anonymous)'),
-    h('button', { type: 'button', class: 'small', onclick: (e) => logout(e.currentTarget) }, 'Log out'));
+    state.me.via === 'password' ? h('button', { type: 'button', class: 'small', id: 'logout', onclick: (e) => logout(e.currentTarget) }, 'Log out') : null);
 }
 
 async function logout(btn) {
@@ -97,9 +103,10 @@ async function logout(btn) {
   });
 }
 
-onConnectionChange(({ state: s, text }) => {
+onConnectionChange(({ state: s, text, title }) => {
   const el = $('#conn');
   el.dataset.state = s;
+  el.title = title || '';
   setText($('.conn-text', el), text);
 });
 

@@ -10,6 +10,8 @@ const names = (list) => (list || []).map((x) => (typeof x === 'string' ? x : x.m
 export const cellInfo = (cell) => state.cells.find((c) => c.cell === cell);
 export const machinesOf = (cell) => names(cellInfo(cell)?.machines);
 export const plcsOf = (cell) => names(cellInfo(cell)?.plcs);
+// Whether a machine takes G05 streams (its cell file has a g05 table), or showed one.
+export const takesG05 = (cell, machine, status) => !!status?.g05 || (cellInfo(cell)?.g05 || []).includes(machine);
 
 // ---- DOM ----------------------------------------------------------------------------
 
@@ -281,7 +283,12 @@ export const PROTOCOL = {
 };
 export const protocolName = (p) => PROTOCOL[p] || enumWord(p, 'PROTOCOL_') || '—';
 export const isProtocolA = (p) => p === 'PROTOCOL_A' || p === 'PROTOCOL_EXPANSION_A';
-export const linkUp = (s) => s === 'LINK_STATE_IDLE' || s === 'LINK_STATE_SENDING' || s === 'LINK_STATE_RECEIVING';
+// A link is up while the remote buffer answers: in alarm too (it answers with its alarm),
+// which is counted apart as the machine's state, not as a link lost.
+export const linkUp = (s) => s === 'LINK_STATE_IDLE' || s === 'LINK_STATE_SENDING' || s === 'LINK_STATE_RECEIVING' || s === 'LINK_STATE_ALARM';
+export const inAlarm = (s) => s === 'LINK_STATE_ALARM';
+// Whether an AlarmEvent reports an alarm (a reset reports the end of one).
+export const isAlarm = (a) => !!a && a.kind !== 'ALARM_KIND_CNC_RESET';
 
 export function who(o) {
   if (!o || (!o.user && !o.via)) return '—';
@@ -363,11 +370,12 @@ export const onConnectionChange = (fn) => { connListener = fn; };
 
 function connSummary() {
   const all = Array.from(lives);
-  if (!all.length) return { state: 'none', text: 'Live: off' };
-  if (all.every((l) => l.open)) return { state: 'ok', text: 'Live: connected' };
+  // A page without an event stream is not a lost connection: say what it is.
+  if (!all.length) return { state: 'none', text: 'Not live', title: 'This page shows what it read when it opened and does not update by itself: reload it for the latest.' };
+  if (all.every((l) => l.open)) return { state: 'ok', text: 'Live: connected', title: 'This page updates as the cell publishes.' };
   const next = Math.min(...all.filter((l) => !l.open).map((l) => l.retryAt || Date.now()));
   const s = Math.max(0, Math.round((next - Date.now()) / 1000));
-  return { state: 'bad', text: s > 0 ? `Live: reconnecting in ${s} s` : 'Live: connecting…' };
+  return { state: 'bad', text: s > 0 ? `Live: reconnecting in ${s} s` : 'Live: connecting…', title: 'The page lost its event stream: what it shows may be out of date until it is back.' };
 }
 export const connectionChanged = () => connListener(connSummary());
 

@@ -3,7 +3,7 @@
 import {
   h, fill, api, can, enc, cellPath, query, schedule, unschedule, setText, field, select, table, scroller,
   act, notice, num, bytes, rate, dateTime, clock, duration, linkWord, protocolName, isProtocolA,
-  alarmText, enumWord, jobKind, who, b64text, revState, svg, polyPoints, extent,
+  alarmText, enumWord, jobKind, who, b64text, revState, svg, polyPoints, extent, inAlarm, isAlarm, takesG05,
 } from './lib.js';
 
 export async function renderMachine(ctx, cell, name) {
@@ -18,13 +18,28 @@ export async function renderMachine(ctx, cell, name) {
   if (!ctx.alive) return;
   const jobs = new Map(); // job_id → latest JobEvent
   const origins = new Map(); // job_id → JobOrigin (progress events carry none)
+  // Jobs whose end (completed, failed, cancelled) was seen: the end is final, so a queue
+  // read a moment before it, or a progress event coalesced behind it, never shows them as
+  // running again.
+  const ended = new Set();
+  const isEnd = (ev) => !!(ev.completed || ev.failed || ev.cancelled);
+  const takeJob = (ev) => {
+    if (ev.origin) origins.set(ev.job_id, ev.origin);
+    if (isEnd(ev)) ended.add(ev.job_id);
+    else if (ended.has(ev.job_id)) return;
+    const old = jobs.get(ev.job_id);
+    if (!old || isEnd(ev) || (!isEnd(old) && num(old.unix_ms) <= num(ev.unix_ms))) jobs.set(ev.job_id, ev);
+  };
   const takeJobs = (list) => {
-    for (const ev of list || []) {
-      if (!jobs.has(ev.job_id) || num(jobs.get(ev.job_id).unix_ms) <= num(ev.unix_ms)) jobs.set(ev.job_id, ev);
-      if (ev.origin) origins.set(ev.job_id, ev.origin);
-    }
+    for (const ev of list || []) takeJob(ev);
+  };
+  const dropEnded = (q) => {
+    if (!q) return;
+    if (q.active && ended.has(q.active.job_id)) q.active = null;
+    if (q.waiting) q.waiting = q.waiting.filter((j) => !ended.has(j.job_id));
   };
   takeJobs(snap.jobs);
+  dropEnded(snap.queue);
 
   // Two columns on wide screens: jobs on the left, the link and its signals on the right.
   const colA = h('div', { class: 'col' });
@@ -42,7 +57,11 @@ export async function renderMachine(ctx, cell, name) {
       h('span', { class: `badge st-${word.toLowerCase()}`, 'data-field': 'link', 'data-state': st.link_state }, word),
       h('span', null, protocolName(st.protocol)),
       st.waiting_for ? h('span', { class: 'muted' }, `waiting for ${st.waiting_for} since ${clock(st.waiting_since_unix_ms)}`) : null,
+      snap.queue?.active ? h('span', { 'data-field': 'active-job' }, `job ${snap.queue.active.job_id} active`) : null,
       h('span', { class: 'muted' }, `as of ${clock(st.unix_ms)}`)),
+    // The alarm the machine is in, whole; none after a reset.
+    inAlarm(st.link_state) ? h('p', { class: 'warn-text', 'data-field': 'alarm' }, 'In alarm: ',
+      isAlarm(st.last_alarm) ? `${alarmText(st.last_alarm)} (since ${clock(st.last_alarm.unix_ms)})` : 'the machine reports an alarm') : null,
     st.storage_fault ? h('p', { class: 'warn-text' }, `Storage fault: ${st.storage_fault} — submits are refused meanwhile.`) : null]);
     fill(statusBox, satView(st), countersView(st.counters || {}), ioView(st));
   };
@@ -65,11 +84,17 @@ export async function renderMachine(ctx, cell, name) {
           notice(`Cancel of job ${j.job_id} requested.`);
           refetch();
         }) }, 'Cancel') : null;
-      const total = num(j.bytes_total);
-      const sent = num(j.bytes_sent);
+      let total = num(j.bytes_total);
+      let sent = num(j.bytes_sent);
       let prog = h('span', { class: 'muted' }, 'waiting');
       const tr = h('tr', { 'data-job': j.job_id, class: active ? 'active' : null });
       if (active) {
+        // The latest progress event may be newer than the queue read.
+        const last = jobs.get(j.job_id);
+        if (last?.progress) {
+          sent = Math.max(sent, num(last.progress.bytes_sent));
+          total = num(last.progress.bytes_total) || total;
+        }
         const p = h('progress', { 'data-field': 'progress', max: String(total || 1), value: String(Math.min(sent, total || 1)), 'aria-label': `Progress of job ${j.job_id}` });
         const txt = h('span', { class: 'small-text' });
         prog = h('span', { class: 'prog' }, p, txt);
@@ -159,9 +184,9 @@ export async function renderMachine(ctx, cell, name) {
   const punched = snap.punched || [];
   const renderPunched = () => punchBox.replaceChildren(punchedView(cell, name, punched));
 
-  // ---- G05
+  // ---- G05, where the machine takes G05 streams
   const g05 = g05Panel();
-  colB.append(sec('G05 stream', 'sec-g05', g05.el));
+  if (takesG05(cell, name, snap.status)) colB.append(sec('G05 stream', 'sec-g05', g05.el));
   if (snap.status?.g05) g05.push(snap.status.g05);
 
   // ---- utilisation
@@ -194,6 +219,7 @@ export async function renderMachine(ctx, cell, name) {
         if (!ctx.alive) return;
         snap = s;
         takeJobs(s.jobs);
+        dropEnded(snap.queue);
         punched.splice(0, punched.length, ...(s.punched || []));
         schedule('m:all', renderAll);
       } catch { /* the next event tries again */ }
@@ -216,9 +242,17 @@ export async function renderMachine(ctx, cell, name) {
   });
   live.on('job', (ev) => {
     if (!mine(ev)) return;
-    if (ev.origin) origins.set(ev.job_id, ev.origin);
-    jobs.set(ev.job_id, ev);
-    if (ev.progress && activeRefs && activeRefs.id === ev.job_id) {
+    if (!isEnd(ev) && ended.has(ev.job_id)) return;
+    takeJob(ev);
+    if (isEnd(ev)) {
+      // The job's end shows at once, everywhere on the page: out of the queue, into the
+      // recent jobs with how it ended. The queue is read again to be sure.
+      dropEnded(snap.queue);
+      schedule('m:status', renderStatus);
+      schedule('m:queue', renderQueue);
+      schedule('m:recent', renderRecent);
+      refetch();
+    } else if (ev.progress && activeRefs && activeRefs.id === ev.job_id) {
       schedule('m:progress', () => {
         if (!activeRefs || activeRefs.id !== ev.job_id) return;
         const total = num(ev.progress.bytes_total) || activeRefs.total || 1;
@@ -226,9 +260,6 @@ export async function renderMachine(ctx, cell, name) {
         activeRefs.p.value = Math.min(num(ev.progress.bytes_sent), total);
         setText(activeRefs.txt, progressText(num(ev.progress.bytes_sent), total, num(ev.progress.rate_bps)));
       });
-    } else if (ev.completed && activeRefs && activeRefs.id === ev.job_id) {
-      activeRefs.p.value = activeRefs.p.max;
-      refetch();
     } else if (!ev.progress) {
       refetch();
     }
@@ -299,7 +330,8 @@ function satView(st) {
   return h('div', null, h('h3', null, 'Last SAT'), dl([
     ['Operation', opt(s.remote, (r) => (r ? 'remote' : 'tape'))],
     ['Buffer status', h('span', { class: s.buffer_status === 'BUFFER_STATUS_ALARM' ? 'warn-text' : null }, bufWord + digit(s.buffer_status_digit))],
-    ['Alarm cause', s.buffer_status === 'BUFFER_STATUS_ALARM' ? enumWord(s.alarm_cause, 'ALARM_CAUSE_') + digit(s.alarm_cause_digit) : `— (${enumWord(s.alarm_cause, 'ALARM_CAUSE_')})`],
+    // SAT byte 3 means something only in alarm status (§4.4.2): elsewhere it is no cause.
+    s.buffer_status === 'BUFFER_STATUS_ALARM' ? ['Alarm cause', h('span', { class: 'warn-text' }, enumWord(s.alarm_cause, 'ALARM_CAUSE_') + digit(s.alarm_cause_digit))] : null,
     ['Bytes buffered', opt(s.bytes_buffered, bytes)],
     ['Packet length', opt(s.packet_n, (n) => (Number(n) === 0 ? 'Protocol A' : `${256 * n} bytes (n = ${n})`))],
   ]), scroller(params));

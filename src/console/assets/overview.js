@@ -3,15 +3,15 @@
 // and the visible tiles in batches.
 import {
   h, fill, api, enc, cellPath, cellNames, cellInfo, machinesOf, plcsOf, schedule, unschedule, setText,
-  field, select, num, bytes, rate, linkWord, linkUp, protocolName, alarmText, enumWord, isProtocolA,
-  dateTime, nextId,
+  field, select, num, bytes, rate, linkWord, linkUp, inAlarm, isAlarm, protocolName, alarmText, enumWord, isProtocolA,
+  dateTime, clock, nextId, takesG05,
 } from './lib.js';
 
 const PAGE = 96;
 const MAX_LIVE = 4;
 const POLL_MS = 15000;
 const STATE_FILTERS = [
-  ['', 'All'], ['up', 'Up (idle, sending, receiving)'], ['notup', 'Not up (down, connecting, alarm)'],
+  ['', 'All'], ['up', 'Link up (idle, sending, receiving, alarm)'], ['notup', 'Link not up (down, connecting)'],
   ['LINK_STATE_DOWN', 'Down'], ['LINK_STATE_CONNECTING', 'Connecting'], ['LINK_STATE_IDLE', 'Idle'],
   ['LINK_STATE_SENDING', 'Sending'], ['LINK_STATE_RECEIVING', 'Receiving'], ['LINK_STATE_ALARM', 'Alarm'],
 ];
@@ -57,18 +57,29 @@ export async function renderOverview(ctx, onlyCell) {
     unschedule('ov:');
   });
 
+  // Links and alarms are told apart: a machine in alarm still has its link up (the remote
+  // buffer answers with its alarm), so "links up" never counts it out, and the alarms are
+  // named on a line of their own.
   const renderHealth = () => {
     const rows = models.map(cellHealth);
     const total = rows.reduce((a, r) => a + r.n, 0);
     const up = rows.reduce((a, r) => a + r.up, 0);
+    const alarms = rows.flatMap((r) => (models.length > 1 ? r.alarms.map((n) => `${n} (${r.cell})`) : r.alarms));
     const stDown = rows.reduce((a, r) => a + r.stationsDown, 0);
-    const ok = up === total && stDown === 0 && !models.some((m) => m.failed);
+    const ok = up === total && !alarms.length && stDown === 0 && !models.some((m) => m.failed);
     health.className = `health ${ok ? 'ok' : 'bad'}`;
+    const links = up === total ? `All ${total} machine links up` : `${up} of ${total} machine links up`;
     fill(health,
-      h('p', { class: 'health-main' }, h('span', { class: 'icon', 'aria-hidden': 'true' }, ok ? '✔' : '⚠'),
-        ok ? `All ${total} machine links up` : `${up} of ${total} machine links up` + (stDown ? `, ${stDown} PLC station(s) down` : '')),
+      h('p', { class: 'health-main', 'data-field': 'links' }, h('span', { class: 'icon', 'aria-hidden': 'true' }, up === total && !stDown ? '✔' : '⚠'),
+        links + (stDown ? `, ${stDown} PLC station(s) down` : '')),
+      alarms.length ? h('p', { class: 'health-main', 'data-field': 'alarms' }, h('span', { class: 'icon', 'aria-hidden': 'true' }, '⚠'),
+        `${alarms.length} machine${alarms.length === 1 ? '' : 's'} in alarm: ${alarms.join(', ')}`) : null,
       models.length > 1 ? h('ul', null, rows.map((r) => h('li', null, r.text))) : null);
-    for (const [i, m] of models.entries()) setText(m.healthLine, rows[i].text);
+    // With one cell the banner says it all; the cell's own line would repeat it.
+    for (const [i, m] of models.entries()) {
+      setText(m.healthLine, rows[i].text);
+      m.healthLine.hidden = models.length === 1;
+    }
   };
   for (const m of models) {
     m.touch = (name) => {
@@ -260,7 +271,10 @@ function renderTiles(m) {
   m.tilesBox.replaceChildren(frag);
   if (m.failed) m.tilesBox.append(h('p', { class: 'muted' }, 'This cell could not be read: see the message above.'));
   else if (!names.length) m.tilesBox.append(h('p', { class: 'muted' }, m.machines.size ? 'No machine matches the filter.' : 'This cell has no machines.'));
-  for (const pager of [m.pagerTop, m.pagerBottom]) renderPager(m, pager, names.length, pages);
+  renderPager(m, m.pagerTop, names.length, pages);
+  // A second pager under the tiles only when there are pages to turn.
+  m.pagerBottom.hidden = pages < 2;
+  if (pages > 1) renderPager(m, m.pagerBottom, names.length, pages);
 
   m.plcTiles = new Map();
   m.plcBox.replaceChildren();
@@ -299,18 +313,23 @@ function cellHealth(m) {
   let n = 0;
   let up = 0;
   const by = {};
-  for (const mm of m.machines.values()) {
+  const alarms = [];
+  for (const name of m.order) {
+    const mm = m.machines.get(name);
+    if (!mm) continue;
     n++;
     const s = mm.status?.link_state || 'LINK_STATE_UNSPECIFIED';
     if (linkUp(s)) up++;
     else by[s] = (by[s] || 0) + 1;
+    if (inAlarm(s)) alarms.push(name);
   }
   let stationsDown = 0;
   for (const p of m.plcs.values()) for (const s of p.stations || []) if (!s.up) stationsDown++;
   const parts = Object.entries(by).map(([s, c]) => `${c} ${linkWord(s).toLowerCase()}`);
   let text = m.failed ? `${m.cell}: not readable` : n === up ? `${m.cell}: all ${n} links up` : `${m.cell}: ${up} of ${n} links up (${parts.join(', ')})`;
+  if (alarms.length) text += `; in alarm: ${alarms.join(', ')}`;
   if (stationsDown) text += `; ${stationsDown} PLC station(s) down`;
-  return { n, up, stationsDown, text };
+  return { cell: m.cell, n, up, alarms, stationsDown, text };
 }
 
 // ---- machine tile --------------------------------------------------------------------
@@ -352,21 +371,35 @@ function buildTile(cell, mm) {
   r.jobTail = h('div', { class: 'job-tail' }, r.rate);
   r.queue = h('span', { class: 'muted', 'data-field': 'queue' });
   r.alarm = h('span', { 'data-field': 'alarm' });
-  r.alarmRow = h('div', { class: 'alarm-row' }, h('span', { class: 'muted' }, 'Alarm: '), r.alarm);
+  r.alarmLabel = h('span', { class: 'alarm-label' });
+  r.alarmRow = h('div', { class: 'alarm-row', hidden: true }, r.alarmLabel, r.alarm);
   r.di = bitsBox('DI');
   r.do = bitsBox('DO');
   r.g05 = h('span', { 'data-field': 'g05' });
+  r.g05Row = h('div', { class: 'g05-row', hidden: true }, h('span', { class: 'muted' }, 'G05: '), r.g05);
   r.wait = h('div', { class: 'muted small-text', 'data-field': 'waiting' });
   r.el = h('article', { 'data-tile': 'machine', 'data-cell': cell, 'data-name': mm.name, class: 'tile' },
     h('h3', null, h('a', { href: `#/cell/${enc(cell)}/machine/${enc(mm.name)}` }, mm.name)),
     h('div', { class: 'row' }, r.link, r.protocol, r.queue),
     r.jobBox, r.jobTail,
     r.alarmRow,
-    h('div', { class: 'row io-row' }, r.di.row, r.do.row),
-    h('div', { class: 'g05-row' }, h('span', { class: 'muted' }, 'G05: '), r.g05),
+    r.ioRow = h('div', { class: 'row io-row' }, r.di.row, r.do.row),
+    r.g05Row,
     r.wait);
+  r.cell = cell;
   updateTile(r, mm);
   return r;
+}
+
+// What the tile says of alarms: the alarm while the machine is in it; a past alarm (one
+// that no reset followed, such as a refused remote request) as past, with its time; after a
+// reset, nothing.
+function tileAlarm(st, a) {
+  if (inAlarm(st.link_state)) {
+    return { label: 'In alarm: ', text: isAlarm(a) ? alarmText(a) : 'the machine reports an alarm', active: true };
+  }
+  if (isAlarm(a)) return { label: `Last alarm ${clock(a.unix_ms)}: `, text: alarmText(a), active: false };
+  return null;
 }
 
 function updateTile(r, mm) {
@@ -384,6 +417,7 @@ function updateTile(r, mm) {
     const label = { running: 'Job', completed: 'Completed', failed: 'Failed', cancelled: 'Cancelled' }[j.phase];
     setText(r.jobName, `${label}: ${j.name || j.id}${j.reason ? ` (${j.reason})` : ''}`);
     r.jobBox.className = `job job-${j.phase}`;
+    r.jobTail.hidden = false;
     if (!r.progress.isConnected) r.jobTail.prepend(r.progress);
     if (j.total) {
       r.progress.max = j.total;
@@ -397,23 +431,29 @@ function updateTile(r, mm) {
   } else {
     setText(r.jobName, 'No job');
     r.jobBox.className = 'job job-none';
+    r.jobTail.hidden = true;
     if (r.progress.isConnected) r.progress.remove();
     setText(r.rate, '');
   }
   setText(r.queue, `queue ${num(st.jobs_waiting)}`);
   const a = mm.alarm;
-  setText(r.alarm, a ? alarmText(a) : '');
-  r.alarmRow.title = a ? `${alarmText(a)} (${dateTime(a.unix_ms)})` : '';
-  r.alarmRow.classList.toggle('has-alarm', !!a && a.kind !== 'ALARM_KIND_CNC_RESET');
+  const shown = tileAlarm(st, a);
+  r.alarmRow.hidden = !shown;
+  setText(r.alarmLabel, shown?.label);
+  setText(r.alarm, shown?.text);
+  // The whole text wraps on the tile; the title holds it with its time as well.
+  r.alarmRow.title = shown && isAlarm(a) ? `${alarmText(a)} (${dateTime(a.unix_ms)})` : '';
+  r.alarmRow.classList.toggle('has-alarm', !!shown?.active);
+  // DI and DO exist in the Protocol A family only (§4.4.1): elsewhere no row at all.
+  r.ioRow.hidden = !isProtocolA(st.protocol);
   if (isProtocolA(st.protocol)) {
     setBits(r.di, st.di_image, 'not read');
     setBits(r.do, st.do_image, 'not set');
-  } else {
-    setBits(r.di, null, 'n/a');
-    setBits(r.do, null, 'n/a');
   }
+  // G05 only where the machine takes G05 streams: elsewhere "none" would say nothing.
   const g = st.g05;
-  const g05 = g ? `${enumWord(g.state, 'G05_STATE_')} · buffer ${num(g.cnc_buffer)} · ${num(g.underruns)} underruns` : 'none';
+  r.g05Row.hidden = !takesG05(r.cell, mm.name, st);
+  const g05 = g ? `${enumWord(g.state, 'G05_STATE_')} · buffer ${num(g.cnc_buffer)} · ${num(g.underruns)} underruns` : 'no stream yet';
   setText(r.g05, g05);
   r.g05.title = g05;
   setText(r.wait, st.storage_fault ? `Storage fault: ${st.storage_fault}` : st.waiting_for ? `Waiting for ${st.waiting_for}` : '');
