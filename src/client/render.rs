@@ -617,12 +617,26 @@ pub fn program_table(programs: &[pb::ProgramInfo]) -> String {
         .map(|p| {
             vec![
                 p.name.clone(),
+                p.latest
+                    .as_ref()
+                    .filter(|r| !r.removed)
+                    .map_or_else(|| "-".to_string(), |r| r.number.to_string()),
                 p.size.to_string(),
                 date_time(p.modified_unix_ms),
+                if p.file.is_empty() {
+                    "-".to_string()
+                } else {
+                    p.file.clone()
+                },
             ]
         })
         .collect();
-    table(&["NAME", "BYTES", "MODIFIED"], &rows)
+    let mut out = table(&["NAME", "REV", "BYTES", "MODIFIED", "FILE"], &rows);
+    // Why a file of the folder is not its program's latest revision, where it is not.
+    for p in programs.iter().filter(|p| !p.note.is_empty()) {
+        out.push_str(&format!("{}: {}\n", p.name, p.note));
+    }
+    out
 }
 
 pub fn program_json(p: &pb::ProgramInfo) -> Value {
@@ -642,6 +656,8 @@ pub fn program_json(p: &pb::ProgramInfo) -> Value {
         "modified_unix_ms": p.modified_unix_ms,
         "latest": latest,
         "latest_released": p.latest_released,
+        "file": p.file,
+        "note": p.note,
     })
 }
 
