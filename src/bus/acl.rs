@@ -144,7 +144,11 @@ fn program_reads(keys: &CellKeys) -> Vec<Grant> {
         grant(Flow::Ingress, QUERY, keys.any_program_read()),
         grant(Flow::Egress, REPLY_AND_QUERYABLE, keys.any_program_read()),
         // The library's events: subscribed to, published by the gateway.
-        grant(Flow::Ingress, &["declare_subscriber"], vec![keys.program_events()]),
+        grant(
+            Flow::Ingress,
+            &["declare_subscriber"],
+            vec![keys.program_events()],
+        ),
         grant(Flow::Egress, &["put"], vec![keys.program_events()]),
     ]
 }

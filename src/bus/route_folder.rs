@@ -51,7 +51,11 @@ pub(crate) async fn publish_library_event(ctx: &RouteContext, mut event: pb::Lib
 }
 
 /// The library event of a store or removal that took.
-pub(crate) fn changed(kind: pb::LibraryEventKind, entry: &ProgramEntry, by: Option<pb::RequestOrigin>) -> pb::LibraryEvent {
+pub(crate) fn changed(
+    kind: pb::LibraryEventKind,
+    entry: &ProgramEntry,
+    by: Option<pb::RequestOrigin>,
+) -> pb::LibraryEvent {
     pb::LibraryEvent {
         kind: kind as i32,
         name: entry.name.clone(),
@@ -87,13 +91,19 @@ fn user_name(uid: u32) -> Option<String> {
         if rc != 0 || found.is_null() || pwd.pw_name.is_null() {
             return None;
         }
-        let name = std::ffi::CStr::from_ptr(pwd.pw_name).to_string_lossy().into_owned();
+        let name = std::ffi::CStr::from_ptr(pwd.pw_name)
+            .to_string_lossy()
+            .into_owned();
         Some(name.chars().take(128).collect())
     }
 }
 
 /// Follows the library's folder and every machine's drop folder until `stop`.
-pub(crate) fn spawn(ctx: &RouteContext, config: &CellConfig, stop: &CancellationToken) -> JoinSet<()> {
+pub(crate) fn spawn(
+    ctx: &RouteContext,
+    config: &CellConfig,
+    stop: &CancellationToken,
+) -> JoinSet<()> {
     let mut tasks = JoinSet::new();
     let programs = &config.programs;
     let poll = Duration::from_millis(u64::from(programs.poll_ms));
@@ -128,12 +138,25 @@ pub(crate) fn spawn(ctx: &RouteContext, config: &CellConfig, stop: &Cancellation
         };
         tracing::info!(machine = %m.name(), dir = %dir.display(), "drop folder followed: its files are queued to the machine");
         let followed = watch.spawn(stop.clone());
-        tasks.spawn(follow_drop(ctx.clone(), m.name().to_string(), dir, followed));
+        tasks.spawn(follow_drop(
+            ctx.clone(),
+            m.name().to_string(),
+            dir,
+            followed,
+        ));
     }
     tasks
 }
 
-fn audit_library(ctx: &RouteContext, action: &str, path: &Path, name: &str, detail: String, by: pb::RequestOrigin, outcome: Result<(), &LibraryError>) {
+fn audit_library(
+    ctx: &RouteContext,
+    action: &str,
+    path: &Path,
+    name: &str,
+    detail: String,
+    by: pb::RequestOrigin,
+    outcome: Result<(), &LibraryError>,
+) {
     ctx.audit(
         Audit {
             action,
@@ -187,13 +210,33 @@ async fn follow_library(ctx: RouteContext, mut followed: Followed) {
                             )
                         });
                         tracing::info!(program = %entry.name, %file, "program library: the folder's file taken as a revision");
-                        audit_library(&ctx, "program.store", &path, &name, detail, by.clone(), Ok(()));
-                        publish_library_event(&ctx, changed(pb::LibraryEventKind::Stored, &entry, Some(by))).await;
+                        audit_library(
+                            &ctx,
+                            "program.store",
+                            &path,
+                            &name,
+                            detail,
+                            by.clone(),
+                            Ok(()),
+                        );
+                        publish_library_event(
+                            &ctx,
+                            changed(pb::LibraryEventKind::Stored, &entry, Some(by)),
+                        )
+                        .await;
                     }
                     Ok(Taken::Unchanged | Taken::Nothing | Taken::Removed(_)) => {}
                     Err(e) => {
                         tracing::warn!(%file, error = %e, "program library: a file of the folder not taken; it is left as it is");
-                        audit_library(&ctx, "program.store", &path, &name, format!("from the folder: {file}"), by.clone(), Err(&e));
+                        audit_library(
+                            &ctx,
+                            "program.store",
+                            &path,
+                            &name,
+                            format!("from the folder: {file}"),
+                            by.clone(),
+                            Err(&e),
+                        );
                         publish_library_event(&ctx, refused(&name, &file, &e, by)).await;
                     }
                 }
@@ -208,7 +251,9 @@ async fn follow_library(ctx: RouteContext, mut followed: Followed) {
                             gone(&ctx, &followed, &name).await;
                         }
                     }
-                    Err(e) => tracing::warn!(error = %e, "program library: programs without a file not looked for"),
+                    Err(e) => {
+                        tracing::warn!(error = %e, "program library: programs without a file not looked for")
+                    }
                 }
             }
             Seen::Listed => {}
@@ -243,7 +288,9 @@ async fn follow_library(ctx: RouteContext, mut followed: Followed) {
 async fn gone(ctx: &RouteContext, followed: &Followed, file: &str) {
     let library = &ctx.library;
     let path = library.dir().join(file);
-    let name = library.program_of(file).unwrap_or_else(|_| file.to_string());
+    let name = library
+        .program_of(file)
+        .unwrap_or_else(|_| file.to_string());
     let by = pb::RequestOrigin {
         user: "(folder)".to_string(),
         via: "folder".to_string(),
@@ -252,8 +299,20 @@ async fn gone(ctx: &RouteContext, followed: &Followed, file: &str) {
         Ok(Taken::Removed(entry)) => {
             tracing::info!(program = %name, %file, "program library: the file was deleted from the folder; the program is removed, its revisions kept");
             let detail = format!("the file {file} was deleted from the folder");
-            audit_library(ctx, "program.remove", &path, &name, detail, by.clone(), Ok(()));
-            publish_library_event(ctx, changed(pb::LibraryEventKind::Removed, &entry, Some(by))).await;
+            audit_library(
+                ctx,
+                "program.remove",
+                &path,
+                &name,
+                detail,
+                by.clone(),
+                Ok(()),
+            );
+            publish_library_event(
+                ctx,
+                changed(pb::LibraryEventKind::Removed, &entry, Some(by)),
+            )
+            .await;
         }
         Ok(_) => {
             // Another file gives the name now (one of a conflict went): it is looked at again.
@@ -263,7 +322,15 @@ async fn gone(ctx: &RouteContext, followed: &Followed, file: &str) {
         }
         Err(e) => {
             tracing::warn!(%file, error = %e, "program library: the deletion of a file in the folder not taken");
-            audit_library(ctx, "program.remove", &path, &name, format!("the file {file} was deleted from the folder"), by.clone(), Err(&e));
+            audit_library(
+                ctx,
+                "program.remove",
+                &path,
+                &name,
+                format!("the file {file} was deleted from the folder"),
+                by.clone(),
+                Err(&e),
+            );
             publish_library_event(ctx, refused(&name, file, &e, by)).await;
         }
     }

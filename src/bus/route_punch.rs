@@ -230,7 +230,10 @@ impl PunchDesk {
             && punched.request.is_none()
             && let Some(dir) = &self.receive_dir
         {
-            match self.receive(dir, &program, &punched.library_name, unix_ms).await {
+            match self
+                .receive(dir, &program, &punched.library_name, unix_ms)
+                .await
+            {
                 Ok(file) => {
                     tracing::info!(machine = %self.machine, file = %file.display(), "punched program written to the receive folder");
                 }
@@ -268,11 +271,13 @@ impl PunchDesk {
         let stored_as = stored_as.to_string();
         tokio::task::spawn_blocking(move || {
             std::fs::create_dir_all(&dir)?;
-            let first = (!stored_as.is_empty() && !dir.join(&stored_as).exists())
-                .then_some(stored_as);
+            let first =
+                (!stored_as.is_empty() && !dir.join(&stored_as).exists()).then_some(stored_as);
             let name = first
                 .or_else(|| {
-                    library_name(&machine, o_number.as_deref(), unix_ms, |n| dir.join(n).exists())
+                    library_name(&machine, o_number.as_deref(), unix_ms, |n| {
+                        dir.join(n).exists()
+                    })
                 })
                 .ok_or_else(|| std::io::Error::other("every name for it is taken"))?;
             let path = dir.join(name);

@@ -89,7 +89,10 @@ fn stat_of(meta: &std::fs::Metadata) -> Stat {
 }
 
 /// The folder's files that count, with what they are now. Blocking.
-fn list(dir: &Path, takes: &(dyn Fn(&str) -> bool + Send + Sync)) -> std::io::Result<BTreeMap<String, Stat>> {
+fn list(
+    dir: &Path,
+    takes: &(dyn Fn(&str) -> bool + Send + Sync),
+) -> std::io::Result<BTreeMap<String, Stat>> {
     let mut out = BTreeMap::new();
     for item in std::fs::read_dir(dir)? {
         let item = item?;
@@ -153,7 +156,8 @@ impl FolderWatch {
         let mut next_scan = tokio::time::Instant::now();
         loop {
             let now_ms = pb::now_ms();
-            if tokio::time::Instant::now() >= next_scan || overflowed.swap(false, Ordering::Relaxed) {
+            if tokio::time::Instant::now() >= next_scan || overflowed.swap(false, Ordering::Relaxed)
+            {
                 let dir = self.dir.clone();
                 let takes = Arc::clone(&self.takes);
                 let listed = tokio::task::spawn_blocking(move || list(&dir, takes.as_ref()))
@@ -195,7 +199,11 @@ impl FolderWatch {
                                 "the folder cannot be read: nothing in it is taken until it can; \
                                  the library keeps what it has"
                             );
-                            let _ = out.send(Seen::Unreadable { error: e.to_string() }).await;
+                            let _ = out
+                                .send(Seen::Unreadable {
+                                    error: e.to_string(),
+                                })
+                                .await;
                         }
                     }
                 }

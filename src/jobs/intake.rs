@@ -164,9 +164,7 @@ impl JobsHandle {
                 origin.sha256 =
                     library::sha256_file(&self.journal.file_path(file)).map_err(read_error)?;
                 let suffix = self.checked_suffix(&Ok(report.clone()), s.append_eor)?;
-                let stem = path
-                    .file_stem()
-                    .map(|n| n.to_string_lossy().into_owned());
+                let stem = path.file_stem().map(|n| n.to_string_lossy().into_owned());
                 (report.o_number.or(stem), len, suffix.to_vec())
             }
             ProgramInput::Resume(job) => {

@@ -490,7 +490,9 @@ impl ProgramLibrary {
             path: objects.clone(),
             source,
         })?;
-        Ok(Arc::new(Index::open(&self.revisions_dir().join("index.redb"))?))
+        Ok(Arc::new(Index::open(
+            &self.revisions_dir().join("index.redb"),
+        )?))
     }
 
     /// Writes content under its hash, once. Blocking.
@@ -860,11 +862,7 @@ impl ProgramLibrary {
         if !seen_new {
             bytes += size;
         }
-        let programs = index
-            .latest_all()?
-            .iter()
-            .filter(|r| !r.removed)
-            .count() as u64
+        let programs = index.latest_all()?.iter().filter(|r| !r.removed).count() as u64
             + u64::from(new_program);
         for (what, limit, would) in [
             ("files", self.quota.files, programs),
@@ -889,7 +887,9 @@ impl ProgramLibrary {
     /// removed nor a file.
     fn entry_blocking(&self, name: &str, index: &Index) -> Result<ProgramEntry, LibraryError> {
         let path = self.path_of(name)?;
-        let meta = std::fs::metadata(&path).ok().filter(std::fs::Metadata::is_file);
+        let meta = std::fs::metadata(&path)
+            .ok()
+            .filter(std::fs::Metadata::is_file);
         let revisions = index.revisions(name)?;
         let latest = revisions.last().filter(|r| !r.removed);
         let (size, modified_unix_ms) = match (latest, &meta) {

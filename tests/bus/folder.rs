@@ -59,8 +59,7 @@ async fn event(events: &Sub) -> pb::LibraryEvent {
 
 /// No library event for `ms`.
 async fn quiet(events: &Sub, ms: u64) {
-    if let Ok(Ok(s)) = tokio::time::timeout(Duration::from_millis(ms), events.recv_async()).await
-    {
+    if let Ok(Ok(s)) = tokio::time::timeout(Duration::from_millis(ms), events.recv_async()).await {
         let e = pb::LibraryEvent::decode(s.payload().to_bytes().as_ref()).unwrap();
         panic!("unexpected library event {e:?}");
     }
@@ -97,7 +96,10 @@ async fn audit_until(cell: &RunningCell, check: impl Fn(&[pb::AuditRecord]) -> b
 }
 
 async fn read(cell: &RunningCell, name: &str) -> Vec<u8> {
-    match get(&cell.client, &cell.keys.program(name), None).await.as_slice() {
+    match get(&cell.client, &cell.keys.program(name), None)
+        .await
+        .as_slice()
+    {
         [Ok((_, bytes, _))] => bytes.clone(),
         other => panic!("{name}: {other:?}"),
     }
@@ -122,9 +124,7 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     assert_eq!(read(&cell, "O5555").await, v1);
 
     // A job names it as the library has it.
-    let events_m = cell
-        .subscribe(cell.keys.job_events("mill-1", "*"))
-        .await;
+    let events_m = cell.subscribe(cell.keys.job_events("mill-1", "*")).await;
     let request = pb::JobRequest {
         program: Some(pb::job_request::Program::Library("O5555".to_string())),
         ..Default::default()
@@ -136,7 +136,10 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     )
     .await;
     let kinds = follow(&events_m, &accepted.job_id, Duration::from_secs(60)).await;
-    assert!(matches!(kinds.last(), Some(Kind::Completed(_))), "{kinds:?}");
+    assert!(
+        matches!(kinds.last(), Some(Kind::Completed(_))),
+        "{kinds:?}"
+    );
 
     // Written to a temporary name and renamed into place: the temporary is never taken.
     let v2 = program(5556, 30);
@@ -144,7 +147,10 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     tokio::time::sleep(Duration::from_millis(700)).await;
     std::fs::rename(dir.join("O5556.nc.tmp"), dir.join("O5556.nc")).unwrap();
     let e = event(&events).await;
-    assert_eq!((e.name.as_str(), e.kind()), ("O5556", pb::LibraryEventKind::Stored));
+    assert_eq!(
+        (e.name.as_str(), e.kind()),
+        ("O5556", pb::LibraryEventKind::Stored)
+    );
     assert_eq!(read(&cell, "O5556").await, v2);
 
     // Written in place over about 1.5 s: one revision, of the whole file.
@@ -157,7 +163,10 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     }
     drop(f);
     let e = event(&events).await;
-    assert_eq!((e.name.as_str(), e.kind()), ("O5557", pb::LibraryEventKind::Stored));
+    assert_eq!(
+        (e.name.as_str(), e.kind()),
+        ("O5557", pb::LibraryEventKind::Stored)
+    );
     assert_eq!(e.revision.unwrap().size, v3.len() as u64);
     assert_eq!(read(&cell, "O5557").await, v3);
     quiet(&events, 800).await;
@@ -175,12 +184,18 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
         .map(|(_, bytes, _)| pb::ProgramInfo::decode(bytes.as_slice()).unwrap())
         .collect();
     let o5555 = listed.iter().find(|p| p.name == "O5555").unwrap();
-    assert_eq!((o5555.size, o5555.file.as_str()), (v1b.len() as u64, "O5555.nc"));
+    assert_eq!(
+        (o5555.size, o5555.file.as_str()),
+        (v1b.len() as u64, "O5555.nc")
+    );
 
     // Deleted: the program is removed, its revisions kept.
     std::fs::remove_file(dir.join("O5556.nc")).unwrap();
     let e = event(&events).await;
-    assert_eq!((e.name.as_str(), e.kind()), ("O5556", pb::LibraryEventKind::Removed));
+    assert_eq!(
+        (e.name.as_str(), e.kind()),
+        ("O5556", pb::LibraryEventKind::Removed)
+    );
     let err = get_err(&cell.client, &cell.keys.program("O5556"), None).await;
     assert_eq!(err.code(), pb::ErrorCode::NotFound);
     let kept: pb::ProgramRevisions =
@@ -211,19 +226,27 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     std::fs::write(dir.join("O5558.nc"), program(5558, 1)).unwrap();
     std::fs::write(dir.join("O5558.tap"), program(5558, 2)).unwrap();
     let e = event(&events).await;
-    assert_eq!((e.kind(), e.code()), (pb::LibraryEventKind::Refused, pb::ErrorCode::Conflict));
+    assert_eq!(
+        (e.kind(), e.code()),
+        (pb::LibraryEventKind::Refused, pb::ErrorCode::Conflict)
+    );
     let e = event(&events).await;
     assert_eq!(e.code(), pb::ErrorCode::Conflict);
     // One removed: the other is taken.
     std::fs::remove_file(dir.join("O5558.tap")).unwrap();
     let e = event(&events).await;
-    assert_eq!((e.name.as_str(), e.file.as_str(), e.kind()), ("O5558", "O5558.nc", pb::LibraryEventKind::Stored));
+    assert_eq!(
+        (e.name.as_str(), e.file.as_str(), e.kind()),
+        ("O5558", "O5558.nc", pb::LibraryEventKind::Stored)
+    );
 
     // Every one of them in the audit, the folder as the origin (the history is written a
     // moment later).
     audit_until(&cell, |records| {
-        let from_folder: Vec<&pb::AuditRecord> =
-            records.iter().filter(|a| a.key.starts_with("folder:")).collect();
+        let from_folder: Vec<&pb::AuditRecord> = records
+            .iter()
+            .filter(|a| a.key.starts_with("folder:"))
+            .collect();
         from_folder
             .iter()
             .any(|a| a.action == "program.remove" && a.target == "O5556" && a.ok)
@@ -257,7 +280,10 @@ async fn a_drop_folder_queues_its_files_to_the_machine_and_says_what_it_refused(
         .unwrap();
     let queued = pb::JobEvent::decode(sample.payload().to_bytes().as_ref()).unwrap();
     let kinds = follow(&events, &queued.job_id, Duration::from_secs(60)).await;
-    assert!(matches!(kinds.last(), Some(Kind::Completed(_))), "{kinds:?}");
+    assert!(
+        matches!(kinds.last(), Some(Kind::Completed(_))),
+        "{kinds:?}"
+    );
     // Moved aside once queued: never sent twice.
     common::bus::eventually("the file is in sent/", || {
         drop_dir.join("sent/O7001.nc").is_file() && !drop_dir.join("O7001.nc").exists()
@@ -276,8 +302,10 @@ async fn a_drop_folder_queues_its_files_to_the_machine_and_says_what_it_refused(
 
     let job = queued.job_id.clone();
     audit_until(&cell, move |records| {
-        let submits: Vec<&pb::AuditRecord> =
-            records.iter().filter(|a| a.action == "job.submit").collect();
+        let submits: Vec<&pb::AuditRecord> = records
+            .iter()
+            .filter(|a| a.action == "job.submit")
+            .collect();
         submits.iter().any(|a| a.ok && a.detail.contains(&job))
             && submits.iter().any(|a| !a.ok && a.target == "broken.nc")
             && submits.iter().all(|a| {

@@ -354,7 +354,9 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
     let replies = session
         .get(keys.sim("mill-1", cellgate::bus::keys::SimLeaf::Autostart))
         .payload(prost::Message::encode_to_vec(&off))
-        .encoding(cellgate::bus::payload::encoding::<cellgate_core::pb::SimAutostart>())
+        .encoding(cellgate::bus::payload::encoding::<
+            cellgate_core::pb::SimAutostart,
+        >())
         .timeout(Duration::from_secs(10))
         .await
         .unwrap();
@@ -806,10 +808,7 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
         tile["text"].as_str().unwrap().contains(&message),
         "the whole alarm text {message:?}: {tile}"
     );
-    assert!(
-        tile["title"].as_str().unwrap().contains(&message),
-        "{tile}"
-    );
+    assert!(tile["title"].as_str().unwrap().contains(&message), "{tile}");
     assert_eq!(tile["clipped"], false, "{tile}");
     c.goto(&format!("{}/#/cell/demo/machine/mill-1", gw.url))
         .await
@@ -904,10 +903,7 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
         after("done")
     );
     let page = c
-        .execute(
-            "return document.querySelector('main').innerText;",
-            vec![],
-        )
+        .execute("return document.querySelector('main').innerText;", vec![])
         .await
         .unwrap();
     assert!(!page.as_str().unwrap().contains("ACTIVE"), "{page}");
@@ -926,7 +922,10 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
         .unwrap();
     assert_eq!(conn[0], "Not live", "{conn}");
     assert!(
-        conn[1].as_str().unwrap().contains("does not update by itself"),
+        conn[1]
+            .as_str()
+            .unwrap()
+            .contains("does not update by itself"),
         "{conn}"
     );
     only_own_origin(&c, &gw.url).await;

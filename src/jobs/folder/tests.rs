@@ -120,10 +120,23 @@ async fn files_there_at_start_are_taken_at_once_and_an_edit_again() {
     let stop = CancellationToken::new();
     let started = std::time::Instant::now();
     let Followed { seen: mut rx, .. } = watch(dir.path(), Watch::Auto).spawn(stop.clone());
-    assert_eq!(next(&mut rx).await, Seen::Complete { file: "O0003".into() });
-    assert!(started.elapsed() < Duration::from_millis(300), "not waited for");
+    assert_eq!(
+        next(&mut rx).await,
+        Seen::Complete {
+            file: "O0003".into()
+        }
+    );
+    assert!(
+        started.elapsed() < Duration::from_millis(300),
+        "not waited for"
+    );
     std::fs::write(&path, program(6)).unwrap();
-    assert_eq!(next(&mut rx).await, Seen::Complete { file: "O0003".into() });
+    assert_eq!(
+        next(&mut rx).await,
+        Seen::Complete {
+            file: "O0003".into()
+        }
+    );
     stop.cancel();
 }
 
@@ -137,7 +150,12 @@ async fn an_unreadable_folder_is_said_and_followed_once_it_is_there() {
     std::fs::create_dir(&dir).unwrap();
     std::fs::write(dir.join("O0004.tap"), program(3)).unwrap();
     assert_eq!(next(&mut rx).await, Seen::Readable);
-    assert_eq!(next(&mut rx).await, Seen::Complete { file: "O0004.tap".into() });
+    assert_eq!(
+        next(&mut rx).await,
+        Seen::Complete {
+            file: "O0004.tap".into()
+        }
+    );
     stop.cancel();
 }
 
@@ -146,10 +164,20 @@ async fn watch_off_takes_what_is_there_at_start_then_ends() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("O0005"), program(3)).unwrap();
     let stop = CancellationToken::new();
-    let Followed { seen: mut rx, task, .. } = watch(dir.path(), Watch::Off).spawn(stop.clone());
+    let Followed {
+        seen: mut rx, task, ..
+    } = watch(dir.path(), Watch::Off).spawn(stop.clone());
     // Fresh: taken once still for settle_ms; a file posted later is not looked for.
-    assert_eq!(next(&mut rx).await, Seen::Complete { file: "O0005".into() });
-    tokio::time::timeout(Duration::from_secs(5), task).await.unwrap().unwrap();
+    assert_eq!(
+        next(&mut rx).await,
+        Seen::Complete {
+            file: "O0005".into()
+        }
+    );
+    tokio::time::timeout(Duration::from_secs(5), task)
+        .await
+        .unwrap()
+        .unwrap();
     std::fs::write(dir.path().join("O0006"), program(3)).unwrap();
     while let Some(seen) = rx.recv().await {
         assert_eq!(seen, Seen::Listed);

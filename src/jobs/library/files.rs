@@ -39,7 +39,11 @@ pub struct FolderFile {
 
 /// The file names of `paths`, for a message.
 pub(super) fn file_list(paths: &[PathBuf]) -> String {
-    paths.iter().map(|p| file_name(p)).collect::<Vec<_>>().join(", ")
+    paths
+        .iter()
+        .map(|p| file_name(p))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 pub(super) fn file_name(path: &Path) -> String {

@@ -406,14 +406,23 @@ async fn files_of_the_folder_become_revisions_under_their_name_without_extension
     assert_eq!((r.number, r.by.unwrap().user), (1, "cam".to_string()));
     assert_eq!(r.comment, "from the folder: O6.nc");
     // The same content again (the gateway's own write, a touch) is no revision.
-    assert_eq!(lib.take_file(folder("O6.nc")).await.unwrap(), Taken::Unchanged);
+    assert_eq!(
+        lib.take_file(folder("O6.nc")).await.unwrap(),
+        Taken::Unchanged
+    );
     // Edited: the next revision; a job sends it.
     std::fs::write(dir.path().join("O6.nc"), b"%\nHAND 2\n%").unwrap();
-    assert!(matches!(lib.take_file(folder("O6.nc")).await.unwrap(), Taken::Revision(_)));
+    assert!(matches!(
+        lib.take_file(folder("O6.nc")).await.unwrap(),
+        Taken::Revision(_)
+    ));
     assert_eq!(lib.read("O6").await.unwrap(), b"%\nHAND 2\n%");
     // A store through the bus writes the file the folder has, not a second one.
     lib.store("O6", b"%\nBUS\n%").await.unwrap();
-    assert_eq!(std::fs::read(dir.path().join("O6.nc")).unwrap(), b"%\nBUS\n%");
+    assert_eq!(
+        std::fs::read(dir.path().join("O6.nc")).unwrap(),
+        b"%\nBUS\n%"
+    );
     assert!(!dir.path().join("O6").exists());
     // The listing gives the revision's size and the file.
     let listed = lib.list().await.unwrap();
@@ -438,7 +447,10 @@ async fn a_locked_program_is_not_replaced_or_removed_from_the_folder() {
     let e = lib.take_file(folder("O8")).await.unwrap_err();
     assert!(matches!(e, LibraryError::Locked { number: 1, .. }), "{e}");
     // The file is left as written; the library keeps sending the locked revision.
-    assert_eq!(std::fs::read(dir.path().join("O8")).unwrap(), b"%\nEDITED\n%");
+    assert_eq!(
+        std::fs::read(dir.path().join("O8")).unwrap(),
+        b"%\nEDITED\n%"
+    );
     assert_eq!(lib.read("O8").await.unwrap(), b"%\nLOCKED\n%");
     let listed = lib.list().await.unwrap();
     assert!(listed[0].note.contains("locked"), "{}", listed[0].note);
@@ -448,7 +460,11 @@ async fn a_locked_program_is_not_replaced_or_removed_from_the_folder() {
         Err(LibraryError::Locked { .. })
     ));
     assert_eq!(lib.read("O8").await.unwrap(), b"%\nLOCKED\n%");
-    assert_eq!(lib.list().await.unwrap().len(), 1, "still listed without a file");
+    assert_eq!(
+        lib.list().await.unwrap().len(),
+        1,
+        "still listed without a file"
+    );
 }
 
 #[tokio::test]
@@ -463,7 +479,10 @@ async fn a_deleted_file_removes_its_program_and_posting_it_again_goes_on() {
         panic!("not removed");
     };
     assert!(e.latest.unwrap().removed);
-    assert!(matches!(lib.read("O9").await, Err(LibraryError::NotFound { .. })));
+    assert!(matches!(
+        lib.read("O9").await,
+        Err(LibraryError::NotFound { .. })
+    ));
     assert_eq!(lib.file_gone("O9.tap").await.unwrap(), Taken::Nothing);
     std::fs::write(dir.path().join("O9.tap"), b"%\nTWO\n%").unwrap();
     let Taken::Revision(e) = lib.take_file(folder("O9.tap")).await.unwrap() else {
@@ -487,7 +506,10 @@ async fn two_files_giving_one_name_are_a_conflict_and_neither_is_taken() {
         assert!(matches!(&e, LibraryError::Conflict { .. }), "{e}");
         assert_eq!(e.code(), pb::ErrorCode::Conflict);
     }
-    assert!(matches!(lib.read("O10").await, Err(LibraryError::NotFound { .. })));
+    assert!(matches!(
+        lib.read("O10").await,
+        Err(LibraryError::NotFound { .. })
+    ));
     let listed = lib.list().await.unwrap();
     assert!(listed[0].note.contains("O10.TAP"), "{}", listed[0].note);
     assert!(matches!(
@@ -498,7 +520,10 @@ async fn two_files_giving_one_name_are_a_conflict_and_neither_is_taken() {
     std::fs::remove_file(dir.path().join("O10.TAP")).unwrap();
     assert_eq!(lib.file_gone("O10.TAP").await.unwrap(), Taken::Nothing);
     assert_eq!(lib.file_of("O10").await.unwrap().as_deref(), Some("O10.nc"));
-    assert!(matches!(lib.take_file(folder("O10.nc")).await.unwrap(), Taken::Revision(_)));
+    assert!(matches!(
+        lib.take_file(folder("O10.nc")).await.unwrap(),
+        Taken::Revision(_)
+    ));
 }
 
 #[tokio::test]

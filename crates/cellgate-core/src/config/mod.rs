@@ -578,7 +578,11 @@ fn check_with(raw: &RawCell, files: bool) -> Vec<ConfigError> {
             check_part_counter(&mut c, label, counter, &raw.plcs);
         }
     }
-    check_folders(&mut c, &raw.programs.dir, raw.machines.iter().zip(machine_labels));
+    check_folders(
+        &mut c,
+        &raw.programs.dir,
+        raw.machines.iter().zip(machine_labels),
+    );
     for (p, label) in raw.plcs.iter().zip(plc_labels) {
         check_plc(&mut c, label, p);
     }
@@ -598,7 +602,12 @@ fn check_folders<'a>(
             let Some(dir) = dir else { continue };
             let path = format!("{label}.{key}");
             if dir.as_os_str().is_empty() {
-                c.invalid(path, "\"\"".to_string(), "must name a folder".to_string(), "");
+                c.invalid(
+                    path,
+                    "\"\"".to_string(),
+                    "must name a folder".to_string(),
+                    "",
+                );
                 continue;
             }
             if let Some(other) = taken.get(dir) {

@@ -55,7 +55,8 @@ impl FolderRules {
     pub fn strip<'f>(&self, file: &'f str) -> &'f str {
         match file.rsplit_once('.') {
             Some((stem, ext))
-                if !stem.is_empty() && self.extensions.iter().any(|e| e.eq_ignore_ascii_case(ext)) =>
+                if !stem.is_empty()
+                    && self.extensions.iter().any(|e| e.eq_ignore_ascii_case(ext)) =>
             {
                 stem
             }
@@ -76,9 +77,16 @@ pub fn is_temporary(file: &str) -> bool {
     file.starts_with('.')
         || file.starts_with('~')
         || file.ends_with('~')
-        || [".tmp", ".part", ".partial", ".swp", ".crdownload", ".filepart"]
-            .iter()
-            .any(|s| lower.ends_with(s))
+        || [
+            ".tmp",
+            ".part",
+            ".partial",
+            ".swp",
+            ".crdownload",
+            ".filepart",
+        ]
+        .iter()
+        .any(|s| lower.ends_with(s))
 }
 
 /// What the shell saw of a file: its size and modification time (ms since the epoch).
@@ -132,7 +140,11 @@ impl Settle {
             }
             None => {
                 // First seen: still since its modification time, as far as anyone can tell.
-                let since_ms = if stat.modified_ms <= now { stat.modified_ms } else { now };
+                let since_ms = if stat.modified_ms <= now {
+                    stat.modified_ms
+                } else {
+                    now
+                };
                 self.files.insert(
                     file.to_string(),
                     Look {
