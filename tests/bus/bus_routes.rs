@@ -487,12 +487,12 @@ async fn library_and_key_sources_are_streamed() {
 
     // A program in the library, put on the bus.
     let stored = program_of(5_000);
-    let lib_key = cell.keys.program_write("O4711.nc");
+    let lib_key = cell.keys.program_write("O4711");
     cell.client
         .put(lib_key.clone(), stored.clone())
         .await
         .unwrap();
-    let path = cell.dir.path().join("programs").join("O4711.nc");
+    let path = cell.dir.path().join("programs").join("O4711");
     eventually("the program is stored", || path.exists()).await;
 
     // A program another node serves on its own key.
@@ -510,7 +510,7 @@ async fn library_and_key_sources_are_streamed() {
     });
 
     let job_key = cell.keys.leaf(MILL, MachineLeaf::Submit);
-    let mut from_library = request(pb::job_request::Program::Library("O4711.nc".into()));
+    let mut from_library = request(pb::job_request::Program::Library("O4711".into()));
     from_library.name = "from library".to_string();
     let a: pb::JobAccepted =
         get_one(&cell.client, &job_key, Some(from_library.encode_to_vec())).await;
@@ -1059,14 +1059,14 @@ async fn status_is_published_on_change_and_answered_on_get() {
 async fn the_program_library_stores_fetches_lists_and_removes() {
     let cell = start_cell(Duration::from_millis(1)).await;
     let o100 = cell.keys.program("O100");
-    let o200 = cell.keys.program("O200.nc");
+    let o200 = cell.keys.program("O200");
     cell.client
         .put(cell.keys.program_write("O100"), b"%\nO100\n%".to_vec())
         .await
         .unwrap();
     cell.client
         .put(
-            cell.keys.program_write("O200.nc"),
+            cell.keys.program_write("O200"),
             b"%\nO200\nM30\n%".to_vec(),
         )
         .await
@@ -1106,7 +1106,7 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
         infos,
         [
             (o100.clone(), "O100".to_string(), 8),
-            (o200.clone(), "O200.nc".to_string(), 12)
+            (o200.clone(), "O200".to_string(), 12)
         ]
     );
 
@@ -1133,7 +1133,7 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
         .map(|e| e.unwrap().file_name().into_string().unwrap())
         .filter(|n| n != ".journal" && n != ".revisions")
         .collect();
-    assert_eq!(names, ["O200.nc"]);
+    assert_eq!(names, ["O200"]);
     cell.stop().await;
 }
 

@@ -464,14 +464,14 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
     let file = write_file(files.path(), "O0815.nc", &program);
     let put = ProgramCommand::Put {
         connect: gw.connect(),
-        name: "O0815.nc".to_string(),
+        name: "O0815".to_string(),
         file: file.clone(),
         comment: None,
         json: true,
     };
     let (code, out, err) = run(&put).await;
     assert_eq!(code, 0, "{err}");
-    assert!(err.contains("O0815.nc: stored"), "{err}");
+    assert!(err.contains("O0815: stored"), "{err}");
     // Sizes as everywhere else on the command line (and in the console).
     let size = cellgate::client::render::bytes(program.len() as u64);
     assert!(
@@ -488,13 +488,13 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
     let (code, out, err) = run(&ls).await;
     assert_eq!(code, 0, "{err}");
     let list: serde_json::Value = serde_json::from_str(&out).unwrap();
-    assert_eq!(list[0]["name"], "O0815.nc");
+    assert_eq!(list[0]["name"], "O0815");
     assert_eq!(list[0]["size"], program.len());
 
     let copy = files.path().join("copy.nc");
     let get = ProgramCommand::Get {
         connect: gw.connect(),
-        name: "O0815.nc".to_string(),
+        name: "O0815".to_string(),
         output: Some(copy.clone()),
         json: false,
     };
@@ -504,7 +504,7 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
 
     // Submitted from the library to the Expansion A machine.
     let mut args = submit_args(&gw, MILL_X);
-    args.library = Some("O0815.nc".to_string());
+    args.library = Some("O0815".to_string());
     let (code, out, err) = run(&args).await;
     assert_eq!(code, 0, "{out}{err}");
     let got = received(&gw, MILL_X, 1).await;
@@ -512,7 +512,7 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
 
     let rm = ProgramCommand::Rm {
         connect: gw.connect(),
-        name: "O0815.nc".to_string(),
+        name: "O0815".to_string(),
         json: false,
     };
     let (code, _, err) = run(&rm).await;
