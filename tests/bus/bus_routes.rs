@@ -1065,10 +1065,7 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
         .await
         .unwrap();
     cell.client
-        .put(
-            cell.keys.program_write("O200"),
-            b"%\nO200\nM30\n%".to_vec(),
-        )
+        .put(cell.keys.program_write("O200"), b"%\nO200\nM30\n%".to_vec())
         .await
         .unwrap();
     // Not a library name: refused, nothing stored.
