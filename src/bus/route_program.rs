@@ -400,17 +400,11 @@ async fn publish_change(
 ) {
     let kind = if action == "program.remove" {
         pb::LibraryEventKind::Removed
-    } else {
+    } else if entry.revised {
         pb::LibraryEventKind::Stored
-    };
-    if kind == pb::LibraryEventKind::Stored
-        && entry
-            .latest
-            .as_ref()
-            .is_some_and(|r| r.unix_ms + 5_000 < pb::now_ms())
-    {
+    } else {
         return;
-    }
+    };
     super::route_folder::publish_library_event(ctx, super::route_folder::changed(kind, entry, by))
         .await;
 }

@@ -161,6 +161,9 @@ pub struct ProgramEntry {
     pub file: String,
     /// Why the file is not the latest revision, when it is not.
     pub note: String,
+    /// The call that answered this made a new revision (a store of the same bytes as the
+    /// latest does not).
+    pub revised: bool,
 }
 
 impl ProgramEntry {
@@ -789,7 +792,9 @@ impl ProgramLibrary {
             if !dropped.is_empty() {
                 lib.collect_objects(&index);
             }
-            lib.entry_blocking(&name, &index)
+            let mut entry = lib.entry_blocking(&name, &index)?;
+            entry.revised = true;
+            Ok(entry)
         })
         .await
     }
@@ -917,6 +922,7 @@ impl ProgramLibrary {
                 String::new()
             },
             note: self.note_of(name),
+            revised: false,
         })
     }
 

@@ -339,3 +339,38 @@ async fn a_punched_program_is_written_into_the_receive_folder_too() {
     assert_eq!(std::fs::read(&file).unwrap(), part);
     cell.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stores_and_removals_through_the_bus_are_library_events_too() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let events = cell.subscribe(cell.keys.program_events()).await;
+    let write = |op| pb::ProgramWrite {
+        op: Some(op),
+        ..Default::default()
+    };
+    let part = program(42, 3);
+    for _ in 0..2 {
+        let _: pb::ProgramInfo = get_one(
+            &cell.client,
+            &cell.keys.program_write("O42"),
+            Some(write(pb::program_write::Op::Store(part.clone())).encode_to_vec()),
+        )
+        .await;
+    }
+    let e = event(&events).await;
+    assert_eq!((e.name.as_str(), e.kind()), ("O42", pb::LibraryEventKind::Stored));
+    assert_eq!(e.revision.unwrap().number, 1);
+    // The same bytes again made no revision, so no event; the folder's own look at the file
+    // the store wrote makes none either.
+    quiet(&events, 1500).await;
+    let _: pb::ProgramInfo = get_one(
+        &cell.client,
+        &cell.keys.program_write("O42"),
+        Some(write(pb::program_write::Op::Remove(pb::program_write::Remove {})).encode_to_vec()),
+    )
+    .await;
+    let e = event(&events).await;
+    assert_eq!((e.name.as_str(), e.kind()), ("O42", pb::LibraryEventKind::Removed));
+    quiet(&events, 1500).await;
+    cell.stop().await;
+}

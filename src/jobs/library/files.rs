@@ -160,7 +160,9 @@ impl ProgramLibrary {
             self.collect_objects(index);
         }
         self.set_note(name, None);
-        self.entry_blocking(name, index).map(Taken::Revision)
+        let mut entry = self.entry_blocking(name, index)?;
+        entry.revised = true;
+        Ok(Taken::Revision(entry))
     }
 
     /// `file` is gone from the folder: its program is marked removed, its revisions kept
@@ -220,6 +222,7 @@ impl ProgramLibrary {
                 latest: Some(gone),
                 file,
                 note: String::new(),
+                revised: false,
             }))
         })
         .await
@@ -330,6 +333,7 @@ impl ProgramLibrary {
                     latest: Some(r),
                     file: String::new(),
                     note: String::new(),
+                    revised: false,
                 },
             );
         }
@@ -348,6 +352,7 @@ impl ProgramLibrary {
                     note: "not yet a revision: the folder's file is still being written, or \
                            the folder is not watched (programs.watch)"
                         .to_string(),
+                    revised: false,
                 }
             });
             entry.file = found
