@@ -81,21 +81,8 @@ fn owner_of(path: &Path, via: &str) -> pb::RequestOrigin {
 
 /// The user name of `uid`, from the system's user database.
 fn user_name(uid: u32) -> Option<String> {
-    let mut buf = vec![0 as libc::c_char; 4096];
-    // SAFETY: getpwuid_r writes at most `buf.len()` bytes into `buf` and a pointer into it
-    // (or null) into `found`; `pwd` and `buf` outlive every use of `found`.
-    unsafe {
-        let mut pwd: libc::passwd = std::mem::zeroed();
-        let mut found: *mut libc::passwd = std::ptr::null_mut();
-        let rc = libc::getpwuid_r(uid, &mut pwd, buf.as_mut_ptr(), buf.len(), &mut found);
-        if rc != 0 || found.is_null() || pwd.pw_name.is_null() {
-            return None;
-        }
-        let name = std::ffi::CStr::from_ptr(pwd.pw_name)
-            .to_string_lossy()
-            .into_owned();
-        Some(name.chars().take(128).collect())
-    }
+    let user = nix::unistd::User::from_uid(nix::unistd::Uid::from_raw(uid)).ok()??;
+    Some(user.name.chars().take(128).collect())
 }
 
 /// Follows the library's folder and every machine's drop folder until `stop`.
