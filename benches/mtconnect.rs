@@ -60,6 +60,8 @@ fn cell(machines: usize) -> CellDesc {
                 .map(|t| TagDesc {
                     name: format!("t{t}"),
                     native: format!("D{t}"),
+                    typed: None,
+                    units: None,
                 })
                 .collect(),
         }],

@@ -82,6 +82,7 @@ fn tag(station: u8, name: &str, module: Module, address: u16, kind: TagType) -> 
         deadband: Real(0.0),
         writable: false,
         history: false,
+        mtconnect: None,
     }
 }
 

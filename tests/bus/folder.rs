@@ -120,7 +120,9 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     let by = e.by.unwrap();
     assert_eq!(by.via, "folder");
     // The file's owner: whoever runs the test wrote it.
-    let me = nix::unistd::User::from_uid(nix::unistd::getuid()).unwrap().unwrap();
+    let me = nix::unistd::User::from_uid(nix::unistd::getuid())
+        .unwrap()
+        .unwrap();
     assert_eq!(by.user, me.name);
     assert_eq!(e.revision.unwrap().number, 1);
     assert_eq!(read(&cell, "O5555").await, v1);
@@ -360,7 +362,10 @@ async fn stores_and_removals_through_the_bus_are_library_events_too() {
         .await;
     }
     let e = event(&events).await;
-    assert_eq!((e.name.as_str(), e.kind()), ("O42", pb::LibraryEventKind::Stored));
+    assert_eq!(
+        (e.name.as_str(), e.kind()),
+        ("O42", pb::LibraryEventKind::Stored)
+    );
     assert_eq!(e.revision.unwrap().number, 1);
     // The same bytes again made no revision, so no event; the folder's own look at the file
     // the store wrote makes none either.
@@ -372,7 +377,10 @@ async fn stores_and_removals_through_the_bus_are_library_events_too() {
     )
     .await;
     let e = event(&events).await;
-    assert_eq!((e.name.as_str(), e.kind()), ("O42", pb::LibraryEventKind::Removed));
+    assert_eq!(
+        (e.name.as_str(), e.kind()),
+        ("O42", pb::LibraryEventKind::Removed)
+    );
     quiet(&events, 1500).await;
     cell.stop().await;
 }

@@ -390,3 +390,97 @@ fn summary_of_the_example() {
     assert!(!lathe.is_empty(), "{s}");
     assert!(!lathe.iter().any(|l| l.contains("parameters")), "{lathe:?}");
 }
+
+#[test]
+fn a_tags_mtconnect_type_and_units_are_checked() {
+    let cell = |mt: &str| {
+        format!(
+            r#"
+cell = "t"
+[[plcs]]
+name = "plc-1"
+stations = [0]
+transport = {{ kind = "sim", line = {{ baud = 19200 }} }}
+[[plcs.tags]]
+name = "temp"
+module = "D"
+address = 0
+type = "i16"
+mtconnect = {mt}
+[[plcs.tags]]
+name = "flag"
+module = "M"
+address = 0
+type = "bit"
+bit = 0
+mtconnect = {{ type = "PRESSURE" }}
+"#
+        )
+    };
+    let m = messages(&errors(&cell(r#"{ type = "TEMPRATURE" }"#)));
+    assert!(
+        m.iter().any(|e| e.contains("plcs.plc-1.tags.temp.mtconnect.type") && e.contains("TEMPERATURE")),
+        "{m:#?}"
+    );
+    assert!(
+        m.iter()
+            .any(|e| e.contains("plcs.plc-1.tags.flag.mtconnect.type")
+                && e.contains("a bit is no measurement")),
+        "{m:#?}"
+    );
+    let m = messages(&errors(&cell(
+        r#"{ type = "TEMPERATURE", units = "KELVIN" }"#,
+    )));
+    assert!(
+        m.iter()
+            .any(|e| e.contains("mtconnect.units") && e.contains("KELVIN")),
+        "{m:#?}"
+    );
+    let m = messages(&errors(&cell(
+        r#"{ type = "PART_COUNT", units = "COUNT" }"#,
+    )));
+    assert!(
+        m.iter()
+            .any(|e| e.contains("mtconnect.units") && e.contains("EVENT")),
+        "{m:#?}"
+    );
+}
+
+#[test]
+fn folders_are_checked() {
+    let m = messages(&errors(&format!(
+        "{}\n[programs]\nwatch = \"sometimes\"\n",
+        one_machine("a", "")
+    )));
+    assert!(m.iter().any(|e| e.contains("watch")), "{m:#?}");
+    let text = r#"
+cell = "t"
+[programs]
+dir = "programs"
+extensions = [".nc"]
+settle_ms = 10
+[[machines]]
+name = "mill-1"
+protocol = "a"
+transport = { kind = "sim", line = { baud = 19200 } }
+drop_dir = "programs"
+[[machines]]
+name = "mill-2"
+protocol = "a"
+transport = { kind = "sim", line = { baud = 19200 } }
+drop_dir = "drop"
+receive_dir = "drop"
+"#;
+    let m = messages(&errors(text));
+    for (key, says) in [
+        ("programs.extensions[0]", "without the dot"),
+        ("programs.settle_ms", "10"),
+        ("machines.mill-1.drop_dir", "programs.dir"),
+        ("machines.mill-2.receive_dir", "machines.mill-2.drop_dir"),
+    ] {
+        assert!(
+            m.iter().any(|e| e.contains(key) && e.contains(says)),
+            "{key}: {m:#?}"
+        );
+    }
+}

@@ -471,7 +471,12 @@ async fn every_kind_of_document_is_valid_against_the_2_5_schemas() {
         .sim_control::<pb::SimDi>("mill-1", SimLeaf::Alarm, None)
         .await
         .unwrap();
-    let current = wait_for(&u, "/current", |d| d.contains("<Fault")).await;
+    // The default cell's spindle-temp is a TEMPERATURE sample in CELSIUS: in the documents
+    // validated, with its value.
+    let current = wait_for(&u, "/current", |d| {
+        d.contains("<Fault") && d.contains("<Temperature") && d.contains("<Samples>")
+    })
+    .await;
     // A File asset too: a program the Protocol B lathe punches out.
     let punch = pb::SimPunch {
         program: b"%\nO5555(BRACKET)\nG00X0Y0\nM30\n%\n".to_vec(),

@@ -25,6 +25,7 @@ fn tag(name: &str, station: u8, address: u16) -> TagConfig {
         deadband: Real(0.0),
         writable: false,
         history: false,
+        mtconnect: None,
     }
 }
 

@@ -53,7 +53,8 @@ use self::history::check_history;
 pub use self::mtconnect::MtconnectConfig;
 use self::mtconnect::check_mtconnect;
 pub use self::plc::{
-    FUJI_BAUD_RATES, FUJI_MAX_STATIONS, PlcConfig, PlcSimConfig, Real, SimTick, TagConfig, TagType,
+    FUJI_BAUD_RATES, FUJI_MAX_STATIONS, PlcConfig, PlcSimConfig, Real, SimTick, TagConfig,
+    TagMtconnect, TagType,
 };
 use self::plc::{RawPlc, check_plc};
 use self::programs::check_programs;

@@ -573,6 +573,23 @@ pub struct TagConfig {
     /// client that was away can ask for what it missed, and utilisation can count parts.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub history: bool,
+    /// What the tag is in MTConnect (`mtconnect = { type = "TEMPERATURE", units = "CELSIUS" }`);
+    /// `None`: a VARIABLE event.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mtconnect: Option<TagMtconnect>,
+}
+
+/// A tag's MTConnect data item type and units (docs/mtconnect.md).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TagMtconnect {
+    /// One of [`crate::mtconnect::types::TAG_TYPES`], as the standard spells it.
+    #[serde(rename = "type")]
+    pub kind: String,
+    /// The units the tag's value (after `scale`) is in, for a SAMPLE type: one of the
+    /// standard's; default the type's own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub units: Option<String>,
 }
 
 impl TagConfig {
@@ -597,6 +614,7 @@ pub(super) struct RawTag {
     writable: bool,
     #[serde(default)]
     history: bool,
+    mtconnect: Option<TagMtconnect>,
 }
 
 /// What the simulated PLC of a `transport.kind = "sim"` link does by itself (`[plcs.sim]`),
@@ -640,6 +658,52 @@ pub struct SimTick {
     /// Bits flipped each time, after the addition (default 0).
     #[serde(default)]
     pub xor: u32,
+}
+
+/// A tag's `mtconnect`: a type a tag may be, units of the standard's for a SAMPLE only, and no
+/// bit reported as a measurement.
+fn check_tag_mtconnect(c: &mut Checker, tl: &str, kind: TagType, m: &TagMtconnect) {
+    use crate::mtconnect::model::Category;
+    use crate::mtconnect::types;
+    let Some(t) = types::tag_type(&m.kind) else {
+        c.invalid(
+            format!("{tl}.mtconnect.type"),
+            q(&m.kind),
+            format!(
+                "not a type a tag may be in MTConnect: {}",
+                types::TAG_TYPES
+                    .iter()
+                    .map(|t| t.name)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+            "MTConnect Part 2",
+        );
+        return;
+    };
+    if t.category == Category::Sample && kind == TagType::Bit {
+        c.invalid(
+            format!("{tl}.mtconnect.type"),
+            q(&m.kind),
+            "a bit is no measurement: a bit tag is a VARIABLE".to_string(),
+            "MTConnect Part 2",
+        );
+    }
+    match (&m.units, t.category) {
+        (Some(u), Category::Sample) if types::units(u).is_none() => c.invalid(
+            format!("{tl}.mtconnect.units"),
+            q(u),
+            "not one of the standard's units (e.g. CELSIUS, PASCAL, REVOLUTION/MINUTE, PERCENT)"
+                .to_string(),
+            "MTConnect Part 2 UnitsEnum",
+        ),
+        (Some(_), Category::Event | Category::Condition) => c.not_applicable(
+            format!("{tl}.mtconnect.units"),
+            format!("{} is an EVENT, which has no units", t.name),
+            "",
+        ),
+        _ => {}
+    }
 }
 
 fn check_tags(c: &mut Checker, label: &str, p: &RawPlc) {
@@ -755,6 +819,9 @@ fn check_tags(c: &mut Checker, label: &str, p: &RawPlc) {
                 );
             }
         }
+        if let Some(m) = &t.mtconnect {
+            check_tag_mtconnect(c, &tl, kind, m);
+        }
         if let Some(s) = t.scale
             && (!s.is_finite() || s == 0.0)
         {
@@ -838,6 +905,7 @@ impl RawTag {
             deadband: Real(self.deadband.unwrap_or(0.0)),
             writable: self.writable,
             history: self.history,
+            mtconnect: self.mtconnect,
             name,
         })
     }
@@ -857,6 +925,7 @@ impl From<&TagConfig> for RawTag {
             deadband: Some(t.deadband.0),
             writable: t.writable,
             history: t.history,
+            mtconnect: t.mtconnect.clone(),
         }
     }
 }

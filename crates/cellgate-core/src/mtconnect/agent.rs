@@ -451,6 +451,9 @@ impl Agent {
         if let Some(s) = item.sub_type {
             attrs.push(("subType", s));
         }
+        if let Some(u) = item.units {
+            attrs.push(("units", u));
+        }
         if let Some(n) = &item.native_name {
             attrs.push(("nativeName", n.as_str()));
         }
@@ -722,6 +725,9 @@ impl Agent {
                 }
                 if let Some(s) = item.sub_type {
                     attrs.push(("subType", s));
+                }
+                if let Some(u) = item.units {
+                    attrs.push(("units", u));
                 }
                 // The name the source gives it (G152, D0) is its Source (Part 2 "Source").
                 match &item.native_name {

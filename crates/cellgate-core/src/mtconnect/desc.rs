@@ -52,6 +52,32 @@ pub struct TagDesc {
     /// Where it lives, as the PLC names it: `D0`, `M0.3` (module, word, bit), with the station
     /// first when it is not 0 (`2:D10`); empty when unknown.
     pub native: String,
+    /// What it is in MTConnect (`[[plcs.tags]] mtconnect`): `None` is a VARIABLE.
+    pub typed: Option<crate::mtconnect::types::TagType>,
+    /// Its units, for a SAMPLE: the cell file's, else the type's.
+    pub units: Option<&'static str>,
+}
+
+/// The type and units of a tag's `mtconnect` setting, as the agent can show them: an unknown
+/// type (a newer gateway's) is a VARIABLE, unknown units the type's own.
+fn typed(
+    kind: Option<&str>,
+    units: Option<&str>,
+) -> (
+    Option<crate::mtconnect::types::TagType>,
+    Option<&'static str>,
+) {
+    use crate::mtconnect::types;
+    let Some(t) = kind.and_then(types::tag_type) else {
+        return (None, None);
+    };
+    (
+        Some(t),
+        units
+            .and_then(types::units)
+            .or(t.units)
+            .filter(|_| t.units.is_some()),
+    )
 }
 
 fn protocol_of(p: pb::Protocol) -> Protocol {
@@ -125,6 +151,16 @@ struct AdminTag {
     kind: TagType,
     #[serde(default)]
     bit: Option<u32>,
+    #[serde(default)]
+    mtconnect: Option<AdminTagMtconnect>,
+}
+
+#[derive(Deserialize)]
+struct AdminTagMtconnect {
+    #[serde(rename = "type")]
+    kind: String,
+    #[serde(default)]
+    units: Option<String>,
 }
 
 impl CellDesc {
@@ -151,14 +187,22 @@ impl CellDesc {
                     tags: p
                         .tags
                         .iter()
-                        .map(|t| TagDesc {
-                            name: t.name.clone(),
-                            native: native(
-                                u32::from(t.station),
-                                &t.module.symbol(),
-                                u32::from(t.address),
-                                (t.kind == TagType::Bit).then(|| u32::from(t.bit.unwrap_or(0))),
-                            ),
+                        .map(|t| {
+                            let (typed, units) = typed(
+                                t.mtconnect.as_ref().map(|m| m.kind.as_str()),
+                                t.mtconnect.as_ref().and_then(|m| m.units.as_deref()),
+                            );
+                            TagDesc {
+                                name: t.name.clone(),
+                                typed,
+                                units,
+                                native: native(
+                                    u32::from(t.station),
+                                    &t.module.symbol(),
+                                    u32::from(t.address),
+                                    (t.kind == TagType::Bit).then(|| u32::from(t.bit.unwrap_or(0))),
+                                ),
+                            }
                         })
                         .collect(),
                 })
@@ -194,14 +238,22 @@ impl CellDesc {
                     tags: p
                         .tags
                         .into_iter()
-                        .map(|t| TagDesc {
-                            native: native(
-                                t.station,
-                                &t.module,
-                                t.address,
-                                (t.kind == TagType::Bit).then(|| t.bit.unwrap_or(0)),
-                            ),
-                            name: t.name,
+                        .map(|t| {
+                            let (typed, units) = typed(
+                                t.mtconnect.as_ref().map(|m| m.kind.as_str()),
+                                t.mtconnect.as_ref().and_then(|m| m.units.as_deref()),
+                            );
+                            TagDesc {
+                                typed,
+                                units,
+                                native: native(
+                                    t.station,
+                                    &t.module,
+                                    t.address,
+                                    (t.kind == TagType::Bit).then(|| t.bit.unwrap_or(0)),
+                                ),
+                                name: t.name,
+                            }
                         })
                         .collect(),
                     name: p.name,
@@ -235,6 +287,8 @@ impl CellDesc {
                         .map(|t| TagDesc {
                             name: t.name.clone(),
                             native: String::new(),
+                            typed: None,
+                            units: None,
                         })
                         .collect(),
                 })

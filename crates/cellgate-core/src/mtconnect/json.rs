@@ -96,6 +96,9 @@ fn component(a: &Agent, c: usize) -> Map<String, J> {
                 if let Some(n) = &it.name {
                     d.insert("name".into(), J::from(n.as_str()));
                 }
+                if let Some(u) = it.units {
+                    d.insert("units".into(), J::from(u));
+                }
                 if let Some(n) = &it.native_name {
                     d.insert("Source".into(), json!({ "value": n }));
                 }

@@ -86,6 +86,8 @@ pub struct DataItem {
     pub sub_type: Option<&'static str>,
     /// The name its source gives it (`G152`, `D0`).
     pub native_name: Option<String>,
+    /// The units of a SAMPLE (`CELSIUS`).
+    pub units: Option<&'static str>,
     /// The device it belongs to (index into [`Model::devices`]).
     pub device: usize,
     /// The component it belongs to (index into [`Model::components`]).
@@ -489,14 +491,18 @@ impl Model {
             );
         }
         for t in &p.tags {
+            let (category, kind) = t
+                .typed
+                .map_or((Category::Event, "VARIABLE"), |ty| (ty.category, ty.name));
             let i = self.item(
                 cont,
                 &format!("{d}_tag_{}", t.name),
                 Some(&t.name),
-                Category::Event,
-                "VARIABLE",
+                category,
+                kind,
                 Role::Tag(t.name.clone()),
             );
+            self.items[i].units = t.units;
             if !t.native.is_empty() {
                 self.items[i].native_name = Some(t.native.clone());
             }
@@ -577,6 +583,7 @@ impl Model {
             kind,
             sub_type: None,
             native_name: None,
+            units: None,
             device,
             component,
             role,

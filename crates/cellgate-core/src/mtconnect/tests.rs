@@ -26,10 +26,20 @@ fn cell() -> CellDesc {
         plcs: vec![PlcDesc {
             name: "plc-1".into(),
             stations: vec![0],
-            tags: vec![TagDesc {
-                name: "parts".into(),
-                native: "D0".into(),
-            }],
+            tags: vec![
+                TagDesc {
+                    name: "parts".into(),
+                    native: "D0".into(),
+                    typed: None,
+                    units: None,
+                },
+                TagDesc {
+                    name: "oil-temp".into(),
+                    native: "D1".into(),
+                    typed: super::types::tag_type("TEMPERATURE"),
+                    units: Some("CELSIUS"),
+                },
+            ],
         }],
     }
 }
@@ -287,6 +297,39 @@ fn part_count_comes_from_the_tag() {
         current_value(&a, "plc-1_tag_parts"),
         Value::Text("42".into())
     );
+}
+
+#[test]
+fn a_typed_tag_is_a_sample_with_its_units() {
+    let mut a = agent();
+    let probe = a.probe(None, Format::Xml, 2);
+    assert!(
+        probe.contains(r#"category="SAMPLE" id="plc-1_tag_oil-temp" type="TEMPERATURE" name="oil-temp" units="CELSIUS""#),
+        "{probe}"
+    );
+    // An untyped tag stays a VARIABLE event.
+    assert!(
+        probe.contains(r#"category="EVENT" id="plc-1_tag_parts" type="VARIABLE""#),
+        "{probe}"
+    );
+    a.update(
+        "demo",
+        Update::Tag(pb::TagValue {
+            plc: "plc-1".into(),
+            name: "oil-temp".into(),
+            value: Some(41.5),
+            quality: pb::TagQuality::Good as i32,
+            ..Default::default()
+        }),
+        3,
+    );
+    let current = a.current(None, &Query::default(), 4).unwrap();
+    assert!(current.contains("<Samples>"), "{current}");
+    assert!(
+        current.contains(r#"dataItemId="plc-1_tag_oil-temp""#),
+        "{current}"
+    );
+    assert!(current.contains(">41.5</Temperature>"), "{current}");
 }
 
 #[test]

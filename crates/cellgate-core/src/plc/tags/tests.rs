@@ -16,6 +16,7 @@ fn tag(name: &str, module: Module, address: u16, kind: TagType) -> TagConfig {
         deadband: Real(0.0),
         writable: false,
         history: false,
+        mtconnect: None,
     }
 }
 
