@@ -41,7 +41,7 @@ use crate::plc::{PlcEvent, PlcHandle, PlcLinkError, PlcSnapshot, TagError, TagWr
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::Permission;
 use cellgate_core::config::PlcConfig;
-use cellgate_core::fuji::command::{Module, Reply, Request, RequestError as FujiRequestError};
+use cellgate_core::fuji::command::{CommandError, Module, Reply, Request};
 use cellgate_core::fuji::master::MasterError;
 use cellgate_core::pb;
 
@@ -93,7 +93,7 @@ pub(crate) enum PlcRequestError {
     Request {
         plc: String,
         #[source]
-        error: FujiRequestError,
+        error: CommandError,
     },
     #[error("PLC {plc}: {error}")]
     Plc {
@@ -305,7 +305,7 @@ fn mem_target(ctx: &PlcContext, key: &str) -> Result<MemTarget, PlcRequestError>
     }
     let module = Module::by_name(module).ok_or_else(|| PlcRequestError::Request {
         plc: plc.to_string(),
-        error: FujiRequestError::UnknownModule {
+        error: CommandError::UnknownModule {
             name: module.to_string(),
         },
     })?;

@@ -87,7 +87,7 @@ pub enum ConfigError {
         /// The machine's path, e.g. `machines.mill-1`.
         path: String,
         /// What the Protocol A engine refuses.
-        problem: crate::fanuc::protocol_a::ConfigProblem,
+        problem: crate::fanuc::protocol_a::ProtocolAProblem,
     },
     /// A setting the Protocol B host engine itself refuses.
     #[error("{path}: {problem}")]
@@ -95,7 +95,7 @@ pub enum ConfigError {
         /// The machine's path, e.g. `machines.mill-1`.
         path: String,
         /// What the Protocol B engine refuses.
-        problem: crate::fanuc::protocol_b::ConfigProblem,
+        problem: crate::fanuc::protocol_b::ProtocolBProblem,
     },
     /// A file the cell file names (a certificate, a key, a user list) that is missing,
     /// unreadable or not what it should be. Never carries the file's content.

@@ -13,7 +13,7 @@ use super::transport::{
 };
 use crate::engine::line::{DataBits, Parity, StopBits};
 use crate::fanuc::message::Framing;
-use crate::fanuc::protocol_a::{ConfigProblem as ProtocolAProblem, ProtocolAConfig};
+use crate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAProblem};
 use crate::fanuc::protocol_b::{OVERRUN_B, OVERRUN_EXPANSION_B, ProtocolBConfig};
 use crate::fanuc::sat::{Params, effective_packet_n};
 use crate::fanuc::{CodeSystem, EndCode, Protocol};

@@ -10,7 +10,7 @@ use std::time::Duration;
 use super::alarm::CncAlarm;
 use super::message::{Command, FrameError};
 use super::packet::{Monitor, PacketError};
-use super::program::ProgramError;
+use super::program::ProgramSendError;
 use super::sat::{AlarmCause, StatusDataError};
 use crate::codes::BusCode;
 use crate::engine::LineError;
@@ -291,7 +291,7 @@ pub enum AbortReason {
     AlarmNotice,
     /// The program cannot be sent as it is.
     #[error("{0}")]
-    Program(#[from] ProgramError),
+    Program(#[from] ProgramSendError),
     /// The link failed.
     #[error("link lost: {0}")]
     Link(LinkAlarm),

@@ -14,7 +14,7 @@ use crate::fanuc::code::{EOR, is_eor, is_significant};
 /// Why a program cannot be sent as it is.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[non_exhaustive]
-pub enum ProgramError {
+pub enum ProgramSendError {
     /// A byte of the program equals the end code of Protocol A messages; a DAT cannot carry it.
     #[error(
         "program byte at offset {offset} is the message end code {end:#04x}; a DAT data part cannot carry it (§4.1) — convert the program's line ends or change the end code (parameter 5000#3)"
@@ -80,7 +80,7 @@ impl Program {
 
     /// Takes the next bytes from the source. `forbidden` is a byte the program may not contain
     /// (the end code, when the program travels in DATs). Bytes after EOR are dropped.
-    pub fn push(&mut self, mut data: &[u8], forbidden: Option<u8>) -> Result<(), ProgramError> {
+    pub fn push(&mut self, mut data: &[u8], forbidden: Option<u8>) -> Result<(), ProgramSendError> {
         while let Some((&b, rest)) = data.split_first() {
             if self.scan == Scan::Ended {
                 self.ignored += data.len() as u64;
@@ -102,7 +102,7 @@ impl Program {
             }
             data = rest;
             if forbidden == Some(b) {
-                return Err(ProgramError::EndCodeInData {
+                return Err(ProgramSendError::EndCodeInData {
                     offset: self.accepted,
                     end: b,
                 });
@@ -139,9 +139,9 @@ impl Program {
     }
 
     /// The source has no more bytes: appends EOR if the program has none.
-    pub fn end(&mut self) -> Result<(), ProgramError> {
+    pub fn end(&mut self) -> Result<(), ProgramSendError> {
         match self.scan {
-            Scan::Leader => Err(ProgramError::Empty),
+            Scan::Leader => Err(ProgramSendError::Empty),
             Scan::Body => {
                 tracing::info!("program source ended without EOR: '%' appended (§4.4.2 3)");
                 self.buf.push_back(self.eor);

@@ -155,16 +155,16 @@ impl ProtocolBConfig {
     }
 
     /// Every problem of these settings.
-    pub fn validate(&self) -> Vec<ConfigProblem> {
+    pub fn validate(&self) -> Vec<ProtocolBProblem> {
         let mut problems = Vec::new();
         if self.tx_piece == 0 || self.tx_piece > self.overrun_allowance / 2 {
-            problems.push(ConfigProblem::TxPiece {
+            problems.push(ProtocolBProblem::TxPiece {
                 piece: self.tx_piece,
                 allowance: self.overrun_allowance,
             });
         }
         if self.punch_piece == 0 || self.punch_piece > self.max_buffer {
-            problems.push(ConfigProblem::PunchPiece {
+            problems.push(ProtocolBProblem::PunchPiece {
                 piece: self.punch_piece,
                 max: self.max_buffer,
             });
@@ -172,7 +172,7 @@ impl ProtocolBConfig {
         if self.punch_high_water == 0
             || self.punch_high_water.saturating_add(self.overrun_allowance) > self.max_buffer
         {
-            problems.push(ConfigProblem::HighWater {
+            problems.push(ProtocolBProblem::HighWater {
                 high: self.punch_high_water,
                 allowance: self.overrun_allowance,
                 max: self.max_buffer,
@@ -191,7 +191,7 @@ impl Default for ProtocolBConfig {
 /// One problem with a [`ProtocolBConfig`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[non_exhaustive]
-pub enum ConfigProblem {
+pub enum ProtocolBProblem {
     /// `tx_piece` is zero or above half the overrun allowance after DC3 (§6.3).
     #[error(
         "tx_piece = {piece} must be between 1 and half the overrun allowance after DC3 ({allowance} characters, §6.3)"
@@ -225,7 +225,7 @@ pub enum ConfigProblem {
 }
 
 /// A [`ProtocolBConfig`] that cannot run, with every problem found.
-pub type InvalidConfig = crate::engine::InvalidSettings<ConfigProblem>;
+pub type InvalidConfig = crate::engine::InvalidSettings<ProtocolBProblem>;
 
 /// What the board is doing on its side of the line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

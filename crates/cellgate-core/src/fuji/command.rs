@@ -311,16 +311,16 @@ impl fmt::Display for Module {
 }
 
 impl FromStr for Module {
-    type Err = RequestError;
+    type Err = CommandError;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Module::by_name(s).ok_or_else(|| RequestError::UnknownModule {
+        Module::by_name(s).ok_or_else(|| CommandError::UnknownModule {
             name: s.to_string(),
         })
     }
 }
 
 impl TryFrom<String> for Module {
-    type Error = RequestError;
+    type Error = CommandError;
     fn try_from(s: String) -> Result<Self, Self::Error> {
         s.parse()
     }
@@ -456,7 +456,7 @@ fn module_name(moln: u8) -> String {
 /// written as a text.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[non_exhaustive]
-pub enum RequestError {
+pub enum CommandError {
     /// A module name that is not in the module table.
     #[error("no module {name:?} in the module table (FFU120B §5-3-3)")]
     UnknownModule {
@@ -654,7 +654,7 @@ pub enum Request {
 
 impl Request {
     /// Read `words` words from `address`.
-    pub fn read_words(module: Module, address: u16, words: usize) -> Result<Request, RequestError> {
+    pub fn read_words(module: Module, address: u16, words: usize) -> Result<Request, CommandError> {
         let bytes = words.saturating_mul(module.word_bytes());
         let r = Request::Read {
             module,
@@ -670,7 +670,7 @@ impl Request {
         module: Module,
         address: u16,
         values: &[u32],
-    ) -> Result<Request, RequestError> {
+    ) -> Result<Request, CommandError> {
         let r = Request::Write {
             module,
             address,
@@ -726,17 +726,17 @@ impl Request {
     }
 
     /// Refuses what the module would refuse with STA 21, or what cannot be a text.
-    pub fn check(&self) -> Result<(), RequestError> {
+    pub fn check(&self) -> Result<(), CommandError> {
         let span = |what: &'static str, module: Module, address: u16, bytes: usize, max: usize| {
             if bytes == 0 {
-                return Err(RequestError::Empty { what });
+                return Err(CommandError::Empty { what });
             }
             if bytes > max {
-                return Err(RequestError::TooMany { what, bytes, max });
+                return Err(CommandError::TooMany { what, bytes, max });
             }
             let word_bytes = module.word_bytes();
             if bytes % word_bytes != 0 {
-                return Err(RequestError::ByteCount {
+                return Err(CommandError::ByteCount {
                     module,
                     bytes,
                     word_bytes,
@@ -744,7 +744,7 @@ impl Request {
             }
             let words = bytes / word_bytes;
             if usize::from(address) + words > 0x1_0000 {
-                return Err(RequestError::AddressRange {
+                return Err(CommandError::AddressRange {
                     module,
                     address,
                     words,
@@ -766,7 +766,7 @@ impl Request {
             Request::Clear { .. } => Ok(()),
             Request::Transfer { data, .. } => {
                 if data.len() > MAX_TRANSFER {
-                    Err(RequestError::TooMany {
+                    Err(CommandError::TooMany {
                         what: "transfer",
                         bytes: data.len(),
                         max: MAX_TRANSFER,
@@ -779,9 +779,9 @@ impl Request {
     }
 
     /// The request's text for `station` (0–99, sent as BCD).
-    pub fn to_text(&self, station: u8) -> Result<CommandText, RequestError> {
+    pub fn to_text(&self, station: u8) -> Result<CommandText, CommandError> {
         self.check()?;
-        let rsno = to_bcd(station).ok_or(RequestError::Station { station })?;
+        let rsno = to_bcd(station).ok_or(CommandError::Station { station })?;
         let body = match self {
             Request::Read { address, bytes, .. } => {
                 let mut b = address.to_le_bytes().to_vec();
@@ -807,7 +807,7 @@ impl Request {
     }
 
     /// The request's text for `station`, as bytes (see [`Request::to_text`]).
-    pub fn encode(&self, station: u8) -> Result<Vec<u8>, RequestError> {
+    pub fn encode(&self, station: u8) -> Result<Vec<u8>, CommandError> {
         Ok(self.to_text(station)?.encode())
     }
 
@@ -1053,14 +1053,14 @@ pub fn decode_words(attribute: Attribute, data: &[u8]) -> Vec<u32> {
 }
 
 /// `values` as the words of `module` travel; a value too wide for a 16-bit word is refused.
-pub fn encode_words(module: Module, values: &[u32]) -> Result<Vec<u8>, RequestError> {
+pub fn encode_words(module: Module, values: &[u32]) -> Result<Vec<u8>, CommandError> {
     let attribute = module.attribute();
     let n = attribute.word_bytes();
     let mut out = Vec::with_capacity(values.len() * n);
     for &value in values {
         let le = value.to_le_bytes();
         if n == 2 {
-            let word = u16::try_from(value).map_err(|_| RequestError::ValueTooWide {
+            let word = u16::try_from(value).map_err(|_| CommandError::ValueTooWide {
                 module,
                 value,
                 bits: 16,

@@ -42,7 +42,7 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 
 use super::command::{
-    CMND_TRANSFER, CommandText, MAX_READ, Reply, ReplyError, Request, RequestError, StaError,
+    CMND_TRANSFER, CommandError, CommandText, MAX_READ, Reply, ReplyError, Request, StaError,
     to_bcd, unsolicited_transfer,
 };
 use super::frame::{
@@ -354,7 +354,7 @@ pub enum MasterEvent {
 pub enum MasterError {
     /// The request was refused before it was sent.
     #[error("request refused before sending: {0}")]
-    Refused(#[from] RequestError),
+    Refused(#[from] CommandError),
     /// [`MasterSettings::queue_limit`] requests are already waiting.
     #[error("request refused: {limit} requests are already waiting")]
     QueueFull {
@@ -638,7 +638,7 @@ impl Master {
     }
 
     fn mode_refusal(&self, what: &'static str, section: &'static str) -> MasterError {
-        MasterError::Refused(RequestError::NotInMode {
+        MasterError::Refused(CommandError::NotInMode {
             what,
             mode: self.settings.mode.dial(),
             section,
@@ -655,7 +655,7 @@ impl Master {
             return Err(self.mode_refusal("the transfer command", "§5-3, §5-4 iii"));
         }
         if to_bcd(station).is_none() {
-            return Err(RequestError::Station { station }.into());
+            return Err(CommandError::Station { station }.into());
         }
         if mode == OperationMode::One && station != 0 {
             return Err(self.mode_refusal("a station other than 00", "§5-3 RSNO"));
@@ -688,7 +688,7 @@ impl Master {
         let bytes = match self.settings.fixed_length {
             Some(n) => {
                 if data.len() != n {
-                    return Err(RequestError::MessageLength {
+                    return Err(CommandError::MessageLength {
                         bytes: data.len(),
                         want: format!("exactly {n} (fixed length)"),
                     }
@@ -700,7 +700,7 @@ impl Master {
             }
             None => {
                 if data.is_empty() || data.len() > MAX_NON_PROCEDURE_TEXT {
-                    return Err(RequestError::MessageLength {
+                    return Err(CommandError::MessageLength {
                         bytes: data.len(),
                         want: format!("1 to {MAX_NON_PROCEDURE_TEXT}"),
                     }
@@ -710,7 +710,7 @@ impl Master {
                 if !self.settings.frame.transposition
                     && let Some(offset) = data.windows(end.len().max(1)).position(|w| w == end)
                 {
-                    return Err(RequestError::EndCodeInMessage {
+                    return Err(CommandError::EndCodeInMessage {
                         offset,
                         end: end.to_vec(),
                     }
@@ -1020,7 +1020,7 @@ impl Master {
 /// The outcome of a reply that answers `job`'s request.
 fn request_result(job: &Job, reply: &CommandText) -> Result<Reply, MasterError> {
     let Some(request) = &job.request else {
-        return Err(MasterError::Refused(RequestError::Empty {
+        return Err(MasterError::Refused(CommandError::Empty {
             what: "message",
         }));
     };

@@ -49,7 +49,7 @@ fn runs_take_in_what_the_byte_scan_would() {
                 .push(&data[..split], forbidden)
                 .and_then(|()| p.push(&data[split..], forbidden));
             let got = got.map_err(|e| match e {
-                ProgramError::EndCodeInData { offset, .. } => offset,
+                ProgramSendError::EndCodeInData { offset, .. } => offset,
                 other => panic!("{other:?}"),
             });
             assert_eq!(got, result, "{data:02x?} split at {split}");
@@ -104,7 +104,7 @@ fn eor_appended_when_missing_with_the_tape_start_code() {
     assert_eq!(all(&mut p), [0xA5, b'\n', b'O', b'1', 0xA5]);
     let mut empty = Program::new();
     empty.push(b"\n\n", None).unwrap();
-    assert_eq!(empty.end(), Err(ProgramError::Empty));
+    assert_eq!(empty.end(), Err(ProgramSendError::Empty));
 }
 
 #[test]
@@ -112,7 +112,7 @@ fn end_code_is_refused_with_its_offset() {
     let mut p = Program::new();
     assert_eq!(
         p.push(b"%\nO1\r\n", Some(0x0D)),
-        Err(ProgramError::EndCodeInData {
+        Err(ProgramSendError::EndCodeInData {
             offset: 4,
             end: 0x0D
         })

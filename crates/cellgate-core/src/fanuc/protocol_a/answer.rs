@@ -153,7 +153,7 @@ impl ProtocolAHost {
             let len = self.dat_len();
             let end = self.cfg.framing.end_byte();
             if let Some(offset) = self.program.as_ref().and_then(|p| p.find_in_next(len, end)) {
-                let e = ProgramError::EndCodeInData { offset, end };
+                let e = ProgramSendError::EndCodeInData { offset, end };
                 self.abort_program(AbortReason::Program(e), false, true, false);
             }
         }

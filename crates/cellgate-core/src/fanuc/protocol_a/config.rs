@@ -53,7 +53,7 @@ impl Default for ProtocolAConfig {
 /// One problem with a [`ProtocolAConfig`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[non_exhaustive]
-pub enum ConfigProblem {
+pub enum ProtocolAProblem {
     /// A remote-buffer parameter outside its §4.5 range.
     #[error("parameter {0}")]
     Param(#[from] ParamRangeError),
@@ -96,7 +96,7 @@ pub enum ConfigProblem {
 }
 
 /// A [`ProtocolAConfig`] that cannot run, with every problem found.
-pub type InvalidConfig = crate::engine::InvalidSettings<ConfigProblem>;
+pub type InvalidConfig = crate::engine::InvalidSettings<ProtocolAProblem>;
 
 impl ProtocolAConfig {
     /// The settings of a link with these framing, parameters, packet length and character
@@ -117,31 +117,31 @@ impl ProtocolAConfig {
     }
 
     /// Every problem of these settings.
-    pub fn validate(&self) -> Vec<ConfigProblem> {
-        let mut problems: Vec<ConfigProblem> = self
+    pub fn validate(&self) -> Vec<ProtocolAProblem> {
+        let mut problems: Vec<ProtocolAProblem> = self
             .params
             .validate()
             .into_iter()
-            .map(ConfigProblem::Param)
+            .map(ProtocolAProblem::Param)
             .collect();
         if effective_packet_n(self.packet_n) != self.packet_n {
-            problems.push(ConfigProblem::PacketN { n: self.packet_n });
+            problems.push(ProtocolAProblem::PacketN { n: self.packet_n });
         }
         let half_to = Duration::from_secs(u64::from(self.params.to)) / 2;
         if self.wat_grace >= half_to {
-            problems.push(ConfigProblem::WatGrace {
+            problems.push(ProtocolAProblem::WatGrace {
                 grace: self.wat_grace,
                 to: self.params.to,
             });
         }
         if self.dummy_interval.is_zero() || self.dummy_interval >= half_to {
-            problems.push(ConfigProblem::DummyInterval {
+            problems.push(ProtocolAProblem::DummyInterval {
                 interval: self.dummy_interval,
                 to: self.params.to,
             });
         }
         if self.max_buffer < MAX_DAT_DATA {
-            problems.push(ConfigProblem::MaxBuffer {
+            problems.push(ProtocolAProblem::MaxBuffer {
                 len: self.max_buffer,
                 min: MAX_DAT_DATA,
             });

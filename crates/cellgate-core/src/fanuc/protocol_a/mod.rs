@@ -83,7 +83,7 @@ mod board;
 mod config;
 mod expansion;
 
-pub use config::{ConfigProblem, InvalidConfig, ProtocolAConfig};
+pub use config::{InvalidConfig, ProtocolAConfig, ProtocolAProblem};
 
 /// Shortest DAT a noisy line brings the host down to (see `dat_len_now`).
 pub const MIN_NOISY_DAT: usize = 128;
@@ -104,7 +104,7 @@ use crate::fanuc::message::{
     Command, Decoder, FrameError, Framing, MAX_DAT_DATA, Message, RTY_CHECKSUM, hex2,
 };
 use crate::fanuc::packet::{MONITOR_LEN, Monitor, data_len};
-use crate::fanuc::program::{Program, ProgramError};
+use crate::fanuc::program::{Program, ProgramSendError};
 use crate::fanuc::sat::{
     AlarmCause, BufferStatus, ParamRangeError, Params, StatusData, effective_packet_n,
 };

@@ -20,7 +20,7 @@ fn dummy_interval_must_stay_below_to() {
     };
     assert_eq!(
         cfg.validate(),
-        [ConfigProblem::DummyInterval {
+        [ProtocolAProblem::DummyInterval {
             interval: Duration::from_secs(10),
             to: 20
         }]

@@ -180,7 +180,7 @@ fn default_settings_are_valid_and_overrun_per_protocol() {
     let bad = ProtocolBConfig { tx_piece: 300, ..b };
     assert!(matches!(
         bad.validate().as_slice(),
-        [ConfigProblem::TxPiece { piece: 300, .. }]
+        [ProtocolBProblem::TxPiece { piece: 300, .. }]
     ));
     assert!(ProtocolBHost::new(bad, Instant::now()).is_err());
 }

@@ -98,7 +98,7 @@ fn write_and_clear_texts() {
     // RSNO is BCD: station 42 is 42h.
     let r = Request::read_words(Module::D, 0, 1).unwrap();
     assert_eq!(r.encode(42).unwrap()[1], 0x42);
-    assert_eq!(r.encode(100), Err(RequestError::Station { station: 100 }));
+    assert_eq!(r.encode(100), Err(CommandError::Station { station: 100 }));
 }
 
 #[test]
@@ -155,7 +155,7 @@ fn requests_the_module_would_refuse_are_refused_first() {
     };
     assert!(matches!(
         r.check(),
-        Err(RequestError::ByteCount {
+        Err(CommandError::ByteCount {
             word_bytes: 2,
             bytes: 3,
             ..
@@ -168,18 +168,18 @@ fn requests_the_module_would_refuse_are_refused_first() {
     };
     assert!(matches!(
         r.check(),
-        Err(RequestError::ByteCount { word_bytes: 4, .. })
+        Err(CommandError::ByteCount { word_bytes: 4, .. })
     ));
     // Limits: read 212, write 220, transfer 220.
     assert!(Request::read_words(Module::D, 0, 106).is_ok());
     assert!(matches!(
         Request::read_words(Module::D, 0, 107),
-        Err(RequestError::TooMany { max: 212, .. })
+        Err(CommandError::TooMany { max: 212, .. })
     ));
     assert!(Request::write_words(Module::D, 0, &[0; 110]).is_ok());
     assert!(matches!(
         Request::write_words(Module::D, 0, &[0; 111]),
-        Err(RequestError::TooMany { max: 220, .. })
+        Err(CommandError::TooMany { max: 220, .. })
     ));
     assert!(matches!(
         Request::Transfer {
@@ -187,19 +187,19 @@ fn requests_the_module_would_refuse_are_refused_first() {
             data: vec![0; 221]
         }
         .check(),
-        Err(RequestError::TooMany { max: 220, .. })
+        Err(CommandError::TooMany { max: 220, .. })
     ));
     assert!(matches!(
         Request::read_words(Module::D, 0, 0),
-        Err(RequestError::Empty { .. })
+        Err(CommandError::Empty { .. })
     ));
     assert!(matches!(
         Request::read_words(Module::D, 65535, 2),
-        Err(RequestError::AddressRange { .. })
+        Err(CommandError::AddressRange { .. })
     ));
     assert!(matches!(
         Request::write_words(Module::D, 0, &[0x1_0000]),
-        Err(RequestError::ValueTooWide { bits: 16, .. })
+        Err(CommandError::ValueTooWide { bits: 16, .. })
     ));
     // Modules the table lacks.
     for name in ["X", "W25", "W110", "W29", "W30:XX", "D:DI", ""] {

@@ -707,7 +707,7 @@ fn requests_that_cannot_be_right_are_refused_before_sending() {
     let e = refused(OperationMode::Three, read(1, 100, Module::D, 0, 1));
     assert!(matches!(
         e,
-        MasterError::Refused(RequestError::Station { station: 100 })
+        MasterError::Refused(CommandError::Station { station: 100 })
     ));
     let e = refused(OperationMode::Four, read(1, 0, Module::D, 0, 1));
     assert!(e.to_string().contains("mode 4"), "{e}");
