@@ -40,6 +40,10 @@
 //! `client`, `console`, `mtconnect`, `gateway`) speaks zenoh, so links, jobs and transports run without a bus (and
 //! in paused time).
 
+// What is `pub` is the crate's interface (tests, benches, the binary use it); anything else
+// says how far it reaches.
+#![warn(unreachable_pub)]
+
 pub mod bus;
 pub mod cell;
 pub mod client;

@@ -41,7 +41,7 @@ pub(crate) struct Audit<'a> {
 }
 
 impl Auditor {
-    pub fn new(security: &SecurityConfig) -> Self {
+    pub(crate) fn new(security: &SecurityConfig) -> Self {
         Auditor {
             roles: security
                 .roles
@@ -78,7 +78,7 @@ impl Auditor {
     }
 
     /// Records `a` with its outcome.
-    pub fn record<E: BusCode + std::fmt::Display>(
+    pub(crate) fn record<E: BusCode + std::fmt::Display>(
         &self,
         history: &History,
         a: Audit<'_>,

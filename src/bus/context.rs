@@ -156,7 +156,7 @@ pub(crate) struct Endpoint<C> {
 
 impl<C: Send + 'static> Endpoint<C> {
     /// Queries on `queryable`, each served by `f`.
-    pub fn queries<F, Fut>(
+    pub(crate) fn queries<F, Fut>(
         queryable: Queryable<FifoChannelHandler<Query>>,
         pool: Option<Pool>,
         f: F,
@@ -183,7 +183,7 @@ impl<C: Send + 'static> Endpoint<C> {
     }
 
     /// Puts and deletes on `subscriber`, each served by `f`.
-    pub fn samples<F, Fut>(
+    pub(crate) fn samples<F, Fut>(
         subscriber: Subscriber<FifoChannelHandler<Sample>>,
         pool: Option<Pool>,
         f: F,
@@ -289,7 +289,7 @@ pub(crate) struct CellNames {
 }
 
 impl CellNames {
-    pub fn of(config: &cellgate_core::config::CellConfig) -> Self {
+    pub(crate) fn of(config: &cellgate_core::config::CellConfig) -> Self {
         CellNames {
             links: config
                 .machines
@@ -306,7 +306,7 @@ impl CellNames {
     }
 
     /// The first of `asked` that is not one of `known`, with the known ones for the message.
-    pub fn unknown<'a>(
+    pub(crate) fn unknown<'a>(
         known: &std::collections::BTreeSet<String>,
         asked: impl IntoIterator<Item = &'a String>,
     ) -> Option<(&'a String, String)> {
@@ -483,7 +483,7 @@ impl BusCode for RequestError {
 }
 
 impl RouteContext {
-    pub fn new(
+    pub(crate) fn new(
         session: Session,
         keys: Arc<CellKeys>,
         machines: Arc<BTreeMap<String, Arc<Machine>>>,
@@ -509,7 +509,7 @@ impl RouteContext {
     }
 
     /// The bounds of request messages in this cell.
-    pub fn limits(&self) -> Limits {
+    pub(crate) fn limits(&self) -> Limits {
         Limits {
             max_inline: self.max_inline,
             max_program: self.library.max_size(),
@@ -517,7 +517,11 @@ impl RouteContext {
     }
 
     /// `bytes` as the request message `M`, within its bounds ([`cellgate_core::bounds`]).
-    pub fn decode<M: Bounded>(&self, machine: &str, bytes: &[u8]) -> Result<M, RequestError> {
+    pub(crate) fn decode<M: Bounded>(
+        &self,
+        machine: &str,
+        bytes: &[u8],
+    ) -> Result<M, RequestError> {
         bounds::decode(bytes, &self.limits()).map_err(|error| RequestError::Payload {
             machine: machine.to_string(),
             error,
@@ -525,25 +529,29 @@ impl RouteContext {
     }
 
     /// The same context, recording in `history` and auditing with the cell's roles.
-    pub fn with_history(mut self, history: History, auditor: Auditor) -> Self {
+    pub(crate) fn with_history(mut self, history: History, auditor: Auditor) -> Self {
         self.history = history;
         self.auditor = Arc::new(auditor);
         self
     }
 
     /// Records an audited write and its outcome.
-    pub fn audit<E: BusCode + std::fmt::Display>(&self, a: Audit<'_>, outcome: Result<(), &E>) {
+    pub(crate) fn audit<E: BusCode + std::fmt::Display>(
+        &self,
+        a: Audit<'_>,
+        outcome: Result<(), &E>,
+    ) {
         self.auditor.record(&self.history, a, outcome);
     }
 
     /// The same context, knowing the cell's link and tag names.
-    pub fn with_names(mut self, names: CellNames) -> Self {
+    pub(crate) fn with_names(mut self, names: CellNames) -> Self {
         self.names = Arc::new(names);
         self
     }
 
     /// The same context, allowing `JobRequest.key` under these prefixes.
-    pub fn with_fetch_prefixes(mut self, prefixes: &[String]) -> Self {
+    pub(crate) fn with_fetch_prefixes(mut self, prefixes: &[String]) -> Self {
         self.fetch_prefixes = prefixes
             .iter()
             .map(|p| p.trim_end_matches('/').to_string())
@@ -551,7 +559,7 @@ impl RouteContext {
         self
     }
 
-    pub async fn queryable(
+    pub(crate) async fn queryable(
         &self,
         key: String,
     ) -> Result<Queryable<FifoChannelHandler<Query>>, BusError> {
@@ -565,7 +573,7 @@ impl RouteContext {
             })
     }
 
-    pub async fn subscriber(
+    pub(crate) async fn subscriber(
         &self,
         key: String,
         origin: Locality,
@@ -582,7 +590,7 @@ impl RouteContext {
     }
 
     /// A slot of `pool`, if one is free; the request it runs gives it back when dropped.
-    pub fn slot(&self, pool: Pool) -> Option<tokio::sync::OwnedSemaphorePermit> {
+    pub(crate) fn slot(&self, pool: Pool) -> Option<tokio::sync::OwnedSemaphorePermit> {
         let semaphore = self.slots.get(pool.index())?;
         Arc::clone(semaphore).try_acquire_owned().ok()
     }
@@ -630,7 +638,7 @@ impl RouteContext {
     }
 
     /// The machine a concrete key names.
-    pub fn target(&self, key: &KeyExpr<'_>) -> Target<'_> {
+    pub(crate) fn target(&self, key: &KeyExpr<'_>) -> Target<'_> {
         if key.is_wild() {
             return Target::Wild;
         }
@@ -650,7 +658,7 @@ impl RouteContext {
         }
     }
 
-    pub fn unknown_machine(&self, machine: &str) -> RequestError {
+    pub(crate) fn unknown_machine(&self, machine: &str) -> RequestError {
         let names: Vec<&str> = self.machines.keys().map(String::as_str).collect();
         RequestError::UnknownMachine {
             cell: self.keys.root().to_string(),
@@ -664,7 +672,7 @@ impl RouteContext {
     }
 
     /// The one machine a request for `leaf` (a `what`) names, or why it names none.
-    pub fn one_machine(
+    pub(crate) fn one_machine(
         &self,
         q: &Query,
         leaf: MachineLeaf,
@@ -683,14 +691,14 @@ impl RouteContext {
 
     /// Answers a concrete key of a machine the cell lacks with `UNKNOWN_MACHINE`; leaves a
     /// wildcard that matched nothing unanswered, as zenoh does.
-    pub async fn unmatched(&self, q: &Query) {
+    pub(crate) async fn unmatched(&self, q: &Query) {
         if let Target::Unknown(m) = self.target(q.key_expr()) {
             reply_err(q, &self.unknown_machine(&m)).await;
         }
     }
 
     /// The machines whose `leaf` key the query takes in, with that key.
-    pub fn matching(&self, q: &Query, leaf: MachineLeaf) -> Vec<(String, &Arc<Machine>)> {
+    pub(crate) fn matching(&self, q: &Query, leaf: MachineLeaf) -> Vec<(String, &Arc<Machine>)> {
         self.machines
             .values()
             .map(|m| (self.keys.leaf(m.name(), leaf), m))
@@ -740,7 +748,7 @@ pub(crate) struct MachinePublisher<M> {
 }
 
 impl<M: BusMessage> MachinePublisher<M> {
-    pub async fn declare(
+    pub(crate) async fn declare(
         ctx: &RouteContext,
         machine: &str,
         leaf: MachineLeaf,
@@ -764,7 +772,7 @@ impl<M: BusMessage> MachinePublisher<M> {
         })
     }
 
-    pub async fn publish(&self, message: &M) {
+    pub(crate) async fn publish(&self, message: &M) {
         if let Err(e) = self.publisher.put(message.encode_to_vec()).await {
             tracing::warn!(key = %self.publisher.key_expr(), error = %e, "publishing failed");
         }

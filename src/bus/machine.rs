@@ -41,7 +41,7 @@ pub(crate) struct Machine {
 }
 
 impl Machine {
-    pub fn new(
+    pub(crate) fn new(
         config: MachineConfig,
         link: LinkHandle,
         jobs: JobsHandle,
@@ -72,12 +72,12 @@ impl Machine {
         }
     }
 
-    pub fn name(&self) -> &str {
+    pub(crate) fn name(&self) -> &str {
         &self.config.name
     }
 
     /// The view; never held across an await.
-    pub fn view(&self) -> MutexGuard<'_, View> {
+    pub(crate) fn view(&self) -> MutexGuard<'_, View> {
         // A panic while the lock was held leaves a view that is still usable.
         self.view
             .lock()
@@ -85,7 +85,7 @@ impl Machine {
     }
 
     /// The status as of now.
-    pub fn status(&self) -> pb::MachineStatus {
+    pub(crate) fn status(&self) -> pb::MachineStatus {
         let mut s = self.view().status.clone();
         s.unix_ms = pb::now_ms();
         self.line_counters(&mut s);
@@ -100,7 +100,7 @@ impl Machine {
     /// The link's line counters, which it keeps for telemetry, as of now. They change with
     /// every byte, so they are read when a status goes out, not kept in the view (where each
     /// byte would be a change to publish).
-    pub fn line_counters(&self, s: &mut pb::MachineStatus) {
+    pub(crate) fn line_counters(&self, s: &mut pb::MachineStatus) {
         // A link that keeps no counters leaves them absent, as the contract says.
         let Some(line) = self.link.line_counts() else {
             return;
@@ -112,11 +112,11 @@ impl Machine {
     }
 
     /// Why the job journal cannot write, or empty.
-    pub fn storage_fault(&self) -> String {
+    pub(crate) fn storage_fault(&self) -> String {
         self.jobs.journal().fault().unwrap_or_default()
     }
 
-    pub fn link_up(&self) -> bool {
+    pub(crate) fn link_up(&self) -> bool {
         self.view().link_state.is_some_and(payload::link_up)
     }
 
@@ -124,7 +124,7 @@ impl Machine {
     /// the next SAT or GTD, and the board sends SAT every Tp seconds (§4.4, §4.5). Right after
     /// an exchange that next SAT is a whole poll plus the board's turnaround away, so allow
     /// one missed poll: 2·Tp + 1 s.
-    pub fn exchange_timeout(&self) -> Duration {
+    pub(crate) fn exchange_timeout(&self) -> Duration {
         Duration::from_secs(2 * u64::from(self.config.params().tp) + 1)
     }
 
@@ -272,7 +272,7 @@ impl Machine {
     }
 
     /// Keeps `event` as the latest of its job, and at most `keep` jobs.
-    pub fn remember_job_event(&self, event: &pb::JobEvent, keep: usize) {
+    pub(crate) fn remember_job_event(&self, event: &pb::JobEvent, keep: usize) {
         let mut view = self.view();
         let recent = &mut view.recent_jobs;
         if let Some(i) = recent.iter().position(|e| e.job_id == event.job_id) {

@@ -50,7 +50,7 @@ pub(crate) struct MachineFeeds {
 
 impl MachineFeeds {
     /// `job_events`: the job manager's events subscribed before it ran.
-    pub fn subscribe(
+    pub(super) fn subscribe(
         link: &LinkHandle,
         jobs: &JobsHandle,
         job_events: broadcast::Receiver<Arc<pb::JobEvent>>,
@@ -65,7 +65,7 @@ impl MachineFeeds {
 
 impl MachineTask {
     /// Declares the machine's publishers.
-    pub async fn declare(
+    pub(super) async fn declare(
         ctx: &RouteContext,
         machine: Arc<Machine>,
         feeds: MachineFeeds,
@@ -93,7 +93,7 @@ impl MachineTask {
     /// and job events; holds the liveliness token while the link is up; polls DI when
     /// configured. Ends when `stop` is cancelled, after publishing the job events still
     /// pending; its publishers and token are undeclared when it returns.
-    pub async fn run(mut self, stop: CancellationToken) {
+    pub(super) async fn run(mut self, stop: CancellationToken) {
         let machine = Arc::clone(&self.machine);
         let mut poll = machine
             .config

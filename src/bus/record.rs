@@ -55,7 +55,7 @@ pub(crate) struct Recorder {
 
 impl Recorder {
     /// Records what changed in `status`.
-    pub fn status(&mut self, history: &History, machine: &str, status: &pb::MachineStatus) {
+    pub(super) fn status(&mut self, history: &History, machine: &str, status: &pb::MachineStatus) {
         if !history.enabled() {
             return;
         }
@@ -78,7 +78,7 @@ impl Recorder {
     }
 
     /// Records a job that ended.
-    pub fn job(&mut self, history: &History, machine: &str, event: &pb::JobEvent) {
+    pub(super) fn job(&mut self, history: &History, machine: &str, event: &pb::JobEvent) {
         if !history.enabled() {
             return;
         }
@@ -104,7 +104,7 @@ impl Recorder {
     }
 
     /// Records an alarm.
-    pub fn alarm(history: &History, machine: &str, alarm: &pb::AlarmEvent) {
+    pub(super) fn alarm(history: &History, machine: &str, alarm: &pb::AlarmEvent) {
         history.event(machine, HistoryKind::Alarm, Record::Alarm(alarm.clone()));
     }
 }

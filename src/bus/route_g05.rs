@@ -46,7 +46,7 @@ pub(crate) struct G05Route {
 }
 
 impl G05Route {
-    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
         Ok(G05Route {
             open: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::G05)).await?,
             status: ctx.queryable(ctx.keys.any_g05(G05Part::Status)).await?,
@@ -60,7 +60,7 @@ impl G05Route {
         })
     }
 
-    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
         let mut tasks = JoinSet::new();
         // One publisher task per stream opened: it ends when the stream is over.
         let mut streams = JoinSet::new();

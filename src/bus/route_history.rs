@@ -34,7 +34,7 @@ pub(crate) struct HistoryRoute {
 }
 
 impl HistoryRoute {
-    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
         Ok(HistoryRoute {
             history: ctx.queryable(ctx.keys.history()).await?,
             audit: ctx.queryable(ctx.keys.audit()).await?,
@@ -43,7 +43,7 @@ impl HistoryRoute {
         })
     }
 
-    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
         serve_route(
             ctx,
             stop,

@@ -44,7 +44,7 @@ pub(crate) struct IoRoute {
 }
 
 impl IoRoute {
-    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
         Ok(IoRoute {
             di: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::Di)).await?,
             do_get: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::Do)).await?,
@@ -55,7 +55,7 @@ impl IoRoute {
         })
     }
 
-    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
         serve_route(
             ctx,
             stop,

@@ -54,7 +54,7 @@ pub(crate) struct JobRoute {
 }
 
 impl JobRoute {
-    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
         Ok(JobRoute {
             submits: ctx
                 .queryable(ctx.keys.any_leaf(MachineLeaf::Submit))
@@ -70,7 +70,7 @@ impl JobRoute {
         })
     }
 
-    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
         serve_route(
             ctx,
             stop,
@@ -507,7 +507,12 @@ pub(crate) struct JobEventPublisher {
 }
 
 impl JobEventPublisher {
-    pub async fn publish(&mut self, ctx: &RouteContext, machine: &Machine, event: &pb::JobEvent) {
+    pub(super) async fn publish(
+        &mut self,
+        ctx: &RouteContext,
+        machine: &Machine,
+        event: &pb::JobEvent,
+    ) {
         machine.remember_job_event(event, RECENT_JOBS);
         let key = match self.key(ctx, machine, &event.job_id).await {
             Ok(key) => key,

@@ -112,7 +112,7 @@ pub(crate) struct MisdirectedRoute {
 }
 
 impl MisdirectedRoute {
-    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+    pub(crate) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
         let k = &ctx.keys;
         let mut subscribers = Vec::new();
         for key in [
@@ -129,7 +129,7 @@ impl MisdirectedRoute {
         Ok(MisdirectedRoute { subscribers })
     }
 
-    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+    pub(crate) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
         let endpoints = self
             .subscribers
             .into_iter()

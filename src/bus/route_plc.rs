@@ -137,7 +137,7 @@ impl BusCode for PlcRequestError {
 
 impl PlcContext {
     /// The PLC a key names.
-    pub fn plc(&self, name: &str) -> Result<&PlcLink, PlcRequestError> {
+    pub(super) fn plc(&self, name: &str) -> Result<&PlcLink, PlcRequestError> {
         self.plcs
             .get(name)
             .ok_or_else(|| PlcRequestError::UnknownPlc {
@@ -152,7 +152,12 @@ impl PlcContext {
     }
 
     /// Publishes `message` on `key`.
-    pub async fn publish<M: BusMessage>(&self, key: String, message: &M, cc: CongestionControl) {
+    pub(super) async fn publish<M: BusMessage>(
+        &self,
+        key: String,
+        message: &M,
+        cc: CongestionControl,
+    ) {
         let sent = self
             .route
             .session
@@ -195,7 +200,7 @@ pub(crate) struct PlcRoute {
 }
 
 impl PlcRoute {
-    pub async fn declare(ctx: &PlcContext) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &PlcContext) -> Result<Self, BusError> {
         let k = &ctx.route.keys;
         Ok(PlcRoute {
             // Reads and the writes' own keys (`…/write`): the handler tells them apart.
@@ -218,7 +223,7 @@ impl PlcRoute {
         })
     }
 
-    pub async fn run(self, ctx: PlcContext, stop: CancellationToken) {
+    pub(super) async fn run(self, ctx: PlcContext, stop: CancellationToken) {
         serve_route(
             ctx,
             stop,

@@ -50,7 +50,7 @@ pub(crate) struct ProgramRoute {
 }
 
 impl ProgramRoute {
-    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
         let k = &ctx.keys;
         Ok(ProgramRoute {
             reads: ctx.queryable(k.any_program()).await?,
@@ -63,7 +63,7 @@ impl ProgramRoute {
         })
     }
 
-    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
         serve_route(
             ctx,
             stop,

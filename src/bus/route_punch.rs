@@ -50,7 +50,7 @@ pub(crate) struct PunchSettings {
 const MAX_PUNCHED_PROGRAM: u64 = 64 * 1024 * 1024;
 
 impl PunchSettings {
-    pub fn from_config(programs: &ProgramsConfig) -> Self {
+    pub(super) fn from_config(programs: &ProgramsConfig) -> Self {
         PunchSettings {
             store: programs.store_punched,
             // Checked when the cell file was read; a pattern that fails here recognises
@@ -85,7 +85,7 @@ pub(crate) struct PunchDesk {
 }
 
 impl PunchDesk {
-    pub fn new(machine: &str, settings: PunchSettings) -> Self {
+    pub(super) fn new(machine: &str, settings: PunchSettings) -> Self {
         PunchDesk {
             machine: machine.to_string(),
             assembler: PunchAssembler::new(settings.max_program),
@@ -95,13 +95,13 @@ impl PunchDesk {
     }
 
     /// The same desk, writing each punched program into `dir` as a file too.
-    pub fn receiving(mut self, dir: Option<std::path::PathBuf>) -> Self {
+    pub(super) fn receiving(mut self, dir: Option<std::path::PathBuf>) -> Self {
         self.receive_dir = dir;
         self
     }
 
     /// Takes a piece of punched data; handles every program that ended in it.
-    pub async fn feed(&mut self, data: &[u8], jobs: &JobsHandle) -> Vec<Outcome> {
+    pub(super) async fn feed(&mut self, data: &[u8], jobs: &JobsHandle) -> Vec<Outcome> {
         let mut out = Vec::new();
         for result in self.assembler.feed(data) {
             out.push(match result {
@@ -113,19 +113,19 @@ impl PunchDesk {
     }
 
     /// The punch-out was damaged here: the program in progress is not good.
-    pub fn damaged(&mut self, cause: impl std::fmt::Display) {
+    pub(super) fn damaged(&mut self, cause: impl std::fmt::Display) {
         tracing::warn!(machine = %self.machine, %cause, "punch-out damaged");
         self.assembler.damaged(cause);
     }
 
     /// The punch-out has ended (the link left the receiving state): a program without EOR
     /// is reported and dropped.
-    pub fn finish(&mut self) -> Option<Outcome> {
+    pub(super) fn finish(&mut self) -> Option<Outcome> {
         self.assembler.finish().map(|e| self.error(&e))
     }
 
     /// The link's events were lost (the bus fell behind): what was pending is dropped.
-    pub fn lost(&mut self, missed: u64) -> Outcome {
+    pub(super) fn lost(&mut self, missed: u64) -> Outcome {
         let pending = self.assembler.pending();
         self.assembler = PunchAssembler::new(self.settings.max_program);
         let message = format!(

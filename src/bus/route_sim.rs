@@ -33,13 +33,13 @@ pub(crate) struct SimRoute {
 }
 
 impl SimRoute {
-    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
         Ok(SimRoute {
             queryable: ctx.queryable(ctx.keys.any_sim()).await?,
         })
     }
 
-    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
         serve_route(
             ctx,
             stop,

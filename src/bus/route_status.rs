@@ -23,7 +23,7 @@ pub(crate) struct StatusRoute {
 }
 
 impl StatusRoute {
-    pub async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
         let queryable = ctx
             .queryable(ctx.keys.any_leaf(MachineLeaf::Status))
             .await?;
@@ -31,7 +31,7 @@ impl StatusRoute {
     }
 
     /// Answers gets until `stop`. A status is at hand, so the answer never waits.
-    pub async fn run(self, ctx: RouteContext, stop: CancellationToken) {
+    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
         loop {
             let q = tokio::select! {
                 () = stop.cancelled() => break,
@@ -59,7 +59,7 @@ pub(crate) struct StatusPublisher {
 }
 
 impl StatusPublisher {
-    pub async fn declare(ctx: &RouteContext, machine: &str) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &RouteContext, machine: &str) -> Result<Self, BusError> {
         // Telemetry: the next status supersedes a lost one.
         let publisher =
             MachinePublisher::declare(ctx, machine, MachineLeaf::Status, CongestionControl::Drop)
@@ -72,7 +72,7 @@ impl StatusPublisher {
 
     /// Publishes the machine's status if it changed since the last publication (the time of
     /// day aside); returns it when it did.
-    pub async fn publish(&mut self, machine: &Machine) -> Option<&pb::MachineStatus> {
+    pub(super) async fn publish(&mut self, machine: &Machine) -> Option<&pb::MachineStatus> {
         let mut current = machine.view().status.clone();
         current.storage_fault = machine.storage_fault();
         if self.published.as_ref() == Some(&current) {

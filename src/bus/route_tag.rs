@@ -39,7 +39,7 @@ pub(crate) struct TagRoute {
 }
 
 impl TagRoute {
-    pub async fn declare(ctx: &PlcContext) -> Result<Self, BusError> {
+    pub(super) async fn declare(ctx: &PlcContext) -> Result<Self, BusError> {
         let k = &ctx.route.keys;
         Ok(TagRoute {
             get: ctx.route.queryable(k.any_plc_tag()).await?,
@@ -51,7 +51,7 @@ impl TagRoute {
         })
     }
 
-    pub async fn run(self, ctx: PlcContext, stop: CancellationToken) {
+    pub(super) async fn run(self, ctx: PlcContext, stop: CancellationToken) {
         serve_route(
             ctx,
             stop,

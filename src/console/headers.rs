@@ -8,7 +8,7 @@ use axum::response::Response;
 /// Headers every answer carries: only this origin's scripts, styles and connections; no
 /// framing, no opener or embedding from elsewhere; no caching of the API's answers; under
 /// TLS, HTTPS only from now on (HSTS).
-pub async fn headers(State(https): State<bool>, req: Request, next: Next) -> Response {
+pub(super) async fn headers(State(https): State<bool>, req: Request, next: Next) -> Response {
     let api = req.uri().path().starts_with("/api/");
     let mut r = next.run(req).await;
     add_headers(r.headers_mut(), https, api);

@@ -51,13 +51,13 @@ pub const DEFAULT_WINDOW: usize = 128;
 
 /// Things logged once per port.
 mod once {
-    pub const ER: u8 = 1 << 0;
-    pub const RS: u8 = 1 << 1;
-    pub const DR: u8 = 1 << 2;
-    pub const CS: u8 = 1 << 3;
-    pub const CD: u8 = 1 << 4;
-    pub const OUTQ: u8 = 1 << 5;
-    pub const RS_FLOW: u8 = 1 << 6;
+    pub(super) const ER: u8 = 1 << 0;
+    pub(super) const RS: u8 = 1 << 1;
+    pub(super) const DR: u8 = 1 << 2;
+    pub(super) const CS: u8 = 1 << 3;
+    pub(super) const CD: u8 = 1 << 4;
+    pub(super) const OUTQ: u8 = 1 << 5;
+    pub(super) const RS_FLOW: u8 = 1 << 6;
 }
 
 /// A serial port as a [`Transport`]. See the [module docs](self).

@@ -35,7 +35,7 @@ impl IndexError {
 }
 
 /// The open index.
-pub struct Index {
+pub(super) struct Index {
     path: PathBuf,
     db: Database,
 }
@@ -48,7 +48,7 @@ impl std::fmt::Debug for Index {
 
 impl Index {
     /// Opens or creates the index at `path`. Blocking.
-    pub fn open(path: &Path) -> Result<Index, IndexError> {
+    pub(super) fn open(path: &Path) -> Result<Index, IndexError> {
         let err = |e: redb::Error| IndexError {
             path: path.to_path_buf(),
             source: Box::new(e),
@@ -92,7 +92,7 @@ impl Index {
     }
 
     /// Every kept revision of `name`, oldest first.
-    pub fn revisions(&self, name: &str) -> Result<Vec<pb::ProgramRevision>, IndexError> {
+    pub(super) fn revisions(&self, name: &str) -> Result<Vec<pb::ProgramRevision>, IndexError> {
         let tx = self.db.begin_read().map_err(|e| self.err(e))?;
         let t = tx.open_table(REVISIONS).map_err(|e| self.err(e))?;
         let mut out = Vec::new();
@@ -109,7 +109,7 @@ impl Index {
     }
 
     /// Every program's latest revision, by name.
-    pub fn latest_all(&self) -> Result<Vec<pb::ProgramRevision>, IndexError> {
+    pub(super) fn latest_all(&self) -> Result<Vec<pb::ProgramRevision>, IndexError> {
         let tx = self.db.begin_read().map_err(|e| self.err(e))?;
         let t = tx.open_table(REVISIONS).map_err(|e| self.err(e))?;
         let mut out: Vec<pb::ProgramRevision> = Vec::new();
@@ -126,7 +126,7 @@ impl Index {
     }
 
     /// Every SHA-256 a kept revision names.
-    pub fn hashes(&self) -> Result<std::collections::BTreeSet<String>, IndexError> {
+    pub(super) fn hashes(&self) -> Result<std::collections::BTreeSet<String>, IndexError> {
         let tx = self.db.begin_read().map_err(|e| self.err(e))?;
         let t = tx.open_table(REVISIONS).map_err(|e| self.err(e))?;
         let mut out = std::collections::BTreeSet::new();
@@ -141,7 +141,7 @@ impl Index {
 
     /// Writes `revisions` (new or changed) and removes the revisions `drop` names, in one
     /// transaction.
-    pub fn put(
+    pub(super) fn put(
         &self,
         revisions: &[pb::ProgramRevision],
         drop: &[(String, u32)],
