@@ -9,5 +9,6 @@ mod cli;
 mod config;
 mod examples;
 mod layering;
+mod notes;
 mod plc_cli;
 mod tour;
