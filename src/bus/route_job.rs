@@ -499,8 +499,9 @@ const DECLARED_JOB_KEYS: usize = 4;
 /// Each job has its own key. A put on a key no one declared makes zenoh's router match it
 /// against every subscriber and queryable of the session, on every put (a job sends up to four
 /// progress events a second): 11 % of the gateway's CPU samples at 256 busy links, 4.7 % with
-/// declared keys (docs/performance.md, "A thousand links: the gateway alone"). A declared key keeps its route cached, so the
-/// keys of the last few jobs stay declared; a key dropped from the list is undeclared.
+/// declared keys (docs/performance.md, "A thousand links: the gateway alone"). A declared key
+/// keeps its route cached, so the keys of the last few jobs stay declared; a key dropped from
+/// the list is undeclared.
 #[derive(Default)]
 pub(crate) struct JobEventPublisher {
     declared: std::collections::VecDeque<(String, KeyExpr<'static>)>,

@@ -200,7 +200,8 @@ impl Program {
     /// How many more bytes the program takes now, within `limit` bytes of buffer: none while
     /// it holds more than half the limit, so that its source is read in large pieces, not a
     /// packet's worth at a time (each read of a file is a trip to a blocking thread: 8 % of the
-    /// gateway's CPU at 1024 busy links, docs/performance.md "A thousand links: the gateway alone").
+    /// gateway's CPU at 1024 busy links, docs/performance.md "A thousand links: the gateway
+    /// alone").
     /// None after EOR: what follows it would only be dropped.
     pub fn wanted(&self, limit: usize) -> usize {
         if self.complete() || self.buf.len() > limit / 2 {
