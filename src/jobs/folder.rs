@@ -123,7 +123,12 @@ impl FolderWatch {
     /// Lists the folder once and reports its complete files on the returned channel, then
     /// follows it until `stop` (with `watch = "off"`, only until the files there at start
     /// are complete).
-    pub fn spawn(self, stop: CancellationToken) -> Followed {
+    pub fn spawn(mut self, stop: CancellationToken) -> Followed {
+        // The system's events name files by absolute path (a relative `programs.dir` is the
+        // working directory's): the folder is matched as the same.
+        if let Ok(dir) = std::path::absolute(&self.dir) {
+            self.dir = dir;
+        }
         let (tx, seen) = mpsc::channel(1024);
         let (retry, retries) = mpsc::unbounded_channel();
         let task = tokio::spawn(self.run(tx, retries, stop));

@@ -183,3 +183,25 @@ async fn watch_off_takes_what_is_there_at_start_then_ends() {
         assert_eq!(seen, Seen::Listed);
     }
 }
+
+#[tokio::test]
+async fn a_folder_named_relative_to_the_working_directory_is_followed_by_its_events() {
+    // Tests run in the package's directory: a folder under target/, named relative to it.
+    std::fs::create_dir_all("target").unwrap();
+    let dir = tempfile::tempdir_in("target").unwrap();
+    let relative = Path::new("target").join(dir.path().file_name().unwrap());
+    let stop = CancellationToken::new();
+    let mut w = watch(&relative, Watch::Auto);
+    // No listing within the test: only the events can report the file.
+    w.poll = Duration::from_secs(600);
+    let Followed { seen: mut rx, .. } = w.spawn(stop.clone());
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    std::fs::write(relative.join("O0007.nc"), program(3)).unwrap();
+    assert_eq!(
+        next(&mut rx).await,
+        Seen::Complete {
+            file: "O0007.nc".into()
+        }
+    );
+    stop.cancel();
+}
