@@ -27,9 +27,10 @@ use zenoh::sample::{Locality, Sample, SampleKind};
 use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::{
-    Endpoint, Pool, RequestError, RouteContext, reply, reply_bytes, reply_err, serve_route,
+    Endpoint, Pool, RequestError, RouteContext, publish_event, reply, reply_bytes, reply_err,
+    serve_route,
 };
-use super::keys::{CellKey, intersects};
+use super::keys::{CellKey, intersects, program_changed};
 use crate::jobs::library::Store;
 use cellgate_core::config::Permission;
 use cellgate_core::pb;
@@ -376,16 +377,35 @@ async fn program_write(ctx: &RouteContext, q: &Query) {
         action,
         name,
         detail,
-        origin,
+        origin.clone(),
         done.as_ref().map(|_| ()),
     );
     match done {
         Ok(entry) => {
             tracing::info!(program = %entry.name, size = entry.size, action, "program library changed");
-            reply(q, q.key_expr().to_string(), &entry.info()).await;
+            let info = entry.info();
+            reply(q, q.key_expr().to_string(), &info).await;
+            changed(ctx, info, action, origin.as_ref()).await;
         }
         Err(e) => reply_err(q, &e).await,
     }
+}
+
+/// Tells the cell that a program changed: its `ProgramInfo` on `…/program/NAME/changed`
+/// (`cellgate watch` prints it), whoever asked and however. After a removal, the revision
+/// that was latest says `removed`, as the revisions do from then on.
+async fn changed(
+    ctx: &RouteContext,
+    mut info: pb::ProgramInfo,
+    action: &str,
+    origin: Option<&pb::RequestOrigin>,
+) {
+    if action == "program.remove"
+        && let Some(latest) = info.latest.as_mut()
+    {
+        latest.removed = true;
+    }
+    publish_event(ctx, &program_changed(&ctx.keys, &info.name), &info, origin).await;
 }
 
 fn audit_write(
@@ -460,12 +480,13 @@ async fn program_sample(ctx: &RouteContext, sample: &Sample) {
         action,
         name,
         detail,
-        origin,
+        origin.clone(),
         result.as_ref().map(|_| ()),
     );
     match result {
         Ok(e) => {
-            tracing::info!(program = %e.name, size = e.size, action, "program library changed")
+            tracing::info!(program = %e.name, size = e.size, action, "program library changed");
+            changed(ctx, e.info(), action, origin.as_ref()).await;
         }
         Err(e) => tracing::warn!(%key, error = %e, "program library request refused"),
     }
