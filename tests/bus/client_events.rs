@@ -1,5 +1,6 @@
 //! What the command line says of what happens in the cell beyond its own request: `watch`
-//! prints the library's changes and DO outputs however they were asked for.
+//! prints the library's changes and DO outputs however they were asked for; a followed job
+//! whose gateway dies ends at once with a clear message; `do` and `di` say what they wait for.
 //! Against `cellgate run` processes and the `cellgate` binary, real time, loopback.
 
 use crate::common;
@@ -8,15 +9,14 @@ use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use common::bus::free_port;
-use common::cli::{Reaper, bin, cellgate};
+use common::cli::{Reaper, bin, cellgate, collect_stderr, wait_with_deadline};
 
 const PROGRAM: &str = "%\nO7001(BRACKET)\nN10G00X0Y0\nN20G01X25.F150\nN30Y40.\nN40M30\n%\n";
 
 /// `cellgate run` on the embedded default cell (with `extra` arguments), on a free port, in
 /// a temporary directory; killed when dropped. Returns once mill-1's link is idle.
 struct Run {
-    /// Held for its drop: the gateway is killed with the test.
-    _child: Reaper,
+    child: Reaper,
     endpoint: String,
     dir: tempfile::TempDir,
 }
@@ -35,7 +35,7 @@ impl Run {
             .spawn()
             .unwrap();
         let run = Run {
-            _child: Reaper(child),
+            child: Reaper(child),
             endpoint,
             dir,
         };
@@ -174,4 +174,77 @@ async fn watch_prints_library_changes_and_do_outputs_however_they_were_asked_for
         assert!(started.elapsed() < Duration::from_secs(20), "{o}");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_submit_whose_gateway_dies_ends_at_once_and_says_so() {
+    let mut run = Run::start(&[]).await;
+    // The CNC's operator is away: the job is started and waits for the CNC to read.
+    let (code, _, err) = run.cellgate(&["sim", "auto", "mill-1", "off"]).await;
+    assert_eq!(code, 0, "{err}");
+    let file = run.dir.path().join("O7001.nc");
+    std::fs::write(&file, PROGRAM).unwrap();
+    let mut submit = bin()
+        .args(["submit", "mill-1", file.to_str().unwrap(), "-e", &run.endpoint])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = collect_stderr(&mut submit);
+    let mut submit = Reaper(submit);
+    assert!(
+        stderr.wait_for("started", Duration::from_secs(20)),
+        "{}",
+        stderr.so_far()
+    );
+    // The gateway dies (SIGKILL: no goodbye of its own).
+    run.child.0.kill().unwrap();
+    let _ = run.child.0.wait();
+    let killed = Instant::now();
+    let status = tokio::task::spawn_blocking(move || {
+        let s = wait_with_deadline(&mut submit.0, Duration::from_secs(30));
+        (s, submit)
+    })
+    .await
+    .unwrap()
+    .0
+    .expect("submit still waits 30 s after its gateway died");
+    let took = killed.elapsed();
+    let err = stderr.join().unwrap();
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert!(err.contains("the gateway went away"), "{err}");
+    assert!(err.contains("cellgate job mill-1-"), "{err}");
+    // At once: not after a silent wait for the job's next event (5 s) and a question
+    // nobody answers.
+    assert!(took < Duration::from_secs(3), "{took:?}: {err}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn do_and_di_say_what_they_wait_for_when_the_board_is_slow_to_speak() {
+    // The default cell's boards poll every Tp = 5 s; a read waits for the board's next
+    // exchange, seconds away as often as not.
+    let run = Run::start(&[]).await;
+    let mut slow = 0;
+    for args in [["di", "mill-1"], ["di", "mill-1"], ["di", "mill-1"], ["do", "mill-1"]] {
+        let mut args = args.to_vec();
+        if args[0] == "do" {
+            args.push("0x01");
+        }
+        let asked = Instant::now();
+        let (code, out, err) = run.cellgate(&args).await;
+        let took = asked.elapsed();
+        assert_eq!(code, 0, "{err}");
+        assert!(out.contains("mill-1 D"), "{out}");
+        let said = err.contains("mill-1: waiting for the remote buffer")
+            && err.contains("next exchange, which comes every Tp = 5 s (up to 11 s)");
+        // Said after 1.5 s of waiting, and only then (the command's own start-up aside).
+        if took > Duration::from_secs(3) {
+            slow += 1;
+            assert!(said, "{args:?} took {took:?} without a word: {err:?}");
+        }
+        if took < Duration::from_millis(1400) {
+            assert!(!said, "{args:?} took {took:?}: {err:?}");
+        }
+    }
+    assert!(slow > 0, "no read waited: nothing was checked");
 }
