@@ -331,7 +331,14 @@ async fn do_get(ctx: &RouteContext, q: &Query) {
         },
     )
     .await;
-    audit_do(ctx, key, &m, Some((value, mask)), origin.clone(), sent.as_ref());
+    audit_do(
+        ctx,
+        key,
+        &m,
+        Some((value, mask)),
+        origin.clone(),
+        sent.as_ref(),
+    );
     match sent {
         Ok(()) => {
             // The machine's task folds the same event into the view; make sure the reply

@@ -748,9 +748,17 @@ impl WatchPrinter {
                 format!("{} program {name} removal requested", clock(now_ms))
             }
             WatchEvent::ProgramChanged { info, by } => {
-                format!("{} library {}", clock(now_ms), library_change_text(info, by.as_ref()))
+                format!(
+                    "{} library {}",
+                    clock(now_ms),
+                    library_change_text(info, by.as_ref())
+                )
             }
-            WatchEvent::DoOutput { machine, command, by } => format!(
+            WatchEvent::DoOutput {
+                machine,
+                command,
+                by,
+            } => format!(
                 "{} {machine} DO output {} mask {}{}",
                 clock(now_ms),
                 byte_image(command.value),
@@ -892,7 +900,11 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
             "event": "program_changed", "change": library_change(info), "unix_ms": now_ms,
             "program": info, "by": by,
         }),
-        WatchEvent::DoOutput { machine, command, by } => json!({
+        WatchEvent::DoOutput {
+            machine,
+            command,
+            by,
+        } => json!({
             "event": "do_output", "machine": machine, "unix_ms": now_ms,
             "do_command": { "value": command.value, "mask": command.mask }, "by": by,
         }),

@@ -43,7 +43,9 @@ fn the_removed_machine_flag_names_the_form_commands_have_now() {
         ("cellgate do --machine mill-1 0x05", "do"),
         ("cellgate -v watch -m mill-1", "watch"),
     ] {
-        let e = parse_from(&args(line)).err().unwrap_or_else(|| panic!("{line} parsed"));
+        let e = parse_from(&args(line))
+            .err()
+            .unwrap_or_else(|| panic!("{line} parsed"));
         let text = e.render().to_string();
         assert!(text.contains("unexpected argument"), "{line}: {text}");
         assert!(
@@ -54,7 +56,9 @@ fn the_removed_machine_flag_names_the_form_commands_have_now() {
         );
     }
     // Commands that take no machine first get no such tip.
-    let e = parse_from(&args("cellgate program ls -m mill-1")).err().unwrap();
+    let e = parse_from(&args("cellgate program ls -m mill-1"))
+        .err()
+        .unwrap();
     assert!(!e.render().to_string().contains("name the machine first"));
     // history, audit and utilisation keep the older flag working, beside the machine first.
     for line in [

@@ -26,7 +26,15 @@ impl Run {
         let endpoint = format!("tcp/127.0.0.1:{}", free_port());
         let dir = tempfile::tempdir().unwrap();
         let child = bin()
-            .args(["run", "-l", &endpoint, "--console", "off", "--mtconnect", "off"])
+            .args([
+                "run",
+                "-l",
+                &endpoint,
+                "--console",
+                "off",
+                "--mtconnect",
+                "off",
+            ])
             .args(extra)
             .current_dir(dir.path())
             .env("RUST_LOG", "warn")
@@ -40,7 +48,8 @@ impl Run {
             dir,
         };
         for _ in 0..120 {
-            let (code, out, _) = cellgate(["status", "mill-1", "-e", &run.endpoint, "--json"]).await;
+            let (code, out, _) =
+                cellgate(["status", "mill-1", "-e", &run.endpoint, "--json"]).await;
             if code == 0 && out.contains("LINK_STATE_IDLE") {
                 return run;
             }
@@ -75,7 +84,10 @@ async fn watch_prints_library_changes_and_do_outputs_however_they_were_asked_for
     let sink = lines.clone();
     std::thread::spawn(move || {
         use std::io::BufRead;
-        for line in std::io::BufReader::new(stdout).lines().map_while(Result::ok) {
+        for line in std::io::BufReader::new(stdout)
+            .lines()
+            .map_while(Result::ok)
+        {
             if let Ok(v) = serde_json::from_str(&line) {
                 sink.lock().unwrap().push(v);
             }
@@ -85,7 +97,10 @@ async fn watch_prints_library_changes_and_do_outputs_however_they_were_asked_for
     let seen = |pick: &dyn Fn(&serde_json::Value) -> bool| lines.lock().unwrap().iter().any(pick);
     let started = Instant::now();
     while !seen(&|l| l["event"] == "gateway_up") {
-        assert!(started.elapsed() < Duration::from_secs(20), "watch never started");
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "watch never started"
+        );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
 
@@ -93,12 +108,16 @@ async fn watch_prints_library_changes_and_do_outputs_however_they_were_asked_for
     // get on `do`) twice with the same value: nothing a subscriber of those keys would see.
     let file = run.dir.path().join("O7001.nc");
     std::fs::write(&file, PROGRAM).unwrap();
-    let (code, _, err) = run.cellgate(&["program", "put", "O7001", file.to_str().unwrap()]).await;
+    let (code, _, err) = run
+        .cellgate(&["program", "put", "O7001", file.to_str().unwrap()])
+        .await;
     assert_eq!(code, 0, "{err}");
     let (code, _, err) = run.cellgate(&["program", "rm", "O7001"]).await;
     assert_eq!(code, 0, "{err}");
     for _ in 0..2 {
-        let (code, _, err) = run.cellgate(&["do", "mill-1", "0x05", "--mask", "0x0f"]).await;
+        let (code, _, err) = run
+            .cellgate(&["do", "mill-1", "0x05", "--mask", "0x0f"])
+            .await;
         assert_eq!(code, 0, "{err}");
     }
     let started = Instant::now();
@@ -148,7 +167,10 @@ async fn watch_prints_library_changes_and_do_outputs_however_they_were_asked_for
     let sink = out.clone();
     std::thread::spawn(move || {
         use std::io::BufRead;
-        for line in std::io::BufReader::new(stdout).lines().map_while(Result::ok) {
+        for line in std::io::BufReader::new(stdout)
+            .lines()
+            .map_while(Result::ok)
+        {
             let mut o = sink.lock().unwrap();
             o.push_str(&line);
             o.push('\n');
@@ -156,12 +178,19 @@ async fn watch_prints_library_changes_and_do_outputs_however_they_were_asked_for
     });
     let started = Instant::now();
     while !out.lock().unwrap().contains("gateway up") {
-        assert!(started.elapsed() < Duration::from_secs(20), "watch never started");
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "watch never started"
+        );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    let (code, _, err) = run.cellgate(&["program", "put", "O7002", file.to_str().unwrap()]).await;
+    let (code, _, err) = run
+        .cellgate(&["program", "put", "O7002", file.to_str().unwrap()])
+        .await;
     assert_eq!(code, 0, "{err}");
-    let (code, _, err) = run.cellgate(&["do", "mill-1", "0x05", "--mask", "0x0f"]).await;
+    let (code, _, err) = run
+        .cellgate(&["do", "mill-1", "0x05", "--mask", "0x0f"])
+        .await;
     assert_eq!(code, 0, "{err}");
     let started = Instant::now();
     loop {
@@ -185,7 +214,13 @@ async fn a_submit_whose_gateway_dies_ends_at_once_and_says_so() {
     let file = run.dir.path().join("O7001.nc");
     std::fs::write(&file, PROGRAM).unwrap();
     let mut submit = bin()
-        .args(["submit", "mill-1", file.to_str().unwrap(), "-e", &run.endpoint])
+        .args([
+            "submit",
+            "mill-1",
+            file.to_str().unwrap(),
+            "-e",
+            &run.endpoint,
+        ])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
@@ -225,7 +260,12 @@ async fn do_and_di_say_what_they_wait_for_when_the_board_is_slow_to_speak() {
     // exchange, seconds away as often as not.
     let run = Run::start(&[]).await;
     let mut slow = 0;
-    for args in [["di", "mill-1"], ["di", "mill-1"], ["di", "mill-1"], ["do", "mill-1"]] {
+    for args in [
+        ["di", "mill-1"],
+        ["di", "mill-1"],
+        ["di", "mill-1"],
+        ["do", "mill-1"],
+    ] {
         let mut args = args.to_vec();
         if args[0] == "do" {
             args.push("0x01");

@@ -569,7 +569,12 @@ async fn the_cells_say_which_machines_take_g05_and_the_favicon_is_served() {
         ("/favicon.ico", "image/x-icon"),
         ("/assets/favicon.svg", "image/svg+xml"),
     ] {
-        let r = b.http.get(format!("{}{path}", gw.url)).send().await.unwrap();
+        let r = b
+            .http
+            .get(format!("{}{path}", gw.url))
+            .send()
+            .await
+            .unwrap();
         assert_eq!(r.status(), 200, "{path}");
         assert_eq!(
             r.headers()[reqwest::header::CONTENT_TYPE].to_str().unwrap(),

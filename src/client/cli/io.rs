@@ -17,9 +17,7 @@ fn tp_of(client: &Client, machine: &str) -> u64 {
         .as_array()
         .and_then(|ms| ms.iter().find(|m| m["name"] == machine))
         .and_then(|m| m["tp"].as_u64())
-        .unwrap_or(u64::from(
-            cellgate_core::fanuc::sat::Params::POWER_ON.tp,
-        ))
+        .unwrap_or(u64::from(cellgate_core::fanuc::sat::Params::POWER_ON.tp))
 }
 
 /// Runs `request`, and if it has not ended after [`SAY_WAITING_AFTER`], says on stderr what
