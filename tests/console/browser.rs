@@ -354,7 +354,9 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
     let replies = session
         .get(keys.sim("mill-1", cellgate::bus::keys::SimLeaf::Autostart))
         .payload(prost::Message::encode_to_vec(&off))
-        .encoding(cellgate::bus::payload::encoding::<cellgate_core::pb::SimAutostart>())
+        .encoding(cellgate::bus::payload::encoding::<
+            cellgate_core::pb::SimAutostart,
+        >())
         .timeout(Duration::from_secs(10))
         .await
         .unwrap();
@@ -372,6 +374,13 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
          document.querySelector('#health [data-field=alarms]')",
     )
     .await;
+    // The notices of the earlier pages would hide the tiles in the picture.
+    c.execute(
+        "document.querySelectorAll('#notices .alert').forEach((a) => a.remove()); return true;",
+        vec![],
+    )
+    .await
+    .unwrap();
     screenshot(&c, "overview-alarm").await;
 
     // The machine page: the job with its revision, the alarm.
@@ -806,10 +815,7 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
         tile["text"].as_str().unwrap().contains(&message),
         "the whole alarm text {message:?}: {tile}"
     );
-    assert!(
-        tile["title"].as_str().unwrap().contains(&message),
-        "{tile}"
-    );
+    assert!(tile["title"].as_str().unwrap().contains(&message), "{tile}");
     assert_eq!(tile["clipped"], false, "{tile}");
     c.goto(&format!("{}/#/cell/demo/machine/mill-1", gw.url))
         .await
@@ -904,10 +910,7 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
         after("done")
     );
     let page = c
-        .execute(
-            "return document.querySelector('main').innerText;",
-            vec![],
-        )
+        .execute("return document.querySelector('main').innerText;", vec![])
         .await
         .unwrap();
     assert!(!page.as_str().unwrap().contains("ACTIVE"), "{page}");
@@ -915,7 +918,9 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
     // The compare view pairs a changed block with its new text on one row.
     bus.program_put(
         "O7001",
-        PROGRAM.replace("N20G01X25.F150", "N20G01X30.F120").as_bytes(),
+        PROGRAM
+            .replace("N20G01X25.F150", "N20G01X30.F120")
+            .as_bytes(),
     )
     .await
     .unwrap();
@@ -938,8 +943,14 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
     .await;
     assert_eq!(row.as_array().unwrap().len(), 1, "{row}");
     assert_eq!(row[0][0], "changed", "{row}");
-    assert!(row[0][1].as_str().unwrap().contains("N20G01X25.F150"), "{row}");
-    assert!(row[0][2].as_str().unwrap().contains("N20G01X30.F120"), "{row}");
+    assert!(
+        row[0][1].as_str().unwrap().contains("N20G01X25.F150"),
+        "{row}"
+    );
+    assert!(
+        row[0][2].as_str().unwrap().contains("N20G01X30.F120"),
+        "{row}"
+    );
 
     // Pages that do not stream say so, not "off".
     c.goto(&format!("{}/#/cell/demo/programs", gw.url))
@@ -955,7 +966,10 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
         .unwrap();
     assert_eq!(conn[0], "Not live", "{conn}");
     assert!(
-        conn[1].as_str().unwrap().contains("does not update by itself"),
+        conn[1]
+            .as_str()
+            .unwrap()
+            .contains("does not update by itself"),
         "{conn}"
     );
     only_own_origin(&c, &gw.url).await;
