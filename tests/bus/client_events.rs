@@ -288,3 +288,26 @@ async fn do_and_di_say_what_they_wait_for_when_the_board_is_slow_to_speak() {
     }
     assert!(slow > 0, "no read waited: nothing was checked");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resume_refused_says_what_the_board_had_when_the_job_ended() {
+    let run = Run::start(&[]).await;
+    // The CNC does not read: the job waits for it, and is cancelled before it asked.
+    let (code, _, err) = run.cellgate(&["sim", "auto", "mill-1", "off"]).await;
+    assert_eq!(code, 0, "{err}");
+    let file = run.dir.path().join("O7001.nc");
+    std::fs::write(&file, PROGRAM).unwrap();
+    let (code, out, err) = run
+        .cellgate(&["submit", "mill-1", file.to_str().unwrap(), "--detach"])
+        .await;
+    assert_eq!(code, 0, "{err}");
+    let job = out.trim().to_string();
+    let (code, out, err) = run.cellgate(&["cancel", &job]).await;
+    assert_eq!(code, 0, "{out}{err}");
+    let (code, _, err) = run.cellgate(&["submit", "--resume", &job]).await;
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("was cancelled before any of it went to the board (0 B on the line: the CNC had not asked for data yet)"),
+        "{err}"
+    );
+}
