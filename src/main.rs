@@ -229,28 +229,71 @@ fn synonym_of(args: &[String]) -> Option<&'static str> {
     None
 }
 
-/// The command line, parsed; on an unknown subcommand that is a usual synonym (`list` →
-/// `ls`, `delete` → `rm`), the one it means, before any near miss clap finds by spelling
-/// (`delete` is nearer `release` than `rm`).
-fn parse_cli() -> Cli {
-    use clap::error::{ContextKind, ContextValue, ErrorKind};
-    match Cli::try_parse() {
-        Ok(cli) => cli,
-        Err(mut e) => {
-            if e.kind() == ErrorKind::InvalidSubcommand {
-                let args: Vec<String> = std::env::args_os()
-                    .map(|a| a.to_string_lossy().into_owned())
-                    .collect();
-                if let Some(meant) = synonym_of(&args) {
-                    e.insert(
-                        ContextKind::SuggestedSubcommand,
-                        ContextValue::String(meant.to_string()),
-                    );
-                }
+/// For `-m`/`--machine` on a command that now takes its machine first, without a flag: the
+/// form it has (clap alone says only "unexpected argument").
+fn machine_flag_tip(args: &[String], invalid: &str) -> Option<String> {
+    use clap::CommandFactory;
+    if !(invalid.starts_with("-m") || invalid.starts_with("--machine")) {
+        return None;
+    }
+    let mut cmd = Cli::command();
+    let mut path = Vec::new();
+    for arg in args.iter().skip(1) {
+        if arg.starts_with('-') {
+            continue;
+        }
+        match cmd.find_subcommand(arg).cloned() {
+            Some(sub) => {
+                path.push(arg.as_str());
+                cmd = sub;
             }
-            e.exit()
+            None => break,
         }
     }
+    let first = cmd.get_positionals().next()?;
+    let name = first.get_value_names()?.first()?.to_string();
+    (name == "MACHINE").then(|| {
+        let path = path.join(" ");
+        format!(
+            "-m/--machine is gone: name the machine first, as every command does: \
+             `cellgate {path} MACHINE ...` (e.g. `cellgate {path} mill-1 ...`)"
+        )
+    })
+}
+
+/// `args` parsed; on an unknown subcommand that is a usual synonym (`list` → `ls`, `delete`
+/// → `rm`), the one it means, before any near miss clap finds by spelling (`delete` is
+/// nearer `release` than `rm`); on a `-m` the command no longer takes, the form it has.
+fn parse_from(args: &[String]) -> Result<Cli, clap::Error> {
+    use clap::error::{ContextKind, ContextValue, ErrorKind};
+    Cli::try_parse_from(args).map_err(|mut e| {
+        if e.kind() == ErrorKind::InvalidSubcommand
+            && let Some(meant) = synonym_of(args)
+        {
+            e.insert(
+                ContextKind::SuggestedSubcommand,
+                ContextValue::String(meant.to_string()),
+            );
+        }
+        if e.kind() == ErrorKind::UnknownArgument
+            && let Some(ContextValue::String(invalid)) = e.get(ContextKind::InvalidArg)
+            && let Some(tip) = machine_flag_tip(args, &invalid.clone())
+        {
+            e.insert(
+                ContextKind::Suggested,
+                ContextValue::StyledStrs(vec![tip.into()]),
+            );
+        }
+        e
+    })
+}
+
+/// The command line, parsed (see [`parse_from`]), or its error and exit.
+fn parse_cli() -> Cli {
+    let args: Vec<String> = std::env::args_os()
+        .map(|a| a.to_string_lossy().into_owned())
+        .collect();
+    parse_from(&args).unwrap_or_else(|e| e.exit())
 }
 
 fn main() -> ExitCode {

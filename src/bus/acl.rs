@@ -138,8 +138,10 @@ fn writes(keys: Vec<String>) -> Vec<Grant> {
     ]
 }
 
-/// Reading the library: gets (a program, a wildcard listing, revisions, a comparison).
+/// Reading the library: gets (a program, a wildcard listing, revisions, a comparison), and
+/// the gateway's word of each change (`…/program/NAME/changed`).
 fn program_reads(keys: &CellKeys) -> Vec<Grant> {
+    let changed = vec![super::keys::program_changed(keys, "*")];
     vec![
         grant(Flow::Ingress, QUERY, keys.any_program_read()),
         grant(Flow::Egress, REPLY_AND_QUERYABLE, keys.any_program_read()),
@@ -150,6 +152,8 @@ fn program_reads(keys: &CellKeys) -> Vec<Grant> {
             vec![keys.program_events()],
         ),
         grant(Flow::Egress, &["put"], vec![keys.program_events()]),
+        grant(Flow::Ingress, &["declare_subscriber"], changed.clone()),
+        grant(Flow::Egress, &["put"], changed),
     ]
 }
 
@@ -190,6 +194,7 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
                         leaf(MachineLeaf::Alarm),
                         leaf(MachineLeaf::Punch),
                         leaf(MachineLeaf::Do),
+                        super::keys::do_out(keys, "*"),
                         keys.any_job_events(),
                         keys.every_g05_key(),
                         keys.any_plc(),

@@ -740,6 +740,28 @@ pub(crate) async fn reply_err(q: &Query, error: &(impl BusCode + std::fmt::Displ
     }
 }
 
+/// Publishes one event the gateway tells of what it did for a request (a library change, a
+/// DO output) on `key`, reliably, with the requester's origin as the attachment, so that a
+/// watcher sees who asked. A failure is logged: the request itself was done.
+pub(crate) async fn publish_event<M: BusMessage>(
+    ctx: &RouteContext,
+    key: &str,
+    message: &M,
+    origin: Option<&pb::RequestOrigin>,
+) {
+    let mut put = ctx
+        .session
+        .put(key, message.encode_to_vec())
+        .encoding(encoding::<M>())
+        .congestion_control(zenoh::qos::CongestionControl::Block);
+    if let Some(o) = origin {
+        put = put.attachment(o.encode_to_vec());
+    }
+    if let Err(e) = put.await {
+        tracing::warn!(%key, error = %e, "publishing an event failed");
+    }
+}
+
 /// One of a machine's publishers: messages `M` on `P/C/machine/M/<leaf>`, with the QoS its
 /// route chose. Undeclared when dropped.
 pub(crate) struct MachinePublisher<M> {

@@ -1,7 +1,8 @@
 //! The cell's folders on the bus: the library's folder (`programs.dir`), whose complete files
 //! become revisions and whose deleted files mark their programs removed; each machine's drop
-//! folder (`drop_dir`), whose complete files are queued to it as jobs; and the library's events
-//! on `P/C/program/@events`.
+//! folder (`drop_dir`), whose complete files are queued to it as jobs. What the folder takes is
+//! a change like any other (`P/C/program/NAME/changed`); what it cannot take, and a folder that
+//! cannot be read, are published on `P/C/program/@events`.
 //!
 //! What comes from a folder is written by whoever may write the folder, not by a bus client:
 //! it goes through the same checks as a bus store or submit, and the audit records it with
@@ -13,13 +14,11 @@ use std::time::Duration;
 
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
-use zenoh::qos::CongestionControl;
 
 use super::audit::Audit;
 use super::context::RouteContext;
-use super::payload::encoding;
 use crate::jobs::folder::{FolderWatch, Followed, Seen};
-use crate::jobs::library::{FolderFile, LibraryError, ProgramEntry, Taken};
+use crate::jobs::library::{FolderFile, LibraryError, Taken};
 use crate::jobs::source::ProgramInput;
 use crate::jobs::{JobError, JobSubmission};
 use cellgate_core::codes::BusCode;
@@ -31,39 +30,13 @@ use cellgate_core::program::folder::is_temporary;
 pub(crate) const SENT: &str = "sent";
 pub(crate) const REFUSED: &str = "refused";
 
-/// Publishes `event` on `P/C/program/@events`. Blocking congestion control: a library event
-/// is rare and a client that follows the library must not miss one.
+/// Publishes `event` on `P/C/program/@events`. Blocking congestion control: such an event is
+/// rare and a client that follows the folder must not miss one.
 pub(crate) async fn publish_library_event(ctx: &RouteContext, mut event: pb::LibraryEvent) {
-    use prost::Message as _;
     if event.unix_ms == 0 {
         event.unix_ms = pb::now_ms();
     }
-    let key = ctx.keys.program_events();
-    let sent = ctx
-        .session
-        .put(&key, event.encode_to_vec())
-        .encoding(encoding::<pb::LibraryEvent>())
-        .congestion_control(CongestionControl::Block)
-        .await;
-    if let Err(e) = sent {
-        tracing::warn!(%key, error = %e, "library event not published");
-    }
-}
-
-/// The library event of a store or removal that took.
-pub(crate) fn changed(
-    kind: pb::LibraryEventKind,
-    entry: &ProgramEntry,
-    by: Option<pb::RequestOrigin>,
-) -> pb::LibraryEvent {
-    pb::LibraryEvent {
-        kind: kind as i32,
-        name: entry.name.clone(),
-        file: entry.file.clone(),
-        revision: entry.latest.clone(),
-        by,
-        ..Default::default()
-    }
+    super::context::publish_event(ctx, &ctx.keys.program_events(), &event, None).await;
 }
 
 /// Who made a file: its owner's user name where the system says, else `(folder)`.
@@ -206,11 +179,7 @@ async fn follow_library(ctx: RouteContext, mut followed: Followed) {
                             by.clone(),
                             Ok(()),
                         );
-                        publish_library_event(
-                            &ctx,
-                            changed(pb::LibraryEventKind::Stored, &entry, Some(by)),
-                        )
-                        .await;
+                        super::route_program::changed(&ctx, entry.info(), false, Some(&by)).await;
                     }
                     Ok(Taken::Unchanged | Taken::Nothing | Taken::Removed(_)) => {}
                     Err(e) => {
@@ -295,11 +264,7 @@ async fn gone(ctx: &RouteContext, followed: &Followed, file: &str) {
                 by.clone(),
                 Ok(()),
             );
-            publish_library_event(
-                ctx,
-                changed(pb::LibraryEventKind::Removed, &entry, Some(by)),
-            )
-            .await;
+            super::route_program::changed(ctx, entry.info(), true, Some(&by)).await;
         }
         Ok(_) => {
             // Another file gives the name now (one of a conflict went): it is looked at again.

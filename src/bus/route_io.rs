@@ -23,9 +23,10 @@ use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::MachinePublisher;
 use super::context::{
-    Endpoint, Pool, RequestError, RouteContext, Target, reply, reply_err, serve_route,
+    Endpoint, Pool, RequestError, RouteContext, Target, publish_event, reply, reply_err,
+    serve_route,
 };
-use super::keys::MachineLeaf;
+use super::keys::{MachineLeaf, do_out};
 use super::machine::Machine;
 use crate::link::driver::{LinkCommand, LinkEvent};
 use cellgate_core::config::Permission;
@@ -330,7 +331,14 @@ async fn do_get(ctx: &RouteContext, q: &Query) {
         },
     )
     .await;
-    audit_do(ctx, key, &m, Some((value, mask)), origin, sent.as_ref());
+    audit_do(
+        ctx,
+        key,
+        &m,
+        Some((value, mask)),
+        origin.clone(),
+        sent.as_ref(),
+    );
     match sent {
         Ok(()) => {
             // The machine's task folds the same event into the view; make sure the reply
@@ -340,6 +348,12 @@ async fn do_get(ctx: &RouteContext, q: &Query) {
             let image = (u8::try_from(old).unwrap_or(0) & !mask) | (value & mask);
             status.do_image = Some(u32::from(image));
             reply(q, q.key_expr().to_string(), &status).await;
+            // A get is seen by no subscriber of `…/do`: say that the SDO went out.
+            let out = pb::DoCommand {
+                value: u32::from(value),
+                mask: Some(u32::from(mask)),
+            };
+            publish_event(ctx, &do_out(&ctx.keys, m.name()), &out, origin.as_ref()).await;
         }
         Err(e) => reply_err(q, &e).await,
     }

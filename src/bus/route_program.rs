@@ -27,9 +27,10 @@ use zenoh::sample::{Locality, Sample, SampleKind};
 use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::{
-    Endpoint, Pool, RequestError, RouteContext, reply, reply_bytes, reply_err, serve_route,
+    Endpoint, Pool, RequestError, RouteContext, publish_event, reply, reply_bytes, reply_err,
+    serve_route,
 };
-use super::keys::{CellKey, intersects};
+use super::keys::{CellKey, intersects, program_changed};
 use crate::jobs::library::Store;
 use cellgate_core::config::Permission;
 use cellgate_core::pb;
@@ -315,7 +316,6 @@ async fn program_write(ctx: &RouteContext, q: &Query) {
         };
     }
     let by = origin.clone().unwrap_or_default();
-    let by_again = origin.clone();
     let (action, detail, done) = match write.op {
         Some(pb::program_write::Op::Store(bytes)) => (
             "program.store",
@@ -377,36 +377,37 @@ async fn program_write(ctx: &RouteContext, q: &Query) {
         action,
         name,
         detail,
-        origin,
+        origin.clone(),
         done.as_ref().map(|_| ()),
     );
     match done {
         Ok(entry) => {
             tracing::info!(program = %entry.name, size = entry.size, action, "program library changed");
-            publish_change(ctx, action, &entry, by_again).await;
-            reply(q, q.key_expr().to_string(), &entry.info()).await;
+            let revised = entry.revised || action == "program.remove";
+            let info = entry.info();
+            reply(q, q.key_expr().to_string(), &info).await;
+            if revised {
+                changed(ctx, info, action == "program.remove", origin.as_ref()).await;
+            }
         }
         Err(e) => reply_err(q, &e).await,
     }
 }
 
-/// The library's event of a change through the write key: a store that made no new revision
-/// (the same bytes again) is no event.
-async fn publish_change(
+/// Tells the cell that a program changed: its `ProgramInfo` on `…/program/NAME/changed`
+/// (`cellgate watch` prints it), whoever asked and however: the write key, the console, the
+/// library's folder. After a removal, the revision that was latest says `removed`, as the
+/// revisions do from then on. A store of the same bytes again changed nothing: no word.
+pub(super) async fn changed(
     ctx: &RouteContext,
-    action: &str,
-    entry: &crate::jobs::library::ProgramEntry,
-    by: Option<pb::RequestOrigin>,
+    mut info: pb::ProgramInfo,
+    removed: bool,
+    origin: Option<&pb::RequestOrigin>,
 ) {
-    let kind = if action == "program.remove" {
-        pb::LibraryEventKind::Removed
-    } else if entry.revised {
-        pb::LibraryEventKind::Stored
-    } else {
-        return;
-    };
-    super::route_folder::publish_library_event(ctx, super::route_folder::changed(kind, entry, by))
-        .await;
+    if removed && let Some(latest) = info.latest.as_mut() {
+        latest.removed = true;
+    }
+    publish_event(ctx, &program_changed(&ctx.keys, &info.name), &info, origin).await;
 }
 
 fn audit_write(
@@ -448,7 +449,6 @@ async fn program_sample(ctx: &RouteContext, sample: &Sample) {
     };
     let origin = origin_of(sample.attachment());
     let by = origin.clone().unwrap_or_default();
-    let origin_again = origin.clone();
     let (action, result) = match sample.kind() {
         SampleKind::Put => {
             let program = sample.payload().to_bytes();
@@ -482,13 +482,15 @@ async fn program_sample(ctx: &RouteContext, sample: &Sample) {
         action,
         name,
         detail,
-        origin,
+        origin.clone(),
         result.as_ref().map(|_| ()),
     );
     match result {
         Ok(e) => {
             tracing::info!(program = %e.name, size = e.size, action, "program library changed");
-            publish_change(ctx, action, &e, origin_again).await;
+            if e.revised || action == "program.remove" {
+                changed(ctx, e.info(), action == "program.remove", origin.as_ref()).await;
+            }
         }
         Err(e) => tracing::warn!(%key, error = %e, "program library request refused"),
     }

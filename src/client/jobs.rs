@@ -22,17 +22,39 @@ impl Client {
         subscriber: zenoh::pubsub::Subscriber<
             zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>,
         >,
+        gateway: Option<Subscriber<FifoChannelHandler<Sample>>>,
         machine: &str,
         job_id: &str,
     ) -> JobFollower {
         JobFollower {
             session: self.session.clone(),
             subscriber,
+            gateway,
             keys: self.keys.clone(),
             machine: machine.to_string(),
             job_id: job_id.to_string(),
             ended: false,
             timeout: self.timeout,
+        }
+    }
+
+    /// A subscriber of the gateway's liveliness token (`P/C/gateway`), standing token first:
+    /// its withdrawal tells a follower at once that the gateway is gone. `None` (followed
+    /// without it, as before) where it cannot be declared.
+    async fn gateway_token(&self) -> Option<Subscriber<FifoChannelHandler<Sample>>> {
+        let key = self.keys.gateway();
+        match self
+            .session
+            .liveliness()
+            .declare_subscriber(key.as_str())
+            .history(true)
+            .await
+        {
+            Ok(s) => Some(s),
+            Err(e) => {
+                tracing::debug!(%key, error = %e, "not watching the gateway's liveliness token");
+                None
+            }
         }
     }
 
@@ -82,6 +104,7 @@ impl Client {
         let what = format!("submit to {machine}");
         let events_key = self.keys.job_events(machine, "*");
         let subscriber = self.subscribe(&events_key).await?;
+        let gateway = self.gateway_token().await;
         let key = self.keys.leaf(machine, MachineLeaf::Submit);
         let payload = (request.encode_to_vec(), encoding::<pb::JobRequest>());
         let accepted: pb::JobAccepted = match self
@@ -91,10 +114,13 @@ impl Client {
             Ok(a) => a,
             Err(e) => {
                 let _ = subscriber.undeclare().await;
+                if let Some(g) = gateway {
+                    let _ = g.undeclare().await;
+                }
                 return Err(e);
             }
         };
-        let follower = self.follower(subscriber, machine, &accepted.job_id);
+        let follower = self.follower(subscriber, gateway, machine, &accepted.job_id);
         Ok((accepted, follower))
     }
 
@@ -104,7 +130,8 @@ impl Client {
         Self::job_arg(job_id)?;
         let events_key = self.keys.job_events(machine, job_id);
         let subscriber = self.subscribe(&events_key).await?;
-        Ok(self.follower(subscriber, machine, job_id))
+        let gateway = self.gateway_token().await;
+        Ok(self.follower(subscriber, gateway, machine, job_id))
     }
 
     /// The latest event of a job (the gateway keeps the last 256 jobs of each machine).
@@ -218,6 +245,8 @@ impl JobOutcome {
 pub struct JobFollower {
     session: Session,
     subscriber: Subscriber<FifoChannelHandler<Sample>>,
+    /// The gateway's liveliness token, when it could be watched.
+    gateway: Option<Subscriber<FifoChannelHandler<Sample>>>,
     keys: CellKeys,
     machine: String,
     job_id: String,
@@ -236,13 +265,28 @@ impl JobFollower {
 
     /// The job's next event; `None` once its last event (completed, failed, cancelled) was
     /// returned. When the job stays silent for [`SILENCE`], the gateway is asked for its
-    /// latest event, so an end is seen even if its publication was lost.
+    /// latest event, so an end is seen even if its publication was lost. When the gateway's
+    /// liveliness token goes (it stopped, crashed, or cannot be reached), at once
+    /// [`ClientError::GatewayGone`], rather than asking a gateway that is not there.
     pub async fn next(&mut self) -> Result<Option<pb::JobEvent>, ClientError> {
         if self.ended {
             return Ok(None);
         }
         loop {
-            match tokio::time::timeout(SILENCE, self.subscriber.recv_async()).await {
+            let got = tokio::select! {
+                // An event already here (the end, published as the gateway stopped) first.
+                biased;
+                s = self.subscriber.recv_async() => Ok(s),
+                () = gateway_gone(self.gateway.as_ref()) => {
+                    return Err(ClientError::GatewayGone {
+                        what: format!("following job {}", self.job_id),
+                        key: self.keys.gateway(),
+                        job: self.job_id.clone(),
+                    });
+                }
+                () = tokio::time::sleep(SILENCE) => Err(()),
+            };
+            match got {
                 Ok(Ok(sample)) => {
                     if let Some(event) = self.accept(&sample) {
                         self.ended = is_end(&event);
@@ -323,10 +367,30 @@ impl JobFollower {
             })
     }
 
-    /// Undeclares the subscription.
+    /// Undeclares the subscriptions.
     pub async fn close(self) {
         if let Err(e) = self.subscriber.undeclare().await {
             tracing::debug!(error = %e, "undeclaring the job subscriber");
+        }
+        if let Some(g) = self.gateway
+            && let Err(e) = g.undeclare().await
+        {
+            tracing::debug!(error = %e, "undeclaring the gateway's token subscriber");
+        }
+    }
+}
+
+/// Completes when the gateway's liveliness token is withdrawn; never without one to watch.
+async fn gateway_gone(tokens: Option<&Subscriber<FifoChannelHandler<Sample>>>) {
+    let Some(tokens) = tokens else {
+        return std::future::pending().await;
+    };
+    loop {
+        match tokens.recv_async().await {
+            Ok(s) if s.kind() == SampleKind::Delete => return,
+            Ok(_) => {}
+            // The session closed: the job subscriber says so.
+            Err(_) => return std::future::pending().await,
         }
     }
 }

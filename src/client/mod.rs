@@ -171,6 +171,19 @@ pub enum ClientError {
     /// The session closed under a subscriber.
     #[error("{what}: the zenoh session closed")]
     Closed { what: String },
+    /// The gateway's liveliness token was withdrawn while a job was followed.
+    #[error(
+        "{what}: the gateway went away (its liveliness token {key} was withdrawn): it \
+         stopped, crashed or can no longer be reached. What became of the job is not known \
+         here; the gateway keeps it in its journal, and once it is back `cellgate job {job}` \
+         tells (a job that was being sent fails at the restart, at what the board \
+         acknowledged, unless it was submitted with --resume-after-restart)"
+    )]
+    GatewayGone {
+        what: String,
+        key: String,
+        job: String,
+    },
     /// A get was answered by more replies than a client keeps.
     #[error("{what}: more than {max} replies on {key}; ask for fewer (name a machine)")]
     TooManyReplies {

@@ -763,6 +763,28 @@ impl WatchPrinter {
             WatchEvent::ProgramDeleted { name } => {
                 format!("{} program {name} removal requested", clock(now_ms))
             }
+            WatchEvent::ProgramChanged { info, by } => {
+                format!(
+                    "{} library {}",
+                    clock(now_ms),
+                    library_change_text(info, by.as_ref())
+                )
+            }
+            WatchEvent::DoOutput {
+                machine,
+                command,
+                by,
+            } => format!(
+                "{} {machine} DO output {} mask {}{}",
+                clock(now_ms),
+                byte_image(command.value),
+                command
+                    .mask
+                    .map_or_else(|| "all".to_string(), |m| format!("0x{m:02X}")),
+                by.as_ref()
+                    .map(|o| format!(" by {}", origin_text(o)))
+                    .unwrap_or_default()
+            ),
             WatchEvent::Link { machine, up } => format!(
                 "{} {machine} link {}",
                 clock(now_ms),
@@ -804,6 +826,49 @@ impl WatchPrinter {
     }
 }
 
+/// Who asked, as a request's origin says: `ana (console)`.
+fn origin_text(o: &pb::RequestOrigin) -> String {
+    match (o.user.is_empty(), o.via.is_empty()) {
+        (true, true) => "-".to_string(),
+        (false, true) => o.user.clone(),
+        (true, false) => format!("({})", o.via),
+        (false, false) => format!("{} ({})", o.user, o.via),
+    }
+}
+
+/// What a library change was, from the `ProgramInfo` the gateway published with it: the
+/// latest revision is the one the change made, or the removed one.
+fn library_change(info: &pb::ProgramInfo) -> &'static str {
+    match &info.latest {
+        Some(r) if r.removed => "removed",
+        Some(r) if !r.adopted_from.is_empty() => "adopted",
+        _ => "stored",
+    }
+}
+
+/// `O7001 stored: revision 3, 1.2 KiB, by ana (console)`.
+fn library_change_text(info: &pb::ProgramInfo, by: Option<&pb::RequestOrigin>) -> String {
+    let change = library_change(info);
+    let mut text = format!("{} {change}", info.name);
+    if let Some(r) = &info.latest {
+        if change == "removed" {
+            text.push_str(&format!(" (its latest revision was {})", r.number));
+        } else {
+            text.push_str(&format!(": revision {}, {}", r.number, bytes(info.size)));
+            if change == "adopted" {
+                text.push_str(&format!(
+                    ", from {} revision {}",
+                    r.adopted_from, r.adopted_revision
+                ));
+            }
+        }
+    }
+    if let Some(o) = by {
+        text.push_str(&format!(", by {}", origin_text(o)));
+    }
+    text
+}
+
 /// The machine (or PLC) an event concerns, if one.
 pub fn watch_machine(event: &WatchEvent) -> Option<&str> {
     match event {
@@ -814,6 +879,7 @@ pub fn watch_machine(event: &WatchEvent) -> Option<&str> {
         WatchEvent::Di(d) => Some(&d.machine),
         WatchEvent::G05(g) => Some(&g.machine),
         WatchEvent::DoCommand { machine, .. }
+        | WatchEvent::DoOutput { machine, .. }
         | WatchEvent::CancelRequested { machine, .. }
         | WatchEvent::Link { machine, .. } => Some(machine),
         // A PLC's events are its name's, as a machine's are the machine's.
@@ -845,6 +911,18 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
         }),
         WatchEvent::ProgramDeleted { name } => json!({
             "event": "program_deleted", "name": name, "unix_ms": now_ms,
+        }),
+        WatchEvent::ProgramChanged { info, by } => json!({
+            "event": "program_changed", "change": library_change(info), "unix_ms": now_ms,
+            "program": info, "by": by,
+        }),
+        WatchEvent::DoOutput {
+            machine,
+            command,
+            by,
+        } => json!({
+            "event": "do_output", "machine": machine, "unix_ms": now_ms,
+            "do_command": { "value": command.value, "mask": command.mask }, "by": by,
         }),
         WatchEvent::Link { machine, up } => json!({
             "event": if *up { "link_up" } else { "link_down" }, "machine": machine, "unix_ms": now_ms,

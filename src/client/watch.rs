@@ -91,6 +91,18 @@ pub enum WatchEvent {
     ProgramDeleted {
         name: String,
     },
+    /// The gateway's word that a library program changed (stored, adopted or removed, on
+    /// disk), however it was asked for; `by`: who asked, as they said.
+    ProgramChanged {
+        info: Box<pb::ProgramInfo>,
+        by: Option<pb::RequestOrigin>,
+    },
+    /// The gateway's word that a DO output asked for with a get went out (SDO).
+    DoOutput {
+        machine: String,
+        command: pb::DoCommand,
+        by: Option<pb::RequestOrigin>,
+    },
     /// A machine's liveliness token: its link came up (`up`) or went down.
     Link {
         machine: String,
@@ -193,6 +205,27 @@ impl Watch {
                 }
                 // Status every few seconds, writes by other clients: not shown.
                 _ => return None,
+            };
+            return Some(event.unwrap_or_else(|e| WatchEvent::Unexpected {
+                key: key.to_string(),
+                detail: e.to_string(),
+            }));
+        }
+        if let Some((program, name)) = crate::bus::keys::parse_event(&self.keys, key) {
+            let by = sample
+                .attachment()
+                .and_then(|a| pb::RequestOrigin::decode(a.to_bytes().as_ref()).ok());
+            let event = if program {
+                decode(key, key, &bytes, enc).map(|info| WatchEvent::ProgramChanged {
+                    info: Box::new(info),
+                    by,
+                })
+            } else {
+                decode(key, key, &bytes, enc).map(|command| WatchEvent::DoOutput {
+                    machine: name.to_string(),
+                    command,
+                    by,
+                })
             };
             return Some(event.unwrap_or_else(|e| WatchEvent::Unexpected {
                 key: key.to_string(),

@@ -257,10 +257,10 @@ impl JobsHandle {
 
     /// An earlier job that a resume can start from, and its next block.
     async fn resumable(&self, job: &str) -> Result<(JobRecord, Block), JobError> {
-        let not = |why| JobError::NotResumable {
+        let not = |why: &str| JobError::NotResumable {
             machine: self.machine.to_string(),
             job: job.to_string(),
-            why,
+            why: why.to_string(),
         };
         let (reply, answer) = oneshot::channel();
         self.requests
@@ -283,17 +283,32 @@ impl JobsHandle {
         }
         let event = pb::JobEvent::decode(record.last_event.as_slice())
             .map_err(|_| not("its last event is unreadable"))?;
-        let (next, on_line) = match event.kind {
-            Some(Kind::Failed(f)) => (f.next_block, f.bytes_on_line),
-            Some(Kind::Cancelled(c)) => (c.next_block, c.bytes_on_line),
+        let (next, on_line, acked, ended) = match event.kind {
+            Some(Kind::Failed(f)) => (f.next_block, f.bytes_on_line, f.byte_offset, "failed"),
+            Some(Kind::Cancelled(c)) => (
+                c.next_block,
+                c.bytes_on_line,
+                c.byte_offset,
+                "was cancelled",
+            ),
             Some(Kind::Completed(_)) => return Err(not("it completed")),
-            _ => (None, 0),
+            _ => (None, 0, 0, "ended"),
         };
+        // Whether there is a block to resume from depends on whether the CNC had asked for
+        // data when the job ended: say which it was, in bytes, since a client cannot see it.
         let next = next.ok_or_else(|| {
             if on_line == 0 {
-                not("nothing of it went to the board (the CNC never asked for it): submit its program again")
+                not(&format!(
+                    "it {ended} before any of it went to the board (0 B on the line: the CNC \
+                     had not asked for data yet), so the CNC holds nothing of it and there is \
+                     nothing to resume: submit its program again"
+                ))
             } else {
-                not("no block is known where it stopped")
+                not(&format!(
+                    "it {ended} with {on_line} B on the line, {acked} B of them acknowledged \
+                     by the board, but the block where that is could not be found in its \
+                     program: submit it again from a block (start_at, --from-block)"
+                ))
             }
         })?;
         if !self.journal.file_path(&record.file).exists() {

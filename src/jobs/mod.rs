@@ -171,7 +171,7 @@ pub enum JobError {
     NotResumable {
         machine: String,
         job: String,
-        why: &'static str,
+        why: String,
     },
 }
 

@@ -36,6 +36,42 @@ fn usual_synonyms_point_to_the_subcommand() {
 }
 
 #[test]
+fn the_removed_machine_flag_names_the_form_commands_have_now() {
+    let args = |line: &str| -> Vec<String> { line.split(' ').map(String::from).collect() };
+    for (line, path) in [
+        ("cellgate submit -m mill-1 O1234.nc", "submit"),
+        ("cellgate do --machine mill-1 0x05", "do"),
+        ("cellgate -v watch -m mill-1", "watch"),
+    ] {
+        let e = parse_from(&args(line))
+            .err()
+            .unwrap_or_else(|| panic!("{line} parsed"));
+        let text = e.render().to_string();
+        assert!(text.contains("unexpected argument"), "{line}: {text}");
+        assert!(
+            text.contains(&format!(
+                "name the machine first, as every command does: `cellgate {path} MACHINE ...`"
+            )),
+            "{line}: {text}"
+        );
+    }
+    // Commands that take no machine first get no such tip.
+    let e = parse_from(&args("cellgate program ls -m mill-1"))
+        .err()
+        .unwrap();
+    assert!(!e.render().to_string().contains("name the machine first"));
+    // history, audit and utilisation keep the older flag working, beside the machine first.
+    for line in [
+        "cellgate history -m mill-1",
+        "cellgate history mill-1,mill-2 --kind job",
+        "cellgate audit --machine mill-1",
+        "cellgate utilisation mill-1",
+    ] {
+        assert!(parse_from(&args(line)).is_ok(), "{line}");
+    }
+}
+
+#[test]
 fn every_argument_has_help() {
     let mut missing = Vec::new();
     for (path, c) in commands() {

@@ -1437,11 +1437,17 @@ async fn status_and_job_ends_say_what_happened() {
     resume.resume = Some(job.clone());
     let (code, _, err) = run(&resume).await;
     assert_eq!(code, 2, "{err}");
-    assert!(err.contains("nothing of it went to the board"), "{err}");
+    assert!(
+        err.contains("before any of it went to the board (0 B on the line"),
+        "{err}"
+    );
     // The job id names its machine, as for `cancel` and `job`: no MACHINE needed.
     let (code, _, err) = cellgate(&["submit", "-e", &gw.endpoint, "--resume", &job]).await;
     assert_eq!(code, 2, "{err}");
-    assert!(err.contains("nothing of it went to the board"), "{err}");
+    assert!(
+        err.contains("before any of it went to the board (0 B on the line"),
+        "{err}"
+    );
     client.close().await;
     gw.stop().await;
 }

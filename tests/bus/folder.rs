@@ -48,20 +48,86 @@ fn programs(cell: &RunningCell) -> PathBuf {
     cell.dir.path().join("programs")
 }
 
-/// The next library event other than `skip`, within 10 s.
-async fn event(events: &Sub) -> pb::LibraryEvent {
-    let sample = tokio::time::timeout(Duration::from_secs(10), events.recv_async())
-        .await
-        .expect("a library event within 10 s")
-        .unwrap();
-    pb::LibraryEvent::decode(sample.payload().to_bytes().as_ref()).unwrap()
+/// What the library said: a change on `…/NAME/changed` (stored or removed), or a folder's
+/// refusal on `…/@events`.
+#[derive(Debug)]
+struct Said {
+    kind: &'static str,
+    name: String,
+    file: String,
+    revision: u32,
+    size: u64,
+    code: pb::ErrorCode,
+    error: String,
+    by: Option<pb::RequestOrigin>,
 }
 
-/// No library event for `ms`.
-async fn quiet(events: &Sub, ms: u64) {
-    if let Ok(Ok(s)) = tokio::time::timeout(Duration::from_millis(ms), events.recv_async()).await {
-        let e = pb::LibraryEvent::decode(s.payload().to_bytes().as_ref()).unwrap();
-        panic!("unexpected library event {e:?}");
+/// Both of the library's publications, as one stream.
+struct Library {
+    changed: Sub,
+    events: Sub,
+}
+
+impl Library {
+    async fn follow(cell: &RunningCell) -> Library {
+        Library {
+            changed: cell
+                .subscribe(cellgate::bus::keys::program_changed(&cell.keys, "*"))
+                .await,
+            events: cell.subscribe(cell.keys.program_events()).await,
+        }
+    }
+
+    /// The next thing said, within 10 s.
+    async fn next(&self) -> Said {
+        let wait = async {
+            tokio::select! {
+                s = self.changed.recv_async() => {
+                    let s = s.unwrap();
+                    let info = pb::ProgramInfo::decode(s.payload().to_bytes().as_ref()).unwrap();
+                    let by = s.attachment().map(|a| {
+                        pb::RequestOrigin::decode(a.to_bytes().as_ref()).unwrap()
+                    });
+                    let latest = info.latest.clone().unwrap_or_default();
+                    Said {
+                        kind: if latest.removed { "removed" } else { "stored" },
+                        name: info.name,
+                        file: info.file,
+                        revision: latest.number,
+                        size: latest.size,
+                        code: pb::ErrorCode::Unspecified,
+                        error: String::new(),
+                        by,
+                    }
+                }
+                s = self.events.recv_async() => {
+                    let e = pb::LibraryEvent::decode(s.unwrap().payload().to_bytes().as_ref()).unwrap();
+                    Said {
+                        kind: match e.kind() {
+                            pb::LibraryEventKind::Refused => "refused",
+                            _ => "folder",
+                        },
+                        code: e.code(),
+                        name: e.name,
+                        file: e.file,
+                        revision: 0,
+                        size: 0,
+                        error: e.error,
+                        by: e.by,
+                    }
+                }
+            }
+        };
+        tokio::time::timeout(Duration::from_secs(10), wait)
+            .await
+            .expect("the library says something within 10 s")
+    }
+
+    /// Nothing said for `ms`.
+    async fn quiet(&self, ms: u64) {
+        if let Ok(said) = tokio::time::timeout(Duration::from_millis(ms), self.next()).await {
+            panic!("unexpected: {said:?}");
+        }
     }
 }
 
@@ -108,14 +174,14 @@ async fn read(cell: &RunningCell, name: &str) -> Vec<u8> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() {
     let cell = RunningCell::start(cell_config, false).await;
-    let events = cell.subscribe(cell.keys.program_events()).await;
+    let library = Library::follow(&cell).await;
     let dir = programs(&cell);
 
     // Posted whole: program O5555 (the extension is not part of the name), at once.
     let v1 = program(5555, 20);
     std::fs::write(dir.join("O5555.nc"), &v1).unwrap();
-    let e = event(&events).await;
-    assert_eq!(e.kind(), pb::LibraryEventKind::Stored);
+    let e = library.next().await;
+    assert_eq!(e.kind, "stored");
     assert_eq!((e.name.as_str(), e.file.as_str()), ("O5555", "O5555.nc"));
     let by = e.by.unwrap();
     assert_eq!(by.via, "folder");
@@ -124,7 +190,7 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
         .unwrap()
         .unwrap();
     assert_eq!(by.user, me.name);
-    assert_eq!(e.revision.unwrap().number, 1);
+    assert_eq!(e.revision, 1);
     assert_eq!(read(&cell, "O5555").await, v1);
 
     // A job names it as the library has it.
@@ -150,11 +216,8 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     std::fs::write(dir.join("O5556.nc.tmp"), &v2).unwrap();
     tokio::time::sleep(Duration::from_millis(700)).await;
     std::fs::rename(dir.join("O5556.nc.tmp"), dir.join("O5556.nc")).unwrap();
-    let e = event(&events).await;
-    assert_eq!(
-        (e.name.as_str(), e.kind()),
-        ("O5556", pb::LibraryEventKind::Stored)
-    );
+    let e = library.next().await;
+    assert_eq!((e.name.as_str(), e.kind), ("O5556", "stored"));
     assert_eq!(read(&cell, "O5556").await, v2);
 
     // Written in place over about 1.5 s: one revision, of the whole file.
@@ -166,20 +229,17 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
         tokio::time::sleep(Duration::from_millis(150)).await;
     }
     drop(f);
-    let e = event(&events).await;
-    assert_eq!(
-        (e.name.as_str(), e.kind()),
-        ("O5557", pb::LibraryEventKind::Stored)
-    );
-    assert_eq!(e.revision.unwrap().size, v3.len() as u64);
+    let e = library.next().await;
+    assert_eq!((e.name.as_str(), e.kind), ("O5557", "stored"));
+    assert_eq!(e.size, v3.len() as u64);
     assert_eq!(read(&cell, "O5557").await, v3);
-    quiet(&events, 800).await;
+    library.quiet(800).await;
 
     // Edited: the next revision, and the listing gives the revision's size and the file.
     let v1b = program(5555, 25);
     std::fs::write(dir.join("O5555.nc"), &v1b).unwrap();
-    let e = event(&events).await;
-    assert_eq!((e.name.as_str(), e.revision.unwrap().number), ("O5555", 2));
+    let e = library.next().await;
+    assert_eq!((e.name.as_str(), e.revision), ("O5555", 2));
     assert_eq!(read(&cell, "O5555").await, v1b);
     let listed: Vec<pb::ProgramInfo> = get(&cell.client, &cell.keys.any_program(), None)
         .await
@@ -195,11 +255,8 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
 
     // Deleted: the program is removed, its revisions kept.
     std::fs::remove_file(dir.join("O5556.nc")).unwrap();
-    let e = event(&events).await;
-    assert_eq!(
-        (e.name.as_str(), e.kind()),
-        ("O5556", pb::LibraryEventKind::Removed)
-    );
+    let e = library.next().await;
+    assert_eq!((e.name.as_str(), e.kind), ("O5556", "removed"));
     let err = get_err(&cell.client, &cell.keys.program("O5556"), None).await;
     assert_eq!(err.code(), pb::ErrorCode::NotFound);
     let kept: pb::ProgramRevisions =
@@ -219,9 +276,9 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     .await;
     let edit = program(5555, 3);
     std::fs::write(dir.join("O5555.nc"), &edit).unwrap();
-    let e = event(&events).await;
-    assert_eq!(e.kind(), pb::LibraryEventKind::Refused, "{e:?}");
-    assert_eq!(e.code(), pb::ErrorCode::Locked);
+    let e = library.next().await;
+    assert_eq!(e.kind, "refused", "{e:?}");
+    assert_eq!(e.code, pb::ErrorCode::Locked);
     assert!(e.error.contains("locked"), "{}", e.error);
     assert_eq!(std::fs::read(dir.join("O5555.nc")).unwrap(), edit);
     assert_eq!(read(&cell, "O5555").await, v1b);
@@ -229,19 +286,16 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     // Two files of one name: neither taken, said.
     std::fs::write(dir.join("O5558.nc"), program(5558, 1)).unwrap();
     std::fs::write(dir.join("O5558.tap"), program(5558, 2)).unwrap();
-    let e = event(&events).await;
-    assert_eq!(
-        (e.kind(), e.code()),
-        (pb::LibraryEventKind::Refused, pb::ErrorCode::Conflict)
-    );
-    let e = event(&events).await;
-    assert_eq!(e.code(), pb::ErrorCode::Conflict);
+    let e = library.next().await;
+    assert_eq!((e.kind, e.code), ("refused", pb::ErrorCode::Conflict));
+    let e = library.next().await;
+    assert_eq!(e.code, pb::ErrorCode::Conflict);
     // One removed: the other is taken.
     std::fs::remove_file(dir.join("O5558.tap")).unwrap();
-    let e = event(&events).await;
+    let e = library.next().await;
     assert_eq!(
-        (e.name.as_str(), e.file.as_str(), e.kind()),
-        ("O5558", "O5558.nc", pb::LibraryEventKind::Stored)
+        (e.name.as_str(), e.file.as_str(), e.kind),
+        ("O5558", "O5558.nc", "stored")
     );
 
     // Every one of them in the audit, the folder as the origin (the history is written a
@@ -345,9 +399,9 @@ async fn a_punched_program_is_written_into_the_receive_folder_too() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn stores_and_removals_through_the_bus_are_library_events_too() {
+async fn a_store_of_the_same_bytes_again_says_nothing_and_the_folder_adds_no_word() {
     let cell = RunningCell::start(cell_config, false).await;
-    let events = cell.subscribe(cell.keys.program_events()).await;
+    let library = Library::follow(&cell).await;
     let write = |op| pb::ProgramWrite {
         op: Some(op),
         ..Default::default()
@@ -361,26 +415,20 @@ async fn stores_and_removals_through_the_bus_are_library_events_too() {
         )
         .await;
     }
-    let e = event(&events).await;
-    assert_eq!(
-        (e.name.as_str(), e.kind()),
-        ("O42", pb::LibraryEventKind::Stored)
-    );
-    assert_eq!(e.revision.unwrap().number, 1);
+    let e = library.next().await;
+    assert_eq!((e.name.as_str(), e.kind), ("O42", "stored"));
+    assert_eq!(e.revision, 1);
     // The same bytes again made no revision, so no event; the folder's own look at the file
     // the store wrote makes none either.
-    quiet(&events, 1500).await;
+    library.quiet(1500).await;
     let _: pb::ProgramInfo = get_one(
         &cell.client,
         &cell.keys.program_write("O42"),
         Some(write(pb::program_write::Op::Remove(pb::program_write::Remove {})).encode_to_vec()),
     )
     .await;
-    let e = event(&events).await;
-    assert_eq!(
-        (e.name.as_str(), e.kind()),
-        ("O42", pb::LibraryEventKind::Removed)
-    );
-    quiet(&events, 1500).await;
+    let e = library.next().await;
+    assert_eq!((e.name.as_str(), e.kind), ("O42", "removed"));
+    library.quiet(1500).await;
     cell.stop().await;
 }

@@ -8,6 +8,7 @@ mod common;
 mod bus_routes;
 mod cell_on_bus;
 mod client;
+mod client_events;
 mod folder;
 mod g05_bus;
 mod gateway;

@@ -374,6 +374,13 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
          document.querySelector('#health [data-field=alarms]')",
     )
     .await;
+    // The notices of the earlier pages would hide the tiles in the picture.
+    c.execute(
+        "document.querySelectorAll('#notices .alert').forEach((a) => a.remove()); return true;",
+        vec![],
+    )
+    .await
+    .unwrap();
     screenshot(&c, "overview-alarm").await;
 
     // The machine page: the job with its revision, the alarm.
@@ -907,6 +914,43 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
         .await
         .unwrap();
     assert!(!page.as_str().unwrap().contains("ACTIVE"), "{page}");
+
+    // The compare view pairs a changed block with its new text on one row.
+    bus.program_put(
+        "O7001",
+        PROGRAM
+            .replace("N20G01X25.F150", "N20G01X30.F120")
+            .as_bytes(),
+    )
+    .await
+    .unwrap();
+    c.goto(&format!("{}/#/cell/demo/programs/O7001", gw.url))
+        .await
+        .unwrap();
+    wait_css(&c, "tr[data-rev=\"2\"]").await;
+    c.find(Locator::Css("#diff-show"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    let row = wait_js(
+        &c,
+        "the changed block on one row",
+        "(() => { const rows = [...document.querySelectorAll('#diff-result tr[data-op]')].filter((r) => r.dataset.op !== 'equal');
+           return rows.length && rows.map((r) => [r.dataset.op, r.querySelector('td.a').textContent, r.querySelector('td.b').textContent]); })()",
+    )
+    .await;
+    assert_eq!(row.as_array().unwrap().len(), 1, "{row}");
+    assert_eq!(row[0][0], "changed", "{row}");
+    assert!(
+        row[0][1].as_str().unwrap().contains("N20G01X25.F150"),
+        "{row}"
+    );
+    assert!(
+        row[0][2].as_str().unwrap().contains("N20G01X30.F120"),
+        "{row}"
+    );
 
     // Pages that do not stream say so, not "off".
     c.goto(&format!("{}/#/cell/demo/programs", gw.url))

@@ -214,6 +214,19 @@ fn a_dashboard_reads_and_writes_nothing() {
             "query on {key}"
         );
     }
+    // A dashboard sees DO outputs go out; the library's changes are for those who read it.
+    let out = crate::bus::keys::do_out(&k, "m1");
+    let changed = crate::bus::keys::program_changed(&k, "O1");
+    assert!(allows(&acl, "dash", Flow::Egress, "put", &out));
+    assert!(!allows(&acl, "dash", Flow::Egress, "put", &changed));
+    assert!(allows(
+        &acl,
+        "mes",
+        Flow::Ingress,
+        "declare_subscriber",
+        &changed
+    ));
+    assert!(allows(&acl, "mes", Flow::Egress, "put", &changed));
     // The gateway does not announce the routes a dashboard may not use.
     assert!(!allows(
         &acl,

@@ -80,3 +80,29 @@ fn plain_chunks_are_what_zenoh_takes_as_one_chunk_without_wildcards() {
         assert_eq!(is_plain_chunk(chunk), zenoh, "{chunk:?}");
     }
 }
+
+#[test]
+fn the_gateway_s_event_keys_read_back_and_no_route_takes_them_for_another() {
+    let k = CellKeys::new("cellgate", "c").unwrap();
+    let changed = program_changed(&k, "O1.nc");
+    let out = do_out(&k, "m1");
+    assert_eq!(changed, "cellgate/c/program/O1.nc/changed");
+    assert_eq!(out, "cellgate/c/machine/m1/do/out");
+    assert_eq!(parse_event(&k, &changed), Some((true, "O1.nc")));
+    assert_eq!(parse_event(&k, &out), Some((false, "m1")));
+    assert_eq!(parse_event(&k, &k.program_write("O1.nc")), None);
+    // Neither is a key of the grammar: no route of the gateway serves or takes them (the DO
+    // route subscribes to `…/do` only, so the gateway's own event is not a DO command).
+    assert_eq!(k.parse(&changed), None);
+    assert_eq!(k.parse(&out), None);
+    let includes = |pattern: &str, key: &str| {
+        keyexpr::new(pattern)
+            .unwrap()
+            .includes(keyexpr::new(key).unwrap())
+    };
+    assert!(!includes(&k.any_leaf(MachineLeaf::Do), &out));
+    assert!(!includes(&k.any_program_write(), &changed));
+    for key in [&changed, &out] {
+        assert!(keyexpr::new(key.as_str()).is_ok(), "{key}");
+    }
+}

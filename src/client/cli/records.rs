@@ -269,13 +269,29 @@ fn time_param(
     )))
 }
 
+/// Says on stderr that `-m/--machine` is the older form, when it was used.
+fn deprecated_machine_flag(io: &mut Io<'_>, command: &str, machine: &[String]) {
+    if !machine.is_empty() {
+        let _ = writeln!(
+            io.err,
+            "note: -m/--machine is the older form and will go; name the machines first, as \
+             every command does: `cellgate {command} {}`",
+            machine.join(",")
+        );
+    }
+}
+
 /// `cellgate history` and `cellgate audit`.
 #[derive(Debug, Clone, Args)]
 pub struct HistoryArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
-    /// Only these machines or PLC links (repeat, or comma-separate).
-    #[arg(short, long, value_name = "NAME", value_delimiter = ',')]
+    /// Only these machines or PLC links (comma-separate, or name several), first as in
+    /// every command: `cellgate history mill-1,plc-1`.
+    #[arg(value_name = "MACHINE", value_delimiter = ',')]
+    pub machines: Vec<String>,
+    /// The older form of MACHINE, kept working: name the machines first instead.
+    #[arg(short, long, value_name = "NAME", value_delimiter = ',', hide = true)]
     pub machine: Vec<String>,
     /// Only these kinds: job, alarm, link, cnc, station, g05, tag, gateway (history).
     #[arg(short, long, value_name = "KIND", value_delimiter = ',')]
@@ -309,8 +325,9 @@ impl HistoryArgs {
         if let Some(t) = time_param(&self.time, &self.since, &self.until)? {
             p.push(t);
         }
-        if !self.machine.is_empty() {
-            p.push(("machine".to_string(), self.machine.join(",")));
+        let machines = [self.machines.as_slice(), self.machine.as_slice()].concat();
+        if !machines.is_empty() {
+            p.push(("machine".to_string(), machines.join(",")));
         }
         if !self.kind.is_empty() {
             p.push(("kind".to_string(), self.kind.join(",")));
@@ -333,6 +350,7 @@ impl HistoryArgs {
         io: &mut Io<'_>,
         audit: bool,
     ) -> Result<u8, ClientError> {
+        deprecated_machine_flag(io, if audit { "audit" } else { "history" }, &self.machine);
         let page = client.history(audit, &self.params()?).await?;
         if self.json {
             let _ = writeln!(io.out, "{}", json(&page));
@@ -382,8 +400,12 @@ impl ClientCommand for HistoryCommand {
 pub struct AuditCommand {
     #[command(flatten)]
     pub connect: ConnectArgs,
-    /// Only writes to these machines or PLC links (repeat, or comma-separate).
-    #[arg(short, long, value_name = "NAME", value_delimiter = ',')]
+    /// Only writes to these machines or PLC links (comma-separate, or name several), first
+    /// as in every command: `cellgate audit mill-1`.
+    #[arg(value_name = "MACHINE", value_delimiter = ',')]
+    pub machines: Vec<String>,
+    /// The older form of MACHINE, kept working: name the machines first instead.
+    #[arg(short, long, value_name = "NAME", value_delimiter = ',', hide = true)]
     pub machine: Vec<String>,
     /// From this long ago (30m, 2h, 7d) or this UTC time; default the last 24 hours.
     #[arg(long, value_name = "WHEN")]
@@ -413,6 +435,7 @@ impl ClientCommand for AuditCommand {
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
         let args = HistoryArgs {
             connect: self.connect.clone(),
+            machines: self.machines.clone(),
             machine: self.machine.clone(),
             kind: Vec::new(),
             tag: Vec::new(),
@@ -432,8 +455,12 @@ impl ClientCommand for AuditCommand {
 pub struct UtilisationArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
-    /// Only these machines (repeat, or comma-separate).
-    #[arg(short, long, value_name = "NAME", value_delimiter = ',')]
+    /// Only these machines (comma-separate, or name several), first as in every command:
+    /// `cellgate utilisation mill-1`.
+    #[arg(value_name = "MACHINE", value_delimiter = ',')]
+    pub machines: Vec<String>,
+    /// The older form of MACHINE, kept working: name the machines first instead.
+    #[arg(short, long, value_name = "NAME", value_delimiter = ',', hide = true)]
     pub machine: Vec<String>,
     /// From this long ago (8h, 7d) or this UTC time; default the last 24 hours.
     #[arg(long, value_name = "WHEN")]
@@ -522,12 +549,14 @@ impl ClientCommand for UtilisationArgs {
     }
 
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
+        deprecated_machine_flag(io, "utilisation", &self.machine);
         let mut p = Vec::new();
         if let Some(t) = time_param(&self.time, &self.since, &self.until)? {
             p.push(t);
         }
-        if !self.machine.is_empty() {
-            p.push(("machine".to_string(), self.machine.join(",")));
+        let machines = [self.machines.as_slice(), self.machine.as_slice()].concat();
+        if !machines.is_empty() {
+            p.push(("machine".to_string(), machines.join(",")));
         }
         p.push(("bucket".to_string(), self.bucket.clone()));
         let u = client.utilisation(&p).await?;

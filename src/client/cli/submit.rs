@@ -181,6 +181,14 @@ impl ClientCommand for SubmitArgs {
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
         let machine = self.machine()?;
         let request = self.request(io).await?;
+        // Where a resume starts depends on what the board had taken when the job ended,
+        // which the client never saw: say it first.
+        if let Some(job) = &self.resume
+            && let Ok(latest) = client.job_latest(&machine, job).await
+            && let Some(line) = resume_context(&latest)
+        {
+            let _ = writeln!(io.err, "{line}");
+        }
         let (accepted, mut follower) = client.submit(&machine, &request).await?;
         let job = accepted.job_id.clone();
         if self.json {
@@ -236,6 +244,35 @@ impl ClientCommand for SubmitArgs {
         follower.close().await;
         Ok(outcome.map_or(1, |o| o.exit_code()))
     }
+}
+
+/// What a failed or cancelled job left on the CNC, and where its resume starts: `mill-1-x-7
+/// was cancelled with 1.2 KiB on the line, 1.0 KiB of it acknowledged by the board: the
+/// resume sends from block N120 (line 14), its header first`.
+fn resume_context(e: &pb::JobEvent) -> Option<String> {
+    let (ended, on_line, acked, next) = match &e.kind {
+        Some(Kind::Failed(f)) => ("failed", f.bytes_on_line, f.byte_offset, &f.next_block),
+        Some(Kind::Cancelled(c)) => (
+            "was cancelled",
+            c.bytes_on_line,
+            c.byte_offset,
+            &c.next_block,
+        ),
+        _ => return None,
+    };
+    let next = next.as_ref()?;
+    let block = if next.sequence_number.is_empty() {
+        format!("the block at line {}", next.line)
+    } else {
+        format!("block {} (line {})", next.sequence_number, next.line)
+    };
+    Some(format!(
+        "{} {ended} with {} on the line, {} of it acknowledged by the board: the resume \
+         sends from {block}, the first block the board did not hold whole, its header first",
+        e.job_id,
+        render::bytes(on_line),
+        render::bytes(acked)
+    ))
 }
 
 fn progress_bar(visible: bool, job: &str) -> ProgressBar {

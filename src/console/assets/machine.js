@@ -464,8 +464,16 @@ function comparisonText(p) {
   return `${c.blocks_changed} changed, ${c.blocks_added} added, ${c.blocks_removed} removed against ${c.library_name} rev ${c.revision}`;
 }
 
+// The console keeps what it saw punched in memory only: say so, and where the programs
+// punched before it started are (the library, under the machine's name).
+function punchedNote(cell, machine) {
+  return h('p', { class: 'small-text muted', 'data-field': 'punched-note' },
+    'The console keeps this list and its comparisons only while it runs. Programs punched before it started are in the ',
+    h('a', { href: `#/cell/${enc(cell)}/programs` }, 'library'), ` as ${machine}-O…-time: adopted as a revision of their program, they compare with it there.`);
+}
+
 function punchedView(cell, machine, list) {
-  if (!list.length) return h('p', { class: 'muted' }, 'Nothing punched since the console started.');
+  if (!list.length) return h('div', null, h('p', { class: 'muted' }, 'Nothing punched since the console started.'), punchedNote(cell, machine));
   const t = table(['When', 'Program', 'Stored as', 'Against the library', ''], 'punched');
   t.setAttribute('aria-label', 'Punched programs');
   for (const p of list.slice(0, 50)) {
@@ -487,7 +495,7 @@ function punchedView(cell, machine, list) {
       h('td', { 'data-field': 'comparison' }, comparisonText(p)),
       h('td', null, adopt, text ? h('details', null, h('summary', null, 'Text'), h('pre', { class: 'code small' }, text)) : null)));
   }
-  return scroller(t);
+  return h('div', null, scroller(t), punchedNote(cell, machine));
 }
 
 // ---- G05 -----------------------------------------------------------------------------

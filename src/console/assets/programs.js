@@ -268,7 +268,8 @@ function blockSpans(line) {
   return out;
 }
 
-// ProgramDiff side by side: A on the left, B on the right; one row per diff line.
+// ProgramDiff side by side: A on the left, B on the right. A changed block is one row, its
+// old text beside its new one; removed and added blocks have the other side empty.
 export function diffView(d) {
   const rev = (r) => (r ? `revision ${r.number} (${revState(r.state)}, ${dateTime(r.unix_ms)})` : '—');
   const head = h('p', { class: d.same ? 'ok-text' : 'warn-text', 'data-field': 'summary' },
@@ -280,18 +281,36 @@ export function diffView(d) {
       h('th', { scope: 'col', class: 'ln' }, 'B'), h('th', { scope: 'col' }, `B: ${rev(d.b)}`))));
   const body = h('tbody');
   t.append(body);
+  const side = (l, which, op, label) => (l
+    ? [h('td', { class: 'ln' }, String(which === 'a' ? l.a_line || '' : l.b_line || '')),
+      h('td', { class: which }, h('span', { class: 'sr-only' }, label), h('span', { class: 'mark', 'aria-hidden': 'true' }, op === 'equal' ? '' : which === 'a' ? '− ' : '+ '), l.text)]
+    : [h('td', { class: 'ln' }), h('td', { class: `${which} empty` })]);
   for (const hk of d.hunks || []) {
     body.append(h('tr', { class: 'hunk' }, h('td', { colspan: '4' }, `@@ A line ${hk.a_line}, B line ${hk.b_line}`)));
-    for (const l of hk.lines || []) {
-      const op = l.op === 'OP_ADDED' ? 'added' : l.op === 'OP_REMOVED' ? 'removed' : 'equal';
-      const mark = op === 'added' ? '+ ' : op === 'removed' ? '− ' : '';
-      const left = op !== 'added';
-      const right = op !== 'removed';
-      body.append(h('tr', { 'data-op': op, class: `${op}${l.changed ? ' changed' : ''}` },
-        h('td', { class: 'ln' }, left && l.a_line ? String(l.a_line) : ''),
-        h('td', { class: 'a' }, left ? [h('span', { class: 'sr-only' }, op === 'removed' ? (l.changed ? 'changed from: ' : 'removed: ') : ''), h('span', { class: 'mark', 'aria-hidden': 'true' }, mark), l.text] : ''),
-        h('td', { class: 'ln' }, right && l.b_line ? String(l.b_line) : ''),
-        h('td', { class: 'b' }, right ? [h('span', { class: 'sr-only' }, op === 'added' ? (l.changed ? 'changed to: ' : 'added: ') : ''), h('span', { class: 'mark', 'aria-hidden': 'true' }, mark), l.text] : '')));
+    const lines = hk.lines || [];
+    for (let i = 0; i < lines.length;) {
+      const l = lines[i];
+      if (l.op === 'OP_REMOVED' || l.op === 'OP_ADDED') {
+        // A run of removed blocks and the added ones right after it: the changed pairs
+        // side by side, the rest on one side only.
+        const removed = [];
+        const added = [];
+        while (i < lines.length && lines[i].op === 'OP_REMOVED') removed.push(lines[i++]);
+        while (i < lines.length && lines[i].op === 'OP_ADDED') added.push(lines[i++]);
+        const pairs = Math.min(removed.filter((x) => x.changed).length, added.filter((x) => x.changed).length);
+        for (let k = 0; k < Math.max(removed.length, added.length); k++) {
+          const a = removed[k];
+          const b = added[k];
+          const paired = k < pairs && a && b;
+          const op = paired ? 'changed' : a ? 'removed' : 'added';
+          body.append(h('tr', { 'data-op': op, class: paired ? 'changed removed added' : op },
+            side(a, 'a', paired ? 'changed' : 'removed', paired ? 'changed from: ' : 'removed: '),
+            side(b, 'b', paired ? 'changed' : 'added', paired ? 'changed to: ' : 'added: ')));
+        }
+        continue;
+      }
+      body.append(h('tr', { 'data-op': 'equal', class: 'equal' }, side(l, 'a', 'equal', ''), side(l, 'b', 'equal', '')));
+      i++;
     }
   }
   return h('div', null, head, d.same && !(d.hunks || []).length ? null : scroller(t));
