@@ -64,6 +64,8 @@ bus_messages!(
     SimAutostart,
     SimPunch,
     SimState,
+    ReloadRequest,
+    ReloadResult,
 );
 
 /// `application/protobuf;<schema>` for `M`.

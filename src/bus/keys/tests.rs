@@ -13,6 +13,8 @@ fn every_built_key_is_a_valid_key_expression() {
         k.any_program(),
         k.gateway(),
         k.admin(),
+        k.reload(),
+        k.reloads(),
         k.all(),
         k.any_machine(),
         k.leaf("m", MachineLeaf::G05),
@@ -79,4 +81,24 @@ fn plain_chunks_are_what_zenoh_takes_as_one_chunk_without_wildcards() {
         let zenoh = !chunk.contains('/') && keyexpr::new(chunk).is_ok_and(|k| !k.is_wild());
         assert_eq!(is_plain_chunk(chunk), zenoh, "{chunk:?}");
     }
+}
+
+#[test]
+fn the_reload_key_is_reached_by_no_wildcard_of_the_cell() {
+    let k = CellKeys::new("cellgate", "c").unwrap();
+    let reload = k.reload();
+    let reload = keyexpr::new(reload.as_str()).unwrap();
+    for pattern in [
+        k.all(),
+        k.admin(),
+        admin_selector("cellgate", "*"),
+        "cellgate/**".to_string(),
+    ] {
+        let p = keyexpr::new(pattern.as_str()).unwrap();
+        assert!(!p.intersects(reload), "{pattern} reaches {reload}");
+    }
+    // What each reload did is the cell's data: `P/C/**` takes it in.
+    let (all, reloads) = (k.all(), k.reloads());
+    let all = keyexpr::new(all.as_str()).unwrap();
+    assert!(all.includes(keyexpr::new(reloads.as_str()).unwrap()));
 }
