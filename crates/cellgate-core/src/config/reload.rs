@@ -174,13 +174,21 @@ pub fn compare(old: &CellConfig, new: &CellConfig) -> Result<CellChange, Restart
         "history.enabled",
         "the store is opened at start",
     );
-    note(oh.dir != nh.dir, "history.dir", "the store is opened at start");
+    note(
+        oh.dir != nh.dir,
+        "history.dir",
+        "the store is opened at start",
+    );
     match (&old.console, &new.console) {
         (None, None) => {}
         (Some(o), Some(n)) => {
             let why = "the console's listener is bound at start";
             note(o.listen != n.listen, "console.listen", why);
-            note(o.allow_remote != n.allow_remote, "console.allow_remote", why);
+            note(
+                o.allow_remote != n.allow_remote,
+                "console.allow_remote",
+                why,
+            );
         }
         _ => note(true, "console", "the console is started or not at start"),
     }
@@ -246,7 +254,11 @@ fn fixed_programs(o: &ProgramsConfig, n: &ProgramsConfig, note: &mut impl FnMut(
         place,
     );
     note(o.max_size != n.max_size, "programs.max_size", machines);
-    note(o.max_inline != n.max_inline, "programs.max_inline", machines);
+    note(
+        o.max_inline != n.max_inline,
+        "programs.max_inline",
+        machines,
+    );
     note(o.keep_jobs != n.keep_jobs, "programs.keep_jobs", machines);
     note(
         o.store_punched != n.store_punched,

@@ -84,10 +84,7 @@ fn a_plc_whose_tags_alone_differ_keeps_its_link() {
 
 #[test]
 fn live_settings_are_named_by_key() {
-    let text = format!(
-        "{BASE}\n[programs]\nquota_files = 10\n[history]\nkeep_days = 7\n"
-    )
-    .replace(
+    let text = format!("{BASE}\n[programs]\nquota_files = 10\n[history]\nkeep_days = 7\n").replace(
         "listen = \"127.0.0.1:7480\"",
         "listen = \"127.0.0.1:7480\"\nsession_idle_minutes = 5",
     );
@@ -105,13 +102,15 @@ fn live_settings_are_named_by_key() {
 
 #[test]
 fn what_the_session_holds_needs_a_restart_and_every_key_is_named() {
-    let text = format!(
-        "{BASE}\n[bus]\nlisten = [\"tcp/127.0.0.1:7999\"]\n[programs]\nkeep_jobs = 10\n"
-    )
-    .replace("baud = 19200", "baud = 9600");
+    let text =
+        format!("{BASE}\n[bus]\nlisten = [\"tcp/127.0.0.1:7999\"]\n[programs]\nkeep_jobs = 10\n")
+            .replace("baud = 19200", "baud = 9600");
     let e = changed(&text).unwrap_err();
     assert_eq!(e.0.len(), 2, "{e:?}");
-    assert!(e.0[0].starts_with("bus.listen (the bus listen endpoints"), "{e:?}");
+    assert!(
+        e.0[0].starts_with("bus.listen (the bus listen endpoints"),
+        "{e:?}"
+    );
     assert!(e.0[1].starts_with("programs.keep_jobs"), "{e:?}");
     let text = e.to_string();
     assert!(text.contains("restart") && text.contains("nothing of this reload was applied"));
