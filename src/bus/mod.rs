@@ -48,6 +48,7 @@ pub mod route_misdirected;
 mod route_plc;
 mod route_program;
 mod route_punch;
+pub mod route_reload;
 mod route_sim;
 mod route_status;
 mod route_tag;

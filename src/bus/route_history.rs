@@ -236,7 +236,7 @@ async fn utilisation_of(ctx: &RouteContext, q: &Query) -> Result<pb::Utilisation
         query.from_ms,
         query.to_ms,
         query.bucket,
-        ctx.history.shifts(),
+        &ctx.history.shifts(),
     );
     let now = pb::now_ms();
     let gateway = ctx
