@@ -131,20 +131,26 @@ impl AdminRoute {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
-    /// Shows `config` at `generation`; `reload`: what the last reload did (taken or not).
+    /// Shows `config` at `generation`; `reload`: what the last reload did (taken or not;
+    /// none: the one shown stays); `waiting`: the machines whose link stops or restarts once
+    /// their running job has ended.
     pub fn set_config(
         &self,
         config: &CellConfig,
         generation: u64,
         reload: Option<&cellgate_core::pb::ReloadResult>,
+        waiting: &[String],
     ) {
         let mut doc = self.document();
         let zid = doc["zid"].as_str().unwrap_or_default().to_string();
         let last = doc.get("reload").cloned();
         *doc = admin_document_at(config, &zid, generation);
         let reload = reload.map(reload_json).or(last);
-        if let (Some(o), Some(r)) = (doc.as_object_mut(), reload) {
-            o.insert("reload".to_string(), r);
+        if let Some(o) = doc.as_object_mut() {
+            if let Some(r) = reload {
+                o.insert("reload".to_string(), r);
+            }
+            o.insert("waiting".to_string(), serde_json::json!(waiting));
         }
     }
 

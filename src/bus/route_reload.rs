@@ -135,7 +135,11 @@ impl ReloadRoute {
         }
         let answer = match tokio::time::timeout(ANSWER_WITHIN, answer).await {
             Ok(Ok(a)) => a,
-            _ => refusal(
+            Ok(Err(_)) => refusal(
+                pb::ErrorCode::Unavailable,
+                "the gateway stopped before it took the reload".into(),
+            ),
+            Err(_) => refusal(
                 pb::ErrorCode::Unavailable,
                 "the reload did not finish in time (see the gateway's log)".into(),
             ),

@@ -234,6 +234,11 @@ impl MachineRoutes {
             .any(|m| m.sim.is_some())
     }
 
+    /// The cell's program library, whose quota and retention a reload replaces.
+    pub fn library(&self) -> &crate::jobs::library::ProgramLibrary {
+        &self.inner.ctx.library
+    }
+
     /// The machines served.
     pub fn names(&self) -> Vec<String> {
         self.served().keys().cloned().collect()
