@@ -14,4 +14,5 @@ mod hostile;
 mod plc_bus;
 mod punch_on_bus;
 mod records;
+mod reload;
 mod security;
