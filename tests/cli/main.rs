@@ -10,4 +10,5 @@ mod config;
 mod examples;
 mod layering;
 mod plc_cli;
+mod reload_cli;
 mod tour;
