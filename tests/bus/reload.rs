@@ -10,7 +10,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use cellgate::bus::keys::CellKeys;
-use cellgate::client::{Client, ClientError, ConnectOptions};
+use cellgate::client::{Client, ClientError, ConnectOptions, WatchEvent};
 use cellgate::gateway::{self, CellSource, ReloadHandle, Reloads, RunOptions};
 use cellgate_core::pb;
 use cellgate_core::pb::job_event::Kind;
@@ -43,6 +43,8 @@ struct Running {
     keys: CellKeys,
     client: Client,
     reload: ReloadHandle,
+    /// What the gateway serves beside the bus (its console's URL).
+    ready: gateway::Ready,
     stop: tokio::sync::oneshot::Sender<()>,
     task: tokio::task::JoinHandle<Result<(), gateway::GatewayError>>,
 }
@@ -77,7 +79,7 @@ impl Running {
             },
             options,
         ));
-        tokio::time::timeout(Duration::from_secs(30), started)
+        let ready = tokio::time::timeout(Duration::from_secs(30), started)
             .await
             .expect("the gateway did not start in time")
             .expect("the gateway did not start");
@@ -99,6 +101,7 @@ impl Running {
             port,
             client,
             reload,
+            ready,
             stop,
             task,
         }
@@ -208,9 +211,37 @@ fn withdrawals(
     n
 }
 
+/// The machines of the console's overview of the cell, as a browser gets them.
+async fn console_machines(url: &str) -> Vec<String> {
+    let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
+    let http = reqwest::Client::builder()
+        .cookie_store(true)
+        .build()
+        .unwrap();
+    // A cell without [security]: the first visit gets a session.
+    http.get(format!("{url}api/v1/me")).send().await.unwrap();
+    let overview: serde_json::Value = http
+        .get(format!("{url}api/v1/cells/{CELL}/overview"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    overview["machines"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["machine"].as_str().unwrap().to_string())
+        .collect()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_machine_added_while_another_sends_a_long_job_takes_a_job_and_the_long_one_completes() {
-    let g = Running::start(M1).await;
+    let g = Running::start(&format!("[console]\nlisten = \"127.0.0.1:0\"\n{M1}")).await;
+    let console = g.ready.console.clone().expect("the console serves");
+    assert_eq!(console_machines(&console).await, ["m1"]);
+    let mut watch = g.client.watch().await.unwrap();
     let published = g
         .client
         .session()
@@ -222,7 +253,7 @@ async fn a_machine_added_while_another_sends_a_long_job_takes_a_job_and_the_long
     let (accepted, mut long_job) = g.client.submit("m1", &inline(&long)).await.unwrap();
     g.until_active("m1", &accepted.job_id).await;
 
-    g.write(&format!("{M1}{M2}"));
+    g.write(&format!("[console]\nlisten = \"127.0.0.1:0\"\n{M1}{M2}"));
     let r = g.client.reload(false).await.unwrap();
     assert!(r.applied, "{r:?}");
     assert_eq!(r.generation, 2);
@@ -247,6 +278,21 @@ async fn a_machine_added_while_another_sends_a_long_job_takes_a_job_and_the_long
     assert_eq!(completed(&end).bytes_sent, long.len() as u64);
     assert_eq!(withdrawals(&m1_token), 0, "m1's link went down");
     assert_eq!(g.machines().await, ["m1", "m2"]);
+    assert_eq!(console_machines(&console).await, ["m1", "m2"]);
+    // `cellgate watch` saw the reload and the new machine's link come up.
+    let (mut reloaded, mut m2_up) = (false, false);
+    while !(reloaded && m2_up) {
+        let event = tokio::time::timeout(Duration::from_secs(10), watch.next())
+            .await
+            .expect("watch saw no reload and no m2")
+            .unwrap();
+        match event {
+            WatchEvent::Reload(r) => reloaded = r.applied && r.machines_added == ["m2"],
+            WatchEvent::Link { machine, up } if machine == "m2" => m2_up |= up,
+            _ => {}
+        }
+    }
+    watch.close().await;
 
     // The bus was told, the admin document shows the generation, the audit has it.
     let sample = published.recv_async().await.unwrap();
