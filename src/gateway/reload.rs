@@ -371,6 +371,17 @@ impl Reloader {
                     .push(format!("machine {name}: its link did not start: {e}"));
             }
         }
+        if force {
+            // --force ends the wait of machines an earlier reload left waiting, too.
+            let waiting: Vec<(String, Option<MachineConfig>)> = self
+                .pending
+                .iter()
+                .map(|(n, p)| (n.clone(), p.target.clone()))
+                .collect();
+            for (name, target) in waiting {
+                self.retarget(&name, target, true).await;
+            }
+        }
         self.settings(&new);
         self.current = new;
         self.generation += 1;

@@ -365,14 +365,29 @@ async fn a_changed_machine_restarts_after_its_job_and_a_removed_one_stops() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_forced_reload_removes_a_machine_at_once_failing_its_job_with_the_reason() {
+async fn a_removed_machine_takes_no_job_and_a_forced_reload_ends_its_wait_failing_its_job() {
     let g = Running::start(&format!("{M1}{M2}")).await;
     let long = common::nc_program(4000, 5);
     let (accepted, mut long_job) = g.client.submit("m1", &inline(&long)).await.unwrap();
     g.until_active("m1", &accepted.job_id).await;
     g.write(M2);
-    let r = g.client.reload(true).await.unwrap();
+    let r = g.client.reload(false).await.unwrap();
     assert!(r.applied && r.machines_removed == ["m1"], "{r:?}");
+    assert_eq!(r.waiting, ["m1"]);
+    // m1 waits for its job and takes no other.
+    match g.client.submit("m1", &inline(&long)).await {
+        Err(ClientError::Refused { code, message, .. }) => {
+            assert_eq!(code, pb::ErrorCode::Unavailable);
+            assert!(message.contains("leaving the cell"), "{message}");
+        }
+        Err(e) => panic!("{e:?}"),
+        Ok((a, _)) => panic!("a machine leaving the cell took job {}", a.job_id),
+    }
+    let q = g.client.queue("m1").await.unwrap();
+    assert_eq!(q.active.map(|a| a.job_id), Some(accepted.job_id.clone()));
+    // --force ends the wait: the same file, nothing changed, the job fails saying why.
+    let r = g.client.reload(true).await.unwrap();
+    assert!(r.applied && r.machines_removed.is_empty(), "{r:?}");
     let end = long_job.wait_end().await.unwrap();
     match &end.kind {
         Some(Kind::Failed(f)) => {
