@@ -594,3 +594,6 @@ impl Reloader {
         self.run.machines.set_names(new);
     }
 }
+
+#[cfg(test)]
+mod tests;
