@@ -264,7 +264,7 @@ async fn main() {
         let mut reading = 0u64;
         for _ in 0..5 {
             let t = Instant::now();
-            let buckets = history::buckets(start, end, bucket, h.shifts());
+            let buckets = history::buckets(start, end, bucket, &h.shifts());
             let gateway = h.gateway_marks(start, end).await.unwrap();
             for m in 0..machines {
                 let marks = h

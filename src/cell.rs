@@ -33,6 +33,20 @@ pub struct MachineRuntime {
     pub board: Option<sim::BoardHandle>,
     /// The simulated line of a `sim` transport: fault injection and counters.
     pub line: Option<SimLine>,
+    /// Stops this link alone (a reload that removes or changes the machine).
+    stop: CancellationToken,
+    task: Option<tokio::task::JoinHandle<()>>,
+}
+
+impl MachineRuntime {
+    /// The link as the bus routes take it.
+    pub fn bus_link(&self) -> crate::bus::MachineLink {
+        crate::bus::MachineLink {
+            config: self.config.clone(),
+            link: self.link.clone(),
+            sim: self.board.as_ref().map(sim::BoardHandle::control),
+        }
+    }
 }
 
 /// One PLC of the running cell.
@@ -43,6 +57,9 @@ pub struct PlcRuntime {
     pub sim: Option<MicrexHandle>,
     /// The simulated line of a `sim` transport: fault injection and counters.
     pub line: Option<SimLine>,
+    /// Stops this link alone (a reload that removes or changes the PLC).
+    stop: CancellationToken,
+    task: Option<tokio::task::JoinHandle<()>>,
 }
 
 /// Why a machine's link could not be started.
@@ -87,15 +104,16 @@ pub enum CellError {
     },
 }
 
-/// The links of a cell, running.
+/// The links of a cell, running. Each link stops with the token the cell was started with,
+/// or alone when a reload takes it away ([`Cell::remove_machine`], [`Cell::remove_plc`]).
 pub struct Cell {
     pub machines: Vec<MachineRuntime>,
     pub plcs: Vec<PlcRuntime>,
-    tasks: tokio::task::JoinSet<()>,
+    shutdown: CancellationToken,
 }
 
 impl Cell {
-    /// Starts a link for every machine of the cell.
+    /// Starts a link for every machine and PLC of the cell.
     pub async fn start(
         config: &CellConfig,
         shutdown: &CancellationToken,
@@ -103,26 +121,93 @@ impl Cell {
         let mut cell = Cell {
             machines: Vec::new(),
             plcs: Vec::new(),
-            tasks: tokio::task::JoinSet::new(),
+            shutdown: shutdown.clone(),
         };
         for machine in &config.machines {
-            let runtime = cell.start_machine(machine, shutdown).await?;
-            cell.machines.push(runtime);
+            cell.add_machine(machine).await?;
         }
         for plc in &config.plcs {
-            let runtime = cell.start_plc(plc, shutdown).await?;
-            cell.plcs.push(runtime);
+            cell.add_plc(plc).await?;
         }
         Ok(cell)
     }
 
-    /// Starts the link of a `[[plcs]]` entry; a `sim` transport gets a simulated MICREX-F
-    /// with every station of the entry on its far end.
-    async fn start_plc(
+    /// Starts the link of `machine` and answers it as the bus routes take it. Its name must
+    /// not be running already.
+    pub async fn add_machine(
+        &mut self,
+        machine: &MachineConfig,
+    ) -> Result<crate::bus::MachineLink, CellError> {
+        let runtime = self.start_machine(machine).await?;
+        let link = runtime.bus_link();
+        self.machines.push(runtime);
+        Ok(link)
+    }
+
+    /// Stops the link of machine `name` (and its simulated board) and waits for it to end;
+    /// its configuration, if it ran.
+    pub async fn remove_machine(&mut self, name: &str) -> Option<MachineConfig> {
+        let i = self.machines.iter().position(|m| m.config.name == name)?;
+        let mut m = self.machines.remove(i);
+        m.stop.cancel();
+        if let Some(task) = m.task.take() {
+            let _ = task.await;
+        }
+        if let Some(board) = m.board
+            && let Err(e) = board.shutdown().await
+        {
+            tracing::debug!(machine = %name, error = %e, "simulated board stopped");
+        }
+        Some(m.config)
+    }
+
+    /// Starts the link of `plc` and answers it as the bus routes take it.
+    pub async fn add_plc(&mut self, plc: &PlcConfig) -> Result<crate::bus::PlcLink, CellError> {
+        let runtime = self.start_plc(plc).await?;
+        let link = crate::bus::PlcLink {
+            config: runtime.config.clone(),
+            link: runtime.link.clone(),
+        };
+        self.plcs.push(runtime);
+        Ok(link)
+    }
+
+    /// Stops the link of PLC `name` (and its simulated MICREX-F) and waits for it to end.
+    pub async fn remove_plc(&mut self, name: &str) -> Option<PlcConfig> {
+        let i = self.plcs.iter().position(|p| p.config.name == name)?;
+        let mut p = self.plcs.remove(i);
+        p.stop.cancel();
+        if let Some(task) = p.task.take() {
+            let _ = task.await;
+        }
+        if let Some(sim) = p.sim {
+            sim.shutdown().await;
+        }
+        Some(p.config)
+    }
+
+    /// Gives PLC `name` the tags (and so poll groups) of `plc`, in its running link.
+    pub async fn set_plc_tags(
         &mut self,
         plc: &PlcConfig,
-        shutdown: &CancellationToken,
-    ) -> Result<PlcRuntime, CellError> {
+    ) -> Result<crate::bus::PlcLink, crate::plc::PlcLinkError> {
+        let Some(p) = self.plcs.iter_mut().find(|p| p.config.name == plc.name) else {
+            return Err(crate::plc::PlcLinkError::NotRunning {
+                plc: plc.name.clone(),
+            });
+        };
+        p.link.set_tags(TagTable::new(&plc.name, &plc.tags)).await?;
+        p.config.tags = plc.tags.clone();
+        Ok(crate::bus::PlcLink {
+            config: p.config.clone(),
+            link: p.link.clone(),
+        })
+    }
+
+    /// Starts the link of a `[[plcs]]` entry; a `sim` transport gets a simulated MICREX-F
+    /// with every station of the entry on its far end.
+    async fn start_plc(&mut self, plc: &PlcConfig) -> Result<PlcRuntime, CellError> {
+        let stop = self.shutdown.child_token();
         let name = plc.name.clone();
         let master = Master::new(plc.master_settings()).map_err(|source| CellError::Master {
             plc: name.clone(),
@@ -150,8 +235,8 @@ impl Cell {
         };
         let tags = TagTable::new(&name, &plc.tags);
         let (link, task) =
-            crate::plc::link::spawn(name.clone(), master, tags, transport, shutdown.clone());
-        self.tasks.spawn(async move {
+            crate::plc::link::spawn(name.clone(), master, tags, transport, stop.clone());
+        let task = tokio::spawn(async move {
             match task.await {
                 Ok(Ok(())) => tracing::info!(plc = %name, "PLC link stopped"),
                 Ok(Err(e)) => tracing::error!(plc = %name, error = %e, "PLC link ended"),
@@ -163,6 +248,8 @@ impl Cell {
             link,
             sim: micrex,
             line: sim_line,
+            stop,
+            task: Some(task),
         })
     }
 
@@ -184,8 +271,8 @@ impl Cell {
     async fn start_machine(
         &mut self,
         machine: &MachineConfig,
-        shutdown: &CancellationToken,
     ) -> Result<MachineRuntime, CellError> {
+        let stop = self.shutdown.child_token();
         let name = machine.name.clone();
         let framing = Framing::new(machine.code, machine.effective_end_code());
         let mut board = None;
@@ -210,16 +297,16 @@ impl Cell {
                 machine: name.clone(),
                 source,
             })?;
-            driver::spawn(name.clone(), engine, transport, shutdown.clone())
+            driver::spawn(name.clone(), engine, transport, stop.clone())
         } else {
             let a = machine.protocol_a_config().unwrap_or_default();
             let engine = ProtocolAHost::new(a, now()).map_err(|source| CellError::ProtocolA {
                 machine: name.clone(),
                 source,
             })?;
-            driver::spawn(name.clone(), engine, transport, shutdown.clone())
+            driver::spawn(name.clone(), engine, transport, stop.clone())
         };
-        self.tasks.spawn(async move {
+        let task = tokio::spawn(async move {
             match task.await {
                 Ok(Ok(())) => tracing::info!(machine = %name, "link stopped"),
                 Ok(Err(e)) => tracing::error!(machine = %name, error = %e, "link ended"),
@@ -231,19 +318,14 @@ impl Cell {
             link,
             board,
             line: sim_line,
+            stop,
+            task: Some(task),
         })
     }
 
     /// The links as the bus routes take them.
     pub fn machine_links(&self) -> Vec<crate::bus::MachineLink> {
-        self.machines
-            .iter()
-            .map(|m| crate::bus::MachineLink {
-                config: m.config.clone(),
-                link: m.link.clone(),
-                sim: m.board.as_ref().map(sim::BoardHandle::control),
-            })
-            .collect()
+        self.machines.iter().map(MachineRuntime::bus_link).collect()
     }
 
     pub fn machine(&self, name: &str) -> Option<&MachineRuntime> {
@@ -253,7 +335,11 @@ impl Cell {
     /// Waits for every link task to end (after the shutdown token was cancelled), then stops
     /// the simulated boards.
     pub async fn join(mut self) {
-        while self.tasks.join_next().await.is_some() {}
+        let machines = self.machines.iter_mut().filter_map(|m| m.task.take());
+        let plcs = self.plcs.iter_mut().filter_map(|p| p.task.take());
+        for task in machines.chain(plcs).collect::<Vec<_>>() {
+            let _ = task.await;
+        }
         for machine in self.machines {
             if let Some(board) = machine.board {
                 if let Err(e) = board.shutdown().await {

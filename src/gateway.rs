@@ -4,9 +4,17 @@
 //! and its `P/C/@admin` key, [`crate::bus::admin`]), starts the cell's links, serves the
 //! routes, and returns once the `shutdown` future completes, after undeclaring everything
 //! and closing the session. Taking shutdown as a future (rather than catching signals here)
-//! lets the binary stop it on SIGINT/SIGTERM and tests stop it at will.
+//! lets the binary stop it on SIGINT/SIGTERM and tests stop it at will. While it runs it takes
+//! reloads of its cell file ([`reload`]): from `P/C/@admin/reload` and from a
+//! [`ReloadHandle`] (the binary's SIGHUP).
+
+pub mod reload;
+
+pub use crate::bus::route_reload::ReloadAnswer;
+pub use reload::{CellSource, ReloadHandle, Reloads, check_cell_file};
 
 use std::future::Future;
+use std::sync::Arc;
 
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
@@ -14,6 +22,7 @@ use zenoh::Session;
 use crate::bus::admin::AdminRoute;
 pub use crate::bus::admin::{VERSION, admin_document};
 use crate::bus::keys::CellKeys;
+use crate::bus::route_reload::ReloadRoute;
 use crate::bus::{self, BusError};
 use crate::cell::Cell;
 use crate::history::{History, HistoryError};
@@ -51,6 +60,18 @@ pub enum GatewayError {
     Close(#[source] zenoh::Error),
 }
 
+/// How a gateway runs beside its cell file.
+#[derive(Debug, Default)]
+pub struct RunOptions {
+    /// Told once the gateway serves its cell (its routes answer, it is announced).
+    pub ready: Option<tokio::sync::oneshot::Sender<Ready>>,
+    /// Where a reload reads the cell from; none: the gateway has no file to read again (the
+    /// embedded default cell), and a reload is refused, saying so.
+    pub source: Option<CellSource>,
+    /// Reloads asked for through a [`ReloadHandle`] (SIGHUP); the bus route's come too.
+    pub reloads: Option<Reloads>,
+}
+
 /// Runs the gateway for `config` until `shutdown` completes, then stops cleanly.
 ///
 /// Must run on a multi-thread Tokio runtime (zenoh's requirement).
@@ -68,6 +89,19 @@ pub async fn run_ready(
     shutdown: impl Future<Output = ()>,
     ready: Option<tokio::sync::oneshot::Sender<Ready>>,
 ) -> Result<(), GatewayError> {
+    let options = RunOptions {
+        ready,
+        ..RunOptions::default()
+    };
+    run_with(config, shutdown, options).await
+}
+
+/// [`run`] with [`RunOptions`]: the cell file a reload reads, the reloads asked for.
+pub async fn run_with(
+    config: CellConfig,
+    shutdown: impl Future<Output = ()>,
+    options: RunOptions,
+) -> Result<(), GatewayError> {
     // The uptime `cellgate status` shows counts from here.
     crate::bus::admin::started_unix_ms();
     let session = bus::open_cell(&config).await?;
@@ -83,7 +117,7 @@ pub async fn run_ready(
         tracing::info!("no [security]: any session that reaches the gateway may do anything");
     }
     // Whatever happens from here on, the session is closed before returning.
-    let served = serve(&config, &session, shutdown, ready).await;
+    let served = serve(&config, &session, shutdown, options).await;
     let closed = session.close().await.map_err(GatewayError::Close);
     tracing::info!(cell = %config.cell, "cellgate stopped");
     served.and(closed)
@@ -93,7 +127,7 @@ async fn serve(
     config: &CellConfig,
     session: &Session,
     shutdown: impl Future<Output = ()>,
-    serving: Option<tokio::sync::oneshot::Sender<Ready>>,
+    options: RunOptions,
 ) -> Result<(), GatewayError> {
     let keys = CellKeys::new(&config.bus.prefix, &config.cell).map_err(BusError::from)?;
 
@@ -108,7 +142,7 @@ async fn serve(
     } else {
         (History::disabled(), None)
     };
-    let served = serve_with(config, session, shutdown, &keys, history, serving).await;
+    let served = serve_with(config, session, shutdown, &keys, history, options).await;
     history_stop.cancel();
     if let Some(w) = history_writer {
         let _ = w.await;
@@ -122,88 +156,103 @@ async fn serve_with(
     shutdown: impl Future<Output = ()>,
     keys: &CellKeys,
     history: History,
-    serving: Option<tokio::sync::oneshot::Sender<Ready>>,
+    options: RunOptions,
 ) -> Result<(), GatewayError> {
+    let RunOptions {
+        ready: serving,
+        source,
+        reloads,
+    } = options;
+    let reloads = reloads.unwrap_or_else(|| Reloads::new().1);
     // The links run until the routes have stopped, so that every job's end is reported.
     let links_stop = CancellationToken::new();
-    let cell = Cell::start(config, &links_stop).await?;
-    let machines = cell.machine_links();
+    let mut cell = Some(Cell::start(config, &links_stop).await?);
+    let (machines, plcs) = match &cell {
+        Some(c) => (c.machine_links(), c.plc_links()),
+        None => (Vec::new(), Vec::new()),
+    };
     let routes_stop = CancellationToken::new();
-    let (ready_tx, ready) = tokio::sync::oneshot::channel();
-    let plcs = cell.plc_links();
+    let (machines_tx, machines_rx) = tokio::sync::oneshot::channel();
+    let (plcs_tx, plcs_rx) = tokio::sync::oneshot::channel();
     // Either half failing (a journal that cannot be opened, a route zenoh refuses) ends both:
     // the gateway stops at once with the error rather than serving half a cell.
     let routes = async {
         tokio::try_join!(
-            bus::serve_recorded(
+            bus::serve_live(
                 session,
                 config,
                 machines,
                 routes_stop.clone(),
-                Some(ready_tx),
                 history.clone(),
+                move |r| {
+                    let _ = machines_tx.send(r);
+                },
             ),
-            bus::serve_plcs_recorded(session, config, plcs, routes_stop.clone(), history.clone()),
+            bus::serve_plcs_live(
+                session,
+                config,
+                plcs,
+                routes_stop.clone(),
+                history.clone(),
+                move |r| {
+                    let _ = plcs_tx.send(r);
+                },
+            ),
         )
         .map(|_| ())
     };
+    let served_routes = async { (machines_rx.await, plcs_rx.await) };
     tokio::pin!(routes);
     tokio::pin!(shutdown);
+    tokio::pin!(served_routes);
+
+    // Whatever is started below is stopped after the block, in order, however it ends.
+    let mut admin: Option<Arc<AdminRoute>> = None;
+    let (mtconnect_stop, console_stop) = (CancellationToken::new(), CancellationToken::new());
+    let mut mtconnect = None;
+    let mut console: Option<crate::console::Served> = None;
+    let reload_stop = CancellationToken::new();
+    let mut reload_task = None;
     let mut routes_result = None;
+    let outcome: Result<(), GatewayError> = 'serve: {
+        // The cell is announced (admin key, liveliness token) once its routes answer: a client
+        // that finds the gateway finds every route.
+        let (machine_routes, plc_routes) = tokio::select! {
+            (Ok(m), Ok(p)) = &mut served_routes => (m, p),
+            result = &mut routes => {
+                routes_result = Some(result);
+                break 'serve Ok(());
+            }
+            () = &mut shutdown => {
+                tracing::info!(cell = %config.cell, "shutdown requested while starting");
+                break 'serve Ok(());
+            }
+        };
+        let a = match AdminRoute::declare(session, keys, config).await {
+            Ok(a) => Arc::new(a.with_history(history.clone())),
+            Err(e) => break 'serve Err(e.into()),
+        };
+        admin = Some(Arc::clone(&a));
 
-    // The cell is announced (admin key, liveliness token) once its routes answer: a client
-    // that finds the gateway finds every route.
-    let admin = tokio::select! {
-        Ok(()) = ready => AdminRoute::declare(session, keys, config)
-            .await
-            .map(|a| a.with_history(history.clone())),
-        result = &mut routes => {
-            links_stop.cancel();
-            cell.join().await;
-            return result.map_err(GatewayError::from);
-        }
-        () = &mut shutdown => {
-            tracing::info!(cell = %config.cell, "shutdown requested while starting");
-            routes_stop.cancel();
-            let result = routes.await;
-            links_stop.cancel();
-            cell.join().await;
-            return result.map_err(GatewayError::from);
-        }
-    };
-    let admin = match admin {
-        Ok(a) => a,
-        Err(e) => {
-            routes_stop.cancel();
-            let _ = routes.await;
-            links_stop.cancel();
-            cell.join().await;
-            return Err(e.into());
-        }
-    };
+        // Zenoh's own list of bound locators is an unstable API; the configured endpoints
+        // are what the session bound, since opening fails otherwise.
+        let listening = if config.bus.listen.is_empty() {
+            "no endpoint".to_string()
+        } else {
+            config.bus.listen.join(", ")
+        };
+        tracing::info!(
+            cell = %config.cell,
+            zid = %session.zid(),
+            liveliness = %keys.gateway(),
+            admin = %keys.admin(),
+            "cellgate {} running, listening on {}",
+            config.cell,
+            listening,
+        );
 
-    // Zenoh's own list of bound locators is an unstable API; the configured endpoints
-    // are what the session bound, since opening fails otherwise.
-    let listening = if config.bus.listen.is_empty() {
-        "no endpoint".to_string()
-    } else {
-        config.bus.listen.join(", ")
-    };
-    tracing::info!(
-        cell = %config.cell,
-        zid = %session.zid(),
-        liveliness = %keys.gateway(),
-        admin = %keys.admin(),
-        "cellgate {} running, listening on {}",
-        config.cell,
-        listening,
-    );
-
-    // The MTConnect agent, a client of the same routes, on this session; it only reads.
-    let mtconnect_stop = CancellationToken::new();
-    let mtconnect = match &config.mtconnect {
-        None => None,
-        Some(m) => {
+        // The MTConnect agent, a client of the same routes, on this session; it only reads.
+        if let Some(m) = &config.mtconnect {
             let settings = crate::mtconnect::MtconnectSettings {
                 config: m.clone(),
                 prefix: config.bus.prefix.clone(),
@@ -214,25 +263,14 @@ async fn serve_with(
             match crate::mtconnect::serve(session.clone(), settings, mtconnect_stop.clone()).await {
                 Ok(served) => {
                     tracing::info!(url = %served.url, shdr = ?served.shdr, "MTConnect agent at {}", served.url);
-                    Some(served)
+                    mtconnect = Some(served);
                 }
-                Err(e) => {
-                    routes_stop.cancel();
-                    let _ = routes.await;
-                    links_stop.cancel();
-                    cell.join().await;
-                    admin.undeclare().await;
-                    return Err(e.into());
-                }
+                Err(e) => break 'serve Err(e.into()),
             }
         }
-    };
 
-    // The console, a client of the routes just announced, on this session.
-    let console_stop = CancellationToken::new();
-    let console = match &config.console {
-        None => None,
-        Some(c) => {
+        // The console, a client of the routes just announced, on this session.
+        if let Some(c) = &config.console {
             let settings = crate::console::ConsoleSettings {
                 console: c.clone(),
                 prefix: config.bus.prefix.clone(),
@@ -244,43 +282,66 @@ async fn serve_with(
             {
                 Ok(served) => {
                     tracing::info!(url = %served.url, "console at {}", served.url);
-                    Some(served)
+                    console = Some(served);
                 }
-                Err(e) => {
-                    mtconnect_stop.cancel();
-                    if let Some(m) = mtconnect {
-                        m.join().await;
+                Err(e) => break 'serve Err(e.into()),
+            }
+        }
+
+        match ReloadRoute::declare(session, keys, reloads.sender()).await {
+            Ok(route) => reload_task = Some(tokio::spawn(route.run(reload_stop.clone()))),
+            Err(e) => break 'serve Err(e.into()),
+        }
+
+        if let Some(serving) = serving {
+            let _ = serving.send(Ready {
+                console: console.as_ref().map(|c| c.url.clone()),
+                mtconnect: mtconnect.as_ref().map(|m| m.url.clone()),
+            });
+        }
+
+        let Some(links) = cell.take() else {
+            break 'serve Ok(());
+        };
+        let (drained_tx, mut drained) = tokio::sync::mpsc::unbounded_channel();
+        let running = reload::Running {
+            cell: links,
+            machines: machine_routes,
+            plcs: plc_routes,
+            history: history.clone(),
+            console: console.as_ref().map(|c| Arc::clone(&c.console)),
+            admin: Arc::clone(&a),
+            session: session.clone(),
+            keys: keys.clone(),
+        };
+        let source = source.unwrap_or_else(CellSource::embedded);
+        let mut reloader = reload::Reloader::new(source, config.clone(), running, drained_tx);
+        let mut asks = reloads.rx;
+        let admin_stop = CancellationToken::new();
+        let admin_run = a.run(&admin_stop);
+        tokio::pin!(admin_run);
+        loop {
+            tokio::select! {
+                () = &mut shutdown => {
+                    tracing::info!(cell = %config.cell, "shutdown requested");
+                    break;
+                }
+                () = &mut admin_run => break,
+                result = &mut routes => {
+                    // The routes only end early on an error: the gateway cannot serve its cell.
+                    if let Err(e) = &result {
+                        tracing::error!(error = %e, "the bus routes stopped");
                     }
-                    routes_stop.cancel();
-                    let _ = routes.await;
-                    links_stop.cancel();
-                    cell.join().await;
-                    admin.undeclare().await;
-                    return Err(e.into());
+                    routes_result = Some(result);
+                    break;
                 }
+                Some(ask) = asks.recv() => reloader.reload(ask).await,
+                Some((name, op)) = drained.recv() => reloader.on_drained(name, op).await,
             }
         }
+        cell = Some(reloader.into_cell());
+        Ok(())
     };
-
-    if let Some(serving) = serving {
-        let _ = serving.send(Ready {
-            console: console.as_ref().map(|c| c.url.clone()),
-            mtconnect: mtconnect.as_ref().map(|m| m.url.clone()),
-        });
-    }
-
-    let admin_stop = CancellationToken::new();
-    tokio::select! {
-        () = &mut shutdown => tracing::info!(cell = %config.cell, "shutdown requested"),
-        () = admin.run(&admin_stop) => {}
-        result = &mut routes => {
-            // The routes only end early on an error: the gateway cannot serve its cell.
-            if let Err(e) = &result {
-                tracing::error!(error = %e, "the bus routes stopped");
-            }
-            routes_result = Some(result);
-        }
-    }
 
     mtconnect_stop.cancel();
     if let Some(m) = mtconnect {
@@ -290,14 +351,22 @@ async fn serve_with(
     if let Some(c) = console {
         c.join().await;
     }
+    reload_stop.cancel();
+    if let Some(t) = reload_task {
+        let _ = t.await;
+    }
     routes_stop.cancel();
     let routes_result = match routes_result {
         Some(r) => r,
         None => routes.await,
     };
     links_stop.cancel();
-    cell.join().await;
+    if let Some(c) = cell {
+        c.join().await;
+    }
     // Undeclare explicitly so peers see the token go at once rather than on session close.
-    admin.undeclare().await;
-    routes_result.map_err(GatewayError::from)
+    if let Some(a) = admin.and_then(|a| Arc::try_unwrap(a).ok()) {
+        a.undeclare().await;
+    }
+    outcome.and(routes_result.map_err(GatewayError::from))
 }

@@ -35,8 +35,9 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Run the gateway until SIGINT or SIGTERM. Without --config, runs the embedded
-    /// default cell (simulated, no hardware, no external router).
+    /// Run the gateway until SIGINT or SIGTERM; SIGHUP reloads its cell file (as `cellgate
+    /// reload` does). Without --config, runs the embedded default cell (simulated, no
+    /// hardware, no external router).
     Run(RunArgs),
     /// Check a cell file: print its validated summary, or every error (exit code 2).
     CheckConfig {
@@ -98,6 +99,10 @@ enum Command {
     /// Exit 0 if the gateway at the endpoint answers and every link is up; 1 otherwise,
     /// saying what is down. The probe of containers and service managers.
     Health(client::HealthArgs),
+    /// Have the gateway read its cell file again and apply what changed (machines, PLCs,
+    /// tags, settings) without a restart; exit 0 once it took the file, 2 with every reason
+    /// when it refused it.
+    Reload(client::ReloadArgs),
     /// Run a zenoh router for the cell's gateways and clients until SIGINT or SIGTERM: the
     /// zenoh runtime in router mode, as zenohd runs it, without its plugins.
     Router(RouterArgs),
@@ -142,7 +147,7 @@ enum SimCommand {
     Control(cellgate::client::sim::SimControl),
 }
 
-#[derive(Debug, Args)]
+#[derive(Debug, Clone, Args)]
 struct RunArgs {
     /// The cell file (TOML). Default: the embedded simulated cell.
     #[arg(short, long, value_name = "FILE", env = "CELLGATE_CONFIG")]
@@ -323,6 +328,7 @@ fn main() -> ExitCode {
         Command::Sim(SimCommand::Fuji(ref args)) => sim_fuji(&cli, args.clone()),
         Command::Sim(SimCommand::Control(ref args)) => client_command(&cli, args),
         Command::Health(ref args) => client_command(&cli, args),
+        Command::Reload(ref args) => client_command(&cli, args),
         Command::Router(ref args) => router(&cli, args),
     }
 }
@@ -467,15 +473,10 @@ where
     })
 }
 
-/// `cellgate check-config FILE`.
+/// `cellgate check-config FILE`: the same check a reload makes.
 fn check_config(file: &Path) -> ExitCode {
-    match load(file) {
+    match cellgate::gateway::check_cell_file(file) {
         Ok(config) => {
-            // The zenoh file and the roles' rules, as `run` builds them.
-            if let Err(e) = cellgate::bus::session::cell_zenoh_config(&config) {
-                eprintln!("{}: {e}", file.display());
-                return ExitCode::from(EXIT_CONFIG);
-            }
             for w in config.warnings() {
                 eprintln!("{}: warning: {w}", file.display());
             }
@@ -485,7 +486,9 @@ fn check_config(file: &Path) -> ExitCode {
             ExitCode::SUCCESS
         }
         Err(errors) => {
-            print_errors(&file.display().to_string(), &errors);
+            for e in errors {
+                eprintln!("{e}");
+            }
             ExitCode::from(EXIT_CONFIG)
         }
     }
@@ -587,7 +590,8 @@ fn run(cli: &Cli, args: &RunArgs) -> ExitCode {
             "embedded default".to_string(),
         ),
     };
-    let overridden = apply_overrides(&mut config, cli, args);
+    let (verbose, log_format) = (cli.verbose, cli.log_format);
+    let overridden = apply_overrides(&mut config, verbose, log_format, args);
     if overridden {
         if let Err(errors) = config.validate() {
             print_errors(&format!("{origin} (with command-line options)"), &errors);
@@ -615,14 +619,29 @@ fn run(cli: &Cli, args: &RunArgs) -> ExitCode {
             return ExitCode::from(EXIT_RUNTIME);
         }
     };
-    let code = runtime.block_on(run_async(config, origin, open_files));
+    // A reload reads the file again and writes the same options over it.
+    let source = match &args.config {
+        Some(file) => {
+            let args = args.clone();
+            cellgate::gateway::CellSource::file(file).with_adjust(move |c| {
+                apply_overrides(c, verbose, log_format, &args);
+            })
+        }
+        None => cellgate::gateway::CellSource::embedded(),
+    };
+    let code = runtime.block_on(run_async(config, origin, source, open_files));
     // Everything that matters was closed above; do not wait on stray blocking tasks.
     runtime.shutdown_timeout(Duration::from_secs(2));
     code
 }
 
 /// Writes the command-line options over the configuration; true if any was given.
-fn apply_overrides(config: &mut CellConfig, cli: &Cli, args: &RunArgs) -> bool {
+fn apply_overrides(
+    config: &mut CellConfig,
+    verbose: u8,
+    log_format: Option<LogFormatArg>,
+    args: &RunArgs,
+) -> bool {
     let mut any = false;
     if !args.listen.is_empty() {
         config.bus.listen = args.listen.clone();
@@ -663,10 +682,10 @@ fn apply_overrides(config: &mut CellConfig, cli: &Cli, args: &RunArgs) -> bool {
             any = true;
         }
     }
-    if let Some(format) = cli.log_format {
+    if let Some(format) = log_format {
         config.telemetry.log_format = format.into();
     }
-    match cli.verbose {
+    match verbose {
         0 => {}
         1 => config.telemetry.log_filter = "info,cellgate=debug".to_string(),
         2 => config.telemetry.log_filter = "debug".to_string(),
@@ -701,7 +720,12 @@ fn raise_open_file_limit() -> Option<u64> {
     Some(limit.rlim_cur)
 }
 
-async fn run_async(config: CellConfig, origin: String, open_files: Option<u64>) -> ExitCode {
+async fn run_async(
+    config: CellConfig,
+    origin: String,
+    source: cellgate::gateway::CellSource,
+    open_files: Option<u64>,
+) -> ExitCode {
     let mut guard = match telemetry::init(&config.telemetry) {
         Ok(guard) => guard,
         Err(e) => {
@@ -749,8 +773,21 @@ async fn run_async(config: CellConfig, origin: String, open_files: Option<u64>) 
             let _ = write!(std::io::stdout().lock(), "{overview}{console}{mtconnect}");
         }
     });
+    let (reload, reloads) = cellgate::gateway::Reloads::new();
+    let hangups = match reload_on_hangup(reload) {
+        Ok(task) => task,
+        Err(e) => {
+            tracing::error!("cannot install the SIGHUP handler: {e}");
+            return ExitCode::from(EXIT_RUNTIME);
+        }
+    };
+    let options = cellgate::gateway::RunOptions {
+        ready: Some(serving),
+        source: Some(source),
+        reloads: Some(reloads),
+    };
     let code = match shutdown_signal() {
-        Ok(shutdown) => match cellgate::gateway::run_ready(config, shutdown, Some(serving)).await {
+        Ok(shutdown) => match cellgate::gateway::run_with(config, shutdown, options).await {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => {
                 tracing::error!("cellgate failed: {e}");
@@ -762,6 +799,7 @@ async fn run_async(config: CellConfig, origin: String, open_files: Option<u64>) 
             ExitCode::from(EXIT_RUNTIME)
         }
     };
+    hangups.abort();
     announce.abort();
     if let Err(e) = guard.shutdown() {
         eprintln!("cellgate: {e}");
@@ -880,6 +918,27 @@ where
     });
     runtime.shutdown_timeout(Duration::from_secs(2));
     code
+}
+
+/// Reloads the cell file on every SIGHUP (whose default action would end the gateway): the
+/// handler is installed before this returns. What came of each reload the gateway logs.
+fn reload_on_hangup(
+    reload: cellgate::gateway::ReloadHandle,
+) -> std::io::Result<tokio::task::JoinHandle<()>> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut hangup = signal(SignalKind::hangup())?;
+    Ok(tokio::spawn(async move {
+        while hangup.recv().await.is_some() {
+            tracing::info!("SIGHUP received: reloading the cell file");
+            let origin = cellgate_core::pb::RequestOrigin {
+                user: "SIGHUP".to_string(),
+                via: "signal".to_string(),
+            };
+            if reload.reload(false, "signal", Some(origin)).await.is_none() {
+                break;
+            }
+        }
+    }))
 }
 
 /// Completes on the first SIGINT or SIGTERM. The handlers are installed before it is

@@ -198,6 +198,7 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
                         keys.any_job_events(),
                         keys.every_g05_key(),
                         keys.any_plc(),
+                        keys.reloads(),
                     ],
                 ),
                 grant(Flow::Egress, &["delete"], vec![keys.any_job_events()]),
@@ -281,6 +282,8 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
         Permission::AuditNote => reads(vec![keys.audit_note()]),
         // Reading a simulated machine's state is part of driving it.
         Permission::SimControl => writes(vec![keys.any_sim()]),
+        // A reload changes the whole cell: a key of its own, answered like a write.
+        Permission::CellReload => reads(vec![keys.reload()]),
         Permission::AdminRead => vec![
             grant(
                 Flow::Ingress,

@@ -1,6 +1,7 @@
 //! The gateway itself on the bus: its liveliness token `P/C/gateway`, present while it runs,
-//! and `P/C/@admin`, a queryable answering a JSON document with the version and the running
-//! configuration. `@admin` is a verbatim chunk: wildcards such as `P/C/**` do not match it,
+//! and `P/C/@admin`, a queryable answering a JSON document with the version, the running
+//! configuration and its generation (1 at start, one more for each reload taken), and what the
+//! last reload did. `@admin` is a verbatim chunk: wildcards such as `P/C/**` do not match it,
 //! so subscribers to a cell's data never see admin traffic, and it stays apart from zenoh's
 //! own `@/<zid>/...` admin space.
 
@@ -24,15 +25,43 @@ fn redacted(config: &CellConfig) -> CellConfig {
     c
 }
 
-/// The JSON document the admin key answers with.
+/// The JSON document the admin key answers with, as the gateway starts.
 pub fn admin_document(config: &CellConfig, zid: &str) -> serde_json::Value {
+    admin_document_at(config, zid, 1)
+}
+
+/// The JSON document of `config` at configuration generation `generation`.
+pub fn admin_document_at(config: &CellConfig, zid: &str, generation: u64) -> serde_json::Value {
     serde_json::json!({
         "name": "cellgate",
         "version": VERSION,
         "cell": config.cell,
         "zid": zid,
         "started_unix_ms": started_unix_ms(),
+        "generation": generation,
         "config": redacted(config),
+    })
+}
+
+/// The last reload as the admin document shows it.
+fn reload_json(r: &cellgate_core::pb::ReloadResult) -> serde_json::Value {
+    serde_json::json!({
+        "applied": r.applied,
+        "unix_ms": r.unix_ms,
+        "via": r.via,
+        "file": r.file,
+        "generation": r.generation,
+        "machines_added": r.machines_added,
+        "machines_removed": r.machines_removed,
+        "machines_changed": r.machines_changed,
+        "plcs_added": r.plcs_added,
+        "plcs_removed": r.plcs_removed,
+        "plcs_changed": r.plcs_changed,
+        "plc_tags": r.plc_tags,
+        "settings": r.settings,
+        "waiting": r.waiting,
+        "errors": r.errors,
+        "restart_needed": r.restart_needed,
     })
 }
 
@@ -49,7 +78,8 @@ pub struct AdminRoute {
     token: LivelinessToken,
     queryable: Queryable<FifoChannelHandler<Query>>,
     key: String,
-    document: serde_json::Value,
+    /// Replaced by a reload.
+    document: std::sync::Mutex<serde_json::Value>,
     /// The cell's history, whose health the document shows.
     history: crate::history::History,
 }
@@ -84,7 +114,7 @@ impl AdminRoute {
             token,
             queryable,
             key,
-            document,
+            document: std::sync::Mutex::new(document),
             history: crate::history::History::disabled(),
         })
     }
@@ -95,13 +125,42 @@ impl AdminRoute {
         self
     }
 
+    fn document(&self) -> std::sync::MutexGuard<'_, serde_json::Value> {
+        self.document
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Shows `config` at `generation`; `reload`: what the last reload did (taken or not;
+    /// none: the one shown stays); `waiting`: the machines whose link stops or restarts once
+    /// their running job has ended.
+    pub fn set_config(
+        &self,
+        config: &CellConfig,
+        generation: u64,
+        reload: Option<&cellgate_core::pb::ReloadResult>,
+        waiting: &[String],
+    ) {
+        let mut doc = self.document();
+        let zid = doc["zid"].as_str().unwrap_or_default().to_string();
+        let last = doc.get("reload").cloned();
+        *doc = admin_document_at(config, &zid, generation);
+        let reload = reload.map(reload_json).or(last);
+        if let Some(o) = doc.as_object_mut() {
+            if let Some(r) = reload {
+                o.insert("reload".to_string(), r);
+            }
+            o.insert("waiting".to_string(), serde_json::json!(waiting));
+        }
+    }
+
     /// The document as it stands now.
     fn current(&self) -> String {
+        let mut doc = self.document().clone();
         if !self.history.enabled() {
-            return self.document.to_string();
+            return doc.to_string();
         }
         let health = self.history.health();
-        let mut doc = self.document.clone();
         if let Some(o) = doc.as_object_mut() {
             o.insert(
                 "history".to_string(),

@@ -257,12 +257,54 @@ pub(crate) async fn serve_route<C: Routed>(
     tasks.shutdown().await;
 }
 
+/// A value the routes read while a reload may replace it: a read takes the whole value as it
+/// stands, never a half-changed one; a request that holds it finishes with it.
+pub(crate) struct Live<T>(Arc<std::sync::RwLock<Arc<T>>>);
+
+impl<T> Clone for Live<T> {
+    fn clone(&self) -> Self {
+        Live(Arc::clone(&self.0))
+    }
+}
+
+impl<T: Default> Default for Live<T> {
+    fn default() -> Self {
+        Live::new(T::default())
+    }
+}
+
+impl<T> Live<T> {
+    pub(crate) fn new(value: T) -> Self {
+        Live(Arc::new(std::sync::RwLock::new(Arc::new(value))))
+    }
+
+    /// The value as it stands now.
+    pub(crate) fn now(&self) -> Arc<T> {
+        Arc::clone(&self.0.read().unwrap_or_else(|p| p.into_inner()))
+    }
+
+    /// Replaces the value for every holder of this `Live`.
+    pub(crate) fn set(&self, value: T) {
+        *self.0.write().unwrap_or_else(|p| p.into_inner()) = Arc::new(value);
+    }
+
+    /// Replaces the value with what `f` makes of the current one.
+    pub(crate) fn update(&self, f: impl FnOnce(&T) -> T) {
+        let mut guard = self.0.write().unwrap_or_else(|p| p.into_inner());
+        *guard = Arc::new(f(&guard));
+    }
+}
+
+/// The cell's machines by name.
+pub(crate) type Machines = BTreeMap<String, Arc<Machine>>;
+
 /// What the routes of one cell share.
 #[derive(Clone)]
 pub(crate) struct RouteContext {
     pub session: Session,
     pub keys: Arc<CellKeys>,
-    pub machines: Arc<BTreeMap<String, Arc<Machine>>>,
+    /// Changed by a reload: a machine added or removed.
+    pub machines: Live<Machines>,
     pub library: ProgramLibrary,
     /// Largest inline program a `JobRequest` may carry (`programs.max_inline`); a program
     /// fetched from a key too.
@@ -276,7 +318,7 @@ pub(crate) struct RouteContext {
     /// Who may have sent a write, for the audit.
     pub auditor: Arc<Auditor>,
     /// The cell's link and tag names, for questions about records that name them.
-    pub names: Arc<CellNames>,
+    pub names: Live<CellNames>,
     slots: Arc<[Arc<Semaphore>]>,
 }
 
@@ -320,9 +362,9 @@ impl CellNames {
 }
 
 /// What a request's key names.
-pub(crate) enum Target<'a> {
+pub(crate) enum Target {
     /// One machine of the cell.
-    One(&'a Arc<Machine>),
+    One(Arc<Machine>),
     /// A concrete key naming a machine the cell does not have.
     Unknown(String),
     /// A key with wildcards.
@@ -486,7 +528,7 @@ impl RouteContext {
     pub(crate) fn new(
         session: Session,
         keys: Arc<CellKeys>,
-        machines: Arc<BTreeMap<String, Arc<Machine>>>,
+        machines: Live<Machines>,
         library: ProgramLibrary,
         max_inline: u64,
     ) -> Self {
@@ -500,7 +542,7 @@ impl RouteContext {
             fetches: Arc::new(Semaphore::new(MAX_FETCHES)),
             history: History::disabled(),
             auditor: Arc::default(),
-            names: Arc::default(),
+            names: Live::default(),
             slots: Pool::ALL
                 .iter()
                 .map(|p| Arc::new(Semaphore::new(p.slots())))
@@ -546,7 +588,7 @@ impl RouteContext {
 
     /// The same context, knowing the cell's link and tag names.
     pub(crate) fn with_names(mut self, names: CellNames) -> Self {
-        self.names = Arc::new(names);
+        self.names = Live::new(names);
         self
     }
 
@@ -638,7 +680,7 @@ impl RouteContext {
     }
 
     /// The machine a concrete key names.
-    pub(crate) fn target(&self, key: &KeyExpr<'_>) -> Target<'_> {
+    pub(crate) fn target(&self, key: &KeyExpr<'_>) -> Target {
         if key.is_wild() {
             return Target::Wild;
         }
@@ -652,14 +694,15 @@ impl RouteContext {
             ) => machine,
             _ => return Target::Wild,
         };
-        match self.machines.get(machine) {
-            Some(m) => Target::One(m),
+        match self.machines.now().get(machine) {
+            Some(m) => Target::One(Arc::clone(m)),
             None => Target::Unknown(machine.to_string()),
         }
     }
 
     pub(crate) fn unknown_machine(&self, machine: &str) -> RequestError {
-        let names: Vec<&str> = self.machines.keys().map(String::as_str).collect();
+        let machines = self.machines.now();
+        let names: Vec<&str> = machines.keys().map(String::as_str).collect();
         RequestError::UnknownMachine {
             cell: self.keys.root().to_string(),
             machine: machine.to_string(),
@@ -679,7 +722,7 @@ impl RouteContext {
         what: &'static str,
     ) -> Result<Arc<Machine>, RequestError> {
         match self.target(q.key_expr()) {
-            Target::One(m) => Ok(Arc::clone(m)),
+            Target::One(m) => Ok(m),
             Target::Unknown(name) => Err(self.unknown_machine(&name)),
             Target::Wild => Err(RequestError::OneMachine {
                 what,
@@ -698,10 +741,11 @@ impl RouteContext {
     }
 
     /// The machines whose `leaf` key the query takes in, with that key.
-    pub(crate) fn matching(&self, q: &Query, leaf: MachineLeaf) -> Vec<(String, &Arc<Machine>)> {
+    pub(crate) fn matching(&self, q: &Query, leaf: MachineLeaf) -> Vec<(String, Arc<Machine>)> {
         self.machines
+            .now()
             .values()
-            .map(|m| (self.keys.leaf(m.name(), leaf), m))
+            .map(|m| (self.keys.leaf(m.name(), leaf), Arc::clone(m)))
             .filter(|(key, _)| intersects(q.key_expr(), key))
             .collect()
     }

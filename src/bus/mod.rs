@@ -14,7 +14,9 @@
 //!   machines); each declares its own queryables, subscribers
 //!   or publishers, and they are undeclared when it is dropped;
 //! - `machine`: a machine's view (its status) and its publishers; `machine_task`: the task
-//!   that publishes what the link and the job manager report through them;
+//!   that publishes what the link and the job manager report through them; `served`: the
+//!   machines and PLCs served, which a reload changes while the routes run
+//!   ([`MachineRoutes`], [`PlcRoutes`]);
 //! - [`admin`]: the gateway's own token and `@admin` key.
 //!
 //! One queryable or subscriber per route serves every machine (`P/C/machine/*/status`, …): a
@@ -47,18 +49,20 @@ pub mod route_misdirected;
 mod route_plc;
 mod route_program;
 mod route_punch;
+pub mod route_reload;
 mod route_sim;
 mod route_status;
 mod route_tag;
+mod served;
 pub mod session;
 
 pub use route_job::{FETCH_TIMEOUT, RECENT_JOBS};
 pub use route_plc::{PlcLink, STATUS_EVERY as PLC_STATUS_EVERY};
+pub use served::{MachineRoutes, PlcRoutes};
 pub use session::{BusError, open, open_cell};
 
 pub use cellgate_core::config::{BusConfig, BusMode};
 
-use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use tokio::task::JoinSet;
@@ -66,25 +70,19 @@ use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
 use self::audit::Auditor;
-use self::context::RouteContext;
+use self::context::{Live, RouteContext};
 use self::keys::CellKeys;
-use self::machine::Machine;
-use self::machine_task::{MachineFeeds, MachineTask};
 use self::route_g05::G05Route;
 use self::route_history::HistoryRoute;
 use self::route_io::IoRoute;
 use self::route_job::JobRoute;
 use self::route_misdirected::MisdirectedRoute;
 use self::route_program::ProgramRoute;
-use self::route_punch::PunchSettings;
-use self::route_sim::SimRoute;
 use self::route_status::StatusRoute;
 use crate::history::History;
 use crate::jobs::journal::Journal;
 use crate::jobs::library::ProgramLibrary;
-use crate::jobs::{self, JobsSettings};
 use crate::link::driver::LinkHandle;
-use crate::link::g05::G05Desk;
 use cellgate_core::config::{CellConfig, MachineConfig};
 
 /// A machine of the cell and its running link, as the gateway hands them to [`serve`].
@@ -144,6 +142,24 @@ pub async fn serve_recorded(
     ready: Option<tokio::sync::oneshot::Sender<()>>,
     history: History,
 ) -> Result<(), BusError> {
+    serve_live(session, config, machines, shutdown, history, |_| {
+        if let Some(ready) = ready {
+            let _ = ready.send(());
+        }
+    })
+    .await
+}
+
+/// [`serve_recorded`], handing `ready` the [`MachineRoutes`] once every route is declared:
+/// what a reload adds, holds and removes machines through while the routes run.
+pub async fn serve_live(
+    session: &Session,
+    config: &CellConfig,
+    machines: Vec<MachineLink>,
+    shutdown: CancellationToken,
+    history: History,
+    ready: impl FnOnce(MachineRoutes),
+) -> Result<(), BusError> {
     let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
     let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size)
         .with_quota(crate::jobs::library::Quota {
@@ -160,63 +176,30 @@ pub async fn serve_recorded(
         config.programs.journal_dir(),
         config.programs.damaged_journal,
     );
-    let (journal, mut restored) =
+    let (journal, restored) =
         tokio::task::spawn_blocking(move || Journal::open_and_restore(&dir, damaged))
             .await
             .map_err(|e| BusError::Internal(e.to_string()))??;
     let jobs_stop = shutdown.child_token();
-    let machines_stop = CancellationToken::new();
     let routes_stop = shutdown.child_token();
-
-    // Subscribed before any await, so no event of a link that is already running is missed.
-    let mut started = Vec::new();
-    let mut by_name = BTreeMap::new();
-    let mut job_tasks = JoinSet::new();
-    for MachineLink {
-        config: mc,
-        link,
-        sim,
-    } in machines
-    {
-        if by_name.contains_key(&mc.name) {
-            tracing::error!(machine = %mc.name, "machine given twice; serving the first only");
-            continue;
-        }
-        let settings = JobsSettings {
-            rules: mc.program_rules(library.max_size()),
-            library: library.clone(),
-            journal: journal.clone(),
-            restored: restored.jobs.remove(&mc.name).unwrap_or_default(),
-            keep: config.programs.keep_jobs,
-            accept: mc.accept,
-        };
-        let (jobs, task, job_events) =
-            jobs::spawn(&mc.name, settings, link.clone(), jobs_stop.clone());
-        job_tasks.spawn(async move {
-            let _ = task.await;
-        });
-        let feeds = MachineFeeds::subscribe(&link, &jobs, job_events);
-        // Streams end (with their end block) when the gateway stops, with the job managers.
-        let g05 = G05Desk::new(&mc, link.clone(), jobs_stop.clone());
-        let machine = Arc::new(Machine::new(mc, link, jobs, g05, sim));
-        by_name.insert(machine.name().to_string(), Arc::clone(&machine));
-        started.push((machine, feeds));
-    }
     let ctx = RouteContext::new(
         session.clone(),
         Arc::clone(&keys),
-        Arc::new(by_name),
+        Live::default(),
         library.clone(),
         config.programs.max_inline.min(config.programs.max_size),
     )
     .with_fetch_prefixes(&config.programs.fetch_prefixes)
     .with_names(context::CellNames::of(config))
     .with_history(history, Auditor::new(&config.security));
+    let served_machines =
+        MachineRoutes::new(ctx.clone(), journal, config, jobs_stop, routes_stop.clone());
 
-    let mut machine_tasks = JoinSet::new();
     let mut folder_tasks = JoinSet::new();
     let mut route_tasks = JoinSet::new();
     let served = async {
+        // The machines first: their job managers subscribe to their links at once.
+        served_machines.start(machines, restored.jobs).await?;
         // A folder that cannot be opened (a share not mounted yet) does not stop the cell:
         // its watcher says so and takes it in once it can; the library answers with the
         // error meanwhile (its index opens on first use).
@@ -227,11 +210,6 @@ pub async fn serve_recorded(
             );
         }
         folder_tasks = route_folder::spawn(&ctx, config, &routes_stop);
-        let punch = PunchSettings::from_config(&config.programs);
-        for (machine, feeds) in started {
-            let task = MachineTask::declare(&ctx, machine, feeds, punch.clone()).await?;
-            machine_tasks.spawn(task.run(machines_stop.clone()));
-        }
         let status = StatusRoute::declare(&ctx).await?;
         let job = JobRoute::declare(&ctx).await?;
         let io = IoRoute::declare(&ctx).await?;
@@ -242,19 +220,16 @@ pub async fn serve_recorded(
         route_tasks.spawn(records.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(misdirected.run(ctx.clone(), routes_stop.clone()));
         // Only a cell with simulated machines has their controls.
-        if ctx.machines.values().any(|m| m.sim.is_some()) {
-            let sim = SimRoute::declare(&ctx).await?;
-            route_tasks.spawn(sim.run(ctx.clone(), routes_stop.clone()));
+        if served_machines.any_simulated() {
+            served_machines.declare_sim().await?;
         }
         route_tasks.spawn(g05.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(status.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(job.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(io.run(ctx.clone(), routes_stop.clone()));
         route_tasks.spawn(program.run(ctx.clone(), routes_stop.clone()));
-        tracing::info!(root = %keys.root(), machines = ctx.machines.len(), "cell routes declared");
-        if let Some(ready) = ready {
-            let _ = ready.send(());
-        }
+        tracing::info!(root = %keys.root(), machines = ctx.machines.now().len(), "cell routes declared");
+        ready(served_machines.clone());
         // A route ends early only when the session closed under it.
         tokio::select! {
             () = shutdown.cancelled() => {}
@@ -269,10 +244,7 @@ pub async fn serve_recorded(
     routes_stop.cancel();
     while route_tasks.join_next().await.is_some() {}
     while folder_tasks.join_next().await.is_some() {}
-    jobs_stop.cancel();
-    while job_tasks.join_next().await.is_some() {}
-    machines_stop.cancel();
-    while machine_tasks.join_next().await.is_some() {}
+    served_machines.stop_all().await;
     served
 }
 
@@ -296,43 +268,57 @@ pub async fn serve_plcs_recorded(
     shutdown: CancellationToken,
     history: History,
 ) -> Result<(), BusError> {
+    serve_plcs_live(session, config, plcs, shutdown, history, |_| {}).await
+}
+
+/// [`serve_plcs_recorded`], handing `ready` the [`PlcRoutes`] once the routes are declared:
+/// what a reload adds, removes and retags PLCs through.
+pub async fn serve_plcs_live(
+    session: &Session,
+    config: &CellConfig,
+    plcs: Vec<PlcLink>,
+    shutdown: CancellationToken,
+    history: History,
+    ready: impl FnOnce(PlcRoutes),
+) -> Result<(), BusError> {
     let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
     // The PLC routes never touch the library (its index opens on first use only).
     let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size);
     let route = RouteContext::new(
         session.clone(),
         Arc::clone(&keys),
-        Arc::new(BTreeMap::new()),
+        Live::default(),
         library,
         config.programs.max_inline.min(config.programs.max_size),
     )
     .with_history(history, Auditor::new(&config.security));
-    let ctx = route_plc::PlcContext {
-        route,
-        plcs: Arc::new(
-            plcs.into_iter()
-                .map(|p| (p.config.name.clone(), p))
-                .collect(),
-        ),
+    // Its own token: routes that cannot be declared stop the publishers started before.
+    let stop = shutdown.child_token();
+    let served = PlcRoutes::new(route, stop.clone());
+    for link in plcs {
+        served.add(link);
+    }
+    let ctx = served.context().clone();
+    let declared = async {
+        let plc = route_plc::PlcRoute::declare(&ctx).await?;
+        let tag = route_tag::TagRoute::declare(&ctx).await?;
+        Ok::<_, BusError>((plc, tag))
+    }
+    .await;
+    let (plc, tag) = match declared {
+        Ok(routes) => routes,
+        Err(e) => {
+            stop.cancel();
+            served.join_all().await;
+            return Err(e);
+        }
     };
     let mut tasks = JoinSet::new();
-    for link in ctx.plcs.values() {
-        tasks.spawn(route_plc::publish_link(
-            ctx.clone(),
-            link.clone(),
-            shutdown.clone(),
-        ));
-        tasks.spawn(route_tag::publish_tags(
-            ctx.clone(),
-            link.clone(),
-            shutdown.clone(),
-        ));
-    }
-    let plc = route_plc::PlcRoute::declare(&ctx).await?;
-    let tag = route_tag::TagRoute::declare(&ctx).await?;
-    tasks.spawn(plc.run(ctx.clone(), shutdown.clone()));
-    tasks.spawn(tag.run(ctx.clone(), shutdown.clone()));
-    tracing::info!(root = %keys.root(), plcs = ctx.plcs.len(), "PLC routes declared");
+    tasks.spawn(plc.run(ctx.clone(), stop.clone()));
+    tasks.spawn(tag.run(ctx.clone(), stop.clone()));
+    tracing::info!(root = %keys.root(), plcs = ctx.plcs.now().len(), "PLC routes declared");
+    ready(served.clone());
     while tasks.join_next().await.is_some() {}
+    served.join_all().await;
     Ok(())
 }

@@ -65,6 +65,8 @@ bus_messages!(
     SimPunch,
     SimState,
     LibraryEvent,
+    ReloadRequest,
+    ReloadResult,
 );
 
 /// `application/protobuf;<schema>` for `M`.

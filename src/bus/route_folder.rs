@@ -82,7 +82,9 @@ pub(crate) fn spawn(
     };
     let followed = watch.spawn(stop.clone());
     tasks.spawn(follow_library(ctx.clone(), followed));
-    for m in ctx.machines.values() {
+    // The machines at start; a drop folder of a machine a reload adds is followed from the
+    // next start (docs/library.md).
+    for m in ctx.machines.now().values() {
         let Some(dir) = m.config.drop_dir.clone() else {
             continue;
         };
@@ -296,7 +298,8 @@ async fn follow_drop(ctx: RouteContext, machine: String, dir: PathBuf, mut follo
         let Seen::Complete { file } = seen else {
             continue;
         };
-        let Some(m) = ctx.machines.get(&machine) else {
+        // A machine a reload removed takes no more jobs: its folder's files wait.
+        let Some(m) = ctx.machines.now().get(&machine).cloned() else {
             return;
         };
         let path = dir.join(&file);

@@ -390,7 +390,7 @@ async fn batch(
 async fn status(ctx: &RouteContext, q: &Query) {
     if q.key_expr().is_wild() {
         // Every open (or last) stream the query takes in.
-        for m in ctx.machines.values() {
+        for m in ctx.machines.now().values() {
             if let Some(h) = m.g05.current() {
                 let key = ctx.keys.g05(m.name(), &h.id, G05Part::Status);
                 if super::keys::intersects(q.key_expr(), &key) {

@@ -113,7 +113,7 @@ async fn page(ctx: &RouteContext, q: &Query, store: Store) {
         Err(e) => return reply_err(q, &e).await,
     };
     // A name the cell does not have would read as "no records": say so instead.
-    let names = &ctx.names;
+    let names = ctx.names.now();
     let unknown = query
         .machines
         .as_ref()
@@ -228,7 +228,7 @@ async fn utilisation_of(ctx: &RouteContext, q: &Query) -> Result<pb::Utilisation
         return Err(crate::history::HistoryError::Disabled.into());
     }
     if let Some(names) = &query.machines
-        && let Some(unknown) = names.iter().find(|n| !ctx.machines.contains_key(*n))
+        && let Some(unknown) = names.iter().find(|n| !ctx.machines.now().contains_key(*n))
     {
         return Err(ctx.unknown_machine(unknown));
     }
@@ -236,7 +236,7 @@ async fn utilisation_of(ctx: &RouteContext, q: &Query) -> Result<pb::Utilisation
         query.from_ms,
         query.to_ms,
         query.bucket,
-        ctx.history.shifts(),
+        &ctx.history.shifts(),
     );
     let now = pb::now_ms();
     let gateway = ctx
@@ -244,7 +244,7 @@ async fn utilisation_of(ctx: &RouteContext, q: &Query) -> Result<pb::Utilisation
         .gateway_marks(query.from_ms, query.to_ms)
         .await?;
     let mut machines = Vec::new();
-    for m in ctx.machines.values() {
+    for m in ctx.machines.now().values() {
         if query
             .machines
             .as_ref()

@@ -371,8 +371,9 @@ pub(crate) async fn declare_di_publisher(
 /// tables hold it and cache its route. A key zenoh does not take is left out (its puts are
 /// routed all the same, only matched each time).
 async fn declare_keys(ctx: &RouteContext, leaf: MachineLeaf) -> Vec<KeyExpr<'static>> {
-    let mut keys = Vec::with_capacity(ctx.machines.len());
-    for name in ctx.machines.keys() {
+    let machines = ctx.machines.now();
+    let mut keys = Vec::with_capacity(machines.len());
+    for name in machines.keys() {
         let key = ctx.keys.leaf(name, leaf);
         match ctx.session.declare_keyexpr(key.clone()).await {
             Ok(k) => keys.push(k),

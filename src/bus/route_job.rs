@@ -335,7 +335,7 @@ fn describe_error(payload: &zenoh::bytes::ZBytes, encoding: &Encoding) -> String
 /// The last event of every recent job the query takes in.
 async fn job_events(ctx: &RouteContext, q: &Query) {
     let mut replies = Vec::new();
-    for m in ctx.machines.values() {
+    for m in ctx.machines.now().values() {
         let view = m.view();
         for event in &view.recent_jobs {
             let key = ctx.keys.job_events(m.name(), &event.job_id);
@@ -352,7 +352,7 @@ async fn job_events(ctx: &RouteContext, q: &Query) {
     }
     match ctx.keys.parse(q.key_expr().as_str()) {
         Some(CellKey::JobEvents { machine, job }) if !q.key_expr().is_wild() => {
-            if ctx.machines.contains_key(machine) {
+            if ctx.machines.now().contains_key(machine) {
                 let e = RequestError::NoSuchJob {
                     machine: machine.to_string(),
                     job: job.to_string(),

@@ -59,7 +59,8 @@ pub struct PlcLink {
 #[derive(Clone)]
 pub(crate) struct PlcContext {
     pub route: RouteContext,
-    pub plcs: Arc<BTreeMap<String, PlcLink>>,
+    /// Changed by a reload: a PLC added, removed, or given new tags.
+    pub plcs: super::context::Live<BTreeMap<String, PlcLink>>,
 }
 
 impl Routed for PlcContext {
@@ -137,16 +138,17 @@ impl BusCode for PlcRequestError {
 
 impl PlcContext {
     /// The PLC a key names.
-    pub(super) fn plc(&self, name: &str) -> Result<&PlcLink, PlcRequestError> {
-        self.plcs
-            .get(name)
+    pub(super) fn plc(&self, name: &str) -> Result<PlcLink, PlcRequestError> {
+        let plcs = self.plcs.now();
+        plcs.get(name)
+            .cloned()
             .ok_or_else(|| PlcRequestError::UnknownPlc {
                 cell: self.route.keys.root().to_string(),
                 plc: name.to_string(),
-                known: if self.plcs.is_empty() {
+                known: if plcs.is_empty() {
                     "none".to_string()
                 } else {
-                    self.plcs.keys().cloned().collect::<Vec<_>>().join(", ")
+                    plcs.keys().cloned().collect::<Vec<_>>().join(", ")
                 },
             })
     }
@@ -835,12 +837,12 @@ async fn status_query(ctx: &PlcContext, q: &Query) {
             Err(e) => return reply_err(q, &e).await,
         };
         match link.link.snapshot().await {
-            Ok(s) => reply(q, key, &status_message(link, &s)).await,
+            Ok(s) => reply(q, key, &status_message(&link, &s)).await,
             Err(e) => reply_err(q, &PlcRequestError::from(e)).await,
         }
         return;
     }
-    for link in ctx.plcs.values() {
+    for link in ctx.plcs.now().values() {
         let k = ctx.route.keys.plc_status(&link.config.name);
         if !super::keys::intersects(q.key_expr(), &k) {
             continue;

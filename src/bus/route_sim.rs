@@ -79,7 +79,7 @@ async fn sim_query(ctx: &RouteContext, q: &Query) {
     if key.is_wild() {
         // A browse (`P/C/sim/**`): the state of each simulated machine it takes in; a control
         // goes to one machine's key.
-        for m in ctx.machines.values() {
+        for m in ctx.machines.now().values() {
             let Some(sim) = &m.sim else { continue };
             let k = ctx.keys.sim(m.name(), SimLeaf::State);
             if intersects(key, &k) {
@@ -99,7 +99,7 @@ async fn sim_query(ctx: &RouteContext, q: &Query) {
         ));
         return reply_err(q, &e).await;
     };
-    let Some(m) = ctx.machines.get(machine) else {
+    let Some(m) = ctx.machines.now().get(machine).cloned() else {
         return reply_err(q, &ctx.unknown_machine(machine)).await;
     };
     let Some(sim) = &m.sim else {
@@ -109,7 +109,7 @@ async fn sim_query(ctx: &RouteContext, q: &Query) {
         return reply_err(q, &e).await;
     };
     let payload = q.payload().map(|p| p.to_bytes().to_vec());
-    let result = match command(ctx, m, sim, leaf, payload.as_deref()) {
+    let result = match command(ctx, &m, sim, leaf, payload.as_deref()) {
         Ok(None) => Ok(sim.snapshot()),
         Ok(Some(command)) => {
             sim.apply(command, TAKE_WITHIN)
@@ -139,7 +139,7 @@ async fn sim_query(ctx: &RouteContext, q: &Query) {
         );
     }
     match result {
-        Ok(s) => reply(q, key.to_string(), &state(m, &s)).await,
+        Ok(s) => reply(q, key.to_string(), &state(&m, &s)).await,
         Err(e) => reply_err(q, &e).await,
     }
 }

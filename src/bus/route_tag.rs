@@ -211,7 +211,7 @@ async fn tag_query(ctx: &PlcContext, q: &Query) {
         }
         return;
     }
-    for link in ctx.plcs.values() {
+    for link in ctx.plcs.now().values() {
         let plc = &link.config.name;
         let Ok(snap) = link.link.snapshot().await else {
             continue;

@@ -7,7 +7,7 @@
 //! after that speaks the contract of [`crate::bus`] (keys of [`CellKeys`], protobuf payloads
 //! of [`cellgate_core::pb`], `ErrorReply` on refusal) and nothing else, so it works against any
 //! gateway of the same contract. The operations live by contract area, one file each:
-//! machines (status, DI/DO), jobs, programs, history, G05, [`plc`] and [`sim`]; this file
+//! machines (status, DI/DO), jobs, programs, history, G05, reload, [`plc`] and [`sim`]; this file
 //! holds the connection, errors and the request helpers they share. [`cli`] turns the
 //! operations into the commands; [`render`] formats their results for people (text) and
 //! programs (JSON).
@@ -18,9 +18,11 @@ mod history;
 mod jobs;
 mod machines;
 mod programs;
+mod reload;
 mod watch;
 
 pub use self::jobs::{JobFollower, JobOutcome, is_end, machine_of_job, new_request_id};
+pub use self::reload::RELOAD_TIMEOUT;
 pub use self::watch::{Watch, WatchEvent};
 pub mod plc;
 pub mod render;

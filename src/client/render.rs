@@ -458,6 +458,14 @@ pub fn gateway_line(admin: &Value, now_ms: u64) -> Option<String> {
             date_time(started)
         );
     }
+    // A cell reloaded since the gateway started says so.
+    if let Some(generation) = admin["generation"].as_u64().filter(|g| *g > 1) {
+        let _ = write!(t, ", configuration generation {generation}");
+        if let Some(waiting) = admin["waiting"].as_array().filter(|w| !w.is_empty()) {
+            let names: Vec<&str> = waiting.iter().filter_map(Value::as_str).collect();
+            let _ = write!(t, " (waiting for their running job: {})", names.join(", "));
+        }
+    }
     Some(t)
 }
 
@@ -818,6 +826,24 @@ impl WatchPrinter {
                 clock(now_ms),
                 if *up { "up" } else { "down" }
             ),
+            WatchEvent::Reload(r) if r.applied => format!(
+                "{} cell reloaded ({}), generation {}: {}{}",
+                clock(r.unix_ms),
+                r.via,
+                r.generation,
+                crate::bus::route_reload::summary(r),
+                if r.waiting.is_empty() {
+                    String::new()
+                } else {
+                    format!("; waiting for their running job: {}", r.waiting.join(", "))
+                }
+            ),
+            WatchEvent::Reload(r) => format!(
+                "{} cell reload refused ({}): {}",
+                clock(r.unix_ms),
+                r.via,
+                r.errors.join("; ")
+            ),
             WatchEvent::Unexpected { key, detail } => {
                 format!("{} {key}: unexpected sample: {detail}", clock(now_ms))
             }
@@ -867,6 +893,38 @@ fn library_change_text(info: &pb::ProgramInfo, by: Option<&pb::RequestOrigin>) -
         text.push_str(&format!(", by {}", origin_text(o)));
     }
     text
+}
+
+/// What a reload did, for people: the file and generation, then each kind of change on a
+/// line of its own, and the machines whose links wait for their running job.
+pub fn reload_text(r: &pb::ReloadResult) -> String {
+    let what = crate::bus::route_reload::summary(r);
+    let mut t = if what == "nothing changed" {
+        format!(
+            "reloaded {}: nothing changed (configuration generation {})\n",
+            r.file, r.generation
+        )
+    } else {
+        format!(
+            "reloaded {}: configuration generation {}\n",
+            r.file, r.generation
+        )
+    };
+    for part in what.split("; ").filter(|_| what != "nothing changed") {
+        let _ = writeln!(t, "  {part}");
+    }
+    if !r.waiting.is_empty() {
+        let _ = writeln!(
+            t,
+            "  waiting for their running job to end: {} (their links stop or restart then; \
+             --force does it at once)",
+            r.waiting.join(", ")
+        );
+    }
+    for e in &r.errors {
+        let _ = writeln!(t, "  {e}");
+    }
+    t
 }
 
 /// The machine (or PLC) an event concerns, if one.
@@ -942,6 +1000,9 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
         WatchEvent::PlcStation { plc, station, up } => json!({
             "event": if *up { "plc_station_up" } else { "plc_station_down" },
             "plc": plc, "station": station, "unix_ms": now_ms,
+        }),
+        WatchEvent::Reload(r) => json!({
+            "event": "reload", "reload": serde_json::to_value(r).unwrap_or_default(),
         }),
         WatchEvent::Unexpected { key, detail } => json!({
             "event": "unexpected", "key": key, "detail": detail, "unix_ms": now_ms,

@@ -124,6 +124,8 @@ pub enum WatchEvent {
         station: String,
         up: bool,
     },
+    /// A reload of the cell file, taken or refused.
+    Reload(pb::ReloadResult),
     /// A sample on the cell's keys that is not what the contract puts there.
     Unexpected {
         key: String,
@@ -278,6 +280,7 @@ impl Watch {
             CellKey::ProgramWrite { name } => Ok(WatchEvent::ProgramDeleted {
                 name: name.to_string(),
             }),
+            CellKey::Reloaded if put => decode(key, key, &bytes, enc).map(WatchEvent::Reload),
             _ => return None,
         };
         Some(event.unwrap_or_else(|e| WatchEvent::Unexpected {

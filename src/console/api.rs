@@ -136,7 +136,7 @@ pub async fn me(
             Json(me_json(&c, &u)).into_response(),
             &id,
             c.https,
-            c.session_max_s,
+            c.auth.max_age().as_secs(),
         )),
         None => Err(ApiError::login()),
     }
@@ -166,7 +166,7 @@ pub async fn login(
                 Json(me_json(&c, &u)).into_response(),
                 &id,
                 c.https,
-                c.session_max_s,
+                c.auth.max_age().as_secs(),
             ))
         }
         Err(e) => {

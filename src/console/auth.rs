@@ -135,13 +135,19 @@ impl Cell {
     }
 }
 
+/// How long sessions last and how many a user holds (`[console]`; replaced on a reload).
+#[derive(Debug, Clone, Copy)]
+struct Limits {
+    idle: Duration,
+    max_age: Duration,
+    per_user: usize,
+}
+
 /// Users, roles and sessions.
 #[derive(Debug)]
 pub struct Auth {
     cell: std::sync::RwLock<Cell>,
-    idle: Duration,
-    max_age: Duration,
-    per_user: usize,
+    limits: std::sync::RwLock<Limits>,
     sessions: Mutex<HashMap<String, User>>,
     throttle: Throttle,
 }
@@ -166,9 +172,11 @@ impl Auth {
     ) -> Self {
         Auth {
             cell: std::sync::RwLock::new(Cell::read(security)),
-            idle,
-            max_age,
-            per_user: per_user.max(1),
+            limits: std::sync::RwLock::new(Limits {
+                idle,
+                max_age,
+                per_user: per_user.max(1),
+            }),
             sessions: Mutex::new(HashMap::new()),
             throttle: Throttle::default(),
         }
@@ -176,6 +184,26 @@ impl Auth {
 
     fn cell(&self) -> std::sync::RwLockReadGuard<'_, Cell> {
         self.cell.read().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn limits(&self) -> Limits {
+        *self.limits.read().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// How long a session lasts at most, however busy.
+    pub fn max_age(&self) -> Duration {
+        self.limits().max_age
+    }
+
+    /// Takes new session limits (a reloaded `[console]`): a session past the new ones ends at
+    /// its next request, a user past the new bound keeps their sessions until they log in
+    /// again.
+    pub fn set_limits(&self, idle: Duration, max_age: Duration, per_user: usize) {
+        *self.limits.write().unwrap_or_else(|p| p.into_inner()) = Limits {
+            idle,
+            max_age,
+            per_user: per_user.max(1),
+        };
     }
 
     /// Whether users log in (the cell has `[security]`).
@@ -208,9 +236,10 @@ impl Auth {
             .filter(|(_, u)| u.name == name && u.via == via)
             .map(|(k, u)| (u.created, k.clone()))
             .collect();
-        if own.len() >= self.per_user {
+        let per_user = self.limits().per_user;
+        if own.len() >= per_user {
             own.sort();
-            for (_, k) in &own[..=own.len() - self.per_user] {
+            for (_, k) in &own[..=own.len() - per_user] {
                 if let Some(u) = s.remove(k) {
                     u.ended.cancel();
                 }
@@ -221,7 +250,8 @@ impl Auth {
     }
 
     fn valid(&self, u: &User, now: Instant) -> bool {
-        now.duration_since(u.last) < self.idle && now.duration_since(u.created) < self.max_age
+        let l = self.limits();
+        now.duration_since(u.last) < l.idle && now.duration_since(u.created) < l.max_age
     }
 
     /// Ends the sessions that are no longer valid.
@@ -336,9 +366,8 @@ impl Auth {
 
     /// When session `id` ends at the latest, as ms since the Unix epoch.
     pub fn expires_unix_ms(&self, user: &User) -> u64 {
-        let left = self
-            .idle
-            .min(self.max_age.saturating_sub(user.created.elapsed()));
+        let l = self.limits();
+        let left = l.idle.min(l.max_age.saturating_sub(user.created.elapsed()));
         cellgate_core::pb::unix_ms(std::time::SystemTime::now() + left)
     }
 

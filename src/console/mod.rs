@@ -84,7 +84,6 @@ pub struct Console {
     cells: Mutex<(Instant, BTreeMap<String, serde_json::Value>)>,
     clients: Mutex<BTreeMap<String, Client>>,
     https: bool,
-    session_max_s: u64,
     metrics: Option<Exposition>,
     /// Cancelled when the console stops: the pages' event streams end with it.
     stop: CancellationToken,
@@ -255,6 +254,20 @@ async fn notes_task(
     }
 }
 
+impl Console {
+    /// Takes a reloaded cell file's `[console]` session settings and `[security]` users and
+    /// roles (the users file is read again): the sessions of users who are gone or whose
+    /// permissions changed end, with their event streams. Answers how many ended.
+    pub fn reload(&self, console: &ConsoleConfig, security: &SecurityConfig) -> usize {
+        self.auth.set_limits(
+            Duration::from_secs(u64::from(console.session_idle_minutes) * 60),
+            Duration::from_secs(u64::from(console.session_hours) * 3600),
+            console.sessions_per_user as usize,
+        );
+        self.auth.set_security(security)
+    }
+}
+
 /// Why the console stopped.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -338,6 +351,8 @@ const STOP_GRACE: Duration = Duration::from_secs(5);
 pub struct Served {
     pub url: String,
     pub task: tokio::task::JoinHandle<Result<(), ConsoleError>>,
+    /// The console's state, which a reload updates ([`Console::reload`]).
+    pub console: Arc<Console>,
 }
 
 impl Served {
@@ -389,7 +404,6 @@ pub async fn serve(
         cells: Mutex::new((Instant::now() - DISCOVERY_EVERY * 2, BTreeMap::new())),
         clients: Mutex::new(BTreeMap::new()),
         https,
-        session_max_s: u64::from(c.session_hours) * 3600,
         metrics,
         stop: stop.clone(),
         uploads: Semaphore::new(UPLOADS_AT_ONCE),
@@ -398,6 +412,7 @@ pub async fn serve(
         mtconnect: settings.mtconnect.clone(),
     });
     tokio::spawn(notes_task(Arc::clone(&console), notes_rx, stop.clone()));
+    let handle = Arc::clone(&console);
     let app = router(console).into_make_service_with_connect_info::<listen::Peer>();
     let url = format!("{}://{}/", if https { "https" } else { "http" }, local);
     let task = if let Some(tls) = &settings.security.tls {
@@ -418,7 +433,11 @@ pub async fn serve(
                 .map_err(ConsoleError::Serve)
         })
     };
-    Ok(Served { url, task })
+    Ok(Served {
+        url,
+        task,
+        console: handle,
+    })
 }
 
 impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, PlainListener>>

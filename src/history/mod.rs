@@ -154,8 +154,8 @@ struct Inner {
     db: Arc<Database>,
     tx: mpsc::Sender<Waiting>,
     clocks: Mutex<[Clock; 2]>,
-    config: HistoryConfig,
-    shifts: Vec<u16>,
+    /// Retention and shifts: replaced by a reload ([`History::set_config`]).
+    config: Mutex<(HistoryConfig, Vec<u16>)>,
     /// Records dropped: the channel was full, or too many waited for the disk.
     dropped: AtomicU64,
     /// Records handed to the writer, and records it wrote (or dropped), for [`History::settled`].
@@ -237,8 +237,7 @@ impl History {
             db,
             tx,
             clocks: Mutex::new(clocks),
-            config: config.clone(),
-            shifts: config.shift_minutes(),
+            config: Mutex::new((config.clone(), config.shift_minutes())),
             dropped: AtomicU64::new(0),
             handed: AtomicU64::new(0),
             written: AtomicU64::new(0),
@@ -259,8 +258,17 @@ impl History {
     }
 
     /// The shift starts in force, minutes after midnight UTC.
-    pub fn shifts(&self) -> &[u16] {
-        self.inner.as_ref().map_or(&[], |i| i.shifts.as_slice())
+    pub fn shifts(&self) -> Vec<u16> {
+        self.inner.as_ref().map_or(Vec::new(), |i| i.config().1)
+    }
+
+    /// Takes a reloaded `[history]`'s retention, bounds and shifts (not its place, which is
+    /// fixed while the gateway runs): the next trim keeps what they say.
+    pub fn set_config(&self, config: &HistoryConfig) {
+        if let Some(i) = &self.inner {
+            *i.config.lock().unwrap_or_else(|p| p.into_inner()) =
+                (config.clone(), config.shift_minutes());
+        }
     }
 
     /// Dropped records and the current fault.
@@ -742,7 +750,17 @@ async fn commit(inner: &Arc<Inner>, waiting: Vec<Waiting>) -> Vec<Waiting> {
     left
 }
 
+impl Inner {
+    fn config(&self) -> (HistoryConfig, Vec<u16>) {
+        self.config
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+}
+
 fn write_batch(inner: &Inner, batch: &[Waiting]) -> Result<(), HistoryError> {
+    let (config, _) = inner.config();
     let path = &inner.path;
     let e = |x: redb::Error| db_error(path, x);
     let tx = inner.db.begin_write().map_err(|x| e(x.into()))?;
@@ -773,9 +791,9 @@ fn write_batch(inner: &Inner, batch: &[Waiting]) -> Result<(), HistoryError> {
                         + 1;
                     counts.insert(s.as_ref(), n).map_err(|x| e(x.into()))?;
                     let bound = if s == REFUSED {
-                        inner.config.max_refusals
+                        config.max_refusals
                     } else {
-                        u64::from(inner.config.tag_values)
+                        u64::from(config.tag_values)
                     };
                     if n > bound {
                         over.insert((log as usize, s.into_owned(), bound));
@@ -881,11 +899,12 @@ fn dropped(log: Log, reason: &str, n: u64) {
 
 /// Retention: records older than their log's days, and the oldest beyond `max_records`.
 fn prune_logs(inner: &Inner) {
+    let (config, _) = inner.config();
     let now = pb::now_ms();
     let day = 24 * 3600 * 1000u64;
     for (log, days) in [
-        (Log::History, inner.config.keep_days),
-        (Log::Audit, inner.config.keep_audit_days),
+        (Log::History, config.keep_days),
+        (Log::Audit, config.keep_audit_days),
     ] {
         let cutoff = now.saturating_sub(u64::from(days) * day);
         // Records removed in all, and those of them still within their days (`max_records`).
@@ -898,7 +917,7 @@ fn prune_logs(inner: &Inner) {
                 let victims: Vec<(u64, u64)> = {
                     let records = tx.open_table(t.records)?;
                     let len = records.len()?;
-                    let over = len.saturating_sub(inner.config.max_records);
+                    let over = len.saturating_sub(config.max_records);
                     let mut v = Vec::new();
                     for item in records.iter()? {
                         let (k, _) = item?;
@@ -936,7 +955,7 @@ fn prune_logs(inner: &Inner) {
                     dropped(log, "max_records", by_cap);
                     tracing::warn!(
                         records = by_cap,
-                        max_records = inner.config.max_records,
+                        max_records = config.max_records,
                         log = ?log,
                         "history: records dropped before their retention days: the log holds \
                          history.max_records"

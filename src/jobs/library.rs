@@ -227,8 +227,9 @@ pub struct Store<'a> {
 pub struct ProgramLibrary {
     dir: Arc<PathBuf>,
     max_size: u64,
-    quota: Quota,
-    retention: Retention,
+    /// Shared by every clone, and replaced by a reload ([`ProgramLibrary::set_limits`]).
+    quota: Arc<std::sync::RwLock<Quota>>,
+    retention: Arc<std::sync::RwLock<Retention>>,
     /// Held from a store's quota check to its end, so that concurrent stores cannot all
     /// pass the check and then together break the quota, nor number two revisions alike.
     stores: Arc<tokio::sync::Mutex<()>>,
@@ -358,8 +359,8 @@ impl ProgramLibrary {
             stores: Arc::default(),
             dir: Arc::new(dir.into()),
             max_size,
-            quota: Quota::default(),
-            retention: Retention::default(),
+            quota: Arc::default(),
+            retention: Arc::default(),
             index: Arc::default(),
             owned: Arc::new([]),
             folder: Arc::new(cellgate_core::config::ProgramsConfig::default().folder_rules()),
@@ -409,14 +410,20 @@ impl ProgramLibrary {
 
     /// The same library, bounded by `quota`.
     pub fn with_quota(mut self, quota: Quota) -> Self {
-        self.quota = quota;
+        self.quota = Arc::new(std::sync::RwLock::new(quota));
         self
     }
 
     /// The same library, keeping revisions as `retention` says.
     pub fn with_retention(mut self, retention: Retention) -> Self {
-        self.retention = retention;
+        self.retention = Arc::new(std::sync::RwLock::new(retention));
         self
+    }
+
+    /// Takes a reloaded cell file's quota and retention, for this library and every clone.
+    pub fn set_limits(&self, quota: Quota, retention: Retention) {
+        *self.quota.write().unwrap_or_else(|p| p.into_inner()) = quota;
+        *self.retention.write().unwrap_or_else(|p| p.into_inner()) = retention;
     }
 
     pub fn dir(&self) -> &Path {
@@ -803,9 +810,9 @@ impl ProgramLibrary {
     fn retained_out(&self, all: &[pb::ProgramRevision], now: u64) -> Vec<(String, u32)> {
         let latest = all.last().map(|r| r.number);
         let latest_released = all.iter().rev().find(|r| is_released(r)).map(|r| r.number);
-        let keep_from = all.len().saturating_sub(self.retention.revisions as usize);
-        let cutoff = self
-            .retention
+        let retention = *self.retention.read().unwrap_or_else(|p| p.into_inner());
+        let keep_from = all.len().saturating_sub(retention.revisions as usize);
+        let cutoff = retention
             .days
             .map(|d| now.saturating_sub(u64::from(d) * 24 * 3600 * 1000));
         all.iter()
@@ -849,7 +856,8 @@ impl ProgramLibrary {
         size: u64,
         new_program: bool,
     ) -> Result<(), LibraryError> {
-        if self.quota == Quota::default() {
+        let quota = *self.quota.read().unwrap_or_else(|p| p.into_inner());
+        if quota == Quota::default() {
             return Ok(());
         }
         let mut bytes = 0u64;
@@ -870,8 +878,8 @@ impl ProgramLibrary {
         let programs = index.latest_all()?.iter().filter(|r| !r.removed).count() as u64
             + u64::from(new_program);
         for (what, limit, would) in [
-            ("files", self.quota.files, programs),
-            ("bytes", self.quota.bytes, bytes),
+            ("files", quota.files, programs),
+            ("bytes", quota.bytes, bytes),
         ] {
             if let Some(limit) = limit
                 && would > limit

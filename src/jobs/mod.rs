@@ -37,6 +37,7 @@
 //! paused time with a stand-in link.
 
 pub mod folder;
+mod hold;
 mod intake;
 pub mod journal;
 pub mod library;
@@ -45,6 +46,7 @@ mod progress;
 pub mod queue;
 pub mod source;
 
+pub use self::hold::Hold;
 pub use self::progress::ProgressShaper;
 
 use std::collections::{HashMap, VecDeque};
@@ -140,6 +142,9 @@ pub enum JobError {
     UnknownJob { machine: String, job: String },
     #[error("machine {machine}: its link has stopped; no job can be sent")]
     LinkStopped { machine: String },
+    /// The machine is leaving the cell (a reload removed it).
+    #[error("machine {machine} {why}")]
+    Retired { machine: String, why: String },
     #[error("machine {machine}: the job manager has stopped (gateway shutting down)")]
     Stopped { machine: String },
     #[error("machine {machine}: the job could not be journalled, so it was not accepted: {error}")]
@@ -223,6 +228,14 @@ enum Request {
     },
     List {
         reply: oneshot::Sender<pb::JobQueue>,
+    },
+    /// A reload holds the jobs (`hold`), or lets them go again.
+    Hold {
+        hold: Hold,
+        reply: oneshot::Sender<()>,
+    },
+    Release {
+        reply: oneshot::Sender<()>,
     },
     /// The record of a job kept, for a resume.
     Find {
@@ -367,7 +380,7 @@ pub fn spawn(
     };
     // Subscribed before the task runs, so no link event is missed.
     let link_events = link.subscribe();
-    let run_stamp = base36(
+    let run_stamp = hold::base36(
         SystemTime::now()
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| d.as_secs()),
@@ -389,6 +402,8 @@ pub fn spawn(
         snapshot: snap_tx,
         totals: JobsSnapshot::default(),
         link_waiting: None,
+        held: false,
+        retired: None,
         metrics: metrics::machine(&name),
         traces: HashMap::new(),
     };
@@ -398,20 +413,6 @@ pub fn spawn(
         span,
     ));
     (handle, task, first_rx)
-}
-
-fn base36(mut n: u64) -> String {
-    const DIGITS: &[u8; 36] = b"0123456789abcdefghijklmnopqrstuvwxyz";
-    let mut out = Vec::new();
-    loop {
-        out.push(DIGITS[(n % 36) as usize]);
-        n /= 36;
-        if n == 0 {
-            break;
-        }
-    }
-    out.reverse();
-    String::from_utf8(out).unwrap_or_default()
 }
 
 struct Active {
@@ -457,6 +458,10 @@ struct Manager {
     metrics: Arc<MachineMetrics>,
     /// The span of every job not ended yet, by job id.
     traces: HashMap<String, JobTrace>,
+    /// A reload holds the jobs: no job is handed to the link ([`hold`]).
+    held: bool,
+    /// Why new jobs are refused: the machine is leaving the cell.
+    retired: Option<String>,
 }
 
 /// A job's span, from queued to ended, and when it started on the link.
@@ -828,7 +833,18 @@ impl Manager {
     async fn on_request(&mut self, request: Request) {
         match request {
             Request::Submit { record, reply } => {
-                let _ = reply.send(self.accept(*record));
+                let _ = reply.send(match self.retired_error() {
+                    Some(e) => Err(e),
+                    None => self.accept(*record),
+                });
+            }
+            Request::Hold { hold, reply } => {
+                self.on_hold(hold).await;
+                let _ = reply.send(());
+            }
+            Request::Release { reply } => {
+                self.on_release();
+                let _ = reply.send(());
             }
             Request::Cancel { id, reply } => {
                 let outcome = self.cancel(&id).await;
@@ -990,7 +1006,7 @@ impl Manager {
 
     /// Gives the link the next job when it has none. Its program is opened now.
     async fn hand_next(&mut self) {
-        while self.active.is_none() && !self.link_stopped {
+        while self.active.is_none() && !self.link_stopped && !self.held {
             let Some(mut record) = self.waiting.pop() else {
                 return;
             };
@@ -1166,27 +1182,6 @@ fn confirmation_pb(c: Confirmation) -> pb::Confirmation {
         Confirmation::Acknowledged => pb::Confirmation::Acknowledged,
         Confirmation::EndOfRead => pb::Confirmation::EndOfRead,
         Confirmation::Unverified => pb::Confirmation::Unverified,
-    }
-}
-
-impl BusCode for JobError {
-    fn code(&self) -> pb::ErrorCode {
-        match self {
-            JobError::Program { .. }
-            | JobError::RequestId { .. }
-            | JobError::Start { .. }
-            | JobError::NotResumable { .. }
-            | JobError::RevisionWithoutLibrary { .. } => pb::ErrorCode::InvalidRequest,
-            JobError::OnlyReleased { .. } => pb::ErrorCode::NotReleased,
-            JobError::Journal { error, .. } if error.is_storage_full() => {
-                pb::ErrorCode::StorageFull
-            }
-            JobError::Journal { .. } => pb::ErrorCode::StorageFailed,
-            JobError::Library { error, .. } => error.code(),
-            JobError::QueueFull { .. } => pb::ErrorCode::QueueFull,
-            JobError::UnknownJob { .. } => pb::ErrorCode::NotFound,
-            JobError::LinkStopped { .. } | JobError::Stopped { .. } => pb::ErrorCode::Unavailable,
-        }
     }
 }
 

@@ -938,3 +938,85 @@ async fn a_job_end_lost_in_a_lag_is_asked_for_and_never_left_active() {
         assert!(queue.active.is_none(), "{queue:?}");
     }
 }
+
+/// Waits until job `id` has started.
+async fn until_started(rx: &mut broadcast::Receiver<Arc<pb::JobEvent>>, id: &str) {
+    loop {
+        let e = next(rx).await;
+        if e.job_id == id && kind_name(&e) == "started" {
+            return;
+        }
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn held_jobs_let_the_active_one_end_and_wait_for_the_next_manager() {
+    let mut r = rig(Protocol::A, 2, Duration::from_millis(50));
+    let a = r.jobs.submit(inline(b"%\nO1\nG01X1\n%", 0)).await.unwrap();
+    let b = r.jobs.submit(inline(b"%\nO2\n%", 0)).await.unwrap();
+    r.release.add_permits(1);
+    until_started(&mut r.events, &a.job_id).await;
+    r.jobs.hold(Hold::default()).await.unwrap();
+    r.release.add_permits(5);
+    // The job being sent goes on to its end; the next one is not handed to the link.
+    let end = until_end(&mut r.events, &a.job_id).await;
+    assert_eq!(kind_name(end.last().unwrap()), "completed");
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    let snap = r.jobs.snapshot().borrow().clone();
+    assert_eq!((snap.active, snap.waiting), (None, 1));
+    // A job submitted now waits as well.
+    let c = r.jobs.submit(inline(b"%\nO3\n%", 0)).await.unwrap();
+    assert!(!r.log.lock().unwrap().iter().any(|l| l.contains("O2")));
+    // The restarted link's manager takes the waiting ones from the journal, with their ids,
+    // and numbers its own jobs past them.
+    let mut r = r.restart().await;
+    r.release.add_permits(3);
+    until_end(&mut r.events, &c.job_id).await;
+    let d = r.jobs.submit(inline(b"%\nO4\n%", 0)).await.unwrap();
+    for id in [&a.job_id, &b.job_id, &c.job_id] {
+        assert_ne!(&d.job_id, id);
+    }
+    until_end(&mut r.events, &d.job_id).await;
+    let log = r.log.lock().unwrap().clone();
+    let order: Vec<&String> = log.iter().filter(|l| l.starts_with("done")).collect();
+    assert_eq!(order.len(), 3, "{log:?}");
+    assert!(order[0].contains("O2") && order[1].contains("O3") && order[2].contains("O4"));
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_machine_leaving_the_cell_drops_its_waiting_jobs_and_a_forced_reload_fails_its_job() {
+    let mut r = rig(Protocol::A, 2, Duration::from_millis(100));
+    let a = r.jobs.submit(inline(b"%\nO1\nG01X1\n%", 0)).await.unwrap();
+    let b = r.jobs.submit(inline(b"%\nO2\n%", 0)).await.unwrap();
+    r.release.add_permits(1);
+    until_started(&mut r.events, &a.job_id).await;
+    tokio::time::sleep(Duration::from_millis(250)).await;
+    let hold = Hold {
+        fail_active: Some("a forced reload removed machine m1".to_string()),
+        retire: Some("is leaving the cell".to_string()),
+    };
+    r.jobs.hold(hold).await.unwrap();
+    let ends: Vec<pb::JobEvent> = [next(&mut r.events).await, next(&mut r.events).await].into();
+    let by_id = |id: &str| ends.iter().find(|e| e.job_id == id).unwrap().kind.clone();
+    let Some(Kind::Cancelled(c)) = by_id(&b.job_id) else {
+        panic!("{ends:?}");
+    };
+    assert_eq!(c.by, "reload");
+    let Some(Kind::Failed(f)) = by_id(&a.job_id) else {
+        panic!("{ends:?}");
+    };
+    assert_eq!(f.reason, "a forced reload removed machine m1");
+    assert!(f.byte_offset > 0, "{f:?}");
+    assert_eq!(r.jobs.snapshot().borrow().active, None);
+    let refused = r.jobs.submit(inline(b"%\nO3\n%", 0)).await.unwrap_err();
+    assert_eq!(refused.to_string(), "machine m1 is leaving the cell");
+    assert_eq!(refused.code(), pb::ErrorCode::Unavailable);
+    // Given its entry back before its link stopped, it takes jobs again.
+    r.jobs.release().await.unwrap();
+    let d = r.jobs.submit(inline(b"%\nO4\n%", 0)).await.unwrap();
+    r.release.add_permits(1);
+    assert_eq!(
+        kind_name(until_end(&mut r.events, &d.job_id).await.last().unwrap()),
+        "completed"
+    );
+}

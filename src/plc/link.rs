@@ -57,6 +57,12 @@ pub enum PlcCommand {
         data: Vec<u8>,
         reply: oneshot::Sender<RequestResult>,
     },
+    /// New tags and poll groups (a reload): the rounds under way are dropped and each group
+    /// of the new table starts at once; the values are read anew.
+    SetTags {
+        tags: TagTable,
+        reply: oneshot::Sender<()>,
+    },
 }
 
 /// Why a tag write failed.
@@ -213,6 +219,13 @@ impl PlcHandle {
         rx.await.map_err(|_| self.not_running())
     }
 
+    /// Swaps the link's tags and poll groups for `tags`, without touching its line.
+    pub async fn set_tags(&self, tags: TagTable) -> Result<(), PlcLinkError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(PlcCommand::SetTags { tags, reply: tx })?;
+        rx.await.map_err(|_| self.not_running())
+    }
+
     pub async fn snapshot(&self) -> Result<PlcSnapshot, PlcLinkError> {
         let (tx, rx) = oneshot::channel();
         self.send(PlcCommand::Snapshot { reply: tx })?;
@@ -241,9 +254,23 @@ pub fn spawn<T: Transport + 'static>(
         events: ev_tx.clone(),
     };
     let span = tracing::info_span!("plc", plc = %name, line = %transport.describe());
-    let start = Instant::now();
-    let groups = tags
-        .groups()
+    let groups = group_states(&tags, Instant::now());
+    let driver = Driver {
+        pump: Pump::new(master, transport),
+        commands: cmd_rx,
+        events: ev_tx,
+        tags,
+        groups,
+        pending: HashMap::new(),
+        next_id: 1,
+    };
+    let task = tokio::spawn(tracing::Instrument::instrument(driver.run(shutdown), span));
+    (handle, task)
+}
+
+/// Each poll group of `tags`, due at `start`.
+fn group_states(tags: &TagTable, start: Instant) -> Vec<GroupState> {
+    tags.groups()
         .iter()
         .map(|g| GroupState {
             due: start,
@@ -257,18 +284,7 @@ pub fn spawn<T: Transport + 'static>(
                 ..GroupStats::default()
             },
         })
-        .collect();
-    let driver = Driver {
-        pump: Pump::new(master, transport),
-        commands: cmd_rx,
-        events: ev_tx,
-        tags,
-        groups,
-        pending: HashMap::new(),
-        next_id: 1,
-    };
-    let task = tokio::spawn(tracing::Instrument::instrument(driver.run(shutdown), span));
-    (handle, task)
+        .collect()
 }
 
 /// Who waits for a request's end.
@@ -396,6 +412,14 @@ impl<T: Transport> Driver<T> {
                 self.next_id += 1;
                 self.pending.insert(id, Pending::Caller(reply));
                 self.pump.command(MasterCommand::Send { id, data });
+            }
+            PlcCommand::SetTags { tags, reply } => {
+                // A read of the old table answers nothing now: its group numbers are gone.
+                self.pending
+                    .retain(|_, p| !matches!(p, Pending::Poll { .. }));
+                self.groups = group_states(&tags, Instant::now());
+                self.tags = tags;
+                let _ = reply.send(());
             }
             PlcCommand::GetTag { name, reply } => {
                 let _ = reply.send(self.tags.value(&name).cloned());

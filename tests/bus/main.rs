@@ -16,4 +16,5 @@ mod hostile;
 mod plc_bus;
 mod punch_on_bus;
 mod records;
+mod reload;
 mod security;

@@ -11,4 +11,5 @@ mod examples;
 mod layering;
 mod notes;
 mod plc_cli;
+mod reload_cli;
 mod tour;

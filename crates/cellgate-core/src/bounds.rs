@@ -326,6 +326,16 @@ impl Bounded for pb::SimDi {
     }
 }
 
+impl Bounded for pb::ReloadRequest {
+    const NAME: &'static str = "ReloadRequest";
+    fn max_len(_: &Limits) -> usize {
+        64
+    }
+    fn check(&self) -> Result<(), BoundError> {
+        Ok(())
+    }
+}
+
 impl Bounded for pb::SimAutostart {
     const NAME: &'static str = "SimAutostart";
     fn max_len(_: &Limits) -> usize {

@@ -6,6 +6,8 @@
 //! |---|---|
 //! | `P/C/gateway` | liveliness token while the gateway runs |
 //! | `P/C/@admin` | the gateway's admin document (a verbatim chunk: `P/C/**` does not match it) |
+//! | `P/C/@admin/reload` | `ReloadRequest` → `ReloadResult`: read the cell file again, apply what changed |
+//! | `P/C/reload` | every reload's `ReloadResult`, taken or refused, however it was asked for |
 //! | `P/C/machine/M` | liveliness token while the machine's link is up |
 //! | `P/C/machine/M/status` | `MachineStatus` |
 //! | `P/C/machine/M/job` | the queue (`JobQueue`) |
@@ -293,6 +295,10 @@ pub enum CellKey<'a> {
     Gateway,
     /// `P/C/@admin`
     Admin,
+    /// `P/C/@admin/reload`: a reload asked for.
+    Reload,
+    /// `P/C/reload`: what each reload did.
+    Reloaded,
     /// `P/C/machine/M`
     Machine {
         /// The machine (`M`).
@@ -439,6 +445,18 @@ impl CellKeys {
     /// `P/C/@admin`: the gateway's admin document.
     pub fn admin(&self) -> String {
         format!("{}/{ADMIN_CHUNK}", self.root)
+    }
+
+    /// `P/C/@admin/reload`: where a reload of the cell file is asked for (a write key of
+    /// its own, under the verbatim admin chunk, so that no wildcard of the cell's data
+    /// reaches it).
+    pub fn reload(&self) -> String {
+        format!("{}/{ADMIN_CHUNK}/reload", self.root)
+    }
+
+    /// `P/C/reload`: what each reload did (`ReloadResult`), published.
+    pub fn reloads(&self) -> String {
+        format!("{}/reload", self.root)
     }
 
     /// `P/C/**`: everything the cell publishes (the admin key aside).
@@ -755,6 +773,8 @@ impl CellKeys {
         match chunks.as_slice() {
             ["gateway"] => Some(CellKey::Gateway),
             [ADMIN_CHUNK] => Some(CellKey::Admin),
+            [ADMIN_CHUNK, "reload"] => Some(CellKey::Reload),
+            ["reload"] => Some(CellKey::Reloaded),
             ["machine", m] => Some(CellKey::Machine { machine: m }),
             ["machine", m, leaf] => Some(CellKey::Leaf {
                 machine: m,

@@ -452,3 +452,24 @@ fn plc_transfer_sends_transfers_and_messages() {
         &keys.plc_message("plc-1")
     ));
 }
+
+#[test]
+fn only_cell_reload_reloads_and_every_reader_sees_what_it_did() {
+    let keys = CellKeys::new("cellgate", "c").unwrap();
+    let sec = security(vec![
+        role("dashboard", "dash", &[Permission::StatusRead]),
+        role("admin", "adm", &[Permission::AdminRead]),
+        role("engineer", "eng", &[Permission::CellReload]),
+    ]);
+    let acl = access_control(&sec, &keys, "cellgate").unwrap();
+    let reload = keys.reload();
+    assert!(allows(&acl, "eng", Flow::Ingress, "query", &reload));
+    assert!(allows(&acl, "eng", Flow::Egress, "reply", &reload));
+    for who in ["dash", "adm"] {
+        assert!(!allows(&acl, who, Flow::Ingress, "query", &reload), "{who}");
+    }
+    // Reading the admin document is not reloading it, nor the other way round.
+    assert!(!allows(&acl, "eng", Flow::Ingress, "query", &keys.admin()));
+    assert!(allows(&acl, "dash", Flow::Egress, "put", &keys.reloads()));
+    assert!(!allows(&acl, "eng", Flow::Egress, "put", &keys.reloads()));
+}

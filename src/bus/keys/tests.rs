@@ -13,6 +13,8 @@ fn every_built_key_is_a_valid_key_expression() {
         k.any_program(),
         k.gateway(),
         k.admin(),
+        k.reload(),
+        k.reloads(),
         k.all(),
         k.any_machine(),
         k.leaf("m", MachineLeaf::G05),
@@ -105,4 +107,24 @@ fn the_gateway_s_event_keys_read_back_and_no_route_takes_them_for_another() {
     for key in [&changed, &out] {
         assert!(keyexpr::new(key.as_str()).is_ok(), "{key}");
     }
+}
+
+#[test]
+fn the_reload_key_is_reached_by_no_wildcard_of_the_cell() {
+    let k = CellKeys::new("cellgate", "c").unwrap();
+    let reload = k.reload();
+    let reload = keyexpr::new(reload.as_str()).unwrap();
+    for pattern in [
+        k.all(),
+        k.admin(),
+        admin_selector("cellgate", "*"),
+        "cellgate/**".to_string(),
+    ] {
+        let p = keyexpr::new(pattern.as_str()).unwrap();
+        assert!(!p.intersects(reload), "{pattern} reaches {reload}");
+    }
+    // What each reload did is the cell's data: `P/C/**` takes it in.
+    let (all, reloads) = (k.all(), k.reloads());
+    let all = keyexpr::new(all.as_str()).unwrap();
+    assert!(all.includes(keyexpr::new(reloads.as_str()).unwrap()));
 }

@@ -16,8 +16,8 @@
 //!
 //! One file per concern: [`bus`] (the session and telemetry sections), [`programs`],
 //! [`transport`] (what carries each link), [`fanuc`] (`[[machines]]`), [`plc`] (`[[plcs]]`),
-//! [`security`] (TLS, user names, roles), [`summary`] (what `check-config` prints) and
-//! [`error`] (every error, collected at once).
+//! [`security`] (TLS, user names, roles), [`summary`] (what `check-config` prints),
+//! [`reload`] (what a reload changes) and [`error`] (every error, collected at once).
 
 mod bus;
 mod console;
@@ -29,6 +29,7 @@ mod mtconnect;
 pub mod owned;
 mod plc;
 mod programs;
+pub mod reload;
 mod security;
 mod summary;
 pub mod telemetry;

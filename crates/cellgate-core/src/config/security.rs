@@ -73,11 +73,15 @@ pub enum Permission {
     /// alarms, start and stop reads, punch programs, read their state.
     #[serde(rename = "sim.control")]
     SimControl,
+    /// Have the gateway read its cell file again and apply what changed
+    /// (`P/C/@admin/reload`): machines and PLCs added, removed or changed, settings.
+    #[serde(rename = "cell.reload")]
+    CellReload,
 }
 
 impl Permission {
     /// Every permission, in the order of the enum.
-    pub const ALL: [Permission; 16] = [
+    pub const ALL: [Permission; 17] = [
         Permission::StatusRead,
         Permission::JobSubmit,
         Permission::JobCancel,
@@ -94,6 +98,7 @@ impl Permission {
         Permission::AuditRead,
         Permission::AuditNote,
         Permission::SimControl,
+        Permission::CellReload,
     ];
 
     /// The name the cell file uses.
@@ -115,6 +120,7 @@ impl Permission {
             Permission::G05Stream => "g05.stream",
             Permission::AdminRead => "admin.read",
             Permission::SimControl => "sim.control",
+            Permission::CellReload => "cell.reload",
         }
     }
 

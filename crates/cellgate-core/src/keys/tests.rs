@@ -37,6 +37,11 @@ fn keys_are_built_and_read_back() {
     assert_eq!(k.admin(), "cellgate/line-3/@admin");
     assert_eq!(k.parse(&k.gateway()), Some(CellKey::Gateway));
     assert_eq!(k.parse(&k.admin()), Some(CellKey::Admin));
+    assert_eq!(k.reload(), "cellgate/line-3/@admin/reload");
+    assert_eq!(k.parse(&k.reload()), Some(CellKey::Reload));
+    assert_eq!(k.reloads(), "cellgate/line-3/reload");
+    assert_eq!(k.parse(&k.reloads()), Some(CellKey::Reloaded));
+    assert_eq!(cell_of_admin_key("cellgate", &k.reload()), None);
     assert_eq!(admin_selector("cellgate", "*"), "cellgate/*/@admin");
     assert_eq!(
         cell_of_admin_key("cellgate", "cellgate/line-3/@admin"),
