@@ -26,6 +26,7 @@ mod fanuc;
 mod g05;
 mod history;
 mod mtconnect;
+pub mod mtconnect_types;
 pub mod owned;
 mod plc;
 mod programs;

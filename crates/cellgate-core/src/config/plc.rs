@@ -583,7 +583,7 @@ pub struct TagConfig {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TagMtconnect {
-    /// One of [`crate::mtconnect::types::TAG_TYPES`], as the standard spells it.
+    /// One of [`super::mtconnect_types::TAG_TYPES`], as the standard spells it.
     #[serde(rename = "type")]
     pub kind: String,
     /// The units the tag's value (after `scale`) is in, for a SAMPLE type: one of the
@@ -663,8 +663,7 @@ pub struct SimTick {
 /// A tag's `mtconnect`: a type a tag may be, units of the standard's for a SAMPLE only, and no
 /// bit reported as a measurement.
 fn check_tag_mtconnect(c: &mut Checker, tl: &str, kind: TagType, m: &TagMtconnect) {
-    use crate::mtconnect::model::Category;
-    use crate::mtconnect::types;
+    use super::mtconnect_types::{self as types, TagCategory as Category};
     let Some(t) = types::tag_type(&m.kind) else {
         c.invalid(
             format!("{tl}.mtconnect.type"),
@@ -697,7 +696,7 @@ fn check_tag_mtconnect(c: &mut Checker, tl: &str, kind: TagType, m: &TagMtconnec
                 .to_string(),
             "MTConnect Part 2 UnitsEnum",
         ),
-        (Some(_), Category::Event | Category::Condition) => c.not_applicable(
+        (Some(_), Category::Event) => c.not_applicable(
             format!("{tl}.mtconnect.units"),
             format!("{} is an EVENT, which has no units", t.name),
             "",

@@ -10,7 +10,7 @@
 //! - [`agent`]: all of it together, answering `/probe`, `/current`, `/sample`;
 //! - [`assets`]: punched programs kept as File assets;
 //! - [`request`]: query parameters, `path` filters, errors and their codes;
-//! - [`types`]: the data item types and units a PLC tag may be given;
+//! - [`types`]: the data item types and units a PLC tag may be given (the configuration's);
 //! - [`xml`], [`json`]: the documents; [`shdr`]: the adapter's line format.
 
 pub mod agent;
@@ -22,7 +22,7 @@ pub mod mapping;
 pub mod model;
 pub mod request;
 pub mod shdr;
-pub mod types;
+pub use crate::config::mtconnect_types as types;
 pub mod xml;
 
 pub use agent::{Agent, Update};

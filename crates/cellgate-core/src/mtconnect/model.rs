@@ -491,9 +491,13 @@ impl Model {
             );
         }
         for t in &p.tags {
-            let (category, kind) = t
-                .typed
-                .map_or((Category::Event, "VARIABLE"), |ty| (ty.category, ty.name));
+            let (category, kind) = t.typed.map_or((Category::Event, "VARIABLE"), |ty| {
+                let category = match ty.category {
+                    super::types::TagCategory::Sample => Category::Sample,
+                    super::types::TagCategory::Event => Category::Event,
+                };
+                (category, ty.name)
+            });
             let i = self.item(
                 cont,
                 &format!("{d}_tag_{}", t.name),

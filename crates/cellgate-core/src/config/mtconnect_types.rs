@@ -1,9 +1,17 @@
 //! The MTConnect data item types a PLC tag may be (`[[plcs.tags]] mtconnect = { type, units }`),
-//! with their category and the units their observations are in. Only types whose Streams
+//! with their category and the units their observations are in: kept with the configuration,
+//! which checks them; the agent (`crate::mtconnect`) shows them. Only types whose Streams
 //! element is the type's name in CamelCase (`ROTARY_VELOCITY` → `RotaryVelocity`), as the
 //! MTConnect 2.5 schema has them; the units are the schema's `UnitsEnum`.
 
-use super::model::Category;
+/// SAMPLE or EVENT: the category a tag's data item takes (MTConnect Part 2, "DataItem").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TagCategory {
+    /// A measured value with units.
+    Sample,
+    /// A count, or a value without units.
+    Event,
+}
 
 /// One type: its name, its category, and the units a SAMPLE reports in by default.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -11,7 +19,7 @@ pub struct TagType {
     /// The standard's name (`TEMPERATURE`).
     pub name: &'static str,
     /// SAMPLE (a measured value with units) or EVENT (a count, a value without units).
-    pub category: Category,
+    pub category: TagCategory,
     /// The units of a SAMPLE (the standard's for the type), `None` for an EVENT.
     pub units: Option<&'static str>,
 }
@@ -19,7 +27,7 @@ pub struct TagType {
 const fn sample(name: &'static str, units: &'static str) -> TagType {
     TagType {
         name,
-        category: Category::Sample,
+        category: TagCategory::Sample,
         units: Some(units),
     }
 }
@@ -27,7 +35,7 @@ const fn sample(name: &'static str, units: &'static str) -> TagType {
 const fn event(name: &'static str) -> TagType {
     TagType {
         name,
-        category: Category::Event,
+        category: TagCategory::Event,
         units: None,
     }
 }
