@@ -387,13 +387,32 @@ async fn gateway_gone(tokens: Option<&Subscriber<FifoChannelHandler<Sample>>>) {
     };
     loop {
         match tokens.recv_async().await {
-            Ok(s) if s.kind() == SampleKind::Delete => return,
+            Ok(s) if s.kind() == SampleKind::Delete => {
+                // A token that comes straight back (a link to the gateway re-made under load)
+                // is no gateway gone: gone is a token still missing after a moment.
+                let back = tokio::time::timeout(GONE_GRACE, async {
+                    loop {
+                        match tokens.recv_async().await {
+                            Ok(s) if s.kind() == SampleKind::Put => return true,
+                            Ok(_) => {}
+                            Err(_) => return false,
+                        }
+                    }
+                })
+                .await;
+                if back != Ok(true) {
+                    return;
+                }
+            }
             Ok(_) => {}
             // The session closed: the job subscriber says so.
             Err(_) => return std::future::pending().await,
         }
     }
 }
+
+/// How long the gateway's liveliness token may be missing before a follower says it is gone.
+const GONE_GRACE: std::time::Duration = std::time::Duration::from_millis(1500);
 
 /// The machine a job id names: ids are `M-<run>-<n>` (`mill-1-tpfqpi-3`), and a machine's
 /// name may itself hold `-`. `None` for a text that is not such an id.
