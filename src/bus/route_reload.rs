@@ -219,23 +219,14 @@ pub fn audit(history: &History, security: &SecurityConfig, keys: &CellKeys, a: &
 
 /// What a taken reload changed, for people: `machines added: m4; settings: history.keep_days`.
 pub fn summary(r: &pb::ReloadResult) -> String {
-    let parts: Vec<String> = [
-        ("machines added", &r.machines_added),
-        ("machines removed", &r.machines_removed),
-        ("machines changed", &r.machines_changed),
-        ("PLCs added", &r.plcs_added),
-        ("PLCs removed", &r.plcs_removed),
-        ("PLCs changed", &r.plcs_changed),
-        ("PLC tags", &r.plc_tags),
-        ("settings", &r.settings),
-    ]
-    .into_iter()
-    .filter(|(_, v)| !v.is_empty())
-    .map(|(what, v)| format!("{what}: {}", v.join(", ")))
-    .collect();
-    if parts.is_empty() {
-        "nothing changed".to_string()
-    } else {
-        parts.join("; ")
-    }
+    cellgate_core::config::reload::summary_of([
+        &r.machines_added,
+        &r.machines_removed,
+        &r.machines_changed,
+        &r.plcs_added,
+        &r.plcs_removed,
+        &r.plcs_changed,
+        &r.plc_tags,
+        &r.settings,
+    ])
 }

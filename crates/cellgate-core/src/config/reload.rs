@@ -71,25 +71,16 @@ impl CellChange {
 
     /// One line for people: `machines added: m4; PLC tags: plc-1` or `nothing changed`.
     pub fn summary(&self) -> String {
-        let parts: Vec<String> = [
-            ("machines added", &self.machines_added),
-            ("machines removed", &self.machines_removed),
-            ("machines changed", &self.machines_changed),
-            ("PLCs added", &self.plcs_added),
-            ("PLCs removed", &self.plcs_removed),
-            ("PLCs changed", &self.plcs_changed),
-            ("PLC tags", &self.plc_tags),
-            ("settings", &self.settings),
-        ]
-        .into_iter()
-        .filter(|(_, v)| !v.is_empty())
-        .map(|(what, v)| format!("{what}: {}", v.join(", ")))
-        .collect();
-        if parts.is_empty() {
-            "nothing changed".to_string()
-        } else {
-            parts.join("; ")
-        }
+        summary_of([
+            &self.machines_added,
+            &self.machines_removed,
+            &self.machines_changed,
+            &self.plcs_added,
+            &self.plcs_removed,
+            &self.plcs_changed,
+            &self.plc_tags,
+            &self.settings,
+        ])
     }
 }
 
@@ -305,6 +296,33 @@ fn live_settings(old: &CellConfig, new: &CellConfig) -> Vec<String> {
         .filter(|(_, d)| *d)
         .map(|(k, _)| (*k).to_string())
         .collect()
+}
+
+/// One line for people from a reload's lists, in [`CellChange`]'s order (machines added,
+/// removed, changed; PLCs added, removed, changed; PLC tags; settings): a taken reload's
+/// `ReloadResult` says it the same way.
+pub fn summary_of(lists: [&[String]; 8]) -> String {
+    const WHAT: [&str; 8] = [
+        "machines added",
+        "machines removed",
+        "machines changed",
+        "PLCs added",
+        "PLCs removed",
+        "PLCs changed",
+        "PLC tags",
+        "settings",
+    ];
+    let parts: Vec<String> = WHAT
+        .iter()
+        .zip(lists)
+        .filter(|(_, v)| !v.is_empty())
+        .map(|(what, v)| format!("{what}: {}", v.join(", ")))
+        .collect();
+    if parts.is_empty() {
+        "nothing changed".to_string()
+    } else {
+        parts.join("; ")
+    }
 }
 
 #[cfg(test)]
