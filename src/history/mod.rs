@@ -38,7 +38,7 @@ use tokio_util::sync::CancellationToken;
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::HistoryConfig;
 use cellgate_core::history::refusals::Refusals;
-use cellgate_core::history::{HistoryQuery, Mark};
+use cellgate_core::history::{HistoryQuery, Mark, Order};
 use cellgate_core::pb::{self, HistoryKind, history_record::Record};
 
 /// Records waiting for the disk, at most; beyond, the oldest are dropped and counted.
@@ -967,15 +967,18 @@ fn prune_logs(inner: &Inner) {
     }
 }
 
-/// One page of `query`, oldest first.
+/// One page of `query`, oldest or newest first as it asks.
 fn read_page(inner: &Inner, log: Log, q: &HistoryQuery) -> Result<pb::HistoryPage, HistoryError> {
     let path = &inner.path;
     let e = |x: redb::Error| db_error(path, x);
     let t = log.tables();
     let tx = inner.db.begin_read().map_err(|x| e(x.into()))?;
     let records = tx.open_table(t.records).map_err(|x| e(x.into()))?;
-    // Paging: start after the record numbered `after`, found by its number.
+    let newest = q.order == Order::Newest;
+    // Paging: go on past the record numbered `after`, found by its number: after it oldest
+    // first, before it newest first.
     let mut start = (q.from_ms, 0u64);
+    let mut end = (q.to_ms, u64::MAX);
     if q.after > 0 {
         let seqs = tx.open_table(t.seqs).map_err(|x| e(x.into()))?;
         let ms = seqs
@@ -983,9 +986,15 @@ fn read_page(inner: &Inner, log: Log, q: &HistoryQuery) -> Result<pb::HistoryPag
             .map_err(|x| e(x.into()))?
             .ok_or(HistoryError::NoSuchRecord(q.after))?
             .value();
-        start = start.max((ms, q.after.saturating_add(1)));
+        if newest {
+            end = end.min((ms, q.after.saturating_sub(1)));
+        } else {
+            start = start.max((ms, q.after.saturating_add(1)));
+        }
     }
-    let end = (q.to_ms, u64::MAX);
+    if start > end {
+        return Ok(page(q, Vec::new(), false));
+    }
     let mut keys: Vec<(u64, u64)> = Vec::new();
     let want = q.limit + 1;
     // Through the index where the query names machines, kinds or tags; else in time order.
@@ -993,20 +1002,23 @@ fn read_page(inner: &Inner, log: Log, q: &HistoryQuery) -> Result<pb::HistoryPag
     if let Some(subjects) = subjects {
         let subj = tx.open_table(t.subjects).map_err(|x| e(x.into()))?;
         for s in subjects {
-            let mut n = 0;
             let range = (s.as_str(), start.0, start.1)..=(s.as_str(), end.0, end.1);
-            for item in subj.range(range).map_err(|x| e(x.into()))? {
+            let items = subj.range(range).map_err(|x| e(x.into()))?;
+            let items: Box<dyn Iterator<Item = _>> = match newest {
+                true => Box::new(items.rev()),
+                false => Box::new(items),
+            };
+            for item in items.take(want) {
                 let (k, _) = item.map_err(|x| e(x.into()))?;
                 let (_, ms, seq) = k.value();
                 keys.push((ms, seq));
-                n += 1;
-                if n >= want {
-                    break;
-                }
             }
         }
         keys.sort_unstable();
         keys.dedup();
+        if newest {
+            keys.reverse();
+        }
     }
     let mut out = Vec::new();
     let mut more = false;
@@ -1035,7 +1047,12 @@ fn read_page(inner: &Inner, log: Log, q: &HistoryQuery) -> Result<pb::HistoryPag
             }
         }
         false => {
-            for item in records.range(start..=end).map_err(|x| e(x.into()))? {
+            let items = records.range(start..=end).map_err(|x| e(x.into()))?;
+            let items: Box<dyn Iterator<Item = _>> = match newest {
+                true => Box::new(items.rev()),
+                false => Box::new(items),
+            };
+            for item in items {
                 let (_, v) = item.map_err(|x| e(x.into()))?;
                 if !take(v.value()) {
                     break;
@@ -1043,18 +1060,23 @@ fn read_page(inner: &Inner, log: Log, q: &HistoryQuery) -> Result<pb::HistoryPag
             }
         }
     }
+    Ok(page(q, out, more))
+}
+
+/// A page of `records`; `next_after` the last one's number when more follow.
+fn page(q: &HistoryQuery, records: Vec<pb::HistoryRecord>, more: bool) -> pb::HistoryPage {
     let next_after = if more {
-        out.last().map_or(0, |r| r.seq)
+        records.last().map_or(0, |r| r.seq)
     } else {
         0
     };
-    Ok(pb::HistoryPage {
-        records: out,
+    pb::HistoryPage {
+        records,
         more,
         next_after,
         from_unix_ms: q.from_ms,
         to_unix_ms: q.to_ms,
-    })
+    }
 }
 
 fn subjects_used(q: &HistoryQuery, log: Log) -> bool {

@@ -152,6 +152,36 @@ async fn queries_filter_by_machine_and_kind_and_page() {
         .query(Log::History, query(Store::History, &[("after", "999999")]))
         .await
         .unwrap_err();
+    // Newest first, through the index (a kind) and in time order (no selector): the same
+    // records in the reverse order, paged on from each page's last record.
+    for selector in [vec![("kind", "alarm")], vec![]] {
+        let all = h
+            .query(Log::History, query(Store::History, &selector))
+            .await
+            .unwrap();
+        let mut newest = Vec::new();
+        let mut after = String::new();
+        loop {
+            let mut p = selector.clone();
+            p.extend([("order", "newest"), ("limit", "7")]);
+            if !after.is_empty() {
+                p.push(("after", after.as_str()));
+            }
+            let page = h
+                .query(Log::History, query(Store::History, &p))
+                .await
+                .unwrap();
+            assert!(page.records.len() <= 7);
+            newest.extend(page.records.iter().map(|r| r.seq));
+            if !page.more {
+                break;
+            }
+            after = page.next_after.to_string();
+        }
+        let mut oldest: Vec<u64> = all.records.iter().map(|r| r.seq).collect();
+        oldest.reverse();
+        assert_eq!(newest, oldest, "{selector:?}");
+    }
     assert!(matches!(e, HistoryError::NoSuchRecord(999_999)), "{e}");
     stop.cancel();
     writer.await.unwrap();

@@ -451,11 +451,32 @@ async fn history_is_read_by_time_range_kind_machine_and_tag() {
     )
     .await;
     assert!(next.records[0].seq > first.records[1].seq);
+    // Newest first, and on to older records from the page's last.
+    let newest: pb::HistoryPage = get_one(
+        &cell.client,
+        &format!("{}?tag=plc-1/parts;limit=2;order=newest", cell.keys.history()),
+        None,
+    )
+    .await;
+    assert!(newest.more && newest.records[0].seq > newest.records[1].seq);
+    assert!(newest.records[0].seq >= next.records[1].seq);
+    let older: pb::HistoryPage = get_one(
+        &cell.client,
+        &format!(
+            "{}?tag=plc-1/parts;limit=2;order=newest;after={}",
+            cell.keys.history(),
+            newest.next_after
+        ),
+        None,
+    )
+    .await;
+    assert!(older.records[0].seq < newest.records[1].seq, "{older:?}");
     // What cannot be read is refused, naming it.
     for (params, needle) in [
         ("_time=[yesterday..]", "_time"),
         ("kind=jobs", "\"jobs\" is not a kind"),
         ("limit=0", "limit"),
+        ("order=latest", "oldest or newest"),
         ("colour=red", "unknown parameter \"colour\""),
     ] {
         let e = get_err(

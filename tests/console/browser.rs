@@ -419,6 +419,17 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
         .await
         .unwrap();
     wait_css(&c, "#history-table tr[data-seq]").await;
+    // Newest first: what just happened is at the top of the page.
+    let seqs = c
+        .execute(
+            "return [...document.querySelectorAll('#history-table tr[data-seq]')].map((r) => Number(r.dataset.seq));",
+            vec![],
+        )
+        .await
+        .unwrap();
+    let seqs: Vec<u64> = serde_json::from_value(seqs).unwrap();
+    assert!(seqs.len() > 1, "{seqs:?}");
+    assert!(seqs.windows(2).all(|w| w[0] > w[1]), "newest first: {seqs:?}");
     screenshot(&c, "history").await;
 
     only_own_origin(&c, &gw.url).await;

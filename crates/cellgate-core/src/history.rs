@@ -38,10 +38,23 @@ pub struct HistoryQuery {
     pub tags: BTreeSet<String>,
     /// Records a page holds.
     pub limit: usize,
-    /// Only records after this `seq`.
+    /// Only records after this `seq` in the page's order: later ones oldest first, earlier
+    /// ones newest first (the page's `next_after` reads on either way).
     pub after: u64,
+    /// Which end of the range a page starts at.
+    pub order: Order,
     /// Utilisation buckets.
     pub bucket: Bucket,
+}
+
+/// Which end of the range a history or audit page starts at (`order=`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Order {
+    /// The oldest record first (`order=oldest`, the default): a log read on as it grows.
+    #[default]
+    Oldest,
+    /// The newest record first (`order=newest`): what just happened, at the top of a page.
+    Newest,
 }
 
 /// How utilisation divides time.
@@ -145,6 +158,7 @@ impl HistoryQuery {
             tags: BTreeSet::new(),
             limit: DEFAULT_LIMIT,
             after: 0,
+            order: Order::Oldest,
             bucket: Bucket::Hour,
         };
         let value = |name: &'static str, v: &str, reason: String| ParamError::Value {
@@ -216,6 +230,15 @@ impl HistoryQuery {
                         .parse()
                         .map_err(|_| value("after", v, "not a record number".to_string()))?;
                 }
+                "order" if store != Store::Utilisation => {
+                    q.order = match v {
+                        "oldest" => Order::Oldest,
+                        "newest" => Order::Newest,
+                        _ => {
+                            return Err(value("order", v, "must be oldest or newest".to_string()));
+                        }
+                    }
+                }
                 "bucket" if store == Store::Utilisation => {
                     q.bucket = match v {
                         "hour" => Bucket::Hour,
@@ -230,9 +253,9 @@ impl HistoryQuery {
                         name: other.chars().take(64).collect(),
                         takes: match store {
                             Store::History => {
-                                "a history query takes _time, machine, kind, tag, limit, after"
+                                "a history query takes _time, machine, kind, tag, limit, after, order"
                             }
-                            Store::Audit => "an audit query takes _time, machine, limit, after",
+                            Store::Audit => "an audit query takes _time, machine, limit, after, order",
                             Store::Utilisation => {
                                 "a utilisation query takes _time, machine, bucket"
                             }
@@ -249,9 +272,12 @@ impl HistoryQuery {
         Ok(q)
     }
 
-    /// Whether `record` answers the query (its time, machine, kind, tag and `after`).
+    /// Whether `record` answers the query (its time, machine, kind, tag and, oldest first,
+    /// `after`; newest first the store's range ends before `after`'s record).
     pub fn takes(&self, record: &pb::HistoryRecord) -> bool {
-        if record.unix_ms < self.from_ms || record.unix_ms > self.to_ms || record.seq <= self.after
+        if record.unix_ms < self.from_ms
+            || record.unix_ms > self.to_ms
+            || (self.order == Order::Oldest && record.seq <= self.after)
         {
             return false;
         }

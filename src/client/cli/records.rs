@@ -314,6 +314,9 @@ pub struct HistoryArgs {
     /// Go on after this record number (the `#` of the last one printed).
     #[arg(long, value_name = "SEQ")]
     pub after: Option<u64>,
+    /// The newest record first (--after then goes on to older ones).
+    #[arg(long)]
+    pub newest: bool,
     /// Print the page as JSON (a HistoryPage).
     #[arg(long)]
     pub json: bool,
@@ -340,6 +343,9 @@ impl HistoryArgs {
         }
         if let Some(a) = self.after {
             p.push(("after".to_string(), a.to_string()));
+        }
+        if self.newest {
+            p.push(("order".to_string(), "newest".to_string()));
         }
         Ok(p)
     }
@@ -422,6 +428,9 @@ pub struct AuditCommand {
     /// Go on after this record number (the `#` of the last one printed).
     #[arg(long, value_name = "SEQ")]
     pub after: Option<u64>,
+    /// The newest record first (--after then goes on to older ones).
+    #[arg(long)]
+    pub newest: bool,
     /// Print the page as JSON (a HistoryPage).
     #[arg(long)]
     pub json: bool,
@@ -444,6 +453,7 @@ impl ClientCommand for AuditCommand {
             time: self.time.clone(),
             limit: self.limit,
             after: self.after,
+            newest: self.newest,
             json: self.json,
         };
         args.print(client, io, true).await

@@ -1,4 +1,5 @@
-// The cell's history and audit trail: filters, a table of records paged with `after`,
+// The cell's history and audit trail: filters, a table of records newest (or oldest) first
+// paged with `after`,
 // CSV export of the same selection.
 import {
   h, fill, api, can, alertError, enc, cellPath, query, field, select, act, bytes, dateTime, who, alarmText, enumWord,
@@ -29,12 +30,14 @@ export async function renderHistory(ctx, cell, params) {
   const range = select('hist-range', RANGES, params.get('range') || '24h');
   const from = h('input', { id: 'hist-from', type: 'datetime-local', value: params.get('from') || '', step: '1' });
   const to = h('input', { id: 'hist-to', type: 'datetime-local', value: params.get('to') || '', step: '1' });
-  const limit = select('hist-limit', [['100', '100'], ['200', '200'], ['500', '500'], ['1000', '1000']], params.get('limit') || '200');
+  const limit = select('hist-limit', [['100', '100'], ['200', '200'], ['500', '500'], ['1000', '1000']], params.get('limit') || '100');
+  // What just happened on top by default; oldest first reads a shift as it went.
+  const order = select('hist-order', [['newest', 'Newest first'], ['oldest', 'Oldest first']], params.get('order') || 'newest');
   const kindField = field('Kind', kind);
   const custom = h('div', { class: 'row' }, field('From (local time)', from), field('To (local time)', to, 'empty: now'));
   const showBtn = h('button', { type: 'submit', id: 'hist-show' }, 'Show');
   const form = h('form', { class: 'card stack', role: 'search', 'aria-label': 'Filters' },
-    h('div', { class: 'row' }, field('Machine or PLC', machine), kindField, field('Time', range), field('Per page', limit)),
+    h('div', { class: 'row' }, field('Machine or PLC', machine), kindField, field('Time', range), field('Order', order), field('Per page', limit)),
     custom, h('div', { class: 'actions' }, showBtn));
 
   const tabBar = h('div', { role: 'tablist', class: 'tabs', 'aria-label': 'Records' });
@@ -66,6 +69,7 @@ export async function renderHistory(ctx, cell, params) {
     const p = { _time: timeParam(range.value, from.value, to.value), machine: machine.value };
     if (tab === 'history') p.kind = kind.value;
     p.limit = limit.value;
+    p.order = order.value;
     return p;
   };
 
@@ -77,7 +81,7 @@ export async function renderHistory(ctx, cell, params) {
       return;
     }
     // Keep the filters in the address so the view can be bookmarked (without re-rendering).
-    const hp = new URLSearchParams({ tab, machine: machine.value, kind: kind.value, range: range.value, from: from.value, to: to.value, limit: limit.value });
+    const hp = new URLSearchParams({ tab, machine: machine.value, kind: kind.value, range: range.value, from: from.value, to: to.value, order: order.value, limit: limit.value });
     for (const [k, v] of Array.from(hp.entries())) if (!v) hp.delete(k);
     history.replaceState(null, '', `#/cell/${enc(cell)}/history?${hp}`);
     const url = `${cellPath(cell)}/${tab}${query({ ...sel, after })}`;
@@ -86,7 +90,7 @@ export async function renderHistory(ctx, cell, params) {
     const page = await api('GET', url);
     if (!ctx.alive) return;
     const recs = page.records || [];
-    status.textContent = `${recs.length} record${recs.length === 1 ? '' : 's'} from ${dateTime(page.from_unix_ms)} to ${dateTime(page.to_unix_ms)}, oldest first${afters.length ? `, page ${afters.length + 1}` : ''}${page.more ? '; more follow' : ''}.`;
+    status.textContent = `${recs.length} record${recs.length === 1 ? '' : 's'} from ${dateTime(page.from_unix_ms)} to ${dateTime(page.to_unix_ms)}, ${order.value === 'newest' ? 'newest' : 'oldest'} first${afters.length ? `, page ${afters.length + 1}` : ''}${page.more ? '; more follow' : ''}.`;
     const t = h('table', { id: 'history-table', 'aria-label': tab === 'audit' ? 'Audit records' : 'History records' },
       h('thead', null, h('tr', null, ['Time', '#', tab === 'audit' ? 'Target' : 'Machine', 'Kind', 'What'].map((x) => h('th', { scope: 'col' }, x)))));
     const body = h('tbody');

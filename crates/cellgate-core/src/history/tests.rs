@@ -58,6 +58,15 @@ fn parameters_are_read_and_bad_ones_named() {
     assert!(e.to_string().contains("hour or shift"), "{e}");
     let e = parse(Store::History, &[("tag", "parts")]).unwrap_err();
     assert!(e.to_string().contains("PLC/NAME"), "{e}");
+    assert_eq!(parse(Store::History, &[]).unwrap().order, Order::Oldest);
+    assert_eq!(
+        parse(Store::Audit, &[("order", "newest")]).unwrap().order,
+        Order::Newest
+    );
+    let e = parse(Store::History, &[("order", "latest")]).unwrap_err();
+    assert!(e.to_string().contains("oldest or newest"), "{e}");
+    let e = parse(Store::Utilisation, &[("order", "newest")]).unwrap_err();
+    assert!(matches!(e, ParamError::Unknown { .. }), "{e}");
     let e = HistoryQuery::parse(Store::History, [("_time", "[b..a]")], |_| Ok((5, 4)), NOW)
         .unwrap_err();
     assert!(e.to_string().contains("empty"), "{e}");
