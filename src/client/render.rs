@@ -186,8 +186,22 @@ pub fn status_table(statuses: &[pb::MachineStatus]) -> String {
         return "no machine answered\n".to_string();
     }
     let header = [
-        "MACHINE", "PROTOCOL", "LINK", "SAT", "BUFFERED", "JOB", "WAITING", "DO", "DI", "NC SENT",
-        "JOBS OK", "FAILED", "PUNCHED", "RETRIES", "ERRORS", "ALARMS",
+        "MACHINE",
+        "PROTOCOL",
+        "LINK",
+        "SAT",
+        "BUFFERED",
+        "JOB",
+        "WAITING",
+        "DO",
+        "DI",
+        "NC SENT",
+        "JOBS OK",
+        "FAILED",
+        "PUNCHED",
+        "RETRIES",
+        "ERRORS",
+        "LINK ALARMS",
     ];
     let rows: Vec<Vec<String>> = statuses
         .iter()

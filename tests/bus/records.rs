@@ -454,7 +454,10 @@ async fn history_is_read_by_time_range_kind_machine_and_tag() {
     // Newest first, and on to older records from the page's last.
     let newest: pb::HistoryPage = get_one(
         &cell.client,
-        &format!("{}?tag=plc-1/parts;limit=2;order=newest", cell.keys.history()),
+        &format!(
+            "{}?tag=plc-1/parts;limit=2;order=newest",
+            cell.keys.history()
+        ),
         None,
     )
     .await;

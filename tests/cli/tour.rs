@@ -23,15 +23,18 @@ fn repo() -> PathBuf {
 struct Gateway {
     child: Child,
     endpoint: String,
-    _dir: tempfile::TempDir,
+    dir: tempfile::TempDir,
 }
 
 impl Gateway {
     /// Starts it and returns it with what it printed once it served.
     fn start() -> (Gateway, String) {
-        let port = free_port();
-        let endpoint = format!("tcp/127.0.0.1:{port}");
-        let dir = tempfile::tempdir().unwrap();
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        Gateway::start_in(tempfile::tempdir().unwrap(), endpoint)
+    }
+
+    /// Starts it in `dir` (its library, journal and history there), listening on `endpoint`.
+    fn start_in(dir: tempfile::TempDir, endpoint: String) -> (Gateway, String) {
         let mut child = command([
             "run",
             "--listen",
@@ -67,7 +70,7 @@ impl Gateway {
             Gateway {
                 child,
                 endpoint,
-                _dir: dir,
+                dir,
             },
             printed,
         )
@@ -112,13 +115,20 @@ impl Gateway {
         }
     }
 
-    fn stop(mut self) -> Option<i32> {
+    fn stop(self) -> Option<i32> {
+        self.stop_keeping().0
+    }
+
+    /// Stops it as Ctrl-C does; its exit code, its directory and endpoint for a restart.
+    fn stop_keeping(mut self) -> (Option<i32>, tempfile::TempDir, String) {
         // SAFETY: kill(2) on the pid of a child this test spawned and has not reaped.
         unsafe {
             libc::kill(self.child.id() as libc::pid_t, libc::SIGINT);
         }
-        common::cli::wait_with_deadline(&mut self.child, Duration::from_secs(20))
-            .and_then(|s| s.code())
+        let code = common::cli::wait_with_deadline(&mut self.child, Duration::from_secs(20))
+            .and_then(|s| s.code());
+        let dir = std::mem::replace(&mut self.dir, tempfile::tempdir().unwrap());
+        (code, dir, std::mem::take(&mut self.endpoint))
     }
 }
 
@@ -181,6 +191,10 @@ fn the_readme_tour_works_as_written() {
         err.contains("completed: 136 B sent") && err.contains("the 1 B after the EOR % not sent"),
         "{err}"
     );
+    assert!(
+        err.contains("accepted by mill-1, next in its queue"),
+        "{err}"
+    );
     assert!(g.ok("cellgate jobs").contains("no job active or waiting"));
     g.ok("cellgate program put O1234 examples/programs/O1234.nc");
     assert!(g.ok("cellgate program ls").contains("O1234 "));
@@ -232,7 +246,10 @@ fn the_readme_tour_works_as_written() {
         g.ok("cellgate tag get recipe")
             .starts_with("plc-1/recipe = 42 (good, writable)")
     );
-    g.ok("cellgate plc write plc-1 D 10 0x1234 65535");
+    assert_eq!(
+        g.ok("cellgate plc write plc-1 D 10 0x1234 65535").trim(),
+        "plc-1: 2 word(s) written to D10"
+    );
     let words = g.ok("cellgate plc read plc-1 D 10 --count 2");
     assert!(
         words.contains("D10 = 4660 (0x1234)") && words.contains("D11 = 65535 (0xFFFF)"),
@@ -272,7 +289,82 @@ fn the_readme_tour_works_as_written() {
         "{health}"
     );
 
-    // 9. Ctrl-C stops it cleanly.
+    // 9. Revisions: a changed copy stored, its history, the comparison, the release.
+    let scratch = tempfile::tempdir().unwrap();
+    let copy = scratch.path().join("O1234.nc");
+    g.ok(&format!("cellgate program get O1234 -o {}", copy.display()));
+    let text = std::fs::read_to_string(&copy).unwrap();
+    assert!(text.contains("N30 G01 X50.0 F300"), "{text}");
+    std::fs::write(
+        &copy,
+        text.replace("N30 G01 X50.0 F300", "N30 G01 X50.0 F250"),
+    )
+    .unwrap();
+    g.ok(&format!(
+        "cellgate program put O1234 {} --comment feed-F250",
+        copy.display()
+    ));
+    let revisions = g.ok("cellgate program history O1234");
+    let rows: Vec<&str> = revisions.lines().skip(1).collect();
+    assert!(
+        rows.len() == 2 && rows[0].starts_with("2 ") && rows[0].contains("feed-F250"),
+        "{revisions}"
+    );
+    let (code, diff, _) = g.run("cellgate program diff O1234");
+    assert_eq!(code, 1, "they differ: {diff}");
+    assert!(
+        diff.contains("-N30 G01 X50.0 F300") && diff.contains("+N30 G01 X50.0 F250"),
+        "{diff}"
+    );
+    g.ok("cellgate program release O1234 --comment proven");
+
+    // 10. The history, newest first where asked, the audit and utilisation.
+    let history = g.ok("cellgate history --since 1h");
+    assert!(history.contains("gateway started"), "{history}");
+    // The history commits once a second: step 8's job may be a moment away.
+    let jobs = g.until(
+        "cellgate history mill-1 --kind job --newest",
+        Duration::from_secs(10),
+        |out| out.lines().count() >= 2,
+    );
+    let jobs: Vec<&str> = jobs.lines().collect();
+    assert!(
+        jobs[0].contains(job) && jobs.iter().all(|l| l.contains(" mill-1 ")),
+        "the last job first: {jobs:?}"
+    );
+    let audit = g.ok("cellgate audit --since 1h");
+    assert!(
+        audit.contains("program.release O1234 revision 2"),
+        "{audit}"
+    );
+    let (code, utilisation, err) = g.run("cellgate utilisation mill-1 --since 1h");
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        utilisation.lines().nth(1).unwrap().starts_with("mill-1 "),
+        "{utilisation}"
+    );
+    assert!(
+        !err.contains("older form"),
+        "the tour uses the current form: {err}"
+    );
+
+    // 11. Ctrl-C stops it cleanly. A job the link had taken fails "gateway restarted"; the
+    // one waiting behind it runs after the next start.
+    g.ok("cellgate sim auto mill-1 off");
+    let taken = g.ok("cellgate submit mill-1 examples/programs/O1234.nc --detach");
+    let waiting = g.ok("cellgate submit mill-1 examples/programs/O1234.nc --detach");
+    let (taken, waiting) = (taken.trim(), waiting.trim());
+    g.until("cellgate jobs", Duration::from_secs(20), |out| {
+        out.lines()
+            .any(|l| l.contains(taken) && l.contains("active"))
+    });
+    let (code, dir, endpoint) = g.stop_keeping();
+    assert_eq!(code, Some(0));
+    let (g, _) = Gateway::start_in(dir, endpoint);
+    let followed = g.ok(&format!("cellgate job {waiting} --follow"));
+    assert!(followed.contains(": completed: 136 B sent"), "{followed}");
+    let (_, failed, _) = g.run(&format!("cellgate job {taken}"));
+    assert!(failed.contains("gateway restarted"), "{failed}");
     assert_eq!(g.stop(), Some(0));
 }
 

@@ -429,7 +429,10 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
         .unwrap();
     let seqs: Vec<u64> = serde_json::from_value(seqs).unwrap();
     assert!(seqs.len() > 1, "{seqs:?}");
-    assert!(seqs.windows(2).all(|w| w[0] > w[1]), "newest first: {seqs:?}");
+    assert!(
+        seqs.windows(2).all(|w| w[0] > w[1]),
+        "newest first: {seqs:?}"
+    );
     screenshot(&c, "history").await;
 
     only_own_origin(&c, &gw.url).await;

@@ -255,7 +255,9 @@ impl HistoryQuery {
                             Store::History => {
                                 "a history query takes _time, machine, kind, tag, limit, after, order"
                             }
-                            Store::Audit => "an audit query takes _time, machine, limit, after, order",
+                            Store::Audit => {
+                                "an audit query takes _time, machine, limit, after, order"
+                            }
                             Store::Utilisation => {
                                 "a utilisation query takes _time, machine, bucket"
                             }

@@ -197,11 +197,14 @@ impl ClientCommand for SubmitArgs {
             let _ = writeln!(io.out, "{job}");
         }
         let _ = io.out.flush();
-        let _ = writeln!(
-            io.err,
-            "{job}: accepted by {machine}, {} job(s) ahead",
-            accepted.queue_position
-        );
+        // The position counts waiting jobs only: a job being sent may still be ahead.
+        let _ = match accepted.queue_position {
+            0 => writeln!(io.err, "{job}: accepted by {machine}, next in its queue"),
+            n => writeln!(
+                io.err,
+                "{job}: accepted by {machine}, {n} waiting job(s) ahead of it"
+            ),
+        };
         if self.detach {
             follower.close().await;
             return Ok(0);
