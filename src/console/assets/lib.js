@@ -382,7 +382,8 @@ export const connectionChanged = () => connListener(connSummary());
 const EVENT_TYPES = ['status', 'job', 'alarm', 'punch', 'di', 'tag', 'plc', 'g05'];
 
 // One EventSource on a cell's events, reconnected with exponential backoff. onResync runs
-// after a reconnect so the page can fetch what it missed.
+// each time the stream opens, the first time too: a page reads what it shows before its
+// stream is open, and what happened in between (a job started) would be missed.
 export class Live {
   constructor(cell, machines, onResync) {
     this.cell = cell;
@@ -412,7 +413,7 @@ export class Live {
       this.open = true;
       this.retryAt = 0;
       connectionChanged();
-      if (this.failures > 0 && this.onResync) this.onResync();
+      if (this.onResync) this.onResync();
     };
     es.onerror = () => {
       es.close();
