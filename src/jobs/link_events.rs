@@ -31,13 +31,18 @@ impl Manager {
             }
             LinkEvent::JobStarted { job } => self.job_started(job),
             LinkEvent::Progress {
-                job, acked, sent, ..
-            } => self.job_progress(job, acked, sent),
+                job,
+                acked,
+                sent,
+                block,
+                ..
+            } => self.job_progress(job, acked, sent, block),
             LinkEvent::JobDone {
                 job,
                 bytes,
                 confirmation,
-            } => self.job_done(job, bytes, confirmation),
+                block,
+            } => self.job_done(job, bytes, confirmation, block),
             LinkEvent::JobFailed {
                 job,
                 offset,
@@ -81,13 +86,16 @@ impl Manager {
 
     /// Bytes acknowledged and on the line: a `progress` event at most every
     /// [`PROGRESS_MIN_INTERVAL`], and the journal's checkpoint.
-    fn job_progress(&mut self, job: JobId, acked: u64, sent: u64) {
+    fn job_progress(&mut self, job: JobId, acked: u64, sent: u64, block: Option<Arc<str>>) {
         let Some(active) = self.active_for(job) else {
             return;
         };
         let published = published_bytes(active);
         active.acked = acked.max(active.acked);
         active.sent = sent.max(active.sent);
+        if block.is_some() {
+            active.block = block;
+        }
         let Some(rate) = active
             .shaper
             .offer(Instant::now(), active.acked, active.sent)
@@ -100,6 +108,7 @@ impl Manager {
             active.sent,
             active.record.stream_size(),
         );
+        let block = active.block.as_deref().unwrap_or_default().to_string();
         self.totals.nc_bytes_sent += acked.saturating_sub(published);
         let event = self.emit(
             &id,
@@ -108,10 +117,12 @@ impl Manager {
                 bytes_total: Some(size),
                 rate_bps: rate,
                 bytes_on_line: sent,
+                block,
             }),
             None,
         );
         if let Some(active) = self.active.as_mut() {
+            active.published_block.clone_from(&active.block);
             // The acknowledged offset survives a crash once the checkpoint is written.
             active.record.acked = acked;
             active.record.last_event = event.encode_to_vec();
@@ -124,9 +135,39 @@ impl Manager {
     }
 
     /// The protocol confirmed the whole program: `completed`.
-    fn job_done(&mut self, job: JobId, bytes: u64, confirmation: Confirmation) {
+    fn job_done(
+        &mut self,
+        job: JobId,
+        bytes: u64,
+        confirmation: Confirmation,
+        block: Option<Arc<str>>,
+    ) {
         if self.active_for(job).is_none() {
             return;
+        }
+        // The last block, if the progress has not said it yet: the block being fed reaches
+        // the program's end before `completed`.
+        if let Some(active) = self.active.as_ref()
+            && block.is_some()
+            && block != active.published_block
+        {
+            let (id, size, rate) = (
+                active.record.id.clone(),
+                active.record.stream_size(),
+                active.shaper.last_rate,
+            );
+            let block = block.as_deref().unwrap_or_default().to_string();
+            self.emit(
+                &id,
+                Kind::Progress(pb::job_event::Progress {
+                    bytes_sent: bytes,
+                    bytes_total: Some(size),
+                    rate_bps: rate,
+                    bytes_on_line: bytes,
+                    block,
+                }),
+                None,
+            );
         }
         let Some(active) = self.active.take() else {
             return;

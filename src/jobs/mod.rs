@@ -423,6 +423,10 @@ struct Active {
     /// Program bytes the board acknowledged, and handed to the line.
     acked: u64,
     sent: u64,
+    /// The last block the board acknowledged whole, as the link last said, and as the last
+    /// published progress said.
+    block: Option<Arc<str>>,
+    published_block: Option<Arc<str>>,
     shaper: ProgressShaper,
     cancel_requested: bool,
     /// The link alarm (with its CNC number) seen while this job ran.
@@ -1051,6 +1055,8 @@ impl Manager {
                 started_at: None,
                 acked: 0,
                 sent: 0,
+                block: None,
+                published_block: None,
                 shaper: ProgressShaper::new(now, Some(size)),
                 cancel_requested: false,
                 alarm: None,

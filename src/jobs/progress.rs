@@ -11,6 +11,8 @@ pub struct ProgressShaper {
     last_at: Instant,
     pub(super) last_acked: u64,
     last_sent: u64,
+    /// The rate the last published event carried.
+    pub(super) last_rate: u64,
 }
 
 impl ProgressShaper {
@@ -21,6 +23,7 @@ impl ProgressShaper {
             last_at: now,
             last_acked: 0,
             last_sent: 0,
+            last_rate: 0,
         }
     }
 
@@ -48,6 +51,7 @@ impl ProgressShaper {
         self.last_at = now;
         self.last_acked = acked.max(self.last_acked);
         self.last_sent = sent.max(self.last_sent);
+        self.last_rate = rate;
         Some(rate)
     }
 }

@@ -59,6 +59,7 @@ impl StandIn {
                     acked: 0,
                     sent: 0,
                     total: None,
+                    block: None,
                 });
             }
         }
@@ -127,6 +128,7 @@ impl StandIn {
         self.emit(LinkEvent::JobStarted { job: job.id });
         let mut sent = 0u64;
         let mut data = Vec::new();
+        let mut fed = cellgate_core::program::fed::FedBlocks::new();
         let mut buf = vec![0u8; self.chunk];
         let JobSource::Program(mut source) = job.source else {
             panic!("the job manager hands programs from the journal");
@@ -138,11 +140,13 @@ impl StandIn {
             }
             sent += n as u64;
             data.extend_from_slice(&buf[..n]);
+            fed.push(&buf[..n]);
             self.emit(LinkEvent::Progress {
                 job: job.id,
                 acked: sent,
                 sent,
                 total: job.size,
+                block: fed.acked(sent),
             });
             tokio::select! {
                 () = tokio::time::sleep(self.pace) => {}
@@ -166,6 +170,7 @@ impl StandIn {
             job: job.id,
             bytes: sent,
             confirmation: Confirmation::Acknowledged,
+            block: fed.acked(sent),
         });
     }
 }

@@ -31,6 +31,7 @@ pub type ProgramSource = Box<dyn AsyncRead + Send + Unpin>;
 use cellgate_core::codes::BusCode;
 pub use cellgate_core::fanuc::host::Chunk;
 use cellgate_core::pb;
+use cellgate_core::program::fed::FedBlocks;
 
 /// What a job's program is read from.
 pub enum JobSource {
@@ -172,18 +173,22 @@ pub enum LinkEvent {
         what: Option<&'static str>,
         since_unix_ms: u64,
     },
-    /// `acked`: program bytes the board acknowledged; `sent`: handed to the line.
+    /// `acked`: program bytes the board acknowledged; `sent`: handed to the line; `block`:
+    /// the last block acknowledged whole (none yet, or a stream of chunks).
     Progress {
         job: JobId,
         acked: u64,
         sent: u64,
         total: Option<u64>,
+        block: Option<Arc<str>>,
     },
-    /// The board acknowledged the whole program, `bytes` long, as `confirmation` says.
+    /// The board acknowledged the whole program, `bytes` long, as `confirmation` says;
+    /// `block`: its last block.
     JobDone {
         job: JobId,
         bytes: u64,
         confirmation: Confirmation,
+        block: Option<Arc<str>>,
     },
     /// `offset`: program bytes the board acknowledged; `sent`: handed to the line.
     JobFailed {
@@ -383,6 +388,8 @@ struct ActiveJob {
     /// When the last progress event went, and the figures it carried (acked, sent).
     last_progress: Option<(Instant, u64, u64)>,
     cancelling: bool,
+    /// The program's bytes from the last progress event on, for the block being fed.
+    fed: FedBlocks,
 }
 
 /// What of the pump's running totals is already in the link's counters.
@@ -702,6 +709,9 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             }
             Ok(n) => {
                 let data = Bytes::copy_from_slice(&self.buf[..n]);
+                if let Some(active) = self.active.as_mut() {
+                    active.fed.push(&data);
+                }
                 self.engine_command(EngineCommand::ProgramData(data));
             }
             Err(e) => {
@@ -745,6 +755,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             acked: 0,
             last_progress: None,
             cancelling: false,
+            fed: FedBlocks::new(),
         });
     }
 
@@ -815,7 +826,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                 }
             }
             EngineEvent::ProgramDone { confirmation } => match self.active.take() {
-                Some(active) => {
+                Some(mut active) => {
                     // The whole program is acknowledged: its length is what went out.
                     let bytes = active.sent.max(active.acked);
                     tracing::info!(job = active.id, bytes, ?confirmation, "program delivered");
@@ -823,6 +834,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                         job: active.id,
                         bytes,
                         confirmation,
+                        block: active.fed.acked(bytes),
                     }
                 }
                 None => return,
@@ -870,6 +882,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             acked: active.acked,
             sent: active.sent,
             total: active.size,
+            block: active.fed.acked(active.acked),
         })
     }
 }

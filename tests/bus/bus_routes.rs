@@ -180,6 +180,7 @@ impl FakeLink {
                 acked: data.len() as u64,
                 sent: data.len() as u64,
                 total: job.size,
+                block: None,
             });
             tokio::select! {
                 () = tokio::time::sleep(self.pace) => {}
@@ -205,6 +206,7 @@ impl FakeLink {
             job: job.id,
             bytes,
             confirmation: cellgate_core::fanuc::host::Confirmation::Acknowledged,
+            block: None,
         });
         self.emit(LinkEvent::State {
             state: LinkState::Ready,

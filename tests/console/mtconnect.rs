@@ -197,6 +197,8 @@ async fn a_job_shows_program_and_execution_and_sequences_have_no_gaps() {
     .await;
     // An inline job's program is named by its O-number.
     assert_eq!(value_of(&current, "mill-1_program").unwrap().2, "O4321");
+    // The block being fed ends at the program's last block.
+    assert_eq!(value_of(&current, "mill-1_block_fed").unwrap().2, "M30");
 
     // Every observation since the start, in pages of 50, numbered without a gap (up to the
     // last one the current document saw; more may have come since); the execution went
@@ -206,6 +208,7 @@ async fn a_job_shows_program_and_execution_and_sequences_have_no_gaps() {
     let mut from = first;
     let mut seqs = Vec::new();
     let mut executions = Vec::new();
+    let mut blocks = Vec::new();
     while from <= last {
         let count = 50.min(last + 1 - from);
         let (status, page) = get(&format!("{url}/sample?from={from}&count={count}")).await;
@@ -213,6 +216,9 @@ async fn a_job_shows_program_and_execution_and_sequences_have_no_gaps() {
         for o in observations(&page) {
             if o.1 == "mill-1_execution" {
                 executions.push(o.4.clone());
+            }
+            if o.1 == "mill-1_block_fed" && o.4 != "UNAVAILABLE" {
+                blocks.push((o.2, o.4.clone()));
             }
             seqs.push(o.2);
         }
@@ -224,6 +230,16 @@ async fn a_job_shows_program_and_execution_and_sequences_have_no_gaps() {
     seqs.sort_unstable();
     let expected: Vec<u64> = (first..from).collect();
     assert_eq!(seqs, expected, "sequences without gaps");
+    // The blocks went by in the program's order: their sequence numbers rise.
+    blocks.sort_unstable();
+    let numbers: Vec<u32> = blocks
+        .iter()
+        .filter_map(|(_, b)| b.strip_prefix('N')?.split(' ').next()?.parse().ok())
+        .collect();
+    assert!(
+        numbers.len() >= 3 && numbers.windows(2).all(|w| w[0] < w[1]),
+        "{blocks:?}"
+    );
     let active = executions.iter().position(|e| e == "ACTIVE");
     let done = executions.iter().rposition(|e| e == "PROGRAM_COMPLETED");
     assert!(

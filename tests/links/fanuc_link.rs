@@ -23,12 +23,34 @@ async fn one_mib(protocol: &str, packet_n: Option<u8>, baud: u32) {
     let program = nc_program(1 << 20, 7);
     assert!(program.len() > 1_000_000);
     queue(&m.link, 1, program.clone()).await;
+    // The block being fed, with each progress event: the last line that ends within the
+    // acknowledged bytes.
+    let mut blocks = 0;
     let bytes = next_event(&mut events, HOUR, |ev| match ev {
         LinkEvent::JobDone { job: 1, bytes, .. } => Some(*bytes),
         LinkEvent::JobFailed { job: 1, reason, .. } => panic!("job failed: {reason}"),
+        LinkEvent::Progress {
+            job: 1,
+            acked,
+            block: Some(block),
+            ..
+        } => {
+            let acked = usize::try_from(*acked).unwrap();
+            let upto = program.get(..acked).unwrap();
+            let end = upto.iter().rposition(|b| *b == b'\n').unwrap();
+            let start = upto.get(..end).unwrap().iter().rposition(|b| *b == b'\n');
+            let line = &upto[start.map_or(0, |s| s + 1)..end];
+            assert_eq!(block.as_bytes(), line, "at {acked}");
+            blocks += 1;
+            None
+        }
         _ => None,
     })
     .await;
+    // Protocol A acknowledges at each exchange after DATs (§4.4.1); Expansion A a run of
+    // packets at its end packet, so its block moves with the runs.
+    let least = if protocol == "a" { 50 } else { 1 };
+    assert!(blocks >= least, "{blocks} progress events named a block");
     assert_eq!(bytes, program.len() as u64);
     let board = m.board.as_ref().unwrap();
     let snap = board.wait_for(|s| !s.programs.is_empty()).await;

@@ -170,6 +170,7 @@ fn job_events_read_as_sentences() {
         bytes_total: Some(2048),
         rate_bps: 1900,
         bytes_on_line: 512,
+        ..Default::default()
     }));
     assert_eq!(job_kind_text(&p), "sent 512 B of 2.0 KiB (25%), 1900 B/s");
     let p = ev(Kind::Progress(pb::job_event::Progress {

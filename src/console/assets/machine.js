@@ -97,9 +97,12 @@ export async function renderMachine(ctx, cell, name) {
         }
         const p = h('progress', { 'data-field': 'progress', max: String(total || 1), value: String(Math.min(sent, total || 1)), 'aria-label': `Progress of job ${j.job_id}` });
         const txt = h('span', { class: 'small-text' });
-        prog = h('span', { class: 'prog' }, p, txt);
-        activeRefs = { id: j.job_id, p, txt, total };
+        // The last block the remote buffer took whole: the CNC is at most there.
+        const fed = h('div', { class: 'small-text muted code', 'data-field': 'block-fed', title: 'The last block the remote buffer took whole: the CNC executes up to it' });
+        prog = h('span', { class: 'prog' }, p, txt, fed);
+        activeRefs = { id: j.job_id, p, txt, total, fed };
         setText(txt, progressText(sent, total, 0));
+        if (last?.progress?.block) setText(fed, `fed: ${last.progress.block}`);
       }
       tr.append(h('td', { class: 'nowrap' }, j.job_id, ' ', active ? h('span', { class: 'badge st-sending' }, 'ACTIVE') : null), h('td', null, j.name),
         h('td', null, programRef(o?.program)), h('td', { class: 'num' }, j.priority),
@@ -259,6 +262,7 @@ export async function renderMachine(ctx, cell, name) {
         activeRefs.p.max = total;
         activeRefs.p.value = Math.min(num(ev.progress.bytes_sent), total);
         setText(activeRefs.txt, progressText(num(ev.progress.bytes_sent), total, num(ev.progress.rate_bps)));
+        if (ev.progress.block) setText(activeRefs.fed, `fed: ${ev.progress.block}`);
       });
     } else if (!ev.progress) {
       refetch();

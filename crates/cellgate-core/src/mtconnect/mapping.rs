@@ -71,6 +71,8 @@ pub struct MachineView {
     pub gateway_up: bool,
     status: Option<pb::MachineStatus>,
     program: Option<String>,
+    /// The last block the remote buffer took whole, of the job running or the last one.
+    block: Option<String>,
     job: Option<String>,
     job_end: Option<(String, JobEnd)>,
     part_count: Option<i64>,
@@ -103,12 +105,18 @@ impl MachineView {
             Some(Kind::Started(_)) => {
                 self.job = Some(e.job_id.clone());
                 self.job_end = None;
+                self.block = None;
                 if let Some(n) = name.filter(|n| !n.is_empty()) {
                     self.program = Some(n);
                 }
             }
-            Some(Kind::Progress(_)) if self.job.is_none() => {
-                self.job = Some(e.job_id.clone());
+            Some(Kind::Progress(p)) => {
+                if self.job.is_none() {
+                    self.job = Some(e.job_id.clone());
+                }
+                if !p.block.is_empty() && self.job.as_deref() == Some(e.job_id.as_str()) {
+                    self.block = Some(p.block.clone());
+                }
             }
             Some(k @ (Kind::Completed(_) | Kind::Failed(_) | Kind::Cancelled(_))) => {
                 // A waiting job cancelled says nothing of the one running.
@@ -306,6 +314,10 @@ impl MachineView {
             Role::Execution => Wanted::Value(self.execution()),
             Role::Program => Wanted::Value(match (&self.program, up) {
                 (Some(p), Some(_)) => text(p.as_str()),
+                _ => Value::Unavailable,
+            }),
+            Role::BlockFed => Wanted::Value(match (&self.block, up) {
+                (Some(b), Some(_)) => text(b.as_str()),
                 _ => Value::Unavailable,
             }),
             Role::PartCount => Wanted::Value(match (self.part_count, self.gateway_up) {

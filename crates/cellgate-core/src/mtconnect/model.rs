@@ -43,6 +43,8 @@ pub enum Role {
     Execution,
     /// A machine's PROGRAM.
     Program,
+    /// A machine's BLOCK `block_fed`: the last block the remote buffer took whole.
+    BlockFed,
     /// A machine's PART_COUNT, from a PLC tag.
     PartCount,
     /// A machine's DI image (G152).
@@ -403,6 +405,16 @@ impl Model {
             Category::Event,
             "PROGRAM",
             Role::Program,
+        );
+        // Named for what it is: the block the remote buffer took last, which the CNC executes
+        // when it comes to it (docs/mtconnect.md).
+        self.item(
+            path,
+            &format!("{d}_block_fed"),
+            Some("block_fed"),
+            Category::Event,
+            "BLOCK",
+            Role::BlockFed,
         );
         if let Some((plc, tag)) = &m.part_counter {
             let pc = self.item(

@@ -187,6 +187,23 @@ fn execution_follows_the_link_and_the_job() {
         current_value(&a, "mill-1_program"),
         Value::Text("O1234.nc".into())
     );
+    // The block being fed: none before the first progress that names one.
+    assert_eq!(current_value(&a, "mill-1_block_fed"), Value::Unavailable);
+    let progress = |block: &str| pb::JobEvent {
+        job_id: "mill-1-1-1".into(),
+        machine: "mill-1".into(),
+        kind: Some(pb::job_event::Kind::Progress(pb::job_event::Progress {
+            block: block.into(),
+            ..Default::default()
+        })),
+        ..Default::default()
+    };
+    a.update("demo", Update::Job(progress("N20 G01 X25. F150")), 4);
+    a.update("demo", Update::Job(progress("")), 4);
+    assert_eq!(
+        current_value(&a, "mill-1_block_fed"),
+        Value::Text("N20 G01 X25. F150".into())
+    );
     let done = pb::JobEvent {
         job_id: "mill-1-1-1".into(),
         machine: "mill-1".into(),
@@ -373,7 +390,12 @@ fn path_filters_select_by_type_id_name_and_component() {
     );
     assert_eq!(
         sel("//Device[@name=\"mill-1\"]//Path").unwrap(),
-        ["mill-1_execution", "mill-1_program", "mill-1_part_count"]
+        [
+            "mill-1_execution",
+            "mill-1_program",
+            "mill-1_block_fed",
+            "mill-1_part_count"
+        ]
     );
     assert_eq!(
         sel("//DataItem[@category=\"CONDITION\" and @type=\"SYSTEM\"]").unwrap(),

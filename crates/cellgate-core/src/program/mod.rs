@@ -4,6 +4,7 @@
 //! - [`scan`]: the checks every program passes before it is queued (size, 7-bit, the
 //!   protocol's control codes, EOR; §4.1, §6.2, §8.2);
 //! - [`blocks`]: blocks, their lines and sequence numbers, where a job starts or resumes;
+//! - [`fed`]: the block being fed, the last one the remote buffer acknowledged whole;
 //! - [`diff`]: two programs compared block by block (revisions, a punched program against
 //!   the library's);
 //! - [`folder`]: the DNC folder: which files are programs, and when a file is complete;
@@ -16,6 +17,7 @@
 
 pub mod blocks;
 pub mod diff;
+pub mod fed;
 pub mod folder;
 pub mod name;
 pub mod punch;

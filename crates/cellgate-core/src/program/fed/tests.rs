@@ -1,0 +1,79 @@
+use super::*;
+
+const PROGRAM: &[u8] = b"%\nO1234 (SQUARE)\nN10 G21 G90\n\nN20 G00 X0 Y0\nN30 M30\n%";
+
+fn at(fed: &mut FedBlocks, acked: u64) -> Option<String> {
+    fed.acked(acked).map(|s| s.to_string())
+}
+
+#[test]
+fn the_last_whole_block_acknowledged_is_named() {
+    let mut fed = FedBlocks::new();
+    fed.push(PROGRAM);
+    assert_eq!(at(&mut fed, 0), None);
+    // The tape mark is no block; a block half acknowledged is not fed yet.
+    assert_eq!(at(&mut fed, 2), None);
+    assert_eq!(at(&mut fed, 10), None);
+    assert_eq!(at(&mut fed, 17).as_deref(), Some("O1234 (SQUARE)"));
+    // An empty line leaves the last block as it was.
+    assert_eq!(at(&mut fed, 30).as_deref(), Some("N10 G21 G90"));
+    assert_eq!(at(&mut fed, 29).as_deref(), Some("N10 G21 G90"));
+    assert_eq!(
+        at(&mut fed, PROGRAM.len() as u64).as_deref(),
+        Some("N30 M30"),
+        "the EOR % is no block"
+    );
+}
+
+#[test]
+fn bytes_come_in_pieces_and_questions_skip_lines() {
+    // Byte by byte, asked at every offset, and in one question at the end: the same blocks.
+    let mut each = FedBlocks::new();
+    let mut seen = Vec::new();
+    for (i, b) in PROGRAM.iter().enumerate() {
+        each.push(&[*b]);
+        if let Some(t) = at(&mut each, i as u64 + 1)
+            && seen.last() != Some(&t)
+        {
+            seen.push(t);
+        }
+    }
+    assert_eq!(
+        seen,
+        ["O1234 (SQUARE)", "N10 G21 G90", "N20 G00 X0 Y0", "N30 M30"]
+    );
+    // A line across two questions is read whole; several lines in one, the last counts.
+    let mut fed = FedBlocks::new();
+    fed.push(&PROGRAM[..20]);
+    assert_eq!(at(&mut fed, 20).as_deref(), Some("O1234 (SQUARE)"));
+    fed.push(&PROGRAM[20..]);
+    assert_eq!(at(&mut fed, 29).as_deref(), Some("N10 G21 G90"));
+    // Asking past what was handed over reads what there is.
+    assert_eq!(at(&mut fed, 1_000).as_deref(), Some("N30 M30"));
+}
+
+#[test]
+fn a_long_block_is_cut_and_memory_stays_bounded() {
+    let mut fed = FedBlocks::new();
+    let long = format!("N10 ({})\n", "X".repeat(10_000));
+    // A line longer than the text kept, acknowledged in small steps.
+    fed.push(long.as_bytes());
+    for n in (0..long.len() as u64).step_by(100) {
+        fed.acked(n);
+        assert!(fed.head.len() <= MAX_BLOCK_TEXT);
+    }
+    let t = fed.acked(long.len() as u64).unwrap();
+    assert_eq!(t.chars().count(), MAX_BLOCK_TEXT);
+    assert!(t.starts_with("N10 (XXX"));
+    assert!(fed.window.is_empty());
+    // CR LF line ends and blanks are trimmed; bytes that are not UTF-8 do not stop it.
+    fed.push(b"  N20 G01 X1.\r\nN30 \xff\n");
+    assert_eq!(
+        fed.acked(long.len() as u64 + 15).as_deref(),
+        Some("N20 G01 X1.")
+    );
+    assert_eq!(
+        fed.acked(long.len() as u64 + 21).as_deref(),
+        Some("N30 \u{fffd}")
+    );
+}
