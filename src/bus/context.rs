@@ -22,11 +22,11 @@ use zenoh::pubsub::Subscriber;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample};
 
-use super::BusError;
 use super::audit::{Audit, Auditor};
 use super::keys::{CellKey, CellKeys, MachineLeaf, intersects};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, error_reply};
+use super::session::BusError;
 use crate::history::History;
 use crate::jobs::JobError;
 use crate::jobs::library::{LibraryError, ProgramLibrary};

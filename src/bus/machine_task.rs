@@ -9,7 +9,6 @@ use tokio::sync::{broadcast, watch};
 use tokio_util::sync::CancellationToken;
 use zenoh::liveliness::LivelinessToken;
 
-use super::BusError;
 use super::context::MachinePublisher;
 use super::context::RouteContext;
 use super::machine::{Extra, Machine};
@@ -17,6 +16,7 @@ use super::record::Recorder;
 use super::route_job::JobEventPublisher;
 use super::route_punch::{Outcome, PunchDesk, PunchSettings};
 use super::route_status::StatusPublisher;
+use super::session::BusError;
 use super::{route_alarm, route_io, route_punch};
 use crate::jobs::{JobsHandle, JobsSnapshot};
 use crate::link::driver::{LinkCommand, LinkEvent, LinkHandle};

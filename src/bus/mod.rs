@@ -58,7 +58,7 @@ pub mod session;
 
 pub use route_job::{FETCH_TIMEOUT, RECENT_JOBS};
 pub use route_plc::{PlcLink, STATUS_EVERY as PLC_STATUS_EVERY};
-pub use served::{MachineRoutes, PlcRoutes};
+pub use served::{MachineLink, MachineRoutes, PlcRoutes};
 pub use session::{BusError, open, open_cell};
 
 pub use cellgate_core::config::{BusConfig, BusMode};
@@ -82,18 +82,7 @@ use self::route_status::StatusRoute;
 use crate::history::History;
 use crate::jobs::journal::Journal;
 use crate::jobs::library::ProgramLibrary;
-use crate::link::driver::LinkHandle;
-use cellgate_core::config::{CellConfig, MachineConfig};
-
-/// A machine of the cell and its running link, as the gateway hands them to [`serve`].
-#[derive(Debug, Clone)]
-pub struct MachineLink {
-    pub config: MachineConfig,
-    pub link: LinkHandle,
-    /// The simulated board on the far end of a `sim` transport, for the `P/C/sim/M/...`
-    /// controls; `None` for a real machine.
-    pub sim: Option<crate::sim::BoardControl>,
-}
+use cellgate_core::config::CellConfig;
 
 /// Serves the cell's machines and program library on `session` until `shutdown` is
 /// cancelled, then undeclares everything: routes first, then each machine's job manager

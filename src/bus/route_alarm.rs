@@ -5,10 +5,10 @@
 
 use zenoh::qos::CongestionControl;
 
-use super::BusError;
 use super::context::MachinePublisher;
 use super::context::RouteContext;
 use super::keys::MachineLeaf;
+use super::session::BusError;
 use cellgate_core::pb;
 
 /// Declares one machine's alarm publisher: reliable, an alarm is never dropped.

@@ -14,10 +14,10 @@ use zenoh::handlers::FifoChannelHandler;
 use zenoh::query::{Query, Queryable};
 use zenoh_util::time_range::{TimeBound, TimeRange};
 
-use super::BusError;
 use super::context::{
     CellNames, Endpoint, Pool, RequestError, RouteContext, reply, reply_err, serve_route,
 };
+use super::session::BusError;
 use crate::history::Log;
 use cellgate_core::history::{self, HistoryQuery, Store};
 use cellgate_core::pb;

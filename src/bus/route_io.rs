@@ -19,7 +19,6 @@ use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::MachinePublisher;
 use super::context::{
@@ -28,6 +27,7 @@ use super::context::{
 };
 use super::keys::{MachineLeaf, do_out};
 use super::machine::Machine;
+use super::session::BusError;
 use crate::link::driver::{LinkCommand, LinkEvent};
 use cellgate_core::config::Permission;
 use cellgate_core::pb;

@@ -24,7 +24,6 @@ use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::{
     Endpoint, Pool, RequestError, RouteContext, Target, reply, reply_err, serve_route,
@@ -32,6 +31,7 @@ use super::context::{
 use super::keys::{CellKey, MachineLeaf, intersects, is_plain_chunk};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, schema_of};
+use super::session::BusError;
 use crate::jobs::JobSubmission;
 use crate::jobs::source::ProgramInput;
 use cellgate_core::config::Permission;

@@ -19,10 +19,10 @@ use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
 use zenoh::sample::{Locality, Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::{Endpoint, Pool, RequestError, RouteContext, serve_route};
 use super::keys::{CellKey, CellKeys, MachineLeaf, PlcArea, PlcKey};
+use super::session::BusError;
 use cellgate_core::config::Permission;
 
 /// The counter of puts and deletes on read keys, by kind of key.

@@ -32,11 +32,11 @@ use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::{Endpoint, Pool, RouteContext, Routed, reply, reply_err, serve_route};
 use super::keys::{PlcArea, PlcKey};
 use super::payload::{BusMessage, encoding, schema_of};
+use super::session::BusError;
 use crate::plc::{PlcEvent, PlcHandle, PlcLinkError, PlcSnapshot, TagError, TagWriteError};
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::Permission;

@@ -24,13 +24,13 @@ use zenoh::pubsub::Subscriber;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::{
     Endpoint, Pool, RequestError, RouteContext, publish_event, reply, reply_bytes, reply_err,
     serve_route,
 };
 use super::keys::{CellKey, intersects, program_changed};
+use super::session::BusError;
 use crate::jobs::library::Store;
 use cellgate_core::config::Permission;
 use cellgate_core::pb;

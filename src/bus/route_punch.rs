@@ -18,10 +18,10 @@
 
 use zenoh::qos::CongestionControl;
 
-use super::BusError;
 use super::context::MachinePublisher;
 use super::context::RouteContext;
 use super::keys::MachineLeaf;
+use super::session::BusError;
 use crate::jobs::library::{LibraryError, Store};
 use crate::jobs::source::ProgramInput;
 use crate::jobs::{JobError, JobSubmission, JobsHandle};

@@ -14,11 +14,11 @@ use zenoh::handlers::FifoChannelHandler;
 use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 
-use super::BusError;
 use super::audit::{Audit, Auditor, origin_of};
 use super::context::reply_err;
 use super::keys::CellKeys;
 use super::payload::encoding;
+use super::session::BusError;
 use crate::history::History;
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::{Permission, SecurityConfig};

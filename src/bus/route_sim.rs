@@ -13,10 +13,10 @@ use tokio_util::sync::CancellationToken;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::query::{Query, Queryable};
 
-use super::BusError;
 use super::context::{Endpoint, Pool, RequestError, RouteContext, reply, reply_err, serve_route};
 use super::keys::{CellKey, SimLeaf, intersects};
 use super::machine::Machine;
+use super::session::BusError;
 use crate::sim::{BoardControl, BoardSnapshot};
 use cellgate_core::fanuc::CodeSystem;
 use cellgate_core::pb;

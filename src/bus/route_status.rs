@@ -10,11 +10,11 @@ use zenoh::handlers::FifoChannelHandler;
 use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 
-use super::BusError;
 use super::context::MachinePublisher;
 use super::context::{RouteContext, reply};
 use super::keys::MachineLeaf;
 use super::machine::Machine;
+use super::session::BusError;
 use cellgate_core::pb;
 
 /// The status queryable of the cell. Undeclared when dropped.

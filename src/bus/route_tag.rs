@@ -19,13 +19,13 @@ use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::{Endpoint, Pool, reply, reply_err, serve_route};
 use super::keys::{PlcKey, intersects};
 use super::payload::tag_message;
 use super::payload::{BusMessage, schema_of};
 use super::route_plc::{PlcContext, PlcLink, PlcRequestError};
+use super::session::BusError;
 use crate::plc::PlcEvent;
 use cellgate_core::config::Permission;
 use cellgate_core::pb;

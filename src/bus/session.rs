@@ -9,10 +9,9 @@
 
 use std::path::{Path, PathBuf};
 
-use super::BusConfig;
 use super::acl::{self, AclError};
 use super::keys::CellKeys;
-use cellgate_core::config::CellConfig;
+use cellgate_core::config::{BusConfig, CellConfig};
 
 /// Why the Zenoh session could not be opened.
 #[derive(Debug, thiserror::Error)]
