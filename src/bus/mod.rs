@@ -8,11 +8,14 @@
 //! - [`keys`]: every key expression of the cell, built and parsed in one place;
 //! - [`payload`]: the protobuf messages and their encodings, and the link's data as messages;
 //! - `context`: what every route shares, the typed request errors, the reply helpers;
-//! - one route per kind: `route_status`, `route_job`, `route_io` (DI/DO), `route_alarm`,
-//!   `route_punch`, `route_program` (library), `route_g05` (G05 streams), `route_plc` (PLC
-//!   memory, transfers, status), `route_tag` (PLC tags), `route_sim` (the controls of simulated
-//!   machines); each declares its own queryables, subscribers
-//!   or publishers, and they are undeclared when it is dropped;
+//! - `routes`: the table of every queryable and subscriber served (key, what arrives there,
+//!   pool, permission, handler), declared and served from there, and undeclared when a
+//!   route stops;
+//! - one module per kind of route, with its handlers and publishers: `route_status`,
+//!   `route_job`, `route_io` (DI/DO), `route_alarm`, `route_punch`, `route_program` (library),
+//!   `route_history`, `route_misdirected`, `route_g05` (G05 streams, served on a loop of
+//!   their own), `route_plc` (PLC memory, transfers, status), `route_tag` (PLC tags),
+//!   `route_sim` (the controls of simulated machines);
 //! - `machine`: a machine's view (its status) and its publishers; `machine_task`: the task
 //!   that publishes what the link and the job manager report through them; `served`: the
 //!   machines and PLCs served, which a reload changes while the routes run
@@ -53,6 +56,7 @@ pub mod route_reload;
 mod route_sim;
 mod route_status;
 mod route_tag;
+mod routes;
 mod served;
 pub mod session;
 
@@ -73,12 +77,6 @@ use self::audit::Auditor;
 use self::context::{Live, RouteContext};
 use self::keys::CellKeys;
 use self::route_g05::G05Route;
-use self::route_history::HistoryRoute;
-use self::route_io::IoRoute;
-use self::route_job::JobRoute;
-use self::route_misdirected::MisdirectedRoute;
-use self::route_program::ProgramRoute;
-use self::route_status::StatusRoute;
 use crate::history::History;
 use crate::jobs::journal::Journal;
 use crate::jobs::library::ProgramLibrary;
@@ -199,24 +197,16 @@ pub async fn serve_live(
             );
         }
         folder_tasks = route_folder::spawn(&ctx, config, &routes_stop);
-        let status = StatusRoute::declare(&ctx).await?;
-        let job = JobRoute::declare(&ctx).await?;
-        let io = IoRoute::declare(&ctx).await?;
-        let program = ProgramRoute::declare(&ctx).await?;
-        let records = HistoryRoute::declare(&ctx).await?;
+        let routes = routes::declare_all(routes::cell(&keys), &ctx).await?;
         let g05 = G05Route::declare(&ctx).await?;
-        let misdirected = MisdirectedRoute::declare(&ctx).await?;
-        route_tasks.spawn(records.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(misdirected.run(ctx.clone(), routes_stop.clone()));
         // Only a cell with simulated machines has their controls.
         if served_machines.any_simulated() {
             served_machines.declare_sim().await?;
         }
         route_tasks.spawn(g05.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(status.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(job.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(io.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(program.run(ctx.clone(), routes_stop.clone()));
+        for route in routes {
+            route_tasks.spawn(route.run(ctx.clone(), routes_stop.clone()));
+        }
         tracing::info!(root = %keys.root(), machines = ctx.machines.now().len(), "cell routes declared");
         ready(served_machines.clone());
         // A route ends early only when the session closed under it.
@@ -288,13 +278,7 @@ pub async fn serve_plcs_live(
         served.add(link);
     }
     let ctx = served.context().clone();
-    let declared = async {
-        let plc = route_plc::PlcRoute::declare(&ctx).await?;
-        let tag = route_tag::TagRoute::declare(&ctx).await?;
-        Ok::<_, BusError>((plc, tag))
-    }
-    .await;
-    let (plc, tag) = match declared {
+    let routes = match routes::declare_all(routes::plc(&keys), &ctx).await {
         Ok(routes) => routes,
         Err(e) => {
             stop.cancel();
@@ -303,8 +287,9 @@ pub async fn serve_plcs_live(
         }
     };
     let mut tasks = JoinSet::new();
-    tasks.spawn(plc.run(ctx.clone(), stop.clone()));
-    tasks.spawn(tag.run(ctx.clone(), stop.clone()));
+    for route in routes {
+        tasks.spawn(route.run(ctx.clone(), stop.clone()));
+    }
     tracing::info!(root = %keys.root(), plcs = ctx.plcs.now().len(), "PLC routes declared");
     ready(served.clone());
     while tasks.join_next().await.is_some() {}

@@ -17,9 +17,8 @@ use super::machine::Machine;
 use super::machine_task::{MachineFeeds, MachineTask};
 use super::route_plc::{PlcContext, PlcLink};
 use super::route_punch::PunchSettings;
-use super::route_sim::SimRoute;
 use super::session::BusError;
-use super::{route_plc, route_tag};
+use super::{route_plc, route_tag, routes};
 use crate::jobs::journal::{JobRecord, Journal};
 use crate::jobs::{self, Hold, JobError, JobsSettings};
 use crate::link::driver::LinkHandle;
@@ -226,7 +225,7 @@ impl MachineRoutes {
             return Ok(());
         }
         let ctx = self.inner.ctx.clone();
-        let sim = SimRoute::declare(&ctx).await?;
+        let sim = routes::sim(&ctx.keys).declare(&ctx).await?;
         let task = tokio::spawn(sim.run(ctx, self.inner.routes_stop.clone()));
         self.inner
             .late_routes
