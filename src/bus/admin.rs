@@ -11,8 +11,8 @@ use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::query::{Query, Queryable};
 
+use super::error::BusError;
 use super::keys::CellKeys;
-use super::session::BusError;
 use cellgate_core::config::CellConfig;
 
 /// The crate version, as reported by `--version` and the admin key.

@@ -17,10 +17,10 @@ use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample};
 
 use super::audit::{Audit, Auditor};
+use super::error::BusError;
 use super::keys::{CellKey, CellKeys, MachineLeaf, intersects};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, error_reply};
-use super::session::BusError;
 use crate::history::History;
 use crate::jobs::JobError;
 use crate::jobs::library::{LibraryError, ProgramLibrary};

@@ -11,12 +11,12 @@ use zenoh::liveliness::LivelinessToken;
 
 use super::context::MachinePublisher;
 use super::context::RouteContext;
+use super::error::BusError;
 use super::machine::{Extra, Machine};
 use super::record::Recorder;
 use super::route_job::JobEventPublisher;
 use super::route_punch::{Outcome, PunchDesk, PunchSettings};
 use super::route_status::StatusPublisher;
-use super::session::BusError;
 use super::{route_alarm, route_io, route_punch};
 use crate::jobs::{JobsHandle, JobsSnapshot};
 use crate::link::driver::{LinkCommand, LinkEvent, LinkHandle};

@@ -37,6 +37,7 @@ pub mod acl;
 pub mod admin;
 mod audit;
 pub mod context;
+mod error;
 pub mod keys;
 mod machine;
 mod machine_task;
@@ -60,10 +61,11 @@ mod routes;
 mod served;
 pub mod session;
 
+pub use error::BusError;
 pub use route_job::{FETCH_TIMEOUT, RECENT_JOBS};
 pub use route_plc::{PlcLink, STATUS_EVERY as PLC_STATUS_EVERY};
 pub use served::{MachineLink, MachineRoutes, PlcRoutes};
-pub use session::{BusError, open, open_cell};
+pub use session::{open, open_cell};
 
 pub use cellgate_core::config::{BusConfig, BusMode};
 

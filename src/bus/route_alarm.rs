@@ -7,8 +7,8 @@ use zenoh::qos::CongestionControl;
 
 use super::context::MachinePublisher;
 use super::context::RouteContext;
+use super::error::BusError;
 use super::keys::MachineLeaf;
-use super::session::BusError;
 use cellgate_core::pb;
 
 /// Declares one machine's alarm publisher: reliable, an alarm is never dropped.

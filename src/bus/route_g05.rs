@@ -25,11 +25,11 @@ use super::audit::{Audit, origin_of};
 use super::context::{
     MachinePublisher, Pool, RequestError, RouteContext, Target, reply, reply_err,
 };
+use super::error::BusError;
 use super::keys::{CellKey, G05Part, MachineLeaf};
 use super::machine::Machine;
 use super::payload::{encoding, g05_status};
 use super::route_alarm;
-use super::session::BusError;
 use crate::link::g05::{STATUS_INTERVAL, StreamHandle, StreamStatus};
 use cellgate_core::config::Permission;
 use cellgate_core::fanuc::g05::AuxWord;

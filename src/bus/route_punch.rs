@@ -20,8 +20,8 @@ use zenoh::qos::CongestionControl;
 
 use super::context::MachinePublisher;
 use super::context::RouteContext;
+use super::error::BusError;
 use super::keys::MachineLeaf;
-use super::session::BusError;
 use crate::jobs::library::{LibraryError, Store};
 use crate::jobs::source::ProgramInput;
 use crate::jobs::{JobError, JobSubmission, JobsHandle};

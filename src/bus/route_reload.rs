@@ -16,9 +16,9 @@ use zenoh::query::{Query, Queryable};
 
 use super::audit::{Audit, Auditor, origin_of};
 use super::context::reply_err;
+use super::error::BusError;
 use super::keys::CellKeys;
 use super::payload::encoding;
-use super::session::BusError;
 use crate::history::History;
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::{Permission, SecurityConfig};

@@ -10,9 +10,9 @@ use zenoh::query::Query;
 
 use super::context::MachinePublisher;
 use super::context::{RouteContext, reply};
+use super::error::BusError;
 use super::keys::MachineLeaf;
 use super::machine::Machine;
-use super::session::BusError;
 use cellgate_core::pb;
 
 /// A get on `status`: the status of each machine it takes in. A status is at hand, so the

@@ -1,8 +1,9 @@
 //! Every queryable and subscriber the routes serve, one [`Row`] each: its key (built in
 //! [`keys`](super::keys)), what arrives on it (queries, or puts and deletes from which
 //! sessions), the [`Pool`] its requests run in, the permission of the cell file's roles
-//! that lets a client reach it ([`acl`](super::acl) grants it; its tests check each row),
-//! and the handler. A new endpoint is a row here and a handler in its route's module.
+//! that lets a client reach it ([`acl`](super::acl) takes the keys of its rules from here,
+//! and its tests check each row), and the handler. A new endpoint is a row here and a
+//! handler in its route's module.
 //!
 //! A [`Route`] is a group of rows served by one task ([`serve_route`]): a request answered
 //! on a route's loop (`pool` `None`, a cheap answer from memory) never waits behind
@@ -18,15 +19,15 @@ use futures::{FutureExt as _, StreamExt as _};
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 use zenoh::handlers::FifoChannelHandler;
-use zenoh::key_expr::KeyExpr;
+use zenoh::key_expr::{KeyExpr, keyexpr};
 use zenoh::pubsub::Subscriber;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample};
 
 use super::context::{Pool, RequestError, RouteContext, Routed, reply_err};
+use super::error::BusError;
 use super::keys::{CellKeys, MachineLeaf, PlcArea};
 use super::route_plc::PlcContext;
-use super::session::BusError;
 use super::{
     route_history, route_io, route_job, route_misdirected, route_plc, route_program, route_sim,
     route_status, route_tag,
@@ -50,13 +51,13 @@ pub(crate) struct Row<C> {
     pub(crate) pool: Option<Pool>,
     /// The permission whose rules let a client send what arrives here; `None` for keys no
     /// role is meant to send it to (the misdirected writes).
-    #[cfg_attr(not(test), allow(dead_code))]
     pub(crate) permission: Option<Permission>,
     handle: Handler<C>,
 }
 
 /// A handler as the route modules write it: an async fn of the context and the query or
-/// sample, both borrowed.
+/// sample, both borrowed. A trait of its own because the future borrows the arguments, for
+/// whatever lifetime they have, which a plain `Fn(&C, &I) -> Fut` bound cannot say.
 pub(crate) trait Serve<'a, C: 'a, I: 'a>: Send + Sync + 'static {
     type Fut: Future<Output = ()> + Send + 'a;
     fn serve(&self, ctx: &'a C, item: &'a I) -> Self::Fut;
@@ -383,6 +384,36 @@ pub(crate) fn plc(keys: &CellKeys) -> Vec<Route<PlcContext>> {
             ),
         ]),
     ]
+}
+
+/// The keys of every row `p` grants, in the table's order, each once, and none that another of
+/// them includes (a write key inside an area read and written): the keys the access-control
+/// rules ([`acl`](super::acl)) give `p` on the routes.
+pub(crate) fn granted(keys: &CellKeys, p: Permission) -> Vec<String> {
+    fn of<C>(routes: Vec<Route<C>>, p: Permission) -> impl Iterator<Item = String> {
+        routes
+            .into_iter()
+            .flat_map(|r| r.rows)
+            .filter(move |r| r.permission == Some(p))
+            .map(|r| r.key)
+    }
+    let mut found: Vec<String> = Vec::new();
+    for key in of(cell(keys), p)
+        .chain(of(vec![sim(keys)], p))
+        .chain(of(plc(keys), p))
+    {
+        if !found.contains(&key) {
+            found.push(key);
+        }
+    }
+    let includes = |a: &str, b: &str| {
+        keyexpr::new(a).is_ok_and(|a| keyexpr::new(b).is_ok_and(|b| a.includes(b)))
+    };
+    found
+        .iter()
+        .filter(|k| !found.iter().any(|o| o != *k && includes(o, k)))
+        .cloned()
+        .collect()
 }
 
 /// What arrives on a route's queryable or subscriber.

@@ -13,11 +13,11 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use super::context::{CellNames, Live, RouteContext};
+use super::error::BusError;
 use super::machine::Machine;
 use super::machine_task::{MachineFeeds, MachineTask};
 use super::route_plc::{PlcContext, PlcLink};
 use super::route_punch::PunchSettings;
-use super::session::BusError;
 use super::{route_plc, route_tag, routes};
 use crate::jobs::journal::{JobRecord, Journal};
 use crate::jobs::{self, Hold, JobError, JobsSettings};
@@ -26,7 +26,8 @@ use crate::link::g05::G05Desk;
 use cellgate_core::config::{CellConfig, MachineConfig};
 use cellgate_core::fanuc::g05::stream::EndReason;
 
-/// A machine of the cell and its running link, as the gateway hands them to [`serve`](super::serve).
+/// A machine of the cell and its running link, as the gateway hands them to
+/// [`serve`](super::serve).
 #[derive(Debug, Clone)]
 pub struct MachineLink {
     pub config: MachineConfig,
