@@ -197,7 +197,8 @@ pub(crate) fn cell(keys: &CellKeys) -> Vec<Route<RouteContext>> {
                 route_job::job_delete,
             ),
         ]),
-        // DI reads, DO outputs.
+        // DI reads, DO outputs; each machine's `do` key held declared, so that a DO put's
+        // route stays cached (docs/performance.md).
         Route::new(vec![
             Row::query(leaf(L::Di), read, Some(P::StatusRead), route_io::di_get),
             Row::query(leaf(L::Do), Some(Pool::Io), Some(P::IoDo), route_io::do_get),
