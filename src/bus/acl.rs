@@ -18,41 +18,22 @@
 //! `…/transfer/N/send`) and a permission that reads a key never writes through it. The G05
 //! keys are all `g05.stream`'s: reading a stream is part of producing one.
 //!
+//! The keys a permission reads or writes through are the rows of the route table that name it
+//! (`routes::granted`): a route added there is granted with no second list here. What the
+//! table does not hold stays listed here: the reads several permissions share, the events and
+//! publications, the G05 streams, the reload and admin keys.
+//!
 //! Behind a router the gateway has one transport, the router's, and cannot tell the router's
 //! clients apart: the router must hold a role with every permission, and the router enforces
 //! the roles on its clients with the rules [`router_access_control`] gives.
 
 use serde_json::{Value, json};
 
-use super::keys::{CellKeys, MachineLeaf, PlcArea, admin_selector, gateway_selector};
+use super::keys::{CellKeys, MachineLeaf, admin_selector, gateway_selector};
+use super::routes;
 use cellgate_core::config::{Permission, SecurityConfig};
 
-/// The id prefix of every rule, subject and policy cellgate generates; a zenoh file's own
-/// access-control entries may not use it.
-pub const ID_PREFIX: &str = "cellgate/";
-
-/// Why the generated rules cannot be merged into the zenoh configuration.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[non_exhaustive]
-pub enum AclError {
-    /// The zenoh file turns access control on with `default_permission = allow`: cellgate's
-    /// keys would then be open to anyone no rule names.
-    #[error(
-        "access_control.default_permission = \"allow\" in the zenoh configuration file: with \
-         [[security.roles]] everything no role or rule allows must be denied; set it to \"deny\" \
-         and add allow rules for your own keys"
-    )]
-    DefaultAllow,
-    /// An entry of the zenoh file uses an id cellgate keeps for its own.
-    #[error(
-        "access_control.{list}: id {id:?} in the zenoh configuration file starts with \
-         {ID_PREFIX:?}, which cellgate keeps for the rules it generates; rename it"
-    )]
-    ReservedId { list: &'static str, id: String },
-    /// The zenoh file's access_control section is not what zenoh documents.
-    #[error("access_control in the zenoh configuration file: {0}")]
-    Malformed(String),
-}
+pub use super::error::{AclError, ID_PREFIX};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Flow {
@@ -142,9 +123,10 @@ fn writes(keys: Vec<String>) -> Vec<Grant> {
 /// the gateway's word of each change (`…/program/NAME/changed`).
 fn program_reads(keys: &CellKeys) -> Vec<Grant> {
     let changed = vec![super::keys::program_changed(keys, "*")];
+    let read = routes::granted(keys, Permission::ProgramRead);
     vec![
-        grant(Flow::Ingress, QUERY, keys.any_program_read()),
-        grant(Flow::Egress, REPLY_AND_QUERYABLE, keys.any_program_read()),
+        grant(Flow::Ingress, QUERY, read.clone()),
+        grant(Flow::Egress, REPLY_AND_QUERYABLE, read),
         // The library's events: subscribed to, published by the gateway.
         grant(
             Flow::Ingress,
@@ -165,7 +147,10 @@ fn reads(keys: Vec<String>) -> Vec<Grant> {
     ]
 }
 
-/// The rules of one permission.
+/// The rules of one permission: on the keys of the route table's rows that name it
+/// ([`routes::granted`]), and on the keys listed here for what the table does not say (the
+/// reads that more than one permission makes, the events and publications, the G05 streams,
+/// the reload and admin keys).
 fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
     let leaf = |l: MachineLeaf| keys.any_leaf(l);
     match p {
@@ -233,25 +218,20 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
         }
         Permission::ProgramRead => program_reads(keys),
         Permission::ProgramWrite => {
-            let mut g = writes(vec![keys.any_program_write()]);
+            let mut g = writes(routes::granted(keys, p));
             g.extend(program_reads(keys));
             g
         }
+        // Gets and puts; a delete outputs nothing.
         Permission::IoDo => vec![
-            grant(
-                Flow::Ingress,
-                &["query", "put"],
-                vec![leaf(MachineLeaf::Do)],
-            ),
-            grant(Flow::Egress, SERVED_WRITE, vec![leaf(MachineLeaf::Do)]),
+            grant(Flow::Ingress, &["query", "put"], routes::granted(keys, p)),
+            grant(Flow::Egress, SERVED_WRITE, routes::granted(keys, p)),
         ],
-        Permission::PlcTag => writes(vec![keys.any_plc_tag_set()]),
-        // Reads and writes of memory both (the memory viewer is an engineer's tool).
-        Permission::PlcMem => writes(vec![keys.any_plc_area(PlcArea::Mem)]),
-        Permission::PlcTransfer => writes(vec![
-            keys.any_plc_transfer_send(),
-            keys.any_plc_message_send(),
-        ]),
+        // Gets, puts and deletes; memory is read and written through one permission (the
+        // memory viewer is an engineer's tool).
+        Permission::PlcTag | Permission::PlcMem | Permission::PlcTransfer => {
+            writes(routes::granted(keys, p))
+        }
         Permission::G05Stream => {
             let mut g = writes(vec![keys.every_g05_key()]);
             // A stream's credits and state come back as publications.
@@ -275,13 +255,14 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
             ));
             g
         }
-        // A release changes state, so it has a key of its own, answered like a write.
-        Permission::ProgramRelease => reads(vec![keys.program_release("*")]),
-        Permission::HistoryRead => reads(vec![keys.history(), keys.utilisation()]),
-        Permission::AuditRead => reads(vec![keys.audit()]),
-        Permission::AuditNote => reads(vec![keys.audit_note()]),
+        // Gets only. A release changes state, so it has a key of its own, answered like a
+        // write.
+        Permission::ProgramRelease
+        | Permission::HistoryRead
+        | Permission::AuditRead
+        | Permission::AuditNote => reads(routes::granted(keys, p)),
         // Reading a simulated machine's state is part of driving it.
-        Permission::SimControl => writes(vec![keys.any_sim()]),
+        Permission::SimControl => writes(routes::granted(keys, p)),
         // A reload changes the whole cell: a key of its own, answered like a write.
         Permission::CellReload => reads(vec![keys.reload()]),
         Permission::AdminRead => vec![

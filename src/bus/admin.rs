@@ -11,7 +11,7 @@ use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::query::{Query, Queryable};
 
-use super::BusError;
+use super::error::BusError;
 use super::keys::CellKeys;
 use cellgate_core::config::CellConfig;
 

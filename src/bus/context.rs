@@ -3,17 +3,11 @@
 //! is refused with ([`RequestError`], coded in `cellgate_core::codes`) and the reply helpers.
 
 use std::collections::BTreeMap;
-use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
-use futures::future::BoxFuture;
-use futures::stream::BoxStream;
-use futures::{FutureExt as _, StreamExt as _};
 use prost::Message;
 use tokio::sync::Semaphore;
-use tokio::task::JoinSet;
-use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 use zenoh::bytes::Encoding;
 use zenoh::handlers::FifoChannelHandler;
@@ -22,8 +16,8 @@ use zenoh::pubsub::Subscriber;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample};
 
-use super::BusError;
 use super::audit::{Audit, Auditor};
+use super::error::BusError;
 use super::keys::{CellKey, CellKeys, MachineLeaf, intersects};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, error_reply};
@@ -111,7 +105,7 @@ impl Pool {
         }
     }
 
-    fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Pool::Read => "reads",
             Pool::Jobs => "job requests",
@@ -135,81 +129,6 @@ const _: () = {
     assert!(sum == MAX_WAITING_REQUESTS);
 };
 
-/// What arrives on a route's queryable or subscriber.
-pub(crate) enum Incoming {
-    Query(Query),
-    Sample(Sample),
-    /// The queryable or subscriber ended: the session closed under the route.
-    Ended,
-}
-
-type Handler<C> = Arc<dyn Fn(C, Incoming) -> BoxFuture<'static, ()> + Send + Sync>;
-
-/// One queryable or subscriber of a route and what serves what arrives on it.
-pub(crate) struct Endpoint<C> {
-    incoming: BoxStream<'static, Incoming>,
-    /// `None`: answered on the route's loop itself (cheap answers from memory); else run in a
-    /// slot of the pool.
-    pool: Option<Pool>,
-    handle: Handler<C>,
-}
-
-impl<C: Send + 'static> Endpoint<C> {
-    /// Queries on `queryable`, each served by `f`.
-    pub(crate) fn queries<F, Fut>(
-        queryable: Queryable<FifoChannelHandler<Query>>,
-        pool: Option<Pool>,
-        f: F,
-    ) -> Self
-    where
-        F: Fn(C, Query) -> Fut + Send + Sync + 'static,
-        Fut: Future<Output = ()> + Send + 'static,
-    {
-        let incoming = futures::stream::unfold(Some(queryable), |q| async move {
-            let q = q?;
-            Some(match q.recv_async().await {
-                Ok(query) => (Incoming::Query(query), Some(q)),
-                Err(_) => (Incoming::Ended, None),
-            })
-        });
-        Endpoint {
-            incoming: incoming.boxed(),
-            pool,
-            handle: Arc::new(move |c, i| match i {
-                Incoming::Query(q) => f(c, q).boxed(),
-                _ => async {}.boxed(),
-            }),
-        }
-    }
-
-    /// Puts and deletes on `subscriber`, each served by `f`.
-    pub(crate) fn samples<F, Fut>(
-        subscriber: Subscriber<FifoChannelHandler<Sample>>,
-        pool: Option<Pool>,
-        f: F,
-    ) -> Self
-    where
-        F: Fn(C, Sample) -> Fut + Send + Sync + 'static,
-        Fut: Future<Output = ()> + Send + 'static,
-    {
-        let incoming = futures::stream::unfold(Some(subscriber), |s| async move {
-            let s = s?;
-            Some(match s.recv_async().await {
-                Ok(sample) => (Incoming::Sample(sample), Some(s)),
-                Err(_) => (Incoming::Ended, None),
-            })
-        });
-        Endpoint {
-            incoming: incoming.boxed(),
-            pool,
-            handle: Arc::new(move |c, i| match i {
-                Incoming::Sample(s) => f(c, s).boxed(),
-                _ => async {}.boxed(),
-            }),
-        }
-    }
-}
-
 /// What a route's context gives the loop that serves it.
 pub(crate) trait Routed: Clone + Send + Sync + 'static {
     fn route(&self) -> &RouteContext;
@@ -219,42 +138,6 @@ impl Routed for RouteContext {
     fn route(&self) -> &RouteContext {
         self
     }
-}
-
-/// Serves a route's endpoints until `stop`, or until one of them ends (the session closed):
-/// every request in a slot of its pool, off the loop, so that one slow querier holds up
-/// neither its route nor the others; the requests still running are dropped when it returns.
-pub(crate) async fn serve_route<C: Routed>(
-    ctx: C,
-    stop: CancellationToken,
-    endpoints: Vec<Endpoint<C>>,
-) {
-    let mut tasks = JoinSet::new();
-    let mut handlers = Vec::new();
-    let mut streams = Vec::new();
-    for (i, e) in endpoints.into_iter().enumerate() {
-        handlers.push((e.pool, e.handle));
-        streams.push(e.incoming.map(move |item| (i, item)).boxed());
-    }
-    let mut incoming = futures::stream::select_all(streams);
-    loop {
-        tokio::select! {
-            () = stop.cancelled() => break,
-            next = incoming.next() => {
-                let Some((i, item)) = next else { break };
-                if matches!(item, Incoming::Ended) {
-                    break;
-                }
-                let Some((pool, handle)) = handlers.get(i) else { continue };
-                match pool {
-                    None => handle(ctx.clone(), item).await,
-                    Some(pool) => ctx.route().spawn_in(&mut tasks, *pool, item, handle, ctx.clone()).await,
-                }
-            }
-            Some(_) = tasks.join_next() => {}
-        }
-    }
-    tasks.shutdown().await;
 }
 
 /// A value the routes read while a reload may replace it: a read takes the whole value as it
@@ -635,48 +518,6 @@ impl RouteContext {
     pub(crate) fn slot(&self, pool: Pool) -> Option<tokio::sync::OwnedSemaphorePermit> {
         let semaphore = self.slots.get(pool.index())?;
         Arc::clone(semaphore).try_acquire_owned().ok()
-    }
-
-    /// Runs a request of `pool` off the route's loop, in one of the pool's slots. With every
-    /// slot of the pool taken a query is answered `ERROR_CODE_BUSY` at once, and a put or
-    /// delete (which has no answer) is dropped and logged: a flood of requests never becomes
-    /// an unbounded number of tasks, nor takes the slots of another kind of request.
-    async fn spawn_in<C: Routed>(
-        &self,
-        tasks: &mut JoinSet<()>,
-        pool: Pool,
-        item: Incoming,
-        handle: &Handler<C>,
-        ctx: C,
-    ) {
-        match self.slot(pool).ok_or(()) {
-            Ok(slot) => {
-                let run = handle(ctx, item);
-                tasks.spawn(async move {
-                    run.await;
-                    drop(slot);
-                });
-            }
-            Err(_) => match item {
-                Incoming::Query(q) => {
-                    reply_err(
-                        &q,
-                        &RequestError::Busy {
-                            what: pool.name(),
-                            max: pool.slots(),
-                        },
-                    )
-                    .await
-                }
-                Incoming::Sample(s) => tracing::warn!(
-                    key = %s.key_expr(),
-                    "request dropped: {} {} are being served already",
-                    pool.slots(),
-                    pool.name()
-                ),
-                Incoming::Ended => {}
-            },
-        }
     }
 
     /// The machine a concrete key names.

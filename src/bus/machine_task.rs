@@ -9,9 +9,9 @@ use tokio::sync::{broadcast, watch};
 use tokio_util::sync::CancellationToken;
 use zenoh::liveliness::LivelinessToken;
 
-use super::BusError;
 use super::context::MachinePublisher;
 use super::context::RouteContext;
+use super::error::BusError;
 use super::machine::{Extra, Machine};
 use super::record::Recorder;
 use super::route_job::JobEventPublisher;

@@ -8,11 +8,14 @@
 //! - [`keys`]: every key expression of the cell, built and parsed in one place;
 //! - [`payload`]: the protobuf messages and their encodings, and the link's data as messages;
 //! - `context`: what every route shares, the typed request errors, the reply helpers;
-//! - one route per kind: `route_status`, `route_job`, `route_io` (DI/DO), `route_alarm`,
-//!   `route_punch`, `route_program` (library), `route_g05` (G05 streams), `route_plc` (PLC
-//!   memory, transfers, status), `route_tag` (PLC tags), `route_sim` (the controls of simulated
-//!   machines); each declares its own queryables, subscribers
-//!   or publishers, and they are undeclared when it is dropped;
+//! - `routes`: the table of every queryable and subscriber served (key, what arrives there,
+//!   pool, permission, handler), declared and served from there, and undeclared when a
+//!   route stops;
+//! - one module per kind of route, with its handlers and publishers: `route_status`,
+//!   `route_job`, `route_io` (DI/DO), `route_alarm`, `route_punch`, `route_program` (library),
+//!   `route_history`, `route_misdirected`, `route_g05` (G05 streams, served on a loop of
+//!   their own), `route_plc` (PLC memory, transfers, status), `route_tag` (PLC tags),
+//!   `route_sim` (the controls of simulated machines);
 //! - `machine`: a machine's view (its status) and its publishers; `machine_task`: the task
 //!   that publishes what the link and the job manager report through them; `served`: the
 //!   machines and PLCs served, which a reload changes while the routes run
@@ -34,6 +37,7 @@ pub mod acl;
 pub mod admin;
 mod audit;
 pub mod context;
+mod error;
 pub mod keys;
 mod machine;
 mod machine_task;
@@ -53,13 +57,15 @@ pub mod route_reload;
 mod route_sim;
 mod route_status;
 mod route_tag;
+mod routes;
 mod served;
 pub mod session;
 
+pub use error::BusError;
 pub use route_job::{FETCH_TIMEOUT, RECENT_JOBS};
 pub use route_plc::{PlcLink, STATUS_EVERY as PLC_STATUS_EVERY};
-pub use served::{MachineRoutes, PlcRoutes};
-pub use session::{BusError, open, open_cell};
+pub use served::{MachineLink, MachineRoutes, PlcRoutes};
+pub use session::{open, open_cell};
 
 pub use cellgate_core::config::{BusConfig, BusMode};
 
@@ -73,27 +79,10 @@ use self::audit::Auditor;
 use self::context::{Live, RouteContext};
 use self::keys::CellKeys;
 use self::route_g05::G05Route;
-use self::route_history::HistoryRoute;
-use self::route_io::IoRoute;
-use self::route_job::JobRoute;
-use self::route_misdirected::MisdirectedRoute;
-use self::route_program::ProgramRoute;
-use self::route_status::StatusRoute;
 use crate::history::History;
 use crate::jobs::journal::Journal;
 use crate::jobs::library::ProgramLibrary;
-use crate::link::driver::LinkHandle;
-use cellgate_core::config::{CellConfig, MachineConfig};
-
-/// A machine of the cell and its running link, as the gateway hands them to [`serve`].
-#[derive(Debug, Clone)]
-pub struct MachineLink {
-    pub config: MachineConfig,
-    pub link: LinkHandle,
-    /// The simulated board on the far end of a `sim` transport, for the `P/C/sim/M/...`
-    /// controls; `None` for a real machine.
-    pub sim: Option<crate::sim::BoardControl>,
-}
+use cellgate_core::config::CellConfig;
 
 /// Serves the cell's machines and program library on `session` until `shutdown` is
 /// cancelled, then undeclares everything: routes first, then each machine's job manager
@@ -210,24 +199,16 @@ pub async fn serve_live(
             );
         }
         folder_tasks = route_folder::spawn(&ctx, config, &routes_stop);
-        let status = StatusRoute::declare(&ctx).await?;
-        let job = JobRoute::declare(&ctx).await?;
-        let io = IoRoute::declare(&ctx).await?;
-        let program = ProgramRoute::declare(&ctx).await?;
-        let records = HistoryRoute::declare(&ctx).await?;
+        let routes = routes::declare_all(routes::cell(&keys), &ctx).await?;
         let g05 = G05Route::declare(&ctx).await?;
-        let misdirected = MisdirectedRoute::declare(&ctx).await?;
-        route_tasks.spawn(records.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(misdirected.run(ctx.clone(), routes_stop.clone()));
         // Only a cell with simulated machines has their controls.
         if served_machines.any_simulated() {
             served_machines.declare_sim().await?;
         }
         route_tasks.spawn(g05.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(status.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(job.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(io.run(ctx.clone(), routes_stop.clone()));
-        route_tasks.spawn(program.run(ctx.clone(), routes_stop.clone()));
+        for route in routes {
+            route_tasks.spawn(route.run(ctx.clone(), routes_stop.clone()));
+        }
         tracing::info!(root = %keys.root(), machines = ctx.machines.now().len(), "cell routes declared");
         ready(served_machines.clone());
         // A route ends early only when the session closed under it.
@@ -299,13 +280,7 @@ pub async fn serve_plcs_live(
         served.add(link);
     }
     let ctx = served.context().clone();
-    let declared = async {
-        let plc = route_plc::PlcRoute::declare(&ctx).await?;
-        let tag = route_tag::TagRoute::declare(&ctx).await?;
-        Ok::<_, BusError>((plc, tag))
-    }
-    .await;
-    let (plc, tag) = match declared {
+    let routes = match routes::declare_all(routes::plc(&keys), &ctx).await {
         Ok(routes) => routes,
         Err(e) => {
             stop.cancel();
@@ -314,8 +289,9 @@ pub async fn serve_plcs_live(
         }
     };
     let mut tasks = JoinSet::new();
-    tasks.spawn(plc.run(ctx.clone(), stop.clone()));
-    tasks.spawn(tag.run(ctx.clone(), stop.clone()));
+    for route in routes {
+        tasks.spawn(route.run(ctx.clone(), stop.clone()));
+    }
     tracing::info!(root = %keys.root(), plcs = ctx.plcs.now().len(), "PLC routes declared");
     ready(served.clone());
     while tasks.join_next().await.is_some() {}

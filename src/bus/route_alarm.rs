@@ -5,9 +5,9 @@
 
 use zenoh::qos::CongestionControl;
 
-use super::BusError;
 use super::context::MachinePublisher;
 use super::context::RouteContext;
+use super::error::BusError;
 use super::keys::MachineLeaf;
 use cellgate_core::pb;
 

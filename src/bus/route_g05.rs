@@ -21,11 +21,11 @@ use zenoh::qos::{CongestionControl, Priority};
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Locality, Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::{
     MachinePublisher, Pool, RequestError, RouteContext, Target, reply, reply_err,
 };
+use super::error::BusError;
 use super::keys::{CellKey, G05Part, MachineLeaf};
 use super::machine::Machine;
 use super::payload::{encoding, g05_status};

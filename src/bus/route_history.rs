@@ -9,62 +9,16 @@
 
 use std::time::SystemTime;
 
-use tokio_util::sync::CancellationToken;
-use zenoh::handlers::FifoChannelHandler;
-use zenoh::query::{Query, Queryable};
+use zenoh::query::Query;
 use zenoh_util::time_range::{TimeBound, TimeRange};
 
-use super::BusError;
-use super::context::{
-    CellNames, Endpoint, Pool, RequestError, RouteContext, reply, reply_err, serve_route,
-};
+use super::context::{CellNames, RequestError, RouteContext, reply, reply_err};
 use crate::history::Log;
 use cellgate_core::history::{self, HistoryQuery, Store};
 use cellgate_core::pb;
 
 /// The longest range utilisation divides into buckets: 92 days.
 const MAX_UTILISATION_MS: u64 = 92 * 24 * 3600 * 1000;
-
-/// The history's queryables. Undeclared when dropped.
-pub(crate) struct HistoryRoute {
-    history: Queryable<FifoChannelHandler<Query>>,
-    audit: Queryable<FifoChannelHandler<Query>>,
-    notes: Queryable<FifoChannelHandler<Query>>,
-    utilisation: Queryable<FifoChannelHandler<Query>>,
-}
-
-impl HistoryRoute {
-    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
-        Ok(HistoryRoute {
-            history: ctx.queryable(ctx.keys.history()).await?,
-            audit: ctx.queryable(ctx.keys.audit()).await?,
-            notes: ctx.queryable(ctx.keys.audit_note()).await?,
-            utilisation: ctx.queryable(ctx.keys.utilisation()).await?,
-        })
-    }
-
-    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        serve_route(
-            ctx,
-            stop,
-            vec![
-                Endpoint::queries(self.history, Some(Pool::Read), |c, q| async move {
-                    page(&c, &q, Store::History).await
-                }),
-                Endpoint::queries(self.audit, Some(Pool::Read), |c, q| async move {
-                    page(&c, &q, Store::Audit).await
-                }),
-                Endpoint::queries(self.utilisation, Some(Pool::Read), |c, q| async move {
-                    utilisation(&c, &q).await
-                }),
-                Endpoint::queries(self.notes, Some(Pool::Read), |c, q| async move {
-                    note(&c, &q).await
-                }),
-            ],
-        )
-        .await;
-    }
-}
 
 /// A `_time` value as an inclusive range of ms, with zenoh's parser; an open end is the
 /// epoch or now.
@@ -93,6 +47,16 @@ fn parse(q: &Query, store: Store) -> Result<HistoryQuery, RequestError> {
         |v| time_range(v, now),
         pb::unix_ms(now),
     )?)
+}
+
+/// A page of the cell's history.
+pub(super) async fn history_page(ctx: &RouteContext, q: &Query) {
+    page(ctx, q, Store::History).await
+}
+
+/// A page of the audit trail.
+pub(super) async fn audit_page(ctx: &RouteContext, q: &Query) {
+    page(ctx, q, Store::Audit).await
 }
 
 async fn page(ctx: &RouteContext, q: &Query, store: Store) {
@@ -145,7 +109,7 @@ async fn page(ctx: &RouteContext, q: &Query, store: Store) {
 /// A get with an `AuditRecord` on `P/C/audit/note`: a console adds a request it refused
 /// its own user. Kept as the console said it, with the roles that may add notes; answered
 /// with the record as kept.
-async fn note(ctx: &RouteContext, q: &Query) {
+pub(super) async fn note(ctx: &RouteContext, q: &Query) {
     if q.key_expr().is_wild() {
         return;
     }
@@ -199,7 +163,7 @@ async fn note(ctx: &RouteContext, q: &Query) {
     reply(q, q.key_expr().to_string(), &record).await;
 }
 
-async fn utilisation(ctx: &RouteContext, q: &Query) {
+pub(super) async fn utilisation(ctx: &RouteContext, q: &Query) {
     if q.key_expr().is_wild() {
         return;
     }

@@ -11,73 +11,19 @@
 
 use std::time::SystemTime;
 
-use tokio_util::sync::CancellationToken;
-use zenoh::handlers::FifoChannelHandler;
-use zenoh::key_expr::KeyExpr;
-use zenoh::pubsub::Subscriber;
 use zenoh::qos::CongestionControl;
-use zenoh::query::{Query, Queryable};
-use zenoh::sample::{Locality, Sample, SampleKind};
+use zenoh::query::Query;
+use zenoh::sample::{Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
 use super::context::MachinePublisher;
-use super::context::{
-    Endpoint, Pool, RequestError, RouteContext, Target, publish_event, reply, reply_err,
-    serve_route,
-};
+use super::context::{RequestError, RouteContext, Target, publish_event, reply, reply_err};
+use super::error::BusError;
 use super::keys::{MachineLeaf, do_out};
 use super::machine::Machine;
 use crate::link::driver::{LinkCommand, LinkEvent};
 use cellgate_core::config::Permission;
 use cellgate_core::pb;
-
-/// The DI and DO queryables and the DO subscriber of the cell. Undeclared when dropped.
-pub(crate) struct IoRoute {
-    di: Queryable<FifoChannelHandler<Query>>,
-    do_get: Queryable<FifoChannelHandler<Query>>,
-    do_put: Subscriber<FifoChannelHandler<Sample>>,
-    /// Every machine's `do` key, declared and held for as long as the route runs: a put on
-    /// a key the gateway's routing tables hold has its route cached there, one that they do
-    /// not is matched against every declaration of the cell, on every put (a DO put a
-    /// second on a thousand machines).
-    _do_keys: Vec<KeyExpr<'static>>,
-}
-
-impl IoRoute {
-    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
-        Ok(IoRoute {
-            di: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::Di)).await?,
-            do_get: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::Do)).await?,
-            do_put: ctx
-                .subscriber(ctx.keys.any_leaf(MachineLeaf::Do), Locality::Any)
-                .await?,
-            _do_keys: declare_keys(ctx, MachineLeaf::Do).await,
-        })
-    }
-
-    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        serve_route(
-            ctx,
-            stop,
-            vec![
-                Endpoint::queries(self.di, Some(Pool::Read), |c, q| async move {
-                    di_get(&c, &q).await
-                }),
-                Endpoint::queries(self.do_get, Some(Pool::Io), |c, q| async move {
-                    do_get(&c, &q).await
-                }),
-                // Without waiting: a flood of puts is refused past the link's command queue.
-                Endpoint::samples(
-                    self.do_put,
-                    None,
-                    |c, s| async move { do_put(&c, &s).await },
-                ),
-            ],
-        )
-        .await;
-    }
-}
 
 /// Why `m` cannot do DI/DO now, if it cannot.
 fn io_refusal(m: &Machine) -> Option<RequestError> {
@@ -135,7 +81,7 @@ async fn exchange<T>(
 
 /// A get on `di`: a concrete key reads the DI image now (RDI → SDI); a wildcard answers the
 /// last image read of each machine that has one.
-async fn di_get(ctx: &RouteContext, q: &Query) {
+pub(super) async fn di_get(ctx: &RouteContext, q: &Query) {
     let m = match ctx.target(q.key_expr()) {
         Target::One(m) => m.clone(),
         Target::Unknown(_) => return ctx.unmatched(q).await,
@@ -207,7 +153,7 @@ fn do_command(ctx: &RouteContext, m: &Machine, payload: &[u8]) -> Result<(u8, u8
 }
 
 /// A put on `do`: outputs the DO image (SDO). A put has no reply: refusals are logged.
-async fn do_put(ctx: &RouteContext, sample: &Sample) {
+pub(super) async fn do_put(ctx: &RouteContext, sample: &Sample) {
     if sample.kind() != SampleKind::Put {
         return;
     }
@@ -282,7 +228,7 @@ fn audit_do(
 
 /// A get with a `DoCommand` on `do`: outputs the DO image and answers the status once the
 /// SDO went out.
-async fn do_get(ctx: &RouteContext, q: &Query) {
+pub(super) async fn do_get(ctx: &RouteContext, q: &Query) {
     let m = match ctx.target(q.key_expr()) {
         Target::One(m) => m.clone(),
         Target::Unknown(_) => return ctx.unmatched(q).await,
@@ -365,20 +311,4 @@ pub(crate) async fn declare_di_publisher(
     machine: &str,
 ) -> Result<MachinePublisher<pb::DiImage>, BusError> {
     MachinePublisher::declare(ctx, machine, MachineLeaf::Di, CongestionControl::Drop).await
-}
-
-/// Each machine's `leaf` key declared on the gateway's session, so that zenoh's routing
-/// tables hold it and cache its route. A key zenoh does not take is left out (its puts are
-/// routed all the same, only matched each time).
-async fn declare_keys(ctx: &RouteContext, leaf: MachineLeaf) -> Vec<KeyExpr<'static>> {
-    let machines = ctx.machines.now();
-    let mut keys = Vec::with_capacity(machines.len());
-    for name in machines.keys() {
-        let key = ctx.keys.leaf(name, leaf);
-        match ctx.session.declare_keyexpr(key.clone()).await {
-            Ok(k) => keys.push(k),
-            Err(e) => tracing::debug!(%key, error = %e, "key not declared"),
-        }
-    }
-    keys
 }

@@ -15,20 +15,14 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use prost::Message;
-use tokio_util::sync::CancellationToken;
 use zenoh::bytes::Encoding;
-use zenoh::handlers::FifoChannelHandler;
 use zenoh::key_expr::KeyExpr;
-use zenoh::pubsub::Subscriber;
 use zenoh::qos::CongestionControl;
-use zenoh::query::{Query, Queryable};
-use zenoh::sample::{Locality, Sample, SampleKind};
+use zenoh::query::Query;
+use zenoh::sample::{Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
-use super::context::{
-    Endpoint, Pool, RequestError, RouteContext, Target, reply, reply_err, serve_route,
-};
+use super::context::{RequestError, RouteContext, Target, reply, reply_err};
 use super::keys::{CellKey, MachineLeaf, intersects, is_plain_chunk};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, schema_of};
@@ -44,62 +38,8 @@ pub const FETCH_TIMEOUT: Duration = Duration::from_secs(5);
 /// Finished jobs whose last event a `get` on `P/C/machine/M/job/*` still answers.
 pub const RECENT_JOBS: usize = 256;
 
-/// The job queryables and the cancel subscriber of the cell. Undeclared when dropped.
-pub(crate) struct JobRoute {
-    submits: Queryable<FifoChannelHandler<Query>>,
-    queues: Queryable<FifoChannelHandler<Query>>,
-    events: Queryable<FifoChannelHandler<Query>>,
-    cancels: Queryable<FifoChannelHandler<Query>>,
-    deletes: Subscriber<FifoChannelHandler<Sample>>,
-}
-
-impl JobRoute {
-    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
-        Ok(JobRoute {
-            submits: ctx
-                .queryable(ctx.keys.any_leaf(MachineLeaf::Submit))
-                .await?,
-            queues: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::Job)).await?,
-            events: ctx.queryable(ctx.keys.any_job_events()).await?,
-            cancels: ctx.queryable(ctx.keys.any_job_cancel()).await?,
-            // Only other sessions cancel jobs; this session's own job events need not come
-            // back to it.
-            deletes: ctx
-                .subscriber(ctx.keys.any_job_events(), Locality::Remote)
-                .await?,
-        })
-    }
-
-    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        serve_route(
-            ctx,
-            stop,
-            vec![
-                Endpoint::queries(self.submits, Some(Pool::Jobs), |c, q| async move {
-                    job_submit(&c, &q).await
-                }),
-                Endpoint::queries(self.queues, Some(Pool::Read), |c, q| async move {
-                    job_queue(&c, &q).await
-                }),
-                Endpoint::queries(
-                    self.events,
-                    None,
-                    |c, q| async move { job_events(&c, &q).await },
-                ),
-                Endpoint::queries(self.cancels, Some(Pool::Jobs), |c, q| async move {
-                    job_cancel(&c, &q).await
-                }),
-                Endpoint::samples(self.deletes, Some(Pool::Jobs), |c, s| async move {
-                    job_delete(&c, &s).await
-                }),
-            ],
-        )
-        .await;
-    }
-}
-
 /// A get on `P/C/machine/M/job`: the queue of every machine it takes in.
-async fn job_queue(ctx: &RouteContext, q: &Query) {
+pub(super) async fn job_queue(ctx: &RouteContext, q: &Query) {
     if q.payload().is_some() {
         let e = RequestError::WrongKey(format!(
             "a get on {} reads the queue and takes no payload: submit a JobRequest on {}",
@@ -121,7 +61,7 @@ async fn job_queue(ctx: &RouteContext, q: &Query) {
 }
 
 /// A get with a `JobRequest` on `P/C/machine/M/submit`.
-async fn job_submit(ctx: &RouteContext, q: &Query) {
+pub(super) async fn job_submit(ctx: &RouteContext, q: &Query) {
     let Some(payload) = q.payload() else {
         if q.key_expr().is_wild() {
             // A wildcard get without payload (`P/C/**`) browses; a submit names one machine.
@@ -333,7 +273,7 @@ fn describe_error(payload: &zenoh::bytes::ZBytes, encoding: &Encoding) -> String
 }
 
 /// The last event of every recent job the query takes in.
-async fn job_events(ctx: &RouteContext, q: &Query) {
+pub(super) async fn job_events(ctx: &RouteContext, q: &Query) {
     let mut replies = Vec::new();
     for m in ctx.machines.now().values() {
         let view = m.view();
@@ -373,7 +313,7 @@ const CANCEL_WAIT: Duration = Duration::from_secs(20);
 
 /// A get on `P/C/machine/M/job/ID/cancel`: cancels the job and answers its end (its
 /// `cancelled` event, or how it ended first), or why it could not be cancelled.
-async fn job_cancel(ctx: &RouteContext, q: &Query) {
+pub(super) async fn job_cancel(ctx: &RouteContext, q: &Query) {
     let key = q.key_expr().as_str();
     let (Some(CellKey::JobCancel { job, .. }), Target::One(m)) =
         (ctx.keys.parse(key), ctx.target(q.key_expr()))
@@ -455,7 +395,7 @@ async fn job_cancel(ctx: &RouteContext, q: &Query) {
 }
 
 /// A delete on `P/C/machine/M/job/ID` cancels the job.
-async fn job_delete(ctx: &RouteContext, sample: &Sample) {
+pub(super) async fn job_delete(ctx: &RouteContext, sample: &Sample) {
     if sample.kind() != SampleKind::Delete {
         return;
     }

@@ -14,14 +14,10 @@
 //! before it reaches the gateway (no role is granted puts there): that refusal is zenoh's,
 //! silent, and invisible to the gateway (docs/security.md).
 
-use tokio_util::sync::CancellationToken;
-use zenoh::handlers::FifoChannelHandler;
-use zenoh::pubsub::Subscriber;
-use zenoh::sample::{Locality, Sample, SampleKind};
+use zenoh::sample::{Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
-use super::context::{Endpoint, Pool, RequestError, RouteContext, serve_route};
+use super::context::{RequestError, RouteContext};
 use super::keys::{CellKey, CellKeys, MachineLeaf, PlcArea, PlcKey};
 use cellgate_core::config::Permission;
 
@@ -105,45 +101,21 @@ pub(crate) fn misdirected(keys: &CellKeys, key: &str) -> Option<Misdirected> {
     }
 }
 
-/// The subscribers on the read keys that have a write key beside them. Undeclared when
-/// dropped.
-pub(crate) struct MisdirectedRoute {
-    subscribers: Vec<Subscriber<FifoChannelHandler<Sample>>>,
+/// The read keys that have a write key beside them, subscribed to for the puts and deletes
+/// sent there.
+pub(super) fn read_keys(k: &CellKeys) -> Vec<String> {
+    vec![
+        k.any_program(),
+        k.any_leaf(MachineLeaf::Job),
+        k.any_plc_tag(),
+        format!("{}/*/*", k.plc_area("*", PlcArea::Mem)),
+        format!("{}/*/*/*", k.plc_area("*", PlcArea::Mem)),
+        format!("{}/*", k.plc_area("*", PlcArea::Transfer)),
+        k.plc_message("*"),
+    ]
 }
 
-impl MisdirectedRoute {
-    pub(crate) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
-        let k = &ctx.keys;
-        let mut subscribers = Vec::new();
-        for key in [
-            k.any_program(),
-            k.any_leaf(MachineLeaf::Job),
-            k.any_plc_tag(),
-            format!("{}/*/*", k.plc_area("*", PlcArea::Mem)),
-            format!("{}/*/*/*", k.plc_area("*", PlcArea::Mem)),
-            format!("{}/*", k.plc_area("*", PlcArea::Transfer)),
-            k.plc_message("*"),
-        ] {
-            subscribers.push(ctx.subscriber(key, Locality::Remote).await?);
-        }
-        Ok(MisdirectedRoute { subscribers })
-    }
-
-    pub(crate) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        let endpoints = self
-            .subscribers
-            .into_iter()
-            .map(|s| {
-                Endpoint::samples(s, Some(Pool::Read), |c: RouteContext, s| async move {
-                    answer(&c, &s);
-                })
-            })
-            .collect();
-        serve_route(ctx, stop, endpoints).await;
-    }
-}
-
-fn answer(ctx: &RouteContext, s: &Sample) {
+pub(super) async fn answer(ctx: &RouteContext, s: &Sample) {
     let key = s.key_expr().as_str();
     // A wildcard put, or a key that is not what the subscriptions stand for: nothing to say.
     let Some(m) = misdirected(&ctx.keys, key).filter(|_| !s.key_expr().is_wild()) else {

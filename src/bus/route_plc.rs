@@ -25,17 +25,14 @@ use std::time::Duration;
 
 use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
-use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
-use zenoh::pubsub::Subscriber;
 use zenoh::qos::CongestionControl;
-use zenoh::query::{Query, Queryable};
-use zenoh::sample::{Locality, Sample, SampleKind};
+use zenoh::query::Query;
+use zenoh::sample::{Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
-use super::context::{Endpoint, Pool, RouteContext, Routed, reply, reply_err, serve_route};
-use super::keys::{PlcArea, PlcKey};
+use super::context::{RouteContext, Routed, reply, reply_err};
+use super::keys::PlcKey;
 use super::payload::{BusMessage, encoding, schema_of};
 use crate::plc::{PlcEvent, PlcHandle, PlcLinkError, PlcSnapshot, TagError, TagWriteError};
 use cellgate_core::codes::BusCode;
@@ -187,88 +184,6 @@ pub(crate) fn decode_payload<M: cellgate_core::bounds::Bounded>(
         plc: plc.to_string(),
         error,
     })
-}
-
-/// The memory, transfer and status queryables, and the subscribers for puts. Undeclared
-/// when dropped.
-pub(crate) struct PlcRoute {
-    mem: Queryable<FifoChannelHandler<Query>>,
-    transfer: Queryable<FifoChannelHandler<Query>>,
-    message: Queryable<FifoChannelHandler<Query>>,
-    status: Queryable<FifoChannelHandler<Query>>,
-    mem_puts: Subscriber<FifoChannelHandler<Sample>>,
-    transfer_puts: Subscriber<FifoChannelHandler<Sample>>,
-    message_puts: Subscriber<FifoChannelHandler<Sample>>,
-}
-
-impl PlcRoute {
-    pub(super) async fn declare(ctx: &PlcContext) -> Result<Self, BusError> {
-        let k = &ctx.route.keys;
-        Ok(PlcRoute {
-            // Reads and the writes' own keys (`…/write`): the handler tells them apart.
-            mem: ctx.route.queryable(k.any_plc_area(PlcArea::Mem)).await?,
-            transfer: ctx.route.queryable(k.any_plc_transfer_send()).await?,
-            message: ctx.route.queryable(k.any_plc_message_send()).await?,
-            status: ctx.route.queryable(k.any_plc_status()).await?,
-            mem_puts: ctx
-                .route
-                .subscriber(k.any_plc_mem_write(), Locality::Remote)
-                .await?,
-            transfer_puts: ctx
-                .route
-                .subscriber(k.any_plc_transfer_send(), Locality::Remote)
-                .await?,
-            message_puts: ctx
-                .route
-                .subscriber(k.any_plc_message_send(), Locality::Remote)
-                .await?,
-        })
-    }
-
-    pub(super) async fn run(self, ctx: PlcContext, stop: CancellationToken) {
-        serve_route(
-            ctx,
-            stop,
-            vec![
-                Endpoint::queries(self.mem, Some(Pool::Plc), |c: PlcContext, q| async move {
-                    mem_query(&c, &q).await
-                }),
-                Endpoint::queries(self.transfer, Some(Pool::Plc), |c: PlcContext, q| async move {
-                    transfer_query(&c, &q).await
-                }),
-                Endpoint::queries(self.message, Some(Pool::Plc), |c: PlcContext, q| async move {
-                    message_query(&c, &q).await
-                }),
-                Endpoint::samples(
-                    self.message_puts,
-                    Some(Pool::Plc),
-                    |c: PlcContext, s| async move {
-                        if let Err(e) = message_put(&c, &s).await {
-                            tracing::warn!(key = %s.key_expr(), error = %e, "PLC message put refused");
-                        }
-                    },
-                ),
-                Endpoint::queries(self.status, Some(Pool::Read), |c: PlcContext, q| async move {
-                    status_query(&c, &q).await
-                }),
-                Endpoint::samples(self.mem_puts, Some(Pool::Plc), |c: PlcContext, s| async move {
-                    if let Err(e) = mem_put(&c, &s).await {
-                        tracing::warn!(key = %s.key_expr(), error = %e, "PLC memory put refused");
-                    }
-                }),
-                Endpoint::samples(
-                    self.transfer_puts,
-                    Some(Pool::Plc),
-                    |c: PlcContext, s| async move {
-                        if let Err(e) = transfer_put(&c, &s).await {
-                            tracing::warn!(key = %s.key_expr(), error = %e, "PLC transfer put refused");
-                        }
-                    },
-                ),
-            ],
-        )
-        .await;
-    }
 }
 
 /// A memory key read back: the PLC, station, module and address.
@@ -439,7 +354,7 @@ fn count_of(q: &Query) -> Result<usize, PlcRequestError> {
     }
 }
 
-async fn mem_query(ctx: &PlcContext, q: &Query) {
+pub(super) async fn mem_query(ctx: &PlcContext, q: &Query) {
     let key = q.key_expr().to_string();
     let payload = q.payload().map(|p| p.to_bytes().to_vec());
     let result = match count_of(q) {
@@ -459,7 +374,14 @@ async fn mem_query(ctx: &PlcContext, q: &Query) {
     }
 }
 
-async fn mem_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
+/// A put with a `PlcWrite` on a memory key's `write`; a put has no answer, so a refusal is logged.
+pub(super) async fn mem_put(ctx: &PlcContext, s: &Sample) {
+    if let Err(e) = put_mem(ctx, s).await {
+        tracing::warn!(key = %s.key_expr(), error = %e, "PLC memory put refused");
+    }
+}
+
+async fn put_mem(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
     if s.kind() != SampleKind::Put
         || schema_of(s.encoding()).as_deref() != Some(pb::PlcWrite::SCHEMA)
     {
@@ -594,7 +516,7 @@ async fn send_transfer(
     })
 }
 
-async fn transfer_query(ctx: &PlcContext, q: &Query) {
+pub(super) async fn transfer_query(ctx: &PlcContext, q: &Query) {
     let key = q.key_expr().to_string();
     let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) else {
         let e = PlcRequestError::BadKey {
@@ -613,7 +535,14 @@ async fn transfer_query(ctx: &PlcContext, q: &Query) {
     }
 }
 
-async fn transfer_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
+/// A put with a `PlcTransfer` on a transfer's `send`; a put has no answer, so a refusal is logged.
+pub(super) async fn transfer_put(ctx: &PlcContext, s: &Sample) {
+    if let Err(e) = put_transfer(ctx, s).await {
+        tracing::warn!(key = %s.key_expr(), error = %e, "PLC transfer put refused");
+    }
+}
+
+async fn put_transfer(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
     if s.kind() != SampleKind::Put
         || schema_of(s.encoding()).as_deref() != Some(pb::PlcTransfer::SCHEMA)
     {
@@ -762,7 +691,7 @@ async fn send_message(
     })
 }
 
-async fn message_query(ctx: &PlcContext, q: &Query) {
+pub(super) async fn message_query(ctx: &PlcContext, q: &Query) {
     let key = q.key_expr().to_string();
     let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) else {
         let e = PlcRequestError::BadKey {
@@ -809,7 +738,14 @@ fn audit_message(
     );
 }
 
-async fn message_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
+/// A put with a `PlcMessage` on `message/send`; a put has no answer, so a refusal is logged.
+pub(super) async fn message_put(ctx: &PlcContext, s: &Sample) {
+    if let Err(e) = put_message(ctx, s).await {
+        tracing::warn!(key = %s.key_expr(), error = %e, "PLC message put refused");
+    }
+}
+
+async fn put_message(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
     if s.kind() != SampleKind::Put
         || schema_of(s.encoding()).as_deref() != Some(pb::PlcMessage::SCHEMA)
     {
@@ -825,7 +761,7 @@ async fn message_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError
     sent.map(|_| ())
 }
 
-async fn status_query(ctx: &PlcContext, q: &Query) {
+pub(super) async fn status_query(ctx: &PlcContext, q: &Query) {
     let key = q.key_expr().to_string();
     if !key.contains('*') {
         let name = match ctx.route.keys.parse_plc(&key) {

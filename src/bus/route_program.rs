@@ -17,19 +17,12 @@
 //! runs off the route's loop; a read holds the whole program, so few run at once
 //! ([`Pool::ProgramRead`]).
 
-use tokio_util::sync::CancellationToken;
 use zenoh::bytes::Encoding;
-use zenoh::handlers::FifoChannelHandler;
-use zenoh::pubsub::Subscriber;
-use zenoh::query::{Query, Queryable};
-use zenoh::sample::{Locality, Sample, SampleKind};
+use zenoh::query::Query;
+use zenoh::sample::{Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
-use super::context::{
-    Endpoint, Pool, RequestError, RouteContext, publish_event, reply, reply_bytes, reply_err,
-    serve_route,
-};
+use super::context::{RequestError, RouteContext, publish_event, reply, reply_bytes, reply_err};
 use super::keys::{CellKey, intersects, program_changed};
 use crate::jobs::library::Store;
 use cellgate_core::config::Permission;
@@ -38,63 +31,6 @@ use cellgate_core::program::diff::{self, DiffOptions};
 
 /// Equal blocks of context around each change of a diff.
 const DIFF_CONTEXT: usize = 3;
-
-/// The library's queryables and subscriber. Undeclared when dropped.
-pub(crate) struct ProgramRoute {
-    reads: Queryable<FifoChannelHandler<Query>>,
-    revisions: Queryable<FifoChannelHandler<Query>>,
-    revision: Queryable<FifoChannelHandler<Query>>,
-    diffs: Queryable<FifoChannelHandler<Query>>,
-    writes: Queryable<FifoChannelHandler<Query>>,
-    releases: Queryable<FifoChannelHandler<Query>>,
-    puts: Subscriber<FifoChannelHandler<Sample>>,
-}
-
-impl ProgramRoute {
-    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
-        let k = &ctx.keys;
-        Ok(ProgramRoute {
-            reads: ctx.queryable(k.any_program()).await?,
-            revisions: ctx.queryable(k.program_revisions("*")).await?,
-            revision: ctx.queryable(k.program_revision("*", "*")).await?,
-            diffs: ctx.queryable(k.program_diff("*")).await?,
-            writes: ctx.queryable(k.any_program_write()).await?,
-            releases: ctx.queryable(k.program_release("*")).await?,
-            puts: ctx.subscriber(k.any_program_write(), Locality::Any).await?,
-        })
-    }
-
-    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        serve_route(
-            ctx,
-            stop,
-            vec![
-                Endpoint::queries(self.reads, Some(Pool::ProgramRead), |c, q| async move {
-                    program_read(&c, &q).await
-                }),
-                Endpoint::queries(self.revisions, Some(Pool::Read), |c, q| async move {
-                    program_revisions(&c, &q).await
-                }),
-                Endpoint::queries(self.revision, Some(Pool::ProgramRead), |c, q| async move {
-                    program_revision(&c, &q).await
-                }),
-                Endpoint::queries(self.diffs, Some(Pool::ProgramRead), |c, q| async move {
-                    program_diff(&c, &q).await
-                }),
-                Endpoint::queries(self.writes, Some(Pool::ProgramWrite), |c, q| async move {
-                    program_write(&c, &q).await
-                }),
-                Endpoint::queries(self.releases, Some(Pool::ProgramWrite), |c, q| async move {
-                    program_release(&c, &q).await
-                }),
-                Endpoint::samples(self.puts, Some(Pool::ProgramWrite), |c, s| async move {
-                    program_sample(&c, &s).await
-                }),
-            ],
-        )
-        .await;
-    }
-}
 
 /// A get on a read key with a payload, which only a write key takes.
 async fn refuse_payload(ctx: &RouteContext, q: &Query) -> bool {
@@ -113,7 +49,7 @@ async fn refuse_payload(ctx: &RouteContext, q: &Query) -> bool {
 }
 
 /// A get on `P/C/program/NAME`.
-async fn program_read(ctx: &RouteContext, q: &Query) {
+pub(super) async fn program_read(ctx: &RouteContext, q: &Query) {
     if refuse_payload(ctx, q).await {
         return;
     }
@@ -149,7 +85,7 @@ fn one_program<'k>(q: &'k Query, ctx: &RouteContext) -> Option<CellKey<'k>> {
 }
 
 /// A get on `P/C/program/NAME/revisions`.
-async fn program_revisions(ctx: &RouteContext, q: &Query) {
+pub(super) async fn program_revisions(ctx: &RouteContext, q: &Query) {
     if refuse_payload(ctx, q).await {
         return;
     }
@@ -163,7 +99,7 @@ async fn program_revisions(ctx: &RouteContext, q: &Query) {
 }
 
 /// A get on `P/C/program/NAME/rev/REV`.
-async fn program_revision(ctx: &RouteContext, q: &Query) {
+pub(super) async fn program_revision(ctx: &RouteContext, q: &Query) {
     if refuse_payload(ctx, q).await {
         return;
     }
@@ -177,7 +113,7 @@ async fn program_revision(ctx: &RouteContext, q: &Query) {
 }
 
 /// A get on `P/C/program/NAME/diff?a=REV;b=REV;ignore=...`.
-async fn program_diff(ctx: &RouteContext, q: &Query) {
+pub(super) async fn program_diff(ctx: &RouteContext, q: &Query) {
     if refuse_payload(ctx, q).await {
         return;
     }
@@ -259,7 +195,7 @@ async fn diff_of(
 }
 
 /// A get with a `ProgramWrite` on `P/C/program/NAME/write`.
-async fn program_write(ctx: &RouteContext, q: &Query) {
+pub(super) async fn program_write(ctx: &RouteContext, q: &Query) {
     let Some(CellKey::ProgramWrite { name }) = ctx.keys.parse(q.key_expr().as_str()) else {
         return;
     };
@@ -439,7 +375,7 @@ fn audit_write(
 }
 
 /// A put on `P/C/program/NAME/write` stores the program; a delete removes it.
-async fn program_sample(ctx: &RouteContext, sample: &Sample) {
+pub(super) async fn program_sample(ctx: &RouteContext, sample: &Sample) {
     let key = sample.key_expr();
     if key.is_wild() {
         return tracing::warn!(%key, "program library: name one program, without wildcards");
@@ -497,7 +433,7 @@ async fn program_sample(ctx: &RouteContext, sample: &Sample) {
 }
 
 /// A get with a `ProgramRelease` on `P/C/program/NAME/release`.
-async fn program_release(ctx: &RouteContext, q: &Query) {
+pub(super) async fn program_release(ctx: &RouteContext, q: &Query) {
     let Some(CellKey::ProgramRelease { name }) = ctx.keys.parse(q.key_expr().as_str()) else {
         return;
     };

@@ -18,9 +18,9 @@
 
 use zenoh::qos::CongestionControl;
 
-use super::BusError;
 use super::context::MachinePublisher;
 use super::context::RouteContext;
+use super::error::BusError;
 use super::keys::MachineLeaf;
 use crate::jobs::library::{LibraryError, Store};
 use crate::jobs::source::ProgramInput;

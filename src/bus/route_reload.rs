@@ -14,9 +14,9 @@ use zenoh::handlers::FifoChannelHandler;
 use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 
-use super::BusError;
 use super::audit::{Audit, Auditor, origin_of};
 use super::context::reply_err;
+use super::error::BusError;
 use super::keys::CellKeys;
 use super::payload::encoding;
 use crate::history::History;

@@ -9,12 +9,9 @@
 
 use std::time::Duration;
 
-use tokio_util::sync::CancellationToken;
-use zenoh::handlers::FifoChannelHandler;
-use zenoh::query::{Query, Queryable};
+use zenoh::query::Query;
 
-use super::BusError;
-use super::context::{Endpoint, Pool, RequestError, RouteContext, reply, reply_err, serve_route};
+use super::context::{RequestError, RouteContext, reply, reply_err};
 use super::keys::{CellKey, SimLeaf, intersects};
 use super::machine::Machine;
 use crate::sim::{BoardControl, BoardSnapshot};
@@ -26,32 +23,6 @@ use cellgate_core::sim::BoardCommand;
 /// How long the simulated board may take to take a control: it runs in this process and takes
 /// a command at its next step, so anything near this is a board that has stopped.
 const TAKE_WITHIN: Duration = Duration::from_secs(5);
-
-/// The queryable of every simulated machine's keys. Undeclared when dropped.
-pub(crate) struct SimRoute {
-    queryable: Queryable<FifoChannelHandler<Query>>,
-}
-
-impl SimRoute {
-    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
-        Ok(SimRoute {
-            queryable: ctx.queryable(ctx.keys.any_sim()).await?,
-        })
-    }
-
-    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        serve_route(
-            ctx,
-            stop,
-            vec![Endpoint::queries(
-                self.queryable,
-                Some(Pool::Sim),
-                |c, q| async move { sim_query(&c, &q).await },
-            )],
-        )
-        .await;
-    }
-}
 
 /// A machine's state as its operator would see it.
 fn state(m: &Machine, s: &BoardSnapshot) -> pb::SimState {
@@ -74,7 +45,7 @@ fn state(m: &Machine, s: &BoardSnapshot) -> pb::SimState {
     }
 }
 
-async fn sim_query(ctx: &RouteContext, q: &Query) {
+pub(super) async fn sim_query(ctx: &RouteContext, q: &Query) {
     let key = q.key_expr();
     if key.is_wild() {
         // A browse (`P/C/sim/**`): the state of each simulated machine it takes in; a control

@@ -5,50 +5,25 @@
 //! zenoh-ext's `AdvancedPublisher` would replay a cache to late subscribers, but its API is
 //! unstable in zenoh 1.x; a queryable holding the last value gives the same with the stable API.
 
-use tokio_util::sync::CancellationToken;
-use zenoh::handlers::FifoChannelHandler;
 use zenoh::qos::CongestionControl;
-use zenoh::query::{Query, Queryable};
+use zenoh::query::Query;
 
-use super::BusError;
 use super::context::MachinePublisher;
 use super::context::{RouteContext, reply};
+use super::error::BusError;
 use super::keys::MachineLeaf;
 use super::machine::Machine;
 use cellgate_core::pb;
 
-/// The status queryable of the cell. Undeclared when dropped.
-pub(crate) struct StatusRoute {
-    queryable: Queryable<FifoChannelHandler<Query>>,
-}
-
-impl StatusRoute {
-    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
-        let queryable = ctx
-            .queryable(ctx.keys.any_leaf(MachineLeaf::Status))
-            .await?;
-        Ok(StatusRoute { queryable })
+/// A get on `status`: the status of each machine it takes in. A status is at hand, so the
+/// answer never waits.
+pub(super) async fn status_get(ctx: &RouteContext, q: &Query) {
+    let matching = ctx.matching(q, MachineLeaf::Status);
+    if matching.is_empty() {
+        return ctx.unmatched(q).await;
     }
-
-    /// Answers gets until `stop`. A status is at hand, so the answer never waits.
-    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        loop {
-            let q = tokio::select! {
-                () = stop.cancelled() => break,
-                q = self.queryable.recv_async() => match q {
-                    Ok(q) => q,
-                    Err(_) => break,
-                },
-            };
-            let matching = ctx.matching(&q, MachineLeaf::Status);
-            if matching.is_empty() {
-                ctx.unmatched(&q).await;
-                continue;
-            }
-            for (key, m) in matching {
-                reply(&q, key, &m.status()).await;
-            }
-        }
+    for (key, m) in matching {
+        reply(q, key, &m.status()).await;
     }
 }
 

@@ -13,15 +13,12 @@
 
 use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
-use zenoh::handlers::FifoChannelHandler;
-use zenoh::pubsub::Subscriber;
 use zenoh::qos::CongestionControl;
-use zenoh::query::{Query, Queryable};
-use zenoh::sample::{Locality, Sample, SampleKind};
+use zenoh::query::Query;
+use zenoh::sample::{Sample, SampleKind};
 
-use super::BusError;
 use super::audit::{Audit, origin_of};
-use super::context::{Endpoint, Pool, reply, reply_err, serve_route};
+use super::context::{reply, reply_err};
 use super::keys::{PlcKey, intersects};
 use super::payload::tag_message;
 use super::payload::{BusMessage, schema_of};
@@ -30,48 +27,6 @@ use crate::plc::PlcEvent;
 use cellgate_core::config::Permission;
 use cellgate_core::pb;
 use prost::Message as _;
-
-/// The tag queryables and the subscriber for tag writes. Undeclared when dropped.
-pub(crate) struct TagRoute {
-    get: Queryable<FifoChannelHandler<Query>>,
-    set: Queryable<FifoChannelHandler<Query>>,
-    puts: Subscriber<FifoChannelHandler<Sample>>,
-}
-
-impl TagRoute {
-    pub(super) async fn declare(ctx: &PlcContext) -> Result<Self, BusError> {
-        let k = &ctx.route.keys;
-        Ok(TagRoute {
-            get: ctx.route.queryable(k.any_plc_tag()).await?,
-            set: ctx.route.queryable(k.any_plc_tag_set()).await?,
-            puts: ctx
-                .route
-                .subscriber(k.any_plc_tag_set(), Locality::Remote)
-                .await?,
-        })
-    }
-
-    pub(super) async fn run(self, ctx: PlcContext, stop: CancellationToken) {
-        serve_route(
-            ctx,
-            stop,
-            vec![
-                Endpoint::queries(self.get, Some(Pool::Read), |c: PlcContext, q| async move {
-                    tag_query(&c, &q).await
-                }),
-                Endpoint::queries(self.set, Some(Pool::Plc), |c: PlcContext, q| async move {
-                    tag_set(&c, &q).await
-                }),
-                Endpoint::samples(self.puts, Some(Pool::Plc), |c: PlcContext, s| async move {
-                    if let Err(e) = tag_put(&c, &s).await {
-                        tracing::warn!(key = %s.key_expr(), error = %e, "tag write refused");
-                    }
-                }),
-            ],
-        )
-        .await;
-    }
-}
 
 /// The PLC and tag a key names, and whether it is the tag's write key (`…/set`).
 fn tag_target<'k>(
@@ -123,7 +78,7 @@ async fn write_tag(
 }
 
 /// A get with a `TagWrite` on `P/C/plc/L/tag/NAME/set`.
-async fn tag_set(ctx: &PlcContext, q: &Query) {
+pub(super) async fn tag_set(ctx: &PlcContext, q: &Query) {
     let key = q.key_expr().to_string();
     let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) else {
         if !q.key_expr().is_wild() {
@@ -183,7 +138,7 @@ fn audit_tag(
 }
 
 /// A get on `P/C/plc/L/tag/NAME`: the tag's latest value.
-async fn tag_query(ctx: &PlcContext, q: &Query) {
+pub(super) async fn tag_query(ctx: &PlcContext, q: &Query) {
     let key = q.key_expr().to_string();
     if q.payload().is_some() {
         let e = PlcRequestError::BadKey {
@@ -225,7 +180,14 @@ async fn tag_query(ctx: &PlcContext, q: &Query) {
     }
 }
 
-async fn tag_put(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
+/// A put on a tag's `set` key; a put has no answer, so a refusal is logged.
+pub(super) async fn tag_put(ctx: &PlcContext, s: &Sample) {
+    if let Err(e) = put_tag(ctx, s).await {
+        tracing::warn!(key = %s.key_expr(), error = %e, "tag write refused");
+    }
+}
+
+async fn put_tag(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
     // Only TagWrites are writes; anything else published here is not for the gateway.
     if s.kind() != SampleKind::Put
         || schema_of(s.encoding()).as_deref() != Some(pb::TagWrite::SCHEMA)

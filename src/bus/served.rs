@@ -13,17 +13,29 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use super::context::{CellNames, Live, RouteContext};
+use super::error::BusError;
 use super::machine::Machine;
 use super::machine_task::{MachineFeeds, MachineTask};
 use super::route_plc::{PlcContext, PlcLink};
 use super::route_punch::PunchSettings;
-use super::route_sim::SimRoute;
-use super::{BusError, MachineLink, route_plc, route_tag};
+use super::{route_plc, route_tag, routes};
 use crate::jobs::journal::{JobRecord, Journal};
 use crate::jobs::{self, Hold, JobError, JobsSettings};
+use crate::link::driver::LinkHandle;
 use crate::link::g05::G05Desk;
-use cellgate_core::config::CellConfig;
+use cellgate_core::config::{CellConfig, MachineConfig};
 use cellgate_core::fanuc::g05::stream::EndReason;
+
+/// A machine of the cell and its running link, as the gateway hands them to
+/// [`serve`](super::serve).
+#[derive(Debug, Clone)]
+pub struct MachineLink {
+    pub config: MachineConfig,
+    pub link: LinkHandle,
+    /// The simulated board on the far end of a `sim` transport, for the `P/C/sim/M/...`
+    /// controls; `None` for a real machine.
+    pub sim: Option<crate::sim::BoardControl>,
+}
 
 /// A machine served: its job manager and task, each on a token of its own.
 struct Served {
@@ -214,7 +226,7 @@ impl MachineRoutes {
             return Ok(());
         }
         let ctx = self.inner.ctx.clone();
-        let sim = SimRoute::declare(&ctx).await?;
+        let sim = routes::sim(&ctx.keys).declare(&ctx).await?;
         let task = tokio::spawn(sim.run(ctx, self.inner.routes_stop.clone()));
         self.inner
             .late_routes

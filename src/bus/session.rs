@@ -7,73 +7,12 @@
 //! to the whole network. `[security]` then sets TLS, the user-password dictionary and the
 //! access-control rules of the roles (merged with the file's own rules, [`super::acl`]).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-use super::BusConfig;
-use super::acl::{self, AclError};
+use super::acl;
+use super::error::BusError;
 use super::keys::CellKeys;
-use cellgate_core::config::CellConfig;
-
-/// Why the Zenoh session could not be opened.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum BusError {
-    /// The json5 file named by `bus.zenoh_config` could not be read or parsed.
-    #[error("zenoh configuration file {}: {source}", path.display())]
-    ConfigFile {
-        path: PathBuf,
-        #[source]
-        source: zenoh::Error,
-    },
-    /// Zenoh refused a value the cell file supplies (e.g. a malformed endpoint).
-    #[error("bus.{field} = {value}: zenoh refuses it: {source}")]
-    ConfigValue {
-        /// The `[bus]` key the value came from.
-        field: &'static str,
-        value: String,
-        #[source]
-        source: zenoh::Error,
-    },
-    /// The session did not open: typically an endpoint already in use, or unreachable in
-    /// client mode.
-    #[error("cannot open the zenoh session (listen {listen:?}, connect {connect:?}): {source}")]
-    Open {
-        listen: Vec<String>,
-        connect: Vec<String>,
-        #[source]
-        source: zenoh::Error,
-    },
-    /// `bus.prefix` and `cell` do not make a key prefix.
-    #[error(transparent)]
-    Keys(#[from] super::keys::KeyError),
-    /// A `[security]` path zenoh cannot take: its configuration holds paths as UTF-8 text.
-    #[error("{field} = {}: zenoh takes only UTF-8 paths", path.display())]
-    Path { field: &'static str, path: PathBuf },
-    /// Zenoh refused a `[security]` setting.
-    #[error("{field}: zenoh refuses it: {source}")]
-    SecurityValue {
-        field: &'static str,
-        #[source]
-        source: zenoh::Error,
-    },
-    /// The roles' access-control rules cannot join the zenoh file's.
-    #[error(transparent)]
-    AccessControl(#[from] AclError),
-    /// Zenoh refused to declare a route's queryable, subscriber or publisher.
-    #[error("cannot declare the {what} on {key:?}: {source}")]
-    Declare {
-        what: &'static str,
-        key: String,
-        #[source]
-        source: zenoh::Error,
-    },
-    /// The job journal could not be opened.
-    #[error(transparent)]
-    Journal(#[from] crate::jobs::journal::JournalError),
-    /// A task of the gateway's own ended abnormally.
-    #[error("internal: {0}")]
-    Internal(String),
-}
+use cellgate_core::config::{BusConfig, CellConfig};
 
 /// The zenoh configuration the gateway opens its session with: the json5 file (if any),
 /// then every key of `cfg` on top.

@@ -208,3 +208,184 @@ fn the_checker_sees_a_backward_import() {
         "{found:?}"
     );
 }
+
+/// The modules of `bus/` (`bus` for its `mod.rs`), each with the modules of `bus/` its code
+/// names: `super::X`, `crate::bus::X` and, in `mod.rs`, `self::X` or `X::` for a child `X`. An
+/// item of `mod.rs` named from a child (`super::BusError`) is an import of `bus` itself.
+fn bus_imports(dir: &Path) -> BTreeMap<String, std::collections::BTreeSet<String>> {
+    let mut children = std::collections::BTreeSet::new();
+    for file in sources(dir) {
+        let rel = file.strip_prefix(dir).unwrap();
+        if rel.components().count() == 1 {
+            let name = rel.file_stem().unwrap().to_str().unwrap();
+            if name != "mod" && name != "tests" {
+                children.insert(name.to_string());
+            }
+        }
+    }
+    let mut graph = BTreeMap::new();
+    for file in sources(dir) {
+        let rel = file.strip_prefix(dir).unwrap();
+        if rel.components().count() != 1 {
+            continue; // `acl/tests.rs` and the like: test code
+        }
+        let stem = rel.file_stem().unwrap().to_str().unwrap();
+        if stem == "tests" {
+            continue;
+        }
+        let module = if stem == "mod" { "bus" } else { stem };
+        let code = production_code(&std::fs::read_to_string(&file).unwrap());
+        let mut names = std::collections::BTreeSet::new();
+        for prefix in ["super::", "crate::bus::", "self::", ""] {
+            if prefix == "self::" || prefix.is_empty() {
+                if module != "bus" {
+                    continue;
+                }
+            } else if prefix == "super::" && module == "bus" {
+                continue;
+            }
+            for target in paths_after(&code, prefix) {
+                if children.contains(&target) {
+                    names.insert(target);
+                } else if !prefix.is_empty() && module != "bus" {
+                    names.insert("bus".to_string());
+                }
+            }
+        }
+        names.remove(module);
+        graph.insert(module.to_string(), names);
+    }
+    graph
+}
+
+/// The first segment of every path after `prefix` in `code` (each name of a `{a, b::c}`
+/// group); with an empty prefix, every `name::` that starts a path.
+fn paths_after(code: &str, prefix: &str) -> Vec<String> {
+    let ident = |c: char| c.is_alphanumeric() || c == '_';
+    let mut out = Vec::new();
+    let pattern = if prefix.is_empty() { "::" } else { prefix };
+    let mut from = 0;
+    while let Some(i) = code[from..].find(pattern) {
+        let at = from + i;
+        from = at + pattern.len();
+        if prefix.is_empty() {
+            // `name::` with nothing path-like before `name`.
+            let head: String = code[..at]
+                .chars()
+                .rev()
+                .take_while(|c| ident(*c))
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
+            let before = code[..at - head.len()].chars().next_back();
+            if !head.is_empty() && !before.is_some_and(|c| ident(c) || c == ':') {
+                out.push(head);
+            }
+            continue;
+        }
+        let before = code[..at].chars().next_back();
+        if before.is_some_and(|c| ident(c) || c == ':') {
+            continue; // `cellgate_core::…`, `a::super::…`
+        }
+        let rest = &code[from..];
+        if let Some(group) = rest.strip_prefix('{') {
+            // One level of `{…}`: each member's first segment.
+            let end = group.find('}').unwrap_or(group.len());
+            for member in group[..end].split(',') {
+                let name: String = member.trim().chars().take_while(|c| ident(*c)).collect();
+                if !name.is_empty() && name != "self" {
+                    out.push(name);
+                }
+            }
+        } else {
+            let name: String = rest.chars().take_while(|c| ident(*c)).collect();
+            if !name.is_empty() {
+                out.push(name);
+            }
+        }
+    }
+    out
+}
+
+/// A cycle of `graph`, if it has one, as the modules along it.
+fn cycle(graph: &BTreeMap<String, std::collections::BTreeSet<String>>) -> Option<Vec<String>> {
+    // Depth first: 0 unseen, 1 on the current path, 2 done.
+    fn visit(
+        node: &str,
+        graph: &BTreeMap<String, std::collections::BTreeSet<String>>,
+        state: &mut BTreeMap<String, u8>,
+        path: &mut Vec<String>,
+    ) -> Option<Vec<String>> {
+        state.insert(node.to_string(), 1);
+        path.push(node.to_string());
+        for next in graph.get(node).into_iter().flatten() {
+            match state.get(next).copied().unwrap_or(0) {
+                1 => {
+                    let start = path.iter().position(|n| n == next).unwrap_or(0);
+                    let mut found = path[start..].to_vec();
+                    found.push(next.clone());
+                    return Some(found);
+                }
+                0 => {
+                    if let Some(found) = visit(next, graph, state, path) {
+                        return Some(found);
+                    }
+                }
+                _ => {}
+            }
+        }
+        path.pop();
+        state.insert(node.to_string(), 2);
+        None
+    }
+    let mut state = BTreeMap::new();
+    for node in graph.keys() {
+        if state.get(node).copied().unwrap_or(0) == 0 {
+            let mut path = Vec::new();
+            if let Some(found) = visit(node, graph, &mut state, &mut path) {
+                return Some(found);
+            }
+        }
+    }
+    None
+}
+
+#[test]
+fn bus_modules_import_one_another_without_a_cycle() {
+    let graph = bus_imports(&root().join("src/bus"));
+    assert!(graph.len() > 20, "{graph:?}");
+    if let Some(found) = cycle(&graph) {
+        panic!("bus/ imports in a circle: {}", found.join(" -> "));
+    }
+}
+
+#[test]
+fn the_checker_sees_a_bus_cycle() {
+    let dir = tempfile::tempdir().unwrap();
+    let write = |name: &str, text: &str| std::fs::write(dir.path().join(name), text).unwrap();
+    write(
+        "mod.rs",
+        "mod a;\nmod b;\nmod c;\npub use a::X;\nuse self::c::Z;\n",
+    );
+    write("a.rs", "use super::b::Y;\n");
+    write(
+        "b.rs",
+        "use super::{Thing, c};\n#[cfg(test)]\nmod t { use super::a; }\n",
+    );
+    write("c.rs", "use cellgate_core::keys::super_thing;\n");
+    write("tests.rs", "use super::a::X;\n");
+    let graph = bus_imports(dir.path());
+    let edges = |m: &str| graph[m].iter().cloned().collect::<Vec<_>>();
+    assert_eq!(edges("bus"), ["a", "c"]);
+    assert_eq!(edges("a"), ["b"]);
+    assert_eq!(edges("b"), ["bus", "c"]);
+    assert!(edges("c").is_empty());
+    assert_eq!(
+        cycle(&graph).unwrap(),
+        ["a", "b", "bus", "a"].map(String::from)
+    );
+    // Without `Thing` from `mod.rs` the circle is gone.
+    write("b.rs", "use super::c;\n");
+    assert_eq!(cycle(&bus_imports(dir.path())), None);
+}

@@ -473,3 +473,45 @@ fn only_cell_reload_reloads_and_every_reader_sees_what_it_did() {
     assert!(allows(&acl, "dash", Flow::Egress, "put", &keys.reloads()));
     assert!(!allows(&acl, "eng", Flow::Egress, "put", &keys.reloads()));
 }
+
+/// Every row of the route table is reachable through the rules of the permission it names:
+/// a client's get (or put or delete) comes in, and the gateway's queryable (or subscriber)
+/// and its replies go out; so the table and the rules cannot drift apart.
+#[test]
+fn every_route_is_granted_by_its_permission() {
+    use super::super::routes::{Arrives, tests::every_row};
+    let keys = CellKeys::new("cellgate", "demo").unwrap();
+    let rows = every_row(&keys);
+    assert!(rows.len() > 30, "{}", rows.len());
+    for (key, arrives, _, permission) in rows {
+        let Some(p) = permission else { continue };
+        let rules = grants(p, &keys, "cellgate");
+        let allows = |flow: Flow, message: &str| {
+            rules.iter().any(|g| {
+                g.flow == flow
+                    && g.messages.contains(&message)
+                    && g.keys.iter().any(|k| {
+                        keyexpr::new(k.as_str())
+                            .unwrap()
+                            .includes(keyexpr::new(key.as_str()).unwrap())
+                    })
+            })
+        };
+        let (sent, served): (&[&str], &[&str]) = match arrives {
+            Arrives::Queries => (&["query"], &["declare_queryable", "reply"]),
+            Arrives::Samples(_) => (&["put", "delete"], &["declare_subscriber"]),
+        };
+        assert!(
+            sent.iter().any(|m| allows(Flow::Ingress, m)),
+            "{key}: {} lets no client send {sent:?} there",
+            p.name()
+        );
+        for m in served {
+            assert!(
+                allows(Flow::Egress, m),
+                "{key}: {} does not let the gateway send {m} there",
+                p.name()
+            );
+        }
+    }
+}

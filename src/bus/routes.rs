@@ -1,0 +1,602 @@
+//! Every queryable and subscriber the routes serve, one [`Row`] each: its key (built in
+//! [`keys`](super::keys)), what arrives on it (queries, or puts and deletes from which
+//! sessions), the [`Pool`] its requests run in, the permission of the cell file's roles
+//! that lets a client reach it ([`acl`](super::acl) takes the keys of its rules from here,
+//! and its tests check each row), and the handler. A new endpoint is a row here and a
+//! handler in its route's module.
+//!
+//! A [`Route`] is a group of rows served by one task ([`serve_route`]): a request answered
+//! on a route's loop (`pool` `None`, a cheap answer from memory) never waits behind
+//! another route's. The G05 streams keep a loop of their own (`route_g05`): their batches
+//! are served in order on it and each stream opened gets a task of its own.
+
+use std::future::Future;
+use std::sync::Arc;
+
+use futures::future::BoxFuture;
+use futures::stream::BoxStream;
+use futures::{FutureExt as _, StreamExt as _};
+use tokio::task::JoinSet;
+use tokio_util::sync::CancellationToken;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::key_expr::{KeyExpr, keyexpr};
+use zenoh::pubsub::Subscriber;
+use zenoh::query::{Query, Queryable};
+use zenoh::sample::{Locality, Sample};
+
+use super::context::{Pool, RequestError, RouteContext, Routed, reply_err};
+use super::error::BusError;
+use super::keys::{CellKeys, MachineLeaf, PlcArea};
+use super::route_plc::PlcContext;
+use super::{
+    route_history, route_io, route_job, route_misdirected, route_plc, route_program, route_sim,
+    route_status, route_tag,
+};
+use cellgate_core::config::Permission;
+
+/// What arrives on a row's key.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Arrives {
+    /// Gets: a queryable.
+    Queries,
+    /// Puts and deletes from sessions of this locality: a subscriber.
+    Samples(Locality),
+}
+
+/// One queryable or subscriber and what serves it.
+pub(crate) struct Row<C> {
+    pub(crate) key: String,
+    pub(crate) arrives: Arrives,
+    /// `None`: answered on the route's loop itself; else run in a slot of the pool.
+    pub(crate) pool: Option<Pool>,
+    /// The permission whose rules let a client send what arrives here; `None` for keys no
+    /// role is meant to send it to (the misdirected writes).
+    pub(crate) permission: Option<Permission>,
+    handle: Handler<C>,
+}
+
+/// A handler as the route modules write it: an async fn of the context and the query or
+/// sample, both borrowed. A trait of its own because the future borrows the arguments, for
+/// whatever lifetime they have, which a plain `Fn(&C, &I) -> Fut` bound cannot say.
+pub(crate) trait Serve<'a, C: 'a, I: 'a>: Send + Sync + 'static {
+    type Fut: Future<Output = ()> + Send + 'a;
+    fn serve(&self, ctx: &'a C, item: &'a I) -> Self::Fut;
+}
+
+impl<'a, C: 'a, I: 'a, F, Fut> Serve<'a, C, I> for F
+where
+    F: Fn(&'a C, &'a I) -> Fut + Send + Sync + 'static,
+    Fut: Future<Output = ()> + Send + 'a,
+{
+    type Fut = Fut;
+    fn serve(&self, ctx: &'a C, item: &'a I) -> Fut {
+        self(ctx, item)
+    }
+}
+
+impl<C: Send + Sync + 'static> Row<C> {
+    /// Gets on `key`, each served by `f`.
+    fn query<F>(key: String, pool: Option<Pool>, permission: Option<Permission>, f: F) -> Self
+    where
+        F: for<'a> Serve<'a, C, Query>,
+    {
+        let f = Arc::new(f);
+        Row {
+            key,
+            arrives: Arrives::Queries,
+            pool,
+            permission,
+            handle: Arc::new(move |c, i| {
+                let f = Arc::clone(&f);
+                async move {
+                    if let Incoming::Query(q) = i {
+                        f.serve(&c, &q).await;
+                    }
+                }
+                .boxed()
+            }),
+        }
+    }
+
+    /// Puts and deletes on `key` from `origin`, each served by `f`.
+    fn samples<F>(
+        key: String,
+        origin: Locality,
+        pool: Option<Pool>,
+        permission: Option<Permission>,
+        f: F,
+    ) -> Self
+    where
+        F: for<'a> Serve<'a, C, Sample>,
+    {
+        let f = Arc::new(f);
+        Row {
+            key,
+            arrives: Arrives::Samples(origin),
+            pool,
+            permission,
+            handle: Arc::new(move |c, i| {
+                let f = Arc::clone(&f);
+                async move {
+                    if let Incoming::Sample(s) = i {
+                        f.serve(&c, &s).await;
+                    }
+                }
+                .boxed()
+            }),
+        }
+    }
+}
+
+/// Rows served together by one task.
+pub(crate) struct Route<C> {
+    pub(crate) rows: Vec<Row<C>>,
+    /// Each machine's key of this leaf declared too, for as long as the route runs (see
+    /// [`declare_keys`]).
+    hold: Option<MachineLeaf>,
+}
+
+impl<C> Route<C> {
+    fn new(rows: Vec<Row<C>>) -> Self {
+        Route { rows, hold: None }
+    }
+
+    fn holding(mut self, leaf: MachineLeaf) -> Self {
+        self.hold = Some(leaf);
+        self
+    }
+}
+
+/// The routes of the cell's machines, library and records, on [`RouteContext`].
+pub(crate) fn cell(keys: &CellKeys) -> Vec<Route<RouteContext>> {
+    use MachineLeaf as L;
+    use Permission as P;
+    let leaf = |l| keys.any_leaf(l);
+    let read = Some(Pool::Read);
+    vec![
+        // A status is at hand, so the answer never waits.
+        Route::new(vec![Row::query(
+            leaf(L::Status),
+            None,
+            Some(P::StatusRead),
+            route_status::status_get,
+        )]),
+        // Jobs: submits, the queue, a job's latest event, cancels.
+        Route::new(vec![
+            Row::query(
+                leaf(L::Submit),
+                Some(Pool::Jobs),
+                Some(P::JobSubmit),
+                route_job::job_submit,
+            ),
+            Row::query(
+                leaf(L::Job),
+                read,
+                Some(P::StatusRead),
+                route_job::job_queue,
+            ),
+            Row::query(
+                keys.any_job_events(),
+                None,
+                Some(P::StatusRead),
+                route_job::job_events,
+            ),
+            Row::query(
+                keys.any_job_cancel(),
+                Some(Pool::Jobs),
+                Some(P::JobCancel),
+                route_job::job_cancel,
+            ),
+            // Only other sessions cancel jobs; this session's own job events need not
+            // come back to it.
+            Row::samples(
+                keys.any_job_events(),
+                Locality::Remote,
+                Some(Pool::Jobs),
+                Some(P::JobCancel),
+                route_job::job_delete,
+            ),
+        ]),
+        // DI reads, DO outputs; each machine's `do` key held declared, so that a DO put's
+        // route stays cached (docs/performance.md).
+        Route::new(vec![
+            Row::query(leaf(L::Di), read, Some(P::StatusRead), route_io::di_get),
+            Row::query(leaf(L::Do), Some(Pool::Io), Some(P::IoDo), route_io::do_get),
+            // Without waiting: a flood of puts is refused past the link's command queue.
+            Row::samples(
+                leaf(L::Do),
+                Locality::Any,
+                None,
+                Some(P::IoDo),
+                route_io::do_put,
+            ),
+        ])
+        .holding(L::Do),
+        // The program library: reads, revisions, comparisons, writes, releases.
+        Route::new(vec![
+            Row::query(
+                keys.any_program(),
+                Some(Pool::ProgramRead),
+                Some(P::ProgramRead),
+                route_program::program_read,
+            ),
+            Row::query(
+                keys.program_revisions("*"),
+                read,
+                Some(P::ProgramRead),
+                route_program::program_revisions,
+            ),
+            Row::query(
+                keys.program_revision("*", "*"),
+                Some(Pool::ProgramRead),
+                Some(P::ProgramRead),
+                route_program::program_revision,
+            ),
+            Row::query(
+                keys.program_diff("*"),
+                Some(Pool::ProgramRead),
+                Some(P::ProgramRead),
+                route_program::program_diff,
+            ),
+            Row::query(
+                keys.any_program_write(),
+                Some(Pool::ProgramWrite),
+                Some(P::ProgramWrite),
+                route_program::program_write,
+            ),
+            Row::query(
+                keys.program_release("*"),
+                Some(Pool::ProgramWrite),
+                Some(P::ProgramRelease),
+                route_program::program_release,
+            ),
+            Row::samples(
+                keys.any_program_write(),
+                Locality::Any,
+                Some(Pool::ProgramWrite),
+                Some(P::ProgramWrite),
+                route_program::program_sample,
+            ),
+        ]),
+        // The cell's records: history, audit trail, notes, utilisation.
+        Route::new(vec![
+            Row::query(
+                keys.history(),
+                read,
+                Some(P::HistoryRead),
+                route_history::history_page,
+            ),
+            Row::query(
+                keys.audit(),
+                read,
+                Some(P::AuditRead),
+                route_history::audit_page,
+            ),
+            Row::query(
+                keys.audit_note(),
+                read,
+                Some(P::AuditNote),
+                route_history::note,
+            ),
+            Row::query(
+                keys.utilisation(),
+                read,
+                Some(P::HistoryRead),
+                route_history::utilisation,
+            ),
+        ]),
+        // Puts and deletes on read keys, from other sessions: the gateway publishes on some
+        // of them itself.
+        Route::new(
+            route_misdirected::read_keys(keys)
+                .into_iter()
+                .map(|key| {
+                    Row::samples(key, Locality::Remote, read, None, route_misdirected::answer)
+                })
+                .collect(),
+        ),
+    ]
+}
+
+/// The controls of simulated machines, declared with the first one.
+pub(crate) fn sim(keys: &CellKeys) -> Route<RouteContext> {
+    Route::new(vec![Row::query(
+        keys.any_sim(),
+        Some(Pool::Sim),
+        Some(Permission::SimControl),
+        route_sim::sim_query,
+    )])
+}
+
+/// The routes of the cell's PLC links, on [`PlcContext`].
+pub(crate) fn plc(keys: &CellKeys) -> Vec<Route<PlcContext>> {
+    use Permission as P;
+    let plc = Some(Pool::Plc);
+    vec![
+        // PLC memory, transfers, messages, status.
+        Route::new(vec![
+            // Reads and the writes' own keys (`…/write`): the handler tells them apart.
+            Row::query(
+                keys.any_plc_area(PlcArea::Mem),
+                plc,
+                Some(P::PlcMem),
+                route_plc::mem_query,
+            ),
+            Row::query(
+                keys.any_plc_transfer_send(),
+                plc,
+                Some(P::PlcTransfer),
+                route_plc::transfer_query,
+            ),
+            Row::query(
+                keys.any_plc_message_send(),
+                plc,
+                Some(P::PlcTransfer),
+                route_plc::message_query,
+            ),
+            Row::query(
+                keys.any_plc_status(),
+                Some(Pool::Read),
+                Some(P::StatusRead),
+                route_plc::status_query,
+            ),
+            Row::samples(
+                keys.any_plc_mem_write(),
+                Locality::Remote,
+                plc,
+                Some(P::PlcMem),
+                route_plc::mem_put,
+            ),
+            Row::samples(
+                keys.any_plc_transfer_send(),
+                Locality::Remote,
+                plc,
+                Some(P::PlcTransfer),
+                route_plc::transfer_put,
+            ),
+            Row::samples(
+                keys.any_plc_message_send(),
+                Locality::Remote,
+                plc,
+                Some(P::PlcTransfer),
+                route_plc::message_put,
+            ),
+        ]),
+        // PLC tags: reads and writes.
+        Route::new(vec![
+            Row::query(
+                keys.any_plc_tag(),
+                Some(Pool::Read),
+                Some(P::StatusRead),
+                route_tag::tag_query,
+            ),
+            Row::query(
+                keys.any_plc_tag_set(),
+                plc,
+                Some(P::PlcTag),
+                route_tag::tag_set,
+            ),
+            Row::samples(
+                keys.any_plc_tag_set(),
+                Locality::Remote,
+                plc,
+                Some(P::PlcTag),
+                route_tag::tag_put,
+            ),
+        ]),
+    ]
+}
+
+/// The keys of every row `p` grants, in the table's order, each once, and none that another of
+/// them includes (a write key inside an area read and written): the keys the access-control
+/// rules ([`acl`](super::acl)) give `p` on the routes.
+pub(crate) fn granted(keys: &CellKeys, p: Permission) -> Vec<String> {
+    fn of<C>(routes: Vec<Route<C>>, p: Permission) -> impl Iterator<Item = String> {
+        routes
+            .into_iter()
+            .flat_map(|r| r.rows)
+            .filter(move |r| r.permission == Some(p))
+            .map(|r| r.key)
+    }
+    let mut found: Vec<String> = Vec::new();
+    for key in of(cell(keys), p)
+        .chain(of(vec![sim(keys)], p))
+        .chain(of(plc(keys), p))
+    {
+        if !found.contains(&key) {
+            found.push(key);
+        }
+    }
+    let includes = |a: &str, b: &str| {
+        keyexpr::new(a).is_ok_and(|a| keyexpr::new(b).is_ok_and(|b| a.includes(b)))
+    };
+    found
+        .iter()
+        .filter(|k| !found.iter().any(|o| o != *k && includes(o, k)))
+        .cloned()
+        .collect()
+}
+
+/// What arrives on a route's queryable or subscriber.
+enum Incoming {
+    Query(Query),
+    Sample(Sample),
+    /// The queryable or subscriber ended: the session closed under the route.
+    Ended,
+}
+
+type Handler<C> = Arc<dyn Fn(C, Incoming) -> BoxFuture<'static, ()> + Send + Sync>;
+
+/// One queryable or subscriber declared, and what serves what arrives on it.
+struct Endpoint<C> {
+    incoming: BoxStream<'static, Incoming>,
+    pool: Option<Pool>,
+    handle: Handler<C>,
+}
+
+fn queries(queryable: Queryable<FifoChannelHandler<Query>>) -> BoxStream<'static, Incoming> {
+    futures::stream::unfold(Some(queryable), |q| async move {
+        let q = q?;
+        Some(match q.recv_async().await {
+            Ok(query) => (Incoming::Query(query), Some(q)),
+            Err(_) => (Incoming::Ended, None),
+        })
+    })
+    .boxed()
+}
+
+fn samples(subscriber: Subscriber<FifoChannelHandler<Sample>>) -> BoxStream<'static, Incoming> {
+    futures::stream::unfold(Some(subscriber), |s| async move {
+        let s = s?;
+        Some(match s.recv_async().await {
+            Ok(sample) => (Incoming::Sample(sample), Some(s)),
+            Err(_) => (Incoming::Ended, None),
+        })
+    })
+    .boxed()
+}
+
+/// A route's queryables and subscribers, declared. Undeclared when dropped.
+pub(crate) struct Declared<C> {
+    endpoints: Vec<Endpoint<C>>,
+    /// Held for as long as the route runs.
+    held: Vec<KeyExpr<'static>>,
+}
+
+impl<C: Routed> Route<C> {
+    /// Declares the route's rows, in order.
+    pub(crate) async fn declare(self, ctx: &C) -> Result<Declared<C>, BusError> {
+        let route = ctx.route();
+        let mut endpoints = Vec::with_capacity(self.rows.len());
+        for row in self.rows {
+            let incoming = match row.arrives {
+                Arrives::Queries => queries(route.queryable(row.key).await?),
+                Arrives::Samples(origin) => samples(route.subscriber(row.key, origin).await?),
+            };
+            endpoints.push(Endpoint {
+                incoming,
+                pool: row.pool,
+                handle: row.handle,
+            });
+        }
+        let held = match self.hold {
+            Some(leaf) => declare_keys(route, leaf).await,
+            None => Vec::new(),
+        };
+        Ok(Declared { endpoints, held })
+    }
+}
+
+/// Declares `routes`, in order; one that cannot be declared undeclares those before it.
+pub(crate) async fn declare_all<C: Routed>(
+    routes: Vec<Route<C>>,
+    ctx: &C,
+) -> Result<Vec<Declared<C>>, BusError> {
+    let mut declared = Vec::with_capacity(routes.len());
+    for route in routes {
+        declared.push(route.declare(ctx).await?);
+    }
+    Ok(declared)
+}
+
+impl<C: Routed> Declared<C> {
+    /// Serves the route until `stop`, or until the session closes under it.
+    pub(crate) async fn run(self, ctx: C, stop: CancellationToken) {
+        serve_route(ctx, stop, self.endpoints).await;
+        drop(self.held);
+    }
+}
+
+/// Serves a route's endpoints until `stop`, or until one of them ends (the session closed):
+/// every request in a slot of its pool, off the loop, so that one slow querier holds up
+/// neither its route nor the others; the requests still running are dropped when it returns.
+async fn serve_route<C: Routed>(ctx: C, stop: CancellationToken, endpoints: Vec<Endpoint<C>>) {
+    let mut tasks = JoinSet::new();
+    let mut handlers = Vec::new();
+    let mut streams = Vec::new();
+    for (i, e) in endpoints.into_iter().enumerate() {
+        handlers.push((e.pool, e.handle));
+        streams.push(e.incoming.map(move |item| (i, item)).boxed());
+    }
+    let mut incoming = futures::stream::select_all(streams);
+    loop {
+        tokio::select! {
+            () = stop.cancelled() => break,
+            next = incoming.next() => {
+                let Some((i, item)) = next else { break };
+                if matches!(item, Incoming::Ended) {
+                    break;
+                }
+                let Some((pool, handle)) = handlers.get(i) else { continue };
+                match pool {
+                    None => handle(ctx.clone(), item).await,
+                    Some(pool) => spawn_in(&mut tasks, *pool, item, handle, ctx.clone()).await,
+                }
+            }
+            Some(_) = tasks.join_next() => {}
+        }
+    }
+    tasks.shutdown().await;
+}
+
+/// Runs a request of `pool` off the route's loop, in one of the pool's slots. With every
+/// slot of the pool taken a query is answered `ERROR_CODE_BUSY` at once, and a put or
+/// delete (which has no answer) is dropped and logged: a flood of requests never becomes
+/// an unbounded number of tasks, nor takes the slots of another kind of request.
+async fn spawn_in<C: Routed>(
+    tasks: &mut JoinSet<()>,
+    pool: Pool,
+    item: Incoming,
+    handle: &Handler<C>,
+    ctx: C,
+) {
+    match ctx.route().slot(pool) {
+        Some(slot) => {
+            let run = handle(ctx, item);
+            tasks.spawn(async move {
+                run.await;
+                drop(slot);
+            });
+        }
+        None => match item {
+            Incoming::Query(q) => {
+                reply_err(
+                    &q,
+                    &RequestError::Busy {
+                        what: pool.name(),
+                        max: pool.slots(),
+                    },
+                )
+                .await
+            }
+            Incoming::Sample(s) => tracing::warn!(
+                key = %s.key_expr(),
+                "request dropped: {} {} are being served already",
+                pool.slots(),
+                pool.name()
+            ),
+            Incoming::Ended => {}
+        },
+    }
+}
+
+/// Each machine's `leaf` key declared on the gateway's session, so that zenoh's routing
+/// tables hold it and cache its route: a put on a key the gateway's routing tables hold has
+/// its route cached there, one that they do not is matched against every declaration of the
+/// cell, on every put (a DO put a second on a thousand machines). A key zenoh does not take
+/// is left out (its puts are routed all the same, only matched each time).
+async fn declare_keys(ctx: &RouteContext, leaf: MachineLeaf) -> Vec<KeyExpr<'static>> {
+    let machines = ctx.machines.now();
+    let mut keys = Vec::with_capacity(machines.len());
+    for name in machines.keys() {
+        let key = ctx.keys.leaf(name, leaf);
+        match ctx.session.declare_keyexpr(key.clone()).await {
+            Ok(k) => keys.push(k),
+            Err(e) => tracing::debug!(%key, error = %e, "key not declared"),
+        }
+    }
+    keys
+}
+
+#[cfg(test)]
+pub(crate) mod tests;
