@@ -4,7 +4,8 @@
 //!
 //! A gateway's liveliness token (`P/C/gateway`) says when it comes and goes: when it goes,
 //! every data item of its devices becomes UNAVAILABLE; when it comes (or comes back), the
-//! agent asks it for the state it missed.
+//! agent asks it for the state it missed. A reload it took (`P/C/reload`) is asked about the
+//! same way: the cell's devices follow what the cell file now holds.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -38,6 +39,7 @@ fn classify(prefix: &str, key: &str) -> Option<(String, Kind)> {
         [_, "plc", _, "status"] => Kind::Plc,
         [_, "plc", _, "tag", _] => Kind::Tag,
         [_, "gateway"] => Kind::Gateway,
+        [_, "reload"] => Kind::Reload,
         _ => return None,
     };
     Some((c[0].to_string(), kind))
@@ -52,6 +54,7 @@ enum Kind {
     Plc,
     Tag,
     Gateway,
+    Reload,
 }
 
 /// What a sample of `cell` says, decoded; `None` for what does not decode (nothing from the
@@ -74,11 +77,27 @@ fn decode(prefix: &str, cell: &str, kind: Kind, s: &Sample) -> Option<Update> {
         }
         Kind::Plc => Update::Plc(pb::PlcStatus::decode(bytes.as_ref()).ok()?),
         Kind::Tag => Update::Tag(pb::TagValue::decode(bytes.as_ref()).ok()?),
+        // A reload taken is asked about as a gateway that came.
+        Kind::Reload => {
+            let r = pb::ReloadResult::decode(bytes.as_ref()).ok()?;
+            if !r.applied {
+                return None;
+            }
+            Update::Gateway(true)
+        }
     })
 }
 
+/// A cell's description as its gateway gave it: whole (its `@admin` document's
+/// configuration) or only what its statuses show.
+#[derive(Debug)]
+enum Described {
+    Whole(CellDesc),
+    FromStatus(CellDesc),
+}
+
 /// What a cell's gateway tells a newcomer: the cell's description, then its state.
-async fn ask(session: &Session, prefix: &str, cell: &str) -> Option<(CellDesc, Vec<Update>)> {
+async fn ask(session: &Session, prefix: &str, cell: &str) -> Option<(Described, Vec<Update>)> {
     let admin = Client::discover(session, prefix, ASK_TIMEOUT)
         .await
         .ok()?
@@ -90,8 +109,10 @@ async fn ask(session: &Session, prefix: &str, cell: &str) -> Option<(CellDesc, V
     let machines = machines.unwrap_or_default();
     // A cell without PLCs answers nothing there: that is no error.
     let plcs = plcs.unwrap_or_default();
-    let desc = CellDesc::from_admin(cell, &admin)
-        .unwrap_or_else(|| CellDesc::from_status(cell, &machines, &plcs));
+    let desc = match CellDesc::from_admin(cell, &admin) {
+        Some(d) => Described::Whole(d),
+        None => Described::FromStatus(CellDesc::from_status(cell, &machines, &plcs)),
+    };
     let mut updates = Vec::new();
     for m in &machines {
         if !m.current_job_id.is_empty()
@@ -123,6 +144,7 @@ pub async fn start(
         format!("{prefix}/{c}/machine/*/punch"),
         format!("{prefix}/{c}/plc/*/status"),
         format!("{prefix}/{c}/plc/*/tag/*"),
+        format!("{prefix}/{c}/reload"),
     ];
     let (tx, mut rx) = mpsc::channel::<Sample>(WAITING);
     let mut subscribers = Vec::new();
@@ -159,7 +181,7 @@ pub async fn start(
         drop(agent);
         hub.changed();
     }
-    let (asked_tx, mut asked) = mpsc::channel::<(String, Option<(CellDesc, Vec<Update>)>)>(64);
+    let (asked_tx, mut asked) = mpsc::channel::<(String, Option<(Described, Vec<Update>)>)>(64);
     if let Some(cell) = own_cell {
         // Its state now, whether or not the session shows its own token to itself.
         let (session, prefix, tx) = (session.clone(), prefix.clone(), asked_tx.clone());
@@ -177,7 +199,12 @@ pub async fn start(
                     let now = now_us();
                     let mut agent = hub.lock();
                     if let Some((desc, updates)) = answer {
-                        agent.add_cell(&desc, now);
+                        let desc = match (desc, agent.desc(&cell)) {
+                            (Described::Whole(d), _) | (Described::FromStatus(d), None) => d,
+                            // What statuses cannot show stays as it was known.
+                            (Described::FromStatus(d), Some(known)) => known.with_names_of(&d),
+                        };
+                        agent.change_cell(&desc, now);
                         agent.update(&cell, Update::Gateway(true), now);
                         for u in updates {
                             agent.update(&cell, u, now);

@@ -572,3 +572,88 @@ async fn the_embedded_cell_has_no_file_to_reload() {
     let _ = stop.send(());
     task.await.unwrap().unwrap();
 }
+
+/// The gateway's own MTConnect agent follows a reload: a machine added gets a device and a
+/// DEVICE_ADDED, one removed leaves the documents with a DEVICE_REMOVED; nothing says a
+/// device changed before.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_mtconnect_agent_follows_a_reload() {
+    let http_port = free_port();
+    let mtconnect = format!("[mtconnect]\nlisten = \"127.0.0.1:{http_port}\"\n");
+    let m3 = M2.replace("\"m2\"", "\"m3\"");
+    let g = Running::start(&format!("{mtconnect}{M1}{M2}")).await;
+    let url = g.ready.mtconnect.clone().expect("the agent serves");
+    let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
+    let http = reqwest::Client::new();
+    let get = |path: &'static str| {
+        let (http, url) = (http.clone(), url.trim_end_matches('/').to_string());
+        async move {
+            http.get(format!("{url}{path}"))
+                .send()
+                .await
+                .unwrap()
+                .text()
+                .await
+                .unwrap()
+        }
+    };
+    let until = |path: &'static str, what: &'static str, check: fn(&str) -> bool| {
+        let get = get.clone();
+        async move {
+            for _ in 0..100 {
+                let doc = get(path).await;
+                if check(&doc) {
+                    return doc;
+                }
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            panic!("never: {what}");
+        }
+    };
+    let probe = until("/probe", "m1 and m2 modelled", |d| {
+        d.contains("name=\"m1\"") && d.contains("name=\"m2\"")
+    })
+    .await;
+    let uuid_of = |doc: &str, name: &str| {
+        let at = doc.find(&format!("name=\"{name}\" uuid=\"")).unwrap();
+        let rest = &doc[at + name.len() + 14..];
+        rest[..rest.find('"').unwrap()].to_string()
+    };
+    let m2 = uuid_of(&probe, "m2");
+    // The agent asked its gateway at start: the same cell, no change said.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let current = get("/current").await;
+    assert!(
+        current.contains("<DeviceChanged dataItemId=\"device_changed\"")
+            && current.contains(">UNAVAILABLE</DeviceChanged>"),
+        "{current}"
+    );
+
+    g.write(&format!("{mtconnect}{M1}{m3}"));
+    let r = g.client.reload(false).await.unwrap();
+    assert!(r.applied, "{r:?}");
+    let probe = until("/probe", "m3 in, m2 out", |d| {
+        d.contains("name=\"m3\"") && !d.contains("name=\"m2\"")
+    })
+    .await;
+    let m3_uuid = uuid_of(&probe, "m3");
+    let current = until("/current", "the agent device says what changed", |d| {
+        d.contains("DeviceRemoved") && !d.contains(">UNAVAILABLE</DeviceAdded>")
+    })
+    .await;
+    assert!(
+        current.contains(&format!(">{m2}</DeviceRemoved>")),
+        "{current}"
+    );
+    assert!(
+        current.contains(&format!(">{m3_uuid}</DeviceAdded>")),
+        "{current}"
+    );
+    assert!(!current.contains("m2_"), "m2 left the documents: {current}");
+    // The new device is fed: its link comes up.
+    until("/m3/current", "m3 available", |d| {
+        d.contains(">AVAILABLE</Availability>")
+    })
+    .await;
+    g.stop().await;
+}

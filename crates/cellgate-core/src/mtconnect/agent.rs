@@ -52,6 +52,8 @@ pub struct Agent {
     counters: HashMap<(String, String, String), Vec<String>>,
     /// Whether each cell's gateway is there.
     cells: HashMap<String, bool>,
+    /// Each cell as last described.
+    descs: HashMap<String, CellDesc>,
     assets: Assets,
 }
 
@@ -74,6 +76,7 @@ impl Agent {
             plcs: HashMap::new(),
             counters: HashMap::new(),
             cells: HashMap::new(),
+            descs: HashMap::new(),
             assets: Assets::default(),
         };
         for i in 0..a.model.items.len() {
@@ -101,6 +104,11 @@ impl Agent {
         self.instance_id
     }
 
+    /// The cell as last described, if modelled.
+    pub fn desc(&self, cell: &str) -> Option<&CellDesc> {
+        self.descs.get(cell)
+    }
+
     /// Whether the cell is modelled.
     pub fn has_cell(&self, cell: &str) -> bool {
         self.cells.contains_key(cell)
@@ -120,6 +128,7 @@ impl Agent {
         let first_item = self.model.items.len();
         let added = self.model.add_cell(desc);
         self.cells.insert(desc.cell.clone(), false);
+        self.descs.insert(desc.cell.clone(), desc.clone());
         for m in &desc.machines {
             let dev = self.dev_of(&Source::Machine(desc.cell.clone(), m.name.clone()));
             if let Some(dev) = dev {
@@ -157,6 +166,158 @@ impl Agent {
                 self.buffer.push(i as u32, now_us, Value::Text(uuid));
             }
         }
+    }
+
+    /// Takes a cell's description again (its gateway reloaded its cell file, or came back
+    /// with another): a machine or PLC added gets a device and a DEVICE_ADDED (one removed
+    /// earlier comes back under its old UUID); one removed has its data items UNAVAILABLE,
+    /// leaves the documents and gets a DEVICE_REMOVED; one whose description changed in a
+    /// way its data items show (protocol family, G05, part counter, stations, tags) gets a
+    /// DEVICE_CHANGED, its data items staying as first modelled until the agent restarts.
+    /// A cell not modelled yet is added. Returns the observations made.
+    pub fn change_cell(&mut self, desc: &CellDesc, now_us: u64) -> usize {
+        let Some(old) = self.descs.get(&desc.cell).cloned() else {
+            let before = self.buffer.last();
+            self.add_cell(desc, now_us);
+            return (self.buffer.last() - before) as usize;
+        };
+        if old == *desc {
+            return 0;
+        }
+        let cell = desc.cell.clone();
+        let up = self.cells.get(&cell).copied().unwrap_or(false);
+        let (mut added, mut removed, mut changed) = (Vec::new(), Vec::new(), Vec::new());
+        let mut n = 0;
+        for m in &desc.machines {
+            let key = (cell.clone(), m.name.clone());
+            let dev = match self.dev_of(&Source::Machine(cell.clone(), m.name.clone())) {
+                None => {
+                    let first = self.model.items.len();
+                    let dev = self.model.add_machine(&cell, m);
+                    n += self.unavailable_from(first, now_us);
+                    added.push(dev);
+                    dev
+                }
+                Some(dev) if self.model.devices[dev].removed => {
+                    self.model.devices[dev].removed = false;
+                    added.push(dev);
+                    dev
+                }
+                Some(dev) => {
+                    if let Some(o) = old.machines.iter().find(|o| o.name == m.name)
+                        && machine_shape(o) != machine_shape(m)
+                    {
+                        changed.push(dev);
+                    }
+                    dev
+                }
+            };
+            self.machines.entry(key).or_insert_with(|| {
+                let mut view = MachineView::default();
+                view.gateway_up = up;
+                (dev, view)
+            });
+        }
+        for p in &desc.plcs {
+            let key = (cell.clone(), p.name.clone());
+            let dev = match self.dev_of(&Source::Plc(cell.clone(), p.name.clone())) {
+                None => {
+                    let first = self.model.items.len();
+                    let dev = self.model.add_plc(&cell, p);
+                    n += self.unavailable_from(first, now_us);
+                    added.push(dev);
+                    dev
+                }
+                Some(dev) if self.model.devices[dev].removed => {
+                    self.model.devices[dev].removed = false;
+                    added.push(dev);
+                    dev
+                }
+                Some(dev) => {
+                    if let Some(o) = old.plcs.iter().find(|o| o.name == p.name)
+                        && plc_shape(o) != plc_shape(p)
+                    {
+                        changed.push(dev);
+                    }
+                    dev
+                }
+            };
+            self.plcs.entry(key).or_insert_with(|| {
+                let mut view = PlcView::default();
+                view.gateway_up = up;
+                (dev, view)
+            });
+        }
+        let gone_machines = old
+            .machines
+            .iter()
+            .filter(|o| !desc.machines.iter().any(|m| m.name == o.name))
+            .map(|o| Source::Machine(cell.clone(), o.name.clone()));
+        let gone_plcs = old
+            .plcs
+            .iter()
+            .filter(|o| !desc.plcs.iter().any(|p| p.name == o.name))
+            .map(|o| Source::Plc(cell.clone(), o.name.clone()));
+        let gone: Vec<Source> = gone_machines.chain(gone_plcs).collect();
+        for source in gone {
+            let Some(dev) = self.dev_of(&source) else {
+                continue;
+            };
+            match &source {
+                Source::Machine(c, m) => {
+                    self.machines.remove(&(c.clone(), m.clone()));
+                }
+                Source::Plc(c, p) => {
+                    self.plcs.remove(&(c.clone(), p.clone()));
+                }
+                Source::Agent => {}
+            }
+            let items = self.model.devices[dev].items.clone();
+            for i in items {
+                let w = match self.model.items[i].category {
+                    Category::Condition => Wanted::Conditions(None),
+                    _ => Wanted::Value(Value::Unavailable),
+                };
+                n += self.want(i, w, now_us);
+            }
+            self.model.devices[dev].removed = true;
+            removed.push(dev);
+        }
+        self.counters.retain(|(c, _, _), _| *c != cell);
+        for m in &desc.machines {
+            if let Some((plc, tag)) = &m.part_counter {
+                self.counters
+                    .entry((cell.clone(), plc.clone(), tag.clone()))
+                    .or_default()
+                    .push(m.name.clone());
+            }
+        }
+        self.descs.insert(cell, desc.clone());
+        if !(added.is_empty() && removed.is_empty() && changed.is_empty()) {
+            self.model_time_us = now_us;
+        }
+        for (role, devs) in [
+            (Role::DeviceAdded, added),
+            (Role::DeviceRemoved, removed),
+            (Role::DeviceChanged, changed),
+        ] {
+            if let Some(i) = self.model.item_of(0, &role) {
+                for d in devs {
+                    let uuid: Arc<str> = self.model.devices[d].uuid.as_str().into();
+                    self.buffer.push(i as u32, now_us, Value::Text(uuid));
+                    n += 1;
+                }
+            }
+        }
+        n
+    }
+
+    /// Data items from `first` on, new: UNAVAILABLE until their first update.
+    fn unavailable_from(&mut self, first: usize, now_us: u64) -> usize {
+        for i in first..self.model.items.len() {
+            self.buffer.push(i as u32, now_us, Value::Unavailable);
+        }
+        self.model.items.len() - first
     }
 
     fn dev_of(&self, source: &Source) -> Option<usize> {
@@ -693,7 +854,7 @@ impl Agent {
         );
         x.open("Devices", &[]);
         for (d, dev) in self.model.devices.iter().enumerate() {
-            if device.is_some_and(|want| want != d) {
+            if device.is_some_and(|want| want != d) || dev.removed {
                 continue;
             }
             let comp = &self.model.components[dev.component];
@@ -774,7 +935,7 @@ impl Agent {
         by_dev
             .into_iter()
             .enumerate()
-            .filter(|(_, comps)| !comps.is_empty())
+            .filter(|(d, comps)| !comps.is_empty() && !self.model.devices[*d].removed)
             .collect()
     }
 
@@ -890,4 +1051,19 @@ impl Agent {
             _ => x.text(&element, &attrs, "UNAVAILABLE"),
         }
     }
+}
+
+/// What of a machine's description its data items show.
+fn machine_shape(m: &super::desc::MachineDesc) -> (bool, bool, bool) {
+    (m.protocol.is_a_family(), m.g05, m.part_counter.is_some())
+}
+
+/// What of a PLC's description its data items show.
+fn plc_shape(p: &super::desc::PlcDesc) -> (Vec<u32>, Vec<(String, Option<&'static str>)>) {
+    let tags = p
+        .tags
+        .iter()
+        .map(|t| (t.name.clone(), t.typed.map(|t| t.name)))
+        .collect();
+    (p.stations.clone(), tags)
 }

@@ -262,6 +262,37 @@ impl CellDesc {
         })
     }
 
+    /// This cell with the machines and PLCs `partial` names (a description read from
+    /// statuses, [`CellDesc::from_status`]): those it names anew from it, the others as they
+    /// were, so that what the statuses cannot show (part counters, tag addresses) is kept.
+    pub fn with_names_of(&self, partial: &CellDesc) -> CellDesc {
+        CellDesc {
+            cell: self.cell.clone(),
+            machines: partial
+                .machines
+                .iter()
+                .map(|m| {
+                    self.machines
+                        .iter()
+                        .find(|o| o.name == m.name)
+                        .unwrap_or(m)
+                        .clone()
+                })
+                .collect(),
+            plcs: partial
+                .plcs
+                .iter()
+                .map(|p| {
+                    self.plcs
+                        .iter()
+                        .find(|o| o.name == p.name)
+                        .unwrap_or(p)
+                        .clone()
+                })
+                .collect(),
+        }
+    }
+
     /// The cell as its statuses show it (what `status.read` sees): no part counters, no tag
     /// addresses, G05 only where a stream was seen.
     pub fn from_status(cell: &str, machines: &[pb::MachineStatus], plcs: &[pb::PlcStatus]) -> Self {

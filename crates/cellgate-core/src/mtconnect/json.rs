@@ -54,7 +54,7 @@ pub fn probe(a: &Agent, device: Option<usize>, now_us: u64) -> String {
     let m = a.model();
     let mut devices = Map::new();
     for (d, dev) in m.devices.iter().enumerate() {
-        if device.is_some_and(|want| want != d) {
+        if device.is_some_and(|want| want != d) || dev.removed {
             continue;
         }
         let comp = &m.components[dev.component];

@@ -145,6 +145,9 @@ pub struct Device {
     pub component: usize,
     /// Every data item of the device, its components' included.
     pub items: Vec<usize>,
+    /// Removed from its cell by a reload: left out of every document (its data items are
+    /// kept, so that sequence numbers and ids stay, and come back if it does).
+    pub removed: bool,
 }
 
 /// The whole model.
@@ -247,6 +250,7 @@ impl Model {
             .get(name)
             .copied()
             .or_else(|| self.devices.iter().position(|d| d.uuid == name))
+            .filter(|&d| !self.devices[d].removed)
     }
 
     /// The data item with this id, if any.
@@ -302,7 +306,7 @@ impl Model {
         }
     }
 
-    fn add_machine(&mut self, cell: &str, m: &MachineDesc) -> usize {
+    pub(super) fn add_machine(&mut self, cell: &str, m: &MachineDesc) -> usize {
         let name = self.free_name(cell, &m.name);
         let d = id_of(&name);
         let dev = self.device(
@@ -449,7 +453,7 @@ impl Model {
         dev
     }
 
-    fn add_plc(&mut self, cell: &str, p: &PlcDesc) -> usize {
+    pub(super) fn add_plc(&mut self, cell: &str, p: &PlcDesc) -> usize {
         let name = self.free_name(cell, &p.name);
         let d = id_of(&name);
         let dev = self.device(
@@ -555,6 +559,7 @@ impl Model {
             description,
             component,
             items: Vec::new(),
+            removed: false,
         });
         dev
     }

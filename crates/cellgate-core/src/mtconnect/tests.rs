@@ -587,3 +587,66 @@ fn assets_are_bounded_and_a_punch_again_replaces_its_asset() {
     );
     assert!(assets.get("demo.lathe-1.O1").is_none(), "the oldest went");
 }
+
+#[test]
+fn a_reloaded_cell_adds_removes_and_changes_devices() {
+    let mut a = agent();
+    a.update(
+        "demo",
+        Update::Status(Box::new(status("lathe-1", pb::LinkState::Idle))),
+        2_000_000,
+    );
+    let uuid = |a: &Agent, name: &str| {
+        let d = a.model().device_named(name).unwrap();
+        a.model().devices[d].uuid.clone()
+    };
+    let (mill, lathe) = (uuid(&a, "mill-1"), uuid(&a, "lathe-1"));
+    // The same description again changes nothing.
+    assert_eq!(a.change_cell(&cell(), 3_000_000), 0);
+    // lathe-1 out, mill-3 in, mill-1 now takes G05 streams.
+    let mut next = cell();
+    next.machines.retain(|m| m.name != "lathe-1");
+    next.machines[0].g05 = true;
+    next.machines.push(MachineDesc {
+        name: "mill-3".into(),
+        protocol: Protocol::ExpansionA,
+        part_counter: None,
+        g05: false,
+    });
+    assert!(a.change_cell(&next, 4_000_000) > 0);
+    assert_eq!(
+        current_value(&a, "device_added"),
+        Value::Text(uuid(&a, "mill-3").into())
+    );
+    assert_eq!(
+        current_value(&a, "device_removed"),
+        Value::Text(lathe.clone().into())
+    );
+    assert_eq!(
+        current_value(&a, "device_changed"),
+        Value::Text(mill.into())
+    );
+    // The removed device's data items went UNAVAILABLE before it left the documents.
+    assert_eq!(current_value(&a, "lathe-1_avail"), Value::Unavailable);
+    assert!(a.model().device_named("lathe-1").is_none());
+    let probe = a.probe(None, Format::Xml, 4_000_001);
+    assert!(probe.contains("name=\"mill-3\"") && !probe.contains("name=\"lathe-1\""));
+    let current = a.current(None, &Query::default(), 4_000_001).unwrap();
+    assert!(!current.contains("lathe-1"), "{current}");
+    // The new device takes updates; its data items start UNAVAILABLE.
+    assert_eq!(current_value(&a, "mill-3_execution"), Value::Unavailable);
+    a.update(
+        "demo",
+        Update::Status(Box::new(status("mill-3", pb::LinkState::Idle))),
+        5_000_000,
+    );
+    assert_eq!(
+        current_value(&a, "mill-3_execution"),
+        Value::Text("READY".into())
+    );
+    // lathe-1 back: its old device and UUID, in the documents again.
+    assert!(a.change_cell(&cell(), 6_000_000) > 0);
+    assert_eq!(current_value(&a, "device_added"), Value::Text(lathe.into()));
+    assert!(a.model().device_named("lathe-1").is_some());
+    assert!(a.model().device_named("mill-3").is_none());
+}
