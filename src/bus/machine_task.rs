@@ -211,6 +211,7 @@ impl MachineTask {
     async fn publish_punch_outcome(&self, outcome: Outcome) {
         if let Some(punched) = outcome.punched {
             Machine::counters(&mut self.machine.view()).programs_punched += 1;
+            Recorder::punch(&self.ctx.history, self.machine.name(), &punched);
             self.punch.publish(&punched).await;
         }
         if let Some((message, kind)) = outcome.alarm {

@@ -107,6 +107,16 @@ impl Recorder {
     pub(super) fn alarm(history: &History, machine: &str, alarm: &pb::AlarmEvent) {
         history.event(machine, HistoryKind::Alarm, Record::Alarm(alarm.clone()));
     }
+
+    /// Records a punched program without its text: the library keeps that under its
+    /// `library_name`, and a record stays small.
+    pub(super) fn punch(history: &History, machine: &str, punched: &pb::PunchedProgram) {
+        let record = pb::PunchedProgram {
+            program: Vec::new(),
+            ..punched.clone()
+        };
+        history.event(machine, HistoryKind::Punch, Record::Punch(record));
+    }
 }
 
 #[cfg(test)]

@@ -280,10 +280,21 @@ pub async fn machine(
     Names((cell, m)): Names<(String, String)>,
 ) -> ApiResult {
     let client = c.client(&cell, &caller.user).await?;
-    let (status, queue, jobs) = tokio::join!(
+    // Punched programs of the last 30 days from the history, so that they and their
+    // comparisons outlive a restart; none where the user may not read the history.
+    let punch_query = [
+        ("machine", m.as_str()),
+        ("kind", "punch"),
+        ("order", "newest"),
+        ("limit", "50"),
+        ("_time", "[now(-30d)..]"),
+    ]
+    .map(|(k, v)| (k.to_string(), v.to_string()));
+    let (status, queue, jobs, recorded) = tokio::join!(
         client.status(Some(&m)),
         client.queue(&m),
-        client.recent_jobs(Some(&m))
+        client.recent_jobs(Some(&m)),
+        client.history(false, &punch_query)
     );
     let status = status?.into_iter().next().ok_or_else(|| {
         ApiError::new(
@@ -294,13 +305,37 @@ pub async fn machine(
     })?;
     let mut jobs = jobs.unwrap_or_default();
     jobs.sort_by_key(|e| std::cmp::Reverse(e.unix_ms));
+    let punched_recorded = recorded.is_ok();
+    let punched = punched_list(c.live.punched(&cell, &m), recorded.ok());
     Ok(Json(json!({
         "status": status,
         "queue": queue?,
         "jobs": jobs,
-        "punched": c.live.punched(&cell, &m),
+        "punched": punched,
+        "punched_recorded": punched_recorded,
     }))
     .into_response())
+}
+
+/// The programs a machine punched, newest first: those the console saw (with their text)
+/// and those the history recorded (without it), each once.
+fn punched_list(
+    seen: Vec<pb::PunchedProgram>,
+    recorded: Option<pb::HistoryPage>,
+) -> Vec<pb::PunchedProgram> {
+    let mut all = seen;
+    for r in recorded.map(|p| p.records).unwrap_or_default() {
+        if let Some(pb::history_record::Record::Punch(p)) = r.record
+            && !all
+                .iter()
+                .any(|s| s.unix_ms == p.unix_ms && s.library_name == p.library_name)
+        {
+            all.push(p);
+        }
+    }
+    all.sort_by_key(|p| std::cmp::Reverse(p.unix_ms));
+    all.truncate(50);
+    all
 }
 
 #[derive(Deserialize)]

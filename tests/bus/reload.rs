@@ -598,7 +598,6 @@ async fn the_mtconnect_agent_follows_a_reload() {
         }
     };
     let until = |path: &'static str, what: &'static str, check: fn(&str) -> bool| {
-        let get = get.clone();
         async move {
             for _ in 0..100 {
                 let doc = get(path).await;

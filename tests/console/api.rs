@@ -17,20 +17,30 @@ struct Gateway {
     task: Option<tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>>,
     url: String,
     endpoint: String,
-    _dir: tempfile::TempDir,
+    _dir: Option<tempfile::TempDir>,
 }
 
 impl Gateway {
     async fn start(edit: impl FnOnce(&mut CellConfig, &std::path::Path)) -> Gateway {
         let dir = tempfile::tempdir().unwrap();
+        let mut g = Gateway::start_in(dir.path(), edit).await;
+        g._dir = Some(dir);
+        g
+    }
+
+    /// A gateway whose library, journal and history are in `dir`, kept after it stops.
+    async fn start_in(
+        dir: &std::path::Path,
+        edit: impl FnOnce(&mut CellConfig, &std::path::Path),
+    ) -> Gateway {
         let mut config = CellConfig::embedded_default();
         config.mtconnect = None;
         let port = free_port();
         let console = free_port();
         config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
-        config.programs.dir = dir.path().join("programs");
+        config.programs.dir = dir.join("programs");
         config.console.as_mut().unwrap().listen = format!("127.0.0.1:{console}");
-        edit(&mut config, dir.path());
+        edit(&mut config, dir);
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
         let task = tokio::spawn(cellgate::gateway::run(config, async {
             let _ = stopped.await;
@@ -42,7 +52,7 @@ impl Gateway {
             task: Some(task),
             url,
             endpoint: format!("tcp/127.0.0.1:{port}"),
-            _dir: dir,
+            _dir: None,
         }
     }
 
@@ -604,3 +614,67 @@ async fn the_cells_say_which_machines_take_g05_and_the_favicon_is_served() {
 
 #[path = "door.rs"]
 mod door;
+
+/// lathe-1's punched O5557 as its machine page gives it, and whether the list is the
+/// history's.
+async fn punched_o5557(b: &Browser) -> (Value, Value) {
+    for _ in 0..100 {
+        let (status, page) = b.get("/api/v1/cells/demo/machines/lathe-1").await;
+        assert_eq!(status, 200, "{page}");
+        let list = page["punched"].as_array().cloned().unwrap_or_default();
+        if let Some(p) = list.into_iter().find(|p| p["o_number"] == "O5557") {
+            return (p, page["punched_recorded"].clone());
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    panic!("lathe-1's punched O5557 never on its page");
+}
+
+/// A punched program and its comparison with the library are on the machine's page after the
+/// gateway restarted: the history keeps them (the text stays in the library).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn punched_programs_and_their_comparisons_outlive_a_restart() {
+    use cellgate::bus::keys::SimLeaf;
+    use cellgate::client::{Client, ConnectOptions};
+    use cellgate_core::pb;
+
+    let dir = tempfile::tempdir().unwrap();
+    let gw = Gateway::start_in(dir.path(), |_, _| {}).await;
+    let client = Client::connect(&ConnectOptions {
+        endpoint: gw.endpoint.clone(),
+        ..ConnectOptions::default()
+    })
+    .await
+    .unwrap();
+    client
+        .program_put("O5557", b"%\nO5557\nG00X0Y0\nG01X10.F100\nM30\n%\n")
+        .await
+        .unwrap();
+    // The operator changed the feed at the machine.
+    client
+        .sim_control(
+            "lathe-1",
+            SimLeaf::Punch,
+            Some(&pb::SimPunch {
+                program: b"%\nO5557\nG00X0Y0\nG01X10.F200\nM30\n%\n".to_vec(),
+            }),
+        )
+        .await
+        .unwrap();
+    client.close().await;
+    let mut b = Browser::new(&gw.url);
+    b.me().await;
+    let (before, recorded) = punched_o5557(&b).await;
+    assert_eq!(recorded, true);
+    assert_eq!(before["comparison"]["library_name"], "O5557", "{before}");
+    assert_eq!(before["comparison"]["blocks_changed"], 1, "{before}");
+    gw.stop().await;
+
+    let gw = Gateway::start_in(dir.path(), |_, _| {}).await;
+    let mut b = Browser::new(&gw.url);
+    b.me().await;
+    let (after, _) = punched_o5557(&b).await;
+    assert_eq!(after["comparison"], before["comparison"], "{after}");
+    assert_eq!(after["library_name"], before["library_name"], "{after}");
+    gw.stop().await;
+}

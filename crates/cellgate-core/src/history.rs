@@ -119,6 +119,7 @@ pub fn kind_by_name(name: &str) -> Option<HistoryKind> {
         "g05" => HistoryKind::G05,
         "tag" => HistoryKind::Tag,
         "gateway" => HistoryKind::Gateway,
+        "punch" => HistoryKind::Punch,
         "audit" => HistoryKind::Audit,
         _ => return None,
     })
@@ -136,6 +137,7 @@ pub fn kind_name(kind: HistoryKind) -> &'static str {
         HistoryKind::G05 => "g05",
         HistoryKind::Tag => "tag",
         HistoryKind::Gateway => "gateway",
+        HistoryKind::Punch => "punch",
         HistoryKind::Audit => "audit",
     }
 }
@@ -196,7 +198,7 @@ impl HistoryQuery {
                                         if store == Store::Audit {
                                             "audit"
                                         } else {
-                                            "job, alarm, link, cnc, station, g05, tag, gateway"
+                                            "job, alarm, link, cnc, station, g05, tag, gateway, punch"
                                         }
                                     ),
                                 )

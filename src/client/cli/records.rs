@@ -206,6 +206,26 @@ pub fn record_text(r: &pb::HistoryRecord) -> String {
                 .to_lowercase(),
             g.version
         ),
+        Some(Record::Punch(p)) => {
+            let stored = if p.library_name.is_empty() {
+                "not stored".to_string()
+            } else {
+                format!("stored as {}", p.library_name)
+            };
+            let against = match (&p.comparison, &p.request, p.damaged) {
+                (_, _, true) => format!("damaged: {}", p.damage),
+                (_, Some(r), _) => format!("remote request for {}", r.program),
+                (Some(c), _, _) if c.same => {
+                    format!("same as {} revision {}", c.library_name, c.revision)
+                }
+                (Some(c), _, _) => format!(
+                    "{} changed, {} added, {} removed against {} revision {}",
+                    c.blocks_changed, c.blocks_added, c.blocks_removed, c.library_name, c.revision
+                ),
+                (None, None, false) => "not compared".to_string(),
+            };
+            format!("punched {}, {stored}: {against}", p.name)
+        }
         Some(Record::Audit(a)) => {
             let outcome = if a.ok {
                 "ok".to_string()

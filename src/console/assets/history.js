@@ -6,7 +6,7 @@ import {
   machinesOf, plcsOf, num,
 } from './lib.js';
 
-const KINDS = ['job', 'alarm', 'link', 'cnc', 'station', 'g05', 'tag', 'gateway'];
+const KINDS = ['job', 'alarm', 'link', 'cnc', 'station', 'g05', 'tag', 'gateway', 'punch'];
 const RANGES = [['1h', 'Last hour'], ['8h', 'Last 8 hours'], ['24h', 'Last 24 hours'], ['7d', 'Last 7 days'], ['custom', 'From … to …']];
 
 export async function renderHistory(ctx, cell, params) {
@@ -166,6 +166,15 @@ export function describe(r) {
     return ['g05', `G05 stream ${g.stream_id} ${enumWord(g.state, 'G05_STATE_')} (${enumWord(g.end_reason, 'G05_END_REASON_')}): ${num(g.received)} blocks, ${num(g.underruns)} underruns (estimated)${g.last_error ? `; ${g.last_error}` : ''}`, g.state === 'G05_STATE_FAILED'];
   }
   if (r.tag) return ['tag', `${r.tag.plc}/${r.tag.name} = ${r.tag.value == null ? '—' : r.tag.value} (${enumWord(r.tag.quality, 'TAG_QUALITY_')})`, false];
+  if (r.punch) {
+    const p = r.punch;
+    const c = p.comparison;
+    let against = 'not compared';
+    if (p.damaged) against = `damaged: ${p.damage}`;
+    else if (p.request) against = `remote request for ${p.request.program}`;
+    else if (c) against = c.same ? `same as ${c.library_name} rev ${c.revision}` : `${c.blocks_changed} changed, ${c.blocks_added} added, ${c.blocks_removed} removed against ${c.library_name} rev ${c.revision}`;
+    return ['punch', `Punched ${p.name}${p.library_name ? `, stored as ${p.library_name}` : ', not stored'}: ${against}`, !!p.damaged];
+  }
   if (r.gateway) return ['gateway', `Gateway ${enumWord(r.gateway.event, 'EVENT_')} (${r.gateway.version})`, r.gateway.event === 'EVENT_STOPPED'];
   if (r.audit) {
     const a = r.audit;

@@ -185,7 +185,7 @@ export async function renderMachine(ctx, cell, name) {
   const punchBox = h('div');
   colA.append(sec('Punched programs', 'sec-punched', punchBox));
   const punched = snap.punched || [];
-  const renderPunched = () => punchBox.replaceChildren(punchedView(cell, name, punched));
+  const renderPunched = () => punchBox.replaceChildren(punchedView(cell, name, punched, !!snap.punched_recorded));
 
   // ---- G05, where the machine takes G05 streams
   const g05 = g05Panel();
@@ -468,16 +468,21 @@ function comparisonText(p) {
   return `${c.blocks_changed} changed, ${c.blocks_added} added, ${c.blocks_removed} removed against ${c.library_name} rev ${c.revision}`;
 }
 
-// The console keeps what it saw punched in memory only: say so, and where the programs
-// punched before it started are (the library, under the machine's name).
-function punchedNote(cell, machine) {
+// The list comes from the cell's history (30 days) where the user may read it; else only
+// what the console saw since it started. Either way the programs are in the library.
+function punchedNote(cell, machine, recorded) {
+  const library = h('a', { href: `#/cell/${enc(cell)}/programs` }, 'library');
+  if (recorded) {
+    return h('p', { class: 'small-text muted', 'data-field': 'punched-note' },
+      'Punched in the last 30 days, as the cell\'s history keeps them. Their text is in the ', library, ` as ${machine}-O…-time.`);
+  }
   return h('p', { class: 'small-text muted', 'data-field': 'punched-note' },
-    'The console keeps this list and its comparisons only while it runs. Programs punched before it started are in the ',
-    h('a', { href: `#/cell/${enc(cell)}/programs` }, 'library'), ` as ${machine}-O…-time: adopted as a revision of their program, they compare with it there.`);
+    'Your roles do not read the history: this list holds what the console saw since it started. Programs punched before are in the ',
+    library, ` as ${machine}-O…-time: adopted as a revision of their program, they compare with it there.`);
 }
 
-function punchedView(cell, machine, list) {
-  if (!list.length) return h('div', null, h('p', { class: 'muted' }, 'Nothing punched since the console started.'), punchedNote(cell, machine));
+function punchedView(cell, machine, list, recorded) {
+  if (!list.length) return h('div', null, h('p', { class: 'muted' }, recorded ? 'Nothing punched in the last 30 days.' : 'Nothing punched since the console started.'), punchedNote(cell, machine, recorded));
   const t = table(['When', 'Program', 'Stored as', 'Against the library', ''], 'punched');
   t.setAttribute('aria-label', 'Punched programs');
   for (const p of list.slice(0, 50)) {
@@ -499,7 +504,7 @@ function punchedView(cell, machine, list) {
       h('td', { 'data-field': 'comparison' }, comparisonText(p)),
       h('td', null, adopt, text ? h('details', null, h('summary', null, 'Text'), h('pre', { class: 'code small' }, text)) : null)));
   }
-  return h('div', null, scroller(t), punchedNote(cell, machine));
+  return h('div', null, scroller(t), punchedNote(cell, machine, recorded));
 }
 
 // ---- G05 -----------------------------------------------------------------------------
