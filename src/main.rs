@@ -423,6 +423,20 @@ fn sim_fuji(cli: &Cli, args: cellgate::sim::fuji_server::SimFujiArgs) -> ExitCod
     })
 }
 
+/// The multi-thread runtime zenoh needs, its threads named `thread_name` where given. One that
+/// cannot start is said on stderr, and is the exit code.
+fn multi_thread(thread_name: Option<&str>) -> Result<tokio::runtime::Runtime, ExitCode> {
+    let mut builder = tokio::runtime::Builder::new_multi_thread();
+    builder.enable_all();
+    if let Some(name) = thread_name {
+        builder.thread_name(name);
+    }
+    builder.build().map_err(|e| {
+        eprintln!("cellgate: cannot start the Tokio runtime: {e}");
+        ExitCode::from(EXIT_RUNTIME)
+    })
+}
+
 /// Runs `body` until it ends or SIGINT / SIGTERM, on the multi-thread runtime zenoh needs,
 /// with logs on stderr in the chosen format: the frame of `router` and the simulators. An
 /// error `body` returns is printed after `name` and exits with code 2.
@@ -431,15 +445,9 @@ where
     F: FnOnce(std::pin::Pin<Box<dyn Future<Output = ()> + Send>>) -> Fut,
     Fut: Future<Output = Result<(), String>>,
 {
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-    {
+    let runtime = match multi_thread(None) {
         Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
-            return ExitCode::from(EXIT_RUNTIME);
-        }
+        Err(code) => return code,
     };
     let mut telemetry = cellgate::telemetry::TelemetryConfig::default();
     if let Some(format) = cli.log_format {
@@ -608,16 +616,9 @@ fn run(cli: &Cli, args: &RunArgs) -> ExitCode {
     let open_files = raise_open_file_limit();
 
     // Zenoh needs the multi-thread runtime.
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .thread_name("cellgate")
-        .build()
-    {
+    let runtime = match multi_thread(Some("cellgate")) {
         Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
-            return ExitCode::from(EXIT_RUNTIME);
-        }
+        Err(code) => return code,
     };
     // A reload reads the file again and writes the same options over it.
     let source = match &args.config {
@@ -890,15 +891,9 @@ where
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-    {
+    let runtime = match multi_thread(None) {
         Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("cellgate: cannot start the Tokio runtime: {e}");
-            return ExitCode::from(EXIT_RUNTIME);
-        }
+        Err(code) => return code,
     };
     let code = runtime.block_on(async {
         let shutdown = match shutdown_signal() {

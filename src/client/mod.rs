@@ -23,6 +23,7 @@ mod watch;
 
 pub use self::jobs::{JobFollower, JobOutcome, is_end, machine_of_job, new_request_id};
 pub use self::reload::RELOAD_TIMEOUT;
+pub(crate) use self::watch::subscribe_into;
 pub use self::watch::{Watch, WatchEvent};
 pub mod plc;
 pub mod render;

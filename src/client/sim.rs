@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use clap::{Subcommand, ValueEnum};
+use clap::{Args, Subcommand, ValueEnum};
 use serde_json::{Value, json};
 
 use super::cli::{ClientCommand, ConnectArgs, Io};
@@ -85,6 +85,34 @@ pub enum OnOff {
 
 /// The controls of the simulated machines (`kind = "sim"`) of a running cell: what an
 /// operator does at the CNC.
+/// A simulated machine to act on, and how its state is printed after.
+#[derive(Debug, Clone, Args)]
+pub struct SimMachine {
+    #[command(flatten)]
+    connect: ConnectArgs,
+    /// The machine.
+    #[arg(value_name = "MACHINE")]
+    machine: String,
+    /// Print the machine's state as JSON instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+impl SimMachine {
+    /// Sends `leaf` with no payload; the machine's state after, and whether to print JSON.
+    async fn control(
+        &self,
+        client: &Client,
+        leaf: SimLeaf,
+    ) -> Result<(pb::SimState, bool), ClientError> {
+        let none: Option<&pb::SimState> = None;
+        Ok((
+            client.sim_control(&self.machine, leaf, none).await?,
+            self.json,
+        ))
+    }
+}
+
 #[derive(Debug, Clone, Subcommand)]
 pub enum SimControl {
     /// A simulated machine's state (default: every simulated machine of the cell): reading,
@@ -116,51 +144,15 @@ pub enum SimControl {
     },
     /// Raise a CNC alarm on a simulated machine. With autostart on, its operator resets it
     /// once the host has seen it; with `sim auto MACHINE off` it stays until `sim reset`.
-    Alarm {
-        #[command(flatten)]
-        connect: ConnectArgs,
-        /// The machine.
-        #[arg(value_name = "MACHINE")]
-        machine: String,
-        /// Print the machine's state as JSON instead of text.
-        #[arg(long)]
-        json: bool,
-    },
+    Alarm(SimMachine),
     /// Reset a simulated CNC: its alarm cleared, its buffer emptied (a job being sent is
     /// cancelled by the reset).
-    Reset {
-        #[command(flatten)]
-        connect: ConnectArgs,
-        /// The machine.
-        #[arg(value_name = "MACHINE")]
-        machine: String,
-        /// Print the machine's state as JSON instead of text.
-        #[arg(long)]
-        json: bool,
-    },
+    Reset(SimMachine),
     /// Cycle start: the simulated CNC reads from its buffer, so a waiting job starts
     /// (refused while the CNC is in alarm).
-    Read {
-        #[command(flatten)]
-        connect: ConnectArgs,
-        /// The machine.
-        #[arg(value_name = "MACHINE")]
-        machine: String,
-        /// Print the machine's state as JSON instead of text.
-        #[arg(long)]
-        json: bool,
-    },
+    Read(SimMachine),
     /// Feed hold: the simulated CNC stops reading; its buffer is kept.
-    Hold {
-        #[command(flatten)]
-        connect: ConnectArgs,
-        /// The machine.
-        #[arg(value_name = "MACHINE")]
-        machine: String,
-        /// Print the machine's state as JSON instead of text.
-        #[arg(long)]
-        json: bool,
-    },
+    Hold(SimMachine),
     /// Autostart on or off. On (the default cell's machines start so), the operator starts
     /// every read and resets every alarm by himself; off, only `sim read` and `sim reset` do.
     Auto {
@@ -199,12 +191,12 @@ impl ClientCommand for SimControl {
         match self {
             SimControl::State { connect, .. }
             | SimControl::Di { connect, .. }
-            | SimControl::Alarm { connect, .. }
-            | SimControl::Reset { connect, .. }
-            | SimControl::Read { connect, .. }
-            | SimControl::Hold { connect, .. }
             | SimControl::Auto { connect, .. }
             | SimControl::Punch { connect, .. } => connect,
+            SimControl::Alarm(m)
+            | SimControl::Reset(m)
+            | SimControl::Read(m)
+            | SimControl::Hold(m) => &m.connect,
         }
     }
 
@@ -248,22 +240,10 @@ impl ClientCommand for SimControl {
                     *json,
                 )
             }
-            SimControl::Alarm { machine, json, .. } => (
-                client.sim_control(machine, SimLeaf::Alarm, none).await?,
-                *json,
-            ),
-            SimControl::Reset { machine, json, .. } => (
-                client.sim_control(machine, SimLeaf::Reset, none).await?,
-                *json,
-            ),
-            SimControl::Read { machine, json, .. } => (
-                client.sim_control(machine, SimLeaf::Read, none).await?,
-                *json,
-            ),
-            SimControl::Hold { machine, json, .. } => (
-                client.sim_control(machine, SimLeaf::Hold, none).await?,
-                *json,
-            ),
+            SimControl::Alarm(m) => m.control(client, SimLeaf::Alarm).await?,
+            SimControl::Reset(m) => m.control(client, SimLeaf::Reset).await?,
+            SimControl::Read(m) => m.control(client, SimLeaf::Read).await?,
+            SimControl::Hold(m) => m.control(client, SimLeaf::Hold).await?,
             SimControl::Auto {
                 machine, on, json, ..
             } => {

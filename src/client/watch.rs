@@ -295,3 +295,25 @@ impl Watch {
         let _ = self.tokens.undeclare().await;
     }
 }
+
+/// Subscribes on `session` to each of `keys`, handing every sample to `tx`. A full channel
+/// drops the sample rather than block zenoh: a later update of the same key says it again.
+/// The subscriptions last as long as the returned handles.
+pub(crate) async fn subscribe_into(
+    session: &Session,
+    keys: impl IntoIterator<Item = String>,
+    tx: &tokio::sync::mpsc::Sender<Sample>,
+) -> zenoh::Result<Vec<Subscriber<()>>> {
+    let mut subscribers = Vec::new();
+    for key in keys {
+        let tx = tx.clone();
+        let sub = session
+            .declare_subscriber(key)
+            .callback(move |s| {
+                let _ = tx.try_send(s);
+            })
+            .await?;
+        subscribers.push(sub);
+    }
+    Ok(subscribers)
+}

@@ -163,18 +163,7 @@ impl Live {
             format!("{prefix}/{c}/plc/*/status"),
         ];
         let (sample_tx, mut samples) = tokio::sync::mpsc::channel::<Sample>(16_384);
-        let mut subscribers = Vec::new();
-        for key in keys {
-            let tx = sample_tx.clone();
-            let sub = session
-                .declare_subscriber(key)
-                .callback(move |s| {
-                    // Full: a page would see a later update anyway; never block zenoh.
-                    let _ = tx.try_send(s);
-                })
-                .await?;
-            subscribers.push(sub);
-        }
+        let subscribers = crate::client::subscribe_into(session, keys, &sample_tx).await?;
         let hub = live.clone();
         let prefix = prefix.to_string();
         tokio::spawn(async move {

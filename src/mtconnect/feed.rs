@@ -147,18 +147,7 @@ pub async fn start(
         format!("{prefix}/{c}/reload"),
     ];
     let (tx, mut rx) = mpsc::channel::<Sample>(WAITING);
-    let mut subscribers = Vec::new();
-    for key in keys {
-        let tx = tx.clone();
-        let sub = session
-            .declare_subscriber(key)
-            .callback(move |s| {
-                // Full: a later status says it again; never block zenoh.
-                let _ = tx.try_send(s);
-            })
-            .await?;
-        subscribers.push(sub);
-    }
+    let subscribers = crate::client::subscribe_into(&session, keys, &tx).await?;
     let tokens = {
         let tx = tx.clone();
         session

@@ -15,18 +15,14 @@ pub mod micrex_handle;
 pub mod server;
 
 use std::future::Future;
-use std::pin::Pin;
 use std::sync::{Arc, Mutex, PoisonError};
-use std::task::Poll;
 
-use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio::task::JoinHandle;
 
 use crate::link::pump::{Pump, PumpError};
 use crate::transport::Transport;
 use cellgate_core::engine::Engine;
-use cellgate_core::engine::ModemIn;
 use cellgate_core::fanuc::alarm::CncAlarm;
 use cellgate_core::fanuc::sat::{Params, StatusData};
 
@@ -425,69 +421,4 @@ pub(crate) async fn run_board<T: Transport>(
     }
     report(pump.engine(), &mut events, taken);
     result
-}
-
-/// A [`Transport`] over any byte stream, with all modem lines on (the manual's wiring for
-/// unused lines): a TCP connection to the simulated device server, an in-memory duplex pipe.
-#[derive(Debug)]
-pub struct PlainLine<S> {
-    stream: S,
-    name: String,
-}
-
-impl<S> PlainLine<S> {
-    pub fn new(stream: S, name: impl Into<String>) -> Self {
-        PlainLine {
-            stream,
-            name: name.into(),
-        }
-    }
-}
-
-impl<S: AsyncRead + Unpin> AsyncRead for PlainLine<S> {
-    fn poll_read(
-        mut self: Pin<&mut Self>,
-        cx: &mut std::task::Context<'_>,
-        buf: &mut ReadBuf<'_>,
-    ) -> Poll<std::io::Result<()>> {
-        Pin::new(&mut self.stream).poll_read(cx, buf)
-    }
-}
-
-impl<S: AsyncWrite + Unpin> AsyncWrite for PlainLine<S> {
-    fn poll_write(
-        mut self: Pin<&mut Self>,
-        cx: &mut std::task::Context<'_>,
-        buf: &[u8],
-    ) -> Poll<std::io::Result<usize>> {
-        Pin::new(&mut self.stream).poll_write(cx, buf)
-    }
-    fn poll_flush(
-        mut self: Pin<&mut Self>,
-        cx: &mut std::task::Context<'_>,
-    ) -> Poll<std::io::Result<()>> {
-        Pin::new(&mut self.stream).poll_flush(cx)
-    }
-    fn poll_shutdown(
-        mut self: Pin<&mut Self>,
-        cx: &mut std::task::Context<'_>,
-    ) -> Poll<std::io::Result<()>> {
-        Pin::new(&mut self.stream).poll_shutdown(cx)
-    }
-}
-
-impl<S: AsyncRead + AsyncWrite + Send + Unpin> Transport for PlainLine<S> {
-    fn set_modem(&mut self, _out: crate::transport::ModemOut) -> std::io::Result<()> {
-        Ok(())
-    }
-    fn modem(&mut self) -> std::io::Result<ModemIn> {
-        Ok(ModemIn::ALL_ON)
-    }
-    /// The lines never change, so there is nothing to poll.
-    fn modem_wakes_reader(&self) -> bool {
-        true
-    }
-    fn describe(&self) -> String {
-        self.name.clone()
-    }
 }

@@ -661,11 +661,19 @@ pub fn event_json(event: &BoardEvent) -> Option<Value> {
     })
 }
 
-/// A TCP connection as the board's serial line: output paced at the baud rate through a
-/// UART-sized window ([`Pacer`]), input delivered at the baud rate however fast it came (the
-/// device server's serial side), all modem lines on.
+/// The board's serial line over a byte stream, all modem lines on (the manual's wiring for
+/// unused lines). Over a TCP connection ([`PacedLine::new`]): output paced at the baud rate
+/// through a UART-sized window ([`Pacer`]), input delivered at the baud rate however fast it
+/// came (the device server's serial side). Over an in-memory pipe in tests
+/// ([`PacedLine::unpaced`]): bytes pass as they come.
 pub struct PacedLine<S> {
     stream: S,
+    /// `None`: unpaced.
+    pace: Option<Box<Pace>>,
+    name: String,
+}
+
+struct Pace {
     pacer: Pacer,
     sleep: Pin<Box<Sleep>>,
     /// The host's characters on their way down the line, back to back at the baud rate
@@ -677,7 +685,6 @@ pub struct PacedLine<S> {
     /// The board's UART reads this many data bits: on a 7-bit line, bit 7 of what comes over
     /// TCP never reaches it (a device server set to the line sends 7 of the 8).
     mask: u8,
-    name: String,
 }
 
 /// Characters the simulated UART holds beyond the one being sent (a 16-byte FIFO).
@@ -690,14 +697,25 @@ impl<S> PacedLine<S> {
     pub fn new(stream: S, settings: LineSettings, name: String) -> Self {
         PacedLine {
             stream,
-            pacer: Pacer::new(settings, UART_FIFO),
-            sleep: Box::pin(tokio::time::sleep_until(Instant::now())),
-            rx_line: Pacer::new(settings, usize::MAX),
-            rx_queue: VecDeque::new(),
-            rx_sleep: Box::pin(tokio::time::sleep_until(Instant::now())),
-            rx_eof: false,
-            mask: settings.data_mask(),
+            pace: Some(Box::new(Pace {
+                pacer: Pacer::new(settings, UART_FIFO),
+                sleep: Box::pin(tokio::time::sleep_until(Instant::now())),
+                rx_line: Pacer::new(settings, usize::MAX),
+                rx_queue: VecDeque::new(),
+                rx_sleep: Box::pin(tokio::time::sleep_until(Instant::now())),
+                rx_eof: false,
+                mask: settings.data_mask(),
+            })),
             name,
+        }
+    }
+
+    /// Bytes pass both ways as fast as the stream takes them.
+    pub fn unpaced(stream: S, name: impl Into<String>) -> Self {
+        PacedLine {
+            stream,
+            pace: None,
+            name: name.into(),
         }
     }
 }
@@ -709,56 +727,59 @@ impl<S: AsyncRead + Unpin> AsyncRead for PacedLine<S> {
         buf: &mut ReadBuf<'_>,
     ) -> Poll<std::io::Result<()>> {
         let this = &mut *self;
+        let Some(p) = &mut this.pace else {
+            return Pin::new(&mut this.stream).poll_read(cx, buf);
+        };
         // Everything TCP has goes onto the line at once, timed from its arrival, so that the
         // line stays busy while earlier pieces are still on their way.
-        while !this.rx_eof {
+        while !p.rx_eof {
             let mut chunk = [0u8; 4096];
             let mut read = ReadBuf::new(&mut chunk);
             match Pin::new(&mut this.stream).poll_read(cx, &mut read) {
                 Poll::Pending => break,
                 Poll::Ready(Err(e)) => {
-                    if this.rx_queue.is_empty() {
+                    if p.rx_queue.is_empty() {
                         return Poll::Ready(Err(e));
                     }
-                    this.rx_eof = true;
+                    p.rx_eof = true;
                 }
-                Poll::Ready(Ok(())) if read.filled().is_empty() => this.rx_eof = true,
+                Poll::Ready(Ok(())) if read.filled().is_empty() => p.rx_eof = true,
                 Poll::Ready(Ok(())) => {
                     let got = read.filled();
-                    let placement = this.rx_line.wrote(got.len(), Instant::now().into_std());
+                    let placement = p.rx_line.wrote(got.len(), Instant::now().into_std());
                     for (i, piece) in got.chunks(RX_PIECE).enumerate() {
                         let last = (i * RX_PIECE + piece.len() - 1) as u64;
-                        this.rx_queue
+                        p.rx_queue
                             .push_back((placement.done_at(last), piece.to_vec()));
                     }
                 }
             }
         }
-        let Some((at, _)) = this.rx_queue.front() else {
+        let Some((at, _)) = p.rx_queue.front() else {
             // Nothing on the way: EOF once TCP said so, else wait for TCP.
-            return if this.rx_eof {
+            return if p.rx_eof {
                 Poll::Ready(Ok(()))
             } else {
                 Poll::Pending
             };
         };
         if Instant::now().into_std() < *at {
-            this.rx_sleep.as_mut().reset(Instant::from_std(*at));
-            ready!(this.rx_sleep.as_mut().poll(cx));
+            p.rx_sleep.as_mut().reset(Instant::from_std(*at));
+            ready!(p.rx_sleep.as_mut().poll(cx));
         }
-        let Some((_, mut piece)) = this.rx_queue.pop_front() else {
+        let Some((_, mut piece)) = p.rx_queue.pop_front() else {
             return Poll::Pending;
         };
         let n = piece.len().min(buf.remaining());
-        if this.mask != 0xFF {
+        if p.mask != 0xFF {
             for b in &mut piece[..n] {
-                *b &= this.mask;
+                *b &= p.mask;
             }
         }
         buf.put_slice(&piece[..n]);
         if n < piece.len() {
             let at = Instant::now().into_std();
-            this.rx_queue.push_front((at, piece.split_off(n)));
+            p.rx_queue.push_front((at, piece.split_off(n)));
         }
         Poll::Ready(Ok(()))
     }
@@ -771,16 +792,19 @@ impl<S: AsyncWrite + Unpin> AsyncWrite for PacedLine<S> {
         buf: &[u8],
     ) -> Poll<std::io::Result<usize>> {
         let this = &mut *self;
+        let Some(p) = &mut this.pace else {
+            return Pin::new(&mut this.stream).poll_write(cx, buf);
+        };
         let mut now = Instant::now().into_std();
-        if this.pacer.batch(now, buf.len()) == 0 {
-            let at = Instant::from_std(this.pacer.batch_at(now, buf.len()));
-            this.sleep.as_mut().reset(at);
-            ready!(this.sleep.as_mut().poll(cx));
+        if p.pacer.batch(now, buf.len()) == 0 {
+            let at = Instant::from_std(p.pacer.batch_at(now, buf.len()));
+            p.sleep.as_mut().reset(at);
+            ready!(p.sleep.as_mut().poll(cx));
             now = Instant::now().into_std();
         }
-        let room = this.pacer.batch(now, buf.len()).max(1);
+        let room = p.pacer.batch(now, buf.len()).max(1);
         let n = ready!(Pin::new(&mut this.stream).poll_write(cx, &buf[..buf.len().min(room)]))?;
-        this.pacer.wrote(n, now);
+        p.pacer.wrote(n, now);
         Poll::Ready(Ok(n))
     }
     fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {

@@ -21,7 +21,7 @@
 //! [`Transport::modem`] (alarm SR0855). Neither is an I/O error, and nothing panics on line input.
 
 pub mod parity;
-mod redial;
+pub mod redial;
 pub mod serial;
 pub mod sim;
 pub mod tcp;

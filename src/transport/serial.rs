@@ -27,8 +27,7 @@
 use std::fmt;
 use std::io;
 use std::pin::Pin;
-use std::sync::Arc;
-use std::task::{Context, Poll, Wake};
+use std::task::{Context, Poll};
 use std::time::Duration;
 
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
@@ -38,7 +37,7 @@ use tracing::{debug, info, warn};
 
 use cellgate_core::engine::parmrk::MarkDecoder;
 
-use super::redial::{self, Backoff, Redialing, Wakers};
+use super::redial::{Dial, Dialer, Redial};
 use super::{
     DataBits, FlowControl, LineError, LineSettings, ModemIn, ModemOut, Pacer, Parity, StopBits,
     Transport, TransportError,
@@ -385,50 +384,18 @@ impl Transport for SerialTransport {
 ///
 /// A port that cannot be opened at start (a USB adapter not plugged in yet, a port server still
 /// booting) or that fails later (the adapter pulled: reads fail with `EIO`) is opened again with
-/// bounded exponential backoff. While it is away the line reads as cut — DR, CS and CD off — so
-/// the engine raises its line alarm and the link drops what it had not written; writes wait
-/// (nothing is taken and thrown away) and reads wait. When the port is back, the framing and
-/// the last modem output lines are applied again. Only a setting the port itself refuses (a
-/// baud rate) is an error, at start: retrying would not help.
-pub struct ReopeningSerial {
+/// bounded exponential backoff; see [`Redial`] for how the line reads meanwhile. When the port is
+/// back, the framing and the last modem output lines are applied again. Only a setting the port
+/// itself refuses (a baud rate) is an error, at start: retrying would not help.
+pub type ReopeningSerial = Redial<PortOpener>;
+
+/// How a [`ReopeningSerial`] opens its port.
+#[derive(Debug)]
+pub struct PortOpener {
     path: String,
     line: LineSettings,
     window: usize,
-    state: PortState,
-    backoff: Backoff,
-    wakers: Arc<Wakers>,
     modem_out: Option<ModemOut>,
-    stats: ReopenStats,
-}
-
-enum PortState {
-    Open(Box<SerialTransport>),
-    /// Waiting before the next attempt to open.
-    Away(Pin<Box<Sleep>>),
-    /// Shut down by the owner.
-    Closed,
-}
-
-/// How often a [`ReopeningSerial`] opened and lost its port.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct ReopenStats {
-    /// Successful opens, the first one included.
-    pub opens: u64,
-    /// Times the open port failed (read or write error, end of input).
-    pub losses: u64,
-    /// Failed attempts to open.
-    pub open_failures: u64,
-}
-
-impl fmt::Debug for ReopeningSerial {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_struct("ReopeningSerial")
-            .field("path", &self.path)
-            .field("line", &self.line)
-            .field("open", &self.is_open())
-            .field("stats", &self.stats)
-            .finish()
-    }
 }
 
 impl ReopeningSerial {
@@ -441,227 +408,89 @@ impl ReopeningSerial {
         backoff_min: Duration,
         backoff_max: Duration,
     ) -> Result<ReopeningSerial, TransportError> {
-        let mut t = ReopeningSerial {
+        let opener = PortOpener {
             path: path.into(),
             line,
             window: DEFAULT_WINDOW,
-            state: PortState::Closed,
-            backoff: Backoff::new(backoff_min, backoff_max),
-            wakers: Arc::new(Wakers::default()),
             modem_out: None,
-            stats: ReopenStats::default(),
         };
-        match SerialTransport::open(&t.path, line) {
-            Ok(port) => t.opened(port),
+        let first = SerialTransport::open(&opener.path, line);
+        let mut t = Redial::new(opener, backoff_min, backoff_max);
+        match first {
             Err(e @ TransportError::UnsupportedBaud { .. }) => return Err(e),
-            Err(e) => t.open_failed(&e),
+            first => t.dialed(first),
         }
         Ok(t)
     }
 
     /// Use a different in-flight window (see [`SerialTransport::with_window`]).
     pub fn with_window(mut self, window: usize) -> Self {
-        self.window = window;
-        if let PortState::Open(port) = std::mem::replace(&mut self.state, PortState::Closed) {
-            self.state = PortState::Open(Box::new(port.with_window(window)));
+        let (opener, port) = self.parts_mut();
+        opener.window = window;
+        if let Some(port) = port {
+            port.pacer = Pacer::new(port.line, window);
         }
         self
     }
+}
 
-    /// Whether the port is open (as of the last read or write).
-    pub fn is_open(&self) -> bool {
-        matches!(self.state, PortState::Open(_))
+impl Dialer for PortOpener {
+    type Stream = SerialTransport;
+    type Error = TransportError;
+    const END_OF_INPUT: &'static str = "end of input";
+    const NO_MORE_BYTES: &'static str = "the port accepts no more bytes";
+    /// Closing the port and opening it again revives a USB adapter whose driver stopped
+    /// delivering, often.
+    const REDIAL: &'static str = "opening the port again";
+
+    fn dial(&self) -> Dial<Self> {
+        let (path, line) = (self.path.clone(), self.line);
+        Box::pin(async move { SerialTransport::open(&path, line) })
     }
 
-    pub fn stats(&self) -> ReopenStats {
-        self.stats
-    }
-
-    fn opened(&mut self, port: SerialTransport) {
-        let failed = self.backoff.up();
-        self.stats.opens += 1;
-        if self.stats.opens > 1 || failed > 0 {
-            info!(path = %self.path, attempts = failed + 1, "serial port open again");
+    fn up(&mut self, port: SerialTransport, opens: u64, failed_before: u64) -> SerialTransport {
+        if opens > 1 || failed_before > 0 {
+            info!(path = %self.path, attempts = failed_before + 1, "serial port open again");
         }
         let mut port = port.with_window(self.window);
         if let Some(out) = self.modem_out {
             // Errors are logged by the port once; the line works without them.
             let _ = port.set_modem(out);
         }
-        self.state = PortState::Open(Box::new(port));
-        self.wakers.wake_by_ref();
+        port
     }
 
-    fn open_failed(&mut self, error: &TransportError) {
-        self.stats.open_failures += 1;
-        let attempt = self.backoff.failed();
-        let retry_in = self.backoff.peek();
+    fn dial_failed(&self, error: &TransportError, attempt: u64, retry_in: Duration) {
         if attempt == 1 {
             warn!(path = %self.path, %error, ?retry_in, "cannot open the serial port; the line reads as cut until it opens");
         } else {
             debug!(path = %self.path, %error, attempt, ?retry_in, "serial port still cannot be opened");
         }
-        self.wait();
     }
 
-    fn wait(&mut self) {
-        let wait = self.backoff.take_wait();
-        self.state = PortState::Away(Box::pin(tokio::time::sleep(wait)));
+    fn lost(&mut self, why: &dyn fmt::Display, retry_in: Duration) {
+        warn!(path = %self.path, reason = %why, ?retry_in, "serial port lost; the line reads as cut until it is open again");
     }
 
-    fn lost(&mut self, why: &dyn fmt::Display) {
-        self.stats.losses += 1;
-        self.backoff.lost();
-        warn!(path = %self.path, reason = %why, retry_in = ?self.backoff.peek(), "serial port lost; the line reads as cut until it is open again");
-        self.wait();
-        self.wakers.wake_by_ref();
+    fn name(&self) -> String {
+        format!("serial port {}", self.path)
     }
 
-    /// Drive reopening as far as it goes without waiting. Returns whether the port is open.
-    fn poll_port(&mut self) -> bool {
-        loop {
-            match &mut self.state {
-                PortState::Open(_) => return true,
-                PortState::Closed => return false,
-                PortState::Away(sleep) => {
-                    let waker = self.wakers.waker();
-                    if sleep
-                        .as_mut()
-                        .poll(&mut Context::from_waker(&waker))
-                        .is_pending()
-                    {
-                        return false;
-                    }
-                    match SerialTransport::open(&self.path, self.line) {
-                        Ok(port) => self.opened(port),
-                        Err(e) => self.open_failed(&e),
-                    }
-                }
-            }
-        }
-    }
-}
-
-impl Redialing for ReopeningSerial {
-    type Stream = SerialTransport;
-    const END_OF_INPUT: &'static str = "end of input";
-
-    fn poll_up(&mut self) -> Poll<Option<&mut SerialTransport>> {
-        if !self.poll_port() {
-            return match self.state {
-                PortState::Closed => Poll::Ready(None),
-                _ => Poll::Pending,
-            };
-        }
-        match &mut self.state {
-            PortState::Open(port) => Poll::Ready(Some(port.as_mut())),
-            _ => Poll::Pending,
-        }
-    }
-
-    fn lost(&mut self, why: &dyn fmt::Display) {
-        ReopeningSerial::lost(self, why);
-    }
-}
-
-impl AsyncRead for ReopeningSerial {
-    /// Bytes from the port. A failing port is not an error to the reader: it waits for the port
-    /// to be open again. EOF only after shutdown.
-    fn poll_read(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &mut ReadBuf<'_>,
-    ) -> Poll<io::Result<()>> {
-        let this = &mut *self;
-        Wakers::set(&this.wakers.read, cx.waker());
-        redial::poll_read(this, cx, buf)
-    }
-}
-
-impl AsyncWrite for ReopeningSerial {
-    /// Writes through the open port; waits while the port is away.
-    fn poll_write(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &[u8],
-    ) -> Poll<io::Result<usize>> {
-        let this = &mut *self;
-        if matches!(this.state, PortState::Closed) {
-            return Poll::Ready(Err(io::Error::new(
-                io::ErrorKind::BrokenPipe,
-                format!("serial port {}: write after shutdown", this.path),
-            )));
-        }
-        if buf.is_empty() {
-            return Poll::Ready(Ok(0));
-        }
-        Wakers::set(&this.wakers.write, cx.waker());
-        loop {
-            if !this.poll_port() {
-                return Poll::Pending;
-            }
-            let PortState::Open(port) = &mut this.state else {
-                continue;
-            };
-            match Pin::new(port.as_mut()).poll_write(cx, buf) {
-                Poll::Ready(Ok(0)) => this.lost(&"the port accepts no more bytes"),
-                Poll::Ready(Err(e)) => this.lost(&e),
-                other => return other,
-            }
-        }
-    }
-
-    fn poll_flush(self: Pin<&mut Self>, _cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Poll::Ready(Ok(()))
-    }
-
-    /// Close the port for good: no more reopening; reads return EOF.
-    fn poll_shutdown(mut self: Pin<&mut Self>, _cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        self.state = PortState::Closed;
-        self.wakers.wake_by_ref();
-        Poll::Ready(Ok(()))
-    }
-}
-
-impl Transport for ReopeningSerial {
-    fn set_modem(&mut self, out: ModemOut) -> io::Result<()> {
+    fn set_modem(&mut self, port: Option<&mut SerialTransport>, out: ModemOut) -> io::Result<()> {
         self.modem_out = Some(out);
-        match &mut self.state {
-            PortState::Open(port) => port.set_modem(out),
-            _ => Ok(()),
-        }
+        port.map_or(Ok(()), |port| port.set_modem(out))
     }
 
-    /// The port's lines while it is open; all off while it is away, like a cut line.
-    fn modem(&mut self) -> io::Result<ModemIn> {
-        match &mut self.state {
-            PortState::Open(port) => port.modem(),
-            _ => Ok(ModemIn {
-                dr: false,
-                cs: false,
-                cd: false,
-            }),
-        }
+    fn modem(&mut self, port: &mut SerialTransport) -> io::Result<ModemIn> {
+        port.modem()
     }
 
-    fn take_line_error(&mut self) -> Option<LineError> {
-        match &mut self.state {
-            PortState::Open(port) => port.take_line_error(),
-            _ => None,
-        }
+    fn take_line_error(&mut self, port: &mut SerialTransport) -> Option<LineError> {
+        port.take_line_error()
     }
 
     fn describe(&self) -> String {
         format!("serial {} {}", self.path, self.line)
-    }
-
-    /// Closes the port and opens it again at once (a USB adapter whose driver stopped
-    /// delivering is often revived by that).
-    fn reconnect(&mut self, why: &str) {
-        if self.is_open() {
-            self.lost(&format!("{why}; opening the port again"));
-            self.state = PortState::Away(Box::pin(tokio::time::sleep(Duration::ZERO)));
-        }
     }
 }
 

@@ -17,22 +17,24 @@
 //!
 //! A raw TCP device server carries no modem lines: [`Transport::set_modem`] does nothing and
 //! [`Transport::modem`] reads all lines on while connected.
+//!
+//! [`Transport::set_modem`]: super::Transport::set_modem
+//! [`Transport::modem`]: super::Transport::modem
 
 use std::fmt;
 use std::future::Future;
 use std::io;
 use std::pin::Pin;
-use std::sync::Arc;
-use std::task::{Context, Poll, Wake};
+use std::task::{Context, Poll};
 use std::time::Duration;
 
-use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::io::AsyncWrite;
 use tokio::net::TcpStream;
 use tokio::time::{Instant, Sleep};
 use tracing::{debug, info, warn};
 
-use super::redial::{self, Backoff, Redialing, Wakers};
-use super::{LineSettings, ModemIn, ModemOut, Pacer, Transport, TransportError};
+use super::redial::{Dial, Dialer, Redial};
+use super::{LineSettings, ModemIn, ModemOut, Pacer, TransportError};
 
 /// Connection and pacing options of a [`TcpTransport`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -68,51 +70,26 @@ impl Default for TcpOptions {
     }
 }
 
-/// Connection history of a [`TcpTransport`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct TcpStats {
-    /// Successful connections, the first one included.
-    pub connects: u64,
-    /// Connections lost (EOF or I/O error).
-    pub disconnects: u64,
-    /// Failed connection attempts.
-    pub connect_failures: u64,
-}
-
-type ConnectFuture = Pin<Box<dyn Future<Output = io::Result<TcpStream>> + Send>>;
-
-enum State {
-    Connected(TcpStream),
-    Connecting(ConnectFuture),
-    /// Waiting before the next connection attempt.
-    Backoff(Pin<Box<Sleep>>),
-    /// Shut down by the owner: no more reconnecting.
-    Closed,
-}
-
 /// A serial line reached through a TCP device server. See the [module docs](self).
-pub struct TcpTransport {
+pub type TcpTransport = Redial<DeviceServer>;
+
+/// How a [`TcpTransport`] reaches its device server, and paces its writes.
+pub struct DeviceServer {
     addr: String,
     line: LineSettings,
     opts: TcpOptions,
-    state: State,
-    backoff: Backoff,
     pacer: Pacer,
     write_sleep: Option<Pin<Box<Sleep>>>,
     /// Since when the connection has not taken a write, and the timer of the write time-out.
     write_stuck: Option<(Instant, Pin<Box<Sleep>>)>,
-    wakers: Arc<Wakers>,
-    stats: TcpStats,
     modem_note_logged: bool,
 }
 
-impl fmt::Debug for TcpTransport {
+impl fmt::Debug for DeviceServer {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_struct("TcpTransport")
+        f.debug_struct("DeviceServer")
             .field("addr", &self.addr)
             .field("line", &self.line)
-            .field("connected", &self.is_connected())
-            .field("stats", &self.stats)
             .finish()
     }
 }
@@ -153,305 +130,177 @@ impl TcpTransport {
     ) -> Result<TcpTransport, TransportError> {
         let addr = addr.into();
         check_addr(&addr)?;
-        let mut t = TcpTransport {
-            state: State::Connecting(connect_future(addr.clone(), opts.connect_timeout)),
+        let server = DeviceServer {
             addr,
             line,
-            backoff: Backoff::new(opts.backoff_min, opts.backoff_max),
             pacer: Pacer::new(line, opts.window),
             write_sleep: None,
             write_stuck: None,
-            wakers: Arc::new(Wakers::default()),
-            stats: TcpStats::default(),
             modem_note_logged: false,
             opts,
         };
-        if let State::Connecting(f) = &mut t.state {
-            let result = f.as_mut().await;
-            t.connect_done(result);
-        }
+        let first = server.dial().await;
+        let mut t = Redial::new(server, opts.backoff_min, opts.backoff_max);
+        t.dialed(first);
         Ok(t)
     }
 
     /// The device server's address as configured.
     pub fn addr(&self) -> &str {
-        &self.addr
-    }
-
-    /// Whether a connection to the device server is up (as of the last read or write).
-    pub fn is_connected(&self) -> bool {
-        matches!(self.state, State::Connected(_))
-    }
-
-    /// Connection history.
-    pub fn stats(&self) -> TcpStats {
-        self.stats
+        &self.dialer().addr
     }
 
     /// Estimated characters written and not yet sent on the serial side: never above
     /// [`TcpOptions::window`] except by the last write's remainder.
     pub fn unsent_estimate(&self) -> u64 {
-        self.pacer.unsent(Instant::now().into_std())
+        self.dialer().pacer.unsent(Instant::now().into_std())
+    }
+}
+
+impl Dialer for DeviceServer {
+    type Stream = TcpStream;
+    type Error = io::Error;
+    const END_OF_INPUT: &'static str = "closed by the device server";
+    const NO_MORE_BYTES: &'static str = "the connection accepts no more bytes";
+    /// The protocol heard nothing for longer than it allows: the connection is likely
+    /// half-open (the device server lost power or was replaced) even if TCP has not noticed.
+    const REDIAL: &'static str = "reconnecting";
+    /// The lines follow the connection, and every connect and disconnect wakes the reader.
+    const MODEM_WAKES_READER: bool = true;
+
+    fn dial(&self) -> Dial<Self> {
+        let (addr, timeout) = (self.addr.clone(), self.opts.connect_timeout);
+        Box::pin(async move {
+            match tokio::time::timeout(timeout, TcpStream::connect(addr.as_str())).await {
+                Ok(r) => r,
+                Err(_) => Err(io::Error::new(
+                    io::ErrorKind::TimedOut,
+                    format!("no answer within {timeout:?}"),
+                )),
+            }
+        })
     }
 
-    fn connect_done(&mut self, result: io::Result<TcpStream>) {
-        match result {
-            Ok(stream) => {
-                // Small writes (a DC3, an ACK) must leave at once.
-                if let Err(e) = stream.set_nodelay(true) {
-                    debug!(addr = %self.addr, error = %e, "could not set TCP_NODELAY");
-                }
-                if let Some(idle) = self.opts.keepalive {
-                    let keepalive = socket2::TcpKeepalive::new()
-                        .with_time(idle)
-                        .with_interval((idle / 5).max(Duration::from_secs(1)))
-                        .with_retries(3);
-                    if let Err(e) = socket2::SockRef::from(&stream).set_tcp_keepalive(&keepalive) {
-                        debug!(addr = %self.addr, error = %e, "could not set TCP keepalive");
-                    }
-                }
-                // Bytes the device server does not acknowledge within the write time-out drop
-                // the connection (a powered-off server never answers, and TCP alone would
-                // retransmit for about 15 minutes).
-                #[cfg(target_os = "linux")]
-                if let Err(e) = socket2::SockRef::from(&stream)
-                    .set_tcp_user_timeout(Some(self.opts.write_timeout))
-                {
-                    debug!(addr = %self.addr, error = %e, "could not set TCP_USER_TIMEOUT");
-                }
-                self.stats.connects += 1;
-                let failed = self.backoff.up();
-                info!(
-                    addr = %self.addr,
-                    attempts = failed + 1,
-                    "connected to the device server"
-                );
-                // The device server's buffer starts empty.
-                self.pacer.reset();
-                self.state = State::Connected(stream);
+    fn up(&mut self, stream: TcpStream, _connects: u64, failed_before: u64) -> TcpStream {
+        // Small writes (a DC3, an ACK) must leave at once.
+        if let Err(e) = stream.set_nodelay(true) {
+            debug!(addr = %self.addr, error = %e, "could not set TCP_NODELAY");
+        }
+        if let Some(idle) = self.opts.keepalive {
+            let keepalive = socket2::TcpKeepalive::new()
+                .with_time(idle)
+                .with_interval((idle / 5).max(Duration::from_secs(1)))
+                .with_retries(3);
+            if let Err(e) = socket2::SockRef::from(&stream).set_tcp_keepalive(&keepalive) {
+                debug!(addr = %self.addr, error = %e, "could not set TCP keepalive");
             }
-            Err(e) => {
-                self.stats.connect_failures += 1;
-                let attempt = self.backoff.failed();
-                if attempt == 1 {
-                    warn!(
-                        addr = %self.addr,
-                        error = %e,
-                        retry_in = ?self.backoff.peek(),
-                        "cannot connect to the device server; the line reads as open until it answers"
-                    );
-                } else {
-                    debug!(
-                        addr = %self.addr,
-                        error = %e,
-                        attempt,
-                        retry_in = ?self.backoff.peek(),
-                        "device server still unreachable"
-                    );
-                }
-                self.wait_backoff();
-            }
+        }
+        // Bytes the device server does not acknowledge within the write time-out drop the
+        // connection (a powered-off server never answers, and TCP alone would retransmit for
+        // about 15 minutes).
+        #[cfg(target_os = "linux")]
+        if let Err(e) =
+            socket2::SockRef::from(&stream).set_tcp_user_timeout(Some(self.opts.write_timeout))
+        {
+            debug!(addr = %self.addr, error = %e, "could not set TCP_USER_TIMEOUT");
+        }
+        info!(
+            addr = %self.addr,
+            attempts = failed_before + 1,
+            "connected to the device server"
+        );
+        // The device server's buffer starts empty.
+        self.pacer.reset();
+        stream
+    }
+
+    fn dial_failed(&self, error: &io::Error, attempt: u64, retry_in: Duration) {
+        if attempt == 1 {
+            warn!(
+                addr = %self.addr,
+                %error,
+                ?retry_in,
+                "cannot connect to the device server; the line reads as open until it answers"
+            );
+        } else {
+            debug!(
+                addr = %self.addr,
+                %error,
+                attempt,
+                ?retry_in,
+                "device server still unreachable"
+            );
         }
     }
 
-    fn wait_backoff(&mut self) {
-        let wait = self.backoff.take_wait();
-        self.state = State::Backoff(Box::pin(tokio::time::sleep(wait)));
-    }
-
-    fn disconnected(&mut self, why: &dyn fmt::Display) {
-        self.stats.disconnects += 1;
-        self.backoff.lost();
+    fn lost(&mut self, why: &dyn fmt::Display, retry_in: Duration) {
         self.write_stuck = None;
         warn!(
             addr = %self.addr,
             reason = %why,
-            retry_in = ?self.backoff.peek(),
+            ?retry_in,
             "device server connection lost; the line reads as open until it is back"
         );
-        self.wait_backoff();
-        self.wakers.wake_by_ref();
     }
 
-    /// Drive reconnection as far as it goes without waiting. Returns whether connected.
-    fn poll_connection(&mut self) -> bool {
-        let waker = self.wakers.waker();
-        let mut cx = Context::from_waker(&waker);
-        loop {
-            match &mut self.state {
-                State::Connected(_) => return true,
-                State::Closed => return false,
-                State::Connecting(f) => match f.as_mut().poll(&mut cx) {
-                    Poll::Ready(result) => {
-                        self.connect_done(result);
-                        if self.is_connected() {
-                            self.wakers.wake_by_ref();
-                        }
-                    }
-                    Poll::Pending => return false,
-                },
-                State::Backoff(sleep) => match sleep.as_mut().poll(&mut cx) {
-                    Poll::Ready(()) => {
-                        self.state = State::Connecting(connect_future(
-                            self.addr.clone(),
-                            self.opts.connect_timeout,
-                        ));
-                    }
-                    Poll::Pending => return false,
-                },
-            }
-        }
-    }
-}
-
-fn connect_future(addr: String, timeout: Duration) -> ConnectFuture {
-    Box::pin(async move {
-        match tokio::time::timeout(timeout, TcpStream::connect(addr.as_str())).await {
-            Ok(r) => r,
-            Err(_) => Err(io::Error::new(
-                io::ErrorKind::TimedOut,
-                format!("no answer within {timeout:?}"),
-            )),
-        }
-    })
-}
-
-impl Redialing for TcpTransport {
-    type Stream = TcpStream;
-    const END_OF_INPUT: &'static str = "closed by the device server";
-
-    fn poll_up(&mut self) -> Poll<Option<&mut TcpStream>> {
-        if !self.poll_connection() {
-            return match self.state {
-                State::Closed => Poll::Ready(None),
-                _ => Poll::Pending,
-            };
-        }
-        match &mut self.state {
-            State::Connected(stream) => Poll::Ready(Some(stream)),
-            _ => Poll::Pending,
-        }
+    fn closed(&self) {
+        info!(addr = %self.addr, "device server connection closed");
     }
 
-    fn lost(&mut self, why: &dyn fmt::Display) {
-        self.disconnected(why);
+    fn name(&self) -> String {
+        format!("device server {}", self.addr)
     }
-}
 
-impl AsyncRead for TcpTransport {
-    /// Bytes from the device server. Never returns EOF or an error while the transport is in
-    /// use: a lost connection is reported in the log and by the modem lines, and the read waits
-    /// for the reconnection. EOF only after [`AsyncWriteExt::shutdown`](tokio::io::AsyncWriteExt).
-    fn poll_read(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &mut ReadBuf<'_>,
-    ) -> Poll<io::Result<()>> {
-        let this = &mut *self;
-        Wakers::set(&this.wakers.read, cx.waker());
-        redial::poll_read(this, cx, buf)
-    }
-}
-
-impl AsyncWrite for TcpTransport {
     /// Writes at most the room left in the in-flight window; waits (a timer, not a busy loop)
-    /// while the window is full, and while the device server is unreachable.
+    /// while the window is full.
     fn poll_write(
-        mut self: Pin<&mut Self>,
+        &mut self,
+        stream: &mut TcpStream,
         cx: &mut Context<'_>,
         buf: &[u8],
     ) -> Poll<io::Result<usize>> {
-        let this = &mut *self;
-        if matches!(this.state, State::Closed) {
-            return Poll::Ready(Err(io::Error::new(
-                io::ErrorKind::BrokenPipe,
-                format!("device server {}: write after shutdown", this.addr),
-            )));
-        }
-        if buf.is_empty() {
-            return Poll::Ready(Ok(0));
-        }
-        Wakers::set(&this.wakers.write, cx.waker());
         loop {
             let now = Instant::now();
             // In batches of half a window at line rate, not the few characters freed since
             // the last write: a system call and a timer each cost more than the line's time.
-            let room = this.pacer.batch(now.into_std(), buf.len());
+            let room = self.pacer.batch(now.into_std(), buf.len());
             if room == 0 {
-                let at = Instant::from_std(this.pacer.batch_at(now.into_std(), buf.len()));
-                match super::poll_sleep(&mut this.write_sleep, at, cx) {
+                let at = Instant::from_std(self.pacer.batch_at(now.into_std(), buf.len()));
+                match super::poll_sleep(&mut self.write_sleep, at, cx) {
                     Poll::Ready(()) => continue,
                     Poll::Pending => return Poll::Pending,
                 }
             }
-            let n = room.min(buf.len());
-            let chunk = buf.get(..n).unwrap_or(buf);
-            if !this.poll_connection() {
-                // Refused, not discarded: the writer waits for the reconnection (both wakers
-                // are woken then).
-                return Poll::Pending;
-            }
-            let State::Connected(stream) = &mut this.state else {
-                continue;
-            };
-            match Pin::new(stream).poll_write(cx, chunk) {
+            let chunk = buf.get(..room.min(buf.len())).unwrap_or(buf);
+            return match Pin::new(&mut *stream).poll_write(cx, chunk) {
                 Poll::Pending => {
                     // The device server takes nothing: past the write time-out, it is
                     // dropped and made again (a server that stopped reading never recovers).
-                    let timeout = this.opts.write_timeout;
-                    let (since, sleep) = this.write_stuck.get_or_insert_with(|| {
+                    let timeout = self.opts.write_timeout;
+                    let (since, sleep) = self.write_stuck.get_or_insert_with(|| {
                         (now, Box::pin(tokio::time::sleep_until(now + timeout)))
                     });
                     if sleep.as_mut().poll(cx).is_pending() {
                         return Poll::Pending;
                     }
                     let waited = since.elapsed();
-                    this.disconnected(&format!(
-                        "write time-out: the device server took nothing for {waited:?}"
-                    ));
+                    Poll::Ready(Err(io::Error::new(
+                        io::ErrorKind::TimedOut,
+                        format!("write time-out: the device server took nothing for {waited:?}"),
+                    )))
                 }
-                Poll::Ready(Ok(0)) => this.disconnected(&"the connection accepts no more bytes"),
-                Poll::Ready(Ok(k)) => {
-                    this.write_stuck = None;
-                    this.pacer.wrote(k, now.into_std());
-                    return Poll::Ready(Ok(k));
+                Poll::Ready(Ok(k)) if k > 0 => {
+                    self.write_stuck = None;
+                    self.pacer.wrote(k, now.into_std());
+                    Poll::Ready(Ok(k))
                 }
-                Poll::Ready(Err(e)) => this.disconnected(&e),
-            }
-            // Disconnected: loop to wait for the reconnection.
+                other => other,
+            };
         }
     }
 
-    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        let this = &mut *self;
-        if let State::Connected(stream) = &mut this.state
-            && let Poll::Ready(Err(e)) = Pin::new(stream).poll_flush(cx)
-        {
-            this.disconnected(&e);
-        }
-        Poll::Ready(Ok(()))
-    }
-
-    /// Close the connection for good: no more reconnecting; reads return EOF.
-    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        let this = &mut *self;
-        if let State::Connected(stream) = &mut this.state
-            && Pin::new(stream).poll_shutdown(cx).is_pending()
-        {
-            return Poll::Pending;
-        }
-        if !matches!(this.state, State::Closed) {
-            info!(addr = %this.addr, "device server connection closed");
-        }
-        this.state = State::Closed;
-        this.wakers.wake_by_ref();
-        Poll::Ready(Ok(()))
-    }
-}
-
-impl Transport for TcpTransport {
     /// A raw TCP device server carries no modem lines: nothing to drive.
-    fn set_modem(&mut self, out: ModemOut) -> io::Result<()> {
+    fn set_modem(&mut self, _stream: Option<&mut TcpStream>, out: ModemOut) -> io::Result<()> {
         if !self.modem_note_logged {
             self.modem_note_logged = true;
             debug!(
@@ -463,39 +312,13 @@ impl Transport for TcpTransport {
         Ok(())
     }
 
-    /// All lines on while connected (the manual's wiring for unused lines); all off while the
-    /// device server is unreachable, like an open line.
-    fn modem(&mut self) -> io::Result<ModemIn> {
-        Ok(if self.is_connected() {
-            ModemIn::ALL_ON
-        } else {
-            ModemIn {
-                dr: false,
-                cs: false,
-                cd: false,
-            }
-        })
+    /// All lines on while connected (the manual's wiring for unused lines).
+    fn modem(&mut self, _stream: &mut TcpStream) -> io::Result<ModemIn> {
+        Ok(ModemIn::ALL_ON)
     }
 
     fn describe(&self) -> String {
         format!("tcp {} (line {})", self.addr, self.line)
-    }
-
-    /// The lines follow the connection, and every connect and disconnect wakes the reader.
-    fn modem_wakes_reader(&self) -> bool {
-        true
-    }
-
-    /// Drops the connection and connects again at once: the protocol heard nothing for longer
-    /// than it allows, so the connection is likely half-open (the device server lost power or
-    /// was replaced) even if TCP has not noticed yet.
-    fn reconnect(&mut self, why: &str) {
-        if self.is_connected() {
-            self.disconnected(&format!("{why}; reconnecting"));
-            self.state =
-                State::Connecting(connect_future(self.addr.clone(), self.opts.connect_timeout));
-            self.wakers.wake_by_ref();
-        }
     }
 }
 

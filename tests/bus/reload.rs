@@ -597,17 +597,15 @@ async fn the_mtconnect_agent_follows_a_reload() {
                 .unwrap()
         }
     };
-    let until = |path: &'static str, what: &'static str, check: fn(&str) -> bool| {
-        async move {
-            for _ in 0..100 {
-                let doc = get(path).await;
-                if check(&doc) {
-                    return doc;
-                }
-                tokio::time::sleep(Duration::from_millis(100)).await;
+    let until = |path: &'static str, what: &'static str, check: fn(&str) -> bool| async move {
+        for _ in 0..100 {
+            let doc = get(path).await;
+            if check(&doc) {
+                return doc;
             }
-            panic!("never: {what}");
+            tokio::time::sleep(Duration::from_millis(100)).await;
         }
+        panic!("never: {what}");
     };
     let probe = until("/probe", "m1 and m2 modelled", |d| {
         d.contains("name=\"m1\"") && d.contains("name=\"m2\"")

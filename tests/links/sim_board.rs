@@ -1023,8 +1023,9 @@ mod garbage {
 
 mod live {
     use super::*;
+    use cellgate::sim::BoardHandle;
+    use cellgate::sim::server::PacedLine;
     use cellgate::sim::server::{EventSink, serve_fanuc_on};
-    use cellgate::sim::{BoardHandle, PlainLine};
     use cellgate::transport::LineSettings;
     use std::sync::Arc;
     use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
@@ -1059,7 +1060,7 @@ mod live {
             consume_rate: 0,
             ..BoardConfig::default()
         };
-        let handle = BoardHandle::spawn(config, PlainLine::new(line, "pipe")).unwrap();
+        let handle = BoardHandle::spawn(config, PacedLine::unpaced(line, "pipe")).unwrap();
         let mut events = handle.subscribe();
         let (mut rd, mut wr) = tokio::io::split(host);
 
@@ -1697,7 +1698,8 @@ mod g05 {
 
     mod live {
         use super::*;
-        use cellgate::sim::{BoardHandle, PlainLine};
+        use cellgate::sim::BoardHandle;
+        use cellgate::sim::server::PacedLine;
         use tokio::io::AsyncWriteExt;
 
         /// The board's engine runs on tokio's paused clock: the host writes one block a unit
@@ -1715,7 +1717,7 @@ mod g05 {
                 g05: Some(f),
                 ..BoardConfig::default()
             };
-            let handle = BoardHandle::spawn(config, PlainLine::new(line, "pipe")).unwrap();
+            let handle = BoardHandle::spawn(config, PacedLine::unpaced(line, "pipe")).unwrap();
             let mut events = handle.subscribe();
             handle.start_reading();
             handle.wait_for(|s| s.reading).await;

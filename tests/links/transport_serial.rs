@@ -159,19 +159,19 @@ async fn a_port_that_goes_away_is_opened_again() {
         ms(100),
     )
     .unwrap();
-    assert!(!t.is_open());
+    assert!(!t.is_up());
     let cut = ModemIn {
         dr: false,
         cs: false,
         cd: false,
     };
     assert_eq!(t.modem().unwrap(), cut);
-    assert_eq!(t.stats().open_failures, 1);
+    assert_eq!(t.stats().failures, 1);
 
     let mut device = device_at(&link);
     device.write_all(b"one").await.unwrap();
     assert_eq!(read_exactly(&mut t, 3).await, b"one");
-    assert!(t.is_open());
+    assert!(t.is_up());
     assert_eq!(t.modem().unwrap(), ModemIn::ALL_ON);
 
     // Pulled: the device closes and its node goes (as udev removes /dev/ttyUSB0).
@@ -182,7 +182,7 @@ async fn a_port_that_goes_away_is_opened_again() {
         timeout(ms(300), t.read(&mut b)).await.is_err(),
         "a lost port is not end of input"
     );
-    assert!(!t.is_open());
+    assert!(!t.is_up());
     assert_eq!(t.modem().unwrap(), cut);
     assert_eq!(t.stats().losses, 1);
     assert!(
@@ -201,5 +201,5 @@ async fn a_port_that_goes_away_is_opened_again() {
         .unwrap()
         .unwrap();
     assert_eq!(&got, b"three");
-    assert_eq!(t.stats().opens, 2);
+    assert_eq!(t.stats().ups, 2);
 }

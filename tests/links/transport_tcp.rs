@@ -40,7 +40,7 @@ async fn bytes_flow_both_ways() {
         .await
         .unwrap();
     let (mut server, _) = timeout(LONG, l.accept()).await.unwrap().unwrap();
-    assert!(t.is_connected());
+    assert!(t.is_up());
     assert_eq!(t.modem().unwrap(), ModemIn::ALL_ON);
     t.set_modem(ModemOut {
         er: false,
@@ -65,7 +65,7 @@ async fn bytes_flow_both_ways() {
 
     server.write_all(&special).await.unwrap();
     assert_eq!(read_n(&mut t, 8).await, special);
-    assert_eq!(t.stats().connects, 1);
+    assert_eq!(t.stats().ups, 1);
 }
 
 #[tokio::test]
@@ -88,14 +88,14 @@ async fn reconnects_after_the_server_goes_away() {
             .await
             .is_err()
     );
-    assert!(!t.is_connected());
+    assert!(!t.is_up());
     let m = t.modem().unwrap();
     assert!(
         !m.dr && !m.cd,
         "a lost device server reads as an open line: {m:?}"
     );
-    assert_eq!(t.stats().disconnects, 1);
-    assert!(t.stats().connect_failures >= 1, "{:?}", t.stats());
+    assert_eq!(t.stats().losses, 1);
+    assert!(t.stats().failures >= 1, "{:?}", t.stats());
     // Writes meanwhile are refused: they wait, nothing is taken and thrown away.
     assert!(
         timeout(Duration::from_millis(200), t.write_all(b"lost"))
@@ -115,7 +115,7 @@ async fn reconnects_after_the_server_goes_away() {
     };
     server.write_all(b"two").await.unwrap();
     assert_eq!(read_n(&mut t, 3).await, b"two");
-    assert!(t.is_connected());
+    assert!(t.is_up());
     assert_eq!(t.modem().unwrap(), ModemIn::ALL_ON);
     t.write_all(b"three").await.unwrap();
     let mut got = [0u8; 5];
@@ -124,7 +124,7 @@ async fn reconnects_after_the_server_goes_away() {
         .unwrap()
         .unwrap();
     assert_eq!(&got, b"three");
-    assert_eq!(t.stats().connects, 2);
+    assert_eq!(t.stats().ups, 2);
 }
 
 #[tokio::test]
@@ -135,7 +135,7 @@ async fn starts_without_a_server_and_picks_it_up() {
     let mut t = TcpTransport::connect(addr.clone(), LineSettings::with_baud(9600), quick())
         .await
         .unwrap();
-    assert!(!t.is_connected());
+    assert!(!t.is_up());
     assert!(!t.modem().unwrap().dr);
     let l = TcpListener::bind(&addr).await.unwrap();
     let reader = tokio::spawn(async move {
@@ -147,8 +147,8 @@ async fn starts_without_a_server_and_picks_it_up() {
     server.write_all(b"hi").await.unwrap();
     let (t, b) = timeout(LONG, reader).await.unwrap().unwrap();
     assert_eq!(&b, b"hi");
-    assert!(t.is_connected());
-    assert!(t.stats().connect_failures >= 1);
+    assert!(t.is_up());
+    assert!(t.stats().failures >= 1);
 }
 
 #[tokio::test]
@@ -224,7 +224,7 @@ async fn a_server_that_hangs_up_at_once_is_retried_with_growing_backoff() {
     assert!(gaps[1] >= Duration::from_millis(20), "{gaps:?}");
     assert!(gaps[2] >= Duration::from_millis(40), "{gaps:?}");
     assert!(gaps[3] >= Duration::from_millis(80), "{gaps:?}");
-    assert!(t.stats().disconnects >= 3);
+    assert!(t.stats().losses >= 3);
 }
 
 /// A device server that lost power leaves a half-open connection: nothing closes it. When the
@@ -237,10 +237,10 @@ async fn reconnect_replaces_a_silent_connection() {
         .await
         .unwrap();
     let (_silent, _) = timeout(LONG, l.accept()).await.unwrap().unwrap();
-    assert!(t.is_connected());
+    assert!(t.is_up());
 
     t.reconnect("no answer for 30 s");
-    assert!(!t.is_connected());
+    assert!(!t.is_up());
     let accept = tokio::spawn(async move { l.accept().await.unwrap().0 });
     let mut b = [0u8; 1];
     let mut server = loop {
@@ -256,8 +256,8 @@ async fn reconnect_replaces_a_silent_connection() {
         .unwrap()
         .unwrap();
     assert_eq!(&got, b"again");
-    assert_eq!(t.stats().connects, 2);
-    assert_eq!(t.stats().disconnects, 1);
+    assert_eq!(t.stats().ups, 2);
+    assert_eq!(t.stats().losses, 1);
 }
 
 /// A device server that stops reading (hung firmware) takes no more bytes once the socket
@@ -287,7 +287,7 @@ async fn a_server_that_stops_reading_is_replaced_after_the_write_timeout() {
         let _ = timeout(Duration::from_millis(50), t.write(&chunk)).await;
     }
     let mut server = accept.await.unwrap();
-    assert_eq!(t.stats().disconnects, 1, "{:?}", t.stats());
+    assert_eq!(t.stats().losses, 1, "{:?}", t.stats());
     t.write_all(b"fresh").await.unwrap();
     let mut got = vec![0u8; 64 * 1024 + 5];
     // What the new connection carries ends with the fresh bytes.

@@ -301,24 +301,9 @@ fn deprecated_machine_flag(io: &mut Io<'_>, command: &str, machine: &[String]) {
     }
 }
 
-/// `cellgate history` and `cellgate audit`.
+/// The page of records `cellgate history` and `cellgate audit` ask for, and how it is printed.
 #[derive(Debug, Clone, Args)]
-pub struct HistoryArgs {
-    #[command(flatten)]
-    pub connect: ConnectArgs,
-    /// Only these machines or PLC links (comma-separate, or name several), first as in
-    /// every command: `cellgate history mill-1,plc-1`.
-    #[arg(value_name = "MACHINE", value_delimiter = ',')]
-    pub machines: Vec<String>,
-    /// The older form of MACHINE, kept working: name the machines first instead.
-    #[arg(short, long, value_name = "NAME", value_delimiter = ',', hide = true)]
-    pub machine: Vec<String>,
-    /// Only these kinds: job, alarm, link, cnc, station, g05, tag, gateway (history).
-    #[arg(short, long, value_name = "KIND", value_delimiter = ',')]
-    pub kind: Vec<String>,
-    /// Values of these tags, PLC/NAME (tags with history = true).
-    #[arg(long, value_name = "PLC/NAME", value_delimiter = ',')]
-    pub tag: Vec<String>,
+pub struct PageArgs {
     /// From this long ago (30m, 2h, 7d) or this UTC time; default the last 24 hours.
     #[arg(long, value_name = "WHEN")]
     pub since: Option<String>,
@@ -342,10 +327,33 @@ pub struct HistoryArgs {
     pub json: bool,
 }
 
+/// `cellgate history` and `cellgate audit`.
+#[derive(Debug, Clone, Args)]
+pub struct HistoryArgs {
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// Only these machines or PLC links (comma-separate, or name several), first as in
+    /// every command: `cellgate history mill-1,plc-1`.
+    #[arg(value_name = "MACHINE", value_delimiter = ',')]
+    pub machines: Vec<String>,
+    /// The older form of MACHINE, kept working: name the machines first instead.
+    #[arg(short, long, value_name = "NAME", value_delimiter = ',', hide = true)]
+    pub machine: Vec<String>,
+    /// Only these kinds: job, alarm, link, cnc, station, g05, tag, gateway, punch (history).
+    #[arg(short, long, value_name = "KIND", value_delimiter = ',')]
+    pub kind: Vec<String>,
+    /// Values of these tags, PLC/NAME (tags with history = true).
+    #[arg(long, value_name = "PLC/NAME", value_delimiter = ',')]
+    pub tag: Vec<String>,
+    #[command(flatten)]
+    pub page: PageArgs,
+}
+
 impl HistoryArgs {
     fn params(&self) -> Result<Vec<(String, String)>, ClientError> {
         let mut p = Vec::new();
-        if let Some(t) = time_param(&self.time, &self.since, &self.until)? {
+        let page = &self.page;
+        if let Some(t) = time_param(&page.time, &page.since, &page.until)? {
             p.push(t);
         }
         let machines = [self.machines.as_slice(), self.machine.as_slice()].concat();
@@ -358,13 +366,13 @@ impl HistoryArgs {
         if !self.tag.is_empty() {
             p.push(("tag".to_string(), self.tag.join(",")));
         }
-        if let Some(n) = self.limit {
+        if let Some(n) = page.limit {
             p.push(("limit".to_string(), n.to_string()));
         }
-        if let Some(a) = self.after {
+        if let Some(a) = page.after {
             p.push(("after".to_string(), a.to_string()));
         }
-        if self.newest {
+        if page.newest {
             p.push(("order".to_string(), "newest".to_string()));
         }
         Ok(p)
@@ -378,7 +386,7 @@ impl HistoryArgs {
     ) -> Result<u8, ClientError> {
         deprecated_machine_flag(io, if audit { "audit" } else { "history" }, &self.machine);
         let page = client.history(audit, &self.params()?).await?;
-        if self.json {
+        if self.page.json {
             let _ = writeln!(io.out, "{}", json(&page));
             return Ok(0);
         }
@@ -433,27 +441,8 @@ pub struct AuditCommand {
     /// The older form of MACHINE, kept working: name the machines first instead.
     #[arg(short, long, value_name = "NAME", value_delimiter = ',', hide = true)]
     pub machine: Vec<String>,
-    /// From this long ago (30m, 2h, 7d) or this UTC time; default the last 24 hours.
-    #[arg(long, value_name = "WHEN")]
-    pub since: Option<String>,
-    /// Up to this long ago or this UTC time; default now.
-    #[arg(long, value_name = "WHEN")]
-    pub until: Option<String>,
-    /// A time range as zenoh writes it, e.g. `[now(-1h)..]` (instead of --since/--until).
-    #[arg(long, value_name = "RANGE", conflicts_with_all = ["since", "until"])]
-    pub time: Option<String>,
-    /// At most this many records (default 1000, at most 10000); the rest with --after.
-    #[arg(long, value_name = "N")]
-    pub limit: Option<usize>,
-    /// Go on after this record number (the `#` of the last one printed).
-    #[arg(long, value_name = "SEQ")]
-    pub after: Option<u64>,
-    /// The newest record first (--after then goes on to older ones).
-    #[arg(long)]
-    pub newest: bool,
-    /// Print the page as JSON (a HistoryPage).
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub page: PageArgs,
 }
 
 impl ClientCommand for AuditCommand {
@@ -468,13 +457,7 @@ impl ClientCommand for AuditCommand {
             machine: self.machine.clone(),
             kind: Vec::new(),
             tag: Vec::new(),
-            since: self.since.clone(),
-            until: self.until.clone(),
-            time: self.time.clone(),
-            limit: self.limit,
-            after: self.after,
-            newest: self.newest,
-            json: self.json,
+            page: self.page.clone(),
         };
         args.print(client, io, true).await
     }

@@ -326,15 +326,6 @@ pub(super) fn default_interface(
     )
 }
 
-pub(super) fn protocol_title(p: Protocol) -> &'static str {
-    match p {
-        Protocol::A => "Protocol A",
-        Protocol::ExpansionA => "Expansion Protocol A",
-        Protocol::B => "Protocol B",
-        Protocol::ExpansionB => "Expansion Protocol B",
-    }
-}
-
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(super) struct RawMachine {
@@ -402,7 +393,7 @@ pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
         }
         return;
     };
-    let title = protocol_title(protocol);
+    let title = protocol.title();
 
     // Protocol A family: end code; Protocol B family: reset/alarm notification (5000#3).
     if let Some(end) = m.end_code

@@ -86,22 +86,24 @@ impl Refill {
     }
 }
 
-/// G05 binary input on a machine (`[machines.g05]`).
+/// G05 binary input on a machine (`[machines.g05]`). The first five keys are the CNC's
+/// [`G05Format`], by the same names and with the same defaults (see there for what each
+/// means); the engine's format is made from them by [`G05Config::format`] alone.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct G05Config {
-    /// Parameter 7635: axes in a block.
+    /// [`G05Format::axes`].
     pub axes: u8,
-    /// Parameter 7609#2 RDS: how travels and the auxiliary word are written (default `special`).
+    /// [`G05Format::data_format`].
     #[serde(default)]
     pub data_format: DataFormat,
-    /// Parameters 7609#3 RAX and 2034: the auxiliary word and its function (default `none`).
+    /// [`G05Format::aux`].
     #[serde(default)]
     pub aux: AuxFunction,
-    /// Parameter 7618: the unit time T, one block per T: 1, 2, 4, 8 or 16 ms (default 8).
+    /// [`G05Format::unit_time_ms`].
     #[serde(default)]
     pub unit_time_ms: UnitTime,
-    /// Order of the auxiliary word's halves on the line (protocol notes 14; default `high-first`).
+    /// [`G05Format::aux_order`].
     #[serde(default)]
     pub aux_order: AuxOrder,
     /// NC text sent before the binary blocks; its last block is the `G05` block (protocol
@@ -139,7 +141,7 @@ impl G05Config {
         2000
     }
 
-    /// The block format.
+    /// The block format: the one place the cell file's keys become the engine's.
     pub fn format(&self) -> G05Format {
         G05Format {
             axes: self.axes,

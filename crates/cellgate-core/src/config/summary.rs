@@ -5,7 +5,6 @@ use std::fmt::{self, Write as _};
 
 use super::CellConfig;
 use super::error::plain_name;
-use super::fanuc::protocol_title;
 use super::transport::TransportConfig;
 use crate::fanuc::{CodeSystem, EndCode, Protocol};
 use crate::fuji::frame::BccKind;
@@ -26,7 +25,7 @@ impl CellConfig {
         let mut lines: Vec<(String, String)> = Vec::new();
         for m in &self.machines {
             let p = m.protocol;
-            let mut what = protocol_title(p).to_string();
+            let mut what = p.title().to_string();
             if p == Protocol::ExpansionA {
                 let _ = write!(what, " (n = {})", m.effective_packet_n());
             }
@@ -189,7 +188,7 @@ impl CellConfig {
         writeln!(s, "machines: {}", self.machines.len())?;
         for m in &self.machines {
             let p = m.protocol;
-            write!(s, "  {}: {}", m.name, protocol_title(p))?;
+            write!(s, "  {}: {}", m.name, p.title())?;
             if p == Protocol::ExpansionA {
                 let n = m.effective_packet_n();
                 write!(s, " n = {n} ({}-byte packets)", 256 * u32::from(n))?;

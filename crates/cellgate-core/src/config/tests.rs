@@ -693,6 +693,43 @@ fn every_time_out_of_the_manual_gives_engine_settings_that_run() {
 }
 
 #[test]
+fn g05_format_keys_are_kebab_case_and_default_to_the_parameters_at_zero() {
+    use crate::fanuc::g05::{AuxFunction, AuxOrder, DataFormat, G05Format, UnitTime};
+    #[derive(serde::Deserialize)]
+    struct W {
+        g05: G05Config,
+    }
+    let w: W = toml::from_str(
+        "g05 = { axes = 3, data_format = \"general\", aux = \"m\", unit_time_ms = 2, aux_order = \"low-first\" }",
+    )
+    .unwrap();
+    assert_eq!(
+        w.g05.format(),
+        G05Format {
+            axes: 3,
+            data_format: DataFormat::General,
+            aux: AuxFunction::M,
+            unit_time_ms: UnitTime::Ms2,
+            aux_order: AuxOrder::LowFirst,
+        }
+    );
+    let w: W = toml::from_str("g05 = { axes = 2 }").unwrap();
+    assert_eq!(w.g05.format(), G05Format::new(2));
+    let e = toml::from_str::<W>("g05 = { axes = 2, unit_time_ms = 3 }")
+        .err()
+        .unwrap();
+    assert!(e.to_string().contains("7618"), "{e}");
+    assert!(toml::from_str::<W>("g05 = { axes = 2, rds = 1 }").is_err());
+    assert!(toml::from_str::<W>("g05 = { axes = 2, aux = \"b\" }").is_err());
+    let mut g = w.g05;
+    g.aux = AuxFunction::Second;
+    g.axes = 4;
+    let back = toml::to_string(&g).unwrap();
+    assert!(back.contains("unit_time_ms = 8"), "{back}");
+    assert!(back.contains("aux = \"second\""), "{back}");
+}
+
+#[test]
 fn g05_rules() {
     let cell = |protocol: &str, baud: u32, g05: &str| {
         format!(

@@ -60,6 +60,16 @@ impl Protocol {
             Protocol::ExpansionB => "expansion-b",
         }
     }
+    /// The protocol's name in prose, as the manual writes it: `Protocol A`,
+    /// `Expansion Protocol A`, `Protocol B` or `Expansion Protocol B`.
+    pub fn title(self) -> &'static str {
+        match self {
+            Protocol::A => "Protocol A",
+            Protocol::ExpansionA => "Expansion Protocol A",
+            Protocol::B => "Protocol B",
+            Protocol::ExpansionB => "Expansion Protocol B",
+        }
+    }
 }
 
 /// Communication code of the control part (parameter 5000#2 "TCC", §10.2).

@@ -461,26 +461,19 @@ impl Agent {
         let Some((dev, view)) = self.machines.get(k) else {
             return 0;
         };
-        let wanted: Vec<(usize, Wanted)> = self.model.devices[*dev]
-            .items
-            .iter()
-            .filter_map(|&i| Some((i, view.wanted(&self.model.items[i].role)?)))
-            .collect();
-        wanted
-            .into_iter()
-            .map(|(i, w)| self.want(i, w, now_us))
-            .sum()
+        let wanted = wanted_of(&self.model, *dev, |role| view.wanted(role));
+        self.want_all(wanted, now_us)
     }
 
     fn refresh_plc(&mut self, k: &(String, String), now_us: u64) -> usize {
         let Some((dev, view)) = self.plcs.get(k) else {
             return 0;
         };
-        let wanted: Vec<(usize, Wanted)> = self.model.devices[*dev]
-            .items
-            .iter()
-            .filter_map(|&i| Some((i, view.wanted(&self.model.items[i].role)?)))
-            .collect();
+        let wanted = wanted_of(&self.model, *dev, |role| view.wanted(role));
+        self.want_all(wanted, now_us)
+    }
+
+    fn want_all(&mut self, wanted: Vec<(usize, Wanted)>, now_us: u64) -> usize {
         wanted
             .into_iter()
             .map(|(i, w)| self.want(i, w, now_us))
@@ -1066,4 +1059,17 @@ fn plc_shape(p: &super::desc::PlcDesc) -> (Vec<u32>, Vec<(String, Option<&'stati
         .map(|t| (t.name.clone(), t.typed.map(|t| t.name)))
         .collect();
     (p.stations.clone(), tags)
+}
+
+/// What a device's view wants of each of the device's data items, where it wants anything.
+fn wanted_of(
+    model: &Model,
+    dev: usize,
+    wanted: impl Fn(&Role) -> Option<Wanted>,
+) -> Vec<(usize, Wanted)> {
+    model.devices[dev]
+        .items
+        .iter()
+        .filter_map(|&i| Some((i, wanted(&model.items[i].role)?)))
+        .collect()
 }

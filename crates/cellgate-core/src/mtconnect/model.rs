@@ -306,25 +306,9 @@ impl Model {
         }
     }
 
-    pub(super) fn add_machine(&mut self, cell: &str, m: &MachineDesc) -> usize {
-        let name = self.free_name(cell, &m.name);
-        let d = id_of(&name);
-        let dev = self.device(
-            name,
-            uuid_for(&format!("machine {cell}/{}", m.name)),
-            d.clone(),
-            Source::Machine(cell.to_string(), m.name.clone()),
-            format!(
-                "FANUC CNC on a remote buffer, {} (cell {cell})",
-                match m.protocol {
-                    crate::fanuc::Protocol::A => "Protocol A",
-                    crate::fanuc::Protocol::ExpansionA => "Expansion Protocol A",
-                    crate::fanuc::Protocol::B => "Protocol B",
-                    crate::fanuc::Protocol::ExpansionB => "Expansion Protocol B",
-                }
-            ),
-            "Device",
-        );
+    /// A device's own data items (availability, asset changed and removed) and its
+    /// Controller component, whose index is returned.
+    fn device_items(&mut self, dev: usize, d: &str) -> usize {
         let c = self.devices[dev].component;
         self.item(
             c,
@@ -350,13 +334,30 @@ impl Model {
             "ASSET_REMOVED",
             Role::AssetRemoved,
         );
-        let cont = self.component(
+        self.component(
             dev,
             c,
             "Controller",
             &format!("{d}_controller"),
             Some("controller".into()),
+        )
+    }
+
+    pub(super) fn add_machine(&mut self, cell: &str, m: &MachineDesc) -> usize {
+        let name = self.free_name(cell, &m.name);
+        let d = id_of(&name);
+        let dev = self.device(
+            name,
+            uuid_for(&format!("machine {cell}/{}", m.name)),
+            d.clone(),
+            Source::Machine(cell.to_string(), m.name.clone()),
+            format!(
+                "FANUC CNC on a remote buffer, {} (cell {cell})",
+                m.protocol.title()
+            ),
+            "Device",
         );
+        let cont = self.device_items(dev, &d);
         self.item(
             cont,
             &format!("{d}_system"),
@@ -464,38 +465,7 @@ impl Model {
             format!("Fuji MICREX-F PLC through FFU120B modules (cell {cell})"),
             "Device",
         );
-        let c = self.devices[dev].component;
-        self.item(
-            c,
-            &format!("{d}_avail"),
-            None,
-            Category::Event,
-            "AVAILABILITY",
-            Role::Availability,
-        );
-        self.item(
-            c,
-            &format!("{d}_asset_chg"),
-            None,
-            Category::Event,
-            "ASSET_CHANGED",
-            Role::AssetChanged,
-        );
-        self.item(
-            c,
-            &format!("{d}_asset_rem"),
-            None,
-            Category::Event,
-            "ASSET_REMOVED",
-            Role::AssetRemoved,
-        );
-        let cont = self.component(
-            dev,
-            c,
-            "Controller",
-            &format!("{d}_controller"),
-            Some("controller".into()),
-        );
+        let cont = self.device_items(dev, &d);
         for s in &p.stations {
             self.item(
                 cont,

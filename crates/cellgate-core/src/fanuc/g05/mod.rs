@@ -270,34 +270,22 @@ pub enum AuxOrder {
 }
 
 /// The G05 settings of a CNC: parameters 7635, 7609#2, 7609#3, 2034 and 7618 (§10.3), and
-/// the order of the auxiliary word's halves (protocol notes 14).
-///
-/// In a cell file:
-///
-/// ```toml
-/// [machines.g05]
-/// axes = 3
-/// data_format = "special"   # or "general"
-/// aux = "m"                 # none, second, m, s, t
-/// unit_time_ms = 2          # 1, 2, 4, 8, 16
-/// aux_order = "high-first"  # or "low-first"
-/// ```
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+/// the order of the auxiliary word's halves (protocol notes 14). In a cell file they are keys
+/// of a machine's `[machines.g05]` table, by these names
+/// ([`G05Config`](crate::config::G05Config)); all but `axes` may be left out, for their
+/// defaults (as [`G05Format::new`]). Serialized by the same names (the simulator's
+/// `listening` line).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
 pub struct G05Format {
     /// Parameter 7635: the axes in a block, the first N controlled axes (1..=[`MAX_AXES`]).
     pub axes: u8,
-    /// Parameter 7609#2 RDS.
-    #[serde(default)]
+    /// Parameter 7609#2 RDS: how travels and the auxiliary word are written.
     pub data_format: DataFormat,
-    /// Parameters 7609#3 RAX and 2034.
-    #[serde(default)]
+    /// Parameters 7609#3 RAX and 2034: the auxiliary word and its function.
     pub aux: AuxFunction,
-    /// Parameter 7618.
-    #[serde(default)]
+    /// Parameter 7618: the unit time T, one block per T: 1, 2, 4, 8 or 16 ms.
     pub unit_time_ms: UnitTime,
-    /// Order of the auxiliary word's halves.
-    #[serde(default)]
+    /// Order of the auxiliary word's halves on the line (protocol notes 14).
     pub aux_order: AuxOrder,
 }
 
@@ -351,14 +339,15 @@ fn join(errors: &[G05FormatError]) -> String {
 }
 
 impl G05Format {
-    /// `axes` axes, special format, no auxiliary word, 8 ms: the parameters at zero.
-    pub const fn new(axes: u8) -> Self {
+    /// `axes` axes and the defaults: special format, no auxiliary word, 8 ms (the parameters
+    /// at zero), the high half first.
+    pub fn new(axes: u8) -> Self {
         G05Format {
             axes,
-            data_format: DataFormat::Special,
-            aux: AuxFunction::None,
-            unit_time_ms: UnitTime::Ms8,
-            aux_order: AuxOrder::HighFirst,
+            data_format: DataFormat::default(),
+            aux: AuxFunction::default(),
+            unit_time_ms: UnitTime::default(),
+            aux_order: AuxOrder::default(),
         }
     }
 

@@ -407,43 +407,6 @@ fn validate_gives_every_problem() {
 }
 
 #[test]
-fn serde_kebab_case_for_cell_files() {
-    #[derive(Deserialize)]
-    struct W {
-        g05: G05Format,
-    }
-    let w: W = toml::from_str(
-        "g05 = { axes = 3, data_format = \"general\", aux = \"m\", unit_time_ms = 2, aux_order = \"low-first\" }",
-    )
-    .unwrap();
-    assert_eq!(
-        w.g05,
-        G05Format {
-            axes: 3,
-            data_format: DataFormat::General,
-            aux: AuxFunction::M,
-            unit_time_ms: UnitTime::Ms2,
-            aux_order: AuxOrder::LowFirst,
-        }
-    );
-    let w: W = toml::from_str("g05 = { axes = 2 }").unwrap();
-    assert_eq!(w.g05, G05Format::new(2));
-    let e = toml::from_str::<W>("g05 = { axes = 2, unit_time_ms = 3 }")
-        .err()
-        .unwrap();
-    assert!(e.to_string().contains("7618"), "{e}");
-    assert!(toml::from_str::<W>("g05 = { axes = 2, rds = 1 }").is_err());
-    assert!(toml::from_str::<W>("g05 = { axes = 2, aux = \"b\" }").is_err());
-    let back = toml::to_string(&G05Format {
-        aux: AuxFunction::Second,
-        ..G05Format::new(4)
-    })
-    .unwrap();
-    assert!(back.contains("unit_time_ms = 8"), "{back}");
-    assert!(back.contains("aux = \"second\""), "{back}");
-}
-
-#[test]
 fn encoder_numbers_blocks() {
     let mut e = G05Encoder::new(G05Format::new(2)).unwrap();
     let mut out = Vec::new();
