@@ -100,11 +100,14 @@ async fn status_without_body(url: &str, head: &str, length: u64) -> String {
         .await
         .expect("answered without the body")
         .unwrap();
-    String::from_utf8_lossy(&buf[..n])
-        .lines()
-        .next()
-        .unwrap_or_default()
-        .to_string()
+    // The status line, and for a refusal of the body, whether the connection ends with it.
+    let head = String::from_utf8_lossy(&buf[..n]).to_lowercase();
+    let line = head.lines().next().unwrap_or_default().to_uppercase();
+    if head.contains("connection: close") {
+        format!("{line} (connection: close)")
+    } else {
+        line
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -129,6 +132,8 @@ async fn the_caller_and_the_size_are_known_before_a_body_is_read() {
     let head = format!("{put}\r\nCookie: {cookie}\r\nX-CSRF-Token: {}", erik.csrf);
     let line = status_without_body(&gw.url, &head, HUGE).await;
     assert!(line.contains(" 413 "), "{line}");
+    // The body is still coming: the client is told not to reuse the connection.
+    assert!(line.ends_with("(connection: close)"), "{line}");
     // Other writes take a few KiB.
     let (status, e) = erik
         .send(
