@@ -189,64 +189,36 @@ impl Agent {
         let (mut added, mut removed, mut changed) = (Vec::new(), Vec::new(), Vec::new());
         let mut n = 0;
         for m in &desc.machines {
-            let key = (cell.clone(), m.name.clone());
-            let dev = match self.dev_of(&Source::Machine(cell.clone(), m.name.clone())) {
-                None => {
-                    let first = self.model.items.len();
-                    let dev = self.model.add_machine(&cell, m);
-                    n += self.unavailable_from(first, now_us);
-                    added.push(dev);
-                    dev
-                }
-                Some(dev) if self.model.devices[dev].removed => {
-                    self.model.devices[dev].removed = false;
-                    added.push(dev);
-                    dev
-                }
-                Some(dev) => {
-                    if let Some(o) = old.machines.iter().find(|o| o.name == m.name)
-                        && machine_shape(o) != machine_shape(m)
-                    {
-                        changed.push(dev);
-                    }
-                    dev
-                }
-            };
-            self.machines.entry(key).or_insert_with(|| {
-                let mut view = MachineView::default();
-                view.gateway_up = up;
-                (dev, view)
+            let shape = |o: &super::desc::MachineDesc| machine_shape(o) != machine_shape(m);
+            let was = old.machines.iter().find(|o| o.name == m.name);
+            let source = Source::Machine(cell.clone(), m.name.clone());
+            let (dev, taken) = self.take_device(&source, was.is_some_and(shape), now_us, |model| {
+                model.add_machine(&cell, m)
             });
+            n += taken.record(dev, &mut added, &mut changed);
+            self.machines
+                .entry((cell.clone(), m.name.clone()))
+                .or_insert_with(|| {
+                    let mut view = MachineView::default();
+                    view.gateway_up = up;
+                    (dev, view)
+                });
         }
         for p in &desc.plcs {
-            let key = (cell.clone(), p.name.clone());
-            let dev = match self.dev_of(&Source::Plc(cell.clone(), p.name.clone())) {
-                None => {
-                    let first = self.model.items.len();
-                    let dev = self.model.add_plc(&cell, p);
-                    n += self.unavailable_from(first, now_us);
-                    added.push(dev);
-                    dev
-                }
-                Some(dev) if self.model.devices[dev].removed => {
-                    self.model.devices[dev].removed = false;
-                    added.push(dev);
-                    dev
-                }
-                Some(dev) => {
-                    if let Some(o) = old.plcs.iter().find(|o| o.name == p.name)
-                        && plc_shape(o) != plc_shape(p)
-                    {
-                        changed.push(dev);
-                    }
-                    dev
-                }
-            };
-            self.plcs.entry(key).or_insert_with(|| {
-                let mut view = PlcView::default();
-                view.gateway_up = up;
-                (dev, view)
+            let shape = |o: &super::desc::PlcDesc| plc_shape(o) != plc_shape(p);
+            let was = old.plcs.iter().find(|o| o.name == p.name);
+            let source = Source::Plc(cell.clone(), p.name.clone());
+            let (dev, taken) = self.take_device(&source, was.is_some_and(shape), now_us, |model| {
+                model.add_plc(&cell, p)
             });
+            n += taken.record(dev, &mut added, &mut changed);
+            self.plcs
+                .entry((cell.clone(), p.name.clone()))
+                .or_insert_with(|| {
+                    let mut view = PlcView::default();
+                    view.gateway_up = up;
+                    (dev, view)
+                });
         }
         let gone_machines = old
             .machines
@@ -310,6 +282,30 @@ impl Agent {
             }
         }
         n
+    }
+
+    /// The device of `source` as a description taken again has it: added by `add` (its data
+    /// items UNAVAILABLE), brought back if it was removed, or kept, `changed` or not.
+    fn take_device(
+        &mut self,
+        source: &Source,
+        changed: bool,
+        now_us: u64,
+        add: impl FnOnce(&mut Model) -> usize,
+    ) -> (usize, Taken) {
+        match self.dev_of(source) {
+            None => {
+                let first = self.model.items.len();
+                let dev = add(&mut self.model);
+                (dev, Taken::Added(self.unavailable_from(first, now_us)))
+            }
+            Some(dev) if self.model.devices[dev].removed => {
+                self.model.devices[dev].removed = false;
+                (dev, Taken::Added(0))
+            }
+            Some(dev) if changed => (dev, Taken::Changed),
+            Some(dev) => (dev, Taken::Kept),
+        }
     }
 
     /// Data items from `first` on, new: UNAVAILABLE until their first update.
@@ -1072,4 +1068,29 @@ fn wanted_of(
         .iter()
         .filter_map(|&i| Some((i, wanted(&model.items[i].role)?)))
         .collect()
+}
+
+/// What taking a description again did to one device.
+enum Taken {
+    /// Added or brought back, with the observations its new data items made.
+    Added(usize),
+    Changed,
+    Kept,
+}
+
+impl Taken {
+    /// Notes `dev` in the list it belongs to; the observations made.
+    fn record(self, dev: usize, added: &mut Vec<usize>, changed: &mut Vec<usize>) -> usize {
+        match self {
+            Taken::Added(n) => {
+                added.push(dev);
+                n
+            }
+            Taken::Changed => {
+                changed.push(dev);
+                0
+            }
+            Taken::Kept => 0,
+        }
+    }
 }
