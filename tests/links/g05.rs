@@ -123,8 +123,8 @@ async fn stream_from(
     desk.allow_slow_line();
     let (handle, opened) = desk.open(Some("test".into())).await.unwrap();
     assert_eq!(opened.window, g.window_blocks());
-    let axes = usize::from(g.axes);
-    let range = match g.data_format {
+    let axes = usize::from(g.format.axes);
+    let range = match g.format.data_format {
         cellgate_core::fanuc::g05::DataFormat::Special => 8191,
         cellgate_core::fanuc::g05::DataFormat::General => 32767,
     };
@@ -132,7 +132,7 @@ async fn stream_from(
         x: 7,
         axes,
         range,
-        aux: g.aux.rax(),
+        aux: g.format.aux.rax(),
         n: 0,
     };
     let mut sums = vec![0i64; axes];
@@ -320,7 +320,7 @@ async fn protocol_a_from_a_waiting_cnc_never_runs_dry() {
 #[tokio::test(start_paused = true)]
 async fn below_the_required_baud_underruns_are_counted_and_published() {
     let mut config = g05_cell("a", None, 19_200, SIX_AXES_8MS, "tx = 0\nti = 0");
-    config.machines[0].g05.as_mut().unwrap().axes = 7;
+    config.machines[0].g05.as_mut().unwrap().format.axes = 7;
     let o = stream(&config, 20_000, Producer::Eager).await;
     assert_exact(&o, 20_000);
     assert!(o.stats.underruns > 500, "{:?}", o.stats);

@@ -16,14 +16,13 @@
 
 use std::time::Duration;
 
-use serde::{Deserialize, Serialize};
+use serde::de::{self, MapAccess, Visitor};
+use serde::{Deserialize, Deserializer, Serialize};
 
 use super::error::{Checker, q};
 use crate::engine::LineSettings;
 use crate::fanuc::Protocol;
-use crate::fanuc::g05::{
-    AuxFunction, AuxOrder, DataFormat, G05Entry, G05Format, UnitTime, required_baud,
-};
+use crate::fanuc::g05::{G05Entry, G05Format, required_baud};
 use crate::fanuc::sat::Params;
 
 /// The credit window holds at least this many bytes of blocks, so that a whole DAT or data
@@ -86,74 +85,51 @@ impl Refill {
     }
 }
 
-/// G05 binary input on a machine (`[machines.g05]`). The first five keys are the CNC's
-/// [`G05Format`], by the same names and with the same defaults (see there for what each
-/// means); the engine's format is made from them by [`G05Config::format`] alone.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+/// G05 binary input on a machine (`[machines.g05]`): the CNC's [`G05Format`], whose five
+/// keys sit in the table beside the stream's own (see [`G05Format`] for what each means and
+/// [`G05Format::new`] for the defaults of all but `axes`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct G05Config {
-    /// [`G05Format::axes`].
-    pub axes: u8,
-    /// [`G05Format::data_format`].
-    #[serde(default)]
-    pub data_format: DataFormat,
-    /// [`G05Format::aux`].
-    #[serde(default)]
-    pub aux: AuxFunction,
-    /// [`G05Format::unit_time_ms`].
-    #[serde(default)]
-    pub unit_time_ms: UnitTime,
-    /// [`G05Format::aux_order`].
-    #[serde(default)]
-    pub aux_order: AuxOrder,
+    /// The block format the CNC's parameters set (§9.1, §10.3).
+    #[serde(flatten)]
+    pub format: G05Format,
     /// NC text sent before the binary blocks; its last block is the `G05` block (protocol
     /// notes 15).
-    #[serde(default = "G05Config::default_before")]
     pub before: String,
     /// NC text sent after the end block; the program's EOR follows it.
-    #[serde(default)]
     pub after: String,
     /// Blocks the gateway holds for a stream (its credit window), as time at one block per T;
     /// raised to [`MIN_WINDOW_BYTES`] of blocks.
-    #[serde(default = "G05Config::default_window_ms")]
     pub window_ms: u32,
     /// Blocks buffered before the `G05` block goes out: the CNC takes a block every T from the
     /// moment it reads `G05` (§9.1 (2)).
-    #[serde(default = "G05Config::default_prime_ms")]
     pub prime_ms: u32,
     /// A producer that sends nothing for this long while the CNC's buffer is estimated empty
     /// is taken as gone: the stream ends with the end block.
-    #[serde(default = "G05Config::default_idle_ms")]
     pub idle_ms: u32,
 }
 
 impl G05Config {
-    fn default_before() -> String {
-        "G05\n".to_string()
-    }
-    const fn default_window_ms() -> u32 {
-        1000
-    }
-    const fn default_prime_ms() -> u32 {
-        500
-    }
-    const fn default_idle_ms() -> u32 {
-        2000
-    }
-
-    /// The block format: the one place the cell file's keys become the engine's.
-    pub fn format(&self) -> G05Format {
-        G05Format {
-            axes: self.axes,
-            data_format: self.data_format,
-            aux: self.aux,
-            unit_time_ms: self.unit_time_ms,
-            aux_order: self.aux_order,
+    /// A stream of blocks in `format`, with the stream's defaults: `before = "G05\n"`, no
+    /// `after`, a window of 1 s, priming 500 ms, a producer gone after 2 s.
+    pub fn new(format: G05Format) -> Self {
+        G05Config {
+            format,
+            before: "G05\n".to_string(),
+            after: String::new(),
+            window_ms: 1000,
+            prime_ms: 500,
+            idle_ms: 2000,
         }
     }
 
+    /// The block format (a copy, for the engine).
+    pub const fn format(&self) -> G05Format {
+        self.format
+    }
+
     fn blocks_in(&self, ms: u32) -> u32 {
-        (ms / self.unit_time_ms.ms()).max(1)
+        (ms / self.format.unit_time_ms.ms()).max(1)
     }
 
     /// The credit window in blocks: `window_ms` of blocks, at least [`MIN_WINDOW_BYTES`].
@@ -181,7 +157,7 @@ impl G05Config {
     /// DAT with 500 ms of blocks followed by a 1931-byte one taking 553 ms at 38 400 baud.
     /// (The first piece carries as many of them as fit; see [`G05Config::standing_start`].)
     pub fn prime_blocks_on(&self, refill: Option<Refill>) -> u32 {
-        let t = self.unit_time_ms.duration();
+        let t = self.format.unit_time_ms.duration();
         let needed = refill.map_or(0, |r| {
             u32::try_from(r.time.as_nanos().div_ceil(t.as_nanos().max(1)))
                 .unwrap_or(u32::MAX)
@@ -197,7 +173,7 @@ impl G05Config {
     /// the board held is used. `None` when neither happens.
     pub fn standing_start(&self, refill: Option<Refill>) -> Option<String> {
         let r = refill?;
-        let t = self.unit_time_ms.duration();
+        let t = self.format.unit_time_ms.duration();
         let ms = |d: Duration| d.as_secs_f64() * 1000.0;
         let steady = self.blocks_of(r.data);
         if t * u32::try_from(steady).unwrap_or(u32::MAX) < r.time {
@@ -278,6 +254,57 @@ impl G05Config {
     }
 }
 
+/// The keys of a `[machines.g05]` table: the format's five, then the stream's. The table is
+/// read key by key rather than with `#[serde(flatten)]`, which buffers the table and so loses
+/// an unknown key's line and the list of known keys that `check-config` reports.
+#[derive(Deserialize)]
+#[serde(field_identifier, rename_all = "snake_case")]
+enum Key {
+    Axes,
+    DataFormat,
+    Aux,
+    UnitTimeMs,
+    AuxOrder,
+    Before,
+    After,
+    WindowMs,
+    PrimeMs,
+    IdleMs,
+}
+
+impl<'de> Deserialize<'de> for G05Config {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct Table;
+        impl<'de> Visitor<'de> for Table {
+            type Value = G05Config;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a g05 table")
+            }
+            fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<G05Config, A::Error> {
+                let mut axes = None;
+                let mut g = G05Config::new(G05Format::new(0));
+                while let Some(key) = map.next_key()? {
+                    match key {
+                        Key::Axes => axes = Some(map.next_value()?),
+                        Key::DataFormat => g.format.data_format = map.next_value()?,
+                        Key::Aux => g.format.aux = map.next_value()?,
+                        Key::UnitTimeMs => g.format.unit_time_ms = map.next_value()?,
+                        Key::AuxOrder => g.format.aux_order = map.next_value()?,
+                        Key::Before => g.before = map.next_value()?,
+                        Key::After => g.after = map.next_value()?,
+                        Key::WindowMs => g.window_ms = map.next_value()?,
+                        Key::PrimeMs => g.prime_ms = map.next_value()?,
+                        Key::IdleMs => g.idle_ms = map.next_value()?,
+                    }
+                }
+                g.format.axes = axes.ok_or_else(|| de::Error::missing_field("axes"))?;
+                Ok(g)
+            }
+        }
+        deserializer.deserialize_map(Table)
+    }
+}
+
 /// Checks a machine's `g05` table against its protocol, line and simulated CNC.
 pub(super) fn check_g05(
     c: &mut Checker,
@@ -293,8 +320,8 @@ pub(super) fn check_g05(
             path.clone(),
             format!(
                 "axes = {}, data_format = {:?}",
-                g.axes,
-                g.data_format.name()
+                g.format.axes,
+                g.format.data_format.name()
             ),
             problem.to_string(),
             "§9.1, §10.3",
@@ -308,13 +335,13 @@ pub(super) fn check_g05(
             format!(
                 "G05 with {} axes{} every {} ms needs at least {need} baud ((2·N + n) × {} bits \
                  ÷ T); the CNC would wait for every block",
-                g.axes,
-                if g.aux.rax() {
+                g.format.axes,
+                if g.format.aux.rax() {
                     " and the auxiliary word"
                 } else {
                     ""
                 },
-                g.unit_time_ms.ms(),
+                g.format.unit_time_ms.ms(),
                 line.bits_per_char(),
             ),
             "§9.2",

@@ -45,8 +45,8 @@ impl CellConfig {
                 let _ = write!(
                     what,
                     ", G05 streams of {} axes at T = {} ms",
-                    g.axes,
-                    g.unit_time_ms.ms()
+                    g.format.axes,
+                    g.format.unit_time_ms.ms()
                 );
             }
             lines.push((m.name.clone(), what));

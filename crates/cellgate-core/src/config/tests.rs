@@ -722,8 +722,8 @@ fn g05_format_keys_are_kebab_case_and_default_to_the_parameters_at_zero() {
     assert!(toml::from_str::<W>("g05 = { axes = 2, rds = 1 }").is_err());
     assert!(toml::from_str::<W>("g05 = { axes = 2, aux = \"b\" }").is_err());
     let mut g = w.g05;
-    g.aux = AuxFunction::Second;
-    g.axes = 4;
+    g.format.aux = AuxFunction::Second;
+    g.format.axes = 4;
     let back = toml::to_string(&g).unwrap();
     assert!(back.contains("unit_time_ms = 8"), "{back}");
     assert!(back.contains("aux = \"second\""), "{back}");
@@ -1058,6 +1058,40 @@ fn every_unknown_key_is_reported_at_once_with_the_key_it_most_likely_means() {
     // A key far from every known one gets no suggestion.
     let e = errors_of("cell = \"c\"\nzzzzzzzz = 1\n");
     assert!(!e[0].contains("did you mean"), "{e:?}");
+}
+
+#[test]
+fn a_g05_tables_unknown_keys_are_reported_with_their_lines_and_the_tables_keys() {
+    // The table holds the engine's format and the stream's own keys side by side: a typo in
+    // either is found at its line, with every key the table takes.
+    let text = "cell = \"c\"\n[[machines]]\nname = \"m\"\nprotocol = \"a\"\n\
+                transport = { kind = \"sim\" }\n[machines.g05]\naxes = 3\nunit_time = 8\n\
+                idle = 100\n";
+    let e = errors_of(text);
+    assert!(
+        e[0].starts_with("test.toml:8: unknown key `unit_time` (did you mean `unit_time_ms`?)"),
+        "{e:?}"
+    );
+    assert!(
+        e[1].starts_with("test.toml:9: unknown key `idle` (did you mean `idle_ms`?)"),
+        "{e:?}"
+    );
+    for key in ["`axes`", "`aux_order`", "`before`", "`idle_ms`"] {
+        assert!(e[0].contains(key), "{key}: {e:?}");
+    }
+    // `axes` alone has no default (parameter 7635 has none that fits every CNC).
+    let e = errors_of(&text.replace("axes = 3\n", ""));
+    assert!(
+        e.iter().any(|m| m.contains("missing field `axes`")),
+        "{e:?}"
+    );
+    // A value of the wrong type is named with its key.
+    let e = errors_of(
+        &text
+            .replace("unit_time = 8", "unit_time_ms = 3")
+            .replace("idle = 100", ""),
+    );
+    assert!(e.iter().any(|m| m.contains("7618")), "{e:?}");
 }
 
 #[test]
