@@ -13,8 +13,8 @@
 //!   route stops;
 //! - one module per kind of route, with its handlers and publishers: `route_status`,
 //!   `route_job`, `route_io` (DI/DO), `route_alarm`, `route_punch`, `route_program` (library),
-//!   `route_history`, `route_misdirected`, `route_g05` (G05 streams, served on a loop of
-//!   their own), `route_plc` (PLC memory, transfers, status), `route_tag` (PLC tags),
+//!   `route_history`, `route_misdirected`, `route_g05` (G05 streams: batches in order on
+//!   their route's loop, a status publisher per open stream), `route_plc` (PLC memory, transfers, status), `route_tag` (PLC tags),
 //!   `route_sim` (the controls of simulated machines);
 //! - `machine`: a machine's view (its status) and its publishers; `machine_task`: the task
 //!   that publishes what the link and the job manager report through them; `served`: the
@@ -78,7 +78,7 @@ use zenoh::Session;
 use self::audit::Auditor;
 use self::context::{Live, RouteContext};
 use self::keys::CellKeys;
-use self::route_g05::G05Route;
+use self::route_g05::G05Context;
 use crate::history::History;
 use crate::jobs::journal::Journal;
 use crate::jobs::library::ProgramLibrary;
@@ -200,12 +200,13 @@ pub async fn serve_live(
         }
         folder_tasks = route_folder::spawn(&ctx, config, &routes_stop);
         let routes = routes::declare_all(routes::cell(&keys), &ctx).await?;
-        let g05 = G05Route::declare(&ctx).await?;
+        let g05_ctx = G05Context::new(ctx.clone(), routes_stop.clone());
+        let g05 = routes::g05(&keys).declare(&g05_ctx).await?;
         // Only a cell with simulated machines has their controls.
         if served_machines.any_simulated() {
             served_machines.declare_sim().await?;
         }
-        route_tasks.spawn(g05.run(ctx.clone(), routes_stop.clone()));
+        route_tasks.spawn(g05.run(g05_ctx, routes_stop.clone()));
         for route in routes {
             route_tasks.spawn(route.run(ctx.clone(), routes_stop.clone()));
         }

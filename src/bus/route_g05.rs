@@ -12,20 +12,19 @@
 //! - `P/C/machine/M/g05/S/producer`: the producer's liveliness token; its loss ends the
 //!   stream.
 
+use std::sync::{Arc, Mutex, PoisonError};
+
 use prost::Message;
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
-use zenoh::handlers::FifoChannelHandler;
-use zenoh::pubsub::Subscriber;
 use zenoh::qos::{CongestionControl, Priority};
-use zenoh::query::{Query, Queryable};
-use zenoh::sample::{Locality, Sample, SampleKind};
+use zenoh::query::Query;
+use zenoh::sample::{Sample, SampleKind};
 
 use super::audit::{Audit, origin_of};
 use super::context::{
-    MachinePublisher, Pool, RequestError, RouteContext, Target, reply, reply_err,
+    MachinePublisher, RequestError, RouteContext, Routed, Target, reply, reply_err,
 };
-use super::error::BusError;
 use super::keys::{CellKey, G05Part, MachineLeaf};
 use super::machine::Machine;
 use super::payload::{encoding, g05_status};
@@ -36,106 +35,82 @@ use cellgate_core::fanuc::g05::AuxWord;
 use cellgate_core::fanuc::g05::stream::{Batch, BlockIn, EndReason, G05Watch};
 use cellgate_core::pb;
 
-/// The G05 queryables and subscribers of the cell. Undeclared when dropped.
-pub(crate) struct G05Route {
-    open: Queryable<FifoChannelHandler<Query>>,
-    status: Queryable<FifoChannelHandler<Query>>,
-    blocks: Subscriber<FifoChannelHandler<Sample>>,
-    blocks_get: Queryable<FifoChannelHandler<Query>>,
-    deletes: Subscriber<FifoChannelHandler<Sample>>,
+/// What the G05 rows share: the cell's context, and the tasks that publish each open
+/// stream's status (aborted with the route, when the last clone of this goes).
+#[derive(Clone)]
+pub(crate) struct G05Context {
+    pub(crate) route: RouteContext,
+    stop: CancellationToken,
+    followers: Arc<Mutex<JoinSet<()>>>,
 }
 
-impl G05Route {
-    pub(super) async fn declare(ctx: &RouteContext) -> Result<Self, BusError> {
-        Ok(G05Route {
-            open: ctx.queryable(ctx.keys.any_leaf(MachineLeaf::G05)).await?,
-            status: ctx.queryable(ctx.keys.any_g05(G05Part::Status)).await?,
-            blocks: ctx
-                .subscriber(ctx.keys.any_g05(G05Part::Blocks), Locality::Any)
-                .await?,
-            blocks_get: ctx.queryable(ctx.keys.any_g05(G05Part::Blocks)).await?,
-            deletes: ctx
-                .subscriber(ctx.keys.any_g05(G05Part::Status), Locality::Remote)
-                .await?,
-        })
+impl Routed for G05Context {
+    fn route(&self) -> &RouteContext {
+        &self.route
     }
+}
 
-    pub(super) async fn run(self, ctx: RouteContext, stop: CancellationToken) {
-        let mut tasks = JoinSet::new();
-        // One publisher task per stream opened: it ends when the stream is over.
-        let mut streams = JoinSet::new();
-        loop {
-            tokio::select! {
-                () = stop.cancelled() => break,
-                q = self.open.recv_async() => match q {
-                    // Without a payload (browsing the cell): the machines' current streams.
-                    Ok(q) if q.payload().is_none() => current_streams(&ctx, &q).await,
-                    Ok(q) => {
-                        let c = ctx.clone();
-                        let s = stop.clone();
-                        if let Some((machine, handle, token)) = open(&c, &q).await {
-                            streams.spawn(follow(c, machine, handle, token, s));
-                        }
-                    }
-                    Err(_) => break,
-                },
-                q = self.status.recv_async() => match q {
-                    Ok(q) => status(&ctx, &q).await,
-                    Err(_) => break,
-                },
-                s = self.blocks.recv_async() => match s {
-                    Ok(s) => {
-                        // In order, on this loop: batches are numbered and must not overtake
-                        // one another.
-                        if let Err(e) = batch(&ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await {
-                            tracing::warn!(key = %s.key_expr(), error = %e, "G05 batch refused");
-                        }
-                    }
-                    Err(_) => break,
-                },
-                q = self.blocks_get.recv_async() => match q {
-                    // Browsing with wildcards sends no batch anywhere.
-                    Ok(q) if q.key_expr().is_wild() => {}
-                    // Without a payload a get asks for the status: it is never a batch (an
-                    // empty batch 0 would make the producer's real batch 0 a repeat).
-                    Ok(q) if q.payload().is_none() => match stream_of(&ctx, q.key_expr().as_str()) {
-                        Ok(h) => {
-                            let msg = g05_status(&h.status().borrow());
-                            reply(&q, q.key_expr().to_string(), &msg).await;
-                        }
-                        Err(e) => reply_err(&q, &e).await,
-                    },
-                    Ok(q) => {
-                        let payload = q.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
-                        match batch(&ctx, q.key_expr().as_str(), &payload).await {
-                            Ok(status) => reply(&q, q.key_expr().to_string(), &status).await,
-                            Err(e) => reply_err(&q, &e).await,
-                        }
-                    }
-                    Err(_) => break,
-                },
-                s = self.deletes.recv_async() => match s {
-                    Ok(s) if s.kind() == SampleKind::Delete => match ctx.slot(Pool::G05) {
-                        Some(slot) => {
-                            let c = ctx.clone();
-                            tasks.spawn(async move {
-                                cancel(&c, &s).await;
-                                drop(slot);
-                            });
-                        }
-                        None => tracing::warn!(key = %s.key_expr(), "G05 cancel dropped: too many G05 requests at once"),
-                    },
-                    Ok(_) => {}
-                    Err(_) => break,
-                },
-                Some(_) = tasks.join_next() => {}
-                Some(_) = streams.join_next() => {}
-            }
+impl G05Context {
+    /// The G05 rows' context; their streams' publishers stop with `stop`.
+    pub(crate) fn new(route: RouteContext, stop: CancellationToken) -> Self {
+        G05Context {
+            route,
+            stop,
+            followers: Arc::new(Mutex::new(JoinSet::new())),
         }
-        tasks.shutdown().await;
-        // The streams' own tasks end them (with the end block) as the gateway stops; their
-        // publishers go now.
-        streams.shutdown().await;
+    }
+}
+
+/// A get on `P/C/machine/M/g05`: with a `G05Open`, opens a stream and follows it; without a
+/// payload (browsing the cell), the machines' current streams.
+pub(super) async fn open_get(ctx: &G05Context, q: &Query) {
+    if q.payload().is_none() {
+        return current_streams(&ctx.route, q).await;
+    }
+    if let Some((machine, handle, token)) = open(&ctx.route, q).await {
+        let follow = follow(ctx.route.clone(), machine, handle, token, ctx.stop.clone());
+        let mut followers = ctx.followers.lock().unwrap_or_else(PoisonError::into_inner);
+        while followers.try_join_next().is_some() {}
+        followers.spawn(follow);
+    }
+}
+
+/// A get on `P/C/machine/M/g05/S`.
+pub(super) async fn status_get(ctx: &G05Context, q: &Query) {
+    status(&ctx.route, q).await;
+}
+
+/// A put on `P/C/machine/M/g05/S/blocks`: a batch, served in order on the route's loop
+/// (its row has no pool): batches are numbered and must not overtake one another.
+pub(super) async fn blocks_put(ctx: &G05Context, s: &Sample) {
+    if let Err(e) = batch(&ctx.route, s.key_expr().as_str(), &s.payload().to_bytes()).await {
+        tracing::warn!(key = %s.key_expr(), error = %e, "G05 batch refused");
+    }
+}
+
+/// A get on `P/C/machine/M/g05/S/blocks`: with a payload a batch, answered with the status;
+/// without one the status alone (never an empty batch 0, which would make the producer's
+/// real batch 0 a repeat). Browsing with wildcards sends no batch anywhere.
+pub(super) async fn blocks_get(ctx: &G05Context, q: &Query) {
+    if q.key_expr().is_wild() {
+        return;
+    }
+    let answer = match q.payload() {
+        None => {
+            stream_of(&ctx.route, q.key_expr().as_str()).map(|h| g05_status(&h.status().borrow()))
+        }
+        Some(p) => batch(&ctx.route, q.key_expr().as_str(), &p.to_bytes()).await,
+    };
+    match answer {
+        Ok(status) => reply(q, q.key_expr().to_string(), &status).await,
+        Err(e) => reply_err(q, &e).await,
+    }
+}
+
+/// A delete on `P/C/machine/M/g05/S` from another session cancels the stream.
+pub(super) async fn status_delete(ctx: &G05Context, s: &Sample) {
+    if s.kind() == SampleKind::Delete {
+        cancel(&ctx.route, s).await;
     }
 }
 

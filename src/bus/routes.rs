@@ -7,8 +7,7 @@
 //!
 //! A [`Route`] is a group of rows served by one task ([`serve_route`]): a request answered
 //! on a route's loop (`pool` `None`, a cheap answer from memory) never waits behind
-//! another route's. The G05 streams keep a loop of their own (`route_g05`): their batches
-//! are served in order on it and each stream opened gets a task of its own.
+//! another route's. The G05 streams' batches are served in order on their route's loop.
 
 use std::future::Future;
 use std::sync::Arc;
@@ -26,11 +25,12 @@ use zenoh::sample::{Locality, Sample};
 
 use super::context::{Pool, RequestError, RouteContext, Routed, reply_err};
 use super::error::BusError;
-use super::keys::{CellKeys, MachineLeaf, PlcArea};
+use super::keys::{CellKeys, G05Part, MachineLeaf, PlcArea};
+use super::route_g05::G05Context;
 use super::route_plc::PlcContext;
 use super::{
-    route_history, route_io, route_job, route_misdirected, route_plc, route_program, route_sim,
-    route_status, route_tag,
+    route_g05, route_history, route_io, route_job, route_misdirected, route_plc, route_program,
+    route_sim, route_status, route_tag,
 };
 use cellgate_core::config::Permission;
 
@@ -308,6 +308,39 @@ pub(crate) fn sim(keys: &CellKeys) -> Route<RouteContext> {
     )])
 }
 
+/// The G05 streams (§9), on [`G05Context`]: opening, batches in order on the route's loop,
+/// status, cancel. Reading a stream is part of producing one: every row is `g05.stream`'s.
+pub(crate) fn g05(keys: &CellKeys) -> Route<G05Context> {
+    let p = Some(Permission::G05Stream);
+    let status = keys.any_g05(G05Part::Status);
+    let blocks = keys.any_g05(G05Part::Blocks);
+    Route::new(vec![
+        Row::query(
+            keys.any_leaf(MachineLeaf::G05),
+            None,
+            p,
+            route_g05::open_get,
+        ),
+        Row::query(status.clone(), None, p, route_g05::status_get),
+        Row::samples(
+            blocks.clone(),
+            Locality::Any,
+            None,
+            p,
+            route_g05::blocks_put,
+        ),
+        Row::query(blocks, None, p, route_g05::blocks_get),
+        // Only another session cancels a stream; this one publishes its status there.
+        Row::samples(
+            status,
+            Locality::Remote,
+            Some(Pool::G05),
+            p,
+            route_g05::status_delete,
+        ),
+    ])
+}
+
 /// The routes of the cell's PLC links, on [`PlcContext`].
 pub(crate) fn plc(keys: &CellKeys) -> Vec<Route<PlcContext>> {
     use Permission as P;
@@ -400,6 +433,7 @@ pub(crate) fn granted(keys: &CellKeys, p: Permission) -> Vec<String> {
     }
     let mut found: Vec<String> = Vec::new();
     for key in of(cell(keys), p)
+        .chain(of(vec![g05(keys)], p))
         .chain(of(vec![sim(keys)], p))
         .chain(of(plc(keys), p))
     {

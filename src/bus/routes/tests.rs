@@ -16,6 +16,7 @@ pub(crate) fn every_row(
             .collect()
     }
     let mut rows = of(cell(keys));
+    rows.extend(of(vec![g05(keys)]));
     rows.extend(of(vec![sim(keys)]));
     rows.extend(of(plc(keys)));
     rows
