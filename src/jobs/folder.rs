@@ -80,11 +80,7 @@ impl std::fmt::Debug for FolderWatch {
 fn stat_of(meta: &std::fs::Metadata) -> Stat {
     Stat {
         size: meta.len(),
-        modified_ms: meta
-            .modified()
-            .ok()
-            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-            .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX)),
+        modified_ms: meta.modified().map_or(0, cellgate_core::pb::unix_ms),
     }
 }
 
