@@ -1,5 +1,7 @@
 //! `cellgate g05`: a G05 stream fed from a file or standard input.
 
+use tokio::io::{AsyncBufReadExt as _, AsyncRead};
+
 use super::*;
 
 /// `cellgate g05`.
@@ -72,89 +74,44 @@ impl ClientCommand for G05Args {
     }
 
     async fn run(&self, client: &Client, io: &mut Io<'_>) -> Result<u8, ClientError> {
-        use tokio::io::AsyncBufReadExt;
-        let input: Box<dyn tokio::io::AsyncRead + Unpin + Send> = if self.file.as_os_str() == "-" {
-            Box::new(tokio::io::stdin())
-        } else {
-            Box::new(tokio::fs::File::open(&self.file).await.map_err(|e| {
-                ClientError::InvalidArgument {
-                    what: format!("file {}", self.file.display()),
-                    reason: e.to_string(),
-                }
-            })?)
-        };
-        let mut lines = tokio::io::BufReader::new(input).lines();
+        let input = self.open_input().await?;
         let (opened, _token) = client
             .g05_open(&self.machine, self.id.as_deref().unwrap_or_default(), true)
             .await?;
         let stream = opened.stream_id.clone();
         let status_sub = client.g05_status(&self.machine, &stream).await?;
-        let _ = writeln!(
-            io.err,
-            "G05 stream {stream} on {}: {} axes{}, T = {} ms, {}-byte blocks; window {} blocks, \
-             priming {}; the line runs {} baud, {} needed",
-            self.machine,
-            opened.axes,
-            if opened.aux { " + aux" } else { "" },
-            opened.unit_time_ms,
-            opened.block_len,
-            opened.window,
-            opened.prime,
-            opened.actual_baud,
-            opened.required_baud,
-        );
-        let axes = opened.axes as usize;
+        let _ = writeln!(io.err, "{}", opened_line(&self.machine, &opened));
+        let mut source = BlockSource {
+            lines: tokio::io::BufReader::new(input).lines(),
+            file: self.file.display().to_string(),
+            line_no: 0,
+            eof: false,
+            axes: opened.axes as usize,
+            aux: opened.aux,
+        };
         let mut latest = pb::G05Status {
             credits: opened.credits,
             ..pb::G05Status::default()
         };
         let mut sent = 0u64;
         let mut seq = 0u64;
-        let mut line_no = 0u64;
         let mut pending: Vec<pb::G05Block> = Vec::new();
-        let mut eof = false;
         let mut last_shown = std::time::Instant::now();
         let interrupt = tokio::signal::ctrl_c();
         tokio::pin!(interrupt);
         let fail = loop {
-            // Fill a batch from the file.
-            while !eof && pending.len() < self.batch {
-                match lines.next_line().await {
-                    Ok(Some(text)) => {
-                        line_no += 1;
-                        match parse_g05_line(&text, axes, opened.aux) {
-                            Ok(Some(b)) => pending.push(b),
-                            Ok(None) => {}
-                            Err(why) => {
-                                let _ = writeln!(
-                                    io.err,
-                                    "cellgate: {}:{line_no}: {why}",
-                                    self.file.display()
-                                );
-                                let _ = client.g05_cancel(&self.machine, &stream).await;
-                                break;
-                            }
-                        }
-                    }
-                    Ok(None) => eof = true,
-                    Err(e) => {
-                        let _ = writeln!(io.err, "cellgate: reading {}: {e}", self.file.display());
-                        let _ = client.g05_cancel(&self.machine, &stream).await;
-                        break;
-                    }
-                }
-            }
-            if !eof && pending.len() < self.batch {
-                // A bad line: the stream was cancelled above.
+            if let Err(why) = source.fill(&mut pending, self.batch).await {
+                let _ = writeln!(io.err, "cellgate: {why}");
+                let _ = client.g05_cancel(&self.machine, &stream).await;
                 break Some(2);
             }
             // Credits as the gateway last said, less what was sent since.
             let in_flight = sent.saturating_sub(latest.received);
             let credits = u64::from(latest.credits).saturating_sub(in_flight) as usize;
             let n = pending.len().min(credits);
-            if n > 0 || (eof && pending.is_empty()) {
+            if n > 0 || (source.eof && pending.is_empty()) {
                 let blocks: Vec<pb::G05Block> = pending.drain(..n).collect();
-                let end = eof && pending.is_empty();
+                let end = source.eof && pending.is_empty();
                 sent += blocks.len() as u64;
                 // Acknowledged: a refused batch (a travel out of range) ends the stream here
                 // with the reason, instead of leaving it open.
@@ -191,7 +148,7 @@ impl ClientCommand for G05Args {
                     break Some(EXIT_INTERRUPTED);
                 }
             }
-            if latest.state() == pb::G05State::Completed || latest.state() == pb::G05State::Failed {
+            if is_over(&latest) {
                 break Some(1);
             }
             if io.progress_bar && last_shown.elapsed() >= Duration::from_millis(500) {
@@ -203,20 +160,7 @@ impl ClientCommand for G05Args {
                 );
             }
         };
-        // Wait for the stream's last status.
-        let last = loop {
-            if latest.state() == pb::G05State::Completed || latest.state() == pb::G05State::Failed {
-                break Some(latest.clone());
-            }
-            match tokio::time::timeout(Duration::from_secs(600), status_sub.recv_async()).await {
-                Ok(Ok(sample)) => {
-                    if let Ok(st) = pb::G05Status::decode(sample.payload().to_bytes().as_ref()) {
-                        latest = st;
-                    }
-                }
-                _ => break None,
-            }
-        };
+        let last = last_status(&status_sub, latest).await;
         let _ = status_sub.undeclare().await;
         if io.progress_bar {
             let _ = writeln!(io.err);
@@ -225,17 +169,7 @@ impl ClientCommand for G05Args {
             let _ = writeln!(io.err, "cellgate: stream {stream}: no final status");
             return Ok(1);
         };
-        let summary = format!(
-            "G05 stream {stream} {}: {} blocks, {} underruns (estimated){}",
-            render::g05_state_name(last.state()),
-            last.received,
-            last.underruns,
-            if last.last_error.is_empty() {
-                String::new()
-            } else {
-                format!("; last error: {}", last.last_error)
-            }
-        );
+        let summary = summary(&stream, &last);
         if self.json {
             let _ = serde_json::to_writer(&mut *io.out, &render::g05_json(&last));
             let _ = writeln!(io.out);
@@ -251,4 +185,115 @@ impl ClientCommand for G05Args {
             None => 1,
         })
     }
+}
+
+impl G05Args {
+    /// The file of blocks, or standard input for `-`.
+    async fn open_input(&self) -> Result<Box<dyn AsyncRead + Unpin + Send>, ClientError> {
+        if self.file.as_os_str() == "-" {
+            return Ok(Box::new(tokio::io::stdin()));
+        }
+        let file =
+            tokio::fs::File::open(&self.file)
+                .await
+                .map_err(|e| ClientError::InvalidArgument {
+                    what: format!("file {}", self.file.display()),
+                    reason: e.to_string(),
+                })?;
+        Ok(Box::new(file))
+    }
+}
+
+/// The CSV lines of a stream's blocks, read a batch at a time.
+struct BlockSource {
+    lines: tokio::io::Lines<tokio::io::BufReader<Box<dyn AsyncRead + Unpin + Send>>>,
+    file: String,
+    line_no: u64,
+    eof: bool,
+    axes: usize,
+    aux: bool,
+}
+
+impl BlockSource {
+    /// Reads blocks into `pending` until it holds `batch` or the input ends; a line that is
+    /// not a block, or a failed read, is the error (with the file and line).
+    async fn fill(&mut self, pending: &mut Vec<pb::G05Block>, batch: usize) -> Result<(), String> {
+        while !self.eof && pending.len() < batch {
+            match self.lines.next_line().await {
+                Ok(Some(text)) => {
+                    self.line_no += 1;
+                    match parse_g05_line(&text, self.axes, self.aux) {
+                        Ok(Some(b)) => pending.push(b),
+                        Ok(None) => {}
+                        Err(why) => return Err(format!("{}:{}: {why}", self.file, self.line_no)),
+                    }
+                }
+                Ok(None) => self.eof = true,
+                Err(e) => return Err(format!("reading {}: {e}", self.file)),
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What the gateway opened, in one line.
+fn opened_line(machine: &str, opened: &pb::G05Opened) -> String {
+    format!(
+        "G05 stream {} on {machine}: {} axes{}, T = {} ms, {}-byte blocks; window {} blocks, \
+         priming {}; the line runs {} baud, {} needed",
+        opened.stream_id,
+        opened.axes,
+        if opened.aux { " + aux" } else { "" },
+        opened.unit_time_ms,
+        opened.block_len,
+        opened.window,
+        opened.prime,
+        opened.actual_baud,
+        opened.required_baud,
+    )
+}
+
+fn is_over(status: &pb::G05Status) -> bool {
+    matches!(
+        status.state(),
+        pb::G05State::Completed | pb::G05State::Failed
+    )
+}
+
+/// The stream's last status: `latest` if it is over, else the next that is (`None` when the
+/// gateway says nothing more for ten minutes, or the subscription ends).
+async fn last_status(
+    status_sub: &zenoh::pubsub::Subscriber<
+        zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>,
+    >,
+    mut latest: pb::G05Status,
+) -> Option<pb::G05Status> {
+    loop {
+        if is_over(&latest) {
+            return Some(latest);
+        }
+        match tokio::time::timeout(Duration::from_secs(600), status_sub.recv_async()).await {
+            Ok(Ok(sample)) => {
+                if let Ok(st) = pb::G05Status::decode(sample.payload().to_bytes().as_ref()) {
+                    latest = st;
+                }
+            }
+            _ => return None,
+        }
+    }
+}
+
+/// How the stream ended, in one line.
+fn summary(stream: &str, last: &pb::G05Status) -> String {
+    format!(
+        "G05 stream {stream} {}: {} blocks, {} underruns (estimated){}",
+        render::g05_state_name(last.state()),
+        last.received,
+        last.underruns,
+        if last.last_error.is_empty() {
+            String::new()
+        } else {
+            format!("; last error: {}", last.last_error)
+        }
+    )
 }

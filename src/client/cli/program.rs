@@ -160,32 +160,7 @@ impl ClientCommand for ProgramCommand {
                 comment,
                 json,
                 ..
-            } => {
-                let data = tokio::fs::read(file)
-                    .await
-                    .map_err(|source| ClientError::File {
-                        path: file.clone(),
-                        op: "read",
-                        source,
-                    })?;
-                let info = client
-                    .program_put_with(name, &data, comment.clone().unwrap_or_default())
-                    .await?;
-                if *json {
-                    let _ = writeln!(io.out, "{}", render::program_json(&info));
-                }
-                let rev = info
-                    .latest
-                    .as_ref()
-                    .map(|r| format!(", revision {}", r.number))
-                    .unwrap_or_default();
-                let _ = writeln!(
-                    io.err,
-                    "{}: stored, {}{rev}",
-                    info.name,
-                    render::bytes(info.size)
-                );
-            }
+            } => put(client, io, name, file, comment.as_deref(), *json).await?,
             ProgramCommand::History { name, json, .. } => {
                 return records::program_history(client, io, name, *json).await;
             }
@@ -277,51 +252,8 @@ impl ClientCommand for ProgramCommand {
             }
             ProgramCommand::Get {
                 name, output, json, ..
-            } => {
-                let data = client.program_get(name).await?;
-                if *json {
-                    let v = serde_json::json!({
-                        "name": name,
-                        "size": data.len(),
-                        "text": String::from_utf8_lossy(&data),
-                    });
-                    let _ = writeln!(io.out, "{v}");
-                    return Ok(0);
-                }
-                match output {
-                    Some(path) => {
-                        tokio::fs::write(path, &data)
-                            .await
-                            .map_err(|source| ClientError::File {
-                                path: path.clone(),
-                                op: "write",
-                                source,
-                            })?
-                    }
-                    None => {
-                        let _ = io.out.write_all(&data);
-                    }
-                }
-            }
-            ProgramCommand::Ls { json, .. } => {
-                let list = client.program_list().await?;
-                if *json {
-                    let all: Vec<_> = list.iter().map(render::program_json).collect();
-                    let text = serde_json::to_string_pretty(&all).unwrap_or_default();
-                    let _ = writeln!(io.out, "{text}");
-                } else {
-                    let _ = write!(io.out, "{}", render::program_table(&list));
-                    if list.is_empty() && client.admin().is_null() {
-                        // A gateway that hides @admin enforces roles: an empty answer may be
-                        // a refusal.
-                        let _ = writeln!(
-                            io.err,
-                            "note: this gateway enforces roles; listing the library needs \
-                             program.read"
-                        );
-                    }
-                }
-            }
+            } => get(client, io, name, output.as_ref(), *json).await?,
+            ProgramCommand::Ls { json, .. } => ls(client, io, *json).await?,
             ProgramCommand::Rm { name, json, .. } => {
                 let info = client.program_remove(name).await?;
                 if *json {
@@ -332,4 +264,93 @@ impl ClientCommand for ProgramCommand {
         }
         Ok(0)
     }
+}
+
+/// `program put`: the file stored as the program's next revision.
+async fn put(
+    client: &Client,
+    io: &mut Io<'_>,
+    name: &str,
+    file: &std::path::Path,
+    comment: Option<&str>,
+    json: bool,
+) -> Result<(), ClientError> {
+    let data = tokio::fs::read(file)
+        .await
+        .map_err(|source| ClientError::File {
+            path: file.to_path_buf(),
+            op: "read",
+            source,
+        })?;
+    let info = client
+        .program_put_with(name, &data, comment.unwrap_or_default().to_string())
+        .await?;
+    if json {
+        let _ = writeln!(io.out, "{}", render::program_json(&info));
+    }
+    let rev = info
+        .latest
+        .as_ref()
+        .map(|r| format!(", revision {}", r.number))
+        .unwrap_or_default();
+    let _ = writeln!(
+        io.err,
+        "{}: stored, {}{rev}",
+        info.name,
+        render::bytes(info.size)
+    );
+    Ok(())
+}
+
+/// `program get`: the latest revision's text, to standard output or a file.
+async fn get(
+    client: &Client,
+    io: &mut Io<'_>,
+    name: &str,
+    output: Option<&PathBuf>,
+    json: bool,
+) -> Result<(), ClientError> {
+    let data = client.program_get(name).await?;
+    if json {
+        let v = serde_json::json!({
+            "name": name,
+            "size": data.len(),
+            "text": String::from_utf8_lossy(&data),
+        });
+        let _ = writeln!(io.out, "{v}");
+        return Ok(());
+    }
+    match output {
+        Some(path) => tokio::fs::write(path, &data)
+            .await
+            .map_err(|source| ClientError::File {
+                path: path.clone(),
+                op: "write",
+                source,
+            }),
+        None => {
+            let _ = io.out.write_all(&data);
+            Ok(())
+        }
+    }
+}
+
+/// `program ls`: the library.
+async fn ls(client: &Client, io: &mut Io<'_>, json: bool) -> Result<(), ClientError> {
+    let list = client.program_list().await?;
+    if json {
+        let all: Vec<_> = list.iter().map(render::program_json).collect();
+        let text = serde_json::to_string_pretty(&all).unwrap_or_default();
+        let _ = writeln!(io.out, "{text}");
+        return Ok(());
+    }
+    let _ = write!(io.out, "{}", render::program_table(&list));
+    if list.is_empty() && client.admin().is_null() {
+        // A gateway that hides @admin enforces roles: an empty answer may be a refusal.
+        let _ = writeln!(
+            io.err,
+            "note: this gateway enforces roles; listing the library needs program.read"
+        );
+    }
+    Ok(())
 }
