@@ -150,6 +150,70 @@ async fn serve(
     served
 }
 
+/// Says the cell is running, and where it listens.
+fn log_running(config: &CellConfig, session: &Session, keys: &CellKeys) {
+    // Zenoh's own list of bound locators is an unstable API; the configured endpoints are
+    // what the session bound, since opening fails otherwise.
+    let listening = if config.bus.listen.is_empty() {
+        "no endpoint".to_string()
+    } else {
+        config.bus.listen.join(", ")
+    };
+    tracing::info!(
+        cell = %config.cell,
+        zid = %session.zid(),
+        liveliness = %keys.gateway(),
+        admin = %keys.admin(),
+        "cellgate {} running, listening on {}",
+        config.cell,
+        listening,
+    );
+}
+
+/// The cell's own MTConnect agent, where `[mtconnect]` asks for one: a client of the routes
+/// that only reads.
+async fn start_mtconnect(
+    config: &CellConfig,
+    session: &Session,
+    stop: &CancellationToken,
+) -> Result<Option<crate::mtconnect::Served>, GatewayError> {
+    let Some(m) = &config.mtconnect else {
+        return Ok(None);
+    };
+    let settings = crate::mtconnect::MtconnectSettings {
+        config: m.clone(),
+        prefix: config.bus.prefix.clone(),
+        only: Some(config.cell.clone()),
+        own: Some(cellgate_core::mtconnect::CellDesc::from_config(config)),
+        sender: format!("cellgate {}", config.cell),
+    };
+    let served = crate::mtconnect::serve(session.clone(), settings, stop.clone()).await?;
+    tracing::info!(url = %served.url, shdr = ?served.shdr, "MTConnect agent at {}", served.url);
+    Ok(Some(served))
+}
+
+/// The cell's console, where `[console]` asks for one, linking to the agent at `mtconnect`.
+async fn start_console(
+    config: &CellConfig,
+    session: &Session,
+    mtconnect: Option<String>,
+    stop: &CancellationToken,
+) -> Result<Option<crate::console::Served>, GatewayError> {
+    let Some(c) = &config.console else {
+        return Ok(None);
+    };
+    let settings = crate::console::ConsoleSettings {
+        console: c.clone(),
+        prefix: config.bus.prefix.clone(),
+        cell: Some(config.cell.clone()),
+        security: config.security.clone(),
+        mtconnect,
+    };
+    let served = crate::console::serve(session.clone(), settings, None, stop.clone()).await?;
+    tracing::info!(url = %served.url, "console at {}", served.url);
+    Ok(Some(served))
+}
+
 async fn serve_with(
     config: &CellConfig,
     session: &Session,
@@ -234,58 +298,17 @@ async fn serve_with(
         };
         admin = Some(Arc::clone(&a));
 
-        // Zenoh's own list of bound locators is an unstable API; the configured endpoints
-        // are what the session bound, since opening fails otherwise.
-        let listening = if config.bus.listen.is_empty() {
-            "no endpoint".to_string()
-        } else {
-            config.bus.listen.join(", ")
-        };
-        tracing::info!(
-            cell = %config.cell,
-            zid = %session.zid(),
-            liveliness = %keys.gateway(),
-            admin = %keys.admin(),
-            "cellgate {} running, listening on {}",
-            config.cell,
-            listening,
-        );
-
-        // The MTConnect agent, a client of the same routes, on this session; it only reads.
-        if let Some(m) = &config.mtconnect {
-            let settings = crate::mtconnect::MtconnectSettings {
-                config: m.clone(),
-                prefix: config.bus.prefix.clone(),
-                only: Some(config.cell.clone()),
-                own: Some(cellgate_core::mtconnect::CellDesc::from_config(config)),
-                sender: format!("cellgate {}", config.cell),
-            };
-            match crate::mtconnect::serve(session.clone(), settings, mtconnect_stop.clone()).await {
-                Ok(served) => {
-                    tracing::info!(url = %served.url, shdr = ?served.shdr, "MTConnect agent at {}", served.url);
-                    mtconnect = Some(served);
-                }
-                Err(e) => break 'serve Err(e.into()),
-            }
+        log_running(config, session, keys);
+        // The MTConnect agent and the console: clients of the routes just announced, on this
+        // session.
+        match start_mtconnect(config, session, &mtconnect_stop).await {
+            Ok(served) => mtconnect = served,
+            Err(e) => break 'serve Err(e),
         }
-
-        // The console, a client of the routes just announced, on this session.
-        if let Some(c) = &config.console {
-            let settings = crate::console::ConsoleSettings {
-                console: c.clone(),
-                prefix: config.bus.prefix.clone(),
-                cell: Some(config.cell.clone()),
-                security: config.security.clone(),
-                mtconnect: mtconnect.as_ref().map(|m| m.url.clone()),
-            };
-            match crate::console::serve(session.clone(), settings, None, console_stop.clone()).await
-            {
-                Ok(served) => {
-                    tracing::info!(url = %served.url, "console at {}", served.url);
-                    console = Some(served);
-                }
-                Err(e) => break 'serve Err(e.into()),
-            }
+        let mtconnect_url = mtconnect.as_ref().map(|m| m.url.clone());
+        match start_console(config, session, mtconnect_url, &console_stop).await {
+            Ok(served) => console = served,
+            Err(e) => break 'serve Err(e),
         }
 
         match ReloadRoute::declare(session, keys, reloads.sender()).await {
