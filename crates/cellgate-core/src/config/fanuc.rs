@@ -11,6 +11,7 @@ use super::g05::{G05Config, Refill, check_g05};
 use super::transport::{
     RawTransport, TransportConfig, built_transport, check_transport, transport_of,
 };
+use crate::engine::LineSettings;
 use crate::engine::line::{DataBits, Parity, StopBits};
 use crate::fanuc::message::Framing;
 use crate::fanuc::protocol_a::{ProtocolAConfig, ProtocolAProblem};
@@ -393,6 +394,44 @@ pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
         }
         return;
     };
+    check_protocol_keys(c, label, m, protocol);
+    check_params(c, label, m);
+
+    let Some(transport) = &transport_of(c, label, m.transport.as_ref()) else {
+        return;
+    };
+    let tpath = format!("{label}.transport");
+    check_transport(c, &tpath, transport);
+    let line = transport.line();
+    check_fanuc_line(c, label, m, protocol, transport);
+    check_engine(c, label, m, protocol, line);
+
+    if let Some(g) = &m.g05 {
+        // A simulated CNC has the axes of its `sim` table; a real one is not known here.
+        let controlled = matches!(transport, TransportConfig::Sim { .. })
+            .then(|| m.sim.unwrap_or_default().axes);
+        check_g05(c, label, g, protocol, line, controlled);
+    }
+
+    // The simulated board.
+    match (transport, &m.sim) {
+        (TransportConfig::Sim { .. }, Some(sim)) => check_board_sim(c, label, sim),
+        (_, Some(_)) => c.not_applicable(
+            format!("{label}.sim"),
+            format!(
+                "board simulation settings are used only with transport kind = \"sim\", not \
+                 \"{}\"; remove the table",
+                transport.kind().name()
+            ),
+            "",
+        ),
+        _ => {}
+    }
+}
+
+/// The keys that belong to some protocols only, and their values (§5.2, §6.4, §4.4.1,
+/// §10.2).
+fn check_protocol_keys(c: &mut Checker, label: &str, m: &RawMachine, protocol: Protocol) {
     let title = protocol.title();
 
     // Protocol A family: end code; Protocol B family: reset/alarm notification (5000#3).
@@ -476,16 +515,20 @@ pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
             );
         }
     }
+}
 
-    check_params(c, label, m);
-
-    let Some(transport) = &transport_of(c, label, m.transport.as_ref()) else {
-        return;
-    };
+/// The line of a machine against its protocol: interface, baud rate, framing, and a device
+/// server's window (§2, §3.1, §6.3).
+fn check_fanuc_line(
+    c: &mut Checker,
+    label: &str,
+    m: &RawMachine,
+    protocol: Protocol,
+    transport: &TransportConfig,
+) {
+    let title = protocol.title();
     let tpath = format!("{label}.transport");
-    check_transport(c, &tpath, transport);
     let line = transport.line();
-
     // Interface and baud rate (§2.1, §2.2, §10.2 parameters 5073 / 5083).
     let baud = line.baud;
     let interface = default_interface(protocol, baud, m.interface);
@@ -575,7 +618,16 @@ pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
             );
         }
     }
+}
 
+/// The host engine's own checks of the machine's settings.
+fn check_engine(
+    c: &mut Checker,
+    label: &str,
+    m: &RawMachine,
+    protocol: Protocol,
+    line: &LineSettings,
+) {
     // The host engine's own checks, for whatever the rules above do not name in the file's
     // words (they already report parameters and packet_n).
     if protocol.is_a_family() {
@@ -605,28 +657,6 @@ pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
                 problem,
             });
         }
-    }
-
-    if let Some(g) = &m.g05 {
-        // A simulated CNC has the axes of its `sim` table; a real one is not known here.
-        let controlled = matches!(transport, TransportConfig::Sim { .. })
-            .then(|| m.sim.unwrap_or_default().axes);
-        check_g05(c, label, g, protocol, line, controlled);
-    }
-
-    // The simulated board.
-    match (transport, &m.sim) {
-        (TransportConfig::Sim { .. }, Some(sim)) => check_board_sim(c, label, sim),
-        (_, Some(_)) => c.not_applicable(
-            format!("{label}.sim"),
-            format!(
-                "board simulation settings are used only with transport kind = \"sim\", not \
-                 \"{}\"; remove the table",
-                transport.kind().name()
-            ),
-            "",
-        ),
-        _ => {}
     }
 }
 
