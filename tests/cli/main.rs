@@ -7,6 +7,7 @@ mod common;
 
 mod cli;
 mod config;
+mod doc_commands;
 mod examples;
 mod layering;
 mod notes;
