@@ -810,6 +810,7 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
                     return;
                 };
                 active.sent += bytes;
+                active.fed.sent(active.sent);
                 match self.progress() {
                     Some(event) => event,
                     None => return,

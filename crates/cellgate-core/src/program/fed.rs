@@ -4,14 +4,22 @@
 //! not the one it executes: it may still be working through the blocks the buffer holds
 //! (SAT bytes 5–8, §4.4.2).
 //!
-//! Only the bytes between the last question and the last byte handed over are kept, with the
-//! start of the line that runs across them, so a job's memory does not grow with its program.
+//! Kept: the bytes between the last question and the last byte handed over, with the start
+//! of the line that runs across them, but of the bytes already on the line only the last
+//! [`SENT_KEPT`]: a board answers for what was sent lately (a DAT, the packets of a run), and
+//! an Expansion A board whose CNC reads as fast as the line asks nothing until the program's
+//! end (§5.3), which would otherwise keep the whole program. A job's memory does not grow
+//! with its program: at most what the engine holds unsent, plus [`SENT_KEPT`].
 
 use std::collections::VecDeque;
 use std::sync::Arc;
 
 /// Characters of a block kept: enough for any block a person reads on a screen.
 pub const MAX_BLOCK_TEXT: usize = 128;
+
+/// Bytes already sent that are kept for the next question. An answer acknowledging bytes sent
+/// earlier than these names the last block of what was let go, if it lies within the answer.
+pub const SENT_KEPT: usize = 16 * 1024;
 
 /// Follows a job's program bytes and its acknowledged offset.
 #[derive(Debug, Default)]
@@ -22,6 +30,8 @@ pub struct FedBlocks {
     /// The first bytes of the line that runs across `base` (its part before `base`).
     head: Vec<u8>,
     last: Option<Arc<str>>,
+    /// The last block of the bytes let go unasked (see [`SENT_KEPT`]), and where it ends.
+    let_go: Option<(u64, Arc<str>)>,
 }
 
 impl FedBlocks {
@@ -35,9 +45,37 @@ impl FedBlocks {
         self.window.extend(bytes);
     }
 
+    /// The link has put the first `sent` bytes on the line: of those, only the last
+    /// [`SENT_KEPT`] are kept.
+    pub fn sent(&mut self, sent: u64) {
+        let keep_from = sent.saturating_sub(SENT_KEPT as u64);
+        let n = usize::try_from(keep_from.saturating_sub(self.base))
+            .unwrap_or(usize::MAX)
+            .min(self.window.len());
+        if n == 0 {
+            return;
+        }
+        let start = self.base;
+        let old: Vec<u8> = self.window.drain(..n).collect();
+        self.base += n as u64;
+        if let Some((end, text)) = self.last_block_in(&old) {
+            self.let_go = Some((start + end as u64, text));
+        }
+    }
+
+    /// Program bytes held.
+    pub fn held(&self) -> usize {
+        self.window.len() + self.head.len()
+    }
+
     /// The last block wholly inside the first `acked` bytes: a line ending with LF whose
     /// text is more than a tape mark (`%`) or blanks. `None` until there is one.
     pub fn acked(&mut self, acked: u64) -> Option<Arc<str>> {
+        if let Some((end, _)) = &self.let_go
+            && *end <= acked
+        {
+            self.last = self.let_go.take().map(|(_, text)| text);
+        }
         let k = usize::try_from(acked.saturating_sub(self.base))
             .unwrap_or(usize::MAX)
             .min(self.window.len());
@@ -46,38 +84,49 @@ impl FedBlocks {
         }
         let taken: Vec<u8> = self.window.drain(..k).collect();
         self.base += k as u64;
-        // The lines that ended within what was taken, last first: the last block of them.
-        if let Some(end) = taken.iter().rposition(|b| *b == b'\n') {
-            let mut line_end = end;
-            loop {
-                let start = taken
-                    .get(..line_end)
-                    .and_then(|t| t.iter().rposition(|b| *b == b'\n'));
-                let line: Vec<u8> = match start {
-                    Some(s) => taken.get(s + 1..line_end).unwrap_or_default().to_vec(),
-                    None => {
-                        let mut l = std::mem::take(&mut self.head);
-                        l.extend(taken.get(..line_end).unwrap_or_default());
-                        l
-                    }
-                };
-                if let Some(text) = block_text(&line) {
-                    self.last = Some(text);
-                    break;
-                }
-                match start {
-                    Some(s) => line_end = s,
-                    None => break,
-                }
-            }
-            self.head.clear();
-            let rest = taken.get(end + 1..).unwrap_or_default();
-            self.head.extend(rest.iter().take(MAX_BLOCK_TEXT));
-        } else {
-            let room = MAX_BLOCK_TEXT.saturating_sub(self.head.len());
-            self.head.extend(taken.iter().take(room));
+        if let Some((_, text)) = self.last_block_in(&taken) {
+            self.last = Some(text);
         }
         self.last.clone()
+    }
+
+    /// The last block of the lines that end within `taken` (the bytes after the ones taken
+    /// before), and the length of `taken` through its line end; the line left open is kept
+    /// as the next one's start.
+    fn last_block_in(&mut self, taken: &[u8]) -> Option<(usize, Arc<str>)> {
+        let Some(end) = taken.iter().rposition(|b| *b == b'\n') else {
+            let room = MAX_BLOCK_TEXT.saturating_sub(self.head.len());
+            self.head.extend(taken.iter().take(room));
+            return None;
+        };
+        // The lines that ended within what was taken, last first: the last block of them.
+        let mut found = None;
+        let mut line_end = end;
+        loop {
+            let start = taken
+                .get(..line_end)
+                .and_then(|t| t.iter().rposition(|b| *b == b'\n'));
+            let line: Vec<u8> = match start {
+                Some(s) => taken.get(s + 1..line_end).unwrap_or_default().to_vec(),
+                None => {
+                    let mut l = std::mem::take(&mut self.head);
+                    l.extend(taken.get(..line_end).unwrap_or_default());
+                    l
+                }
+            };
+            if let Some(text) = block_text(&line) {
+                found = Some((line_end + 1, text));
+                break;
+            }
+            match start {
+                Some(s) => line_end = s,
+                None => break,
+            }
+        }
+        self.head.clear();
+        let rest = taken.get(end + 1..).unwrap_or_default();
+        self.head.extend(rest.iter().take(MAX_BLOCK_TEXT));
+        found
     }
 }
 

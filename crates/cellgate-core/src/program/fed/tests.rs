@@ -77,3 +77,42 @@ fn a_long_block_is_cut_and_memory_stays_bounded() {
         Some("N30 \u{fffd}")
     );
 }
+
+#[test]
+fn a_run_asked_about_only_at_its_end_keeps_only_the_last_bytes_sent() {
+    // An Expansion A board whose CNC reads as fast as the line answers only at the program's
+    // end (§5.3): 1 MiB handed over and sent in 1 KiB packets, then one answer for all of it.
+    let mut fed = FedBlocks::new();
+    let mut program = Vec::new();
+    let mut n = 0;
+    while program.len() < 1 << 20 {
+        n += 10;
+        program.extend(format!("N{n} G01 X{} Y{}\n", n % 977, n % 131).as_bytes());
+    }
+    program.extend(b"M30\n%");
+    let mut most = 0;
+    for (i, piece) in program.chunks(1024).enumerate() {
+        fed.push(piece);
+        fed.sent(((i + 1) * 1024).min(program.len()) as u64);
+        most = most.max(fed.held());
+    }
+    assert!(most <= SENT_KEPT + 1024, "{most} bytes held");
+    assert_eq!(at(&mut fed, program.len() as u64).as_deref(), Some("M30"));
+
+    // An answer for bytes already let go names the last block let go, if it lies within
+    // the answer; the blocks after it, once they are answered for.
+    let mut fed = FedBlocks::new();
+    fed.push(&program[..64 * 1024]);
+    fed.sent(64 * 1024);
+    let let_go = 64 * 1024 - SENT_KEPT;
+    let text = at(&mut fed, let_go as u64).expect("a block");
+    let line = format!("{text}\n");
+    let end = program[..let_go]
+        .windows(line.len())
+        .rposition(|w| w == line.as_bytes())
+        .expect("a line of the program")
+        + line.len();
+    assert!(end <= let_go && let_go - end < 64, "{end} {let_go}");
+    let later = at(&mut fed, let_go as u64 + 200).expect("a block");
+    assert_ne!(later, text);
+}
