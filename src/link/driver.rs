@@ -709,9 +709,6 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             }
             Ok(n) => {
                 let data = Bytes::copy_from_slice(&self.buf[..n]);
-                if let Some(active) = self.active.as_mut() {
-                    active.fed.push(&data);
-                }
                 self.engine_command(EngineCommand::ProgramData(data));
             }
             Err(e) => {
@@ -805,11 +802,14 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             }
             EngineEvent::Punched { data } => LinkEvent::Punched { data },
             EngineEvent::PunchDamaged { cause } => LinkEvent::PunchDamaged { cause },
-            EngineEvent::DataSent { bytes } => {
+            EngineEvent::DataSent { data } => {
                 let Some(active) = self.active.as_mut() else {
                     return;
                 };
-                active.sent += bytes;
+                active.sent += data.len() as u64;
+                // The block finder reads what went out, not what the engine was given: it
+                // holds no copy of the engine's unsent program.
+                active.fed.push(&data);
                 active.fed.sent(active.sent);
                 match self.progress() {
                     Some(event) => event,

@@ -302,8 +302,8 @@ fn g05_stream(
         }
         pair.run_for(20 * MS);
         for e in pair.take_a_events() {
-            if let EngineEvent::DataSent { bytes } = e {
-                on_line += bytes;
+            if let EngineEvent::DataSent { data } = e {
+                on_line += data.len() as u64;
             }
         }
         stream.on_sent(pair.now, on_line);
@@ -590,8 +590,8 @@ fn expansion_b_ends_a_program_on_a_line_running_fast() {
             let mut over = None;
             for e in pair.take_a_events() {
                 match &e {
-                    EngineEvent::DataSent { bytes } => {
-                        sent += bytes;
+                    EngineEvent::DataSent { data } => {
+                        sent += data.len() as u64;
                         // The last few KiB: the CNC now reads as fast as they come.
                         if !fast && sent + 4096 >= program.len() as u64 {
                             fast = true;
@@ -688,8 +688,8 @@ fn g05_from_a_waiting_cnc(
         }
         pair.run_for(MS);
         for e in pair.take_a_events() {
-            if let EngineEvent::DataSent { bytes } = e {
-                on_line += bytes;
+            if let EngineEvent::DataSent { data } = e {
+                on_line += data.len() as u64;
                 stream.on_sent(pair.now, on_line);
             }
         }

@@ -117,11 +117,12 @@ pub enum EngineEvent {
     CncReset,
     /// The CNC raised an alarm (ALM in Protocol A; NAK in Protocol B).
     CncAlarm,
-    /// `bytes` more program bytes were handed to the line as NC data (in DAT or data packets;
+    /// Program bytes were handed to the line as NC data (in DAT or data packets;
     /// retransmissions are not counted again). Handed out is not yet received: see `Acked`.
     DataSent {
-        /// Program bytes in what was just handed to the line (a DAT, a data packet or a piece).
-        bytes: u64,
+        /// The program bytes in what was just handed to the line (a DAT's data part, a data
+        /// packet's data without its padding, or a piece), in the program's order.
+        data: Bytes,
     },
     /// The board has acknowledged the current program's first `offset` bytes (how a protocol
     /// acknowledges is said at [`Confirmation`]). Never decreases within a program.

@@ -869,7 +869,7 @@ impl Engine for ProtocolBHost {
         self.sent_since_dc3 += piece.len() as u64;
         self.handed_out(now, piece.len(), upto);
         self.emit(EngineEvent::DataSent {
-            bytes: piece.len() as u64,
+            data: Bytes::copy_from_slice(&piece),
         });
         if done {
             tracing::debug!("program sent through EOR: waiting for the read to end");

@@ -54,7 +54,7 @@ impl ProtocolAHost {
                     self.send(Command::Clb);
                 } else {
                     let msg = self.set_message(data.as_ref());
-                    self.send_with(&msg, 0, None);
+                    self.send_with(&msg, Bytes::new(), None);
                 }
             }
             Request::Gtd { at, after_sdi } => {
@@ -197,8 +197,8 @@ impl ProtocolAHost {
             {
                 let data = p.take(len);
                 let done = p.all_sent();
-                let count = data.len() as u64;
-                self.send_with(&Message::with_data(Command::Dat, data), count, None);
+                let program = Bytes::copy_from_slice(&data);
+                self.send_with(&Message::with_data(Command::Dat, data), program, None);
                 if done {
                     self.program = None;
                     self.eod_owed = Some(EodFor::Done);

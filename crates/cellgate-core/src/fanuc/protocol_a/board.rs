@@ -83,7 +83,7 @@ impl ProtocolAHost {
             true,
         );
         // A retransmission counts no program bytes and no DO again.
-        self.queue(bytes, 0, None);
+        self.queue(bytes, Bytes::new(), None);
     }
 
     pub(super) fn on_monitor(&mut self, now: Instant, packet: [u8; MONITOR_LEN]) {

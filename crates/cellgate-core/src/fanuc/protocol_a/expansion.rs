@@ -40,8 +40,8 @@ pub(crate) enum RunOutcome {
 #[derive(Debug)]
 pub(crate) struct OutPacket {
     pub bytes: Vec<u8>,
-    /// Program bytes sent for the first time in this packet.
-    pub program_bytes: usize,
+    /// Program bytes sent for the first time in this packet (its data without padding).
+    pub program: Vec<u8>,
     /// The packet number on the line (for logs).
     pub no: u8,
 }
@@ -214,7 +214,7 @@ impl PacketRun {
             self.end_sent = true;
             return Some(OutPacket {
                 bytes,
-                program_bytes: 0,
+                program: Vec::new(),
                 no: END_PACKET,
             });
         }
@@ -227,7 +227,7 @@ impl PacketRun {
             let no = bytes.first().copied().unwrap_or(DUMMY_PACKET);
             return Some(OutPacket {
                 bytes,
-                program_bytes: 0,
+                program: Vec::new(),
                 no,
             });
         }
@@ -243,7 +243,7 @@ impl PacketRun {
             self.outcome = RunOutcome::Delivered;
             return Some(OutPacket {
                 bytes,
-                program_bytes: data.len(),
+                program: data,
                 no: END_PACKET,
             });
         }
@@ -253,7 +253,7 @@ impl PacketRun {
             let bytes = self.packet(no, &data, data.len() as u64, now);
             return Some(OutPacket {
                 bytes,
-                program_bytes: data.len(),
+                program: data,
                 no,
             });
         }
@@ -266,7 +266,7 @@ impl PacketRun {
             self.dummy_due = false;
             return Some(OutPacket {
                 bytes,
-                program_bytes: 0,
+                program: Vec::new(),
                 no: DUMMY_PACKET,
             });
         }

@@ -96,6 +96,8 @@ use std::collections::VecDeque;
 use std::fmt;
 use std::time::{Duration, Instant};
 
+use bytes::Bytes;
+
 use crate::engine::{Engine, FrameCounts, LineError, ModemIn};
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
@@ -182,7 +184,8 @@ enum EodFor {
 struct Outgoing {
     bytes: Vec<u8>,
     pos: usize,
-    program_bytes: u64,
+    /// The program bytes this message carries for the first time (a DAT's data part).
+    program: Bytes,
     do_sent: Option<u8>,
     /// The DAT carrying the program's EOR.
     last_of_program: bool,
@@ -192,7 +195,7 @@ impl Outgoing {
     /// A message that carries program data: it is never dropped, since a lost DAT would leave
     /// a hole in the program.
     fn carries_program(&self) -> bool {
-        self.program_bytes > 0
+        !self.program.is_empty()
     }
 }
 
@@ -428,7 +431,7 @@ impl ProtocolAHost {
         self.emit(EngineEvent::Alarm(error));
     }
 
-    fn queue(&mut self, bytes: Vec<u8>, program_bytes: u64, do_sent: Option<u8>) {
+    fn queue(&mut self, bytes: Vec<u8>, program: Bytes, do_sent: Option<u8>) {
         // The board talks only after the host's answer left; a queue this long means the line
         // is blocked (CS off) while something keeps talking: keep the newest answers, but
         // never drop a DAT (the program would have a hole) nor one partly on the line.
@@ -449,18 +452,18 @@ impl ProtocolAHost {
         self.tx.push_back(Outgoing {
             bytes,
             pos: 0,
-            program_bytes,
+            program,
             do_sent,
             last_of_program: false,
         });
     }
 
-    fn send_with(&mut self, msg: &Message, program_bytes: u64, do_sent: Option<u8>) {
+    fn send_with(&mut self, msg: &Message, program: Bytes, do_sent: Option<u8>) {
         match self.cfg.framing.encode_to_vec(msg) {
             Ok(bytes) => {
                 tracing::trace!(?msg, "Protocol A message out");
                 self.last_sent = Some(bytes.clone());
-                self.queue(bytes, program_bytes, do_sent);
+                self.queue(bytes, program, do_sent);
             }
             // Only a DAT could fail, and its data part is checked before.
             Err(error) => tracing::error!(%error, ?msg, "message not sent"),
@@ -468,11 +471,15 @@ impl ProtocolAHost {
     }
 
     fn send(&mut self, command: Command) {
-        self.send_with(&Message::new(command), 0, None);
+        self.send_with(&Message::new(command), Bytes::new(), None);
     }
 
     fn send_sdo(&mut self, v: u8) {
-        self.send_with(&Message::with_data(Command::Sdo, hex2(v)), 0, Some(v));
+        self.send_with(
+            &Message::with_data(Command::Sdo, hex2(v)),
+            Bytes::new(),
+            Some(v),
+        );
     }
 
     /// Whether the board has (or had) data of the current program.
@@ -633,7 +640,11 @@ impl ProtocolAHost {
                     },
                     true,
                 );
-                self.send_with(&Message::with_data(Command::Rty, [RTY_CHECKSUM]), 0, None);
+                self.send_with(
+                    &Message::with_data(Command::Rty, [RTY_CHECKSUM]),
+                    Bytes::new(),
+                    None,
+                );
             }
             // Reception errors: ignore the data and wait for the next SAT (§4.6 2).
             Err(error) => self.protocol_error(ProtocolError::Frame { error }, false),
@@ -964,11 +975,9 @@ impl Engine for ProtocolAHost {
             {
                 self.frames.sent += 1;
                 self.sent_at(now, done.bytes.len());
-                if done.program_bytes > 0 {
-                    self.dat_unacked += done.program_bytes;
-                    self.emit(EngineEvent::DataSent {
-                        bytes: done.program_bytes,
-                    });
+                if !done.program.is_empty() {
+                    self.dat_unacked += done.program.len() as u64;
+                    self.emit(EngineEvent::DataSent { data: done.program });
                 }
                 if done.last_of_program {
                     self.final_sent = true;
@@ -1002,9 +1011,9 @@ impl Engine for ProtocolAHost {
             self.program = None;
         }
         self.sent_at(now, out.bytes.len());
-        if out.program_bytes > 0 {
+        if !out.program.is_empty() {
             self.emit(EngineEvent::DataSent {
-                bytes: out.program_bytes as u64,
+                data: Bytes::from(out.program),
             });
         }
         self.update_state();

@@ -38,7 +38,7 @@ fn lone_packet_is_ff_and_padded() {
     let mut p = program(b"%\nO1\n%");
     let mut run = PacketRun::new(2, now);
     let out = run.next(now, Some(&mut p), Duration::from_secs(5)).unwrap();
-    assert_eq!(out.program_bytes, 6);
+    assert_eq!(out.program, b"%\nO1\n%");
     let pk = decode_data_packet(&out.bytes, 2).unwrap();
     assert_eq!(pk.no, 0xFF);
     assert_eq!(&pk.data[..6], b"%\nO1\n%");
