@@ -1,15 +1,14 @@
-//! The block being fed: of the program bytes a job hands to its link, the last block the
-//! remote buffer acknowledged whole. The CNC executes blocks from the buffer as it reads them
-//! (remote-buffer operation, §1), so this is the furthest block the CNC can have reached,
-//! not the one it executes: it may still be working through the blocks the buffer holds
-//! (SAT bytes 5–8, §4.4.2).
+//! The block being fed: of the program bytes a link has sent (what its engine reports with
+//! `EngineEvent::DataSent`), the last block the remote buffer acknowledged whole. The CNC
+//! executes blocks from the buffer as it reads them (remote-buffer operation, §1), so this is
+//! the furthest block the CNC can have reached, not the one it executes: it may still be
+//! working through the blocks the buffer holds (SAT bytes 5–8, §4.4.2).
 //!
-//! Kept: the bytes between the last question and the last byte handed over, with the start
-//! of the line that runs across them, but of the bytes already on the line only the last
-//! [`SENT_KEPT`]: a board answers for what was sent lately (a DAT, the packets of a run), and
-//! an Expansion A board whose CNC reads as fast as the line asks nothing until the program's
-//! end (§5.3), which would otherwise keep the whole program. A job's memory does not grow
-//! with its program: at most what the engine holds unsent, plus [`SENT_KEPT`].
+//! Kept: the bytes sent since the last question, with the start of the line that runs across
+//! them, but only the last [`SENT_KEPT`] of them: a board answers for what was sent lately (a
+//! DAT, the packets of a run), and an Expansion A board whose CNC reads as fast as the line
+//! asks nothing until the program's end (§5.3), which would otherwise keep the whole program.
+//! A job's memory does not grow with its program.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -24,7 +23,7 @@ pub const SENT_KEPT: usize = 16 * 1024;
 /// Follows a job's program bytes and its acknowledged offset.
 #[derive(Debug, Default)]
 pub struct FedBlocks {
-    /// Program bytes from offset `base` on, handed over and not yet asked about.
+    /// Program bytes from offset `base` on, sent and not yet asked about.
     window: VecDeque<u8>,
     base: u64,
     /// The first bytes of the line that runs across `base` (its part before `base`).
@@ -35,12 +34,12 @@ pub struct FedBlocks {
 }
 
 impl FedBlocks {
-    /// Nothing handed over yet.
+    /// Nothing sent yet.
     pub fn new() -> Self {
         FedBlocks::default()
     }
 
-    /// Program bytes handed to the link, in order.
+    /// Program bytes sent, in order.
     pub fn push(&mut self, bytes: &[u8]) {
         self.window.extend(bytes);
     }
