@@ -204,6 +204,17 @@ pub enum ClientError {
     },
 }
 
+/// A file the user named, read whole; a failure names the file.
+pub(crate) async fn read_file(path: &std::path::Path) -> Result<Vec<u8>, ClientError> {
+    tokio::fs::read(path)
+        .await
+        .map_err(|source| ClientError::File {
+            path: path.to_path_buf(),
+            op: "read",
+            source,
+        })
+}
+
 fn unreachable_message(endpoint: &str, secured: bool) -> String {
     if secured {
         format!(

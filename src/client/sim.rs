@@ -261,13 +261,7 @@ impl ClientCommand for SimControl {
                 json,
                 ..
             } => {
-                let program = tokio::fs::read(file)
-                    .await
-                    .map_err(|source| ClientError::File {
-                        path: file.clone(),
-                        op: "read",
-                        source,
-                    })?;
+                let program = super::read_file(file).await?;
                 let p = pb::SimPunch { program };
                 let s = client
                     .sim_control(machine, SimLeaf::Punch, Some(&p))

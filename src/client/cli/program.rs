@@ -275,13 +275,7 @@ async fn put(
     comment: Option<&str>,
     json: bool,
 ) -> Result<(), ClientError> {
-    let data = tokio::fs::read(file)
-        .await
-        .map_err(|source| ClientError::File {
-            path: file.to_path_buf(),
-            op: "read",
-            source,
-        })?;
+    let data = crate::client::read_file(file).await?;
     let info = client
         .program_put_with(name, &data, comment.unwrap_or_default().to_string())
         .await?;

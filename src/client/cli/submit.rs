@@ -119,13 +119,7 @@ impl SubmitArgs {
     pub async fn request(&self, io: &mut Io<'_>) -> Result<pb::JobRequest, ClientError> {
         use pb::job_request::Program;
         let program = if let Some(path) = &self.file {
-            let data = tokio::fs::read(path)
-                .await
-                .map_err(|source| ClientError::File {
-                    path: path.clone(),
-                    op: "read",
-                    source,
-                })?;
+            let data = crate::client::read_file(path).await?;
             if data.len() as u64 > INLINE_HINT {
                 let _ = writeln!(
                     io.err,
