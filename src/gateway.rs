@@ -22,7 +22,7 @@ use zenoh::Session;
 use crate::bus::admin::AdminRoute;
 pub use crate::bus::admin::{VERSION, admin_document};
 use crate::bus::keys::CellKeys;
-use crate::bus::route_reload::ReloadRoute;
+use crate::bus::route_reload::{ReloadAsk, ReloadRoute};
 use crate::bus::{self, BusError};
 use crate::cell::Cell;
 use crate::history::{History, HistoryError};
@@ -343,6 +343,7 @@ async fn serve_with(
         let admin_stop = CancellationToken::new();
         let admin_run = a.run(&admin_stop);
         tokio::pin!(admin_run);
+        let mut reading: Option<(ReloadAsk, reload::Reading)> = None;
         loop {
             tokio::select! {
                 () = &mut shutdown => {
@@ -358,7 +359,21 @@ async fn serve_with(
                     routes_result = Some(result);
                     break;
                 }
-                Some(ask) = asks.recv() => reloader.reload(ask).await,
+                // The file is read beside everything else here (the admin key, the shutdown):
+                // no file, a FIFO or a share that hangs, holds the gateway.
+                Some(ask) = asks.recv(), if reading.is_none() => {
+                    reading = Some((ask, Box::pin(reloader.read())));
+                }
+                Some(read) = async {
+                    match reading.as_mut() {
+                        Some((_, read)) => Some(read.await),
+                        None => None,
+                    }
+                } => {
+                    if let Some((ask, _)) = reading.take() {
+                        reloader.reload(ask, read).await;
+                    }
+                }
                 Some((name, op)) = drained.recv() => reloader.on_drained(name, op).await,
             }
         }

@@ -505,8 +505,11 @@ fn check_config(file: &Path) -> ExitCode {
 /// `cellgate acl FILE [--router --gateway-cn NAME]`.
 fn acl(args: &AclArgs) -> ExitCode {
     // The rules need the roles, not the certificates: they may not exist yet.
-    let loaded = std::fs::read_to_string(&args.file)
-        .map_err(|e| {
+    let loaded = cellgate_core::config::file::read_text_bounded(
+        &args.file,
+        cellgate_core::config::file::MAX_CELL_FILE,
+    )
+    .map_err(|e| {
             ConfigErrors(vec![cellgate_core::config::ConfigError::Read {
                 origin: args.file.display().to_string(),
                 reason: e.to_string(),

@@ -20,11 +20,11 @@ use serde_json::json;
 use tokio::io::{AsyncReadExt as _, AsyncSeekExt as _, AsyncWriteExt as _};
 
 use super::Console;
-use super::auth::{COOKIE, LoginError, User};
+use super::auth::{COOKIE, DEVICE_COOKIE, DEVICE_MAX_AGE_S, LoginError, User};
 use super::extract::{
     AdoptProgram, ApiError, Caller, CancelJob, JsonObject, Names, OutputDo, Params, ReadAudit,
     ReadHistory, ReadPlcMemory, ReadPrograms, ReadStatus, ReleaseProgram, RemoveProgram, SetTag,
-    StoreProgram, SubmitJob, same_origin, session_id,
+    StoreProgram, SubmitJob, cookie, same_origin, session_id,
 };
 use super::listen::Peer;
 use crate::client::{Client, ClientError};
@@ -123,6 +123,21 @@ fn with_cookie(mut r: Response, id: &str, secure: bool, max_age_s: u64) -> Respo
     r
 }
 
+/// The device cookie ([`super::throttle`]): sent back with logins only, kept for a year.
+fn with_device_cookie(mut r: Response, token: &str, secure: bool) -> Response {
+    let cookie = format!(
+        "{DEVICE_COOKIE}={token}; Path=/api/v1/login; HttpOnly; SameSite=Strict; \
+         Max-Age={DEVICE_MAX_AGE_S}{}",
+        if secure { "; Secure" } else { "" }
+    );
+    if !token.is_empty()
+        && let Ok(v) = HeaderValue::from_str(&cookie)
+    {
+        r.headers_mut().append(header::SET_COOKIE, v);
+    }
+    r
+}
+
 pub async fn me(
     State(c): State<Arc<Console>>,
     ConnectInfo(peer): ConnectInfo<Peer>,
@@ -159,15 +174,20 @@ pub async fn login(
 ) -> ApiResult {
     same_origin(&headers, c.https)
         .map_err(|why| ApiError::new(StatusCode::FORBIDDEN, pb::ErrorCode::NotPermitted, why))?;
-    match c.auth.login(&body.user, &body.password, peer.addr.ip()) {
-        Ok((id, u)) => {
+    let device = cookie(&headers, DEVICE_COOKIE);
+    match c
+        .auth
+        .login(&body.user, &body.password, peer.addr.ip(), device.as_deref())
+    {
+        Ok((id, u, device)) => {
             tracing::info!(user = %u.name, address = %peer.addr.ip(), "console: logged in");
-            Ok(with_cookie(
+            let r = with_cookie(
                 Json(me_json(&c, &u)).into_response(),
                 &id,
                 c.https,
                 c.auth.max_age().as_secs(),
-            ))
+            );
+            Ok(with_device_cookie(r, &device, c.https))
         }
         Err(e) => {
             let throttled = matches!(e, LoginError::Throttled(_));

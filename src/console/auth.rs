@@ -22,6 +22,7 @@ use std::net::IpAddr;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
+use cellgate_core::config::file::{MAX_SIDE_FILE, read_text_bounded};
 use cellgate_core::config::{Permission, SecurityConfig};
 use subtle::ConstantTimeEq as _;
 use tokio_util::sync::CancellationToken;
@@ -30,6 +31,10 @@ use super::throttle::Throttle;
 
 /// The session cookie's name.
 pub const COOKIE: &str = "cellgate_console";
+/// The device cookie's name ([`super::throttle`]): a browser the user logged in on before.
+pub const DEVICE_COOKIE: &str = "cellgate_device";
+/// How long a browser keeps its device cookie: a year.
+pub const DEVICE_MAX_AGE_S: u64 = 365 * 24 * 3600;
 
 /// A logged-in user.
 #[derive(Debug, Clone)]
@@ -81,7 +86,7 @@ impl Cell {
     fn read(security: &SecurityConfig) -> Self {
         let mut users = HashMap::new();
         if let Some(path) = &security.users_file {
-            match std::fs::read_to_string(path) {
+            match read_text_bounded(path, MAX_SIDE_FILE) {
                 Ok(text) => {
                     for line in text.lines() {
                         if let Some((u, p)) = line.split_once(':')
@@ -152,7 +157,7 @@ pub struct Auth {
     throttle: Throttle,
 }
 
-fn token() -> String {
+pub(super) fn token() -> String {
     let mut bytes = [0u8; 32];
     // The OS's random source; without it no session can be trusted, so none is made.
     if getrandom::fill(&mut bytes).is_err() {
@@ -265,39 +270,43 @@ impl Auth {
         });
     }
 
-    /// Checks a name and password from `addr` against the users file; a session on success.
-    /// Throttled: past a few failures of the name or from the address, the password is not
+    /// Checks a name and password from `addr`, on the browser that presents `device` (its
+    /// device cookie), against the users file; on success a session and the browser's new
+    /// device token. Throttled: past a few failures of the name or from the address (or, for
+    /// a browser the user logged in on before, of that device alone), the password is not
     /// looked at until the wait has passed ([`LoginError::Throttled`]).
     pub fn login(
         &self,
         name: &str,
         password: &str,
         addr: IpAddr,
-    ) -> Result<(String, User), LoginError> {
+        device: Option<&str>,
+    ) -> Result<(String, User, String), LoginError> {
         let cell = self.cell();
         if cell.users.is_empty() {
             return Err(LoginError::NoUsers);
         }
         let now = Instant::now();
-        if let Some(wait) = self.throttle.closed(name, addr, now) {
+        if let Some(wait) = self.throttle.closed(name, addr, device, now) {
             return Err(LoginError::Throttled(wait));
         }
         let known = cell.users.get(name).map(String::as_bytes).unwrap_or(b"");
         // Compared in constant time, and compared even for an unknown user.
         let same: bool = known.ct_eq(password.as_bytes()).into();
         if !same || !cell.users.contains_key(name) || password.is_empty() {
-            return Err(match self.throttle.failed(name, addr, now) {
+            return Err(match self.throttle.failed(name, addr, device, now) {
                 Some(wait) => LoginError::Throttled(wait),
                 None => LoginError::Refused,
             });
         }
-        self.throttle.succeeded(name);
+        let device = self.throttle.trust(name, device, now);
         let permissions = cell.permissions(name, false);
         drop(cell);
         if permissions.is_empty() {
             return Err(LoginError::NoRole(name.to_string()));
         }
-        Ok(self.open(name, "password", permissions))
+        let (id, user) = self.open(name, "password", permissions);
+        Ok((id, user, device))
     }
 
     /// A session for a verified client certificate's common name, or for anybody on a cell

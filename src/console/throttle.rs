@@ -31,6 +31,10 @@ pub const MAX_WAIT: Duration = Duration::from_secs(300);
 pub const FORGET: Duration = Duration::from_secs(15 * 60);
 /// Keys kept per table at most.
 const MAX_KEYS: usize = 16_384;
+/// Failures of one trusted device that cost nothing: as many as a name's.
+pub const FREE_PER_DEVICE: u32 = FREE_PER_USER;
+/// Devices trusted at most; beyond, the least recently trusted is forgotten.
+const MAX_DEVICES: usize = 16_384;
 
 #[derive(Debug, Clone, Copy)]
 struct Failures {
@@ -106,43 +110,122 @@ impl<K: Hash + Eq + Clone> Table<K> {
     }
 }
 
-/// The failures of logins, per user name and per client address.
+/// A trusted device: whose it is and when it was last trusted.
+#[derive(Debug, Clone)]
+struct Device {
+    user: String,
+    trusted: Instant,
+}
+
+#[derive(Debug)]
+struct Tables {
+    users: Table<String>,
+    addrs: Table<IpAddr>,
+    devices: Table<String>,
+    /// Device tokens handed out, with their user.
+    known: HashMap<String, Device>,
+}
+
+/// The failures of logins, per user name and per client address, and per trusted device.
 #[derive(Debug)]
 pub struct Throttle {
-    inner: Mutex<(Table<String>, Table<IpAddr>)>,
+    inner: Mutex<Tables>,
 }
 
 impl Default for Throttle {
     fn default() -> Self {
         Throttle {
-            inner: Mutex::new((Table::new(FREE_PER_USER), Table::new(FREE_PER_ADDRESS))),
+            inner: Mutex::new(Tables {
+                users: Table::new(FREE_PER_USER),
+                addrs: Table::new(FREE_PER_ADDRESS),
+                devices: Table::new(FREE_PER_DEVICE),
+                known: HashMap::new(),
+            }),
         }
     }
 }
 
+impl Tables {
+    /// `device`, if it is a token handed to `user`'s browser.
+    fn trusted(&self, user: &str, device: Option<&str>) -> Option<String> {
+        let d = device.filter(|d| !d.is_empty())?;
+        (self.known.get(d)?.user == user).then(|| d.to_string())
+    }
+}
+
 impl Throttle {
-    /// How long `user` from `addr` must wait before a login is looked at; `None`: now.
-    pub fn closed(&self, user: &str, addr: IpAddr, now: Instant) -> Option<Duration> {
-        let mut t = self.inner.lock().unwrap_or_else(|p| p.into_inner());
-        let (users, addrs) = &mut *t;
-        let a = users.closed(&user.to_string(), now);
-        let b = addrs.closed(&addr, now);
+    fn tables(&self) -> std::sync::MutexGuard<'_, Tables> {
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// How long `user` from `addr`, on the browser that presents `device` (its device
+    /// cookie, if any), must wait before a login is looked at; `None`: now.
+    pub fn closed(
+        &self,
+        user: &str,
+        addr: IpAddr,
+        device: Option<&str>,
+        now: Instant,
+    ) -> Option<Duration> {
+        let mut t = self.tables();
+        if let Some(d) = t.trusted(user, device) {
+            return t.devices.closed(&d, now);
+        }
+        let a = t.users.closed(&user.to_string(), now);
+        let b = t.addrs.closed(&addr, now);
         a.max(b)
     }
 
-    /// Counts a failed login; how long the name or the address is now closed, if at all.
-    pub fn failed(&self, user: &str, addr: IpAddr, now: Instant) -> Option<Duration> {
-        let mut t = self.inner.lock().unwrap_or_else(|p| p.into_inner());
-        let (users, addrs) = &mut *t;
-        let a = users.fail(&user.to_string(), now);
-        let b = addrs.fail(&addr, now);
+    /// Counts a failed login; how long the name, the address or the device is now closed,
+    /// if at all. A trusted device's failure is the device's alone.
+    pub fn failed(
+        &self,
+        user: &str,
+        addr: IpAddr,
+        device: Option<&str>,
+        now: Instant,
+    ) -> Option<Duration> {
+        let mut t = self.tables();
+        if let Some(d) = t.trusted(user, device) {
+            return t.devices.fail(&d, now);
+        }
+        let a = t.users.fail(&user.to_string(), now);
+        let b = t.addrs.fail(&addr, now);
         a.max(b)
     }
 
-    /// A login of `user` succeeded: its name's failures are forgotten.
-    pub fn succeeded(&self, user: &str) {
-        let mut t = self.inner.lock().unwrap_or_else(|p| p.into_inner());
-        t.0.forget(&user.to_string());
+    /// A login of `user` succeeded on the browser that presented `device`: that device's
+    /// failures are forgotten, or, from an untrusted browser, the name's. Answers the
+    /// browser's new device token (the old one is forgotten: one token per login).
+    pub fn trust(&self, user: &str, device: Option<&str>, now: Instant) -> String {
+        let mut t = self.tables();
+        match t.trusted(user, device) {
+            Some(d) => {
+                t.devices.forget(&d);
+                t.known.remove(&d);
+            }
+            None => t.users.forget(&user.to_string()),
+        }
+        if t.known.len() >= MAX_DEVICES
+            && let Some(oldest) = t
+                .known
+                .iter()
+                .min_by_key(|(_, d)| d.trusted)
+                .map(|(k, _)| k.clone())
+        {
+            t.known.remove(&oldest);
+        }
+        let token = super::auth::token();
+        if !token.is_empty() {
+            t.known.insert(
+                token.clone(),
+                Device {
+                    user: user.to_string(),
+                    trusted: now,
+                },
+            );
+        }
+        token
     }
 }
 

@@ -203,6 +203,15 @@ pub(super) struct Reloader {
 /// Why a reload was refused, its code.
 type Refusal = pb::ErrorCode;
 
+/// A cell file read for a reload, or why not (every error, and the code the answer carries).
+pub(super) type Read = Result<CellConfig, (Vec<String>, Refusal)>;
+
+/// A read under way ([`Reloader::read`]).
+pub(super) type Reading = std::pin::Pin<Box<dyn Future<Output = Read> + Send>>;
+
+/// How long reading and checking the cell file may take before the reload is refused.
+const READ_LIMIT: std::time::Duration = std::time::Duration::from_secs(10);
+
 impl Reloader {
     /// A reloader for the gateway running `config` from `source`; it reports a machine whose
     /// running job has ended on `drained`, for [`Reloader::on_drained`].
@@ -231,9 +240,38 @@ impl Reloader {
         self.run.cell
     }
 
-    /// Reads the file, applies what changed or refuses it whole; then logs, audits and
-    /// publishes what came of it, and shows it in the admin document.
-    pub(super) async fn reload(&mut self, ask: ReloadAsk) {
+    /// Reads the cell file off the runtime's threads, within [`READ_LIMIT`]: the future the
+    /// gateway's loop waits on beside its shutdown, so that no file (a FIFO, a hung share)
+    /// holds the gateway. What [`Self::reload`] takes.
+    pub(super) fn read(&self) -> impl Future<Output = Read> + Send + 'static {
+        let source = self.source.clone();
+        async move {
+            if source.path().is_none() {
+                return Err((vec![EMBEDDED.to_string()], pb::ErrorCode::NotSupported));
+            }
+            let loading = tokio::task::spawn_blocking(move || source.load());
+            match tokio::time::timeout(READ_LIMIT, loading).await {
+                Ok(Ok(Ok(config))) => Ok(config),
+                Ok(Ok(Err(errors))) => Err((errors, pb::ErrorCode::InvalidRequest)),
+                Ok(Err(e)) => Err((
+                    vec![format!("reading the cell file: {e}")],
+                    pb::ErrorCode::Internal,
+                )),
+                Err(_) => Err((
+                    vec![format!(
+                        "reading the cell file took longer than {} s (a file system that \
+                         does not answer?): nothing of this reload was applied",
+                        READ_LIMIT.as_secs()
+                    )],
+                    pb::ErrorCode::DeadlineExceeded,
+                )),
+            }
+        }
+    }
+
+    /// Applies what changed in the cell `read` (from [`Self::read`]) or refuses it whole;
+    /// then logs, audits and publishes what came of it, and shows it in the admin document.
+    pub(super) async fn reload(&mut self, ask: ReloadAsk, read: Read) {
         let file = self
             .source
             .path()
@@ -246,7 +284,7 @@ impl Reloader {
             unix_ms: pb::now_ms(),
             ..pb::ReloadResult::default()
         };
-        let code = match self.apply(ask.force, &mut result).await {
+        let code = match self.apply(ask.force, read, &mut result).await {
             Ok(()) => pb::ErrorCode::Unspecified,
             Err(code) => code,
         };
@@ -284,21 +322,17 @@ impl Reloader {
             .set_config(&self.current, self.generation, last, &waiting);
     }
 
-    async fn apply(&mut self, force: bool, result: &mut pb::ReloadResult) -> Result<(), Refusal> {
-        if self.source.path().is_none() {
-            result.errors.push(EMBEDDED.to_string());
-            return Err(pb::ErrorCode::NotSupported);
-        }
-        let source = self.source.clone();
-        let new = match tokio::task::spawn_blocking(move || source.load()).await {
-            Ok(Ok(config)) => config,
-            Ok(Err(errors)) => {
+    async fn apply(
+        &mut self,
+        force: bool,
+        read: Read,
+        result: &mut pb::ReloadResult,
+    ) -> Result<(), Refusal> {
+        let new = match read {
+            Ok(config) => config,
+            Err((errors, code)) => {
                 result.errors = errors;
-                return Err(pb::ErrorCode::InvalidRequest);
-            }
-            Err(e) => {
-                result.errors.push(format!("reading the cell file: {e}"));
-                return Err(pb::ErrorCode::Internal);
+                return Err(code);
             }
         };
         let change = match compare(&self.current, &new) {

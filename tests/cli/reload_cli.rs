@@ -106,3 +106,76 @@ fn reload_and_sighup_apply_the_file_and_a_bad_one_is_refused_with_every_error() 
     drop(gateway);
     let _ = log.join();
 }
+
+/// A FIFO or a link to an endless device in the cell file's place: a reload is refused at
+/// once, saying what the file is, the gateway answers meanwhile, and SIGTERM stops it.
+#[test]
+fn a_fifo_or_a_device_in_the_cell_files_place_is_refused_and_sigterm_still_stops_the_gateway() {
+    let port = free_port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cell.toml");
+    let head = format!(
+        "cell = \"cli-fifo\"\n[bus]\nlisten = [\"{endpoint}\"]\n[programs]\ndir = \"{}\"\n",
+        dir.path().join("programs").display()
+    );
+    std::fs::write(&path, format!("{head}{}", machine("m1"))).unwrap();
+    let mut child = common::cli::command(["run", "--config", path.to_str().unwrap()])
+        .args(["--console", "off", "--mtconnect", "off"])
+        .current_dir(dir.path())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let log = collect_stderr(&mut child);
+    let mut gateway = Reaper(child);
+    let run = |args: &[&str]| cli(&endpoint, args);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !run(&["status"]).status.success() {
+        assert!(Instant::now() < deadline, "cellgate never answered");
+        thread::sleep(Duration::from_millis(100));
+    }
+
+    // A FIFO nothing writes to: refused for what it is (before, the reload waited for a
+    // writer for ever, and every later one behind it).
+    std::fs::remove_file(&path).unwrap();
+    let c = std::ffi::CString::new(path.as_os_str().as_encoded_bytes()).unwrap();
+    // SAFETY: mkfifo reads the NUL-terminated path it is given; nothing else is touched.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    for _ in 0..2 {
+        let o = run(&["reload"]);
+        assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains("a FIFO, not a regular file") && err.contains(&path.display().to_string()),
+            "{err}"
+        );
+        assert!(run(&["status"]).status.success());
+    }
+
+    // A link to /dev/zero: refused, not read (before, the gateway grew until memory ran out).
+    std::fs::remove_file(&path).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", &path).unwrap();
+    let o = run(&["reload"]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("a character device"),
+        "{}",
+        text(&o)
+    );
+
+    // A FIFO again, a reload asked for by signal, and then SIGTERM: the gateway stops.
+    std::fs::remove_file(&path).unwrap();
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    let pid = gateway.0.id() as libc::pid_t;
+    // SAFETY: kill sends signals to the child this test started; nothing is dereferenced.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGHUP) }, 0);
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGTERM) }, 0);
+    let status = common::cli::wait_with_deadline(&mut gateway.0, Duration::from_secs(20));
+    assert!(
+        status.is_some(),
+        "SIGTERM did not stop the gateway: {}",
+        log.so_far()
+    );
+    let _ = log.join();
+}

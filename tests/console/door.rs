@@ -60,6 +60,42 @@ async fn password_guessing_is_throttled_and_the_right_password_waits_its_turn() 
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn guessing_a_name_does_not_lock_out_its_user_on_a_browser_they_logged_in_on_before() {
+    let gw = Gateway::start(secured).await;
+    // The real user logs in once: the browser is trusted for that name from now on.
+    let mut erik = Browser::new(&gw.url);
+    assert_eq!(erik.login("erik", "hammer").await.0, 200);
+    // Someone else guesses erik's password, well under the per-address allowance, until
+    // the name is closed to untrusted browsers, the right password included.
+    let mut guesser = Browser::new(&gw.url);
+    let mut closed = false;
+    for _ in 0..15 {
+        closed |= guesser.login("erik", "guess").await.0 == 429;
+    }
+    assert!(closed, "the name was never closed");
+    assert_eq!(guesser.login("erik", "hammer").await.0, 429);
+    assert_eq!(Browser::new(&gw.url).login("erik", "hammer").await.0, 429);
+    // erik, on the browser that logged in before, is let in at once, again and again.
+    for _ in 0..3 {
+        let (status, me) = erik.login("erik", "hammer").await;
+        assert_eq!(status, 200, "{me}");
+        assert_eq!(me["user"], "erik");
+    }
+    // Guessing on that browser closes the browser alone, after its own few free failures.
+    let mut refused = 0;
+    loop {
+        match erik.login("erik", "typo").await.0 {
+            401 => refused += 1,
+            429 => break,
+            other => panic!("{other}"),
+        }
+        assert!(refused <= 10, "the device was never closed");
+    }
+    assert_eq!(refused, 5, "a device has as many free failures as a name");
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_user_cannot_log_others_out_and_their_own_oldest_session_goes_first() {
     let gw = Gateway::start(|c, d| {
         secured(c, d);

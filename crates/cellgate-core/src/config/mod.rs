@@ -23,6 +23,7 @@ mod bus;
 mod console;
 mod error;
 mod fanuc;
+pub mod file;
 mod g05;
 mod history;
 mod mtconnect;
@@ -132,7 +133,7 @@ impl CellConfig {
     /// Reads, parses and validates the cell file at `path`.
     pub fn load(path: &Path) -> Result<CellConfig, ConfigErrors> {
         let origin = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|e| ConfigError::Read {
+        let text = file::read_text_bounded(path, file::MAX_CELL_FILE).map_err(|e| ConfigError::Read {
             origin: origin.clone(),
             reason: e.to_string(),
         })?;

@@ -353,7 +353,7 @@ fn check_pem(c: &mut Checker, path: &str, file: &Path, kind: Pem) {
     if !c.files {
         return;
     }
-    let text = match std::fs::read(file) {
+    let text = match super::file::read_bounded(file, super::file::MAX_SIDE_FILE) {
         Ok(bytes) => bytes,
         Err(e) => {
             return c
@@ -393,7 +393,7 @@ fn read_users(c: &mut Checker, file: &Path) -> Option<BTreeSet<String>> {
     if !c.files {
         return None;
     }
-    let text = match std::fs::read_to_string(file) {
+    let text = match super::file::read_text_bounded(file, super::file::MAX_SIDE_FILE) {
         Ok(t) => t,
         Err(e) => {
             c.errors
