@@ -84,38 +84,55 @@ impl Auditor {
         a: Audit<'_>,
         outcome: Result<(), &E>,
     ) {
-        if !history.enabled() {
-            return;
+        if history.enabled() {
+            let machine = a.machine.to_string();
+            history.audit(&machine, self.build(a, outcome));
         }
+    }
+
+    /// Records a console's note `a`, which stands for `count` refusals the console gathered:
+    /// kept as it comes, with its count, so that one user's refusals of different kinds stay
+    /// apart and a minute's summary says how many it stands for.
+    pub(crate) fn record_note<E: BusCode + std::fmt::Display>(
+        &self,
+        history: &History,
+        a: Audit<'_>,
+        outcome: Result<(), &E>,
+        count: u32,
+    ) {
+        if history.enabled() {
+            let machine = a.machine.to_string();
+            let record = pb::AuditRecord {
+                count: count.max(1),
+                ..self.build(a, outcome)
+            };
+            history.audit_gathered(&machine, record);
+        }
+    }
+
+    fn build<E: BusCode + std::fmt::Display>(
+        &self,
+        a: Audit<'_>,
+        outcome: Result<(), &E>,
+    ) -> pb::AuditRecord {
         let (roles, principal) = self.who_may(a.permission);
         let (ok, code, error) = match outcome {
             Ok(()) => (true, 0, String::new()),
             Err(e) => (false, e.code() as i32, e.to_string()),
         };
-        // A console's notes come gathered by the console (`count`): kept as they come, so
-        // that one user's refusals of different kinds stay apart.
-        let keep = if a.permission == Permission::AuditNote {
-            History::audit_gathered
-        } else {
-            History::audit
-        };
-        keep(
-            history,
-            a.machine,
-            pb::AuditRecord {
-                action: a.action.to_string(),
-                key: a.key.to_string(),
-                target: a.target,
-                detail: a.detail,
-                origin: a.origin,
-                roles,
-                principal,
-                ok,
-                code,
-                error,
-                count: 0,
-            },
-        );
+        pb::AuditRecord {
+            action: a.action.to_string(),
+            key: a.key.to_string(),
+            target: a.target,
+            detail: a.detail,
+            origin: a.origin,
+            roles,
+            principal,
+            ok,
+            code,
+            error,
+            count: 0,
+        }
     }
 }
 

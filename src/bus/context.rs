@@ -469,6 +469,17 @@ impl RouteContext {
         self.auditor.record(&self.history, a, outcome);
     }
 
+    /// Records a console's note, which stands for `count` refusals ([`Auditor::record_note`]).
+    pub(crate) fn audit_note<E: BusCode + std::fmt::Display>(
+        &self,
+        a: Audit<'_>,
+        outcome: Result<(), &E>,
+        count: u32,
+    ) {
+        self.auditor
+            .record_note(&self.history, a, outcome, count);
+    }
+
     /// The same context, knowing the cell's link and tag names.
     pub(crate) fn with_names(mut self, names: CellNames) -> Self {
         self.names = Live::new(names);

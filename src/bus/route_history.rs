@@ -148,7 +148,7 @@ pub(super) async fn note(ctx: &RouteContext, q: &Query) {
         ) => machine.to_string(),
         _ => String::new(),
     };
-    ctx.audit(
+    ctx.audit_note(
         super::audit::Audit {
             action: "audit.note",
             permission: cellgate_core::config::Permission::AuditNote,
@@ -159,6 +159,7 @@ pub(super) async fn note(ctx: &RouteContext, q: &Query) {
             origin: record.origin.clone(),
         },
         Err::<(), _>(&RequestError::NotPermitted(record.error.clone())),
+        record.count,
     );
     reply(q, q.key_expr().to_string(), &record).await;
 }

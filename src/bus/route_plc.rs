@@ -82,6 +82,15 @@ pub(crate) enum PlcRequestError {
         what: String,
         expected: &'static str,
     },
+    #[error(
+        "{key}: a put here carries a {expected} (encoding application/protobuf;{expected}, or \
+         none said), not {found}: it was not read"
+    )]
+    Encoding {
+        key: String,
+        found: String,
+        expected: &'static str,
+    },
     #[error("PLC {plc}: {error}")]
     Payload {
         plc: String,
@@ -116,6 +125,7 @@ impl BusCode for PlcRequestError {
         match self {
             PlcRequestError::UnknownPlc { .. } => pb::ErrorCode::UnknownMachine,
             PlcRequestError::BadKey { .. }
+            | PlcRequestError::Encoding { .. }
             | PlcRequestError::Payload { .. }
             | PlcRequestError::Request { .. } => pb::ErrorCode::InvalidRequest,
             PlcRequestError::Plc { error, .. } => error.code(),
@@ -374,6 +384,21 @@ pub(super) async fn mem_query(ctx: &PlcContext, q: &Query) {
     }
 }
 
+/// A put on a PLC's write key is read as `M` when its encoding says so or says nothing (as a
+/// DO put is); another encoding is refused with a word (logged by the put's route), never
+/// passed over in silence.
+pub(super) fn put_encoding<M: BusMessage>(s: &Sample) -> Result<(), PlcRequestError> {
+    let e = s.encoding();
+    if *e == zenoh::bytes::Encoding::default() || schema_of(e).as_deref() == Some(M::SCHEMA) {
+        return Ok(());
+    }
+    Err(PlcRequestError::Encoding {
+        key: s.key_expr().to_string(),
+        found: e.to_string(),
+        expected: M::SCHEMA,
+    })
+}
+
 /// A put with a `PlcWrite` on a memory key's `write`; a put has no answer, so a refusal is logged.
 pub(super) async fn mem_put(ctx: &PlcContext, s: &Sample) {
     if let Err(e) = put_mem(ctx, s).await {
@@ -382,15 +407,16 @@ pub(super) async fn mem_put(ctx: &PlcContext, s: &Sample) {
 }
 
 async fn put_mem(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
-    if s.kind() != SampleKind::Put
-        || schema_of(s.encoding()).as_deref() != Some(pb::PlcWrite::SCHEMA)
-    {
+    if s.kind() != SampleKind::Put {
         return Ok(());
     }
     let bytes = s.payload().to_bytes();
-    let done = mem_request(ctx, s.key_expr().as_str(), 1, Some(&bytes))
-        .await
-        .map(|_| ());
+    let done = match put_encoding::<pb::PlcWrite>(s) {
+        Ok(()) => mem_request(ctx, s.key_expr().as_str(), 1, Some(&bytes))
+            .await
+            .map(|_| ()),
+        Err(e) => Err(e),
+    };
     audit_mem(
         ctx,
         s.key_expr().as_str(),
@@ -543,12 +569,13 @@ pub(super) async fn transfer_put(ctx: &PlcContext, s: &Sample) {
 }
 
 async fn put_transfer(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
-    if s.kind() != SampleKind::Put
-        || schema_of(s.encoding()).as_deref() != Some(pb::PlcTransfer::SCHEMA)
-    {
+    if s.kind() != SampleKind::Put {
         return Ok(());
     }
-    let sent = send_transfer(ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await;
+    let sent = match put_encoding::<pb::PlcTransfer>(s) {
+        Ok(()) => send_transfer(ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await,
+        Err(e) => Err(e),
+    };
     audit_transfer(
         ctx,
         s.key_expr().as_str(),
@@ -746,12 +773,13 @@ pub(super) async fn message_put(ctx: &PlcContext, s: &Sample) {
 }
 
 async fn put_message(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
-    if s.kind() != SampleKind::Put
-        || schema_of(s.encoding()).as_deref() != Some(pb::PlcMessage::SCHEMA)
-    {
+    if s.kind() != SampleKind::Put {
         return Ok(());
     }
-    let sent = send_message(ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await;
+    let sent = match put_encoding::<pb::PlcMessage>(s) {
+        Ok(()) => send_message(ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await,
+        Err(e) => Err(e),
+    };
     audit_message(
         ctx,
         s.key_expr().as_str(),

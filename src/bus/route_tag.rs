@@ -21,7 +21,6 @@ use super::audit::{Audit, origin_of};
 use super::context::{reply, reply_err};
 use super::keys::{PlcKey, intersects};
 use super::payload::tag_message;
-use super::payload::{BusMessage, schema_of};
 use super::route_plc::{PlcContext, PlcLink, PlcRequestError};
 use crate::plc::PlcEvent;
 use cellgate_core::config::Permission;
@@ -188,14 +187,14 @@ pub(super) async fn tag_put(ctx: &PlcContext, s: &Sample) {
 }
 
 async fn put_tag(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
-    // Only TagWrites are writes; anything else published here is not for the gateway.
-    if s.kind() != SampleKind::Put
-        || schema_of(s.encoding()).as_deref() != Some(pb::TagWrite::SCHEMA)
-    {
+    if s.kind() != SampleKind::Put {
         return Ok(());
     }
     let payload = s.payload().to_bytes();
-    let written = write_tag(ctx, s.key_expr().as_str(), &payload).await;
+    let written = match super::route_plc::put_encoding::<pb::TagWrite>(s) {
+        Ok(()) => write_tag(ctx, s.key_expr().as_str(), &payload).await,
+        Err(e) => Err(e),
+    };
     audit_tag(
         ctx,
         s.key_expr().as_str(),

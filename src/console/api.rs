@@ -172,7 +172,7 @@ pub async fn login(
     headers: HeaderMap,
     JsonObject(body): JsonObject<LoginBody>,
 ) -> ApiResult {
-    same_origin(&headers, c.https)
+    same_origin(&headers, &c.hosts)
         .map_err(|why| ApiError::new(StatusCode::FORBIDDEN, pb::ErrorCode::NotPermitted, why))?;
     let device = cookie(&headers, DEVICE_COOKIE);
     match c
@@ -219,7 +219,7 @@ pub async fn login(
 
 /// Ends the session (its event streams with it). Only from the console's own pages.
 pub async fn logout(State(c): State<Arc<Console>>, headers: HeaderMap) -> ApiResult {
-    same_origin(&headers, c.https)
+    same_origin(&headers, &c.hosts)
         .map_err(|why| ApiError::new(StatusCode::FORBIDDEN, pb::ErrorCode::NotPermitted, why))?;
     if let Some(id) = session_id(&headers) {
         c.auth.logout(&id);

@@ -123,11 +123,93 @@ pub fn cookie(headers: &HeaderMap, name: &str) -> Option<String> {
         })
 }
 
+/// The host names the console answers to, so that a page of another site whose name was
+/// pointed at this console's address (DNS rebinding) is not served: a request's `Host` must
+/// be an address literal (no name can be re-pointed there), `localhost`, or one of
+/// `console.host_names`, with the port the console listens on.
+#[derive(Debug, Clone)]
+pub struct Hosts {
+    pub https: bool,
+    pub port: u16,
+    /// Lower case.
+    pub names: Vec<String>,
+}
+
+impl Hosts {
+    pub fn new(https: bool, port: u16, names: &[String]) -> Self {
+        Hosts {
+            https,
+            port,
+            names: names.iter().map(|n| n.to_ascii_lowercase()).collect(),
+        }
+    }
+
+    /// Whether `host` (a `Host` header: `NAME[:PORT]`, `IP[:PORT]`, `[IPv6][:PORT]`) is one
+    /// this console answers to.
+    pub fn admits(&self, host: &str) -> bool {
+        let default_port = if self.https { 443 } else { 80 };
+        let (name, port) = match host.rsplit_once(':') {
+            Some((n, p)) if !p.contains(']') && (n.starts_with('[') || !n.contains(':')) => {
+                (n, p.parse::<u16>().ok())
+            }
+            _ => (host, Some(default_port)),
+        };
+        if port != Some(self.port) {
+            return false;
+        }
+        let name = name.to_ascii_lowercase();
+        let literal = name
+            .strip_prefix('[')
+            .and_then(|n| n.strip_suffix(']'))
+            .map_or_else(
+                || name.parse::<std::net::Ipv4Addr>().is_ok(),
+                |v6| v6.parse::<std::net::Ipv6Addr>().is_ok(),
+            );
+        literal || name == "localhost" || self.names.contains(&name)
+    }
+
+    /// Why a request's `Host` is not one this console answers to, if it is not.
+    pub fn check(&self, headers: &HeaderMap) -> Result<(), String> {
+        let host = headers
+            .get(header::HOST)
+            .and_then(|h| h.to_str().ok())
+            .unwrap_or("");
+        if self.admits(host) {
+            Ok(())
+        } else {
+            Err(format!(
+                "this console does not answer to the host {host:?}: reach it by its address, \
+                 localhost, or a name listed in console.host_names (port {})",
+                self.port
+            ))
+        }
+    }
+}
+
+/// Every request: refused with 421 (Misdirected Request) unless its `Host` is one the console
+/// answers to ([`Hosts`]), before anything else reads it.
+pub async fn host(
+    axum::extract::State(hosts): axum::extract::State<Arc<Hosts>>,
+    req: Request,
+    next: axum::middleware::Next,
+) -> Response {
+    match hosts.check(req.headers()) {
+        Ok(()) => next.run(req).await,
+        Err(why) => ApiError::new(
+            StatusCode::MISDIRECTED_REQUEST,
+            pb::ErrorCode::InvalidRequest,
+            why,
+        )
+        .into_response(),
+    }
+}
+
 /// Whether a state-changing request comes from the console's own pages: a browser says
 /// where a request comes from (`Sec-Fetch-Site`, `Origin`), and a page of another site may
 /// not act here even with a token it somehow holds. A client that is no browser sends
-/// neither and is judged by its session and token alone.
-pub fn same_origin(headers: &HeaderMap, https: bool) -> Result<(), String> {
+/// neither and is judged by its session and token alone. The `Host` the origin is compared
+/// with is one the console answers to ([`Hosts`]).
+pub fn same_origin(headers: &HeaderMap, hosts: &Hosts) -> Result<(), String> {
     if let Some(site) = headers.get("sec-fetch-site") {
         let site = site.to_str().unwrap_or("?");
         if site != "same-origin" && site != "none" {
@@ -136,13 +218,14 @@ pub fn same_origin(headers: &HeaderMap, https: bool) -> Result<(), String> {
             ));
         }
     }
+    hosts.check(headers)?;
     if let Some(origin) = headers.get(header::ORIGIN) {
         let origin = origin.to_str().unwrap_or("?");
         let host = headers
             .get(header::HOST)
             .and_then(|h| h.to_str().ok())
             .unwrap_or("");
-        let own = format!("{}://{host}", if https { "https" } else { "http" });
+        let own = format!("{}://{host}", if hosts.https { "https" } else { "http" });
         if host.is_empty() || !origin.eq_ignore_ascii_case(&own) {
             return Err(format!(
                 "a request from {origin} may not act here: only this console's own pages may"
@@ -221,7 +304,7 @@ impl<N: Need> FromRequestParts<Arc<Console>> for Caller<N> {
             Some(ApiError::forbidden(p))
         } else if N::WRITE.is_none() {
             None
-        } else if let Err(why) = same_origin(&parts.headers, c.https) {
+        } else if let Err(why) = same_origin(&parts.headers, &c.hosts) {
             Some(ApiError::new(
                 StatusCode::FORBIDDEN,
                 pb::ErrorCode::NotPermitted,
@@ -341,16 +424,19 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for JsonObject<T> {
             let status = e.status();
             ApiError::new(status, pb::ErrorCode::InvalidRequest, e.body_text())
         })?;
-        let value: serde_json::Value = serde_json::from_slice(&bytes)
-            .map_err(|e| ApiError::bad(format!("the body is not JSON: {e}")))?;
-        if !value.is_object() {
+        // Read straight into the body's type, never through a map: a field given twice is
+        // refused ("duplicate field"), not taken at its last value.
+        if bytes.iter().find(|b| !b.is_ascii_whitespace()) != Some(&b'{') {
             return Err(ApiError::bad(
                 "the body must be a JSON object with the documented fields",
             ));
         }
-        T::deserialize(value)
+        serde_json::from_slice::<T>(&bytes)
             .map(JsonObject)
-            .map_err(|e| ApiError::bad(format!("the body: {e}")))
+            .map_err(|e| match e.classify() {
+                serde_json::error::Category::Data => ApiError::bad(format!("the body: {e}")),
+                _ => ApiError::bad(format!("the body is not JSON: {e}")),
+            })
     }
 }
 

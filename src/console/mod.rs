@@ -84,6 +84,8 @@ pub struct Console {
     cells: Mutex<(Instant, BTreeMap<String, serde_json::Value>)>,
     clients: Mutex<BTreeMap<String, Client>>,
     https: bool,
+    /// The host names it answers to.
+    hosts: Arc<extract::Hosts>,
     metrics: Option<Exposition>,
     /// Cancelled when the console stops: the pages' event streams end with it.
     stop: CancellationToken,
@@ -338,6 +340,10 @@ pub fn router(console: Arc<Console>) -> Router {
         .method_not_allowed_fallback(extract::method_not_allowed)
         .layer(axum::extract::DefaultBodyLimit::max(BODY_LIMIT))
         .layer(axum::middleware::from_fn_with_state(
+            Arc::clone(&console.hosts),
+            extract::host,
+        ))
+        .layer(axum::middleware::from_fn_with_state(
             https,
             headers::headers,
         ))
@@ -404,6 +410,7 @@ pub async fn serve(
         cells: Mutex::new((Instant::now() - DISCOVERY_EVERY * 2, BTreeMap::new())),
         clients: Mutex::new(BTreeMap::new()),
         https,
+        hosts: Arc::new(extract::Hosts::new(https, local.port(), &c.host_names)),
         metrics,
         stop: stop.clone(),
         uploads: Semaphore::new(UPLOADS_AT_ONCE),

@@ -452,6 +452,56 @@ async fn a_read_key_never_writes_whatever_the_payload() {
     cell.stop().await;
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_plc_put_of_another_encoding_is_refused_with_a_word_and_one_without_is_taken() {
+    let cell = RunningCell::start(default_cell, false).await;
+    let tag = cell.keys.plc_tag("plc-1", "recipe");
+    let set = cell.keys.plc_tag_set("plc-1", "recipe");
+    let write = |v: f64| pb::TagWrite { value: v }.encode_to_vec();
+    // Another encoding: not read, and said (before, passed over without a word).
+    cell.client
+        .put(&set, write(13.0))
+        .encoding(zenoh::bytes::Encoding::TEXT_PLAIN)
+        .await
+        .unwrap();
+    let mut tries = 0;
+    let refused = loop {
+        tries += 1;
+        assert!(tries < 100, "the refused put is nowhere in the audit");
+        let page: pb::HistoryPage = get_one(&cell.client, &cell.keys.audit(), None).await;
+        let found = page.records.into_iter().find_map(|r| match r.record {
+            Some(pb::history_record::Record::Audit(a)) if a.action == "plc.tag" => Some(a),
+            _ => None,
+        });
+        if let Some(a) = found {
+            break a;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert!(!refused.ok, "{refused:?}");
+    assert_eq!(refused.code(), pb::ErrorCode::InvalidRequest);
+    assert!(
+        refused.error.contains("text/plain") && refused.error.contains("cellgate.v1.TagWrite"),
+        "{}",
+        refused.error
+    );
+    let now: pb::TagValue = get_one(&cell.client, &tag, None).await;
+    assert_ne!(now.value, Some(13.0), "the refused put wrote");
+    // No encoding said: read as the key's message, as a DO put is.
+    cell.client.put(&set, write(21.0)).await.unwrap();
+    let mut value = None;
+    for _ in 0..100 {
+        let v: pb::TagValue = get_one(&cell.client, &tag, None).await;
+        value = v.value;
+        if value == Some(21.0) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert_eq!(value, Some(21.0), "a put without an encoding was not taken");
+    cell.stop().await;
+}
+
 // ---- fair shares -------------------------------------------------------------------------
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

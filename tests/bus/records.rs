@@ -394,6 +394,48 @@ async fn the_audit_records_every_write_with_who_asked_and_what_came_of_it() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_consoles_summary_note_keeps_the_count_it_stands_for() {
+    let cell = RunningCell::start(cell_config, false).await;
+    // What a console sends when a minute of refusals is over: one record standing for many.
+    let note = pb::AuditRecord {
+        action: "console.job.submit".to_string(),
+        detail: "599 more like it in the minute after the first".to_string(),
+        origin: Some(pb::RequestOrigin {
+            user: "olga".to_string(),
+            via: "console".to_string(),
+        }),
+        count: 599,
+        error: "olga may not submit jobs".to_string(),
+        ..Default::default()
+    };
+    ask::<pb::AuditRecord>(
+        &cell,
+        &cell.keys.audit_note(),
+        note.encode_to_vec(),
+        "console",
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e:?}"));
+    let page = records(&cell, &cell.keys.audit(), |p| {
+        p.records.iter().any(|r| {
+            matches!(&r.record, Some(pb::history_record::Record::Audit(a)) if a.action == "audit.note")
+        })
+    })
+    .await;
+    let kept = page
+        .records
+        .iter()
+        .find_map(|r| match &r.record {
+            Some(pb::history_record::Record::Audit(a)) if a.action == "audit.note" => Some(a),
+            _ => None,
+        })
+        .unwrap();
+    assert!(kept.detail.contains("599 more"), "{kept:?}");
+    assert_eq!(kept.count, 599, "the count its text speaks of: {kept:?}");
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn history_is_read_by_time_range_kind_machine_and_tag() {
     let cell = RunningCell::start(cell_config, false).await;
     // The link came up: its state changes are there, for mill-1 only when asked.

@@ -146,6 +146,78 @@ async fn status_without_body(url: &str, head: &str, length: u64) -> String {
     }
 }
 
+/// The status line the console answers a raw request with.
+async fn status_of(url: &str, request: &str) -> String {
+    let addr = url.trim_start_matches("http://").trim_end_matches('/');
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(request.as_bytes()).await.unwrap();
+    let mut buf = vec![0u8; 4096];
+    let n = tokio::time::timeout(Duration::from_secs(10), s.read(&mut buf))
+        .await
+        .expect("answered")
+        .unwrap();
+    String::from_utf8_lossy(&buf[..n])
+        .lines()
+        .next()
+        .unwrap_or_default()
+        .to_string()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_name_pointed_at_the_console_by_another_site_is_not_served() {
+    // The default cell: no users, everybody may do anything, on loopback. A page of
+    // http://evil.example:PORT whose name was re-pointed at 127.0.0.1 (DNS rebinding) sends
+    // Host and Origin of its own name: neither a read nor a write is served.
+    let gw = Gateway::start(|_, _| {}).await;
+    let addr = gw.url.trim_start_matches("http://").trim_end_matches('/');
+    let port = addr.rsplit_once(':').unwrap().1;
+    let get = |host: &str| format!("GET /api/v1/me HTTP/1.1\r\nHost: {host}\r\n\r\n");
+    let evil = format!("evil.example:{port}");
+    assert!(status_of(&gw.url, &get(&evil)).await.contains(" 421 "));
+    let post = format!(
+        "POST /api/v1/cells/demo/machines/mill-1/do HTTP/1.1\r\nHost: {evil}\r\n\
+         Origin: http://{evil}\r\nContent-Type: application/json\r\nContent-Length: 11\r\n\r\n\
+         {{\"value\":5}}"
+    );
+    assert!(status_of(&gw.url, &post).await.contains(" 421 "));
+    // Its address, localhost, at its own port: served. Another port: not.
+    assert!(status_of(&gw.url, &get(addr)).await.contains(" 200 "));
+    assert!(
+        status_of(&gw.url, &get(&format!("localhost:{port}")))
+            .await
+            .contains(" 200 ")
+    );
+    assert!(
+        status_of(&gw.url, &get("127.0.0.1:1"))
+            .await
+            .contains(" 421 ")
+    );
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_field_given_twice_in_a_body_is_refused() {
+    let gw = Gateway::start(secured).await;
+    let mut olga = Browser::new(&gw.url);
+    olga.login("olga", "tulips").await;
+    let r = olga
+        .http
+        .post(format!("{}/api/v1/cells/demo/machines/mill-1/do", gw.url))
+        .header("X-CSRF-Token", &olga.csrf)
+        .header("Content-Type", "application/json")
+        .body(r#"{"value": 1, "value": 255}"#)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    let e: Value = r.json().await.unwrap();
+    assert!(
+        e["message"].as_str().unwrap().contains("duplicate field `value`"),
+        "{e}"
+    );
+    gw.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_caller_and_the_size_are_known_before_a_body_is_read() {
     let gw = Gateway::start(secured).await;

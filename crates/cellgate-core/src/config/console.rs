@@ -22,6 +22,10 @@ pub struct ConsoleConfig {
     /// Listen beyond loopback on a cell without `[security]` (anyone who reaches the port
     /// may then do anything): off by default, and warned of when on.
     pub allow_remote: bool,
+    /// Host names the console is reached by, beside its addresses and `localhost` (a
+    /// request for any other name is refused: a page of another site whose name was pointed
+    /// at this address must not be served).
+    pub host_names: Vec<String>,
 }
 
 impl Default for ConsoleConfig {
@@ -32,6 +36,7 @@ impl Default for ConsoleConfig {
             session_hours: 12,
             sessions_per_user: 16,
             allow_remote: false,
+            host_names: Vec::new(),
         }
     }
 }
@@ -66,6 +71,23 @@ pub(super) fn check_console(c: &mut Checker, console: &ConsoleConfig, secured: b
                 .to_string(),
             "",
         );
+    }
+    for name in &console.host_names {
+        let plain = !name.is_empty()
+            && name.len() <= 253
+            && name
+                .split('.')
+                .all(|l| !l.is_empty() && l.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-'));
+        if !plain {
+            c.invalid(
+                "console.host_names".to_string(),
+                q(name),
+                "must be a DNS name without port or scheme, e.g. \"cell3.plant.example\" \
+                 (addresses and localhost are always taken)"
+                    .to_string(),
+                "",
+            );
+        }
     }
     c.range(
         || "console.session_idle_minutes".to_string(),

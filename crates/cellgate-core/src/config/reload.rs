@@ -180,6 +180,11 @@ pub fn compare(old: &CellConfig, new: &CellConfig) -> Result<CellChange, Restart
                 "console.allow_remote",
                 why,
             );
+            note(
+                o.host_names != n.host_names,
+                "console.host_names",
+                "the console's host names are taken at start",
+            );
         }
         _ => note(true, "console", "the console is started or not at start"),
     }
