@@ -1,5 +1,6 @@
 //! What a machine's task records in the cell's history: a job once it ended, alarms, the
-//! link's state and what the CNC is doing when they change, a G05 stream once it is over.
+//! link's state and what the CNC is doing when they change. (A G05 stream is recorded by its
+//! route once it is over: `route_g05`.)
 
 use cellgate_core::history::activity;
 use cellgate_core::pb::{self, HistoryKind, history_record::Record, job_event::Kind};
@@ -47,8 +48,6 @@ pub(crate) fn job_history(event: &pb::JobEvent) -> Option<pb::JobHistory> {
 pub(crate) struct Recorder {
     link: Option<i32>,
     activity: Option<i32>,
-    /// The G05 stream whose end was recorded last.
-    g05_ended: Option<String>,
     /// Job sizes seen in `started` events, for the record of their end.
     totals: std::collections::HashMap<String, u64>,
 }
@@ -67,13 +66,6 @@ impl Recorder {
         if self.activity != Some(a) {
             self.activity = Some(a);
             history.event(machine, HistoryKind::Cnc, Record::Cnc(a));
-        }
-        if let Some(g) = &status.g05
-            && g.end_reason != pb::G05EndReason::Unspecified as i32
-            && self.g05_ended.as_deref() != Some(g.stream_id.as_str())
-        {
-            self.g05_ended = Some(g.stream_id.clone());
-            history.event(machine, HistoryKind::G05, Record::G05(g.clone()));
         }
     }
 
