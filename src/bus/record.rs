@@ -43,6 +43,46 @@ pub(crate) fn job_history(event: &pb::JobEvent) -> Option<pb::JobHistory> {
     Some(h)
 }
 
+/// A finished job's last event, told again from its history record (`machine`'s), for a job
+/// the machine no longer keeps.
+pub(crate) fn job_event_from_history(machine: &str, h: pb::JobHistory) -> pb::JobEvent {
+    let kind = match h.outcome() {
+        pb::JobOutcome::Completed => Kind::Completed(pb::job_event::Completed {
+            bytes_sent: h.bytes_sent,
+            duration_ms: h.origin.as_ref().map_or(0, |o| {
+                h.ended_unix_ms
+                    .saturating_sub(o.started_unix_ms.max(o.queued_unix_ms))
+            }),
+            ..Default::default()
+        }),
+        pb::JobOutcome::Cancelled => Kind::Cancelled(pb::job_event::Cancelled {
+            byte_offset: h.bytes_sent,
+            by: h
+                .reason
+                .strip_prefix("cancelled by ")
+                .unwrap_or_default()
+                .to_string(),
+            ..Default::default()
+        }),
+        pb::JobOutcome::Failed | pb::JobOutcome::Unspecified => {
+            Kind::Failed(pb::job_event::Failed {
+                reason: h.reason.clone(),
+                byte_offset: h.bytes_sent,
+                alarm_number: h.alarm_number.clone(),
+                code: h.code,
+                ..Default::default()
+            })
+        }
+    };
+    pb::JobEvent {
+        job_id: h.job_id,
+        machine: machine.to_string(),
+        unix_ms: h.ended_unix_ms,
+        origin: h.origin,
+        kind: Some(kind),
+    }
+}
+
 /// The last states recorded of one machine, so that only changes are recorded.
 #[derive(Debug, Default)]
 pub(crate) struct Recorder {
