@@ -656,6 +656,14 @@ pub(crate) fn status_message(link: &PlcLink, snap: &PlcSnapshot) -> pb::PlcStatu
         messages_sent: c.messages_sent,
         partial_messages: c.partial_messages,
         fixed_length: link.config.fixed_length.map_or(0, u32::from),
+        line_errors: [
+            ("parity", c.line_errors.parity),
+            ("framing", c.line_errors.framing),
+            ("overrun", c.line_errors.overrun),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect(),
         poll_groups: snap
             .groups
             .iter()

@@ -1146,6 +1146,28 @@ pub fn plc_status_text(plcs: &[pb::PlcStatus], now_ms: u64) -> String {
         }
     }
     for p in plcs {
+        // A noisy line shows here (FFU120B §5-6): characters with errors, texts dropped.
+        let counts = |m: &std::collections::HashMap<String, u64>| {
+            let mut v: Vec<(&String, &u64)> = m.iter().filter(|(_, n)| **n > 0).collect();
+            v.sort();
+            v.iter()
+                .map(|(k, n)| format!("{k} {n}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        let (line, dropped) = (counts(&p.line_errors), counts(&p.receive_errors));
+        if !line.is_empty() || !dropped.is_empty() {
+            let none = || "none".to_string();
+            let _ = writeln!(
+                s,
+                "{}: line errors: {}; texts dropped: {}",
+                p.plc,
+                if line.is_empty() { none() } else { line },
+                if dropped.is_empty() { none() } else { dropped }
+            );
+        }
+    }
+    for p in plcs {
         for g in &p.poll_groups {
             let _ = writeln!(
                 s,
