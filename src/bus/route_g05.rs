@@ -300,6 +300,7 @@ async fn raise_alarms(
         let event = machine.alarm_event(
             pb::AlarmKind::G05,
             "",
+            cellgate_core::codes::alarm::G05,
             format!("stream {}: {alarm}", status.stream),
         );
         machine.view().status.last_alarm = Some(event.clone());

@@ -270,6 +270,26 @@ fn a_cnc_alarm_is_a_fault_with_a_native_code_that_a_reset_clears() {
 }
 
 #[test]
+fn a_sat_in_alarm_status_is_a_system_fault_with_the_gateways_code_not_a_link_fault() {
+    let mut a = agent();
+    let mut s = status("mill-1", pb::LinkState::Alarm);
+    s.last_alarm = Some(pb::AlarmEvent {
+        machine: "mill-1".into(),
+        kind: pb::AlarmKind::CncAlarm as i32,
+        message: "remote buffer in alarm status: NC alarm (SAT byte 3 = 0, §4.4.2 1)".into(),
+        code: "CG-SAT-NC".into(),
+        ..Default::default()
+    });
+    a.update("demo", Update::Status(Box::new(s)), 2);
+    let doc = a.current(None, &Query::default(), 3).unwrap();
+    assert!(
+        doc.contains("type=\"SYSTEM\" nativeCode=\"CG-SAT-NC\""),
+        "{doc}"
+    );
+    assert!(!doc.contains("type=\"COMMUNICATIONS\" nativeCode"), "{doc}");
+}
+
+#[test]
 fn a_link_alarm_keeps_the_manual_number() {
     let mut a = agent();
     let mut s = status("mill-1", pb::LinkState::Alarm);
