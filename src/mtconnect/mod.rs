@@ -235,11 +235,8 @@ pub async fn site(
             return Err(SiteError::Config(mine.join("; ")));
         }
     }
-    if !config.is_loopback() {
-        tracing::warn!(
-            listen = %config.listen,
-            "the MTConnect interface has no login: anyone who reaches it may read every cell's state"
-        );
+    for w in config.warnings() {
+        tracing::warn!("{w}");
     }
     let options = args.connect.options()?;
     let zenoh_config = crate::client::client_config(&options.endpoint, &options.security)?;
