@@ -427,7 +427,8 @@ pub async fn serve(
     let task = if let Some(tls) = &settings.security.tls {
         // A plain 503 means nothing to a TLS client: one over the cap is only closed.
         let door = Door::new("console", tcp, cap, b"");
-        let listener = TlsListener::new(door, listen::acceptor(tls)?).map_err(ConsoleError::Serve)?;
+        let listener =
+            TlsListener::new(door, listen::acceptor(tls)?).map_err(ConsoleError::Serve)?;
         tokio::spawn(crate::door::http::serve(listener, app, stop))
     } else {
         let door = Door::new("console", tcp, cap, crate::door::HTTP_FULL);

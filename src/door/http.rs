@@ -47,10 +47,11 @@ where
             accepted = listener.accept() => accepted,
         };
         let peer = addr.clone();
-        let service = tower::ServiceExt::map_request(app.clone(), move |mut r: Request<Incoming>| {
-            r.extensions_mut().insert(ConnectInfo(peer.clone()));
-            r
-        });
+        let service =
+            tower::ServiceExt::map_request(app.clone(), move |mut r: Request<Incoming>| {
+                r.extensions_mut().insert(ConnectInfo(peer.clone()));
+                r
+            });
         let conn = builder.serve_connection(TokioIo::new(io), TowerToHyperService::new(service));
         let conn = graceful.watch(conn);
         tokio::spawn(async move {

@@ -134,7 +134,9 @@ impl Door {
             };
             match Arc::clone(&self.slots).try_acquire_owned() {
                 Ok(permit) => {
-                    if let Err(e) = socket2::SockRef::from(&stream).set_send_buffer_size(SEND_BUFFER) {
+                    if let Err(e) =
+                        socket2::SockRef::from(&stream).set_send_buffer_size(SEND_BUFFER)
+                    {
                         tracing::debug!(listener = self.name, error = %e, "send buffer not set");
                     }
                     return (Admitted::new(stream, Some(permit)), peer);

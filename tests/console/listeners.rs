@@ -116,7 +116,7 @@ async fn a_request_head_never_finished_is_cut_off_on_the_console_and_the_agent()
     let half = |addr: String| async move {
         let mut s = TcpStream::connect(&addr).await.unwrap();
         // Half a head: the request line and one header, never the blank line.
-        s.write_all(b"GET /probe HTTP/1.1\r\nHost: x\r\n")
+        s.write_all(format!("GET /probe HTTP/1.1\r\nHost: {addr}\r\n").as_bytes())
             .await
             .unwrap();
         let started = Instant::now();
@@ -136,7 +136,7 @@ async fn a_kept_alive_connection_left_idle_is_closed_too() {
     let cell = Cell::start().await;
     let idle = |addr: String, path: &'static str| async move {
         let mut s = TcpStream::connect(&addr).await.unwrap();
-        s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes())
+        s.write_all(format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
             .await
             .unwrap();
         // The answer comes, and the connection is kept for a next request that never comes.
@@ -157,7 +157,10 @@ async fn a_kept_alive_connection_left_idle_is_closed_too() {
         idle(cell.mtconnect.clone(), "/probe")
     );
     for (addr, closed, after) in [console, agent] {
-        assert!(closed, "{addr}: an idle kept-alive connection stayed {after:?}");
+        assert!(
+            closed,
+            "{addr}: an idle kept-alive connection stayed {after:?}"
+        );
         eprintln!("{addr}: idle kept-alive connection closed after {after:?}");
     }
     cell.stop().await;
@@ -235,7 +238,11 @@ async fn an_shdr_agent_that_never_pings_is_closed_while_observations_flow() {
         started.elapsed()
     );
     assert!(late >= 5, "observations flowed while the agent was silent");
-    assert!(closed, "a silent agent kept its connection {:?}", started.elapsed());
+    assert!(
+        closed,
+        "a silent agent kept its connection {:?}",
+        started.elapsed()
+    );
     cell.stop().await;
 }
 
@@ -245,7 +252,7 @@ async fn stalled(addr: &str, path: &str) -> tokio::net::TcpStream {
     let socket = tokio::net::TcpSocket::new_v4().unwrap();
     socket.set_recv_buffer_size(2048).unwrap();
     let mut s = socket.connect(addr.parse().unwrap()).await.unwrap();
-    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes())
+    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
         .await
         .unwrap();
     s
@@ -375,7 +382,11 @@ async fn a_gateway_with_few_open_files_outlives_a_flood_of_connections() {
         own.rlim_cur = own.rlim_max;
         libc::setrlimit(libc::RLIMIT_NOFILE, &own);
     }
-    assert!(own.rlim_cur > 3 * FLOOD as u64, "this test needs {} open files", 3 * FLOOD);
+    assert!(
+        own.rlim_cur > 3 * FLOOD as u64,
+        "this test needs {} open files",
+        3 * FLOOD
+    );
     let dir = tempfile::tempdir().unwrap();
     let mut config = CellConfig::embedded_default();
     let (bus, console, mtconnect) = (free_port(), free_port(), free_port());
@@ -406,7 +417,10 @@ async fn a_gateway_with_few_open_files_outlives_a_flood_of_connections() {
     let stderr = common::cli::collect_stderr(&mut child);
     let child = common::cli::Reaper(child);
     let pid = child.0.id();
-    let (console, mtconnect) = (format!("127.0.0.1:{console}"), format!("127.0.0.1:{mtconnect}"));
+    let (console, mtconnect) = (
+        format!("127.0.0.1:{console}"),
+        format!("127.0.0.1:{mtconnect}"),
+    );
     let endpoint = format!("tcp/127.0.0.1:{bus}");
     let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
     wait_200(&format!("http://{console}/health")).await;
@@ -419,7 +433,9 @@ async fn a_gateway_with_few_open_files_outlives_a_flood_of_connections() {
             let connected =
                 tokio::time::timeout(Duration::from_secs(1), TcpStream::connect(addr)).await;
             if let Ok(Ok(mut s)) = connected {
-                let _ = s.write_all(b"GET / HTTP/1.1\r\nHost: x\r\n").await;
+                let _ = s
+                    .write_all(format!("GET / HTTP/1.1\r\nHost: {addr}\r\n").as_bytes())
+                    .await;
                 flood.push(s);
             }
         }
@@ -427,7 +443,10 @@ async fn a_gateway_with_few_open_files_outlives_a_flood_of_connections() {
     tokio::time::sleep(Duration::from_millis(500)).await;
     let flooded = files_and_rss(pid);
     // The bus is still served: its sockets are in the reserve the listeners leave.
-    assert!(bus_answers(&endpoint).await, "the bus stopped answering in the flood");
+    assert!(
+        bus_answers(&endpoint).await,
+        "the bus stopped answering in the flood"
+    );
     // Once the heads' time is up, the held connections are closed and a real client is served,
     // though the flood's sockets are still open on this side.
     let started = Instant::now();
