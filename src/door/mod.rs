@@ -146,7 +146,7 @@ impl Door {
         }
     }
 
-    /// Closes a connection over the cap at once, with [`Door::full`]'s answer if the socket
+    /// Closes a connection over the cap at once, with the door's `full` answer if the socket
     /// takes it now, and counts it.
     fn refuse(&self, stream: TcpStream, peer: SocketAddr) {
         // What the client sent already is read first, so that closing sends a FIN its answer
