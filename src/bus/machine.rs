@@ -11,9 +11,9 @@ use super::payload;
 use crate::jobs::{JobsHandle, JobsSnapshot};
 use crate::link::driver::{LinkEvent, LinkHandle};
 use crate::link::g05::G05Desk;
+use cellgate_core::codes::alarm as codes;
 use cellgate_core::config::MachineConfig;
 use cellgate_core::fanuc::host::LinkState;
-use cellgate_core::codes::alarm as codes;
 use cellgate_core::pb;
 
 /// What the bus knows of a machine right now.
@@ -227,8 +227,7 @@ impl Machine {
                 } else {
                     ("the CNC raised an alarm (NAK; §6.4)", codes::NAK)
                 };
-                let event =
-                    self.alarm_event(pb::AlarmKind::CncAlarm, "", code, how.to_string());
+                let event = self.alarm_event(pb::AlarmKind::CncAlarm, "", code, how.to_string());
                 view.status.last_alarm = Some(event.clone());
                 Some(Extra::Alarm(event))
             }

@@ -299,7 +299,9 @@ async fn a_cnc_alarm_is_the_cncs_whichever_message_reports_it_and_stays_until_a_
     // Protocol B: the NAK's alarm stays while the link idles, until the CNC is reset (the
     // simulated operator resets nothing by himself here).
     cell.board("b1")
-        .command(cellgate_core::sim::fanuc_board::BoardCommand::SetAutostart(false));
+        .command(cellgate_core::sim::fanuc_board::BoardCommand::SetAutostart(
+            false,
+        ));
     cell.board("b1").raise_alarm();
     let mut s = status("b1").await;
     for _ in 0..100 {
@@ -309,7 +311,10 @@ async fn a_cnc_alarm_is_the_cncs_whichever_message_reports_it_and_stays_until_a_
         tokio::time::sleep(Duration::from_millis(50)).await;
         s = status("b1").await;
     }
-    assert_eq!(s.last_alarm.as_ref().map(|a| a.code.as_str()), Some("CG-NAK"));
+    assert_eq!(
+        s.last_alarm.as_ref().map(|a| a.code.as_str()),
+        Some("CG-NAK")
+    );
     tokio::time::sleep(Duration::from_secs(2)).await;
     let s = status("b1").await;
     assert_eq!(s.link_state(), pb::LinkState::Alarm, "{s:?}");

@@ -449,8 +449,16 @@ async fn a_character_error_is_counted_in_the_plcs_status() {
     assert_eq!(status.line_errors.get("parity"), Some(&1), "{status:?}");
     assert_eq!(status.line_errors.get("framing"), Some(&0), "{status:?}");
     // The text whose start code was hit is one text ended by a character error, not noise.
-    assert_eq!(status.receive_errors.get("character"), Some(&1), "{status:?}");
-    assert_eq!(status.receive_errors.get("start_code"), Some(&0), "{status:?}");
+    assert_eq!(
+        status.receive_errors.get("character"),
+        Some(&1),
+        "{status:?}"
+    );
+    assert_eq!(
+        status.receive_errors.get("start_code"),
+        Some(&0),
+        "{status:?}"
+    );
     // `cellgate plc status` shows it.
     let text = cellgate::client::render::plc_status_text(std::slice::from_ref(&status), 0);
     assert!(
