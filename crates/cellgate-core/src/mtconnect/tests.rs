@@ -670,3 +670,36 @@ fn a_reloaded_cell_adds_removes_and_changes_devices() {
     assert!(a.model().device_named("lathe-1").is_some());
     assert!(a.model().device_named("mill-3").is_none());
 }
+
+/// A punched program reaches an agent fed by the SHDR port as the reference agent reads it:
+/// the asset itself on an `@ASSET@` line, then ASSET_CHANGED with its type before its id.
+#[test]
+fn a_punched_programs_asset_goes_out_on_shdr_as_the_reference_agent_reads_it() {
+    let mut a = agent();
+    let p = pb::PunchedProgram {
+        machine: "lathe-1".into(),
+        library_name: "O7".into(),
+        program: b"%\nO7\nM30\n%\n".to_vec(),
+        ..Default::default()
+    };
+    let from = a.buffer().next();
+    a.update(
+        "demo",
+        Update::Punch(Box::new(p), "cellgate/demo/program/O7".into()),
+        2_000_000,
+    );
+    let (obs, _) = a.buffer().sample(from, 100, |_| true);
+    let text = super::shdr::lines(&a, &obs);
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 2, "{text}");
+    let asset: Vec<&str> = lines[0].splitn(5, '|').collect();
+    assert_eq!(asset[1..4], ["@ASSET@", "demo.lathe-1.O7", "File"], "{text}");
+    assert!(
+        asset[4].starts_with("<File assetId=\"demo.lathe-1.O7\"") && asset[4].ends_with("</File>"),
+        "{text}"
+    );
+    assert!(
+        lines[1].ends_with("|lathe-1:lathe-1_asset_chg|File|demo.lathe-1.O7"),
+        "{text}"
+    );
+}
