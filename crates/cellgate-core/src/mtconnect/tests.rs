@@ -693,7 +693,11 @@ fn a_punched_programs_asset_goes_out_on_shdr_as_the_reference_agent_reads_it() {
     let lines: Vec<&str> = text.lines().collect();
     assert_eq!(lines.len(), 2, "{text}");
     let asset: Vec<&str> = lines[0].splitn(5, '|').collect();
-    assert_eq!(asset[1..4], ["@ASSET@", "demo.lathe-1.O7", "File"], "{text}");
+    assert_eq!(
+        asset[1..4],
+        ["@ASSET@", "demo.lathe-1.O7", "File"],
+        "{text}"
+    );
     assert!(
         asset[4].starts_with("<File assetId=\"demo.lathe-1.O7\"") && asset[4].ends_with("</File>"),
         "{text}"
