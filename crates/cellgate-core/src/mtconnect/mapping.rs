@@ -110,7 +110,11 @@ impl MachineView {
                 } else {
                     JobEnd::Interrupted
                 };
-                if self.job.is_some() || end == JobEnd::Completed {
+                // A job that had started counts though the agent did not see it start (one
+                // failed by a restart of its gateway, read when the agent starts); one that
+                // never started (cancelled while waiting) says nothing of the machine.
+                let started = e.origin.as_ref().is_some_and(|o| o.started_unix_ms > 0);
+                if self.job.is_some() || end == JobEnd::Completed || started {
                     self.job_end = Some((e.job_id.clone(), end));
                 }
                 self.job = None;
