@@ -792,6 +792,7 @@ impl WatchPrinter {
                     library_change_text(info, by.as_ref())
                 )
             }
+            WatchEvent::Library(e) => format!("{} library {}", clock(now_ms), folder_event_text(e)),
             WatchEvent::DoOutput {
                 machine,
                 command,
@@ -988,6 +989,9 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
             "event": "program_changed", "change": library_change(info), "unix_ms": now_ms,
             "program": info, "by": by,
         }),
+        WatchEvent::Library(e) => json!({
+            "event": "library", "folder": e, "unix_ms": now_ms,
+        }),
         WatchEvent::DoOutput {
             machine,
             command,
@@ -1118,6 +1122,27 @@ pub fn error_replies_json(st: &pb::PlcStation) -> Value {
 }
 
 /// The stations of every PLC link, one line each; `now_ms` ages their last errors.
+/// A folder event of the library, for `watch`.
+fn folder_event_text(e: &pb::LibraryEvent) -> String {
+    match e.kind() {
+        pb::LibraryEventKind::Refused => format!(
+            "{}{}: not taken: {}",
+            e.file,
+            if e.name.is_empty() || e.name == e.file {
+                String::new()
+            } else {
+                format!(" (program {})", e.name)
+            },
+            e.error
+        ),
+        pb::LibraryEventKind::FolderUnreadable => {
+            format!("folder {} cannot be read: {}", e.file, e.error)
+        }
+        pb::LibraryEventKind::FolderReadable => format!("folder {} can be read again", e.file),
+        pb::LibraryEventKind::Unspecified => format!("{} {}", e.file, e.error),
+    }
+}
+
 pub fn plc_status_text(plcs: &[pb::PlcStatus], now_ms: u64) -> String {
     let mut s = String::new();
     if plcs.is_empty() {

@@ -432,3 +432,39 @@ async fn a_store_of_the_same_bytes_again_says_nothing_and_the_folder_adds_no_wor
     library.quiet(1500).await;
     cell.stop().await;
 }
+
+/// `cellgate watch` shows what the folder refused, as docs/library.md says: its events key is
+/// a verbatim chunk that `P/C/**` does not take in, so the watch follows it by name.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn watch_shows_a_file_the_folder_refused() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let client = cellgate::client::Client::attach(
+        cell.client.clone(),
+        "cellgate",
+        "folder",
+        serde_json::Value::Null,
+        Duration::from_secs(10),
+    )
+    .unwrap();
+    let mut watch = client.watch().await.unwrap();
+    let dir = programs(&cell);
+    std::fs::write(dir.join("O5558.nc"), program(5558, 1)).unwrap();
+    std::fs::write(dir.join("O5558.tap"), program(5558, 2)).unwrap();
+    let refused = loop {
+        let e = tokio::time::timeout(Duration::from_secs(20), watch.next())
+            .await
+            .expect("watch showed no refusal")
+            .expect("the session closed");
+        if let cellgate::client::WatchEvent::Library(e) = e {
+            break e;
+        }
+    };
+    assert_eq!(refused.kind(), pb::LibraryEventKind::Refused);
+    assert_eq!(refused.code(), pb::ErrorCode::Conflict);
+    let line = cellgate::client::render::WatchPrinter::new()
+        .line(&cellgate::client::WatchEvent::Library(refused.clone()), 0)
+        .unwrap();
+    assert!(line.contains("not taken"), "{line}");
+    watch.close().await;
+    cell.stop().await;
+}
