@@ -57,7 +57,15 @@ pub(super) async fn program_read(ctx: &RouteContext, q: &Query) {
         match ctx.library.list().await {
             Ok(entries) => {
                 for e in entries {
-                    let key = ctx.keys.program(&e.name);
+                    // A file the folder refuses has no program name: a chunk no program
+                    // name can be (it starts with '-') stands for it.
+                    let key = if e.name.is_empty() {
+                        use sha2::Digest as _;
+                        let id = hex::encode(sha2::Sha256::digest(e.file.as_bytes()));
+                        ctx.keys.program(&format!("-refused-{}", &id[..16]))
+                    } else {
+                        ctx.keys.program(&e.name)
+                    };
                     if intersects(q.key_expr(), &key) {
                         reply(q, key, &e.info()).await;
                     }
