@@ -268,7 +268,8 @@ pub(super) async fn program_write(ctx: &RouteContext, q: &Query) {
                 .store_as(
                     name,
                     Store {
-                        bytes: &bytes,
+                        // The request's own bytes, not a copy: a program may be large.
+                        bytes: bytes.into(),
                         by,
                         comment: write.comment,
                         adopted: None,
@@ -401,7 +402,7 @@ pub(super) async fn program_sample(ctx: &RouteContext, sample: &Sample) {
                 .store_as(
                     name,
                     Store {
-                        bytes: &program,
+                        bytes: program.as_ref().into(),
                         by,
                         ..Store::default()
                     },

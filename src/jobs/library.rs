@@ -235,7 +235,8 @@ impl Default for Retention {
 /// A store: the content and what the revision records of it.
 #[derive(Debug, Clone, Default)]
 pub struct Store<'a> {
-    pub bytes: &'a [u8],
+    /// Owned, it is written as it is; borrowed, it is copied first.
+    pub bytes: std::borrow::Cow<'a, [u8]>,
     /// Who stored it, as the client said.
     pub by: pb::RequestOrigin,
     pub comment: String,
@@ -555,7 +556,7 @@ impl ProgramLibrary {
         self.store_as(
             name,
             Store {
-                bytes: program,
+                bytes: program.into(),
                 ..Store::default()
             },
         )
@@ -582,7 +583,7 @@ impl ProgramLibrary {
         self.store_new_as(
             name,
             Store {
-                bytes: program,
+                bytes: program.into(),
                 ..Store::default()
             },
         )
@@ -616,7 +617,7 @@ impl ProgramLibrary {
         self.write(
             name,
             Store {
-                bytes: &bytes,
+                bytes: bytes.into(),
                 by,
                 comment,
                 adopted: Some((from.to_string(), source.number)),
@@ -645,7 +646,7 @@ impl ProgramLibrary {
         let _store = self.stores.lock().await;
         let lib = self.clone();
         let name = name.to_string();
-        let bytes = store.bytes.to_vec();
+        let bytes = store.bytes.into_owned();
         let (by, comment, adopted) = (store.by, store.comment, store.adopted);
         blocking(move || {
             let revisions = index.revisions(&name)?;

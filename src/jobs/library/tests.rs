@@ -185,7 +185,7 @@ async fn store_by(lib: &ProgramLibrary, name: &str, bytes: &[u8], user: &str) ->
     lib.store_as(
         name,
         Store {
-            bytes,
+            bytes: bytes.into(),
             by: by(user),
             comment: format!("by {user}"),
             adopted: None,
