@@ -32,8 +32,10 @@ name = "mill-1"
 protocol = "a"
 transport = {{ kind = "sim", line = {{ baud = 19200 }} }}
 sim = {{ consume_rate = 4000 }}
+drop_dir = {:?}
 "#,
         dir.join("programs"),
+        dir.join("drop-mill-1"),
     );
     CellConfig::from_toml_str(&text, "doors cell").unwrap_or_else(|e| panic!("{e}"))
 }
@@ -303,5 +305,27 @@ async fn a_large_sparse_file_is_copied_for_what_it_holds() {
         "{} bytes on disk",
         meta.blocks() * 512
     );
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_link_in_a_drop_folder_is_refused_not_sent() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let drop_dir = cell.dir.path().join("drop-mill-1");
+    let events = cell.subscribe(cell.keys.job_events("mill-1", "*")).await;
+    std::fs::create_dir_all(&drop_dir).unwrap();
+    let outside = cell.dir.path().join("O7400.nc");
+    std::fs::write(&outside, program(7400, 3)).unwrap();
+    std::os::unix::fs::symlink(&outside, drop_dir.join("O7400.nc")).unwrap();
+    common::bus::eventually("the link is in refused/", || {
+        std::fs::symlink_metadata(drop_dir.join("refused/O7400.nc"))
+            .is_ok_and(|m| m.file_type().is_symlink())
+    })
+    .await;
+    let why = std::fs::read_to_string(drop_dir.join("refused/O7400.nc.why.txt")).unwrap();
+    assert!(why.contains("symbolic link"), "{why}");
+    // What it named is untouched, and no job was made of it.
+    assert_eq!(std::fs::read(&outside).unwrap(), program(7400, 3));
+    assert!(events.try_recv().unwrap().is_none(), "a job was made of it");
     cell.stop().await;
 }
