@@ -638,7 +638,11 @@ pub fn program_table(programs: &[pb::ProgramInfo]) -> String {
         .iter()
         .map(|p| {
             vec![
-                p.name.clone(),
+                if p.name.is_empty() {
+                    "-".to_string()
+                } else {
+                    p.name.clone()
+                },
                 p.latest
                     .as_ref()
                     .filter(|r| !r.removed)
@@ -654,9 +658,11 @@ pub fn program_table(programs: &[pb::ProgramInfo]) -> String {
         })
         .collect();
     let mut out = table(&["NAME", "REV", "BYTES", "MODIFIED", "FILE"], &rows);
-    // Why a file of the folder is not its program's latest revision, where it is not.
+    // Why a file of the folder is not its program's latest revision, where it is not; a file
+    // the folder does not take has no program name, and is named by its file.
     for p in programs.iter().filter(|p| !p.note.is_empty()) {
-        out.push_str(&format!("{}: {}\n", p.name, p.note));
+        let who = if p.name.is_empty() { &p.file } else { &p.name };
+        out.push_str(&format!("{who}: {}\n", p.note));
     }
     out
 }

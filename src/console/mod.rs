@@ -53,7 +53,8 @@ use self::live::Live;
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 /// How often the list of cells is asked again at most.
 const DISCOVERY_EVERY: Duration = Duration::from_secs(5);
-/// Program uploads sent to a gateway at once: each is held whole while it is sent.
+/// Program uploads sent to a gateway at once: each is held whole while it is sent (one bus
+/// message); the others wait spooled to files, not in memory.
 const UPLOADS_AT_ONCE: usize = 2;
 /// Body limit of every request but a program upload (which takes `programs.max_inline`).
 const BODY_LIMIT: usize = 16 * 1024;

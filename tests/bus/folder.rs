@@ -44,32 +44,32 @@ receive_dir = {:?}
     CellConfig::from_toml_str(&text, "folder cell").unwrap_or_else(|e| panic!("{e}"))
 }
 
-fn programs(cell: &RunningCell) -> PathBuf {
+pub(crate) fn programs(cell: &RunningCell) -> PathBuf {
     cell.dir.path().join("programs")
 }
 
 /// What the library said: a change on `…/NAME/changed` (stored or removed), or a folder's
 /// refusal on `…/@events`.
 #[derive(Debug)]
-struct Said {
-    kind: &'static str,
-    name: String,
-    file: String,
-    revision: u32,
-    size: u64,
-    code: pb::ErrorCode,
-    error: String,
-    by: Option<pb::RequestOrigin>,
+pub(crate) struct Said {
+    pub(crate) kind: &'static str,
+    pub(crate) name: String,
+    pub(crate) file: String,
+    pub(crate) revision: u32,
+    pub(crate) size: u64,
+    pub(crate) code: pb::ErrorCode,
+    pub(crate) error: String,
+    pub(crate) by: Option<pb::RequestOrigin>,
 }
 
 /// Both of the library's publications, as one stream.
-struct Library {
+pub(crate) struct Library {
     changed: Sub,
     events: Sub,
 }
 
 impl Library {
-    async fn follow(cell: &RunningCell) -> Library {
+    pub(crate) async fn follow(cell: &RunningCell) -> Library {
         Library {
             changed: cell
                 .subscribe(cellgate::bus::keys::program_changed(&cell.keys, "*"))
@@ -79,7 +79,7 @@ impl Library {
     }
 
     /// The next thing said, within 10 s.
-    async fn next(&self) -> Said {
+    pub(crate) async fn next(&self) -> Said {
         let wait = async {
             tokio::select! {
                 s = self.changed.recv_async() => {
@@ -124,14 +124,14 @@ impl Library {
     }
 
     /// Nothing said for `ms`.
-    async fn quiet(&self, ms: u64) {
+    pub(crate) async fn quiet(&self, ms: u64) {
         if let Ok(said) = tokio::time::timeout(Duration::from_millis(ms), self.next()).await {
             panic!("unexpected: {said:?}");
         }
     }
 }
 
-fn program(o: u32, lines: usize) -> Vec<u8> {
+pub(crate) fn program(o: u32, lines: usize) -> Vec<u8> {
     let mut p = format!("%\nO{o}\n").into_bytes();
     for i in 0..lines {
         p.extend_from_slice(format!("N{i} G01 X{i}.5 F100\n").as_bytes());
@@ -141,7 +141,7 @@ fn program(o: u32, lines: usize) -> Vec<u8> {
 }
 
 /// Reads the audit until `check` holds of its records (5 s at most).
-async fn audit_until(cell: &RunningCell, check: impl Fn(&[pb::AuditRecord]) -> bool) {
+pub(crate) async fn audit_until(cell: &RunningCell, check: impl Fn(&[pb::AuditRecord]) -> bool) {
     let mut records = Vec::new();
     for _ in 0..50 {
         let page: pb::HistoryPage = get_one(&cell.client, &cell.keys.audit(), None).await;
@@ -161,7 +161,7 @@ async fn audit_until(cell: &RunningCell, check: impl Fn(&[pb::AuditRecord]) -> b
     panic!("the audit never showed it: {records:#?}");
 }
 
-async fn read(cell: &RunningCell, name: &str) -> Vec<u8> {
+pub(crate) async fn read(cell: &RunningCell, name: &str) -> Vec<u8> {
     match get(&cell.client, &cell.keys.program(name), None)
         .await
         .as_slice()
