@@ -510,14 +510,14 @@ fn acl(args: &AclArgs) -> ExitCode {
         cellgate_core::config::file::MAX_CELL_FILE,
     )
     .map_err(|e| {
-            ConfigErrors(vec![cellgate_core::config::ConfigError::Read {
-                origin: args.file.display().to_string(),
-                reason: e.to_string(),
-            }])
-        })
-        .and_then(|text| {
-            CellConfig::from_toml_str_without_files(&text, &args.file.display().to_string())
-        });
+        ConfigErrors(vec![cellgate_core::config::ConfigError::Read {
+            origin: args.file.display().to_string(),
+            reason: e.to_string(),
+        }])
+    })
+    .and_then(|text| {
+        CellConfig::from_toml_str_without_files(&text, &args.file.display().to_string())
+    });
     let config = match loaded {
         Ok(config) => config,
         Err(errors) => {

@@ -476,8 +476,7 @@ impl RouteContext {
         outcome: Result<(), &E>,
         count: u32,
     ) {
-        self.auditor
-            .record_note(&self.history, a, outcome, count);
+        self.auditor.record_note(&self.history, a, outcome, count);
     }
 
     /// The same context, knowing the cell's link and tag names.

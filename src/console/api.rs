@@ -175,10 +175,12 @@ pub async fn login(
     same_origin(&headers, &c.hosts)
         .map_err(|why| ApiError::new(StatusCode::FORBIDDEN, pb::ErrorCode::NotPermitted, why))?;
     let device = cookie(&headers, DEVICE_COOKIE);
-    match c
-        .auth
-        .login(&body.user, &body.password, peer.addr.ip(), device.as_deref())
-    {
+    match c.auth.login(
+        &body.user,
+        &body.password,
+        peer.addr.ip(),
+        device.as_deref(),
+    ) {
         Ok((id, u, device)) => {
             tracing::info!(user = %u.name, address = %peer.addr.ip(), "console: logged in");
             let r = with_cookie(

@@ -9,8 +9,8 @@
 //! time, who stored it (as the client said), a comment and a state (draft, released, locked).
 //! The content is kept once per hash in `.revisions/objects/<sha256>`, the revisions in an
 //! index beside it (`.revisions/index.redb`), and the latest revision's content is also the
-//! program's own file `programs.dir/<name>`, so that what is in the directory is what a job
-//! sends. Retention (`programs.keep_revisions`, `keep_revision_days`) drops old revisions,
+//! program's own file in `programs.dir` (`<name>.nc`: see `one_file`), so that what is in
+//! the directory is what a job sends. Retention (`programs.keep_revisions`, `keep_revision_days`) drops old revisions,
 //! never a program's latest, its latest released, or a locked one; content no revision names
 //! any more is removed. A file put in the directory by hand becomes a revision (by
 //! `(file)`) when the gateway starts.
@@ -28,6 +28,7 @@
 
 mod files;
 mod index;
+mod one_file;
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -708,7 +709,7 @@ impl ProgramLibrary {
         store: Store<'_>,
         place: Place,
     ) -> Result<ProgramEntry, LibraryError> {
-        let path = self.path_of(name)?;
+        let path = self.store_path(name)?;
         let size = store.bytes.len() as u64;
         if size > self.max_size {
             return Err(LibraryError::TooLarge {

@@ -212,7 +212,10 @@ async fn a_field_given_twice_in_a_body_is_refused() {
     assert_eq!(r.status().as_u16(), 400);
     let e: Value = r.json().await.unwrap();
     assert!(
-        e["message"].as_str().unwrap().contains("duplicate field `value`"),
+        e["message"]
+            .as_str()
+            .unwrap()
+            .contains("duplicate field `value`"),
         "{e}"
     );
     gw.stop().await;

@@ -52,7 +52,10 @@ fn users_log_in_with_the_users_file_and_get_their_roles_permissions() {
         a.login("olga", "wrong", HERE, None).unwrap_err(),
         LoginError::Refused
     );
-    assert_eq!(a.login("ghost", "", HERE, None).unwrap_err(), LoginError::Refused);
+    assert_eq!(
+        a.login("ghost", "", HERE, None).unwrap_err(),
+        LoginError::Refused
+    );
     assert_eq!(
         a.login("nobody", "x", HERE, None).unwrap_err(),
         LoginError::NoRole("nobody".into())
@@ -164,7 +167,10 @@ fn guessing_a_password_is_throttled_and_the_right_one_waits_its_turn() {
         LoginError::Throttled(_)
     ));
     std::thread::sleep(wait + Duration::from_millis(20));
-    assert_eq!(a.login("olga", "secret", HERE, None).unwrap().1.name, "olga");
+    assert_eq!(
+        a.login("olga", "secret", HERE, None).unwrap().1.name,
+        "olga"
+    );
 }
 
 #[test]

@@ -12,12 +12,27 @@ fn a_few_failures_are_free_then_the_wait_doubles_up_to_its_bound() {
         assert_eq!(t.failed("admin", ip(1), None, now), None);
     }
     assert_eq!(t.closed("admin", ip(1), None, now), None);
-    assert_eq!(t.failed("admin", ip(1), None, now), Some(Duration::from_secs(1)));
-    assert_eq!(t.failed("admin", ip(1), None, now), Some(Duration::from_secs(2)));
-    assert_eq!(t.failed("admin", ip(1), None, now), Some(Duration::from_secs(4)));
-    assert_eq!(t.closed("admin", ip(1), None, now), Some(Duration::from_secs(4)));
+    assert_eq!(
+        t.failed("admin", ip(1), None, now),
+        Some(Duration::from_secs(1))
+    );
+    assert_eq!(
+        t.failed("admin", ip(1), None, now),
+        Some(Duration::from_secs(2))
+    );
+    assert_eq!(
+        t.failed("admin", ip(1), None, now),
+        Some(Duration::from_secs(4))
+    );
+    assert_eq!(
+        t.closed("admin", ip(1), None, now),
+        Some(Duration::from_secs(4))
+    );
     // Another address is closed for that name too: the name is what is guessed at.
-    assert_eq!(t.closed("admin", ip(2), None, now), Some(Duration::from_secs(4)));
+    assert_eq!(
+        t.closed("admin", ip(2), None, now),
+        Some(Duration::from_secs(4))
+    );
     // Another name from that address is not (the address has failures to spare).
     assert_eq!(t.closed("olga", ip(1), None, now), None);
     for _ in 0..20 {
@@ -65,9 +80,18 @@ fn failures_fade_and_the_tables_stay_bounded() {
     }
     let much_later = now + FORGET;
     assert_eq!(t.closed("admin", ip(1), None, much_later), None);
-    assert_eq!(t.failed("admin", ip(1), None, much_later), None, "counted anew");
+    assert_eq!(
+        t.failed("admin", ip(1), None, much_later),
+        None,
+        "counted anew"
+    );
     for i in 0..(MAX_KEYS as u32 + 100) {
-        t.failed(&format!("n{i}"), IpAddr::from((i + 1).to_be_bytes()), None, now);
+        t.failed(
+            &format!("n{i}"),
+            IpAddr::from((i + 1).to_be_bytes()),
+            None,
+            now,
+        );
     }
     let inner = t.inner.lock().unwrap();
     assert!(inner.users.keys.len() <= MAX_KEYS && inner.addrs.keys.len() <= MAX_KEYS);
@@ -96,8 +120,14 @@ fn a_browser_that_logged_in_before_keeps_its_own_allowance_while_the_name_is_gue
     for _ in 0..FREE_PER_DEVICE {
         assert_eq!(t.failed("admin", ip(1), Some(&device), now), None);
     }
-    assert_eq!(t.failed("admin", ip(1), Some(&device), now), Some(FIRST_WAIT));
-    assert_eq!(t.closed("admin", ip(1), Some(&device), now), Some(FIRST_WAIT));
+    assert_eq!(
+        t.failed("admin", ip(1), Some(&device), now),
+        Some(FIRST_WAIT)
+    );
+    assert_eq!(
+        t.closed("admin", ip(1), Some(&device), now),
+        Some(FIRST_WAIT)
+    );
     // Once it passed, the login on the device is taken; the device gets a new token and
     // the old one is no device any more; the guessed name stays closed for the others.
     let later = now + FIRST_WAIT;

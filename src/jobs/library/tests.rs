@@ -439,24 +439,25 @@ async fn files_of_the_folder_become_revisions_under_their_name_without_extension
 async fn a_locked_program_is_not_replaced_or_removed_from_the_folder() {
     let dir = tempfile::tempdir().unwrap();
     let lib = ProgramLibrary::new(dir.path(), 1000);
+    // A store writes O8.nc, the file a CAM system would post.
     lib.store("O8", b"%\nLOCKED\n%").await.unwrap();
     lib.set_state("O8", "", RevisionState::Locked, by("lead"), String::new())
         .await
         .unwrap();
-    std::fs::write(dir.path().join("O8"), b"%\nEDITED\n%").unwrap();
-    let e = lib.take_file(folder("O8")).await.unwrap_err();
+    std::fs::write(dir.path().join("O8.nc"), b"%\nEDITED\n%").unwrap();
+    let e = lib.take_file(folder("O8.nc")).await.unwrap_err();
     assert!(matches!(e, LibraryError::Locked { number: 1, .. }), "{e}");
     // The file is left as written; the library keeps sending the locked revision.
     assert_eq!(
-        std::fs::read(dir.path().join("O8")).unwrap(),
+        std::fs::read(dir.path().join("O8.nc")).unwrap(),
         b"%\nEDITED\n%"
     );
     assert_eq!(lib.read("O8").await.unwrap(), b"%\nLOCKED\n%");
     let listed = lib.list().await.unwrap();
     assert!(listed[0].note.contains("locked"), "{}", listed[0].note);
-    std::fs::remove_file(dir.path().join("O8")).unwrap();
+    std::fs::remove_file(dir.path().join("O8.nc")).unwrap();
     assert!(matches!(
-        lib.file_gone("O8").await,
+        lib.file_gone("O8.nc").await,
         Err(LibraryError::Locked { .. })
     ));
     assert_eq!(lib.read("O8").await.unwrap(), b"%\nLOCKED\n%");

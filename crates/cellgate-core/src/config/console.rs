@@ -75,9 +75,9 @@ pub(super) fn check_console(c: &mut Checker, console: &ConsoleConfig, secured: b
     for name in &console.host_names {
         let plain = !name.is_empty()
             && name.len() <= 253
-            && name
-                .split('.')
-                .all(|l| !l.is_empty() && l.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-'));
+            && name.split('.').all(|l| {
+                !l.is_empty() && l.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-')
+            });
         if !plain {
             c.invalid(
                 "console.host_names".to_string(),

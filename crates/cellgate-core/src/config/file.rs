@@ -45,7 +45,10 @@ pub fn read_text_bounded(path: &Path, max: u64) -> std::io::Result<String> {
     String::from_utf8(read_bounded(path, max)?).map_err(|e| {
         std::io::Error::new(
             std::io::ErrorKind::InvalidData,
-            format!("it is not UTF-8 text (byte {})", e.utf8_error().valid_up_to()),
+            format!(
+                "it is not UTF-8 text (byte {})",
+                e.utf8_error().valid_up_to()
+            ),
         )
     })
 }

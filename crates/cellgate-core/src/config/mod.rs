@@ -133,10 +133,11 @@ impl CellConfig {
     /// Reads, parses and validates the cell file at `path`.
     pub fn load(path: &Path) -> Result<CellConfig, ConfigErrors> {
         let origin = path.display().to_string();
-        let text = file::read_text_bounded(path, file::MAX_CELL_FILE).map_err(|e| ConfigError::Read {
-            origin: origin.clone(),
-            reason: e.to_string(),
-        })?;
+        let text =
+            file::read_text_bounded(path, file::MAX_CELL_FILE).map_err(|e| ConfigError::Read {
+                origin: origin.clone(),
+                reason: e.to_string(),
+            })?;
         let config = Self::from_toml_str(&text, &origin)?;
         // The cell file in the library would be served to anyone who may read programs, keys
         // and user names in it ([`owned`]).

@@ -1,0 +1,98 @@
+//! One program, one file. A store from the bus writes the file a CAM system would post
+//! (`O1234.nc`, with the first of `programs.extensions`), so that a later post of that name
+//! is an edit of the same file; and a file posted under another extension of a program
+//! whose file is only the library's copy of its latest revision takes that copy's place
+//! instead of standing beside it as a conflict.
+
+use std::path::PathBuf;
+
+use cellgate_core::pb::RevisionState;
+
+use super::{Index, LibraryError, ProgramLibrary, files, sha256_file};
+
+impl ProgramLibrary {
+    /// The file a store of `name` writes: the one that holds the program now, else
+    /// `NAME.EXT` for the first of `programs.extensions`, else (no extensions) `NAME`.
+    /// Blocking (a few `stat`s).
+    pub(super) fn store_path(&self, name: &str) -> Result<PathBuf, LibraryError> {
+        let path = self.path_of(name)?;
+        if path.is_file() {
+            return Ok(path);
+        }
+        Ok(match self.folder.extensions.first() {
+            Some(ext) => self.dir.join(format!("{name}.{ext}")),
+            None => path,
+        })
+    }
+
+    /// The file of `name` a take of the folder's `posted` file reads: [`Self::path_of`], but
+    /// where several files give the name and all but one hold the program's latest revision
+    /// (a copy the library wrote, or the post that revision came from), those copies are
+    /// removed and the one that differs is the program's file. Several that differ, a
+    /// removed or a locked program stay a conflict. Blocking.
+    pub(super) fn posted_path(
+        &self,
+        index: &Index,
+        name: &str,
+        posted: &str,
+    ) -> Result<PathBuf, LibraryError> {
+        let conflict = match self.path_of(name) {
+            Err(e @ LibraryError::Conflict { .. }) => e,
+            other => return other,
+        };
+        // A locked revision's file is kept whatever is posted beside it.
+        let latest = index
+            .revisions(name)?
+            .pop()
+            .filter(|r| !r.removed && r.state() != RevisionState::Locked);
+        let Some(latest) = latest else {
+            return Err(conflict);
+        };
+        let listed = std::fs::read_dir(self.dir.as_path()).map_err(|e| LibraryError::Io {
+            name: name.to_string(),
+            op: "list",
+            path: self.dir.as_path().to_path_buf(),
+            source: e,
+        })?;
+        let files: Vec<PathBuf> = listed
+            .filter_map(Result::ok)
+            .filter(|f| {
+                f.file_name()
+                    .to_str()
+                    .is_some_and(|f| self.program_of(f).is_ok_and(|n| n == name))
+            })
+            .map(|f| f.path())
+            .filter(|p| p.is_file())
+            .collect();
+        let (copies, differing): (Vec<PathBuf>, Vec<PathBuf>) = files
+            .into_iter()
+            .partition(|p| sha256_file(p).is_ok_and(|sha| sha == latest.sha256));
+        let keep = match differing.as_slice() {
+            [one] => one.clone(),
+            // All the same content: the file just posted is the one its writer uses.
+            [] => self.dir.join(posted),
+            _ => return Err(conflict),
+        };
+        for copy in copies.iter().filter(|c| **c != keep) {
+            match std::fs::remove_file(copy) {
+                Ok(()) => tracing::info!(
+                    program = name,
+                    copy = %files::file_name(copy),
+                    file = %files::file_name(&keep),
+                    "a file posted under another extension takes the place of the program's \
+                     copy of its latest revision"
+                ),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => {
+                    return Err(LibraryError::Io {
+                        name: name.to_string(),
+                        op: "remove",
+                        path: copy.clone(),
+                        source: e,
+                    });
+                }
+            }
+        }
+        self.path_of(name)
+    }
+}
