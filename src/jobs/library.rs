@@ -58,6 +58,13 @@ pub enum LibraryError {
     InvalidName { name: String, reason: &'static str },
     #[error("the program library has no program {name:?}")]
     NotFound { name: String },
+    /// The program was removed; its revisions are kept, and each can still be read.
+    #[error(
+        "program {name:?} was removed (its latest revision was {latest}); its kept revisions \
+         can still be read by number: `cellgate program get {name} --revision {latest}` \
+         (`cellgate program history {name}` lists them)"
+    )]
+    Removed { name: String, latest: u32 },
     #[error("the program library already has a program {name:?}")]
     Exists { name: String },
     #[error("program {name:?} is {size} bytes; programs.max_size allows {max}")]
@@ -1015,8 +1022,9 @@ impl ProgramLibrary {
         }
         let r = find(name, &revisions, rev)?.clone();
         if rev.trim().is_empty() && r.removed {
-            return Err(LibraryError::NotFound {
+            return Err(LibraryError::Removed {
                 name: name.to_string(),
+                latest: r.number,
             });
         }
         let path = self.object_path(&r.sha256);
@@ -1159,9 +1167,9 @@ fn modified_ms(meta: &std::fs::Metadata) -> u64 {
 impl BusCode for LibraryError {
     fn code(&self) -> pb::ErrorCode {
         match self {
-            LibraryError::NotFound { .. } | LibraryError::NoRevision { .. } => {
-                pb::ErrorCode::NotFound
-            }
+            LibraryError::NotFound { .. }
+            | LibraryError::Removed { .. }
+            | LibraryError::NoRevision { .. } => pb::ErrorCode::NotFound,
             LibraryError::InvalidName { .. }
             | LibraryError::TooLarge { .. }
             | LibraryError::Exists { .. }

@@ -14,3 +14,4 @@ mod notes;
 mod plc_cli;
 mod reload_cli;
 mod tour;
+mod truth;

@@ -1,0 +1,151 @@
+//! What the client commands say, checked against `cellgate run` on the embedded default cell:
+//! `program get` by revision and of a removed program, what `-o` wrote, a job's start before
+//! the CNC asks, a punch's true size, and the names a refusal lists.
+
+use std::process::{Child, Stdio};
+use std::thread;
+use std::time::{Duration, Instant};
+
+use crate::common;
+
+use common::bus::free_port;
+use common::cli::command;
+
+/// `cellgate run` on the embedded cell, in a directory of its own; killed when dropped.
+pub struct Gateway {
+    child: Child,
+    pub endpoint: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Gateway {
+    /// Starts it and waits until it answers.
+    pub fn start() -> Gateway {
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let dir = tempfile::tempdir().unwrap();
+        let child = command([
+            "run",
+            "--listen",
+            &endpoint,
+            "--console",
+            "off",
+            "--mtconnect",
+            "off",
+        ])
+        .current_dir(dir.path())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+        let g = Gateway {
+            child,
+            endpoint,
+            _dir: dir,
+        };
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while g.run(&["status"]).0 != 0 {
+            assert!(Instant::now() < deadline, "cellgate never answered");
+            thread::sleep(Duration::from_millis(100));
+        }
+        g
+    }
+
+    /// A client command against it: (exit code, stdout, stderr).
+    pub fn run(&self, args: &[&str]) -> (i32, String, String) {
+        let out = command(args)
+            .env("CELLGATE_CONNECT", &self.endpoint)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .output()
+            .unwrap();
+        (
+            out.status.code().unwrap_or(-1),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    }
+
+    /// [`Self::run`], which must exit 0: (stdout, stderr).
+    pub fn ok(&self, args: &[&str]) -> (String, String) {
+        let (code, out, err) = self.run(args);
+        assert_eq!(code, 0, "{args:?}\nstdout {out}\nstderr {err}");
+        (out, err)
+    }
+}
+
+impl Drop for Gateway {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// `program get --revision`, what `-o` wrote, and a removed program's `get` saying how its
+/// kept revisions are read.
+#[test]
+fn program_get_reads_a_revision_says_what_it_wrote_and_what_became_of_a_removed_program() {
+    let g = Gateway::start();
+    let scratch = tempfile::tempdir().unwrap();
+    let v2 = scratch.path().join("v2.nc");
+    let text = "%\nO1234\nN10 G01 X1.0 F250\nM30\n%\n";
+    std::fs::write(&v2, text).unwrap();
+    g.ok(&["program", "put", "O1234", "examples/programs/O1234.nc"]);
+    g.ok(&["program", "put", "O1234", v2.to_str().unwrap()]);
+
+    // -o says what it wrote: the name, the size, the revision, the file.
+    let copy = scratch.path().join("copy.nc");
+    let (out, err) = g.ok(&["program", "get", "O1234", "-o", copy.to_str().unwrap()]);
+    assert!(out.is_empty(), "{out}");
+    assert_eq!(
+        err.trim(),
+        format!(
+            "wrote O1234 ({} B, revision 2) to {}",
+            text.len(),
+            copy.display()
+        )
+    );
+    // --revision reads an earlier one, by number or hash.
+    let (_, err) = g.ok(&[
+        "program",
+        "get",
+        "O1234",
+        "--revision",
+        "1",
+        "-o",
+        copy.to_str().unwrap(),
+    ]);
+    assert!(err.contains("(137 B, revision 1)"), "{err}");
+    let shipped = std::fs::read(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/programs/O1234.nc"),
+    )
+    .unwrap();
+    assert_eq!(std::fs::read(&copy).unwrap(), shipped);
+    let (history, _) = g.ok(&["program", "history", "O1234", "--json"]);
+    let history: serde_json::Value = serde_json::from_str(&history).unwrap();
+    let sha = history["revisions"][1]["sha256"].as_str().unwrap()[..12].to_string();
+    let (json, _) = g.ok(&["program", "get", "O1234", "--revision", &sha, "--json"]);
+    let json: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(
+        (json["revision"].as_u64(), json["size"].as_u64()),
+        (Some(1), Some(137))
+    );
+
+    // Removed: get says so and how to read what is kept; --revision reads it.
+    g.ok(&["program", "rm", "O1234"]);
+    let (code, out, err) = g.run(&["program", "get", "O1234"]);
+    assert_eq!(code, 2, "{out}{err}");
+    assert!(
+        err.contains("ERROR_CODE_NOT_FOUND")
+            && err.contains("\"O1234\" was removed (its latest revision was 2)")
+            && err.contains("`cellgate program get O1234 --revision 2`"),
+        "{err}"
+    );
+    let (out, _) = g.ok(&["program", "get", "O1234", "--revision", "2"]);
+    assert!(out.contains("N10 G01 X1.0 F250"), "{out}");
+    // The gateway's own answer on the program's key says the same to every client.
+    let (code, _, err) = g.run(&["submit", "mill-1", "--library", "O1234"]);
+    assert_eq!(code, 2);
+    assert!(
+        err.contains("was removed (its latest revision was 2)"),
+        "{err}"
+    );
+}
