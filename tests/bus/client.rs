@@ -495,6 +495,7 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
     let get = ProgramCommand::Get {
         connect: gw.connect(),
         name: "O0815".to_string(),
+        revision: None,
         output: Some(copy.clone()),
         json: false,
     };
