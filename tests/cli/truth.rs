@@ -149,3 +149,43 @@ fn program_get_reads_a_revision_says_what_it_wrote_and_what_became_of_a_removed_
         "{err}"
     );
 }
+
+/// A started job says it waits for the CNC until bytes go on the line, and then that the CNC
+/// asked; a punch says what the gateway received, not what the board had sent when it took
+/// the punch.
+#[test]
+fn submit_says_it_waits_for_the_cnc_and_a_punch_says_its_true_size() {
+    let g = Gateway::start();
+    let (out, err) = g.ok(&["submit", "mill-1", "examples/programs/O1234.nc"]);
+    let job = out.trim();
+    let lines: Vec<&str> = err.lines().collect();
+    let at = |needle: &str| {
+        lines
+            .iter()
+            .position(|l| l.contains(needle))
+            .unwrap_or_else(|| panic!("no {needle:?} in:\n{err}"))
+    };
+    let started = at(&format!(
+        "{job}: started (137 B): waiting for the CNC to ask for it"
+    ));
+    let sending = at(&format!("{job}: sending: the CNC asked for it ("));
+    let completed = at(&format!("{job}: completed: 136 B sent"));
+    assert!(started < sending && sending < completed, "{err}");
+    assert!(lines[sending].contains("on the line"), "{err}");
+
+    let (out, _) = g.ok(&["sim", "punch", "lathe-1", "examples/programs/O1234.nc"]);
+    assert!(
+        out.starts_with("lathe-1 punched O1234: 136 B received of the file's 137 B")
+            && out.contains("stored in the library as lathe-1-O1234-"),
+        "{out}"
+    );
+    let (json, _) = g.ok(&[
+        "sim",
+        "punch",
+        "lathe-1",
+        "examples/programs/O1234.nc",
+        "--json",
+    ]);
+    let json: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(json["punched"]["size"], 136, "{json}");
+}
