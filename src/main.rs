@@ -616,6 +616,12 @@ fn run(cli: &Cli, args: &RunArgs) -> ExitCode {
         return ExitCode::from(EXIT_CONFIG);
     }
 
+    // An address another process listens on is one line, before anything is created.
+    if let Some(line) = listen::first_in_use(&config) {
+        eprintln!("cellgate: {line}");
+        return ExitCode::from(EXIT_RUNTIME);
+    }
+
     let open_files = raise_open_file_limit();
 
     // Zenoh needs the multi-thread runtime.
@@ -793,6 +799,15 @@ async fn run_async(
     let code = match shutdown_signal() {
         Ok(shutdown) => match cellgate::gateway::run_with(config, shutdown, options).await {
             Ok(()) => ExitCode::SUCCESS,
+            Err(cellgate::gateway::GatewayError::Bus(cellgate::bus::BusError::Open {
+                listen,
+                source,
+                ..
+            })) if source.to_string().contains("Address already in use") => {
+                // Taken since the check before the start.
+                eprintln!("cellgate: {}", listen::bus_in_use(&listen.join(", ")));
+                ExitCode::from(EXIT_RUNTIME)
+            }
             Err(e) => {
                 tracing::error!("cellgate failed: {e}");
                 ExitCode::from(EXIT_RUNTIME)
@@ -952,6 +967,9 @@ fn shutdown_signal() -> std::io::Result<impl Future<Output = ()>> {
         }
     })
 }
+
+#[path = "main/listen.rs"]
+mod listen;
 
 #[cfg(test)]
 #[path = "main/tests.rs"]

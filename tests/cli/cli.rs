@@ -274,3 +274,58 @@ fn logs_to_a_pipe_carry_no_terminal_colours() {
     assert!(!err.is_empty(), "it logged something");
     assert!(!err.contains('\u{1b}'), "{err}");
 }
+
+/// A bus port or the console's in use: one line saying which and what to change, exit 1,
+/// and nothing created (no journal, history or library index beside the cell file).
+#[test]
+fn run_on_an_address_in_use_says_so_in_one_line_and_creates_nothing() {
+    let taken = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port();
+    let free = free_port();
+    for (listen, console, expected) in [
+        (
+            port,
+            free,
+            format!(
+                "cellgate: cannot listen on tcp/127.0.0.1:{port}: the address is in use \
+                 (another gateway?) — choose another with [bus] listen or --listen"
+            ),
+        ),
+        (
+            free,
+            port,
+            format!(
+                "cellgate: cannot listen on 127.0.0.1:{port} for the console: the address is \
+                 in use (another gateway?) — choose another with [console] listen or --console"
+            ),
+        ),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cell.toml");
+        std::fs::write(
+            &path,
+            format!(
+                "cell = \"taken\"\n[bus]\nlisten = [\"tcp/127.0.0.1:{listen}\"]\n\
+                 [programs]\ndir = \"programs\"\n[console]\nlisten = \"127.0.0.1:{console}\"\n\
+                 [[machines]]\nname = \"m1\"\nprotocol = \"a\"\n\
+                 transport = {{ kind = \"sim\" }}\n"
+            ),
+        )
+        .unwrap();
+        let out = common::cli::bin()
+            .current_dir(dir.path())
+            .args(["run", "--config", "cell.toml", "--mtconnect", "off"])
+            .env("RUST_LOG", "info")
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{stderr}");
+        assert_eq!(stderr.trim_end(), expected);
+        let left: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(left, ["cell.toml"], "the run left files behind");
+    }
+    drop(taken);
+}
