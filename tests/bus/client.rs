@@ -207,9 +207,9 @@ fn submit_args(gw: &Gateway, machine: &str) -> SubmitArgs {
         detach: false,
         resume: None,
         from_block: None,
-        header_lines: 0,
+        header_lines: None,
         resume_after_restart: false,
-        deadline: 0,
+        deadline: None,
         request_id: None,
         json: false,
     }

@@ -9,6 +9,7 @@ mod cli;
 mod config;
 mod doc_commands;
 mod examples;
+mod help;
 mod layering;
 mod notes;
 mod plc_cli;

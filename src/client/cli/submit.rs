@@ -5,7 +5,7 @@ use super::*;
 /// `cellgate submit`.
 #[derive(Debug, Clone, Args)]
 #[command(
-    override_usage = "cellgate submit [OPTIONS] <MACHINE> <FILE|--library <NAME>|--key <KEY>>\n       cellgate submit [OPTIONS] --resume <JOB_ID>"
+    override_usage = "cellgate submit [OPTIONS] <MACHINE> <FILE|--library <NAME>|--key <KEY>>\n       cellgate submit [OPTIONS] [MACHINE] --resume <JOB_ID>"
 )]
 #[command(group(
     clap::ArgGroup::new("source")
@@ -57,16 +57,17 @@ pub struct SubmitArgs {
     pub from_block: Option<String>,
     /// Lines of the program's start that make its header (default: up to its first
     /// numbered block).
-    #[arg(long, value_name = "LINES", default_value_t = 0)]
-    pub header_lines: u32,
+    #[arg(long, value_name = "LINES")]
+    pub header_lines: Option<u32>,
     /// If the gateway restarts while sending this job, resume it from the first block the
     /// board did not acknowledge whole instead of failing it.
     #[arg(long)]
     pub resume_after_restart: bool,
     /// Fail the job if it has not completed this many seconds after it started (a CNC that
-    /// never asks for data): it fails at what the board acknowledged.
-    #[arg(long, value_name = "SECS", default_value_t = 0)]
-    pub deadline: u32,
+    /// never asks for data): it fails at what the board acknowledged (default: no
+    /// deadline).
+    #[arg(long, value_name = "SECS")]
+    pub deadline: Option<u32>,
     /// The request id that makes the submit idempotent (default: a new one for each run):
     /// a retry with the same id queues nothing twice.
     #[arg(long, value_name = "ID")]
@@ -146,7 +147,8 @@ impl SubmitArgs {
         let start_at = match &self.from_block {
             Some(block) => Some(pb::BlockStart {
                 at: Some(parse_block(block)?),
-                header_lines: self.header_lines,
+                // 0: up to the first numbered block.
+                header_lines: self.header_lines.unwrap_or(0),
             }),
             None => None,
         };
@@ -161,7 +163,8 @@ impl SubmitArgs {
                 .unwrap_or_else(crate::client::new_request_id),
             start_at,
             resume_after_restart: self.resume_after_restart,
-            deadline_s: self.deadline,
+            // 0: none.
+            deadline_s: self.deadline.unwrap_or(0),
             revision: self.revision.clone().unwrap_or_default(),
         })
     }
