@@ -329,3 +329,40 @@ fn run_on_an_address_in_use_says_so_in_one_line_and_creates_nothing() {
     }
     drop(taken);
 }
+
+/// `check-config` shows every section that changes what the gateway serves: the console, the
+/// MTConnect agent, and each PLC tag with where it lives and who may write it.
+#[test]
+fn check_config_shows_the_console_the_agent_and_every_tag() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cell.toml");
+    std::fs::write(
+        &path,
+        "cell = \"c\"\n[console]\nlisten = \"127.0.0.1:7481\"\nsession_idle_minutes = 15\n\
+         [mtconnect]\nshdr_listen = \"127.0.0.1:7878\"\n\
+         [[plcs]]\nname = \"plc-1\"\nmode = 1\ntransport = { kind = \"sim\" }\n\
+         [[plcs.tags]]\nname = \"parts\"\nmodule = \"D\"\naddress = 0\ntype = \"u16\"\n\
+         [[plcs.tags]]\nname = \"door\"\nmodule = \"M\"\naddress = 2\ntype = \"bit\"\nbit = 3\n\
+         poll_ms = 200\nwritable = true\n",
+    )
+    .unwrap();
+    let (code, out, err) = common::cli::run(["check-config", path.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    for line in [
+        "    tags: 2",
+        "      parts: D0 u16, station 00, read every 1000 ms, read-only",
+        "      door: M2 bit 3, station 00, read every 200 ms, writable",
+        "console: on 127.0.0.1:7481 (HTTP), sessions end after 15 min idle and 12 h at most, 16 per user",
+        "mtconnect: agent on 127.0.0.1:5000 (HTTP), 131072 observations kept, SHDR adapter on 127.0.0.1:7878",
+    ] {
+        assert!(out.lines().any(|l| l == line), "no {line:?} in:\n{out}");
+    }
+    // Without the sections, the summary says so.
+    std::fs::write(&path, "cell = \"c\"\n").unwrap();
+    let (_, out, _) = common::cli::run(["check-config", path.to_str().unwrap()]);
+    assert!(
+        out.contains("console: none (no [console])")
+            && out.contains("mtconnect: none (no [mtconnect])"),
+        "{out}"
+    );
+}
