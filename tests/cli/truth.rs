@@ -189,3 +189,44 @@ fn submit_says_it_waits_for_the_cnc_and_a_punch_says_its_true_size() {
     let json: serde_json::Value = serde_json::from_str(&json).unwrap();
     assert_eq!(json["punched"]["size"], 136, "{json}");
 }
+
+/// A program, tag or PLC module the cell does not have is refused with the names near it,
+/// or those it has when they are few, as a machine it does not have is.
+#[test]
+fn unknown_programs_tags_and_modules_are_refused_with_the_names_there_are() {
+    let g = Gateway::start();
+    g.ok(&["program", "put", "O1234", "examples/programs/O1234.nc"]);
+    for (args, says) in [
+        (
+            &["program", "get", "O1243"][..],
+            "program O1243: refused by the gateway (ERROR_CODE_NOT_FOUND): the program library \
+             has no program \"O1243\"; did you mean O1234?",
+        ),
+        (
+            &["submit", "mill-1", "--library", "O124"],
+            "the program library has no program \"O124\"; did you mean O1234?",
+        ),
+        (
+            &["program", "diff", "P77"],
+            "has no program \"P77\"; its programs are: O1234",
+        ),
+        (&["tag", "get", "recipy"], "; did you mean recipe?"),
+        (
+            &["tag", "get", "nothing-like-it"],
+            "; its tags are: door-open, parts, recipe, spindle-temp",
+        ),
+        (
+            &["plc", "read", "plc-1", "TX", "0"],
+            "no module \"TX\" in the module table (FFU120B §5-3-3); did you mean TR or TS? \
+             Its modules are B, M, K, F, A, D, W9,",
+        ),
+        (
+            &["plc", "read", "plc-1", "Q", "0"],
+            "(FFU120B §5-3-3); its modules are B, M, K, F, A, D, W9,",
+        ),
+    ] {
+        let (code, out, err) = g.run(args);
+        assert_eq!(code, 2, "{args:?}: {out}{err}");
+        assert!(err.contains(says), "{args:?}: {err}");
+    }
+}

@@ -326,7 +326,14 @@ async fn get(
     output: Option<&PathBuf>,
     json: bool,
 ) -> Result<(), ClientError> {
-    let kept = client.program_revisions(name).await?;
+    let kept = client.program_revisions(name).await.map_err(|e| match e {
+        ClientError::Refused { code, message, .. } => ClientError::Refused {
+            what: format!("program {name}"),
+            code,
+            message,
+        },
+        e => e,
+    })?;
     let number = match revision {
         Some(rev) => revision_number(&kept, rev),
         None => match kept.revisions.first() {
