@@ -230,3 +230,60 @@ fn unknown_programs_tags_and_modules_are_refused_with_the_names_there_are() {
         assert!(err.contains(says), "{args:?}: {err}");
     }
 }
+
+/// (interval, achieved interval, rounds) of each poll group `plc status` shows.
+fn poll_groups(status: &str) -> Vec<(u64, u64, u64)> {
+    let number_after = |line: &str, word: &str| -> u64 {
+        let rest = &line[line.find(word).unwrap() + word.len()..];
+        rest.trim_start()
+            .split(|c: char| !c.is_ascii_digit())
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    status
+        .lines()
+        .filter(|l| l.contains(": poll group "))
+        .map(|l| {
+            let rounds = l.rsplit(" in ").next().unwrap();
+            (
+                number_after(l, " every "),
+                number_after(l, "achieved interval "),
+                number_after(rounds, ""),
+            )
+        })
+        .collect()
+}
+
+/// A tag write reads what it wrote at once; that read is no poll, so the achieved interval
+/// `plc status` reports stays the polls' (before, each write made it the time since the last
+/// poll or write).
+#[test]
+fn plc_status_reports_the_polls_interval_not_a_writes_read() {
+    let g = Gateway::start();
+    // Two rounds of each group first, so that there is an achieved interval.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let (status, _) = g.ok(&["plc", "status"]);
+        let groups = poll_groups(&status);
+        if !groups.is_empty() && groups.iter().all(|(_, _, rounds)| *rounds >= 2) {
+            break;
+        }
+        assert!(Instant::now() < deadline, "{status}");
+        thread::sleep(Duration::from_millis(200));
+    }
+    for value in ["41", "42", "43"] {
+        g.ok(&["tag", "set", "recipe", value]);
+        let (status, _) = g.ok(&["plc", "status"]);
+        let slow: Vec<(u64, u64, u64)> = poll_groups(&status)
+            .into_iter()
+            .filter(|(interval, ..)| *interval >= 1000)
+            .collect();
+        assert!(!slow.is_empty(), "{status}");
+        for (interval, achieved, _) in slow {
+            // The polls keep their schedule: within a tenth of the interval of it.
+            assert!(achieved * 10 >= interval * 9, "{status}");
+        }
+    }
+}
