@@ -40,7 +40,7 @@ async fn run(n: usize, watch: Watch) -> (Vec<Duration>, Duration) {
         watch,
         settle_ms: u64::from(defaults.settle_ms),
         poll: Duration::from_millis(u64::from(defaults.poll_ms)),
-        takes: Arc::new(move |f: &str| lib.program_of(f).is_ok()),
+        takes: Arc::new(move |f: &std::ffi::OsStr| lib.verdict(f)),
     }
     .spawn(stop.clone());
     // Let the first listing pass, so that the files are new to the watcher.

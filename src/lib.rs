@@ -14,7 +14,8 @@
 //! - [`telemetry`]: tracing subscriber, the counters links and jobs keep
 //!   ([`telemetry::metrics`]), the optional OTLP export and Prometheus endpoint.
 //! - [`transport`]: what carries a link's bytes: serial port, TCP device server, simulated
-//!   line; carriers that come back by themselves share `redial`.
+//!   line; carriers that come back by themselves share `redial`. [`door`]: what every
+//!   listener shares (its cap on connections, the head's time and size, the write timeout).
 //! - [`link`]: the async side of a link: [`link::pump`] runs any core engine over any
 //!   transport in tokio time; [`link::driver`] is a FANUC link's task (program queue, streamed
 //!   sources, typed commands and events); [`link::g05`] runs G05 streams through it.
@@ -48,6 +49,7 @@ pub mod bus;
 pub mod cell;
 pub mod client;
 pub mod console;
+pub mod door;
 pub mod gateway;
 pub mod history;
 pub mod jobs;

@@ -11,6 +11,7 @@ use super::payload;
 use crate::jobs::{JobsHandle, JobsSnapshot};
 use crate::link::driver::{LinkEvent, LinkHandle};
 use crate::link::g05::G05Desk;
+use cellgate_core::codes::alarm as codes;
 use cellgate_core::config::MachineConfig;
 use cellgate_core::fanuc::host::LinkState;
 use cellgate_core::pb;
@@ -140,7 +141,18 @@ impl Machine {
         match event {
             LinkEvent::State { state } => {
                 view.link_state = Some(*state);
-                view.status.link_state = payload::link_state(*state) as i32;
+                // A CNC in alarm stays so until a reset, a SAT without alarm or the CNC
+                // reading again ([`end_alarm`]): the link going idle after the alarm's ALM or
+                // NAK (§4.4.1, §6.4) does not end it. A link that goes down does.
+                let cnc_alarm = view.status.link_state == pb::LinkState::Alarm as i32
+                    && view
+                        .status
+                        .last_alarm
+                        .as_ref()
+                        .is_some_and(|a| a.kind() == pb::AlarmKind::CncAlarm);
+                if !cnc_alarm || !payload::link_up(*state) {
+                    view.status.link_state = payload::link_state(*state) as i32;
+                }
                 None
             }
             LinkEvent::Status { status } => {
@@ -185,7 +197,14 @@ impl Machine {
                 None
             }
             LinkEvent::Alarm(error) => {
-                Self::counters(&mut view).link_alarms += 1;
+                // A SAT in alarm status is the CNC's side (§4.4.2 1): a CNC alarm, not one
+                // of the link's, on every surface.
+                let kind = if error.is_cnc_side() {
+                    pb::AlarmKind::CncAlarm
+                } else {
+                    Self::counters(&mut view).link_alarms += 1;
+                    pb::AlarmKind::LinkAlarm
+                };
                 view.status.link_state = pb::LinkState::Alarm as i32;
                 let alarm = error.cnc_alarm();
                 let message = match alarm {
@@ -193,8 +212,9 @@ impl Machine {
                     None => error.to_string(),
                 };
                 let event = self.alarm_event(
-                    pb::AlarmKind::LinkAlarm,
+                    kind,
                     alarm.map(|a| a.number()).unwrap_or_default(),
+                    error.code(),
                     message,
                 );
                 view.status.last_alarm = Some(event.clone());
@@ -202,12 +222,12 @@ impl Machine {
             }
             LinkEvent::CncAlarm => {
                 view.status.link_state = pb::LinkState::Alarm as i32;
-                let how = if self.config.protocol.is_a_family() {
-                    "the CNC raised an alarm (ALM; §4.4.1)"
+                let (how, code) = if self.config.protocol.is_a_family() {
+                    ("the CNC raised an alarm (ALM; §4.4.1)", codes::ALM)
                 } else {
-                    "the CNC raised an alarm (NAK; §6.4)"
+                    ("the CNC raised an alarm (NAK; §6.4)", codes::NAK)
                 };
-                let event = self.alarm_event(pb::AlarmKind::CncAlarm, "", how.to_string());
+                let event = self.alarm_event(pb::AlarmKind::CncAlarm, "", code, how.to_string());
                 view.status.last_alarm = Some(event.clone());
                 Some(Extra::Alarm(event))
             }
@@ -221,13 +241,14 @@ impl Machine {
                 } else {
                     "the CNC was reset (SYN; §6.4)"
                 };
-                let event = self.alarm_event(pb::AlarmKind::CncReset, "", how.to_string());
+                let event = self.alarm_event(pb::AlarmKind::CncReset, "", "", how.to_string());
                 view.status.last_alarm = Some(event.clone());
                 Some(Extra::Alarm(event))
             }
             // A CNC that takes program data is operating, whatever the last SAT said (no SAT
             // comes while it reads).
             LinkEvent::Progress { sent, .. } if *sent > 0 => {
+                end_alarm(&mut view);
                 let status = view.status.sat.as_ref().map(pb::Sat::buffer_status);
                 if matches!(
                     status,
@@ -246,10 +267,13 @@ impl Machine {
         }
     }
 
+    /// An alarm of this machine: its manual `number` (or empty) and the `code` every surface
+    /// shows ([`pb::AlarmEvent::code`]).
     pub(super) fn alarm_event(
         &self,
         kind: pb::AlarmKind,
         number: &str,
+        code: &str,
         message: String,
     ) -> pb::AlarmEvent {
         pb::AlarmEvent {
@@ -258,6 +282,7 @@ impl Machine {
             alarm_number: number.to_string(),
             message,
             unix_ms: pb::now_ms(),
+            code: code.to_string(),
         }
     }
 

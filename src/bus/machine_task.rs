@@ -215,7 +215,7 @@ impl MachineTask {
             self.punch.publish(&punched).await;
         }
         if let Some((message, kind)) = outcome.alarm {
-            let event = self.machine.alarm_event(kind, "", message);
+            let event = self.machine.alarm_event(kind, "", "", message);
             self.machine.view().status.last_alarm = Some(event.clone());
             Recorder::alarm(&self.ctx.history, self.machine.name(), &event);
             self.alarm.publish(&event).await;

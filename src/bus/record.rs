@@ -1,5 +1,6 @@
 //! What a machine's task records in the cell's history: a job once it ended, alarms, the
-//! link's state and what the CNC is doing when they change, a G05 stream once it is over.
+//! link's state and what the CNC is doing when they change. (A G05 stream is recorded by its
+//! route once it is over: `route_g05`.)
 
 use cellgate_core::history::activity;
 use cellgate_core::pb::{self, HistoryKind, history_record::Record, job_event::Kind};
@@ -42,13 +43,51 @@ pub(crate) fn job_history(event: &pb::JobEvent) -> Option<pb::JobHistory> {
     Some(h)
 }
 
+/// A finished job's last event, told again from its history record (`machine`'s), for a job
+/// the machine no longer keeps.
+pub(crate) fn job_event_from_history(machine: &str, h: pb::JobHistory) -> pb::JobEvent {
+    let kind = match h.outcome() {
+        pb::JobOutcome::Completed => Kind::Completed(pb::job_event::Completed {
+            bytes_sent: h.bytes_sent,
+            duration_ms: h.origin.as_ref().map_or(0, |o| {
+                h.ended_unix_ms
+                    .saturating_sub(o.started_unix_ms.max(o.queued_unix_ms))
+            }),
+            ..Default::default()
+        }),
+        pb::JobOutcome::Cancelled => Kind::Cancelled(pb::job_event::Cancelled {
+            byte_offset: h.bytes_sent,
+            by: h
+                .reason
+                .strip_prefix("cancelled by ")
+                .unwrap_or_default()
+                .to_string(),
+            ..Default::default()
+        }),
+        pb::JobOutcome::Failed | pb::JobOutcome::Unspecified => {
+            Kind::Failed(pb::job_event::Failed {
+                reason: h.reason.clone(),
+                byte_offset: h.bytes_sent,
+                alarm_number: h.alarm_number.clone(),
+                code: h.code,
+                ..Default::default()
+            })
+        }
+    };
+    pb::JobEvent {
+        job_id: h.job_id,
+        machine: machine.to_string(),
+        unix_ms: h.ended_unix_ms,
+        origin: h.origin,
+        kind: Some(kind),
+    }
+}
+
 /// The last states recorded of one machine, so that only changes are recorded.
 #[derive(Debug, Default)]
 pub(crate) struct Recorder {
     link: Option<i32>,
     activity: Option<i32>,
-    /// The G05 stream whose end was recorded last.
-    g05_ended: Option<String>,
     /// Job sizes seen in `started` events, for the record of their end.
     totals: std::collections::HashMap<String, u64>,
 }
@@ -67,13 +106,6 @@ impl Recorder {
         if self.activity != Some(a) {
             self.activity = Some(a);
             history.event(machine, HistoryKind::Cnc, Record::Cnc(a));
-        }
-        if let Some(g) = &status.g05
-            && g.end_reason != pb::G05EndReason::Unspecified as i32
-            && self.g05_ended.as_deref() != Some(g.stream_id.as_str())
-        {
-            self.g05_ended = Some(g.stream_id.clone());
-            history.event(machine, HistoryKind::G05, Record::G05(g.clone()));
         }
     }
 

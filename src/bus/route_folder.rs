@@ -6,8 +6,14 @@
 //!
 //! What comes from a folder is written by whoever may write the folder, not by a bus client:
 //! it goes through the same checks as a bus store or submit, and the audit records it with
-//! the folder as its origin and the file's owner as its user, where the system says.
+//! the folder as its origin and the file's owner as its user, where the system says (the
+//! owner of the entry itself: a link's, never its target's).
+//!
+//! A file the library's folder does not take (a name that gives no program name, a link, a
+//! FIFO, a device) is logged, audited and published once while it is there; a drop folder's
+//! link or special file is moved to `refused/` as a refused file is.
 
+use std::ffi::{OsStr, OsString};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
@@ -17,10 +23,10 @@ use tokio_util::sync::CancellationToken;
 
 use super::audit::Audit;
 use super::context::RouteContext;
-use crate::jobs::folder::{FolderWatch, Followed, Seen};
-use crate::jobs::library::{FolderFile, LibraryError, Taken};
+use crate::jobs::JobSubmission;
+use crate::jobs::folder::{FolderWatch, Followed, Seen, Verdict};
+use crate::jobs::library::{FolderFile, LibraryError, Taken, escaped};
 use crate::jobs::source::ProgramInput;
-use crate::jobs::{JobError, JobSubmission};
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::{CellConfig, Permission};
 use cellgate_core::pb;
@@ -39,10 +45,11 @@ pub(crate) async fn publish_library_event(ctx: &RouteContext, mut event: pb::Lib
     super::context::publish_event(ctx, &ctx.keys.program_events(), &event, None).await;
 }
 
-/// Who made a file: its owner's user name where the system says, else `(folder)`.
+/// Who made a file: its owner's user name where the system says, else `(folder)`. The
+/// entry's own owner: a link is not followed (its target's owner made nothing).
 fn owner_of(path: &Path, via: &str) -> pb::RequestOrigin {
     use std::os::unix::fs::MetadataExt as _;
-    let user = std::fs::metadata(path)
+    let user = std::fs::symlink_metadata(path)
         .ok()
         .and_then(|m| user_name(m.uid()))
         .unwrap_or_else(|| "(folder)".to_string());
@@ -74,11 +81,7 @@ pub(crate) fn spawn(
         watch: programs.watch,
         settle_ms,
         poll,
-        takes: Arc::new(move |f: &str| {
-            library
-                .program_of(f)
-                .is_ok_and(|name| library.is_program_name(&name))
-        }),
+        takes: Arc::new(move |f: &OsStr| library.verdict(f)),
     };
     let followed = watch.spawn(stop.clone());
     tasks.spawn(follow_library(ctx.clone(), followed));
@@ -96,7 +99,10 @@ pub(crate) fn spawn(
             watch: programs.watch,
             settle_ms,
             poll,
-            takes: Arc::new(|f: &str| !is_temporary(f)),
+            takes: Arc::new(|f: &OsStr| match f.to_str() {
+                Some(f) if !is_temporary(f) => Verdict::Take,
+                _ => Verdict::Pass,
+            }),
         };
         tracing::info!(machine = %m.name(), dir = %dir.display(), "drop folder followed: its files are queued to the machine");
         let followed = watch.spawn(stop.clone());
@@ -200,6 +206,7 @@ async fn follow_library(ctx: RouteContext, mut followed: Followed) {
                 }
             }
             Seen::Gone { file } => gone(&ctx, &followed, &file).await,
+            Seen::Refused { file, why } => refuse(&ctx, &file, &why).await,
             Seen::Listed if !listed => {
                 listed = true;
                 // Deleted while the gateway was stopped: as if deleted now.
@@ -240,6 +247,38 @@ async fn follow_library(ctx: RouteContext, mut followed: Followed) {
             }
         }
     }
+}
+
+/// A file of the library's folder it does not take: said once while it is there.
+async fn refuse(ctx: &RouteContext, file: &OsStr, why: &str) {
+    let library = &ctx.library;
+    let shown = escaped(file);
+    let path = library.dir().join(file);
+    let by = owner_of(&path, "folder");
+    let name = file
+        .to_str()
+        .and_then(|f| library.program_of(f).ok())
+        .unwrap_or_default();
+    let e = library.not_taken(file, why);
+    tracing::warn!(file = %shown, error = %e, "program library: a file of the folder not taken");
+    let key = format!("folder:{}/{shown}", library.dir().display());
+    ctx.audit(
+        Audit {
+            action: "program.store",
+            permission: Permission::ProgramWrite,
+            key: &key,
+            machine: "",
+            target: if name.is_empty() {
+                shown.clone()
+            } else {
+                name.clone()
+            },
+            detail: format!("from the folder: {shown}"),
+            origin: Some(by.clone()),
+        },
+        Err(&e),
+    );
+    publish_library_event(ctx, refused(&name, &shown, &e, by)).await;
 }
 
 /// A file of the library's folder went away.
@@ -295,8 +334,13 @@ async fn gone(ctx: &RouteContext, followed: &Followed, file: &str) {
 async fn follow_drop(ctx: RouteContext, machine: String, dir: PathBuf, mut followed: Followed) {
     let via = format!("drop folder {}", dir.display());
     while let Some(seen) = followed.seen.recv().await {
-        let Seen::Complete { file } = seen else {
-            continue;
+        let file = match seen {
+            Seen::Complete { file } => file,
+            Seen::Refused { file, why } => {
+                refuse_drop(&ctx, &machine, &dir, &file, why, &via);
+                continue;
+            }
+            _ => continue,
         };
         // A machine a reload removed takes no more jobs: its folder's files wait.
         let Some(m) = ctx.machines.now().get(&machine).cloned() else {
@@ -333,17 +377,65 @@ async fn follow_drop(ctx: RouteContext, machine: String, dir: PathBuf, mut follo
         match submitted {
             Ok(accepted) => {
                 tracing::info!(%machine, %file, job = %accepted.job_id, "drop folder: file queued as a job");
-                if let Err(e) = move_into(&dir, SENT, &file, None) {
+                if let Err(e) = move_into(&dir, SENT, file.as_ref(), None) {
                     tracing::error!(%machine, %file, error = %e, "drop folder: the file was queued but could not be moved to sent/: move it by hand, or it is queued again after a restart only if changed");
                 }
             }
             Err(e) => {
                 tracing::warn!(%machine, %file, error = %e, "drop folder: file refused");
-                if let Err(io) = move_into(&dir, REFUSED, &file, Some(&e)) {
+                if let Err(io) = move_into(&dir, REFUSED, file.as_ref(), Some(&e)) {
                     tracing::error!(%machine, %file, error = %io, "drop folder: the refused file could not be moved to refused/");
                 }
             }
         }
+    }
+}
+
+/// A drop folder's entry that is not a regular file: never opened or followed.
+#[derive(Debug, thiserror::Error)]
+#[error("the file {file} in the drop folder is not queued: {why}")]
+struct DropRefused {
+    file: String,
+    why: String,
+}
+
+impl BusCode for DropRefused {
+    fn code(&self) -> pb::ErrorCode {
+        pb::ErrorCode::InvalidRequest
+    }
+}
+
+/// A link or a special file in `machine`'s drop folder: logged, audited, and moved to
+/// `refused/` (the entry itself, not what a link names) with why beside it.
+fn refuse_drop(
+    ctx: &RouteContext,
+    machine: &str,
+    dir: &Path,
+    file: &OsStr,
+    why: String,
+    via: &str,
+) {
+    let shown = escaped(file);
+    let path = dir.join(file);
+    let e = DropRefused {
+        file: shown.clone(),
+        why,
+    };
+    tracing::warn!(%machine, file = %shown, error = %e, "drop folder: file refused");
+    ctx.audit(
+        Audit {
+            action: "job.submit",
+            permission: Permission::JobSubmit,
+            key: &format!("folder:{}/{shown}", dir.display()),
+            machine,
+            target: shown.clone(),
+            detail: format!("from the drop folder: {shown}"),
+            origin: Some(owner_of(&path, via)),
+        },
+        Err(&e),
+    );
+    if let Err(io) = move_into(dir, REFUSED, file, Some(&e)) {
+        tracing::error!(%machine, file = %shown, error = %io, "drop folder: the refused file could not be moved to refused/");
     }
 }
 
@@ -363,13 +455,21 @@ fn drop_request_id(path: &Path, file: &str) -> String {
 
 /// Moves `file` of `dir` into `dir/sub/`, under a name not yet taken there; with `why`, writes
 /// it beside the file as `<file>.why.txt`.
-fn move_into(dir: &Path, sub: &str, file: &str, why: Option<&JobError>) -> std::io::Result<()> {
+fn move_into(
+    dir: &Path,
+    sub: &str,
+    file: &OsStr,
+    why: Option<&dyn std::fmt::Display>,
+) -> std::io::Result<()> {
     let into = dir.join(sub);
     std::fs::create_dir_all(&into)?;
     let mut target = into.join(file);
     let mut n = 1;
-    while target.exists() {
-        target = into.join(format!("{file}.{n}"));
+    // A dangling link counts as taken too.
+    while std::fs::symlink_metadata(&target).is_ok() {
+        let mut numbered = OsString::from(file);
+        numbered.push(format!(".{n}"));
+        target = into.join(numbered);
         n += 1;
     }
     std::fs::rename(dir.join(file), &target)?;

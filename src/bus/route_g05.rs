@@ -267,8 +267,15 @@ async fn follow(
             },
         }
     }
-    // The last word, reliably.
+    // The last word, reliably, and in the history.
     let last = g05_status(&status.borrow().clone());
+    if status.borrow().is_over() {
+        ctx.history.event(
+            machine.name(),
+            pb::HistoryKind::G05,
+            pb::history_record::Record::G05(last.clone()),
+        );
+    }
     let sent = ctx
         .session
         .put(key.as_str(), last.encode_to_vec())
@@ -293,6 +300,7 @@ async fn raise_alarms(
         let event = machine.alarm_event(
             pb::AlarmKind::G05,
             "",
+            cellgate_core::codes::alarm::G05,
             format!("stream {}: {alarm}", status.stream),
         );
         machine.view().status.last_alarm = Some(event.clone());

@@ -292,6 +292,14 @@ pub(super) async fn job_events(ctx: &RouteContext, q: &Query) {
     }
     match ctx.keys.parse(q.key_expr().as_str()) {
         Some(CellKey::JobEvents { machine, job }) if !q.key_expr().is_wild() => {
+            // A job the machine no longer keeps (a reload removed the machine, or newer jobs
+            // pushed it out) ended as its history record says.
+            if ctx.history.enabled()
+                && let Ok(Some(h)) = ctx.history.find_job(machine, job).await
+            {
+                let event = super::record::job_event_from_history(machine, h);
+                return reply(q, q.key_expr().to_string(), &event).await;
+            }
             if ctx.machines.now().contains_key(machine) {
                 let e = RequestError::NoSuchJob {
                     machine: machine.to_string(),

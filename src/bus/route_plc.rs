@@ -374,6 +374,7 @@ pub(super) async fn mem_query(ctx: &PlcContext, q: &Query) {
     audit_mem(
         ctx,
         &key,
+        payload.as_deref(),
         origin_of(q.attachment()),
         result.as_ref().map(|_| ()),
     );
@@ -399,6 +400,33 @@ pub(super) fn put_encoding<M: BusMessage>(s: &Sample) -> Result<(), PlcRequestEr
     })
 }
 
+/// The words a memory write asked for, as the audit trail says them (the first 16).
+fn mem_detail(payload: Option<&[u8]>) -> String {
+    let Some(w) = payload.and_then(|p| <pb::PlcWrite as prost::Message>::decode(p).ok()) else {
+        return String::new();
+    };
+    if w.clear {
+        return "clear".to_string();
+    }
+    let shown: Vec<String> = w
+        .words
+        .iter()
+        .take(16)
+        .map(|v| format!("0x{v:04X}"))
+        .collect();
+    let more = w.words.len().saturating_sub(16);
+    format!(
+        "{} word(s): {}{}",
+        w.words.len(),
+        shown.join(" "),
+        if more > 0 {
+            format!(" … ({more} more)")
+        } else {
+            String::new()
+        }
+    )
+}
+
 /// A put with a `PlcWrite` on a memory key's `write`; a put has no answer, so a refusal is logged.
 pub(super) async fn mem_put(ctx: &PlcContext, s: &Sample) {
     if let Err(e) = put_mem(ctx, s).await {
@@ -420,6 +448,7 @@ async fn put_mem(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
     audit_mem(
         ctx,
         s.key_expr().as_str(),
+        Some(&bytes),
         origin_of(s.attachment()),
         done.as_ref().map(|_| ()),
     );
@@ -430,6 +459,7 @@ async fn put_mem(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
 fn audit_mem(
     ctx: &PlcContext,
     key: &str,
+    payload: Option<&[u8]>,
     origin: Option<pb::RequestOrigin>,
     outcome: Result<(), &PlcRequestError>,
 ) {
@@ -457,7 +487,7 @@ fn audit_mem(
             key,
             machine: plc,
             target,
-            detail: String::new(),
+            detail: mem_detail(payload),
             origin,
         },
         outcome,
@@ -656,6 +686,14 @@ pub(crate) fn status_message(link: &PlcLink, snap: &PlcSnapshot) -> pb::PlcStatu
         messages_sent: c.messages_sent,
         partial_messages: c.partial_messages,
         fixed_length: link.config.fixed_length.map_or(0, u32::from),
+        line_errors: [
+            ("parity", c.line_errors.parity),
+            ("framing", c.line_errors.framing),
+            ("overrun", c.line_errors.overrun),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect(),
         poll_groups: snap
             .groups
             .iter()

@@ -57,7 +57,15 @@ pub(super) async fn program_read(ctx: &RouteContext, q: &Query) {
         match ctx.library.list().await {
             Ok(entries) => {
                 for e in entries {
-                    let key = ctx.keys.program(&e.name);
+                    // A file the folder refuses has no program name: a chunk no program
+                    // name can be (it starts with '-') stands for it.
+                    let key = if e.name.is_empty() {
+                        use sha2::Digest as _;
+                        let id = hex::encode(sha2::Sha256::digest(e.file.as_bytes()));
+                        ctx.keys.program(&format!("-refused-{}", &id[..16]))
+                    } else {
+                        ctx.keys.program(&e.name)
+                    };
                     if intersects(q.key_expr(), &key) {
                         reply(q, key, &e.info()).await;
                     }
@@ -260,7 +268,8 @@ pub(super) async fn program_write(ctx: &RouteContext, q: &Query) {
                 .store_as(
                     name,
                     Store {
-                        bytes: &bytes,
+                        // The request's own bytes, not a copy: a program may be large.
+                        bytes: bytes.into(),
                         by,
                         comment: write.comment,
                         adopted: None,
@@ -393,7 +402,7 @@ pub(super) async fn program_sample(ctx: &RouteContext, sample: &Sample) {
                 .store_as(
                     name,
                     Store {
-                        bytes: &program,
+                        bytes: program.as_ref().into(),
                         by,
                         ..Store::default()
                     },

@@ -348,7 +348,7 @@ impl PunchDesk {
                 });
             };
             let store = Store {
-                bytes: &program.text,
+                bytes: program.text.as_slice().into(),
                 by: pb::RequestOrigin {
                     user: "(punch)".to_string(),
                     via: self.machine.clone(),

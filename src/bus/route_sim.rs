@@ -45,6 +45,19 @@ fn state(m: &Machine, s: &BoardSnapshot) -> pb::SimState {
     }
 }
 
+/// A simulation control as the audit trail says it: what it sets, and to what.
+fn describe(c: &BoardCommand) -> String {
+    match c {
+        BoardCommand::SetDi(v) => format!("DI 0x{v:02X}"),
+        BoardCommand::SetAutostart(on) => {
+            format!("autostart {}", if *on { "on" } else { "off" })
+        }
+        BoardCommand::Punch(bytes) => format!("punch {} bytes", bytes.len()),
+        BoardCommand::SetConsumeRate(r) => format!("consume rate {r} B/s"),
+        other => format!("{other:?}"),
+    }
+}
+
 pub(super) async fn sim_query(ctx: &RouteContext, q: &Query) {
     let key = q.key_expr();
     if key.is_wild() {
@@ -80,7 +93,13 @@ pub(super) async fn sim_query(ctx: &RouteContext, q: &Query) {
         return reply_err(q, &e).await;
     };
     let payload = q.payload().map(|p| p.to_bytes().to_vec());
-    let result = match command(ctx, &m, sim, leaf, payload.as_deref()) {
+    let command = command(ctx, &m, sim, leaf, payload.as_deref());
+    // What the control asked for, with its value, for the audit trail.
+    let detail = match &command {
+        Ok(Some(c)) => describe(c),
+        _ => String::new(),
+    };
+    let result = match command {
         Ok(None) => Ok(sim.snapshot()),
         Ok(Some(command)) => {
             sim.apply(command, TAKE_WITHIN)
@@ -103,7 +122,7 @@ pub(super) async fn sim_query(ctx: &RouteContext, q: &Query) {
                 key: key.as_str(),
                 machine,
                 target: machine.to_string(),
-                detail: String::new(),
+                detail,
                 origin: crate::bus::audit::origin_of(q.attachment()),
             },
             result.as_ref().map(|_| ()),

@@ -857,7 +857,9 @@ impl Client {
         write: pb::ProgramWrite,
     ) -> Result<pb::ProgramInfo, ClientError> {
         let key = self.keys.program_write(name);
-        let payload = (write.encode_to_vec(), encoding::<pb::ProgramWrite>());
+        // Encoded, the message is not kept beside its encoding while it is sent: a store's
+        // program may be large.
+        let payload = ({ write }.encode_to_vec(), encoding::<pb::ProgramWrite>());
         self.get_one(
             &format!("{op} program {name}"),
             &key,

@@ -638,7 +638,11 @@ pub fn program_table(programs: &[pb::ProgramInfo]) -> String {
         .iter()
         .map(|p| {
             vec![
-                p.name.clone(),
+                if p.name.is_empty() {
+                    "-".to_string()
+                } else {
+                    p.name.clone()
+                },
                 p.latest
                     .as_ref()
                     .filter(|r| !r.removed)
@@ -654,9 +658,11 @@ pub fn program_table(programs: &[pb::ProgramInfo]) -> String {
         })
         .collect();
     let mut out = table(&["NAME", "REV", "BYTES", "MODIFIED", "FILE"], &rows);
-    // Why a file of the folder is not its program's latest revision, where it is not.
+    // Why a file of the folder is not its program's latest revision, where it is not; a file
+    // the folder does not take has no program name, and is named by its file.
     for p in programs.iter().filter(|p| !p.note.is_empty()) {
-        out.push_str(&format!("{}: {}\n", p.name, p.note));
+        let who = if p.name.is_empty() { &p.file } else { &p.name };
+        out.push_str(&format!("{who}: {}\n", p.note));
     }
     out
 }
@@ -792,6 +798,7 @@ impl WatchPrinter {
                     library_change_text(info, by.as_ref())
                 )
             }
+            WatchEvent::Library(e) => format!("{} library {}", clock(now_ms), folder_event_text(e)),
             WatchEvent::DoOutput {
                 machine,
                 command,
@@ -988,6 +995,9 @@ pub fn watch_json(event: &WatchEvent, now_ms: u64) -> Value {
             "event": "program_changed", "change": library_change(info), "unix_ms": now_ms,
             "program": info, "by": by,
         }),
+        WatchEvent::Library(e) => json!({
+            "event": "library", "folder": e, "unix_ms": now_ms,
+        }),
         WatchEvent::DoOutput {
             machine,
             command,
@@ -1118,6 +1128,27 @@ pub fn error_replies_json(st: &pb::PlcStation) -> Value {
 }
 
 /// The stations of every PLC link, one line each; `now_ms` ages their last errors.
+/// A folder event of the library, for `watch`.
+fn folder_event_text(e: &pb::LibraryEvent) -> String {
+    match e.kind() {
+        pb::LibraryEventKind::Refused => format!(
+            "{}{}: not taken: {}",
+            e.file,
+            if e.name.is_empty() || e.name == e.file {
+                String::new()
+            } else {
+                format!(" (program {})", e.name)
+            },
+            e.error
+        ),
+        pb::LibraryEventKind::FolderUnreadable => {
+            format!("folder {} cannot be read: {}", e.file, e.error)
+        }
+        pb::LibraryEventKind::FolderReadable => format!("folder {} can be read again", e.file),
+        pb::LibraryEventKind::Unspecified => format!("{} {}", e.file, e.error),
+    }
+}
+
 pub fn plc_status_text(plcs: &[pb::PlcStatus], now_ms: u64) -> String {
     let mut s = String::new();
     if plcs.is_empty() {
@@ -1142,6 +1173,28 @@ pub fn plc_status_text(plcs: &[pb::PlcStatus], now_ms: u64) -> String {
                 st.retries,
                 st.bcc_errors,
                 last_error_text(st, now_ms)
+            );
+        }
+    }
+    for p in plcs {
+        // A noisy line shows here (FFU120B §5-6): characters with errors, texts dropped.
+        let counts = |m: &std::collections::HashMap<String, u64>| {
+            let mut v: Vec<(&String, &u64)> = m.iter().filter(|(_, n)| **n > 0).collect();
+            v.sort();
+            v.iter()
+                .map(|(k, n)| format!("{k} {n}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        let (line, dropped) = (counts(&p.line_errors), counts(&p.receive_errors));
+        if !line.is_empty() || !dropped.is_empty() {
+            let none = || "none".to_string();
+            let _ = writeln!(
+                s,
+                "{}: line errors: {}; texts dropped: {}",
+                p.plc,
+                if line.is_empty() { none() } else { line },
+                if dropped.is_empty() { none() } else { dropped }
             );
         }
     }

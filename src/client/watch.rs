@@ -24,10 +24,22 @@ impl Client {
                 what: format!("subscribe to the liveliness tokens {all}"),
                 source,
             })?;
+        // `@events` is a verbatim chunk: `P/C/**` does not take it in, so it is asked for by
+        // its own name.
+        let folder_key = self.keys.program_events();
+        let folder = self
+            .session
+            .declare_subscriber(folder_key.as_str())
+            .await
+            .map_err(|source| ClientError::Zenoh {
+                what: format!("subscribe to {folder_key}"),
+                source,
+            })?;
         let mut watch = Watch {
             keys: self.keys.clone(),
             data,
             tokens,
+            folder,
             pending: VecDeque::new(),
         };
         // The standing tokens, asked for after subscribing so that no change is missed
@@ -126,6 +138,9 @@ pub enum WatchEvent {
     },
     /// A reload of the cell file, taken or refused.
     Reload(pb::ReloadResult),
+    /// The library's folder: a file refused (two files giving one name, a locked revision's
+    /// edit, a link), the folder unreadable or readable again.
+    Library(pb::LibraryEvent),
     /// A sample on the cell's keys that is not what the contract puts there.
     Unexpected {
         key: String,
@@ -138,6 +153,8 @@ pub struct Watch {
     keys: CellKeys,
     data: Subscriber<FifoChannelHandler<Sample>>,
     tokens: Subscriber<FifoChannelHandler<Sample>>,
+    /// The library's folder events (`P/C/program/@events`).
+    folder: Subscriber<FifoChannelHandler<Sample>>,
     pending: VecDeque<WatchEvent>,
 }
 
@@ -148,14 +165,22 @@ impl Watch {
             return Some(e);
         }
         loop {
-            let (sample, token) = tokio::select! {
-                s = self.tokens.recv_async() => (s.ok()?, true),
-                s = self.data.recv_async() => (s.ok()?, false),
-            };
-            let event = if token {
-                self.token_event(&sample)
-            } else {
-                self.data_event(&sample)
+            let event = tokio::select! {
+                s = self.tokens.recv_async() => self.token_event(&s.ok()?),
+                s = self.data.recv_async() => self.data_event(&s.ok()?),
+                s = self.folder.recv_async() => {
+                    let s = s.ok()?;
+                    let key = s.key_expr().as_str();
+                    let bytes = s.payload().to_bytes();
+                    Some(
+                        decode(key, key, &bytes, s.encoding())
+                            .map(WatchEvent::Library)
+                            .unwrap_or_else(|e| WatchEvent::Unexpected {
+                                key: key.to_string(),
+                                detail: e.to_string(),
+                            }),
+                    )
+                }
             };
             if let Some(e) = event {
                 return Some(e);
@@ -289,10 +314,11 @@ impl Watch {
         }))
     }
 
-    /// Undeclares both subscriptions.
+    /// Undeclares the subscriptions.
     pub async fn close(self) {
         let _ = self.data.undeclare().await;
         let _ = self.tokens.undeclare().await;
+        let _ = self.folder.undeclare().await;
     }
 }
 

@@ -453,7 +453,9 @@ pub struct CommentQuery {
 /// A program upload: checked before its bytes are taken (the caller, then `Content-Length`
 /// against `programs.max_inline` and, through the gateway, the name, a lock and the
 /// quotas), then streamed to a temporary file within the limit, and sent to the gateway
-/// from there, a few stores at a time.
+/// from there, a few stores at a time. The bus takes a program in one message, so a store
+/// holds it whole while it is sent: only `UPLOADS_AT_ONCE` are read back into memory at
+/// once, and the rest wait as files.
 pub async fn program_put(
     State(c): State<Arc<Console>>,
     caller: Caller<StoreProgram>,
@@ -475,7 +477,7 @@ pub async fn program_put(
         // The gateway says now whether it would take a program of that size.
         client.program_check(&name, n).await?;
     }
-    let program = spool(body, limit).await?;
+    let spooled = spool(body, limit).await?;
     let _sending = c.uploads.acquire().await.map_err(|_| {
         ApiError::new(
             StatusCode::SERVICE_UNAVAILABLE,
@@ -483,25 +485,50 @@ pub async fn program_put(
             "the console is stopping",
         )
     })?;
+    let program = spooled.read().await?;
     Ok(message(
         &client.program_store(&name, program, q.comment).await?,
     ))
 }
 
-/// Reads an upload into a temporary file, at most `limit` bytes, and back once it is whole:
-/// a slow upload holds a file, not memory.
-async fn spool(body: Body, limit: u64) -> Result<Vec<u8>, ApiError> {
-    let failed = |what: &str, e: std::io::Error| {
-        ApiError::new(
-            StatusCode::INSUFFICIENT_STORAGE,
-            pb::ErrorCode::StorageFailed,
-            format!("the console could not {what} the upload: {e}"),
-        )
-    };
+/// An upload held in an unnamed temporary file (gone with it), and its size.
+struct Spooled {
+    file: tokio::fs::File,
+    size: u64,
+}
+
+fn spool_failed(what: &str, e: std::io::Error) -> ApiError {
+    ApiError::new(
+        StatusCode::INSUFFICIENT_STORAGE,
+        pb::ErrorCode::StorageFailed,
+        format!("the console could not {what} the upload: {e}"),
+    )
+}
+
+impl Spooled {
+    /// The whole upload, read back: call it only once it may be held (a sending slot).
+    async fn read(mut self) -> Result<Vec<u8>, ApiError> {
+        self.file
+            .rewind()
+            .await
+            .map_err(|e| spool_failed("read", e))?;
+        let mut program = Vec::with_capacity(usize::try_from(self.size).unwrap_or(0));
+        (&mut self.file)
+            .take(self.size)
+            .read_to_end(&mut program)
+            .await
+            .map_err(|e| spool_failed("read", e))?;
+        Ok(program)
+    }
+}
+
+/// Reads an upload into a temporary file, at most `limit` bytes: a slow upload, or one that
+/// waits for its turn to be sent, holds a file, not memory.
+async fn spool(body: Body, limit: u64) -> Result<Spooled, ApiError> {
     let file = tokio::task::spawn_blocking(tempfile::tempfile)
         .await
-        .map_err(|e| failed("hold", std::io::Error::other(e)))?
-        .map_err(|e| failed("hold", e))?;
+        .map_err(|e| spool_failed("hold", std::io::Error::other(e)))?
+        .map_err(|e| spool_failed("hold", e))?;
     let mut file = tokio::fs::File::from_std(file);
     let mut stream = body.into_data_stream();
     let mut size = 0u64;
@@ -513,14 +540,10 @@ async fn spool(body: Body, limit: u64) -> Result<Vec<u8>, ApiError> {
         }
         file.write_all(&chunk)
             .await
-            .map_err(|e| failed("write", e))?;
+            .map_err(|e| spool_failed("write", e))?;
     }
-    file.rewind().await.map_err(|e| failed("read", e))?;
-    let mut program = Vec::with_capacity(usize::try_from(size).unwrap_or(0));
-    file.read_to_end(&mut program)
-        .await
-        .map_err(|e| failed("read", e))?;
-    Ok(program)
+    file.flush().await.map_err(|e| spool_failed("write", e))?;
+    Ok(Spooled { file, size })
 }
 
 pub async fn program_delete(

@@ -14,11 +14,13 @@ use tokio_rustls::rustls;
 use tokio_rustls::rustls::pki_types::pem::PemObject;
 use tokio_rustls::rustls::pki_types::{CertificateDer, PrivateKeyDer};
 
+use crate::door::{Admitted, Door};
 use cellgate_core::config::TlsConfig;
 
 /// How long a TLS handshake may take before the connection is dropped.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
-/// Handshakes under way at once; more connections wait in the kernel's backlog.
+/// Handshakes under way at once; more connections wait in the kernel's backlog (each
+/// handshake holds a connection of the door's cap, too).
 const MAX_HANDSHAKES: usize = 64;
 
 /// Who is at the other end of a connection.
@@ -50,31 +52,21 @@ pub enum ListenError {
 }
 
 /// Plain TCP, each connection's peer known by its address only.
-pub struct PlainListener(pub TcpListener);
+pub struct PlainListener(pub Door);
 
 impl axum::serve::Listener for PlainListener {
-    type Io = TcpStream;
+    type Io = Admitted<TcpStream>;
     type Addr = Peer;
 
     async fn accept(&mut self) -> (Self::Io, Self::Addr) {
-        loop {
-            match self.0.accept().await {
-                Ok((s, addr)) => {
-                    return (
-                        s,
-                        Peer {
-                            addr,
-                            certificate_name: None,
-                        },
-                    );
-                }
-                // Out of file descriptors and the like: wait, rather than spin.
-                Err(e) => {
-                    tracing::warn!(error = %e, "console: accept failed");
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                }
-            }
-        }
+        let (s, addr) = self.0.accept().await;
+        (
+            s,
+            Peer {
+                addr,
+                certificate_name: None,
+            },
+        )
     }
 
     fn local_addr(&self) -> std::io::Result<Self::Addr> {
@@ -85,15 +77,17 @@ impl axum::serve::Listener for PlainListener {
     }
 }
 
+type Tls = tokio_rustls::server::TlsStream<Admitted<TcpStream>>;
+
 /// TLS over TCP. Handshakes run in tasks of their own, so one slow client holds up nobody.
 pub struct TlsListener {
     local: SocketAddr,
-    ready: mpsc::Receiver<(tokio_rustls::server::TlsStream<TcpStream>, Peer)>,
+    ready: mpsc::Receiver<(Tls, Peer)>,
 }
 
 impl TlsListener {
-    pub fn new(tcp: TcpListener, acceptor: TlsAcceptor) -> std::io::Result<Self> {
-        let local = tcp.local_addr()?;
+    pub fn new(door: Door, acceptor: TlsAcceptor) -> std::io::Result<Self> {
+        let local = door.local_addr()?;
         let (tx, ready) = mpsc::channel(MAX_HANDSHAKES);
         let permits = Arc::new(tokio::sync::Semaphore::new(MAX_HANDSHAKES));
         tokio::spawn(async move {
@@ -101,13 +95,9 @@ impl TlsListener {
                 let Ok(permit) = Arc::clone(&permits).acquire_owned().await else {
                     return;
                 };
-                let (stream, addr) = match tcp.accept().await {
-                    Ok(x) => x,
-                    Err(e) => {
-                        tracing::warn!(error = %e, "console: accept failed");
-                        tokio::time::sleep(Duration::from_millis(100)).await;
-                        continue;
-                    }
+                let (stream, addr) = tokio::select! {
+                    () = tx.closed() => return,
+                    accepted = door.accept() => accepted,
                 };
                 let (acceptor, ready) = (acceptor.clone(), tx.clone());
                 tokio::spawn(async move {
@@ -137,9 +127,6 @@ impl TlsListener {
                         ))
                         .await;
                 });
-                if tx.is_closed() {
-                    return;
-                }
             }
         });
         Ok(TlsListener { local, ready })
@@ -147,7 +134,7 @@ impl TlsListener {
 }
 
 impl axum::serve::Listener for TlsListener {
-    type Io = tokio_rustls::server::TlsStream<TcpStream>;
+    type Io = Tls;
     type Addr = Peer;
 
     async fn accept(&mut self) -> (Self::Io, Self::Addr) {

@@ -39,6 +39,7 @@ use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
 use crate::client::Client;
+use crate::door::Door;
 use crate::telemetry::prometheus::Exposition;
 use cellgate_core::config::{ConsoleConfig, Permission, SecurityConfig};
 use cellgate_core::history::refusals::{self, Refusals};
@@ -52,7 +53,8 @@ use self::live::Live;
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 /// How often the list of cells is asked again at most.
 const DISCOVERY_EVERY: Duration = Duration::from_secs(5);
-/// Program uploads sent to a gateway at once: each is held whole while it is sent.
+/// Program uploads sent to a gateway at once: each is held whole while it is sent (one bus
+/// message); the others wait spooled to files, not in memory.
 const UPLOADS_AT_ONCE: usize = 2;
 /// Body limit of every request but a program upload (which takes `programs.max_inline`).
 const BODY_LIMIT: usize = 16 * 1024;
@@ -356,7 +358,7 @@ const STOP_GRACE: Duration = Duration::from_secs(5);
 /// A console listening, and the URL it is reached at.
 pub struct Served {
     pub url: String,
-    pub task: tokio::task::JoinHandle<Result<(), ConsoleError>>,
+    pub task: tokio::task::JoinHandle<()>,
     /// The console's state, which a reload updates ([`Console::reload`]).
     pub console: Arc<Console>,
 }
@@ -420,47 +422,24 @@ pub async fn serve(
     });
     tokio::spawn(notes_task(Arc::clone(&console), notes_rx, stop.clone()));
     let handle = Arc::clone(&console);
-    let app = router(console).into_make_service_with_connect_info::<listen::Peer>();
+    let app = router(console);
     let url = format!("{}://{}/", if https { "https" } else { "http" }, local);
+    let cap = crate::door::connection_cap();
     let task = if let Some(tls) = &settings.security.tls {
+        // A plain 503 means nothing to a TLS client: one over the cap is only closed.
+        let door = Door::new("console", tcp, cap, b"");
         let listener =
-            TlsListener::new(tcp, listen::acceptor(tls)?).map_err(ConsoleError::Serve)?;
-        tokio::spawn(async move {
-            axum::serve(listener, app)
-                .with_graceful_shutdown(async move { stop.cancelled().await })
-                .await
-                .map_err(ConsoleError::Serve)
-        })
+            TlsListener::new(door, listen::acceptor(tls)?).map_err(ConsoleError::Serve)?;
+        tokio::spawn(crate::door::http::serve(listener, app, stop))
     } else {
-        let listener = PlainListener(tcp);
-        tokio::spawn(async move {
-            axum::serve(listener, app)
-                .with_graceful_shutdown(async move { stop.cancelled().await })
-                .await
-                .map_err(ConsoleError::Serve)
-        })
+        let door = Door::new("console", tcp, cap, crate::door::HTTP_FULL);
+        tokio::spawn(crate::door::http::serve(PlainListener(door), app, stop))
     };
     Ok(Served {
         url,
         task,
         console: handle,
     })
-}
-
-impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, PlainListener>>
-    for listen::Peer
-{
-    fn connect_info(s: axum::serve::IncomingStream<'_, PlainListener>) -> Self {
-        s.remote_addr().clone()
-    }
-}
-
-impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, TlsListener>>
-    for listen::Peer
-{
-    fn connect_info(s: axum::serve::IncomingStream<'_, TlsListener>) -> Self {
-        s.remote_addr().clone()
-    }
 }
 
 /// `cellgate console`: the site view, every cell behind the endpoint.

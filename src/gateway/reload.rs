@@ -198,6 +198,8 @@ pub(super) struct Reloader {
     pending: BTreeMap<String, Pending>,
     next_op: u64,
     drained: mpsc::UnboundedSender<(String, u64)>,
+    /// The last reload taken, published again as the machines it waited for leave.
+    last_taken: Option<pb::ReloadResult>,
 }
 
 /// Why a reload was refused, its code.
@@ -229,6 +231,7 @@ impl Reloader {
             pending: BTreeMap::new(),
             next_op: 1,
             drained,
+            last_taken: None,
         }
     }
 
@@ -312,14 +315,29 @@ impl Reloader {
         );
         route_reload::publish(&self.run.session, &self.run.keys, r).await;
         self.show(Some(r));
+        if r.applied {
+            self.last_taken = Some(r.clone());
+        }
         let _ = ask.reply.send(answer);
     }
 
+    /// Shows the running cell in the admin document: the file's, and the machines a reload
+    /// removed whose running job has not ended yet (their links still run, and every
+    /// surface that follows the cell keeps them until they stop).
     fn show(&self, last: Option<&pb::ReloadResult>) {
         let waiting: Vec<String> = self.pending.keys().cloned().collect();
+        let mut running = self.current.clone();
+        for (name, p) in &self.pending {
+            if p.target.is_none()
+                && running.machine(name).is_none()
+                && let Some(m) = self.run.cell.machine(name)
+            {
+                running.machines.push(m.config.clone());
+            }
+        }
         self.run
             .admin
-            .set_config(&self.current, self.generation, last, &waiting);
+            .set_config(&running, self.generation, last, &waiting);
     }
 
     async fn apply(
@@ -557,6 +575,9 @@ impl Reloader {
             self.drained.clone(),
             name.to_string(),
         );
+        // A machine sending nothing now stops or restarts at once: it is not listed as
+        // waiting for a job it does not have.
+        let idle_now = futures::FutureExt::now_or_never(routes.idle(&n)).is_some();
         let watcher = tokio::spawn(async move {
             routes.idle(&n).await;
             let _ = tx.send((n, op));
@@ -570,17 +591,36 @@ impl Reloader {
                 watcher,
             },
         );
+        if idle_now {
+            self.drain(name, op).await;
+        }
     }
 
     /// Machine `name` sends nothing any more (`op`: the wait that said so): its link stops, or
     /// restarts with its new entry.
     pub(super) async fn on_drained(&mut self, name: String, op: u64) {
-        if self.pending.get(&name).is_none_or(|p| p.op != op) {
-            return;
+        if self.drain(&name, op).await {
+            self.show(None);
+            // The reload is published again, `waiting` as it stands now, so that whoever
+            // follows the cell (the MTConnect agent, the console) asks for it as it now is.
+            if let Some(mut r) = self.last_taken.clone() {
+                r.waiting = self.pending.keys().cloned().collect();
+                r.unix_ms = pb::now_ms();
+                route_reload::publish(&self.run.session, &self.run.keys, &r).await;
+            }
         }
-        let Some(p) = self.pending.remove(&name) else {
-            return;
+    }
+
+    /// Stops or restarts the link of machine `name`, waiting for it (`op`); whether it did.
+    async fn drain(&mut self, name: &str, op: u64) -> bool {
+        if self.pending.get(name).is_none_or(|p| p.op != op) {
+            return false;
+        }
+        let Some(p) = self.pending.remove(name) else {
+            return false;
         };
+        p.watcher.abort();
+        let name = name.to_string();
         match p.target {
             None => {
                 self.run.machines.stop(&name, true).await;
@@ -601,7 +641,7 @@ impl Reloader {
                 }
             }
         }
-        self.show(None);
+        true
     }
 
     /// The settings that apply without touching a link, taken from `new` whether or not they

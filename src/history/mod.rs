@@ -432,6 +432,44 @@ impl History {
         blocking(&inner.path.clone(), move || read_page(&inner, log, &query)).await
     }
 
+    /// The record of job `job_id` of `machine`, if the history keeps it: how a job ended
+    /// when the machine no longer keeps it (a reload removed the machine, or 256 newer jobs
+    /// pushed it out). Reads the machine's job records newest first, a page at a time.
+    pub async fn find_job(
+        &self,
+        machine: &str,
+        job_id: &str,
+    ) -> Result<Option<pb::JobHistory>, HistoryError> {
+        const PAGE: usize = 1000;
+        /// Jobs looked through at most: a year of a busy machine.
+        const MAX_PAGES: usize = 200;
+        let mut query = HistoryQuery {
+            from_ms: 0,
+            to_ms: pb::now_ms(),
+            machines: Some(BTreeSet::from([machine.to_string()])),
+            kinds: Some(BTreeSet::from([HistoryKind::Job as i32])),
+            tags: BTreeSet::new(),
+            limit: PAGE,
+            after: 0,
+            order: Order::Newest,
+            bucket: cellgate_core::history::Bucket::default(),
+        };
+        // A job that just ended may still be on its way to the store.
+        self.settled(Duration::from_secs(2)).await;
+        for _ in 0..MAX_PAGES {
+            let page = self.query(Log::History, query.clone()).await?;
+            let found = page.records.into_iter().find_map(|r| match r.record {
+                Some(Record::Job(j)) if j.job_id == job_id => Some(j),
+                _ => None,
+            });
+            if found.is_some() || !page.more {
+                return Ok(found);
+            }
+            query.after = page.next_after;
+        }
+        Ok(None)
+    }
+
     /// The gateway's own marks over `[from, to]` (with the one before `from`): its starts,
     /// stops and alive records, which utilisation merges into every machine's.
     pub async fn gateway_marks(&self, from_ms: u64, to_ms: u64) -> Result<Vec<Mark>, HistoryError> {

@@ -9,8 +9,15 @@
 //! otherwise) catches whatever the events missed. An event queue that overflowed, a watcher
 //! that fails, or a folder that cannot be read (an unmounted share) all fall back to that
 //! listing, and say so; nothing is lost, only later.
+//!
+//! Only regular files are complete files. Entries are looked at without following a link
+//! (`lstat`), so a symbolic link is a link whatever it points at, and a FIFO or a device is
+//! never opened here (a FIFO would block the watcher). Such a file, or one whose name the
+//! folder refuses, is reported once while it is there ([`Seen::Refused`]); subfolders are
+//! passed over.
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::ffi::{OsStr, OsString};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -42,6 +49,50 @@ pub enum Seen {
     Readable,
     /// A full listing was made (the first at start): what is not there is gone.
     Listed,
+    /// A file that is not taken, reported once while it is there: its name is refused
+    /// ([`Verdict::Refuse`]), or it is not a regular file (a symbolic link, a FIFO, a device).
+    Refused { file: OsString, why: String },
+}
+
+/// What a folder makes of a file's name.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Verdict {
+    /// A file taken once it is complete (if it is a regular file).
+    Take,
+    /// Passed over without a word: hidden and temporary files, the gateway's own.
+    Pass,
+    /// Not taken, and said once: why.
+    Refuse(String),
+}
+
+/// What a directory entry is, for a message: "a symbolic link", "a FIFO"...
+pub fn file_kind(t: std::fs::FileType) -> &'static str {
+    use std::os::unix::fs::FileTypeExt as _;
+    if t.is_file() {
+        "a regular file"
+    } else if t.is_symlink() {
+        "a symbolic link"
+    } else if t.is_dir() {
+        "a directory"
+    } else if t.is_fifo() {
+        "a FIFO (named pipe)"
+    } else if t.is_socket() {
+        "a socket"
+    } else if t.is_char_device() {
+        "a character device"
+    } else if t.is_block_device() {
+        "a block device"
+    } else {
+        "not a regular file"
+    }
+}
+
+/// Why an entry of kind `t` is not taken, when it is not a regular file.
+pub fn not_regular(t: std::fs::FileType) -> String {
+    format!(
+        "it is {}: only regular files inside the folder are taken (a link is never followed)",
+        file_kind(t)
+    )
 }
 
 /// A folder being followed.
@@ -62,8 +113,8 @@ pub struct FolderWatch {
     pub watch: Watch,
     pub settle_ms: u64,
     pub poll: Duration,
-    /// Which file names count (the rest are passed over without a word).
-    pub takes: Arc<dyn Fn(&str) -> bool + Send + Sync>,
+    /// What the folder makes of each file name.
+    pub takes: Arc<dyn Fn(&OsStr) -> Verdict + Send + Sync>,
 }
 
 impl std::fmt::Debug for FolderWatch {
@@ -84,25 +135,61 @@ fn stat_of(meta: &std::fs::Metadata) -> Stat {
     }
 }
 
-/// The folder's files that count, with what they are now. Blocking.
-fn list(
-    dir: &Path,
-    takes: &(dyn Fn(&str) -> bool + Send + Sync),
-) -> std::io::Result<BTreeMap<String, Stat>> {
-    let mut out = BTreeMap::new();
-    for item in std::fs::read_dir(dir)? {
-        let item = item?;
-        let Ok(file) = item.file_name().into_string() else {
-            continue;
-        };
-        if !takes(&file) {
-            continue;
+/// What a look at one entry found.
+enum Found {
+    /// A regular file the folder takes, as it is now.
+    File(String, Stat),
+    /// An entry not taken, and why.
+    Refused(String),
+    /// Nothing to say: not there, passed over, a subfolder.
+    Nothing,
+}
+
+/// Looks at `file` of `dir` without following a link. Blocking (one `lstat`).
+fn look(dir: &Path, file: &OsStr, takes: &(dyn Fn(&OsStr) -> Verdict + Send + Sync)) -> Found {
+    let verdict = takes(file);
+    if verdict == Verdict::Pass {
+        return Found::Nothing;
+    }
+    // A file removed between the listing and its stat is simply not there.
+    let Ok(meta) = std::fs::symlink_metadata(dir.join(file)) else {
+        return Found::Nothing;
+    };
+    let kind = meta.file_type();
+    if kind.is_dir() {
+        return Found::Nothing;
+    }
+    match (verdict, file.to_str()) {
+        (Verdict::Refuse(why), _) => Found::Refused(why),
+        (Verdict::Take, Some(name)) if kind.is_file() => {
+            Found::File(name.to_string(), stat_of(&meta))
         }
-        // A file removed between the listing and its stat is simply not there.
-        if let Ok(meta) = std::fs::metadata(item.path())
-            && meta.is_file()
-        {
-            out.insert(file, stat_of(&meta));
+        (Verdict::Take, Some(_)) => Found::Refused(not_regular(kind)),
+        (Verdict::Take | Verdict::Pass, _) => Found::Nothing,
+    }
+}
+
+/// A listing: the regular files that count, with what they are now, and the entries not
+/// taken, with why.
+#[derive(Default)]
+struct Listing {
+    files: BTreeMap<String, Stat>,
+    refused: BTreeMap<OsString, String>,
+}
+
+/// Lists the folder. Blocking.
+fn list(dir: &Path, takes: &(dyn Fn(&OsStr) -> Verdict + Send + Sync)) -> std::io::Result<Listing> {
+    let mut out = Listing::default();
+    for item in std::fs::read_dir(dir)? {
+        let file = item?.file_name();
+        match look(dir, &file, takes) {
+            Found::File(name, stat) => {
+                out.files.insert(name, stat);
+            }
+            Found::Refused(why) => {
+                out.refused.insert(file, why);
+            }
+            Found::Nothing => {}
         }
     }
     Ok(out)
@@ -110,9 +197,11 @@ fn list(
 
 /// What a change event says of a file.
 enum Hint {
-    Look(String),
+    Look(OsString),
     Writing(String),
     Closed(String),
+    /// The folder itself was removed or moved: its watch is gone with it.
+    Folder,
 }
 
 impl FolderWatch {
@@ -151,8 +240,12 @@ impl FolderWatch {
         };
         let mut settle = Settle::new(self.settle_ms);
         let mut known: BTreeSet<String> = BTreeSet::new();
+        // The entries not taken that were reported, while they are there: said once each.
+        let mut refused: BTreeSet<OsString> = BTreeSet::new();
         let mut readable = true;
         let mut placed = false;
+        // The folder was removed or moved away: a watch on it sees nothing any more.
+        let mut lost = false;
         let mut first = true;
         let mut next_scan = tokio::time::Instant::now();
         loop {
@@ -165,12 +258,18 @@ impl FolderWatch {
                     .await
                     .unwrap_or_else(|e| Err(std::io::Error::other(e.to_string())));
                 match listed {
-                    Ok(files) => {
+                    Ok(listing) => {
                         if !readable {
                             readable = true;
                             tracing::info!(dir = %self.dir.display(), "folder readable again");
                             let _ = out.send(Seen::Readable).await;
                         }
+                        if lost && let Some(w) = watcher.as_mut() {
+                            // The old folder's watch, if the system still has it.
+                            let _ = w.unwatch(&self.dir);
+                            placed = false;
+                        }
+                        lost = false;
                         // The watch is placed once the folder exists (it may have been missing).
                         if !placed && let Some(w) = watcher.as_mut() {
                             match w.watch(&self.dir, RecursiveMode::NonRecursive) {
@@ -181,6 +280,7 @@ impl FolderWatch {
                                 ),
                             }
                         }
+                        let files = listing.files;
                         for gone in known.iter().filter(|f| !files.contains_key(*f)) {
                             let _ = out.send(Seen::Gone { file: gone.clone() }).await;
                         }
@@ -188,6 +288,12 @@ impl FolderWatch {
                         settle.retain(&known);
                         for (file, stat) in files {
                             settle.observe(&file, stat, now_ms);
+                        }
+                        refused.retain(|f| listing.refused.contains_key(f));
+                        for (file, why) in listing.refused {
+                            if refused.insert(file.clone()) {
+                                let _ = out.send(Seen::Refused { file, why }).await;
+                            }
                         }
                         let _ = out.send(Seen::Listed).await;
                     }
@@ -236,7 +342,12 @@ impl FolderWatch {
                     while let Ok(h) = hints.try_recv() {
                         batch.push(h);
                     }
-                    self.apply(&mut settle, &mut known, batch, &out).await;
+                    if batch.iter().any(|h| matches!(h, Hint::Folder)) {
+                        // Listed at once: what is there now, and the watch placed again.
+                        lost = true;
+                        next_scan = tokio::time::Instant::now();
+                    }
+                    self.apply(&mut settle, &mut known, &mut refused, batch, &out).await;
                 }
             }
         }
@@ -247,6 +358,7 @@ impl FolderWatch {
         &self,
         settle: &mut Settle,
         known: &mut BTreeSet<String>,
+        refused: &mut BTreeSet<OsString>,
         batch: Vec<Hint>,
         out: &mpsc::Sender<Seen>,
     ) {
@@ -259,24 +371,42 @@ impl FolderWatch {
                 }
                 Hint::Writing(f) => {
                     settle.writing(&f, now);
-                    look.insert(f);
+                    look.insert(f.into());
                 }
                 Hint::Closed(f) => {
                     settle.closed(&f);
-                    look.insert(f);
+                    look.insert(f.into());
                 }
+                Hint::Folder => {}
             }
         }
         for file in look {
-            match std::fs::metadata(self.dir.join(&file)) {
-                Ok(meta) if meta.is_file() => {
-                    known.insert(file.clone());
-                    settle.observe(&file, stat_of(&meta), now);
+            match self::look(&self.dir, &file, self.takes.as_ref()) {
+                Found::File(name, stat) => {
+                    refused.remove(&file);
+                    known.insert(name.clone());
+                    settle.observe(&name, stat, now);
                 }
-                _ => {
-                    settle.gone(&file);
-                    if known.remove(&file) {
-                        let _ = out.send(Seen::Gone { file }).await;
+                found => {
+                    if let Some(name) = file.to_str() {
+                        settle.gone(name);
+                        if known.remove(name) {
+                            let _ = out
+                                .send(Seen::Gone {
+                                    file: name.to_string(),
+                                })
+                                .await;
+                        }
+                    }
+                    match found {
+                        Found::Refused(why) => {
+                            if refused.insert(file.clone()) {
+                                let _ = out.send(Seen::Refused { file, why }).await;
+                            }
+                        }
+                        _ => {
+                            refused.remove(&file);
+                        }
                     }
                 }
             }
@@ -303,23 +433,42 @@ impl FolderWatch {
                 }
             };
             for path in &event.paths {
-                if path.parent() != Some(dir.as_path()) {
+                let hint = if path == &dir {
+                    if !matches!(
+                        event.kind,
+                        EventKind::Remove(_)
+                            | EventKind::Modify(notify::event::ModifyKind::Name(_))
+                    ) {
+                        continue;
+                    }
+                    Hint::Folder
+                } else if path.parent() == Some(dir.as_path()) {
+                    let Some(file) = path.file_name() else {
+                        continue;
+                    };
+                    let verdict = takes(file);
+                    match (verdict, file.to_str(), &event.kind) {
+                        (Verdict::Pass, _, _) => continue,
+                        (Verdict::Refuse(_), _, EventKind::Access(_)) => continue,
+                        (Verdict::Refuse(_), _, _) => Hint::Look(file.to_os_string()),
+                        (Verdict::Take, None, _) => continue,
+                        (
+                            Verdict::Take,
+                            Some(f),
+                            EventKind::Modify(notify::event::ModifyKind::Data(_)),
+                        ) => Hint::Writing(f.to_string()),
+                        (
+                            Verdict::Take,
+                            Some(f),
+                            EventKind::Access(notify::event::AccessKind::Close(
+                                notify::event::AccessMode::Write,
+                            )),
+                        ) => Hint::Closed(f.to_string()),
+                        (Verdict::Take, Some(_), EventKind::Access(_)) => continue,
+                        (Verdict::Take, Some(_), _) => Hint::Look(file.to_os_string()),
+                    }
+                } else {
                     continue;
-                }
-                let Some(file) = path.file_name().and_then(|f| f.to_str()) else {
-                    continue;
-                };
-                if !takes(file) {
-                    continue;
-                }
-                let file = file.to_string();
-                let hint = match event.kind {
-                    EventKind::Modify(notify::event::ModifyKind::Data(_)) => Hint::Writing(file),
-                    EventKind::Access(notify::event::AccessKind::Close(
-                        notify::event::AccessMode::Write,
-                    )) => Hint::Closed(file),
-                    EventKind::Access(_) => continue,
-                    _ => Hint::Look(file),
                 };
                 if hints.try_send(hint).is_err() {
                     // More than the queue holds at once: a full listing instead.

@@ -25,7 +25,14 @@
 //!
 //! Optional quotas bound the library ([`Quota`]): the bytes of every revision's content kept
 //! (once per hash) and the number of programs.
+//!
+//! **The folder's files.** Only regular files inside the folder are programs: a symbolic
+//! link, a FIFO or a device is never opened or followed ([`disk`]), whatever its name. A
+//! folder file is copied into `.revisions` in pieces, so memory stays bounded whatever its
+//! size. If the folder is removed and made again, the library notices that its index is gone
+//! and starts a new one there at the next store.
 
+mod disk;
 mod files;
 mod index;
 mod one_file;
@@ -33,13 +40,13 @@ mod one_file;
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
-
-use sha2::{Digest, Sha256};
+use std::sync::atomic::AtomicBool;
 
 use cellgate_core::codes::BusCode;
 use cellgate_core::pb::{self, RevisionState};
 
+use self::disk::{OpenError, is_regular, is_there, open_regular};
+pub use self::disk::{escaped, sha256_file, sha256_hex, write_atomically};
 pub use self::files::{FolderFile, Taken};
 use self::index::Index;
 pub use self::index::IndexError;
@@ -149,6 +156,21 @@ pub enum LibraryError {
          or renamed"
     )]
     Conflict { name: String, files: String },
+    /// A file of the folder that is not taken: its name gives no program name, or it is not
+    /// a regular file (a symbolic link, a FIFO, a device). `file` is escaped.
+    #[error("the file {file} in the library's folder is not taken: {why}; it is left as it is")]
+    NotTaken { file: String, why: String },
+    /// The index names a revision whose content is not in `.revisions/objects` (removed by
+    /// hand, or with the folder).
+    #[error(
+        "program {name:?} revision {number}: its content ({sha256}) is gone from the library's \
+         .revisions/objects, so it cannot be sent or read; store the program again"
+    )]
+    ContentMissing {
+        name: String,
+        number: u32,
+        sha256: String,
+    },
     #[error(transparent)]
     Index(#[from] IndexError),
 }
@@ -221,7 +243,8 @@ impl Default for Retention {
 /// A store: the content and what the revision records of it.
 #[derive(Debug, Clone, Default)]
 pub struct Store<'a> {
-    pub bytes: &'a [u8],
+    /// Owned, it is written as it is; borrowed, it is copied first.
+    pub bytes: std::borrow::Cow<'a, [u8]>,
     /// Who stored it, as the client said.
     pub by: pb::RequestOrigin,
     pub comment: String,
@@ -240,7 +263,13 @@ pub struct ProgramLibrary {
     /// Held from a store's quota check to its end, so that concurrent stores cannot all
     /// pass the check and then together break the quota, nor number two revisions alike.
     stores: Arc<tokio::sync::Mutex<()>>,
-    index: Arc<tokio::sync::OnceCell<Arc<Index>>>,
+    /// The index as last opened; checked against the folder at every use (it may have been
+    /// removed with the folder and the folder made again).
+    index: Arc<std::sync::Mutex<Option<Arc<Index>>>>,
+    /// Held while the index is (re)opened, so that it is opened once.
+    opening: Arc<tokio::sync::Mutex<()>>,
+    /// That the index is gone was logged (once until one is opened again).
+    gone_said: Arc<AtomicBool>,
     /// The gateway's own files ([`CellConfig::owned_files`]): never a program.
     ///
     /// [`CellConfig::owned_files`]: cellgate_core::config::CellConfig::owned_files
@@ -252,66 +281,12 @@ pub struct ProgramLibrary {
     notes: Arc<std::sync::Mutex<std::collections::BTreeMap<String, String>>>,
 }
 
-/// Writes `parts` to `path` atomically and durably: into a hidden temporary file beside it,
-/// synced, then renamed over `path` (or, with `replace = false`, linked, which fails if the
-/// name is taken), and the directory synced. Any failure (a full disk) removes the temporary
-/// file and leaves whatever `path` held as it was. Blocking: call it off the runtime's
-/// threads.
-pub fn write_atomically(path: &Path, parts: &[&[u8]], replace: bool) -> std::io::Result<()> {
-    use std::io::Write as _;
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    // Hidden (leading '.'), so never a valid program name and never listed.
-    let temp = dir.join(format!(
-        ".{name}.{}.{}.tmp",
-        std::process::id(),
-        TEMP_COUNTER.fetch_add(1, Ordering::Relaxed)
-    ));
-    let written = (|| {
-        let mut file = std::fs::File::create(&temp)?;
-        for part in parts {
-            file.write_all(part)?;
-        }
-        file.sync_all()?;
-        drop(file);
-        if replace {
-            std::fs::rename(&temp, path)?;
-        } else {
-            let linked = std::fs::hard_link(&temp, path);
-            let _ = std::fs::remove_file(&temp);
-            linked?;
-        }
-        std::fs::File::open(dir)?.sync_all()
-    })();
-    if written.is_err() {
-        let _ = std::fs::remove_file(&temp);
-    }
-    written
-}
-
-static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
-
 /// Checks a library name (see [`cellgate_core::program::name`]).
 pub fn validate_name(name: &str) -> Result<(), LibraryError> {
     check_name(name).map_err(|e| LibraryError::InvalidName {
         name: e.name,
         reason: e.reason,
     })
-}
-
-/// The SHA-256 of the file at `path`, read in pieces, in lower-case hex. Blocking.
-pub fn sha256_file(path: &Path) -> std::io::Result<String> {
-    let mut hasher = Sha256::new();
-    std::io::copy(&mut std::fs::File::open(path)?, &mut hasher)?;
-    Ok(hex::encode(hasher.finalize()))
-}
-
-/// The SHA-256 of `bytes`, in lower-case hex.
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    hex::encode(Sha256::digest(bytes))
 }
 
 fn is_released(r: &pb::ProgramRevision) -> bool {
@@ -369,6 +344,8 @@ impl ProgramLibrary {
             quota: Arc::default(),
             retention: Arc::default(),
             index: Arc::default(),
+            opening: Arc::default(),
+            gone_said: Arc::default(),
             owned: Arc::new([]),
             folder: Arc::new(cellgate_core::config::ProgramsConfig::default().folder_rules()),
             notes: Arc::default(),
@@ -486,38 +463,14 @@ impl ProgramLibrary {
         Ok(())
     }
 
-    /// The revision index, opened (and the directory's programs taken in) on first use.
-    async fn index(&self) -> Result<Arc<Index>, LibraryError> {
-        self.index
-            .get_or_try_init(|| async {
-                let lib = self.clone();
-                blocking(move || lib.open_index()).await
-            })
-            .await
-            .cloned()
-    }
-
-    /// Opens the index. The folder's files are taken in by [`Self::take_file`]: the folder's
-    /// watcher, at start and while the gateway runs. Blocking.
-    fn open_index(&self) -> Result<Arc<Index>, LibraryError> {
-        let objects = self.objects_dir();
-        std::fs::create_dir_all(&objects).map_err(|source| LibraryError::Io {
-            name: String::new(),
-            op: "create",
-            path: objects.clone(),
-            source,
-        })?;
-        Ok(Arc::new(Index::open(
-            &self.revisions_dir().join("index.redb"),
-        )?))
-    }
-
     /// Writes content under its hash, once. Blocking.
     fn write_object(&self, name: &str, sha: &str, bytes: &[u8]) -> Result<(), LibraryError> {
         let path = self.object_path(sha);
-        if path.exists() {
+        if is_regular(&path) {
             return Ok(());
         }
+        self.make_objects_dir()
+            .map_err(|e| self.write_error(name, self.objects_dir(), e))?;
         match write_atomically(&path, &[bytes], false) {
             Ok(()) => Ok(()),
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(()),
@@ -548,34 +501,6 @@ impl ProgramLibrary {
             .await?
             .sync_all()
             .await
-    }
-
-    /// The file that holds `name`: `NAME`, or `NAME.EXT` for one of `programs.extensions`
-    /// (lower or upper case) when the folder has one; two of them are a conflict. Blocking
-    /// (a few `stat`s).
-    pub(crate) fn path_of(&self, name: &str) -> Result<PathBuf, LibraryError> {
-        self.check_name(name)?;
-        let mut found = Vec::new();
-        let plain = self.dir.join(name);
-        if plain.is_file() {
-            found.push(plain.clone());
-        }
-        for ext in self.folder.extensions.iter() {
-            for e in [ext.to_ascii_lowercase(), ext.to_ascii_uppercase()] {
-                let p = self.dir.join(format!("{name}.{e}"));
-                if !found.contains(&p) && p.is_file() {
-                    found.push(p);
-                }
-            }
-        }
-        match found.len() {
-            0 => Ok(plain),
-            1 => Ok(found.swap_remove(0)),
-            _ => Err(LibraryError::Conflict {
-                name: name.to_string(),
-                files: files::file_list(&found),
-            }),
-        }
     }
 
     pub(crate) fn io_error(&self, name: &str, op: &'static str, e: std::io::Error) -> LibraryError {
@@ -613,7 +538,7 @@ impl ProgramLibrary {
         let name = name.to_string();
         blocking(move || {
             let latest = index.revisions(&name)?.pop();
-            let present = latest.as_ref().is_some_and(|r| !r.removed) && path.is_file();
+            let present = latest.as_ref().is_some_and(|r| !r.removed) && is_regular(&path);
             if let Some(l) = &latest
                 && !l.removed
                 && l.state() == RevisionState::Locked
@@ -639,7 +564,7 @@ impl ProgramLibrary {
         self.store_as(
             name,
             Store {
-                bytes: program,
+                bytes: program.into(),
                 ..Store::default()
             },
         )
@@ -666,7 +591,7 @@ impl ProgramLibrary {
         self.store_new_as(
             name,
             Store {
-                bytes: program,
+                bytes: program.into(),
                 ..Store::default()
             },
         )
@@ -700,7 +625,7 @@ impl ProgramLibrary {
         self.write(
             name,
             Store {
-                bytes: &bytes,
+                bytes: bytes.into(),
                 by,
                 comment,
                 adopted: Some((from.to_string(), source.number)),
@@ -725,17 +650,17 @@ impl ProgramLibrary {
                 max: self.max_size,
             });
         }
-        let index = self.index().await?;
+        let index = self.index_to_store().await?;
         let _store = self.stores.lock().await;
         let lib = self.clone();
         let name = name.to_string();
-        let bytes = store.bytes.to_vec();
+        let bytes = store.bytes.into_owned();
         let (by, comment, adopted) = (store.by, store.comment, store.adopted);
         blocking(move || {
             let revisions = index.revisions(&name)?;
             let latest = revisions.last();
-            let present = latest.is_some_and(|r| !r.removed) && path.is_file();
-            if place == Place::New && (present || path.exists()) {
+            let present = latest.is_some_and(|r| !r.removed) && is_regular(&path);
+            if place == Place::New && (present || is_there(&path)) {
                 return Err(LibraryError::Exists { name });
             }
             if let Some(l) = latest
@@ -907,7 +832,7 @@ impl ProgramLibrary {
     /// removed nor a file.
     fn entry_blocking(&self, name: &str, index: &Index) -> Result<ProgramEntry, LibraryError> {
         let path = self.path_of(name)?;
-        let meta = std::fs::metadata(&path)
+        let meta = std::fs::symlink_metadata(&path)
             .ok()
             .filter(std::fs::Metadata::is_file);
         let revisions = index.revisions(name)?;
@@ -949,22 +874,23 @@ impl ProgramLibrary {
         blocking(move || lib.entry_blocking(&name, &index)).await
     }
 
-    /// Opens a program for streaming; returns the file and its size.
+    /// Opens a program's file for streaming; returns the file and its size. Only a regular
+    /// file is opened (see [`disk::open_regular`]).
     pub async fn open(&self, name: &str) -> Result<(tokio::fs::File, u64), LibraryError> {
-        let path = self.path_of(name)?;
-        let file = tokio::fs::File::open(&path)
-            .await
-            .map_err(|e| self.io_error(name, "open", e))?;
-        let meta = file
-            .metadata()
-            .await
-            .map_err(|e| self.io_error(name, "open", e))?;
-        if !meta.is_file() {
-            return Err(LibraryError::NotFound {
-                name: name.to_string(),
-            });
-        }
-        Ok((file, meta.len()))
+        let lib = self.clone();
+        let name = name.to_string();
+        let (file, meta) = blocking(move || {
+            let path = lib.path_of(&name)?;
+            open_regular(&path).map_err(|e| match e {
+                OpenError::Io(e) => lib.io_error(&name, "open", e),
+                OpenError::NotRegular(what) => LibraryError::NotTaken {
+                    file: files::file_name(&path),
+                    why: format!("it is {what}, not a regular file"),
+                },
+            })
+        })
+        .await?;
+        Ok((tokio::fs::File::from_std(file), meta.len()))
     }
 
     /// Reads a whole program, its latest revision, for a bus reply (whose payload is one
@@ -1028,7 +954,14 @@ impl ProgramLibrary {
             });
         }
         let path = self.object_path(&r.sha256);
-        Ok((r, path))
+        // Content that is gone is said so, never served as if it were there.
+        match std::fs::symlink_metadata(&path) {
+            Ok(m) if m.is_file() => Ok((r, path)),
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                Err(self.io_error(name, "read", e))
+            }
+            _ => Err(content_missing(&r)),
+        }
     }
 
     /// A revision and its content.
@@ -1045,10 +978,24 @@ impl ProgramLibrary {
                 max: self.max_size,
             });
         }
-        let bytes = tokio::fs::read(&path)
-            .await
-            .map_err(|e| self.io_error(name, "read", e))?;
-        Ok((r, bytes))
+        let lib = self.clone();
+        let name = name.to_string();
+        blocking(move || {
+            use std::io::Read as _;
+            let (mut file, meta) = open_regular(&path).map_err(|e| match e {
+                OpenError::Io(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    lib.io_error(&name, "read", e)
+                }
+                _ => content_missing(&r),
+            })?;
+            let mut bytes = Vec::with_capacity(usize::try_from(meta.len()).unwrap_or(0));
+            file.by_ref()
+                .take(lib.max_size.saturating_add(1))
+                .read_to_end(&mut bytes)
+                .map_err(|e| lib.io_error(&name, "read", e))?;
+            Ok((r, bytes))
+        })
+        .await
     }
 
     /// Changes the state of revision `rev` (empty: the latest): draft → released, draft or
@@ -1146,6 +1093,14 @@ impl ProgramLibrary {
     }
 }
 
+fn content_missing(r: &pb::ProgramRevision) -> LibraryError {
+    LibraryError::ContentMissing {
+        name: r.name.clone(),
+        number: r.number,
+        sha256: r.sha256.clone(),
+    }
+}
+
 /// Runs library file and index work off the runtime's threads.
 async fn blocking<T: Send + 'static>(
     f: impl FnOnce() -> Result<T, LibraryError> + Send + 'static,
@@ -1175,6 +1130,8 @@ impl BusCode for LibraryError {
             | LibraryError::Exists { .. }
             | LibraryError::Transition { .. } => pb::ErrorCode::InvalidRequest,
             LibraryError::Conflict { .. } => pb::ErrorCode::Conflict,
+            LibraryError::NotTaken { .. } => pb::ErrorCode::InvalidRequest,
+            LibraryError::ContentMissing { .. } => pb::ErrorCode::StorageFailed,
             LibraryError::QuotaExceeded { .. } => pb::ErrorCode::QuotaExceeded,
             LibraryError::StorageFull { .. } => pb::ErrorCode::StorageFull,
             LibraryError::Io { .. } | LibraryError::Index(_) => pb::ErrorCode::StorageFailed,

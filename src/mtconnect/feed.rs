@@ -114,6 +114,21 @@ async fn ask(session: &Session, prefix: &str, cell: &str) -> Option<(Described, 
         None => Described::FromStatus(CellDesc::from_status(cell, &machines, &plcs)),
     };
     let mut updates = Vec::new();
+    // How each machine's last job ended (one that failed when the gateway restarted under it
+    // included): EXECUTION says it until a newer job starts.
+    let mut ended: std::collections::BTreeMap<String, pb::JobEvent> = Default::default();
+    for e in client.recent_jobs(None).await.unwrap_or_default() {
+        if crate::client::is_end(&e) {
+            ended.insert(e.machine.clone(), e);
+        }
+    }
+    for m in &machines {
+        if m.current_job_id.is_empty()
+            && let Some(e) = ended.remove(&m.machine)
+        {
+            updates.push(Update::Job(e));
+        }
+    }
     for m in &machines {
         if !m.current_job_id.is_empty()
             && let Ok(q) = client.queue(&m.machine).await

@@ -2,7 +2,10 @@
 //! `/assets`, each also per device (`/NAME/probe`…), documents in XML or JSON
 //! (`format=json`), errors as MTConnectError documents. `/sample` and `/current` with
 //! `interval` stream: a `multipart/x-mixed-replace` response whose parts are documents, at
-//! most one per interval, an empty one after `heartbeat` ms without data.
+//! most one per interval (never more often than [`MIN_INTERVAL`]), a part when something
+//! selected changed, and after `heartbeat` ms without any, one all the same (for `/sample` an
+//! empty one). A client that reads nothing is dropped by its connection's write timeout
+//! ([`crate::door`]), which frees its stream's slot.
 //!
 //! It only reads: any other method than GET is refused (`UNSUPPORTED`). Nothing a client
 //! sends reaches the bus.
@@ -32,6 +35,10 @@ use cellgate_core::mtconnect::{ErrorCode, Format, MtError, Query, Request};
 pub const MAX_STREAMS: usize = 64;
 /// The heartbeat of a stream that asks for none (Part 1: 10 s).
 const DEFAULT_HEARTBEAT_MS: u64 = 10_000;
+/// The shortest time between two parts of a stream, whatever `interval` asks (Part 1: the
+/// interval is the least time between publications; 0 is not "as fast as the socket goes").
+/// Every observation still comes: a part holds all those of its interval, up to `count`.
+pub const MIN_INTERVAL: Duration = Duration::from_millis(100);
 
 struct Http {
     hub: Arc<Hub>,
@@ -138,7 +145,7 @@ fn answer(http: &Http, request: Request, device: Option<String>, raw: Option<Str
         Request::Assets => agent.assets(dev, None, &q, now),
         Request::Current if q.interval.is_some() => {
             return match agent.select(dev, q.path.as_deref()) {
-                Ok(_) => Answer::Stream(dev, q.clone(), None),
+                Ok(sel) => Answer::Stream(dev, q.clone(), sel),
                 Err(e) => fail(e),
             };
         }
@@ -288,7 +295,7 @@ struct Streaming {
     device: Option<usize>,
     q: Query,
     sel: Selection,
-    /// Where the next part starts (`/sample`).
+    /// Where the next part starts (`/sample`); what the last part saw (`/current`).
     from: Option<u64>,
     boundary: String,
     interval: Duration,
@@ -301,14 +308,31 @@ struct Streaming {
 type Rendered = Result<(String, Option<u64>, usize), String>;
 
 impl Streaming {
-    /// The next part's document as the buffer stands, and the buffer's `nextSequence`.
-    fn render(&self) -> (Rendered, u64) {
+    /// The next part's document as the buffer stands, and the buffer's `nextSequence`. A
+    /// `/current` part is made when a selected item changed since the last, or when `force`d;
+    /// else it holds nothing.
+    fn render(&self, force: bool) -> (Rendered, u64) {
         let now = now_us();
         let agent = self.hub.lock();
         let rendered = match self.request {
-            Request::Current => agent
-                .current(self.device, &self.q, now)
-                .map(|d| (d, None, 1)),
+            Request::Current => {
+                let buffer = agent.buffer();
+                let changed = match self.from {
+                    Some(seen) if seen >= buffer.first() => {
+                        let wanted = |i: u32| self.sel.as_ref().is_none_or(|m| m[i as usize]);
+                        buffer.sample(seen, 1, wanted).0.len()
+                    }
+                    _ => 1,
+                };
+                let next = Some(buffer.next());
+                if changed == 0 && !force {
+                    Ok((String::new(), next, 0))
+                } else {
+                    agent
+                        .current(self.device, &self.q, now)
+                        .map(|d| (d, next, changed))
+                }
+            }
             _ => {
                 let q = Query {
                     from: self.from.map(|f| f as i64),
@@ -345,7 +369,7 @@ impl Streaming {
             let heartbeat_due = self
                 .last_part
                 .is_some_and(|t| t.elapsed() >= self.heartbeat);
-            let (rendered, next_seq) = self.render();
+            let (rendered, next_seq) = self.render(first || heartbeat_due);
             match rendered {
                 Err(body) => {
                     self.done = true;
@@ -355,7 +379,7 @@ impl Streaming {
                     if let Some(next) = next {
                         self.from = Some(next);
                     }
-                    if first || n > 0 || heartbeat_due || self.request == Request::Current {
+                    if first || n > 0 || heartbeat_due {
                         self.last_part = Some(Instant::now());
                         return Some(part(&self.boundary, self.q.format, &doc));
                     }
@@ -400,7 +424,7 @@ fn stream(
         _permit: permit,
         request,
         device,
-        interval: Duration::from_millis(q.interval.unwrap_or(0)),
+        interval: Duration::from_millis(q.interval.unwrap_or(0)).max(MIN_INTERVAL),
         heartbeat: Duration::from_millis(q.heartbeat.unwrap_or(DEFAULT_HEARTBEAT_MS)),
         from: q.from.map(|f| f as u64),
         q,

@@ -23,6 +23,7 @@ use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
+use crate::door::Door;
 use cellgate_core::config::MtconnectConfig;
 use cellgate_core::mtconnect::{Agent, CellDesc};
 
@@ -100,7 +101,7 @@ pub struct Served {
     /// The SHDR adapter's address, if it serves one.
     pub shdr: Option<SocketAddr>,
     pub hub: Arc<Hub>,
-    task: tokio::task::JoinHandle<Result<(), MtconnectError>>,
+    task: tokio::task::JoinHandle<()>,
 }
 
 impl Served {
@@ -161,19 +162,22 @@ pub async fn serve(
     let shdr_addr = match shdr {
         Some(listener) => {
             let addr = listener.local_addr().map_err(MtconnectError::Serve)?;
-            tokio::spawn(shdr::serve(listener, Arc::clone(&hub), stop.clone()));
+            // SHDR has no answer for "busy": one over the cap is only closed.
+            let door = Door::new("shdr", listener, shdr::MAX_CLIENTS, b"");
+            tokio::spawn(shdr::serve(door, Arc::clone(&hub), stop.clone()));
             Some(addr)
         }
         None => None,
     };
     let app = http::router(Arc::clone(&hub), stop.clone());
     let url = format!("http://{local}/");
-    let task = tokio::spawn(async move {
-        axum::serve(tcp, app)
-            .with_graceful_shutdown(async move { stop.cancelled().await })
-            .await
-            .map_err(MtconnectError::Serve)
-    });
+    let door = Door::new(
+        "mtconnect",
+        tcp,
+        crate::door::connection_cap(),
+        crate::door::HTTP_FULL,
+    );
+    let task = tokio::spawn(crate::door::http::serve(door, app, stop));
     Ok(Served {
         url,
         shdr: shdr_addr,
@@ -235,11 +239,8 @@ pub async fn site(
             return Err(SiteError::Config(mine.join("; ")));
         }
     }
-    if !config.is_loopback() {
-        tracing::warn!(
-            listen = %config.listen,
-            "the MTConnect interface has no login: anyone who reaches it may read every cell's state"
-        );
+    for w in config.warnings() {
+        tracing::warn!("{w}");
     }
     let options = args.connect.options()?;
     let zenoh_config = crate::client::client_config(&options.endpoint, &options.security)?;

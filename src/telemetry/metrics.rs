@@ -31,6 +31,7 @@
 //! | `cellgate.bus.misdirected_writes` | counter | `key` (the read key's kind: `program`, `job`, `plc.tag`, `plc.mem`, `plc.transfer`, `plc.message`) |
 //! | `cellgate.history.dropped` | counter | `log` (`history`/`audit`), `reason` |
 //! | `cellgate.console.login_failures` | counter | `outcome` (`refused`/`throttled`) |
+//! | `cellgate.listen.refused` | counter | `listener` (`console`/`mtconnect`/`shdr`) |
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -312,7 +313,7 @@ pub fn plc_station_timeouts(plc: &str, station: u8) -> u64 {
 }
 
 /// The counters of rare events [`event`] counts, with their descriptions.
-pub const EVENTS: [(&str, &str); 3] = [
+pub const EVENTS: [(&str, &str); 4] = [
     (
         "cellgate.bus.misdirected_writes",
         "Puts and deletes on keys that only read: nothing was written",
@@ -324,6 +325,10 @@ pub const EVENTS: [(&str, &str); 3] = [
     (
         "cellgate.console.login_failures",
         "Console logins refused (wrong name or password) or throttled",
+    ),
+    (
+        "cellgate.listen.refused",
+        "Connections closed at once: their listener held as many as it may",
     ),
 ];
 

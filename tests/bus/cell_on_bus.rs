@@ -254,3 +254,79 @@ async fn bad_requests_get_an_error_reply_and_nothing_is_queued() {
     assert!(cell.board("m2").programs().is_empty());
     cell.stop().await;
 }
+
+/// A CNC alarm is one fact on every surface: a SAT showing the remote buffer in alarm status
+/// (§4.4.2 1) is the CNC's alarm (kind, code), not a link alarm, and is not counted as one;
+/// a Protocol B NAK's alarm (§6.4) stays until a reset, though the link goes idle after it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cnc_alarm_is_the_cncs_whichever_message_reports_it_and_stays_until_a_reset() {
+    fn config(port: u16, dir: &std::path::Path) -> CellConfig {
+        let text = format!(
+            "cell = \"alarms\"\n[bus]\nlisten = [\"tcp/127.0.0.1:{port}\"]\n[programs]\n\
+             dir = {:?}\n\
+             [[machines]]\nname = \"a1\"\nprotocol = \"expansion-a\"\ntp = 1\ntw = 1\n\
+             transport = {{ kind = \"sim\", line = {{ baud = 86400 }} }}\n\
+             [[machines]]\nname = \"b1\"\nprotocol = \"b\"\nnotify_alarm_reset = true\n\
+             transport = {{ kind = \"sim\", line = {{ baud = 19200 }} }}\n",
+            dir.join("programs")
+        );
+        CellConfig::from_toml_str(&text, "alarm cell").unwrap_or_else(|e| panic!("{e}"))
+    }
+    let cell = RunningCell::start(config, false).await;
+    let status = |m: &'static str| {
+        let (client, key) = (cell.client.clone(), cell.keys.leaf(m, MachineLeaf::Status));
+        async move { get_one::<pb::MachineStatus>(&client, &key, None).await }
+    };
+    // Expansion A: the board's next SATs show alarm status, cause NC alarm.
+    cell.board("a1").raise_alarm();
+    let mut s = status("a1").await;
+    for _ in 0..100 {
+        if s.last_alarm.as_ref().is_some_and(|a| a.code == "CG-SAT-NC") {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        s = status("a1").await;
+    }
+    let a = s.last_alarm.clone().expect("an alarm");
+    assert_eq!(a.code, "CG-SAT-NC", "{a:?}");
+    assert_eq!(a.kind(), pb::AlarmKind::CncAlarm, "{a:?}");
+    assert_eq!(s.link_state(), pb::LinkState::Alarm);
+    assert_eq!(
+        s.counters.as_ref().map_or(0, |c| c.link_alarms),
+        0,
+        "a CNC alarm is no link alarm"
+    );
+    // Protocol B: the NAK's alarm stays while the link idles, until the CNC is reset (the
+    // simulated operator resets nothing by himself here).
+    cell.board("b1")
+        .command(cellgate_core::sim::fanuc_board::BoardCommand::SetAutostart(
+            false,
+        ));
+    cell.board("b1").raise_alarm();
+    let mut s = status("b1").await;
+    for _ in 0..100 {
+        if s.last_alarm.as_ref().is_some_and(|a| a.code == "CG-NAK") {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        s = status("b1").await;
+    }
+    assert_eq!(
+        s.last_alarm.as_ref().map(|a| a.code.as_str()),
+        Some("CG-NAK")
+    );
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let s = status("b1").await;
+    assert_eq!(s.link_state(), pb::LinkState::Alarm, "{s:?}");
+    cell.board("b1").reset();
+    let mut s = status("b1").await;
+    for _ in 0..100 {
+        if s.link_state() != pb::LinkState::Alarm {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        s = status("b1").await;
+    }
+    assert_ne!(s.link_state(), pb::LinkState::Alarm, "{s:?}");
+    cell.stop().await;
+}

@@ -44,32 +44,32 @@ receive_dir = {:?}
     CellConfig::from_toml_str(&text, "folder cell").unwrap_or_else(|e| panic!("{e}"))
 }
 
-fn programs(cell: &RunningCell) -> PathBuf {
+pub(crate) fn programs(cell: &RunningCell) -> PathBuf {
     cell.dir.path().join("programs")
 }
 
 /// What the library said: a change on `…/NAME/changed` (stored or removed), or a folder's
 /// refusal on `…/@events`.
 #[derive(Debug)]
-struct Said {
-    kind: &'static str,
-    name: String,
-    file: String,
-    revision: u32,
-    size: u64,
-    code: pb::ErrorCode,
-    error: String,
-    by: Option<pb::RequestOrigin>,
+pub(crate) struct Said {
+    pub(crate) kind: &'static str,
+    pub(crate) name: String,
+    pub(crate) file: String,
+    pub(crate) revision: u32,
+    pub(crate) size: u64,
+    pub(crate) code: pb::ErrorCode,
+    pub(crate) error: String,
+    pub(crate) by: Option<pb::RequestOrigin>,
 }
 
 /// Both of the library's publications, as one stream.
-struct Library {
+pub(crate) struct Library {
     changed: Sub,
     events: Sub,
 }
 
 impl Library {
-    async fn follow(cell: &RunningCell) -> Library {
+    pub(crate) async fn follow(cell: &RunningCell) -> Library {
         Library {
             changed: cell
                 .subscribe(cellgate::bus::keys::program_changed(&cell.keys, "*"))
@@ -79,7 +79,7 @@ impl Library {
     }
 
     /// The next thing said, within 10 s.
-    async fn next(&self) -> Said {
+    pub(crate) async fn next(&self) -> Said {
         let wait = async {
             tokio::select! {
                 s = self.changed.recv_async() => {
@@ -124,14 +124,14 @@ impl Library {
     }
 
     /// Nothing said for `ms`.
-    async fn quiet(&self, ms: u64) {
+    pub(crate) async fn quiet(&self, ms: u64) {
         if let Ok(said) = tokio::time::timeout(Duration::from_millis(ms), self.next()).await {
             panic!("unexpected: {said:?}");
         }
     }
 }
 
-fn program(o: u32, lines: usize) -> Vec<u8> {
+pub(crate) fn program(o: u32, lines: usize) -> Vec<u8> {
     let mut p = format!("%\nO{o}\n").into_bytes();
     for i in 0..lines {
         p.extend_from_slice(format!("N{i} G01 X{i}.5 F100\n").as_bytes());
@@ -141,7 +141,7 @@ fn program(o: u32, lines: usize) -> Vec<u8> {
 }
 
 /// Reads the audit until `check` holds of its records (5 s at most).
-async fn audit_until(cell: &RunningCell, check: impl Fn(&[pb::AuditRecord]) -> bool) {
+pub(crate) async fn audit_until(cell: &RunningCell, check: impl Fn(&[pb::AuditRecord]) -> bool) {
     let mut records = Vec::new();
     for _ in 0..50 {
         let page: pb::HistoryPage = get_one(&cell.client, &cell.keys.audit(), None).await;
@@ -161,7 +161,7 @@ async fn audit_until(cell: &RunningCell, check: impl Fn(&[pb::AuditRecord]) -> b
     panic!("the audit never showed it: {records:#?}");
 }
 
-async fn read(cell: &RunningCell, name: &str) -> Vec<u8> {
+pub(crate) async fn read(cell: &RunningCell, name: &str) -> Vec<u8> {
     match get(&cell.client, &cell.keys.program(name), None)
         .await
         .as_slice()
@@ -522,5 +522,41 @@ async fn a_post_after_a_store_from_the_bus_is_the_next_revision_not_a_conflict()
         program(1234, 9)
     );
     assert_eq!(files_in(&dir), ["O1234.tap", "O77.nc"]);
+    cell.stop().await;
+}
+
+/// `cellgate watch` shows what the folder refused, as docs/library.md says: its events key is
+/// a verbatim chunk that `P/C/**` does not take in, so the watch follows it by name.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn watch_shows_a_file_the_folder_refused() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let client = cellgate::client::Client::attach(
+        cell.client.clone(),
+        "cellgate",
+        "folder",
+        serde_json::Value::Null,
+        Duration::from_secs(10),
+    )
+    .unwrap();
+    let mut watch = client.watch().await.unwrap();
+    let dir = programs(&cell);
+    std::fs::write(dir.join("O5558.nc"), program(5558, 1)).unwrap();
+    std::fs::write(dir.join("O5558.tap"), program(5558, 2)).unwrap();
+    let refused = loop {
+        let e = tokio::time::timeout(Duration::from_secs(20), watch.next())
+            .await
+            .expect("watch showed no refusal")
+            .expect("the session closed");
+        if let cellgate::client::WatchEvent::Library(e) = e {
+            break e;
+        }
+    };
+    assert_eq!(refused.kind(), pb::LibraryEventKind::Refused);
+    assert_eq!(refused.code(), pb::ErrorCode::Conflict);
+    let line = cellgate::client::render::WatchPrinter::new()
+        .line(&cellgate::client::WatchEvent::Library(refused.clone()), 0)
+        .unwrap();
+    assert!(line.contains("not taken"), "{line}");
+    watch.close().await;
     cell.stop().await;
 }

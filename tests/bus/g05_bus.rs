@@ -158,7 +158,33 @@ async fn a_stream_through_the_contract() {
         None,
     )
     .await;
-    assert_eq!(ms.g05.map(|g| g.stream_id), Some("s1".to_string()));
+    let g = ms.g05.unwrap();
+    assert_eq!(g.stream_id, "s1");
+    // Over: nothing is estimated in the CNC's buffer any more (it was left as it stood).
+    assert_eq!(g.cnc_buffer, 0, "{g:?}");
+    assert_eq!(last.cnc_buffer, 0, "{last:?}");
+    // The history keeps the stream's last status.
+    let mut kept = None;
+    for _ in 0..50 {
+        let page: pb::HistoryPage = get_one(
+            &cell.client,
+            &format!("{}?kind=g05", cell.keys.history()),
+            None,
+        )
+        .await;
+        kept = page.records.into_iter().find_map(|r| match r.record {
+            Some(pb::history_record::Record::G05(g)) => Some((r.machine, g)),
+            _ => None,
+        });
+        if kept.is_some() {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+    let (machine, g) = kept.expect("the stream is in the history");
+    assert_eq!(machine, "b1");
+    assert_eq!((g.stream_id.as_str(), g.received), ("s1", 900));
+    assert_eq!(g.state(), pb::G05State::Completed);
     cell.stop().await;
 }
 

@@ -10,6 +10,7 @@ mod cell_on_bus;
 mod client;
 mod client_events;
 mod folder;
+mod folder_doors;
 mod g05_bus;
 mod gateway;
 mod hostile;

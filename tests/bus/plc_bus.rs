@@ -63,6 +63,8 @@ struct Rig {
     sim: MicrexHandle,
     stop: CancellationToken,
     served: tokio::task::JoinHandle<Result<(), bus::BusError>>,
+    /// The simulated line: faults.
+    line: cellgate::transport::sim::SimLine,
     _dir: tempfile::TempDir,
 }
 
@@ -81,7 +83,7 @@ async fn start() -> Rig {
         (31, FileType::Si, 64),
         (32, FileType::Bd, 64),
     ];
-    let (host, device, _control) = cellgate::transport::sim::line(line);
+    let (host, device, control) = cellgate::transport::sim::line(line);
     let sim = MicrexHandle::spawn(mc, Vec::new(), device).unwrap();
     let stop = CancellationToken::new();
     let (link, _task) = cellgate::plc::link::spawn(
@@ -121,6 +123,7 @@ async fn start() -> Rig {
         sim,
         stop,
         served,
+        line: control,
         _dir: dir,
     }
 }
@@ -420,5 +423,47 @@ async fn a_tag_is_published_on_change_past_its_deadband() {
     let got: pb::TagValue = get_one(&rig.client, &key, None).await;
     assert_eq!(got.value, Some(111.0));
     drop(sub);
+    rig.stop().await;
+}
+
+/// A character of a reply hit on the line (its start code, reported as a parity error by the
+/// UART or the gateway's own parity check): the reply is dropped and asked for again, and the
+/// PLC's status on the bus says so (FFU120B §5-6: the operator tells a noisy line).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_character_error_is_counted_in_the_plcs_status() {
+    let rig = start().await;
+    let from_plc = cellgate::transport::sim::End::Device.tx();
+    rig.line
+        .error_next(from_plc, cellgate::transport::LineError::Parity);
+    let key = rig.keys.plc_status(PLC);
+    let mut status = pb::PlcStatus::default();
+    for _ in 0..100 {
+        status = get_one(&rig.client, &key, None).await;
+        if status.line_errors.get("parity").copied().unwrap_or(0) > 0
+            && status.receive_errors.get("character").copied().unwrap_or(0) > 0
+        {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert_eq!(status.line_errors.get("parity"), Some(&1), "{status:?}");
+    assert_eq!(status.line_errors.get("framing"), Some(&0), "{status:?}");
+    // The text whose start code was hit is one text ended by a character error, not noise.
+    assert_eq!(
+        status.receive_errors.get("character"),
+        Some(&1),
+        "{status:?}"
+    );
+    assert_eq!(
+        status.receive_errors.get("start_code"),
+        Some(&0),
+        "{status:?}"
+    );
+    // `cellgate plc status` shows it.
+    let text = cellgate::client::render::plc_status_text(std::slice::from_ref(&status), 0);
+    assert!(
+        text.contains("plc-1: line errors: parity 1; texts dropped: character 1"),
+        "{text}"
+    );
     rig.stop().await;
 }

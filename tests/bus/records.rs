@@ -436,6 +436,46 @@ async fn a_consoles_summary_note_keeps_the_count_it_stands_for() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_audit_says_the_values_a_control_and_a_memory_write_set() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let _: pb::SimState = ask(
+        &cell,
+        &cell.keys.sim(MILL, cellgate::bus::keys::SimLeaf::Di),
+        pb::SimDi { value: 0x81 }.encode_to_vec(),
+        "tester",
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e:?}"));
+    let _: pb::PlcWritten = ask(
+        &cell,
+        &cell.keys.plc_mem_write("plc-1", 0, "D", Some(4)),
+        pb::PlcWrite {
+            words: vec![7, 0x1234],
+            clear: false,
+        }
+        .encode_to_vec(),
+        "tester",
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e:?}"));
+    let page = records(&cell, &cell.keys.audit(), |p| p.records.len() >= 2).await;
+    let detail = |action: &str| {
+        page.records
+            .iter()
+            .find_map(|r| match &r.record {
+                Some(pb::history_record::Record::Audit(a)) if a.action == action => {
+                    Some(a.detail.clone())
+                }
+                _ => None,
+            })
+            .unwrap_or_else(|| panic!("no {action} in {page:#?}"))
+    };
+    assert_eq!(detail("sim.di"), "DI 0x81");
+    assert_eq!(detail("plc.mem.write"), "2 word(s): 0x0007 0x1234");
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn history_is_read_by_time_range_kind_machine_and_tag() {
     let cell = RunningCell::start(cell_config, false).await;
     // The link came up: its state changes are there, for mill-1 only when asked.

@@ -405,6 +405,69 @@ async fn a_removed_machine_takes_no_job_and_a_forced_reload_ends_its_wait_failin
     g.stop().await;
 }
 
+/// A reload removes a busy machine and an idle one: only the busy one waits, it stays in the
+/// cell as every surface sees it (the admin document) until its job ended, the reload is
+/// published again once it left, and its job's id still says how the job ended.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_removed_busy_machine_stays_until_its_job_ended_and_its_job_is_still_found() {
+    let m3 = M2.replace("\"m2\"", "\"m3\"");
+    let g = Running::start(&format!("{M1}{M2}")).await;
+    let published = g
+        .client
+        .session()
+        .declare_subscriber(g.keys.reloads())
+        .await
+        .unwrap();
+    let long = common::nc_program(4000, 7);
+    let (accepted, mut long_job) = g.client.submit("m1", &inline(&long)).await.unwrap();
+    g.until_active("m1", &accepted.job_id).await;
+    g.write(&m3);
+    let r = g.client.reload(false).await.unwrap();
+    assert!(r.applied, "{r:?}");
+    assert_eq!(r.machines_removed, ["m1", "m2"]);
+    // m2 had nothing to send: it left at once and does not wait (before, it was listed).
+    assert_eq!(r.waiting, ["m1"], "{r:?}");
+    // m1 still runs its job: the running cell holds it, as the admin document says.
+    let doc = g.admin().await;
+    let names: Vec<&str> = doc["config"]["machines"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|m| m["name"].as_str())
+        .collect();
+    assert!(names.contains(&"m1") && !names.contains(&"m2"), "{names:?}");
+    assert_eq!(doc["waiting"], serde_json::json!(["m1"]));
+    let end = long_job.wait_end().await.unwrap();
+    assert_eq!(completed(&end).bytes_sent, long.len() as u64);
+    // Once it left: published again, nothing waiting, gone from the admin document.
+    let mut again = None;
+    for _ in 0..3 {
+        let sample = tokio::time::timeout(Duration::from_secs(20), published.recv_async())
+            .await
+            .expect("the reload was not published again once m1 left")
+            .unwrap();
+        let told = pb::ReloadResult::decode(sample.payload().to_bytes().as_ref()).unwrap();
+        if told.waiting.is_empty() {
+            again = Some(told);
+            break;
+        }
+    }
+    let again = again.expect("a publication with nothing waiting");
+    assert_eq!((again.generation, again.applied), (2, true));
+    wait_token(g.client.session(), &g.keys.machine("m1"), false).await;
+    let doc = g.admin().await;
+    assert_eq!(doc["config"]["machines"][0]["name"], "m3");
+    assert_eq!(doc["config"]["machines"].as_array().unwrap().len(), 1);
+    // The job's own id still tells how it ended, from the history.
+    let latest = g.client.job_latest("m1", &accepted.job_id).await.unwrap();
+    match &latest.kind {
+        Some(Kind::Completed(c)) => assert_eq!(c.bytes_sent, long.len() as u64),
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(latest.machine, "m1");
+    g.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_bad_file_and_a_change_that_needs_a_restart_are_refused_whole() {
     let g = Running::start(M1).await;

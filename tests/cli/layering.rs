@@ -28,7 +28,7 @@ const CORE_LAYERS: &[&[&str]] = &[
 /// The gateway's modules, lowest layer first.
 const GATEWAY_LAYERS: &[&[&str]] = &[
     &["telemetry"],
-    &["transport"],
+    &["transport", "door"],
     &["link"],
     &["jobs", "plc", "sim"],
     &["history"],

@@ -7,4 +7,5 @@ mod common;
 
 mod api;
 mod browser;
+mod listeners;
 mod mtconnect;

@@ -794,3 +794,58 @@ async fn a_punched_program_is_a_file_asset_of_its_machine() {
     client.close().await;
     gw.stop().await;
 }
+
+/// A gateway stopped while a job is taken fails it when it starts again ("gateway
+/// restarted"): its agent, new with it, shows the machine INTERRUPTED, not READY, until a
+/// newer job starts.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_failed_by_a_restart_shows_interrupted_after_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let programs = dir.path().join("programs");
+    let p = programs.clone();
+    let gw = Gateway::start(move |c| c.programs.dir = p).await;
+    let client = gw.client().await;
+    // A program that takes seconds at 19200 baud: the gateway stops while it is sent.
+    let mut text = b"%\nO1\n".to_vec();
+    for n in 0..1500 {
+        text.extend_from_slice(format!("N{n} G01 X{n} Y1\n").as_bytes());
+    }
+    text.extend_from_slice(b"M30\n%\n");
+    let job = pb::JobRequest {
+        program: Some(pb::job_request::Program::Inline(text)),
+        ..Default::default()
+    };
+    let (accepted, mut follower) = client.submit("mill-1", &job).await.unwrap();
+    loop {
+        match tokio::time::timeout(Duration::from_secs(30), follower.next()).await {
+            Ok(Ok(Some(e))) => {
+                if matches!(&e.kind, Some(pb::job_event::Kind::Progress(p)) if p.bytes_sent > 0) {
+                    break;
+                }
+            }
+            other => panic!("the job never progressed: {other:?}"),
+        }
+    }
+    follower.close().await;
+    client.close().await;
+    gw.stop().await;
+    let p = programs.clone();
+    let gw = Gateway::start(move |c| c.programs.dir = p).await;
+    let current = wait_for(&gw.url, "/current", |d| {
+        value_of(d, "mill-1_execution").is_some_and(|v| v.2 != "UNAVAILABLE")
+    })
+    .await;
+    assert_eq!(
+        value_of(&current, "mill-1_execution").unwrap().2,
+        "INTERRUPTED",
+        "{current}"
+    );
+    let client = gw.client().await;
+    let latest = client.job_latest("mill-1", &accepted.job_id).await.unwrap();
+    assert!(
+        matches!(latest.kind, Some(pb::job_event::Kind::Failed(_))),
+        "{latest:?}"
+    );
+    client.close().await;
+    gw.stop().await;
+}

@@ -42,6 +42,7 @@ fn status() -> pb::MachineStatus {
             alarm_number: "SR0945".to_string(),
             message: "retry over".to_string(),
             unix_ms: 0,
+            code: "SR0945".to_string(),
         }),
         ..pb::MachineStatus::default()
     }

@@ -183,7 +183,8 @@ export async function renderMachine(ctx, cell, name) {
 
   // ---- punched programs
   const punchBox = h('div');
-  colA.append(sec('Punched programs', 'sec-punched', punchBox));
+  // Only the Protocol B family punches programs out to the host (§6.1).
+  if (!isProtocolA(snap.status?.protocol)) colA.append(sec('Punched programs', 'sec-punched', punchBox));
   const punched = snap.punched || [];
   const renderPunched = () => punchBox.replaceChildren(punchedView(cell, name, punched, !!snap.punched_recorded));
 
@@ -337,7 +338,8 @@ function satView(st) {
     // SAT byte 3 means something only in alarm status (§4.4.2): elsewhere it is no cause.
     s.buffer_status === 'BUFFER_STATUS_ALARM' ? ['Alarm cause', h('span', { class: 'warn-text' }, enumWord(s.alarm_cause, 'ALARM_CAUSE_') + digit(s.alarm_cause_digit))] : null,
     ['Bytes buffered', opt(s.bytes_buffered, bytes)],
-    ['Packet length', opt(s.packet_n, (n) => (Number(n) === 0 ? 'Protocol A' : `${256 * n} bytes (n = ${n})`))],
+    // n = 0: the board sends no packets, DATs as in Protocol A (§4.4.2 byte 9).
+    ['Packet length', opt(s.packet_n, (n) => (Number(n) === 0 ? 'none (n = 0: DATs, as in Protocol A)' : `${256 * n} bytes (n = ${n})`))],
   ]), scroller(params));
 }
 

@@ -68,7 +68,7 @@ export async function renderOverview(ctx, onlyCell) {
     const stDown = rows.reduce((a, r) => a + r.stationsDown, 0);
     const ok = up === total && !alarms.length && stDown === 0 && !models.some((m) => m.failed);
     health.className = `health ${ok ? 'ok' : 'bad'}`;
-    const links = up === total ? `All ${total} machine links up` : `${up} of ${total} machine links up`;
+    const links = total === 1 ? `The machine link is ${up ? 'up' : 'down'}` : up === total ? `All ${total} machine links up` : `${up} of ${total} machine links up`;
     fill(health,
       h('p', { class: 'health-main', 'data-field': 'links' }, h('span', { class: 'icon', 'aria-hidden': 'true' }, up === total && !stDown ? '✔' : '⚠'),
         links + (stDown ? `, ${stDown} PLC station(s) down` : '')),

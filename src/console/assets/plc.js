@@ -25,13 +25,15 @@ export async function renderPlc(ctx, cell, plc) {
 
   const renderSummary = () => {
     const errs = Object.entries(st.receive_errors || {}).filter(([, n]) => num(n));
+    const lineErrs = Object.entries(st.line_errors || {}).filter(([, n]) => num(n));
     summary.replaceChildren(h('dl', { class: 'kv' },
       h('dt', null, 'Mode'), h('dd', null, String(st.mode)),
       h('dt', null, 'Line'), h('dd', null, st.line || '—'),
       h('dt', null, 'Bytes in / out'), h('dd', null, `${bytes(st.bytes_in)} / ${bytes(st.bytes_out)}`),
       h('dt', null, 'Transfers received'), h('dd', null, String(num(st.transfers_received))),
       h('dt', null, 'Unexpected texts'), h('dd', null, String(num(st.unexpected_texts))),
-      h('dt', null, 'Texts dropped'), h('dd', null, errs.length ? errs.map(([k, n]) => `${k}: ${num(n)}`).join(', ') : 'none')));
+      h('dt', null, 'Texts dropped'), h('dd', null, errs.length ? errs.map(([k, n]) => `${k}: ${num(n)}`).join(', ') : 'none'),
+      h('dt', null, 'Line errors'), h('dd', { 'data-field': 'line-errors' }, lineErrs.length ? lineErrs.map(([k, n]) => `${k}: ${num(n)}`).join(', ') : 'none')));
     const t = table(['Station', 'State', 'Requests', 'Replies', 'Time-outs', 'Retries', 'BCC errors', 'Corrupted', 'Refused (down)', 'Error replies', 'Last error'], 'stations-table');
     t.setAttribute('aria-label', 'Stations');
     for (const s of st.stations || []) {

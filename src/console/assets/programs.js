@@ -12,8 +12,11 @@ export async function renderPrograms(ctx, cell) {
     h('h1', { tabindex: '-1' }, 'Programs'));
   const listBox = h('div');
   const load = async () => {
-    const list = (await api('GET', `${cellPath(cell)}/programs`)) || [];
+    const all = (await api('GET', `${cellPath(cell)}/programs`)) || [];
     if (!ctx.alive) return;
+    // A file of the folder the library does not take has no program name: listed apart.
+    const list = all.filter((p) => p.name);
+    const refused = all.filter((p) => !p.name);
     list.sort((a, b) => a.name.localeCompare(b.name));
     const t = table(['Name', 'Size', 'Latest revision', 'State', 'Latest released', 'Stored', 'By'], 'programs');
     t.setAttribute('aria-label', 'Library programs');
@@ -29,6 +32,10 @@ export async function renderPrograms(ctx, cell) {
         h('td', null, who(l.by))));
     }
     listBox.replaceChildren(list.length ? scroller(t) : h('p', { class: 'muted' }, 'The library is empty.'));
+    if (refused.length) {
+      listBox.append(h('p', null, 'Files of the folder not taken:'),
+        h('ul', { class: 'refused-files' }, ...refused.map((p) => h('li', null, h('code', null, p.file), ': ', p.note))));
+    }
   };
 
   main.append(h('section', { class: 'card', 'aria-labelledby': 'sec-list' }, h('h2', { id: 'sec-list' }, 'Library'), listBox));

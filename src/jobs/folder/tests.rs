@@ -1,3 +1,4 @@
+use std::ffi::OsStr;
 use std::io::Write as _;
 
 use super::*;
@@ -8,7 +9,10 @@ fn watch(dir: &Path, mode: Watch) -> FolderWatch {
         watch: mode,
         settle_ms: 300,
         poll: Duration::from_millis(50),
-        takes: Arc::new(|f: &str| !cellgate_core::program::folder::is_temporary(f)),
+        takes: Arc::new(|f: &OsStr| match f.to_str() {
+            Some(f) if !cellgate_core::program::folder::is_temporary(f) => Verdict::Take,
+            _ => Verdict::Pass,
+        }),
     }
 }
 
@@ -203,5 +207,123 @@ async fn a_folder_named_relative_to_the_working_directory_is_followed_by_its_eve
             file: "O0007.nc".into()
         }
     );
+    stop.cancel();
+}
+
+/// A watch that refuses names with a space, as the library refuses names that give no
+/// program.
+fn refusing(dir: &Path, mode: Watch) -> FolderWatch {
+    let mut w = watch(dir, mode);
+    w.takes = Arc::new(|f: &OsStr| match f.to_str() {
+        None => Verdict::Refuse("not UTF-8".to_string()),
+        Some(f) if cellgate_core::program::folder::is_temporary(f) => Verdict::Pass,
+        Some(f) if f.contains(' ') => Verdict::Refuse("a space".to_string()),
+        Some(_) => Verdict::Take,
+    });
+    w
+}
+
+async fn links_fifos_and_refused_names_are_reported_once(mode: Watch) {
+    use std::os::unix::ffi::OsStrExt as _;
+    let parent = tempfile::tempdir().unwrap();
+    let dir = parent.path().join("folder");
+    std::fs::create_dir(&dir).unwrap();
+    std::fs::write(parent.path().join("outside.nc"), program(3)).unwrap();
+    let stop = CancellationToken::new();
+    let Followed { seen: mut rx, .. } = refusing(&dir, mode).spawn(stop.clone());
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    std::os::unix::fs::symlink(parent.path().join("outside.nc"), dir.join("O0010.nc")).unwrap();
+    let fifo =
+        std::ffi::CString::new(dir.join("O0011.nc").into_os_string().into_encoded_bytes()).unwrap();
+    assert_eq!(unsafe { libc::mkfifo(fifo.as_ptr(), 0o644) }, 0);
+    std::fs::write(dir.join("O 12.nc"), program(3)).unwrap();
+    std::fs::write(dir.join(OsStr::from_bytes(b"O13\xFF.nc")), program(3)).unwrap();
+    std::fs::create_dir(dir.join("O0014")).unwrap();
+    let mut said = BTreeMap::new();
+    while said.len() < 4 {
+        match next(&mut rx).await {
+            Seen::Refused { file, why } => {
+                assert!(said.insert(file.clone(), why).is_none(), "{file:?} twice");
+            }
+            other => panic!("unexpected: {other:?}"),
+        }
+    }
+    assert!(
+        said[OsStr::new("O0010.nc")].contains("symbolic link"),
+        "{said:?}"
+    );
+    assert!(said[OsStr::new("O0011.nc")].contains("FIFO"), "{said:?}");
+    assert_eq!(said[OsStr::new("O 12.nc")], "a space");
+    assert_eq!(said[OsStr::from_bytes(b"O13\xFF.nc")], "not UTF-8");
+    // Listed again and again (polling every 50 ms), written to: said once. A directory is
+    // passed over.
+    std::fs::write(dir.join("O 12.nc"), program(4)).unwrap();
+    quiet(&mut rx, 600).await;
+    // The link replaced by a regular file: taken as any file is.
+    std::fs::remove_file(dir.join("O0010.nc")).unwrap();
+    std::fs::write(dir.join("O0010.nc"), program(5)).unwrap();
+    assert_eq!(
+        next(&mut rx).await,
+        Seen::Complete {
+            file: "O0010.nc".into()
+        }
+    );
+    stop.cancel();
+}
+
+#[tokio::test]
+async fn links_fifos_and_refused_names_are_reported_once_with_events() {
+    links_fifos_and_refused_names_are_reported_once(Watch::Auto).await;
+}
+
+#[tokio::test]
+async fn links_fifos_and_refused_names_are_reported_once_when_polling() {
+    links_fifos_and_refused_names_are_reported_once(Watch::Poll).await;
+}
+
+#[tokio::test]
+async fn a_folder_removed_and_made_again_is_followed_by_its_events() {
+    let parent = tempfile::tempdir().unwrap();
+    let dir = parent.path().join("folder");
+    std::fs::create_dir(&dir).unwrap();
+    let stop = CancellationToken::new();
+    let mut w = watch(&dir, Watch::Auto);
+    // No listing within the test but those the watcher makes itself.
+    w.poll = Duration::from_secs(600);
+    let Followed { seen: mut rx, .. } = w.spawn(stop.clone());
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    std::fs::write(dir.join("O0020.nc"), program(3)).unwrap();
+    assert_eq!(
+        next(&mut rx).await,
+        Seen::Complete {
+            file: "O0020.nc".into()
+        }
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+    std::fs::create_dir(&dir).unwrap();
+    // The file went with the folder; one posted into the new folder is seen by its events.
+    let mut gone = false;
+    loop {
+        match next(&mut rx).await {
+            Seen::Gone { file } if file == "O0020.nc" => gone = true,
+            Seen::Unreadable { .. } | Seen::Readable => {}
+            other => panic!("unexpected: {other:?}"),
+        }
+        if gone {
+            break;
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    std::fs::write(dir.join("O0021.nc"), program(3)).unwrap();
+    loop {
+        match next(&mut rx).await {
+            Seen::Complete { file } => {
+                assert_eq!(file, "O0021.nc");
+                break;
+            }
+            Seen::Unreadable { .. } | Seen::Readable => {}
+            other => panic!("unexpected: {other:?}"),
+        }
+    }
     stop.cancel();
 }

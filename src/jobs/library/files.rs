@@ -3,17 +3,25 @@
 //! watcher ([`crate::jobs::folder`]) decides when a file is complete and calls these; here is
 //! what the library makes of it, under the same lock, name rules, size bound and quota as a
 //! store from the bus. The file itself is never written: it stays as its writer left it.
+//!
+//! Only regular files are taken, opened without following a link and checked on the open
+//! file ([`super::disk::open_regular`]), and copied into `.revisions` in pieces. A file the
+//! folder does not take is said: by the watcher's report (the route logs, audits and
+//! publishes it) and in the listing's `note`; hidden and temporary files excepted.
 
 use std::collections::BTreeMap;
+use std::ffi::OsStr;
+use std::os::unix::fs::MetadataExt as _;
 use std::path::{Path, PathBuf};
 
 use cellgate_core::pb::{self, RevisionState};
-use cellgate_core::program::folder::Skip;
+use cellgate_core::program::folder::{Skip, is_temporary};
 
+use super::disk::{CopyError, Incoming, OpenError, escaped, is_regular, open_regular};
 use super::{
     Index, LibraryError, ProgramEntry, ProgramLibrary, blocking, is_released, modified_ms,
-    sha256_hex,
 };
+use crate::jobs::folder::{Verdict, not_regular};
 
 /// What became of a file of the folder.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -53,9 +61,97 @@ pub(super) fn file_name(path: &Path) -> String {
 }
 
 impl ProgramLibrary {
+    /// The file that holds `name`: `NAME`, or `NAME.EXT` for one of `programs.extensions`
+    /// in any case (`O5555.nc`, `O5555.NC`, `O5555.Nc`) when the folder has one; two of them
+    /// are a conflict. Only a regular file holds a program: a link or a FIFO of that name is
+    /// none. Blocking (a few `lstat`s; a listing of the folder for a long extension).
+    pub(crate) fn path_of(&self, name: &str) -> Result<PathBuf, LibraryError> {
+        self.check_name(name)?;
+        let mut found: Vec<(PathBuf, (u64, u64))> = Vec::new();
+        let mut add = |p: PathBuf| {
+            if let Ok(m) = std::fs::symlink_metadata(&p)
+                && m.is_file()
+                // One file under two names (a file system that ignores case) is one file.
+                && !found.iter().any(|(_, id)| *id == (m.dev(), m.ino()))
+            {
+                found.push((p, (m.dev(), m.ino())));
+            }
+        };
+        let plain = self.dir.join(name);
+        add(plain.clone());
+        let mut long = false;
+        for ext in self.folder.extensions.iter() {
+            match case_variants(ext) {
+                Some(variants) => {
+                    for e in variants {
+                        add(self.dir.join(format!("{name}.{e}")));
+                    }
+                }
+                None => long = true,
+            }
+        }
+        if long && let Ok(dir) = std::fs::read_dir(self.dir.as_path()) {
+            for item in dir.flatten() {
+                if let Some(file) = item.file_name().to_str()
+                    && file != name
+                    && self.folder.strip(file) == name
+                {
+                    add(item.path());
+                }
+            }
+        }
+        match found.len() {
+            0 => Ok(plain),
+            1 => Ok(found.swap_remove(0).0),
+            _ => Err(LibraryError::Conflict {
+                name: name.to_string(),
+                files: file_list(&found.into_iter().map(|(p, _)| p).collect::<Vec<_>>()),
+            }),
+        }
+    }
+
     /// The program `file` gives, if any: its name without a listed extension.
     pub fn program_of(&self, file: &str) -> Result<String, Skip> {
         self.folder.program_name(file).map(str::to_string)
+    }
+
+    /// What the folder makes of the file name `file`: a program's file, passed over without
+    /// a word (hidden and temporary files, the gateway's own), or refused and said, with why
+    /// (a name that gives no program name).
+    pub fn verdict(&self, file: &OsStr) -> Verdict {
+        let path = self.dir.join(file);
+        if cellgate_core::config::owned::is_owned(&self.owned, &self.dir, &path) {
+            return Verdict::Pass;
+        }
+        let Some(text) = file.to_str() else {
+            if is_temporary(&file.to_string_lossy()) {
+                return Verdict::Pass;
+            }
+            return Verdict::Refuse(
+                "its name is not UTF-8 text, so it gives no program name".to_string(),
+            );
+        };
+        match self.program_of(text) {
+            Err(Skip::Temporary) => Verdict::Pass,
+            Err(Skip::BadName(reason)) => {
+                Verdict::Refuse(format!("its name gives no program name: {reason}"))
+            }
+            Ok(name) => match self.check_name(&name) {
+                Ok(()) => Verdict::Take,
+                Err(LibraryError::InvalidName { reason, .. }) => {
+                    Verdict::Refuse(format!("its name gives no program name: {name:?} {reason}"))
+                }
+                Err(e) => Verdict::Refuse(e.to_string()),
+            },
+        }
+    }
+
+    /// The refusal of a file the folder does not take (the watcher's report), as an error.
+    pub fn not_taken(&self, file: &OsStr, why: &str) -> LibraryError {
+        LibraryError::NotTaken {
+            file: escaped(file),
+            why: why.to_string(),
+        }
     }
 
     /// Takes the complete file `file` of the folder as its program's next revision, by
@@ -72,7 +168,7 @@ impl ProgramLibrary {
                 },
             })?;
         self.check_name(&name)?;
-        let index = self.index().await?;
+        let index = self.index_to_store().await?;
         let _store = self.stores.lock().await;
         let lib = self.clone();
         blocking(move || lib.take_blocking(&index, &name, f)).await
@@ -98,22 +194,41 @@ impl ProgramLibrary {
                 source,
             }
         };
-        let size = match std::fs::metadata(&path) {
-            Ok(m) if m.is_file() => m.len(),
-            Ok(_) => return Ok(Taken::Nothing),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Taken::Nothing),
-            Err(e) => return Err(io("read")(e)),
+        // Opened as it is now, never through a link: what is checked is what is read.
+        let (file, meta) = match open_regular(&path) {
+            Ok(opened) => opened,
+            Err(OpenError::Io(e)) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Ok(Taken::Nothing);
+            }
+            Err(OpenError::Io(e)) => return Err(io("read")(e)),
+            Err(OpenError::NotRegular(what)) => {
+                return Err(LibraryError::NotTaken {
+                    file: escaped(OsStr::new(&f.file)),
+                    why: format!(
+                        "it is {what}: only regular files inside the folder are taken (a link \
+                         is never followed)"
+                    ),
+                });
+            }
         };
-        if size > self.max_size {
-            return Err(LibraryError::TooLarge {
-                name: name.to_string(),
-                size,
-                max: self.max_size,
-            });
+        let too_large = |size| LibraryError::TooLarge {
+            name: name.to_string(),
+            size,
+            max: self.max_size,
+        };
+        // Refused for its size before a byte is read, a sparse file too.
+        if meta.len() > self.max_size {
+            return Err(too_large(meta.len()));
         }
-        let bytes = std::fs::read(&path).map_err(io("read"))?;
-        let size = bytes.len() as u64;
-        let sha = sha256_hex(&bytes);
+        self.make_objects_dir()
+            .map_err(|e| self.write_error(name, self.objects_dir(), e))?;
+        let incoming =
+            Incoming::copy(file, &self.objects_dir(), self.max_size).map_err(|e| match e {
+                CopyError::TooLarge(size) => too_large(size),
+                CopyError::Read(e) => io("read")(e),
+                CopyError::Write(path, e) => self.write_error(name, path, e),
+            })?;
+        let (sha, size) = (incoming.sha.clone(), incoming.size);
         let revisions = index.revisions(name)?;
         let latest = revisions.last().filter(|r| !r.removed);
         if let Some(l) = latest {
@@ -139,7 +254,9 @@ impl ProgramLibrary {
             }
         }
         self.check_quota(index, name, &sha, size, latest.is_none())?;
-        self.write_object(name, &sha, &bytes)?;
+        incoming
+            .keep(&self.objects_dir())
+            .map_err(|e| self.write_error(name, self.object_path(&sha), e))?;
         let now = pb::now_ms();
         let revision = pb::ProgramRevision {
             name: name.to_string(),
@@ -182,7 +299,7 @@ impl ProgramLibrary {
         blocking(move || {
             // Another file still gives the name (one of a conflict removed): it stands.
             match lib.path_of(&name) {
-                Ok(p) if p.is_file() => return Ok(Taken::Nothing),
+                Ok(p) if is_regular(&p) => return Ok(Taken::Nothing),
                 Err(LibraryError::Conflict { .. }) => return Ok(Taken::Nothing),
                 _ => {}
             }
@@ -237,7 +354,7 @@ impl ProgramLibrary {
             Ok(index
                 .latest_all()?
                 .into_iter()
-                .filter(|r| !r.removed && !matches!(lib.path_of(&r.name), Ok(p) if p.is_file()))
+                .filter(|r| !r.removed && !matches!(lib.path_of(&r.name), Ok(p) if is_regular(&p)))
                 .filter(|r| !matches!(lib.path_of(&r.name), Err(LibraryError::Conflict { .. })))
                 .map(|r| r.name)
                 .collect())
@@ -256,7 +373,7 @@ impl ProgramLibrary {
         let name = name.to_string();
         blocking(move || {
             let path = lib.path_of(&name)?;
-            Ok(path.is_file().then(|| file_name(&path)))
+            Ok(is_regular(&path).then(|| file_name(&path)))
         })
         .await
     }
@@ -280,9 +397,10 @@ impl ProgramLibrary {
             .unwrap_or_default()
     }
 
-    /// The listing: every program with a standing revision, and every file of the folder
-    /// that gives a name (a file not yet taken shows with no revision and its own size).
-    /// Blocking.
+    /// The listing: every program with a standing revision, every file of the folder that
+    /// gives a name (a file not yet taken shows with no revision and its own size), and every
+    /// file the folder refuses (a name that gives no program name, a link, a FIFO), with no
+    /// name, its `file` escaped and its `note` saying why. Blocking.
     pub(super) fn list_blocking(&self, index: &Index) -> Result<Vec<ProgramEntry>, LibraryError> {
         let dir_error = |source| LibraryError::Io {
             name: String::new(),
@@ -291,22 +409,37 @@ impl ProgramLibrary {
             source,
         };
         let mut files: BTreeMap<String, Vec<(String, std::fs::Metadata)>> = BTreeMap::new();
+        let mut refused: BTreeMap<String, String> = BTreeMap::new();
         match std::fs::read_dir(self.dir.as_path()) {
             Ok(dir) => {
                 for item in dir {
                     let item = item.map_err(dir_error)?;
-                    let Ok(file) = item.file_name().into_string() else {
-                        continue;
-                    };
-                    let Ok(name) = self.program_of(&file) else {
-                        continue;
-                    };
-                    if self.check_name(&name).is_err() {
+                    let file = item.file_name();
+                    let verdict = self.verdict(&file);
+                    if verdict == Verdict::Pass {
                         continue;
                     }
+                    // Not following a link: a link is listed as one.
                     let Ok(meta) = item.metadata() else { continue };
-                    if meta.is_file() {
-                        files.entry(name).or_default().push((file, meta));
+                    let kind = meta.file_type();
+                    match (verdict, file.into_string()) {
+                        _ if kind.is_dir() => {}
+                        (Verdict::Take, Ok(file)) if kind.is_file() => {
+                            if let Ok(name) = self.program_of(&file) {
+                                files.entry(name).or_default().push((file, meta));
+                            }
+                        }
+                        (Verdict::Take, Ok(file)) => {
+                            refused.insert(file, not_regular(kind));
+                        }
+                        (Verdict::Refuse(why), file) => {
+                            let file = match file {
+                                Ok(f) => escaped(OsStr::new(&f)),
+                                Err(f) => escaped(&f),
+                            };
+                            refused.insert(file, why);
+                        }
+                        _ => {}
                     }
                 }
             }
@@ -374,6 +507,48 @@ impl ProgramLibrary {
                 entry.note = note;
             }
         }
-        Ok(entries.into_values().collect())
+        let mut out: Vec<ProgramEntry> = entries.into_values().collect();
+        // No program, so no name: the file (escaped) and why it is not taken.
+        out.extend(refused.into_iter().map(|(file, why)| ProgramEntry {
+            name: String::new(),
+            size: 0,
+            modified_unix_ms: 0,
+            latest: None,
+            latest_released: 0,
+            file,
+            note: format!("not taken: {why}"),
+            revised: false,
+        }));
+        Ok(out)
     }
+}
+
+/// Every spelling of `ext` in upper and lower case (`nc`: `nc`, `nC`, `Nc`, `NC`), or `None`
+/// when there are more than 64 (an extension of seven letters or more): the folder is listed
+/// instead.
+pub(super) fn case_variants(ext: &str) -> Option<Vec<String>> {
+    let letters = ext.bytes().filter(u8::is_ascii_alphabetic).count();
+    if letters > 6 {
+        return None;
+    }
+    let mut out = Vec::with_capacity(1 << letters);
+    for mask in 0u32..(1 << letters) {
+        let mut bit = 0;
+        out.push(
+            ext.chars()
+                .map(|c| {
+                    if !c.is_ascii_alphabetic() {
+                        return c;
+                    }
+                    bit += 1;
+                    if mask & (1 << (bit - 1)) == 0 {
+                        c.to_ascii_lowercase()
+                    } else {
+                        c.to_ascii_uppercase()
+                    }
+                })
+                .collect(),
+        );
+    }
+    Some(out)
 }

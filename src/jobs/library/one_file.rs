@@ -4,11 +4,14 @@
 //! whose file is only the library's copy of its latest revision takes that copy's place
 //! instead of standing beside it as a conflict.
 
-use std::path::PathBuf;
+use std::os::unix::fs::MetadataExt as _;
+use std::path::{Path, PathBuf};
+
+use sha2::{Digest as _, Sha256};
 
 use cellgate_core::pb::RevisionState;
 
-use super::{Index, LibraryError, ProgramLibrary, files, sha256_file};
+use super::{Index, LibraryError, ProgramLibrary, files, is_regular, open_regular};
 
 impl ProgramLibrary {
     /// The file a store of `name` writes: the one that holds the program now, else
@@ -16,7 +19,7 @@ impl ProgramLibrary {
     /// Blocking (a few `stat`s).
     pub(super) fn store_path(&self, name: &str) -> Result<PathBuf, LibraryError> {
         let path = self.path_of(name)?;
-        if path.is_file() {
+        if is_regular(&path) {
             return Ok(path);
         }
         Ok(match self.folder.extensions.first() {
@@ -54,19 +57,29 @@ impl ProgramLibrary {
             path: self.dir.as_path().to_path_buf(),
             source: e,
         })?;
+        // The regular files that give the name, as `path_of` finds them (one file under two
+        // names, on a file system that ignores case, once).
+        let mut seen = Vec::new();
         let files: Vec<PathBuf> = listed
             .filter_map(Result::ok)
             .filter(|f| {
                 f.file_name()
                     .to_str()
-                    .is_some_and(|f| self.program_of(f).is_ok_and(|n| n == name))
+                    .is_some_and(|f| f == name || self.folder.strip(f) == name)
+            })
+            .filter(|f| {
+                std::fs::symlink_metadata(f.path()).is_ok_and(|m| {
+                    let id = (m.dev(), m.ino());
+                    let new = m.is_file() && !seen.contains(&id);
+                    seen.push(id);
+                    new
+                })
             })
             .map(|f| f.path())
-            .filter(|p| p.is_file())
             .collect();
         let (copies, differing): (Vec<PathBuf>, Vec<PathBuf>) = files
             .into_iter()
-            .partition(|p| sha256_file(p).is_ok_and(|sha| sha == latest.sha256));
+            .partition(|p| sha256_regular(p).is_some_and(|sha| sha == latest.sha256));
         let keep = match differing.as_slice() {
             [one] => one.clone(),
             // All the same content: the file just posted is the one its writer uses.
@@ -95,4 +108,13 @@ impl ProgramLibrary {
         }
         self.path_of(name)
     }
+}
+
+/// The SHA-256 of the regular file at `path`, opened as the library opens a program's file
+/// (never through a link, never blocking on a FIFO); `None` if it is none or unreadable.
+fn sha256_regular(path: &Path) -> Option<String> {
+    let (mut file, _) = open_regular(path).ok()?;
+    let mut hasher = Sha256::new();
+    std::io::copy(&mut file, &mut hasher).ok()?;
+    Some(hex::encode(hasher.finalize()))
 }

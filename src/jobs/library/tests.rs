@@ -47,9 +47,10 @@ async fn store_read_list_remove() {
         .collect();
     assert_eq!(names, ["O1", "O2"]);
     lib.remove("O1").await.unwrap();
+    // Removed, and said so: its revisions are kept.
     assert!(matches!(
         lib.read("O1").await,
-        Err(LibraryError::NotFound { .. })
+        Err(LibraryError::Removed { latest: 2, .. })
     ));
     assert!(matches!(
         lib.remove("O1").await,
@@ -103,7 +104,8 @@ async fn store_new_never_replaces() {
         .filter(|n| n != REVISIONS_DIR)
         .collect();
     files.sort();
-    assert_eq!(files, ["m-O1", "m-O2"]);
+    // Each in the file a CAM system would post: NAME.nc.
+    assert_eq!(files, ["m-O1.nc", "m-O2.nc"]);
     let temp = std::fs::read_dir(dir.path().join(REVISIONS_DIR).join("objects"))
         .unwrap()
         .filter(|e| {
@@ -185,7 +187,7 @@ async fn store_by(lib: &ProgramLibrary, name: &str, bytes: &[u8], user: &str) ->
     lib.store_as(
         name,
         Store {
-            bytes,
+            bytes: bytes.into(),
             by: by(user),
             comment: format!("by {user}"),
             adopted: None,
@@ -245,7 +247,7 @@ async fn a_removed_program_keeps_its_revisions_and_numbers_go_on() {
     lib.remove_by("O2").await.unwrap();
     assert!(matches!(
         lib.read("O2").await,
-        Err(LibraryError::NotFound { .. })
+        Err(LibraryError::Removed { latest: 1, .. })
     ));
     let revs = lib.revisions("O2").await.unwrap();
     assert!(revs.removed);
@@ -253,7 +255,7 @@ async fn a_removed_program_keeps_its_revisions_and_numbers_go_on() {
     // A job cannot take "the latest" of a removed program.
     assert!(matches!(
         lib.revision("O2", "").await,
-        Err(LibraryError::NotFound { .. })
+        Err(LibraryError::Removed { .. })
     ));
     let back = store_by(&lib, "O2", b"%\nA\n%", "a").await;
     assert_eq!(back.latest.unwrap().number, 2);
@@ -482,7 +484,7 @@ async fn a_deleted_file_removes_its_program_and_posting_it_again_goes_on() {
     assert!(e.latest.unwrap().removed);
     assert!(matches!(
         lib.read("O9").await,
-        Err(LibraryError::NotFound { .. })
+        Err(LibraryError::Removed { latest: 1, .. })
     ));
     assert_eq!(lib.file_gone("O9.tap").await.unwrap(), Taken::Nothing);
     std::fs::write(dir.path().join("O9.tap"), b"%\nTWO\n%").unwrap();
@@ -574,4 +576,282 @@ async fn the_gateways_own_files_are_never_listed_served_replaced_or_removed() {
         Err(LibraryError::InvalidName { .. })
     ));
     assert_eq!(std::fs::read(&journal).unwrap(), b"live journal");
+}
+
+#[tokio::test]
+async fn links_and_fifos_in_the_folder_are_never_taken_opened_or_served() {
+    let dir = tempfile::tempdir().unwrap();
+    let programs = dir.path().join("programs");
+    let lib = ProgramLibrary::new(&programs, 1000);
+    lib.create_dir().await.unwrap();
+    // Outside the folder: what a link there would leak, and a program a link would send.
+    std::fs::write(dir.path().join("key.pem"), b"%\nSECRET\n%").unwrap();
+    std::os::unix::fs::symlink(dir.path().join("key.pem"), programs.join("KEY2")).unwrap();
+    std::os::unix::fs::symlink(dir.path().join("key.pem"), programs.join("O8.nc")).unwrap();
+    let fifo = std::ffi::CString::new(programs.join("O9.nc").into_os_string().into_encoded_bytes())
+        .unwrap();
+    assert_eq!(unsafe { libc::mkfifo(fifo.as_ptr(), 0o644) }, 0);
+
+    for file in ["KEY2", "O8.nc", "O9.nc"] {
+        match lib.take_file(folder(file)).await {
+            // A link or FIFO is no program's file: refused by its own name, or not found.
+            Err(LibraryError::NotTaken { file: f, why }) => {
+                assert_eq!(f, file);
+                assert!(
+                    why.contains("symbolic link") || why.contains("FIFO"),
+                    "{why}"
+                );
+            }
+            Ok(Taken::Nothing) => {}
+            other => panic!("{file}: {other:?}"),
+        }
+    }
+    // The plain name is opened as it is: refused, never read.
+    assert!(matches!(
+        lib.take_file(folder("KEY2")).await,
+        Err(LibraryError::NotTaken { .. })
+    ));
+    for name in ["KEY2", "O8", "O9"] {
+        assert!(matches!(
+            lib.read(name).await,
+            Err(LibraryError::NotFound { .. })
+        ));
+        assert!(lib.open(name).await.is_err(), "{name} opened");
+        assert_eq!(lib.file_of(name).await.unwrap(), None, "{name}");
+    }
+    assert!(
+        std::fs::read_dir(programs.join(".revisions/objects"))
+            .unwrap()
+            .next()
+            .is_none()
+    );
+    // The listing says what each is, with no program name.
+    let listed = lib.list().await.unwrap();
+    for (file, what) in [
+        ("KEY2", "symbolic link"),
+        ("O8.nc", "symbolic link"),
+        ("O9.nc", "FIFO"),
+    ] {
+        let e = listed
+            .iter()
+            .find(|e| e.file == file)
+            .unwrap_or_else(|| panic!("{file} not listed: {listed:?}"));
+        assert_eq!(e.name, "");
+        assert!(e.note.contains(what), "{}", e.note);
+        assert!(e.latest.is_none());
+    }
+    // A store through the bus replaces the link itself, never what it names.
+    lib.store("O8", b"%\nBUS\n%").await.unwrap();
+    assert_eq!(
+        std::fs::read(dir.path().join("key.pem")).unwrap(),
+        b"%\nSECRET\n%"
+    );
+    assert_eq!(lib.read("O8").await.unwrap(), b"%\nBUS\n%");
+}
+
+#[tokio::test]
+async fn an_extension_in_any_case_is_a_programs_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    lib.create_dir().await.unwrap();
+    std::fs::write(dir.path().join("O2006.Nc"), b"%\nO2006\n%").unwrap();
+    std::fs::write(dir.path().join("O2007.tAp"), b"%\nO2007\n%").unwrap();
+    for (file, name) in [("O2006.Nc", "O2006"), ("O2007.tAp", "O2007")] {
+        let Taken::Revision(e) = lib.take_file(folder(file)).await.unwrap() else {
+            panic!("{file} not taken");
+        };
+        assert_eq!((e.name.as_str(), e.file.as_str()), (name, file));
+        assert_eq!(lib.file_of(name).await.unwrap().as_deref(), Some(file));
+    }
+    // A second spelling of the same name beside the file of its latest revision takes that
+    // file's place, as another extension does: one program, one file.
+    std::fs::write(dir.path().join("O2006.nC"), b"%\nO2006 B\n%").unwrap();
+    assert!(matches!(
+        lib.take_file(folder("O2006.nC")).await,
+        Ok(Taken::Revision(_))
+    ));
+    assert!(!dir.path().join("O2006.Nc").exists());
+    // Two spellings that both differ from it are a conflict, as two extensions are.
+    std::fs::write(dir.path().join("O2006.NC"), b"%\nO2006 C\n%").unwrap();
+    std::fs::write(dir.path().join("O2006.nc"), b"%\nO2006 D\n%").unwrap();
+    assert!(matches!(
+        lib.take_file(folder("O2006.NC")).await,
+        Err(LibraryError::Conflict { .. })
+    ));
+    let listed = lib.list().await.unwrap();
+    assert!(
+        listed
+            .iter()
+            .all(|e| !e.note.contains("still being written")),
+        "{listed:?}"
+    );
+}
+
+#[tokio::test]
+async fn names_that_give_no_program_are_listed_with_why_and_hidden_ones_are_not() {
+    use std::os::unix::ffi::OsStrExt as _;
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 1000);
+    lib.create_dir().await.unwrap();
+    let long = format!("{}.nc", "A".repeat(200));
+    let files: Vec<&[u8]> = vec![
+        b"O 1.nc",
+        b"-O2.nc",
+        b"O3\n.nc",
+        b"O4\xFF.nc",
+        long.as_bytes(),
+        b".hidden",
+        b"O5.nc.tmp",
+        b"~O6",
+    ];
+    for f in &files {
+        std::fs::write(dir.path().join(std::ffi::OsStr::from_bytes(f)), b"%\n%").unwrap();
+    }
+    let listed = lib.list().await.unwrap();
+    let shown: Vec<(&str, &str)> = listed
+        .iter()
+        .map(|e| (e.file.as_str(), e.note.as_str()))
+        .collect();
+    for (file, why) in [
+        ("O 1.nc", "use only letters"),
+        ("-O2.nc", "start with a letter or a digit"),
+        ("O3\\n.nc", "use only letters"),
+        ("O4\\xFF.nc", "not UTF-8"),
+        (long.as_str(), "longer than 128"),
+    ] {
+        assert!(
+            shown.iter().any(|(f, n)| *f == file && n.contains(why)),
+            "{file}: {shown:?}"
+        );
+    }
+    assert_eq!(
+        listed.len(),
+        5,
+        "hidden and temporary files are not listed: {shown:?}"
+    );
+    assert!(listed.iter().all(|e| e.name.is_empty()));
+    use crate::jobs::folder::Verdict;
+    assert_eq!(
+        lib.verdict(std::ffi::OsStr::new("O5.nc.tmp")),
+        Verdict::Pass
+    );
+    assert!(matches!(
+        lib.verdict(std::ffi::OsStr::from_bytes(b"O4\xFF.nc")),
+        Verdict::Refuse(_)
+    ));
+}
+
+#[tokio::test]
+async fn a_folder_made_again_takes_stores_and_forgets_the_revisions_gone_with_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let programs = dir.path().join("programs");
+    let lib = ProgramLibrary::new(&programs, 1000);
+    lib.create_dir().await.unwrap();
+    lib.store("O1", b"%\nONE\n%").await.unwrap();
+    std::fs::remove_dir_all(&programs).unwrap();
+    // Gone with the folder: not served, not listed, nothing made meanwhile.
+    assert!(matches!(
+        lib.revisions("O1").await,
+        Err(LibraryError::NotFound { .. })
+    ));
+    assert!(matches!(
+        lib.read("O1").await,
+        Err(LibraryError::NotFound { .. })
+    ));
+    assert!(lib.list().await.unwrap().is_empty());
+    assert!(
+        !programs.exists(),
+        "the library made the folder again by itself"
+    );
+    std::fs::create_dir(&programs).unwrap();
+    // Stores work again, in a new index of the new folder.
+    let e = lib.store("O2", b"%\nTWO\n%").await.unwrap();
+    assert_eq!(e.latest.unwrap().number, 1);
+    assert_eq!(lib.read("O2").await.unwrap(), b"%\nTWO\n%");
+    assert!(programs.join(".revisions/index.redb").is_file());
+    assert!(matches!(
+        lib.revisions("O1").await,
+        Err(LibraryError::NotFound { .. })
+    ));
+    std::fs::write(programs.join("O3.nc"), b"%\nTHREE\n%").unwrap();
+    assert!(matches!(
+        lib.take_file(folder("O3.nc")).await.unwrap(),
+        Taken::Revision(_)
+    ));
+    // Only the content removed by hand: the revision is said to have lost it, never served.
+    lib.store("O2", b"%\nTWO B\n%").await.unwrap();
+    std::fs::remove_dir_all(programs.join(".revisions/objects")).unwrap();
+    for rev in ["1", "2"] {
+        assert!(
+            matches!(
+                lib.read_revision("O2", rev).await,
+                Err(LibraryError::ContentMissing { .. })
+            ),
+            "revision {rev}"
+        );
+        assert!(matches!(
+            lib.revision("O2", rev).await,
+            Err(LibraryError::ContentMissing { .. })
+        ));
+    }
+    // And the next store makes the objects' directory again.
+    lib.store("O4", b"%\nFOUR\n%").await.unwrap();
+    assert_eq!(lib.read("O4").await.unwrap(), b"%\nFOUR\n%");
+}
+
+#[tokio::test]
+async fn a_folder_file_is_copied_in_pieces_and_a_sparse_one_stays_sparse() {
+    use std::io::{Seek as _, Write as _};
+    use std::os::unix::fs::MetadataExt as _;
+    let dir = tempfile::tempdir().unwrap();
+    let lib = ProgramLibrary::new(dir.path(), 64 * 1024 * 1024);
+    lib.create_dir().await.unwrap();
+    // 48 MiB, of which a few bytes at each end are written.
+    let path = dir.path().join("BIG.nc");
+    let mut f = std::fs::File::create(&path).unwrap();
+    f.write_all(b"%\nBIG\n").unwrap();
+    f.set_len(48 * 1024 * 1024).unwrap();
+    f.seek(std::io::SeekFrom::End(-3)).unwrap();
+    f.write_all(b"\n%\n").unwrap();
+    drop(f);
+    let Taken::Revision(e) = lib.take_file(folder("BIG.nc")).await.unwrap() else {
+        panic!("not taken");
+    };
+    let r = e.latest.unwrap();
+    assert_eq!(r.size, 48 * 1024 * 1024);
+    assert_eq!(r.sha256, sha256_file(&path).unwrap());
+    let object = dir.path().join(".revisions/objects").join(&r.sha256);
+    let meta = std::fs::metadata(&object).unwrap();
+    assert_eq!(meta.len(), 48 * 1024 * 1024);
+    // What it holds, not its size: a copy written whole would take 48 MiB of disk.
+    assert!(
+        meta.blocks() * 512 < 1024 * 1024,
+        "{} bytes on disk",
+        meta.blocks() * 512
+    );
+    assert_eq!(sha256_file(&object).unwrap(), r.sha256);
+    // No temporary file is left.
+    let names: Vec<String> = std::fs::read_dir(dir.path().join(".revisions/objects"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names, vec![r.sha256.clone()]);
+    // Over programs.max_size by its size: refused before it is read, nothing copied.
+    drop(lib);
+    let small = ProgramLibrary::new(dir.path(), 1024 * 1024);
+    std::fs::write(dir.path().join("BIG.nc"), b"%\nEDIT\n").unwrap();
+    std::fs::File::options()
+        .write(true)
+        .open(&path)
+        .unwrap()
+        .set_len(8 << 20)
+        .unwrap();
+    assert!(matches!(
+        small.take_file(folder("BIG.nc")).await,
+        Err(LibraryError::TooLarge { size, .. }) if size == 8 << 20
+    ));
+    let after = std::fs::read_dir(dir.path().join(".revisions/objects"))
+        .unwrap()
+        .count();
+    assert_eq!(after, 1);
 }

@@ -223,15 +223,8 @@ impl CellConfig {
                 console.listen
             ));
         }
-        if let Some(m) = &self.mtconnect
-            && !m.is_loopback()
-        {
-            out.push(format!(
-                "mtconnect.listen {:?} is reachable beyond this host: the MTConnect interface has \
-                 no login (the standard's clients use none), so anyone who reaches it may read \
-                 the cell's state; it never writes",
-                m.listen
-            ));
+        if let Some(m) = &self.mtconnect {
+            out.extend(m.warnings());
         }
         if !secured {
             for ep in &self.bus.listen {

@@ -46,6 +46,33 @@ impl MtconnectConfig {
         };
         lo(&self.listen) && self.shdr_listen.as_deref().is_none_or(lo)
     }
+
+    /// Ports reachable beyond this host: neither the MTConnect interface nor SHDR has a
+    /// login, so whoever reaches them reads the cell's state (neither writes).
+    pub fn warnings(&self) -> Vec<String> {
+        let beyond = |a: &str| {
+            a.parse::<std::net::SocketAddr>()
+                .is_ok_and(|a| !a.ip().is_loopback())
+        };
+        let mut out = Vec::new();
+        if beyond(&self.listen) {
+            out.push(format!(
+                "mtconnect.listen {:?} is reachable beyond this host: the MTConnect interface has \
+                 no login (the standard's clients use none), so anyone who reaches it may read \
+                 the cell's state; it never writes",
+                self.listen
+            ));
+        }
+        if let Some(shdr) = self.shdr_listen.as_deref().filter(|a| beyond(a)) {
+            out.push(format!(
+                "mtconnect.shdr_listen {shdr:?} is reachable beyond this host: the SHDR protocol \
+                 has no login, so anyone who reaches the port may read every observation (16 \
+                 connections at most); listen on 127.0.0.1 beside the agent, or let only the \
+                 agent's host reach it"
+            ));
+        }
+        out
+    }
 }
 
 pub(super) fn check_mtconnect(c: &mut Checker, m: &MtconnectConfig) {

@@ -1162,4 +1162,11 @@ fn mtconnect_takes_addresses_and_a_bounded_buffer() {
     );
     let back = CellConfig::from_toml_str(&cfg.to_toml_string().unwrap(), "t").unwrap();
     assert_eq!(back.mtconnect, cfg.mtconnect);
+    // An SHDR port beyond loopback is warned of by its own name (its protocol has no login).
+    let cfg = CellConfig::from_toml_str(&with("shdr_listen = \"0.0.0.0:7878\""), "t").unwrap();
+    let w = cfg.warnings();
+    assert!(
+        w.len() == 1 && w[0].contains("mtconnect.shdr_listen") && w[0].contains("no login"),
+        "{w:?}"
+    );
 }

@@ -243,6 +243,27 @@ pub fn board_alarm_text(cause: AlarmCause) -> &'static str {
 }
 
 impl LinkAlarm {
+    /// Whether the CNC's side reports it: a SAT showing the remote buffer in alarm status
+    /// (§4.4.2 1) is the board's and its CNC's state, shown as a CNC alarm; every other
+    /// link alarm is the link's own.
+    pub fn is_cnc_side(&self) -> bool {
+        matches!(self, LinkAlarm::BoardAlarm { .. })
+    }
+
+    /// Its code as every surface shows it: the manual's number (§11) where it has one, else
+    /// cellgate's own ([`crate::codes::alarm`]).
+    pub fn code(&self) -> &'static str {
+        use crate::codes::alarm;
+        match (self.cnc_alarm(), self) {
+            (Some(a), _) => a.number(),
+            (None, LinkAlarm::BoardAlarm { cause }) if *cause == AlarmCause::NcAlarm => {
+                alarm::SAT_NC
+            }
+            (None, LinkAlarm::BoardAlarm { .. }) => alarm::SAT_OTHER,
+            (None, _) => alarm::LINK,
+        }
+    }
+
     /// The CNC alarm the board raises for this failure, where the manual names one (§11).
     pub fn cnc_alarm(&self) -> Option<CncAlarm> {
         match self {

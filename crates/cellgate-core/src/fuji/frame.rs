@@ -588,6 +588,10 @@ pub struct FrameDecoder {
     /// A character of the text under way came with this line error: the text ends as a
     /// receive error (§5-6).
     spoilt: Option<LineError>,
+    /// A character came with a line error where a start code was awaited: the bytes dropped
+    /// until the next start code are most likely the text whose start code it was, and are
+    /// counted as a text ended by that error rather than as line noise.
+    spoilt_start: Option<LineError>,
 }
 
 impl FrameDecoder {
@@ -614,6 +618,7 @@ impl FrameDecoder {
             counts: ReceiveCounts::default(),
             burst: 0,
             spoilt: None,
+            spoilt_start: None,
         }
     }
 
@@ -661,10 +666,10 @@ impl FrameDecoder {
         self.buf.clear();
         self.discarding = false;
         self.spoilt = None;
-        if self.garbage > 0 {
-            let dropped = std::mem::take(&mut self.garbage);
-            self.note(&ReceiveError::StartCode { dropped });
+        if let Some(e) = self.take_garbage() {
+            self.note(&e);
         }
+        self.spoilt_start = None;
     }
 
     /// A character arrived with a line error (parity, framing, overrun; the transport did not
@@ -682,6 +687,7 @@ impl FrameDecoder {
                 self.buf.extend(std::iter::repeat_n(0xFF, lost));
             }
             _ if self.buf.is_empty() && !self.settings.start_bytes().is_empty() => {
+                self.spoilt_start = Some(error);
                 return Vec::new();
             }
             _ => {}
@@ -834,11 +840,15 @@ impl FrameDecoder {
     }
 
     fn take_garbage(&mut self) -> Option<ReceiveError> {
+        let spoilt = self.spoilt_start.take();
         if self.garbage == 0 {
             return None;
         }
         let dropped = std::mem::take(&mut self.garbage);
-        Some(ReceiveError::StartCode { dropped })
+        Some(match spoilt {
+            Some(line) => ReceiveError::Character(line),
+            None => ReceiveError::StartCode { dropped },
+        })
     }
 
     /// Longest body (text and a BCC before the end code) on the line.

@@ -778,6 +778,14 @@ impl Agent {
         })
     }
 
+    /// The asset `id` kept, as one XML element on one line (an SHDR `@ASSET@` line).
+    pub fn asset_element(&self, id: &str) -> Option<String> {
+        let a = self.assets.get(id)?;
+        let mut x = xml::Xml::fragment(512);
+        self.file_xml(&mut x, a);
+        Some(x.finish_fragment().replace(['\n', '\r'], " "))
+    }
+
     /// A File asset (Part 4 "File").
     fn file_xml(&self, x: &mut xml::Xml, a: &FileAsset) {
         let ts = xml::timestamp(a.time_us);

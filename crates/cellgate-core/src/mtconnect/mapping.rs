@@ -22,26 +22,8 @@ pub enum Wanted {
 }
 
 /// cellgate's own native codes, for what the CNC or the link reports without a manual
-/// number (docs/mtconnect.md lists them).
-pub mod codes {
-    /// A CNC alarm posted by ALM (Protocol A family, §4.4.1): the message carries no number.
-    pub const ALM: &str = "CG-ALM";
-    /// A CNC alarm posted by NAK (Protocol B family with notification on, §6.4).
-    pub const NAK: &str = "CG-NAK";
-    /// The SAT's buffer status says alarm, cause NC alarm (§4.4.2 byte 3 = 0), and no alarm
-    /// message was seen.
-    pub const SAT_NC: &str = "CG-SAT-NC";
-    /// The SAT's buffer status says alarm for a cause the manual does not list.
-    pub const SAT_OTHER: &str = "CG-SAT";
-    /// A link alarm the manual gives no number (a parity error, parameters not applied).
-    pub const LINK: &str = "CG-LINK";
-    /// The link's transport (serial port, device server) is not open.
-    pub const DOWN: &str = "CG-DOWN";
-    /// A PLC station does not answer (FFU120B §5-6: a missing reply is a time-out).
-    pub const STATION: &str = "CG-STATION";
-    /// The open G05 stream starved the CNC: unit times without a block (§9.2).
-    pub const G05: &str = "CG-G05";
-}
+/// number (docs/mtconnect.md lists them): the bus contract's, one list.
+pub use crate::codes::alarm as codes;
 
 fn text(s: impl Into<Arc<str>>) -> Value {
     Value::Text(s.into())
@@ -128,7 +110,11 @@ impl MachineView {
                 } else {
                     JobEnd::Interrupted
                 };
-                if self.job.is_some() || end == JobEnd::Completed {
+                // A job that had started counts though the agent did not see it start (one
+                // failed by a restart of its gateway, read when the agent starts); one that
+                // never started (cancelled while waiting) says nothing of the machine.
+                let started = e.origin.as_ref().is_some_and(|o| o.started_unix_ms > 0);
+                if self.job.is_some() || end == JobEnd::Completed || started {
                     self.job_end = Some((e.job_id.clone(), end));
                 }
                 self.job = None;
@@ -219,7 +205,11 @@ impl MachineView {
         if s.link_state() == pb::LinkState::Alarm
             && let Some(a) = last.filter(|a| a.kind() == pb::AlarmKind::CncAlarm)
         {
-            let code = if !a.alarm_number.is_empty() {
+            // The gateway's own code where it gives one (a gateway of this version always
+            // does); before, the code is told from the number and the protocol.
+            let code = if !a.code.is_empty() {
+                a.code.as_str()
+            } else if !a.alarm_number.is_empty() {
                 a.alarm_number.as_str()
             } else if matches!(s.protocol(), pb::Protocol::B | pb::Protocol::ExpansionB) {
                 codes::NAK
@@ -272,7 +262,9 @@ impl MachineView {
                     .as_ref()
                     .filter(|a| a.kind() == pb::AlarmKind::LinkAlarm);
                 Some(a.map_or_else(Vec::new, |a| {
-                    let code = if a.alarm_number.is_empty() {
+                    let code = if !a.code.is_empty() {
+                        a.code.as_str()
+                    } else if a.alarm_number.is_empty() {
                         codes::LINK
                     } else {
                         a.alarm_number.as_str()

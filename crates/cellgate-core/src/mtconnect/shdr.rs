@@ -2,13 +2,16 @@
 //! "adapter"; as the reference agent reads it): `TIMESTAMP|DEVICE:KEY|VALUE`, a condition as
 //! `TIMESTAMP|DEVICE:KEY|LEVEL|NATIVE_CODE|NATIVE_SEVERITY|QUALIFIER|TEXT`, and the heartbeat
 //! `* PING` answered by `* PONG MILLISECONDS`. Keys are the data items' ids, so an agent
-//! given cellgate's `/probe` as its device file takes the lines as they are.
+//! given cellgate's `/probe` as its device file takes the lines as they are. An asset event
+//! is `TIMESTAMP|DEVICE:KEY|ASSET_TYPE|ASSET_ID`, and a punched program's asset goes before
+//! it whole, as `TIMESTAMP|@ASSET@|ASSET_ID|File|<File …>…</File>`, so that the agent's
+//! `/assets` holds it too.
 
 use std::fmt::Write as _;
 
 use super::agent::Agent;
 use super::buffer::{Level, Observation, Value};
-use super::model::Category;
+use super::model::{Category, Role};
 use super::xml;
 
 /// How often the adapter expects a `* PING` at least, said in every `* PONG`.
@@ -34,8 +37,20 @@ pub fn lines(agent: &Agent, obs: &[&Observation]) -> String {
         };
         let dev = &m.devices[item.device].name;
         let ts = xml::timestamp(o.time_us);
+        let asset_event = matches!(item.role, Role::AssetChanged | Role::AssetRemoved);
+        if item.role == Role::AssetChanged
+            && let Value::Text(id) = &o.value
+            && let Some(element) = agent.asset_element(id)
+        {
+            let _ = writeln!(out, "{ts}|@ASSET@|{}|File|{element}", field(id));
+        }
         let _ = write!(out, "{ts}|{dev}:{}|", item.id);
         match (&o.value, item.category) {
+            // The type before the id, as the reference agent reads an asset event.
+            (Value::Text(id), _) if asset_event => {
+                let _ = write!(out, "File|{}", field(id));
+            }
+            _ if asset_event => out.push_str("UNAVAILABLE|UNAVAILABLE"),
             (Value::Cond(c), _) => {
                 let level = match c.level {
                     Level::Normal => "NORMAL",

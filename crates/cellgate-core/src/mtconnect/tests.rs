@@ -270,6 +270,26 @@ fn a_cnc_alarm_is_a_fault_with_a_native_code_that_a_reset_clears() {
 }
 
 #[test]
+fn a_sat_in_alarm_status_is_a_system_fault_with_the_gateways_code_not_a_link_fault() {
+    let mut a = agent();
+    let mut s = status("mill-1", pb::LinkState::Alarm);
+    s.last_alarm = Some(pb::AlarmEvent {
+        machine: "mill-1".into(),
+        kind: pb::AlarmKind::CncAlarm as i32,
+        message: "remote buffer in alarm status: NC alarm (SAT byte 3 = 0, §4.4.2 1)".into(),
+        code: "CG-SAT-NC".into(),
+        ..Default::default()
+    });
+    a.update("demo", Update::Status(Box::new(s)), 2);
+    let doc = a.current(None, &Query::default(), 3).unwrap();
+    assert!(
+        doc.contains("type=\"SYSTEM\" nativeCode=\"CG-SAT-NC\""),
+        "{doc}"
+    );
+    assert!(!doc.contains("type=\"COMMUNICATIONS\" nativeCode"), "{doc}");
+}
+
+#[test]
 fn a_link_alarm_keeps_the_manual_number() {
     let mut a = agent();
     let mut s = status("mill-1", pb::LinkState::Alarm);
@@ -649,4 +669,41 @@ fn a_reloaded_cell_adds_removes_and_changes_devices() {
     assert_eq!(current_value(&a, "device_added"), Value::Text(lathe.into()));
     assert!(a.model().device_named("lathe-1").is_some());
     assert!(a.model().device_named("mill-3").is_none());
+}
+
+/// A punched program reaches an agent fed by the SHDR port as the reference agent reads it:
+/// the asset itself on an `@ASSET@` line, then ASSET_CHANGED with its type before its id.
+#[test]
+fn a_punched_programs_asset_goes_out_on_shdr_as_the_reference_agent_reads_it() {
+    let mut a = agent();
+    let p = pb::PunchedProgram {
+        machine: "lathe-1".into(),
+        library_name: "O7".into(),
+        program: b"%\nO7\nM30\n%\n".to_vec(),
+        ..Default::default()
+    };
+    let from = a.buffer().next();
+    a.update(
+        "demo",
+        Update::Punch(Box::new(p), "cellgate/demo/program/O7".into()),
+        2_000_000,
+    );
+    let (obs, _) = a.buffer().sample(from, 100, |_| true);
+    let text = super::shdr::lines(&a, &obs);
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 2, "{text}");
+    let asset: Vec<&str> = lines[0].splitn(5, '|').collect();
+    assert_eq!(
+        asset[1..4],
+        ["@ASSET@", "demo.lathe-1.O7", "File"],
+        "{text}"
+    );
+    assert!(
+        asset[4].starts_with("<File assetId=\"demo.lathe-1.O7\"") && asset[4].ends_with("</File>"),
+        "{text}"
+    );
+    assert!(
+        lines[1].ends_with("|lathe-1:lathe-1_asset_chg|File|demo.lathe-1.O7"),
+        "{text}"
+    );
 }

@@ -65,6 +65,18 @@ impl Xml {
         self.close(name);
     }
 
+    /// A piece of XML without declaration or root (an asset on an SHDR line).
+    pub fn fragment(capacity: usize) -> Xml {
+        Xml {
+            w: Writer::new(Vec::with_capacity(capacity)),
+        }
+    }
+
+    /// The piece written so far ([`Xml::fragment`]).
+    pub fn finish_fragment(self) -> String {
+        String::from_utf8(self.w.into_inner()).unwrap_or_default()
+    }
+
     /// Closes the root and returns the document.
     pub fn finish(mut self, kind: &str) -> String {
         self.close(&format!("MTConnect{kind}"));

@@ -191,7 +191,8 @@ pub struct StreamFigures {
     pub received: u64,
     /// Blocks handed to the line.
     pub on_line: u64,
-    /// Blocks estimated in the CNC's buffer (on the line, not yet taken).
+    /// Blocks estimated in the CNC's buffer (on the line, not yet taken) while the stream
+    /// runs; 0 once it is over.
     pub cnc_buffer: u64,
     /// Unit-time slots estimated to have found the CNC without a block.
     pub underruns: u64,
@@ -505,7 +506,13 @@ impl Stream {
             credits: self.credits(),
             received: self.received,
             on_line,
-            cnc_buffer: on_line.saturating_sub(self.cnc_taken),
+            // Followed while the stream runs only: once it is over, the estimate would stand
+            // still at what it was, which the CNC no longer holds.
+            cnc_buffer: if matches!(self.state, StreamState::Completed | StreamState::Failed) {
+                0
+            } else {
+                on_line.saturating_sub(self.cnc_taken)
+            },
             underruns: self.underruns,
             gaps: self.gaps,
             repeats: self.repeats,

@@ -664,3 +664,29 @@ proptest! {
         prop_assert_eq!(d.decode(&s.encode(&t)), vec![Ok(t)]);
     }
 }
+
+/// A character error where a start code was awaited (the start code itself was hit): the
+/// rest of that text is dropped as a text ended by a character error (§5-6), not as noise
+/// before a start code, and a text that follows is read as usual.
+#[test]
+fn a_text_whose_start_code_was_spoilt_counts_as_ended_by_its_character_error() {
+    let s = FrameSettings::default();
+    let text = s.encode(&READ_TEXT);
+    let mut d = FrameDecoder::command_set(&s);
+    assert!(d.spoil(LineError::Parity).is_empty());
+    let mut out = d.decode(&text[1..]);
+    out.extend(d.decode(&text));
+    assert_eq!(errs(&out), [ReceiveErrorKind::Character]);
+    assert_eq!(oks(out), [READ_TEXT.to_vec()]);
+    let c = d.counts();
+    assert_eq!((c.character, c.start_code), (1, 0), "{c:?}");
+    // Noise with no spoilt character before it stays noise; a spoilt character with no
+    // text after it blames nothing that follows.
+    let mut d = FrameDecoder::command_set(&s);
+    assert!(d.spoil(LineError::Framing).is_empty());
+    let mut out = d.decode(&text);
+    out.extend(d.decode(b"xx"));
+    out.extend(d.decode(&text));
+    assert_eq!(errs(&out), [ReceiveErrorKind::StartCode]);
+    assert_eq!(oks(out).len(), 2);
+}
