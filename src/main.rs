@@ -50,10 +50,13 @@ enum Command {
     Acl(AclArgs),
     /// Send an NC program to a machine and follow the job to its end (exit 0 only if the
     /// whole program was delivered).
+    #[command(after_help = examples::SUBMIT)]
     Submit(client::SubmitArgs),
     /// Show the status of the cell's machines.
+    #[command(after_help = examples::STATUS)]
     Status(client::StatusArgs),
     /// Print the cell's events (status, jobs, alarms, DI, links) as they happen.
+    #[command(after_help = examples::WATCH)]
     Watch(client::WatchArgs),
     /// Output the DO image of a machine (SDO).
     Do(client::DoArgs),
@@ -61,12 +64,13 @@ enum Command {
     Di(client::DiArgs),
     /// The cell's program library: put, get, ls, rm, and revisions: history, diff, release,
     /// lock, adopt.
-    #[command(subcommand)]
+    #[command(subcommand, after_help = examples::PROGRAM)]
     Program(client::ProgramCommand),
     /// Cancel a job, waiting or running, by its id.
     Cancel(client::CancelArgs),
     /// The cell's history: jobs (with the revision each sent), alarms, link and CNC states,
     /// PLC stations, G05 streams, tag values.
+    #[command(after_help = examples::HISTORY)]
     History(cellgate::client::cli::records::HistoryCommand),
     /// The audit trail: every write the gateway took, who asked, and what came of it.
     Audit(cellgate::client::cli::records::AuditCommand),
@@ -85,9 +89,10 @@ enum Command {
     Job(client::JobArgs),
     /// Stream G05 binary blocks from a CSV file (or standard input) to a machine (§9); exit 0
     /// only if the stream ended cleanly.
+    #[command(after_help = examples::G05)]
     G05(client::G05Args),
     /// The cell PLC's memory and transfers: read, write, clear, send, status.
-    #[command(subcommand)]
+    #[command(subcommand, after_help = examples::PLC)]
     Plc(cellgate::client::plc::PlcCommand),
     /// The cell PLC's named tags: get, set.
     #[command(subcommand)]
@@ -102,6 +107,7 @@ enum Command {
     /// Have the gateway read its cell file again and apply what changed (machines, PLCs,
     /// tags, settings) without a restart; exit 0 once it took the file, 2 with every reason
     /// when it refused it.
+    #[command(after_help = examples::RELOAD)]
     Reload(client::ReloadArgs),
     /// Run a zenoh router for the cell's gateways and clients until SIGINT or SIGTERM: the
     /// zenoh runtime in router mode, as zenohd runs it, without its plugins.
@@ -616,6 +622,12 @@ fn run(cli: &Cli, args: &RunArgs) -> ExitCode {
         return ExitCode::from(EXIT_CONFIG);
     }
 
+    // An address another process listens on is one line, before anything is created.
+    if let Some(line) = listen::first_in_use(&config) {
+        eprintln!("cellgate: {line}");
+        return ExitCode::from(EXIT_RUNTIME);
+    }
+
     let open_files = raise_open_file_limit();
 
     // Zenoh needs the multi-thread runtime.
@@ -793,6 +805,15 @@ async fn run_async(
     let code = match shutdown_signal() {
         Ok(shutdown) => match cellgate::gateway::run_with(config, shutdown, options).await {
             Ok(()) => ExitCode::SUCCESS,
+            Err(cellgate::gateway::GatewayError::Bus(cellgate::bus::BusError::Open {
+                listen,
+                source,
+                ..
+            })) if source.to_string().contains("Address already in use") => {
+                // Taken since the check before the start.
+                eprintln!("cellgate: {}", listen::bus_in_use(&listen.join(", ")));
+                ExitCode::from(EXIT_RUNTIME)
+            }
             Err(e) => {
                 tracing::error!("cellgate failed: {e}");
                 ExitCode::from(EXIT_RUNTIME)
@@ -952,6 +973,11 @@ fn shutdown_signal() -> std::io::Result<impl Future<Output = ()>> {
         }
     })
 }
+
+#[path = "main/examples.rs"]
+mod examples;
+#[path = "main/listen.rs"]
+mod listen;
 
 #[cfg(test)]
 #[path = "main/tests.rs"]

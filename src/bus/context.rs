@@ -347,6 +347,9 @@ pub(crate) enum RequestError {
         name: String,
         error: cellgate_core::program::diff::NotText,
     },
+    /// A program the library lacks, with the names near it (or what the library has).
+    #[error("{error}{hint}")]
+    NoProgram { error: String, hint: String },
     /// A simulation control for a machine that is not simulated.
     #[error(
         "machine {machine} is not simulated (its transport is not kind = \"sim\"): the \
@@ -388,9 +391,9 @@ impl BusCode for RequestError {
                 pb::ErrorCode::Unavailable
             }
             RequestError::NoAnswer { .. } => pb::ErrorCode::LinkFailed,
-            RequestError::NoSuchJob { .. } | RequestError::NoSuchStream { .. } => {
-                pb::ErrorCode::NotFound
-            }
+            RequestError::NoSuchJob { .. }
+            | RequestError::NoSuchStream { .. }
+            | RequestError::NoProgram { .. } => pb::ErrorCode::NotFound,
             RequestError::G05(e) => e.code(),
             RequestError::Busy { .. } => pb::ErrorCode::Busy,
             RequestError::NotPermitted(_) => pb::ErrorCode::NotPermitted,
@@ -563,6 +566,34 @@ impl RouteContext {
                 names.join(", ")
             },
         }
+    }
+
+    /// `e` as a refusal says it: a program the library lacks, with the names near it or,
+    /// when they are few, the ones it has, as an unknown machine is refused with the
+    /// machines. `may_list`: whoever asked may read the library's names (a read of the
+    /// library, or a cell without roles); else `e` as it is.
+    pub(crate) async fn naming_programs(&self, e: RequestError, may_list: bool) -> RequestError {
+        let missing = match &e {
+            RequestError::Library(LibraryError::NotFound { name })
+            | RequestError::Job(JobError::Library {
+                error: LibraryError::NotFound { name },
+                ..
+            }) if may_list => name.clone(),
+            _ => return e,
+        };
+        let Ok(programs) = self.library.list().await else {
+            return e;
+        };
+        let known: Vec<&str> = programs.iter().map(|p| p.name.as_str()).collect();
+        RequestError::NoProgram {
+            error: e.to_string(),
+            hint: cellgate_core::near::hint(&missing, &known, "programs", "`cellgate program ls`"),
+        }
+    }
+
+    /// Whether the cell has no roles, so that any client may learn the library's names.
+    pub(crate) fn open_cell(&self) -> bool {
+        self.auditor.open()
     }
 
     /// The one machine a request for `leaf` (a `what`) names, or why it names none.

@@ -102,7 +102,7 @@ pub(super) async fn job_submit(ctx: &RouteContext, q: &Query) {
     );
     match submitted {
         Ok(accepted) => reply(q, q.key_expr().to_string(), &accepted).await,
-        Err(e) => reply_err(q, &e).await,
+        Err(e) => reply_err(q, &ctx.naming_programs(e, ctx.open_cell()).await).await,
     }
 }
 

@@ -80,7 +80,7 @@ pub(super) async fn program_read(ctx: &RouteContext, q: &Query) {
     };
     match ctx.library.read(name).await {
         Ok(program) => reply_bytes(q, program, Encoding::APPLICATION_OCTET_STREAM).await,
-        Err(e) => reply_err(q, &RequestError::from(e)).await,
+        Err(e) => reply_err(q, &ctx.naming_programs(e.into(), true).await).await,
     }
 }
 
@@ -102,7 +102,7 @@ pub(super) async fn program_revisions(ctx: &RouteContext, q: &Query) {
     };
     match ctx.library.revisions(name).await {
         Ok(r) => reply(q, q.key_expr().to_string(), &r).await,
-        Err(e) => reply_err(q, &RequestError::from(e)).await,
+        Err(e) => reply_err(q, &ctx.naming_programs(e.into(), true).await).await,
     }
 }
 
@@ -116,7 +116,7 @@ pub(super) async fn program_revision(ctx: &RouteContext, q: &Query) {
     };
     match ctx.library.read_revision(name, revision).await {
         Ok((_, bytes)) => reply_bytes(q, bytes, Encoding::APPLICATION_OCTET_STREAM).await,
-        Err(e) => reply_err(q, &RequestError::from(e)).await,
+        Err(e) => reply_err(q, &ctx.naming_programs(e.into(), true).await).await,
     }
 }
 
@@ -130,7 +130,7 @@ pub(super) async fn program_diff(ctx: &RouteContext, q: &Query) {
     };
     match diff_of(ctx, q, name).await {
         Ok(d) => reply(q, q.key_expr().to_string(), &d).await,
-        Err(e) => reply_err(q, &e).await,
+        Err(e) => reply_err(q, &ctx.naming_programs(e, true).await).await,
     }
 }
 
@@ -335,7 +335,7 @@ pub(super) async fn program_write(ctx: &RouteContext, q: &Query) {
                 changed(ctx, info, action == "program.remove", origin.as_ref()).await;
             }
         }
-        Err(e) => reply_err(q, &e).await,
+        Err(e) => reply_err(q, &ctx.naming_programs(e, ctx.open_cell()).await).await,
     }
 }
 
@@ -507,6 +507,6 @@ pub(super) async fn program_release(ctx: &RouteContext, q: &Query) {
     );
     match done {
         Ok(r) => reply(q, q.key_expr().to_string(), &r).await,
-        Err(e) => reply_err(q, &e).await,
+        Err(e) => reply_err(q, &ctx.naming_programs(e, ctx.open_cell()).await).await,
     }
 }

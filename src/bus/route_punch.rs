@@ -426,7 +426,7 @@ impl PunchDesk {
                     return answer;
                 }
                 Err(JobError::Library {
-                    error: LibraryError::NotFound { .. },
+                    error: LibraryError::NotFound { .. } | LibraryError::Removed { .. },
                     ..
                 }) => {}
                 Err(e) => {

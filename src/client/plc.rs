@@ -130,6 +130,24 @@ impl Client {
         Ok(all)
     }
 
+    /// The tags of the cell file, `PLC/NAME`, as the gateway's admin document shows them;
+    /// `None` when it shows no configuration (a gateway that enforces roles hides it).
+    pub fn configured_tags(&self) -> Option<Vec<String>> {
+        let plcs = self.admin()["config"]["plcs"].as_array()?;
+        Some(
+            plcs.iter()
+                .flat_map(|p| {
+                    let plc = p["name"].as_str().unwrap_or_default();
+                    p["tags"]
+                        .as_array()
+                        .into_iter()
+                        .flatten()
+                        .filter_map(move |t| t["name"].as_str().map(|n| format!("{plc}/{n}")))
+                })
+                .collect(),
+        )
+    }
+
     /// A tag, by `NAME` (searched in every PLC) or `PLC/NAME`.
     pub async fn tag_get(&self, tag: &str) -> Result<pb::TagValue, ClientError> {
         let key = self.tag_key(tag)?;
@@ -140,7 +158,24 @@ impl Client {
             0 => Err(ClientError::Refused {
                 what: format!("tag {tag}"),
                 code: pb::ErrorCode::NotFound,
-                message: format!("no PLC of the cell has a tag {tag:?} (no answer on {key})"),
+                message: format!(
+                    "no PLC of the cell has a tag {tag:?} (no answer on {key}){}",
+                    self.configured_tags()
+                        .map(|known| {
+                            // Named as it was asked: PLC/NAME, or NAME alone.
+                            let mut known: Vec<&str> = known
+                                .iter()
+                                .map(|k| match k.split_once('/') {
+                                    Some((_, name)) if !tag.contains('/') => name,
+                                    _ => k.as_str(),
+                                })
+                                .collect();
+                            known.sort_unstable();
+                            known.dedup();
+                            cellgate_core::near::hint(tag, &known, "tags", "`cellgate plc status`")
+                        })
+                        .unwrap_or_default()
+                ),
             }),
             1 => Ok(found.remove(0).1),
             _ => Err(ClientError::InvalidArgument {

@@ -28,6 +28,41 @@ impl Client {
             .await
     }
 
+    /// Has a simulated CNC punch `program` out and waits, up to the ordinary time-out, for
+    /// the gateway to publish what it received (its `PunchedProgram`, with the name it was
+    /// stored under): the machine's state once the board took the punch (part way through
+    /// it), and the punched program, `None` if it did not come in time.
+    pub async fn sim_punch(
+        &self,
+        machine: &str,
+        program: Vec<u8>,
+    ) -> Result<(pb::SimState, Option<pb::PunchedProgram>), ClientError> {
+        Self::machine_arg(machine)?;
+        let key = self
+            .keys()
+            .leaf(machine, crate::bus::keys::MachineLeaf::Punch);
+        // Subscribed before the punch starts, so that its end is not missed.
+        let punched = self.subscribe(&key).await?;
+        let p = pb::SimPunch { program };
+        let state = self.sim_control(machine, SimLeaf::Punch, Some(&p)).await?;
+        let arrived = tokio::time::timeout(self.timeout, async {
+            while let Ok(sample) = punched.recv_async().await {
+                let bytes = sample.payload().to_bytes();
+                if let Ok(p) =
+                    super::decode::<pb::PunchedProgram>(&key, &key, &bytes, sample.encoding())
+                {
+                    return Some(p);
+                }
+            }
+            None
+        })
+        .await
+        .ok()
+        .flatten();
+        let _ = punched.undeclare().await;
+        Ok((state, arrived))
+    }
+
     /// The state of every simulated machine of the cell, sorted by name.
     pub async fn sim_states(&self) -> Result<Vec<pb::SimState>, ClientError> {
         let key = self.keys().sim("*", SimLeaf::State);
@@ -61,7 +96,49 @@ pub fn state_text(s: &pb::SimState) -> String {
         t.push_str(&format!(", the last {}", s.last_program));
     }
     if s.punched_bytes > 0 {
-        t.push_str(&format!("; {} punched", render::bytes(s.punched_bytes)));
+        t.push_str(&format!(
+            "; {} punched since the gateway started",
+            render::bytes(s.punched_bytes)
+        ));
+    }
+    t
+}
+
+/// What a punch of a `size`-byte file came to: the program the gateway received (its size,
+/// and where it was stored), or that nothing came.
+pub fn punch_text(machine: &str, size: u64, punched: Option<&pb::PunchedProgram>) -> String {
+    let Some(p) = punched else {
+        return format!(
+            "{machine}: punching {} (the board took it), but the gateway published no punched \
+             program within the time-out; `cellgate watch {machine}` shows it when it comes",
+            render::bytes(size)
+        );
+    };
+    let name = if p.o_number.is_empty() {
+        "a program".to_string()
+    } else {
+        p.o_number.clone()
+    };
+    let received = p.program.len() as u64;
+    let mut t = format!(
+        "{machine} punched {name}: {} received",
+        render::bytes(received)
+    );
+    if received != size {
+        t.push_str(&format!(
+            " of the file's {} (a program is punched from its first % through its EOR %)",
+            render::bytes(size)
+        ));
+    }
+    if p.damaged {
+        t.push_str(&format!(
+            ", DAMAGED ({}): not stored, punch it again",
+            p.damage
+        ));
+    } else if !p.library_name.is_empty() {
+        t.push_str(&format!(", stored in the library as {}", p.library_name));
+    } else if let Some(r) = &p.request {
+        t.push_str(&format!(", a remote request for {}", r.program));
     }
     t
 }
@@ -262,11 +339,20 @@ impl ClientCommand for SimControl {
                 ..
             } => {
                 let program = super::read_file(file).await?;
-                let p = pb::SimPunch { program };
-                let s = client
-                    .sim_control(machine, SimLeaf::Punch, Some(&p))
-                    .await?;
-                (s, *json)
+                let size = program.len() as u64;
+                let (state, punched) = client.sim_punch(machine, program).await?;
+                if *json {
+                    let mut v = state_json(&state);
+                    v["punched"] = punched.as_ref().map_or(Value::Null, render::punched_json);
+                    let _ = writeln!(io.out, "{v}");
+                } else {
+                    let _ = writeln!(io.out, "{}", punch_text(machine, size, punched.as_ref()));
+                }
+                return Ok(if punched.is_some_and(|p| !p.damaged) {
+                    0
+                } else {
+                    1
+                });
             }
         };
         if json {

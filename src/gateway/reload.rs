@@ -436,7 +436,10 @@ impl Reloader {
         }
         self.settings(&new);
         self.current = new;
-        self.generation += 1;
+        // A file that changes nothing is taken, but is no new configuration.
+        if !change.is_empty() {
+            self.generation += 1;
+        }
         result.machines_added = change.machines_added;
         result.machines_removed = change.machines_removed;
         result.machines_changed = change.machines_changed;

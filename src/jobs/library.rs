@@ -9,8 +9,8 @@
 //! time, who stored it (as the client said), a comment and a state (draft, released, locked).
 //! The content is kept once per hash in `.revisions/objects/<sha256>`, the revisions in an
 //! index beside it (`.revisions/index.redb`), and the latest revision's content is also the
-//! program's own file `programs.dir/<name>`, so that what is in the directory is what a job
-//! sends. Retention (`programs.keep_revisions`, `keep_revision_days`) drops old revisions,
+//! program's own file in `programs.dir` (`<name>.nc`: see `one_file`), so that what is in
+//! the directory is what a job sends. Retention (`programs.keep_revisions`, `keep_revision_days`) drops old revisions,
 //! never a program's latest, its latest released, or a locked one; content no revision names
 //! any more is removed. A file put in the directory by hand becomes a revision (by
 //! `(file)`) when the gateway starts.
@@ -35,6 +35,7 @@
 mod disk;
 mod files;
 mod index;
+mod one_file;
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -64,6 +65,13 @@ pub enum LibraryError {
     InvalidName { name: String, reason: &'static str },
     #[error("the program library has no program {name:?}")]
     NotFound { name: String },
+    /// The program was removed; its revisions are kept, and each can still be read.
+    #[error(
+        "program {name:?} was removed (its latest revision was {latest}); its kept revisions \
+         can still be read by number: `cellgate program get {name} --revision {latest}` \
+         (`cellgate program history {name}` lists them)"
+    )]
+    Removed { name: String, latest: u32 },
     #[error("the program library already has a program {name:?}")]
     Exists { name: String },
     #[error("program {name:?} is {size} bytes; programs.max_size allows {max}")]
@@ -633,7 +641,7 @@ impl ProgramLibrary {
         store: Store<'_>,
         place: Place,
     ) -> Result<ProgramEntry, LibraryError> {
-        let path = self.path_of(name)?;
+        let path = self.store_path(name)?;
         let size = store.bytes.len() as u64;
         if size > self.max_size {
             return Err(LibraryError::TooLarge {
@@ -940,8 +948,9 @@ impl ProgramLibrary {
         }
         let r = find(name, &revisions, rev)?.clone();
         if rev.trim().is_empty() && r.removed {
-            return Err(LibraryError::NotFound {
+            return Err(LibraryError::Removed {
                 name: name.to_string(),
+                latest: r.number,
             });
         }
         let path = self.object_path(&r.sha256);
@@ -1113,9 +1122,9 @@ fn modified_ms(meta: &std::fs::Metadata) -> u64 {
 impl BusCode for LibraryError {
     fn code(&self) -> pb::ErrorCode {
         match self {
-            LibraryError::NotFound { .. } | LibraryError::NoRevision { .. } => {
-                pb::ErrorCode::NotFound
-            }
+            LibraryError::NotFound { .. }
+            | LibraryError::Removed { .. }
+            | LibraryError::NoRevision { .. } => pb::ErrorCode::NotFound,
             LibraryError::InvalidName { .. }
             | LibraryError::TooLarge { .. }
             | LibraryError::Exists { .. }

@@ -191,7 +191,7 @@ pub async fn serve(
 pub struct SiteArgs {
     #[command(flatten)]
     pub connect: crate::client::cli::ConnectArgs,
-    /// Where the agent listens, ADDRESS:PORT (default 127.0.0.1:5000).
+    /// Where the agent listens, ADDRESS:PORT.
     #[arg(long, value_name = "ADDR", default_value = MtconnectConfig::DEFAULT_LISTEN)]
     pub listen: String,
     /// Where an SHDR adapter listens, ADDRESS:PORT; none by default.

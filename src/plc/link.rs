@@ -276,6 +276,8 @@ fn group_states(tags: &TagTable, start: Instant) -> Vec<GroupState> {
             due: start,
             started: start,
             last_start: None,
+            after_write: None,
+            extra: false,
             outstanding: 0,
             total: Duration::ZERO,
             stats: GroupStats {
@@ -310,6 +312,11 @@ struct GroupState {
     started: Instant,
     /// When the round before the current one started.
     last_start: Option<Instant>,
+    /// A write asked for a read of what it wrote now: the round that was due at this time
+    /// keeps its time, and that read is no poll.
+    after_write: Option<Instant>,
+    /// The round in flight reads what a write wrote: not counted as a poll.
+    extra: bool,
     /// Reads of the current round not ended yet.
     outstanding: usize,
     /// Every completed round's time, added up (for the mean).
@@ -485,13 +492,24 @@ impl<T: Transport> Driver<T> {
                 .map(|r| (r.station, r.module, r.address, r.words))
                 .collect();
             let state = &mut self.groups[g];
-            if let Some(prev) = state.last_start {
-                state.stats.achieved_interval = now.saturating_duration_since(prev);
+            match state.after_write.take() {
+                // The read a write asked for: the polls' times and schedule are untouched.
+                Some(scheduled) => {
+                    state.extra = true;
+                    state.due = scheduled;
+                }
+                None => {
+                    state.extra = false;
+                    if let Some(prev) = state.last_start {
+                        state.stats.achieved_interval = now.saturating_duration_since(prev);
+                    }
+                    state.last_start = Some(now);
+                    // Fixed rate; a round that overran starts the next one at once, never in
+                    // a burst.
+                    state.due = (state.due + interval).max(now);
+                }
             }
-            state.last_start = Some(now);
             state.started = now;
-            // Fixed rate; a round that overran starts the next one at once, never in a burst.
-            state.due = (state.due + interval).max(now);
             state.outstanding = reads.len();
             for (read, (station, module, address, words)) in reads.into_iter().enumerate() {
                 match Request::read_words(module, address, usize::from(words)) {
@@ -511,7 +529,7 @@ impl<T: Transport> Driver<T> {
         }
         if let Some(state) = self.groups.get_mut(group) {
             state.outstanding = state.outstanding.saturating_sub(1);
-            if state.outstanding == 0 {
+            if state.outstanding == 0 && !state.extra {
                 state.round_done(Instant::now());
                 let started = state.started;
                 self.emit(PlcEvent::PollDone { group, started });
@@ -597,10 +615,14 @@ impl<T: Transport> Driver<T> {
                 let _ = reply.send(result.map(|_| write).map_err(TagWriteError::from));
                 if ok {
                     // Read the groups of what was written at once, so its new value is
-                    // published without waiting for the next round.
+                    // published without waiting for the next round; that read is no poll
+                    // (the status reports polls only).
                     let now = Instant::now();
                     for g in &mut self.groups {
-                        g.due = g.due.min(now);
+                        if g.due > now {
+                            g.after_write.get_or_insert(g.due);
+                            g.due = now;
+                        }
                     }
                 }
             }

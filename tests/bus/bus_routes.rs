@@ -494,7 +494,7 @@ async fn library_and_key_sources_are_streamed() {
         .put(lib_key.clone(), stored.clone())
         .await
         .unwrap();
-    let path = cell.dir.path().join("programs").join("O4711");
+    let path = cell.dir.path().join("programs").join("O4711.nc");
     eventually("the program is stored", || path.exists()).await;
 
     // A program another node serves on its own key.
@@ -1152,7 +1152,7 @@ async fn a_get_with_a_program_write_stores_and_removes_with_a_reply() {
         comment: String::new(),
     }
     .encode_to_vec();
-    let path = cell.dir.path().join("programs").join("O300");
+    let path = cell.dir.path().join("programs").join("O300.nc");
 
     // The reply comes once the program is on disk: no polling.
     let info: pb::ProgramInfo = get_one(&cell.client, &key, Some(store(b"%\nO300\n%"))).await;

@@ -207,9 +207,9 @@ fn submit_args(gw: &Gateway, machine: &str) -> SubmitArgs {
         detach: false,
         resume: None,
         from_block: None,
-        header_lines: 0,
+        header_lines: None,
         resume_after_restart: false,
-        deadline: 0,
+        deadline: None,
         request_id: None,
         json: false,
     }
@@ -495,6 +495,7 @@ async fn the_program_library_round_trips_and_feeds_a_job() {
     let get = ProgramCommand::Get {
         connect: gw.connect(),
         name: "O0815".to_string(),
+        revision: None,
         output: Some(copy.clone()),
         json: false,
     };

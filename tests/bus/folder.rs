@@ -433,6 +433,98 @@ async fn a_store_of_the_same_bytes_again_says_nothing_and_the_folder_adds_no_wor
     cell.stop().await;
 }
 
+/// The files of the library's folder, hidden ones aside, sorted.
+fn files_in(dir: &Path) -> Vec<String> {
+    let mut files: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|f| !f.starts_with('.'))
+        .collect();
+    files.sort();
+    files
+}
+
+/// One program, one file: a store from the bus writes `NAME.nc`, the name a CAM system
+/// posts, so that its post is the next revision rather than a conflict; a post under another
+/// extension, or beside the plain file an earlier version wrote, takes the copy's place.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_post_after_a_store_from_the_bus_is_the_next_revision_not_a_conflict() {
+    let cell = RunningCell::start(cell_config, false).await;
+    let library = Library::follow(&cell).await;
+    let dir = programs(&cell);
+    let store = |bytes: Vec<u8>| {
+        pb::ProgramWrite {
+            op: Some(pb::program_write::Op::Store(bytes)),
+            ..Default::default()
+        }
+        .encode_to_vec()
+    };
+
+    // Stored through the bus (as `cellgate program put O1234 FILE` does).
+    let info: pb::ProgramInfo = get_one(
+        &cell.client,
+        &cell.keys.program_write("O1234"),
+        Some(store(program(1234, 3))),
+    )
+    .await;
+    assert_eq!(info.file, "O1234.nc");
+    assert_eq!(files_in(&dir), ["O1234.nc"]);
+    let e = library.next().await;
+    assert_eq!((e.name.as_str(), e.revision), ("O1234", 1));
+
+    // The CAM system posts O1234.nc: the next revision, the same file.
+    let posted = program(1234, 5);
+    std::fs::write(dir.join("O1234.nc"), &posted).unwrap();
+    let e = library.next().await;
+    assert_eq!(
+        (e.kind, e.name.as_str(), e.file.as_str(), e.revision),
+        ("stored", "O1234", "O1234.nc", 2),
+        "{e:?}"
+    );
+    assert_eq!(read(&cell, "O1234").await, posted);
+
+    // Posted as O1234.tap: it takes the place of the copy of revision 2.
+    let tap = program(1234, 7);
+    std::fs::write(dir.join("O1234.tap"), &tap).unwrap();
+    let e = library.next().await;
+    assert_eq!(
+        (e.kind, e.file.as_str(), e.revision),
+        ("stored", "O1234.tap", 3),
+        "{e:?}"
+    );
+    assert_eq!(read(&cell, "O1234").await, tap);
+    assert_eq!(files_in(&dir), ["O1234.tap"]);
+    // The copy's removal removes nothing more.
+    library.quiet(1500).await;
+
+    // A plain file (as an earlier version's store wrote it), then the CAM's O77.nc.
+    std::fs::write(dir.join("O77"), program(77, 1)).unwrap();
+    let e = library.next().await;
+    assert_eq!((e.file.as_str(), e.revision), ("O77", 1), "{e:?}");
+    std::fs::write(dir.join("O77.nc"), program(77, 2)).unwrap();
+    let e = library.next().await;
+    assert_eq!(
+        (e.kind, e.file.as_str(), e.revision),
+        ("stored", "O77.nc", 2),
+        "{e:?}"
+    );
+    assert_eq!(files_in(&dir), ["O1234.tap", "O77.nc"]);
+
+    // A store writes the file the program has.
+    let _: pb::ProgramInfo = get_one(
+        &cell.client,
+        &cell.keys.program_write("O1234"),
+        Some(store(program(1234, 9))),
+    )
+    .await;
+    assert_eq!(
+        std::fs::read(dir.join("O1234.tap")).unwrap(),
+        program(1234, 9)
+    );
+    assert_eq!(files_in(&dir), ["O1234.tap", "O77.nc"]);
+    cell.stop().await;
+}
+
 /// `cellgate watch` shows what the folder refused, as docs/library.md says: its events key is
 /// a verbatim chunk that `P/C/**` does not take in, so the watch follows it by name.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -274,3 +274,95 @@ fn logs_to_a_pipe_carry_no_terminal_colours() {
     assert!(!err.is_empty(), "it logged something");
     assert!(!err.contains('\u{1b}'), "{err}");
 }
+
+/// A bus port or the console's in use: one line saying which and what to change, exit 1,
+/// and nothing created (no journal, history or library index beside the cell file).
+#[test]
+fn run_on_an_address_in_use_says_so_in_one_line_and_creates_nothing() {
+    let taken = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port();
+    let free = free_port();
+    for (listen, console, expected) in [
+        (
+            port,
+            free,
+            format!(
+                "cellgate: cannot listen on tcp/127.0.0.1:{port}: the address is in use \
+                 (another gateway?) — choose another with [bus] listen or --listen"
+            ),
+        ),
+        (
+            free,
+            port,
+            format!(
+                "cellgate: cannot listen on 127.0.0.1:{port} for the console: the address is \
+                 in use (another gateway?) — choose another with [console] listen or --console"
+            ),
+        ),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cell.toml");
+        std::fs::write(
+            &path,
+            format!(
+                "cell = \"taken\"\n[bus]\nlisten = [\"tcp/127.0.0.1:{listen}\"]\n\
+                 [programs]\ndir = \"programs\"\n[console]\nlisten = \"127.0.0.1:{console}\"\n\
+                 [[machines]]\nname = \"m1\"\nprotocol = \"a\"\n\
+                 transport = {{ kind = \"sim\" }}\n"
+            ),
+        )
+        .unwrap();
+        let out = common::cli::bin()
+            .current_dir(dir.path())
+            .args(["run", "--config", "cell.toml", "--mtconnect", "off"])
+            .env("RUST_LOG", "info")
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{stderr}");
+        assert_eq!(stderr.trim_end(), expected);
+        let left: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(left, ["cell.toml"], "the run left files behind");
+    }
+    drop(taken);
+}
+
+/// `check-config` shows every section that changes what the gateway serves: the console, the
+/// MTConnect agent, and each PLC tag with where it lives and who may write it.
+#[test]
+fn check_config_shows_the_console_the_agent_and_every_tag() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cell.toml");
+    std::fs::write(
+        &path,
+        "cell = \"c\"\n[console]\nlisten = \"127.0.0.1:7481\"\nsession_idle_minutes = 15\n\
+         [mtconnect]\nshdr_listen = \"127.0.0.1:7878\"\n\
+         [[plcs]]\nname = \"plc-1\"\nmode = 1\ntransport = { kind = \"sim\" }\n\
+         [[plcs.tags]]\nname = \"parts\"\nmodule = \"D\"\naddress = 0\ntype = \"u16\"\n\
+         [[plcs.tags]]\nname = \"door\"\nmodule = \"M\"\naddress = 2\ntype = \"bit\"\nbit = 3\n\
+         poll_ms = 200\nwritable = true\n",
+    )
+    .unwrap();
+    let (code, out, err) = common::cli::run(["check-config", path.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    for line in [
+        "    tags: 2",
+        "      parts: D0 u16, station 00, read every 1000 ms, read-only",
+        "      door: M2 bit 3, station 00, read every 200 ms, writable",
+        "console: on 127.0.0.1:7481 (HTTP), sessions end after 15 min idle and 12 h at most, 16 per user",
+        "mtconnect: agent on 127.0.0.1:5000 (HTTP), 131072 observations kept, SHDR adapter on 127.0.0.1:7878",
+    ] {
+        assert!(out.lines().any(|l| l == line), "no {line:?} in:\n{out}");
+    }
+    // Without the sections, the summary says so.
+    std::fs::write(&path, "cell = \"c\"\n").unwrap();
+    let (_, out, _) = common::cli::run(["check-config", path.to_str().unwrap()]);
+    assert!(
+        out.contains("console: none (no [console])")
+            && out.contains("mtconnect: none (no [mtconnect])"),
+        "{out}"
+    );
+}

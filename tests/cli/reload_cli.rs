@@ -64,6 +64,22 @@ fn reload_and_sighup_apply_the_file_and_a_bad_one_is_refused_with_every_error() 
         out.contains("m2") && out.contains("configuration generation 2"),
         "{out}"
     );
+    // The same file again: taken, nothing changed, the same generation.
+    let o = run(&["reload", "--json"]);
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(
+        (&r["applied"], &r["generation"]),
+        (&true.into(), &"2".into()),
+        "{r}"
+    );
+    let o = run(&["reload"]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    assert!(
+        String::from_utf8_lossy(&o.stdout)
+            .contains(": nothing changed (configuration generation 2)"),
+        "{}",
+        text(&o)
+    );
 
     // A bad file: exit 2, every error, and the gateway says so in its log.
     std::fs::write(

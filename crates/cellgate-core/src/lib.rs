@@ -43,6 +43,7 @@ pub mod fuji;
 pub mod history;
 pub mod keys;
 pub mod mtconnect;
+pub mod near;
 pub mod pb;
 pub mod plc;
 pub mod program;

@@ -20,16 +20,21 @@ pub enum ProgramCommand {
         #[arg(long)]
         json: bool,
     },
-    /// Fetch a program of the library.
+    /// Fetch a program of the library: its latest revision, or with --revision another kept
+    /// one (of a removed program too).
     Get {
         #[command(flatten)]
         connect: ConnectArgs,
         /// The program's name in the library (`cellgate program ls` lists them).
         name: String,
-        /// Write it to FILE instead of stdout.
+        /// The revision: a number or a SHA-256 (or its first 8+ hex digits); `cellgate
+        /// program history NAME` lists them. Default: the latest.
+        #[arg(long, value_name = "REV")]
+        revision: Option<String>,
+        /// Write it to FILE instead of stdout (and say on stderr what was written).
         #[arg(short, long, value_name = "FILE")]
         output: Option<PathBuf>,
-        /// Print JSON (name, size, text) instead of the program's bytes.
+        /// Print JSON (name, revision, size, text) instead of the program's bytes.
         #[arg(long, conflicts_with = "output")]
         json: bool,
     },
@@ -251,8 +256,22 @@ impl ClientCommand for ProgramCommand {
                 .await;
             }
             ProgramCommand::Get {
-                name, output, json, ..
-            } => get(client, io, name, output.as_ref(), *json).await?,
+                name,
+                revision,
+                output,
+                json,
+                ..
+            } => {
+                get(
+                    client,
+                    io,
+                    name,
+                    revision.as_deref(),
+                    output.as_ref(),
+                    *json,
+                )
+                .await?
+            }
             ProgramCommand::Ls { json, .. } => ls(client, io, *json).await?,
             ProgramCommand::Rm { name, json, .. } => {
                 let info = client.program_remove(name).await?;
@@ -296,18 +315,61 @@ async fn put(
     Ok(())
 }
 
-/// `program get`: the latest revision's text, to standard output or a file.
+/// `program get`: a revision's text (default the latest), to standard output or a file.
+/// The revisions are read first, so that what is printed names the revision it is, and a
+/// removed program says so and how to read what is kept of it.
 async fn get(
     client: &Client,
     io: &mut Io<'_>,
     name: &str,
+    revision: Option<&str>,
     output: Option<&PathBuf>,
     json: bool,
 ) -> Result<(), ClientError> {
-    let data = client.program_get(name).await?;
+    let kept = client.program_revisions(name).await.map_err(|e| match e {
+        ClientError::Refused { code, message, .. } => ClientError::Refused {
+            what: format!("program {name}"),
+            code,
+            message,
+        },
+        e => e,
+    })?;
+    let number = match revision {
+        Some(rev) => revision_number(&kept, rev),
+        None => match kept.revisions.first() {
+            Some(latest) if kept.removed => {
+                return Err(ClientError::Refused {
+                    what: format!("program {name}"),
+                    code: pb::ErrorCode::NotFound,
+                    message: format!(
+                        "program {name:?} was removed (its latest revision was {n}); its {k} \
+                         kept revision(s) can still be read: `cellgate program get {name} \
+                         --revision {n}` (`cellgate program history {name}` lists them)",
+                        n = latest.number,
+                        k = kept.revisions.len()
+                    ),
+                });
+            }
+            Some(latest) => Some(latest.number),
+            None => None,
+        },
+    };
+    // By number where it is known: the bytes are that revision's even if a store comes
+    // between the two requests.
+    let asked = match (number, revision) {
+        (Some(n), _) => n.to_string(),
+        (None, Some(rev)) => rev.to_string(),
+        (None, None) => String::new(),
+    };
+    let data = if asked.is_empty() {
+        client.program_get(name).await?
+    } else {
+        client.program_revision(name, &asked).await?
+    };
     if json {
         let v = serde_json::json!({
             "name": name,
+            "revision": number,
             "size": data.len(),
             "text": String::from_utf8_lossy(&data),
         });
@@ -315,17 +377,54 @@ async fn get(
         return Ok(());
     }
     match output {
-        Some(path) => tokio::fs::write(path, &data)
-            .await
-            .map_err(|source| ClientError::File {
-                path: path.clone(),
-                op: "write",
-                source,
-            }),
+        Some(path) => {
+            tokio::fs::write(path, &data)
+                .await
+                .map_err(|source| ClientError::File {
+                    path: path.clone(),
+                    op: "write",
+                    source,
+                })?;
+            let rev = number
+                .map(|n| format!(", revision {n}"))
+                .unwrap_or_default();
+            let _ = writeln!(
+                io.err,
+                "wrote {name} ({}{rev}) to {}",
+                render::bytes(data.len() as u64),
+                path.display()
+            );
+            Ok(())
+        }
         None => {
             let _ = io.out.write_all(&data);
             Ok(())
         }
+    }
+}
+
+/// The number of the kept revision `rev` names, as the gateway reads it (a number, `latest`,
+/// or a SHA-256 or its first 8+ hex digits: the newest revision of that content), if one of
+/// `kept` (newest first) is it; the gateway says why when none is.
+fn revision_number(kept: &pb::ProgramRevisions, rev: &str) -> Option<u32> {
+    let rev = rev.trim();
+    if rev == "latest" {
+        return kept.revisions.first().map(|r| r.number);
+    }
+    if let Ok(n) = rev.parse::<u32>()
+        && rev.len() < 8
+    {
+        return kept.revisions.iter().any(|r| r.number == n).then_some(n);
+    }
+    let rev = rev.to_ascii_lowercase();
+    let hits: Vec<&pb::ProgramRevision> = kept
+        .revisions
+        .iter()
+        .filter(|r| rev.len() >= 8 && r.sha256.starts_with(&rev))
+        .collect();
+    match hits.first() {
+        Some(newest) if hits.iter().all(|r| r.sha256 == newest.sha256) => Some(newest.number),
+        _ => None,
     }
 }
 

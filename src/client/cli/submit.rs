@@ -5,7 +5,7 @@ use super::*;
 /// `cellgate submit`.
 #[derive(Debug, Clone, Args)]
 #[command(
-    override_usage = "cellgate submit [OPTIONS] <MACHINE> <FILE|--library <NAME>|--key <KEY>>\n       cellgate submit [OPTIONS] --resume <JOB_ID>"
+    override_usage = "cellgate submit [OPTIONS] <MACHINE> <FILE|--library <NAME>|--key <KEY>>\n       cellgate submit [OPTIONS] [MACHINE] --resume <JOB_ID>"
 )]
 #[command(group(
     clap::ArgGroup::new("source")
@@ -57,16 +57,17 @@ pub struct SubmitArgs {
     pub from_block: Option<String>,
     /// Lines of the program's start that make its header (default: up to its first
     /// numbered block).
-    #[arg(long, value_name = "LINES", default_value_t = 0)]
-    pub header_lines: u32,
+    #[arg(long, value_name = "LINES")]
+    pub header_lines: Option<u32>,
     /// If the gateway restarts while sending this job, resume it from the first block the
     /// board did not acknowledge whole instead of failing it.
     #[arg(long)]
     pub resume_after_restart: bool,
     /// Fail the job if it has not completed this many seconds after it started (a CNC that
-    /// never asks for data): it fails at what the board acknowledged.
-    #[arg(long, value_name = "SECS", default_value_t = 0)]
-    pub deadline: u32,
+    /// never asks for data): it fails at what the board acknowledged (default: no
+    /// deadline).
+    #[arg(long, value_name = "SECS")]
+    pub deadline: Option<u32>,
     /// The request id that makes the submit idempotent (default: a new one for each run):
     /// a retry with the same id queues nothing twice.
     #[arg(long, value_name = "ID")]
@@ -146,7 +147,8 @@ impl SubmitArgs {
         let start_at = match &self.from_block {
             Some(block) => Some(pb::BlockStart {
                 at: Some(parse_block(block)?),
-                header_lines: self.header_lines,
+                // 0: up to the first numbered block.
+                header_lines: self.header_lines.unwrap_or(0),
             }),
             None => None,
         };
@@ -161,7 +163,8 @@ impl SubmitArgs {
                 .unwrap_or_else(crate::client::new_request_id),
             start_at,
             resume_after_restart: self.resume_after_restart,
-            deadline_s: self.deadline,
+            // 0: none.
+            deadline_s: self.deadline.unwrap_or(0),
             revision: self.revision.clone().unwrap_or_default(),
         })
     }
@@ -203,7 +206,8 @@ impl ClientCommand for SubmitArgs {
             follower.close().await;
             return Ok(0);
         }
-        let bar = progress_bar(io.progress_bar, &job);
+        let mut progress = JobProgress::new(io.progress_bar, &job);
+        let bar = progress.bar.clone();
         let interrupt = tokio::signal::ctrl_c();
         tokio::pin!(interrupt);
         let outcome = loop {
@@ -230,7 +234,7 @@ impl ClientCommand for SubmitArgs {
                     return Err(e);
                 }
             };
-            show_progress(&bar, io, &event);
+            progress.show(io, &event);
             if let Some(outcome) = JobOutcome::of(&event) {
                 if self.json {
                     let _ = writeln!(io.out, "{}", render::job_event_json(&event));
@@ -272,50 +276,156 @@ fn resume_context(e: &pb::JobEvent) -> Option<String> {
     ))
 }
 
-fn progress_bar(visible: bool, job: &str) -> ProgressBar {
-    if !visible {
-        return ProgressBar::hidden();
-    }
-    let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::stderr());
-    let style = ProgressStyle::with_template(
-        "{prefix} {msg:24} [{wide_bar}] {bytes}/{total_bytes} {elapsed_precise} eta {eta}",
-    )
-    .map(|s| s.progress_chars("=> "))
-    .unwrap_or_else(|_| ProgressStyle::default_bar());
-    bar.set_style(style);
-    bar.set_prefix(job.to_string());
-    bar.enable_steady_tick(Duration::from_millis(200));
-    bar
+/// A job's progress as `submit` shows it: a bar on a terminal, else a line for each step.
+/// Until the first bytes go on the line the job waits for the CNC to ask for it (for
+/// seconds, or until an operator starts the read): that is shown as a wait, not as a bar
+/// standing at 0 B.
+struct JobProgress {
+    bar: ProgressBar,
+    /// Lines for the steps instead of the bar (stderr is no terminal).
+    lines: bool,
+    /// When it started, on the gateway's clock (the event's `unix_ms`).
+    started_ms: Option<u64>,
+    /// Bytes have gone on the line.
+    sending: bool,
 }
 
-/// Shows one job event: on the bar when there is one; otherwise as a line for each step but
-/// the progress events.
-fn show_progress(bar: &ProgressBar, io: &mut Io<'_>, event: &pb::JobEvent) {
-    let line = format!("{}: {}", event.job_id, render::job_kind_text(event));
-    match &event.kind {
-        Some(Kind::Queued(q)) => bar.set_message(format!("queued, {} ahead", q.queue_position)),
-        Some(Kind::Started(s)) => {
-            if let Some(total) = s.bytes_total {
-                bar.set_length(total);
-            }
-            bar.reset_elapsed();
-            bar.set_message("sending");
+/// The bar while the job waits: no bytes, what it waits for.
+const WAIT_TEMPLATE: &str = "{prefix} {spinner} {msg} {elapsed_precise}";
+/// The bar once bytes go on the line: acknowledged bytes of the total.
+const SEND_TEMPLATE: &str =
+    "{prefix} {msg:24} [{wide_bar}] {bytes}/{total_bytes} {elapsed_precise} eta {eta}";
+
+/// What `submit` says while a started job waits for the CNC.
+pub const WAITING_FOR_CNC: &str = "waiting for the CNC to ask for it";
+
+impl JobProgress {
+    fn new(visible: bool, job: &str) -> JobProgress {
+        // Drawn only once styled: a bar drawn at once shows the default style for a moment.
+        let progress = JobProgress {
+            bar: ProgressBar::hidden(),
+            lines: !visible,
+            started_ms: None,
+            sending: false,
+        };
+        progress.style(WAIT_TEMPLATE);
+        progress.bar.set_prefix(job.to_string());
+        if visible {
+            progress.bar.set_draw_target(ProgressDrawTarget::stderr());
+            progress.bar.enable_steady_tick(Duration::from_millis(200));
         }
-        Some(Kind::Progress(p)) => {
-            if let Some(total) = p.bytes_total {
-                bar.set_length(total);
-            }
-            bar.set_position(p.bytes_sent);
-            bar.set_message(format!("sending, {} B/s", p.rate_bps));
-            return; // no line per progress event
-        }
-        Some(Kind::Completed(c)) => {
-            bar.set_position(c.bytes_sent);
-            bar.finish_and_clear();
-        }
-        Some(Kind::Failed(_) | Kind::Cancelled(_)) | None => bar.abandon(),
+        progress
     }
-    if bar.is_hidden() || JobOutcome::of(event).is_some() {
-        let _ = writeln!(io.err, "{line}");
+
+    fn style(&self, template: &str) {
+        let style = ProgressStyle::with_template(template)
+            .map(|s| s.progress_chars("=> "))
+            .unwrap_or_else(|_| ProgressStyle::default_bar());
+        self.bar.set_style(style);
+    }
+
+    /// Shows one job event: on the bar when there is one; otherwise as a line for each step
+    /// (the first bytes on the line are one) but the other progress events.
+    fn show(&mut self, io: &mut Io<'_>, event: &pb::JobEvent) {
+        let mut line = format!("{}: {}", event.job_id, render::job_kind_text(event));
+        match &event.kind {
+            Some(Kind::Queued(q)) => self
+                .bar
+                .set_message(format!("queued, {} ahead", q.queue_position)),
+            Some(Kind::Started(s)) => {
+                if let Some(total) = s.bytes_total {
+                    self.bar.set_length(total);
+                }
+                self.started_ms = Some(event.unix_ms);
+                self.bar.reset_elapsed();
+                self.bar.set_message(format!("started: {WAITING_FOR_CNC}"));
+                line.push_str(&format!(": {WAITING_FOR_CNC}"));
+            }
+            Some(Kind::Progress(p)) => {
+                if let Some(total) = p.bytes_total {
+                    self.bar.set_length(total);
+                }
+                self.bar.set_position(p.bytes_sent);
+                self.bar.set_message(format!(
+                    "{} on the line, {} B/s",
+                    render::bytes(p.bytes_on_line),
+                    p.rate_bps
+                ));
+                if self.sending || p.bytes_on_line == 0 {
+                    return; // no line per progress event
+                }
+                self.sending = true;
+                self.style(SEND_TEMPLATE);
+                let after = self
+                    .started_ms
+                    .map(|t| {
+                        let ms = event.unix_ms.saturating_sub(t);
+                        format!(" ({}.{} s after the start)", ms / 1000, ms % 1000 / 100)
+                    })
+                    .unwrap_or_default();
+                line = format!(
+                    "{}: sending: the CNC asked for it{after}; {}",
+                    event.job_id,
+                    render::job_kind_text(event)
+                );
+            }
+            Some(Kind::Completed(c)) => {
+                self.bar.set_position(c.bytes_sent);
+                self.bar.finish_and_clear();
+            }
+            Some(Kind::Failed(_) | Kind::Cancelled(_)) | None => self.bar.abandon(),
+        }
+        if self.lines || JobOutcome::of(event).is_some() {
+            let _ = writeln!(io.err, "{line}");
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn event(unix_ms: u64, kind: Kind) -> pb::JobEvent {
+        pb::JobEvent {
+            job_id: "mill-1-x-1".to_string(),
+            unix_ms,
+            kind: Some(kind),
+            ..Default::default()
+        }
+    }
+
+    /// Until bytes go on the line the bar says what the job waits for, at no position;
+    /// then it counts the acknowledged bytes and says what is on the line.
+    #[test]
+    fn a_started_job_waits_for_the_cnc_before_its_bar_counts_bytes() {
+        let mut progress = JobProgress::new(false, "mill-1-x-1");
+        progress.bar = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::hidden());
+        progress.lines = false;
+        let (mut out, mut err) = (Vec::new(), Vec::new());
+        let mut io = Io {
+            out: &mut out,
+            err: &mut err,
+            progress_bar: true,
+        };
+        let started = pb::job_event::Started {
+            bytes_total: Some(137),
+        };
+        progress.show(&mut io, &event(1_000, Kind::Started(started)));
+        assert_eq!(
+            progress.bar.message(),
+            "started: waiting for the CNC to ask for it"
+        );
+        assert_eq!(progress.bar.position(), 0);
+        let on_line = pb::job_event::Progress {
+            bytes_sent: 0,
+            bytes_total: Some(137),
+            rate_bps: 28,
+            bytes_on_line: 136,
+            block: String::new(),
+        };
+        progress.show(&mut io, &event(5_800, Kind::Progress(on_line)));
+        assert!(progress.sending);
+        assert_eq!(progress.bar.message(), "136 B on the line, 28 B/s");
+        assert!(err.is_empty(), "a bar, no lines");
     }
 }

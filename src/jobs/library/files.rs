@@ -180,7 +180,7 @@ impl ProgramLibrary {
         name: &str,
         f: FolderFile,
     ) -> Result<Taken, LibraryError> {
-        let path = self.path_of(name)?;
+        let path = self.posted_path(index, name, &f.file)?;
         if file_name(&path) != f.file {
             // Renamed or deleted since it was seen: its own event follows.
             return Ok(Taken::Nothing);

@@ -47,9 +47,10 @@ async fn store_read_list_remove() {
         .collect();
     assert_eq!(names, ["O1", "O2"]);
     lib.remove("O1").await.unwrap();
+    // Removed, and said so: its revisions are kept.
     assert!(matches!(
         lib.read("O1").await,
-        Err(LibraryError::NotFound { .. })
+        Err(LibraryError::Removed { latest: 2, .. })
     ));
     assert!(matches!(
         lib.remove("O1").await,
@@ -103,7 +104,8 @@ async fn store_new_never_replaces() {
         .filter(|n| n != REVISIONS_DIR)
         .collect();
     files.sort();
-    assert_eq!(files, ["m-O1", "m-O2"]);
+    // Each in the file a CAM system would post: NAME.nc.
+    assert_eq!(files, ["m-O1.nc", "m-O2.nc"]);
     let temp = std::fs::read_dir(dir.path().join(REVISIONS_DIR).join("objects"))
         .unwrap()
         .filter(|e| {
@@ -245,7 +247,7 @@ async fn a_removed_program_keeps_its_revisions_and_numbers_go_on() {
     lib.remove_by("O2").await.unwrap();
     assert!(matches!(
         lib.read("O2").await,
-        Err(LibraryError::NotFound { .. })
+        Err(LibraryError::Removed { latest: 1, .. })
     ));
     let revs = lib.revisions("O2").await.unwrap();
     assert!(revs.removed);
@@ -253,7 +255,7 @@ async fn a_removed_program_keeps_its_revisions_and_numbers_go_on() {
     // A job cannot take "the latest" of a removed program.
     assert!(matches!(
         lib.revision("O2", "").await,
-        Err(LibraryError::NotFound { .. })
+        Err(LibraryError::Removed { .. })
     ));
     let back = store_by(&lib, "O2", b"%\nA\n%", "a").await;
     assert_eq!(back.latest.unwrap().number, 2);
@@ -439,24 +441,25 @@ async fn files_of_the_folder_become_revisions_under_their_name_without_extension
 async fn a_locked_program_is_not_replaced_or_removed_from_the_folder() {
     let dir = tempfile::tempdir().unwrap();
     let lib = ProgramLibrary::new(dir.path(), 1000);
+    // A store writes O8.nc, the file a CAM system would post.
     lib.store("O8", b"%\nLOCKED\n%").await.unwrap();
     lib.set_state("O8", "", RevisionState::Locked, by("lead"), String::new())
         .await
         .unwrap();
-    std::fs::write(dir.path().join("O8"), b"%\nEDITED\n%").unwrap();
-    let e = lib.take_file(folder("O8")).await.unwrap_err();
+    std::fs::write(dir.path().join("O8.nc"), b"%\nEDITED\n%").unwrap();
+    let e = lib.take_file(folder("O8.nc")).await.unwrap_err();
     assert!(matches!(e, LibraryError::Locked { number: 1, .. }), "{e}");
     // The file is left as written; the library keeps sending the locked revision.
     assert_eq!(
-        std::fs::read(dir.path().join("O8")).unwrap(),
+        std::fs::read(dir.path().join("O8.nc")).unwrap(),
         b"%\nEDITED\n%"
     );
     assert_eq!(lib.read("O8").await.unwrap(), b"%\nLOCKED\n%");
     let listed = lib.list().await.unwrap();
     assert!(listed[0].note.contains("locked"), "{}", listed[0].note);
-    std::fs::remove_file(dir.path().join("O8")).unwrap();
+    std::fs::remove_file(dir.path().join("O8.nc")).unwrap();
     assert!(matches!(
-        lib.file_gone("O8").await,
+        lib.file_gone("O8.nc").await,
         Err(LibraryError::Locked { .. })
     ));
     assert_eq!(lib.read("O8").await.unwrap(), b"%\nLOCKED\n%");
@@ -481,7 +484,7 @@ async fn a_deleted_file_removes_its_program_and_posting_it_again_goes_on() {
     assert!(e.latest.unwrap().removed);
     assert!(matches!(
         lib.read("O9").await,
-        Err(LibraryError::NotFound { .. })
+        Err(LibraryError::Removed { latest: 1, .. })
     ));
     assert_eq!(lib.file_gone("O9.tap").await.unwrap(), Taken::Nothing);
     std::fs::write(dir.path().join("O9.tap"), b"%\nTWO\n%").unwrap();
@@ -660,10 +663,19 @@ async fn an_extension_in_any_case_is_a_programs_file() {
         assert_eq!((e.name.as_str(), e.file.as_str()), (name, file));
         assert_eq!(lib.file_of(name).await.unwrap().as_deref(), Some(file));
     }
-    // A second spelling of the same name is a conflict, as two extensions are.
+    // A second spelling of the same name beside the file of its latest revision takes that
+    // file's place, as another extension does: one program, one file.
     std::fs::write(dir.path().join("O2006.nC"), b"%\nO2006 B\n%").unwrap();
     assert!(matches!(
         lib.take_file(folder("O2006.nC")).await,
+        Ok(Taken::Revision(_))
+    ));
+    assert!(!dir.path().join("O2006.Nc").exists());
+    // Two spellings that both differ from it are a conflict, as two extensions are.
+    std::fs::write(dir.path().join("O2006.NC"), b"%\nO2006 C\n%").unwrap();
+    std::fs::write(dir.path().join("O2006.nc"), b"%\nO2006 D\n%").unwrap();
+    assert!(matches!(
+        lib.take_file(folder("O2006.NC")).await,
         Err(LibraryError::Conflict { .. })
     ));
     let listed = lib.list().await.unwrap();

@@ -282,8 +282,81 @@ impl CellConfig {
                 )?;
             }
             writeln!(s, "    transport: {}", p.transport.describe())?;
+            self.write_tags(s, p)?;
+        }
+        self.write_served(s)
+    }
+
+    /// A PLC's tags, one line each: where it lives, how it reads, how often, who may write.
+    fn write_tags(&self, s: &mut String, p: &super::PlcConfig) -> fmt::Result {
+        if p.tags.is_empty() {
+            return writeln!(s, "    tags: none");
+        }
+        writeln!(s, "    tags: {}", p.tags.len())?;
+        for t in &p.tags {
+            write!(s, "      {}: {}{}", t.name, t.module, t.address)?;
+            match t.bit {
+                Some(bit) => write!(s, " bit {bit}")?,
+                None => write!(s, " {}", plain_name(&t.kind))?,
+            }
+            if t.scale.0 != 1.0 {
+                write!(s, " × {}", t.scale.0)?;
+            }
+            write!(s, ", station {:02}", t.station)?;
+            write!(s, ", read every {} ms", t.poll_ms)?;
+            if t.deadband.0 != 0.0 {
+                write!(s, ", deadband {}", t.deadband.0)?;
+            }
+            write!(s, ", {}", if t.writable { "writable" } else { "read-only" })?;
+            if t.history {
+                write!(s, ", values kept in the history")?;
+            }
+            writeln!(s)?;
         }
         Ok(())
+    }
+
+    /// The console and the MTConnect agent the gateway serves, or that it serves none.
+    fn write_served(&self, s: &mut String) -> fmt::Result {
+        match &self.console {
+            None => writeln!(s, "console: none (no [console])")?,
+            Some(c) => {
+                write!(
+                    s,
+                    "console: on {} ({}), sessions end after {} min idle and {} h at most, {} \
+                     per user",
+                    c.listen,
+                    if self.security.tls.is_some() {
+                        "HTTPS with the cell's certificate"
+                    } else {
+                        "HTTP"
+                    },
+                    c.session_idle_minutes,
+                    c.session_hours,
+                    c.sessions_per_user
+                )?;
+                if !c.host_names.is_empty() {
+                    write!(s, "; also reached as {}", c.host_names.join(", "))?;
+                }
+                if c.allow_remote {
+                    write!(s, "; beyond loopback without [security] (allow_remote)")?;
+                }
+                writeln!(s)?;
+            }
+        }
+        match &self.mtconnect {
+            None => writeln!(s, "mtconnect: none (no [mtconnect])"),
+            Some(m) => writeln!(
+                s,
+                "mtconnect: agent on {} (HTTP), {} observations kept, {}",
+                m.listen,
+                m.buffer_size,
+                m.shdr_listen.as_deref().map_or_else(
+                    || "no SHDR adapter".to_string(),
+                    |a| format!("SHDR adapter on {a}")
+                )
+            ),
+        }
     }
 }
 

@@ -168,6 +168,27 @@ const TABLE: [(&str, u8, Attribute); 21] = [
     ("W123", 0x7B, Attribute::Word16),
 ];
 
+/// The module table's names, as a refusal lists them.
+pub const MODULE_NAMES: &str = "B, M, K, F, A, D, W9, TS, TR, CS, CR, BD, WL, W21–W24, \
+     W30–W109 (files: W30:DI, W31:BD), W120–W123";
+
+/// The modules there are, after `did you mean TR or TS?` for a name near some of them.
+fn modules_hint(name: &str) -> String {
+    let symbols: Vec<&str> = TABLE.iter().map(|(s, _, _)| *s).collect();
+    let near = crate::near::nearest(name.trim(), &symbols, 3);
+    match near.split_last() {
+        Some((last, first)) => {
+            let first = if first.is_empty() {
+                String::new()
+            } else {
+                format!("{} or ", first.join(", "))
+            };
+            format!("did you mean {first}{last}? Its modules are {MODULE_NAMES}")
+        }
+        None => format!("its modules are {MODULE_NAMES}"),
+    }
+}
+
 impl Module {
     /// `B`: MOLN 00h, 16-bit words.
     pub const B: Module = Module::fixed(0x00, Attribute::Word16);
@@ -458,7 +479,10 @@ fn module_name(moln: u8) -> String {
 #[non_exhaustive]
 pub enum CommandError {
     /// A module name that is not in the module table.
-    #[error("no module {name:?} in the module table (FFU120B §5-3-3)")]
+    #[error(
+        "no module {name:?} in the module table (FFU120B §5-3-3); {}",
+        modules_hint(name)
+    )]
     UnknownModule {
         /// The name given.
         name: String,
