@@ -1132,7 +1132,8 @@ async fn the_program_library_stores_fetches_lists_and_removes() {
         .map(|e| e.unwrap().file_name().into_string().unwrap())
         .filter(|n| n != ".journal" && n != ".revisions")
         .collect();
-    assert_eq!(names, ["O200"]);
+    // A store writes the program's file with the folder's first extension.
+    assert_eq!(names, ["O200.nc"]);
     cell.stop().await;
 }
 

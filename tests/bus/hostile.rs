@@ -290,13 +290,13 @@ async fn a_store_on_a_full_disk_is_refused_and_the_earlier_version_stays_whole()
     assert_eq!(e.code(), pb::ErrorCode::StorageFull, "{}", e.message);
     assert!(e.message.contains("unchanged"), "{}", e.message);
     // The earlier version is whole, and no temporary file is left behind.
-    assert_eq!(std::fs::read(root.join("programs/O1")).unwrap(), first);
+    assert_eq!(std::fs::read(root.join("programs/O1.nc")).unwrap(), first);
     let leftovers: Vec<_> = std::fs::read_dir(root.join("programs"))
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .filter(|n| n != ".revisions" && n != ".history")
         .collect();
-    assert_eq!(leftovers, ["O1"]);
+    assert_eq!(leftovers, ["O1.nc"]);
     // Nor half a revision: the store holds the first program's content only.
     let objects: Vec<_> = std::fs::read_dir(root.join("programs/.revisions/objects"))
         .unwrap()

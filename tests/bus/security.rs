@@ -483,7 +483,7 @@ async fn a_dashboard_reads_status_but_its_writes_reach_nothing() {
     assert_eq!(jobs.len(), 1, "{jobs:?}");
     assert_eq!(jobs[0].job_id, job);
     assert!(!is_cancelled(&jobs[0]), "{jobs:?}");
-    assert_eq!(gw.programs(), ["KEEP"]);
+    assert_eq!(gw.programs(), ["KEEP.nc"]);
 
     // The operator may: cancel the job, output DO.
     let op = gw.client(pki.client("op")).await;
@@ -548,7 +548,7 @@ async fn without_roles_the_same_requests_take_effect() {
         jobs.iter().any(|j| j.job_id == job && is_cancelled(j)),
         "{jobs:?}"
     );
-    assert_eq!(gw.programs(), ["GET-BY-INTRUDER", "PUT-BY-INTRUDER"]);
+    assert_eq!(gw.programs(), ["GET-BY-INTRUDER.nc", "PUT-BY-INTRUDER.nc"]);
     dash.close().await.unwrap();
     gw.stop().await;
 }
@@ -782,7 +782,7 @@ async fn a_router_enforces_the_roles_on_its_clients() {
     let jobs = gw.jobs().await;
     assert_eq!(jobs.len(), 1, "{jobs:?}");
     assert!(!is_cancelled(&jobs[0]));
-    assert_eq!(gw.programs(), ["KEEP"]);
+    assert_eq!(gw.programs(), ["KEEP.nc"]);
     // The operator, through the router, may.
     let op = gw.client(pki.client("op")).await;
     assert!(is_cancelled(&op.cancel(MACHINE, &job).await.unwrap()));
