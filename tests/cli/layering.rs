@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 
 /// The core's modules, lowest layer first.
 const CORE_LAYERS: &[&[&str]] = &[
-    &["pb", "keys"],
+    &["pb", "keys", "near"],
     &["codes"],
     &["engine"],
     &["fanuc", "fuji"],
@@ -64,6 +64,10 @@ fn top_module(root: &Path, file: &Path) -> Option<String> {
     let rel = file.strip_prefix(root).unwrap();
     let name = rel.file_name()?.to_str()?;
     if rel.components().count() == 1 && (name == "lib.rs" || name == "main.rs") {
+        return None;
+    }
+    // The binary's own modules (`src/main/`) sit on top of the library, as `main.rs` does.
+    if rel.starts_with("main") {
         return None;
     }
     if name == "tests.rs" || name == "testkit.rs" {

@@ -16,7 +16,7 @@ pub fn nearest<'k>(name: &str, known: &[&'k str], max: usize) -> Vec<&'k str> {
             let d = if lower == wanted || unpadded(&lower) == unpadded(&wanted) {
                 0
             } else {
-                crate::config::edit_distance(&wanted, &lower)
+                edit_distance(&wanted, &lower)
             };
             // A name of one or two letters is within an edit of too many others.
             (d <= 2.max(k.len() / 3) && d < wanted.len()).then_some((d, k))
@@ -67,6 +67,23 @@ pub fn hint(name: &str, known: &[&str], what: &str, listed_by: &str) -> String {
         n if n <= LIST_AT_MOST => format!("; its {what} are: {}", known.join(", ")),
         n => format!("; none of its {n} {what} is near that name ({listed_by} lists them)"),
     }
+}
+
+/// Levenshtein distance, by characters.
+pub(crate) fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut row: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut prev = row[0];
+        row[0] = i + 1;
+        for (j, cb) in b.iter().enumerate() {
+            let cost = usize::from(ca != *cb);
+            let next = (row[j + 1] + 1).min(row[j] + 1).min(prev + cost);
+            prev = row[j + 1];
+            row[j + 1] = next;
+        }
+    }
+    row[b.len()]
 }
 
 #[cfg(test)]

@@ -444,7 +444,7 @@ fn without_key(text: &str, line: usize) -> Option<String> {
 fn closest(key: &str, expected: &[String]) -> Option<String> {
     expected
         .iter()
-        .map(|k| (edit_distance(key, k), k))
+        .map(|k| (crate::near::edit_distance(key, k), k))
         .filter(|(d, k)| *d <= 2.max(k.len() / 3))
         .min_by_key(|(d, _)| *d)
         .map(|(_, k)| k.clone())
@@ -456,23 +456,6 @@ fn closest(key: &str, expected: &[String]) -> Option<String> {
                 .min_by_key(|k| k.len())
                 .cloned()
         })
-}
-
-/// Levenshtein distance, by characters.
-pub(crate) fn edit_distance(a: &str, b: &str) -> usize {
-    let b: Vec<char> = b.chars().collect();
-    let mut row: Vec<usize> = (0..=b.len()).collect();
-    for (i, ca) in a.chars().enumerate() {
-        let mut prev = row[0];
-        row[0] = i + 1;
-        for (j, cb) in b.iter().enumerate() {
-            let cost = usize::from(ca != *cb);
-            let next = (row[j + 1] + 1).min(row[j] + 1).min(prev + cost);
-            prev = row[j + 1];
-            row[j + 1] = next;
-        }
-    }
-    row[b.len()]
 }
 
 /// The files the gateway owns, refused where the library would take them for programs
