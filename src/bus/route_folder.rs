@@ -45,14 +45,15 @@ pub(crate) async fn publish_library_event(ctx: &RouteContext, mut event: pb::Lib
     super::context::publish_event(ctx, &ctx.keys.program_events(), &event, None).await;
 }
 
-/// Who made a file: its owner's user name where the system says, else `(folder)`. The
-/// entry's own owner: a link is not followed (its target's owner made nothing).
+/// Who made a file: its owner's user name where the system says, else no user (the origin
+/// is then the folder alone). The entry's own owner: a link is not followed (its target's
+/// owner made nothing).
 fn owner_of(path: &Path, via: &str) -> pb::RequestOrigin {
     use std::os::unix::fs::MetadataExt as _;
     let user = std::fs::symlink_metadata(path)
         .ok()
         .and_then(|m| user_name(m.uid()))
-        .unwrap_or_else(|| "(folder)".to_string());
+        .unwrap_or_default();
     pb::RequestOrigin {
         user,
         via: via.chars().take(128).collect(),
@@ -157,10 +158,24 @@ async fn follow_library(ctx: RouteContext, mut followed: Followed) {
     let mut listed = false;
     while let Some(seen) = followed.seen.recv().await {
         match seen {
+            Seen::Changing { file } => {
+                if let Ok(name) = library.program_of(&file) {
+                    library.set_note(
+                        &name,
+                        Some(format!(
+                            "not yet complete: {file} is being rewritten; it becomes the next \
+                             revision once it has been still for programs.settle_ms and closed"
+                        )),
+                    );
+                }
+            }
             Seen::Complete { file } => {
                 let path = dir.join(&file);
                 let by = owner_of(&path, "folder");
                 let name = library.program_of(&file).unwrap_or_else(|_| file.clone());
+                // What the listing said while it was written no longer holds; taking it
+                // says anew what does (a conflict, a locked revision).
+                library.set_note(&name, None);
                 let taken = library
                     .take_file(FolderFile {
                         file: file.clone(),
@@ -288,8 +303,9 @@ async fn gone(ctx: &RouteContext, followed: &Followed, file: &str) {
     let name = library
         .program_of(file)
         .unwrap_or_else(|_| file.to_string());
+    // A deleted file has no owner left to ask, and the folder does not say who deleted it.
     let by = pb::RequestOrigin {
-        user: "(folder)".to_string(),
+        user: String::new(),
         via: "folder".to_string(),
     };
     match library.file_gone(file).await {

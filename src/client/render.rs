@@ -128,6 +128,15 @@ pub fn waiting_text(s: &pb::MachineStatus) -> Option<String> {
     })
 }
 
+/// Whether the gateway holds `s` in alarm: its link in alarm, or its last SAT in alarm
+/// status (§4.4.2).
+pub fn in_alarm(s: &pb::MachineStatus) -> bool {
+    s.link_state() == pb::LinkState::Alarm
+        || s.sat
+            .as_ref()
+            .is_some_and(|sat| sat.buffer_status() == pb::BufferStatus::Alarm)
+}
+
 /// The SAT's buffer status, with the alarm cause when in alarm (§4.4.2).
 pub fn sat_text(sat: Option<&pb::Sat>) -> String {
     let Some(sat) = sat else {
@@ -873,8 +882,8 @@ impl WatchPrinter {
     }
 }
 
-/// Who asked, as a request's origin says: `ana (console)`.
-fn origin_text(o: &pb::RequestOrigin) -> String {
+/// Who sent a write, as its origin says: `ana (console)`, `(folder)`, `ana`, or `-` when nothing is known.
+pub fn origin_text(o: &pb::RequestOrigin) -> String {
     match (o.user.is_empty(), o.via.is_empty()) {
         (true, true) => "-".to_string(),
         (false, true) => o.user.clone(),

@@ -12,6 +12,60 @@ use crate::bus::keys::SimLeaf;
 use crate::bus::payload::{BusMessage, encoding};
 use cellgate_core::pb;
 
+/// How long `sim alarm` and `sim reset` wait for the gateway to see what the CNC did: a
+/// Protocol A board tells its alarm at its next SAT, which comes at least every 10 s
+/// (§4.4.2), Protocol B at once (§6.1.2).
+const SEEN_WITHIN: std::time::Duration = std::time::Duration::from_secs(15);
+
+fn now_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// Waits until the gateway holds `machine` in alarm or has recorded its alarm since `asked`
+/// (`kind` an alarm), or holds it out of alarm (`kind` a reset), so that the command after this one meets the state the operator made (a
+/// program submitted at once otherwise reaches a board the gateway still thinks is
+/// ready). Says on stderr when it does not within [`SEEN_WITHIN`].
+async fn seen_by_gateway(
+    client: &Client,
+    io: &mut Io<'_>,
+    machine: &str,
+    asked: u64,
+    kind: pb::AlarmKind,
+) {
+    let until = tokio::time::Instant::now() + SEEN_WITHIN;
+    loop {
+        let seen = client.status(Some(machine)).await.ok().is_some_and(|all| {
+            all.iter().any(|s| match kind {
+                pb::AlarmKind::CncReset => !render::in_alarm(s),
+                _ => {
+                    render::in_alarm(s)
+                        || s.last_alarm
+                            .as_ref()
+                            .is_some_and(|a| a.kind() == kind && a.unix_ms + 1_000 >= asked)
+                }
+            })
+        });
+        if seen {
+            return;
+        }
+        if tokio::time::Instant::now() >= until {
+            let what = if kind == pb::AlarmKind::CncAlarm {
+                "alarm"
+            } else {
+                "reset"
+            };
+            let _ = writeln!(
+                io.err,
+                "{machine}: the gateway has not seen the {what} yet; it will at the board's next status message"
+            );
+            return;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+    }
+}
+
 impl Client {
     /// Gives a simulated machine a control (or, for [`SimLeaf::State`], reads its state) and
     /// returns its state once the simulated board took it.
@@ -219,11 +273,12 @@ pub enum SimControl {
         #[arg(long)]
         json: bool,
     },
-    /// Raise a CNC alarm on a simulated machine. With autostart on, its operator resets it
+    /// Raise a CNC alarm on a simulated machine; returns once the gateway has seen it (a
+    /// Protocol A board tells it at its next SAT). With autostart on, its operator resets it
     /// once the host has seen it; with `sim auto MACHINE off` it stays until `sim reset`.
     Alarm(SimMachine),
     /// Reset a simulated CNC: its alarm cleared, its buffer emptied (a job being sent is
-    /// cancelled by the reset).
+    /// cancelled by the reset); returns once the gateway no longer holds it in alarm.
     Reset(SimMachine),
     /// Cycle start: the simulated CNC reads from its buffer, so a waiting job starts
     /// (refused while the CNC is in alarm).
@@ -317,8 +372,18 @@ impl ClientCommand for SimControl {
                     *json,
                 )
             }
-            SimControl::Alarm(m) => m.control(client, SimLeaf::Alarm).await?,
-            SimControl::Reset(m) => m.control(client, SimLeaf::Reset).await?,
+            SimControl::Alarm(m) => {
+                let asked = now_ms();
+                let done = m.control(client, SimLeaf::Alarm).await?;
+                seen_by_gateway(client, io, &m.machine, asked, pb::AlarmKind::CncAlarm).await;
+                done
+            }
+            SimControl::Reset(m) => {
+                let asked = now_ms();
+                let done = m.control(client, SimLeaf::Reset).await?;
+                seen_by_gateway(client, io, &m.machine, asked, pb::AlarmKind::CncReset).await;
+                done
+            }
             SimControl::Read(m) => m.control(client, SimLeaf::Read).await?,
             SimControl::Hold(m) => m.control(client, SimLeaf::Hold).await?,
             SimControl::Auto {

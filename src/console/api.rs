@@ -745,30 +745,81 @@ fn csv_field(s: &str) -> String {
     }
 }
 
-/// A history page as CSV: time, number, machine, kind, and the record's JSON.
+/// A record's fields as flat `(path, value)` pairs, paths dotted (`job.bytes`,
+/// `origin.user`), lists numbered (`tags.0`): a spreadsheet's columns.
+fn flatten(prefix: &str, v: &serde_json::Value, out: &mut Vec<(String, String)>) {
+    let path = |k: &str| {
+        if prefix.is_empty() {
+            k.to_string()
+        } else {
+            format!("{prefix}.{k}")
+        }
+    };
+    match v {
+        serde_json::Value::Object(o) => {
+            for (k, v) in o {
+                flatten(&path(k), v, out);
+            }
+        }
+        serde_json::Value::Array(a) => {
+            for (i, v) in a.iter().enumerate() {
+                flatten(&path(&i.to_string()), v, out);
+            }
+        }
+        serde_json::Value::Null => {}
+        serde_json::Value::String(s) => out.push((prefix.to_string(), s.clone())),
+        other => out.push((prefix.to_string(), other.to_string())),
+    }
+}
+
+/// A history page as CSV: time, number, machine, kind, the record in words (as `cellgate
+/// history` prints it), then one column for each field any record of the page has, by its
+/// dotted path: no column holds JSON.
 fn csv(page: &pb::HistoryPage) -> Response {
-    let mut out = String::from("unix_ms,utc,seq,machine,kind,record\n");
-    for r in &page.records {
-        let record = serde_json::to_value(r)
-            .ok()
-            .map(|mut v| {
-                for k in ["unix_ms", "seq", "machine", "kind"] {
-                    if let Some(o) = v.as_object_mut() {
-                        o.remove(k);
-                    }
+    const FIXED: [&str; 4] = ["unix_ms", "seq", "machine", "kind"];
+    let rows: Vec<Vec<(String, String)>> = page
+        .records
+        .iter()
+        .map(|r| {
+            let mut fields = Vec::new();
+            if let Ok(serde_json::Value::Object(o)) = serde_json::to_value(r) {
+                for (k, v) in o.iter().filter(|(k, _)| !FIXED.contains(&k.as_str())) {
+                    flatten(k, v, &mut fields);
                 }
-                v.to_string()
-            })
-            .unwrap_or_default();
+            }
+            fields
+        })
+        .collect();
+    // The columns in the order they first appear.
+    let mut columns: Vec<&str> = Vec::new();
+    for (path, _) in rows.iter().flatten() {
+        if !columns.contains(&path.as_str()) {
+            columns.push(path);
+        }
+    }
+    let mut out = String::from("unix_ms,utc,seq,machine,kind,text");
+    for c in &columns {
+        out.push(',');
+        out.push_str(&csv_field(c));
+    }
+    out.push('\n');
+    for (r, fields) in page.records.iter().zip(&rows) {
         out.push_str(&format!(
-            "{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{}",
             r.unix_ms,
             crate::client::render::date_time(r.unix_ms),
             r.seq,
             csv_field(&r.machine),
             r.kind().as_str_name(),
-            csv_field(&record)
+            csv_field(&crate::client::cli::records::record_text(r)),
         ));
+        for c in &columns {
+            out.push(',');
+            if let Some((_, v)) = fields.iter().find(|(p, _)| p == c) {
+                out.push_str(&csv_field(v));
+            }
+        }
+        out.push('\n');
     }
     (
         [

@@ -41,6 +41,9 @@ const RESCAN_POLLS: u32 = 30;
 pub enum Seen {
     /// A file is complete (still for `settle_ms`, closed by its writer).
     Complete { file: String },
+    /// A file taken before is changing (rewritten in place): not complete until it is
+    /// `Complete` again.
+    Changing { file: String },
     /// A file went away (deleted, or renamed to a name that is not taken).
     Gone { file: String },
     /// The folder could not be read (`error`); it is tried again at every listing.
@@ -316,6 +319,11 @@ impl FolderWatch {
                 }
                 // A folder that cannot be read is tried again soon: a share coming back.
                 next_scan = tokio::time::Instant::now() + if readable { every } else { self.poll };
+            }
+            for file in settle.rewritten() {
+                if out.send(Seen::Changing { file }).await.is_err() {
+                    return;
+                }
             }
             for (file, _) in settle.due(pb::now_ms()) {
                 if out.send(Seen::Complete { file }).await.is_err() {

@@ -878,12 +878,19 @@ impl<E: HostEngine, T: Transport> Driver<E, T> {
             return None;
         }
         active.last_progress = Some((t, active.acked, active.sent));
+        // Protocol B acknowledges only at its next control code: meanwhile the block is
+        // read from what the line has carried (`HostEngine::carried`).
+        let through = self
+            .pump
+            .engine()
+            .carried(t)
+            .map_or(active.acked, |c| c.max(active.acked));
         Some(LinkEvent::Progress {
             job: active.id,
             acked: active.acked,
             sent: active.sent,
             total: active.size,
-            block: active.fed.acked(active.acked),
+            block: active.fed.acked(through),
         })
     }
 }

@@ -133,7 +133,7 @@ fn answer(http: &Http, request: Request, device: Option<String>, raw: Option<Str
         Answer::Doc(
             e.code.http_status(),
             q.format,
-            agent.error(&e, q.format, now),
+            laid_out(&q, agent.error(&e, q.format, now)),
         )
     };
     let dev = match device.as_deref().map(|d| agent.device(d)).transpose() {
@@ -163,8 +163,17 @@ fn answer(http: &Http, request: Request, device: Option<String>, raw: Option<Str
         },
     };
     match done {
-        Ok(body) => Answer::Doc(200, q.format, body),
+        Ok(body) => Answer::Doc(200, q.format, laid_out(&q, body)),
         Err(e) => fail(e),
+    }
+}
+
+/// The document as asked: compact, or laid out for reading (`pretty=true`).
+fn laid_out(q: &Query, body: String) -> String {
+    if q.pretty {
+        cellgate_core::mtconnect::pretty::pretty(q.format, &body)
+    } else {
+        body
     }
 }
 
@@ -251,7 +260,7 @@ async fn asset(
     };
     let answer = h.hub.lock().assets(None, Some(&id), &q, now_us());
     match answer {
-        Ok(body) => document(200, q.format, body),
+        Ok(body) => document(200, q.format, laid_out(&q, body)),
         Err(e) => error(&h, &e, q.format),
     }
 }
@@ -279,7 +288,9 @@ async fn unsupported(State(h): St, method: axum::http::Method) -> Response {
 }
 
 /// One part of a multipart stream (Part 1, "Streaming").
-fn part(boundary: &str, format: Format, body: &str) -> Bytes {
+fn part(boundary: &str, q: &Query, body: &str) -> Bytes {
+    let format = q.format;
+    let body = laid_out(q, body.to_string());
     Bytes::from(format!(
         "--{boundary}\r\nContent-type: {}\r\nContent-length: {}\r\n\r\n{body}\r\n",
         content_type(format),
@@ -373,7 +384,7 @@ impl Streaming {
             match rendered {
                 Err(body) => {
                     self.done = true;
-                    return Some(part(&self.boundary, self.q.format, &body));
+                    return Some(part(&self.boundary, &self.q, &body));
                 }
                 Ok((doc, next, n)) => {
                     if let Some(next) = next {
@@ -381,7 +392,7 @@ impl Streaming {
                     }
                     if first || n > 0 || heartbeat_due {
                         self.last_part = Some(Instant::now());
-                        return Some(part(&self.boundary, self.q.format, &doc));
+                        return Some(part(&self.boundary, &self.q, &doc));
                     }
                     // Nothing new for this client: wait for the buffer to move on past it,
                     // or for the heartbeat.

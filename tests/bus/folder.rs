@@ -161,6 +161,16 @@ pub(crate) async fn audit_until(cell: &RunningCell, check: impl Fn(&[pb::AuditRe
     panic!("the audit never showed it: {records:#?}");
 }
 
+/// The library's listing.
+async fn listed(cell: &RunningCell) -> Vec<pb::ProgramInfo> {
+    get(&cell.client, &cell.keys.any_program(), None)
+        .await
+        .into_iter()
+        .filter_map(|r| r.ok())
+        .map(|(_, bytes, _)| pb::ProgramInfo::decode(bytes.as_slice()).unwrap())
+        .collect()
+}
+
 pub(crate) async fn read(cell: &RunningCell, name: &str) -> Vec<u8> {
     match get(&cell.client, &cell.keys.program(name), None)
         .await
@@ -235,22 +245,36 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
     assert_eq!(read(&cell, "O5557").await, v3);
     library.quiet(800).await;
 
-    // Edited: the next revision, and the listing gives the revision's size and the file.
+    // Edited in place: while the writer has it open, the listing says the file is not yet
+    // complete (its latest revision still the first); then the next revision, and the
+    // listing gives the revision's size and the file, without the note.
     let v1b = program(5555, 25);
-    std::fs::write(dir.join("O5555.nc"), &v1b).unwrap();
+    let mut f = std::fs::File::create(dir.join("O5555.nc")).unwrap();
+    f.write_all(&v1b[..v1b.len() / 2]).unwrap();
+    f.flush().unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let o5555 = listed(&cell).await.into_iter().find(|p| p.name == "O5555");
+        let note = o5555.map(|p| p.note).unwrap_or_default();
+        if note.contains("not yet complete") && note.contains("O5555.nc") {
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no note while the file is rewritten: {note:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    f.write_all(&v1b[v1b.len() / 2..]).unwrap();
+    drop(f);
     let e = library.next().await;
     assert_eq!((e.name.as_str(), e.revision), ("O5555", 2));
     assert_eq!(read(&cell, "O5555").await, v1b);
-    let listed: Vec<pb::ProgramInfo> = get(&cell.client, &cell.keys.any_program(), None)
-        .await
-        .into_iter()
-        .filter_map(|r| r.ok())
-        .map(|(_, bytes, _)| pb::ProgramInfo::decode(bytes.as_slice()).unwrap())
-        .collect();
-    let o5555 = listed.iter().find(|p| p.name == "O5555").unwrap();
+    let listed_now = listed(&cell).await;
+    let o5555 = listed_now.iter().find(|p| p.name == "O5555").unwrap();
     assert_eq!(
-        (o5555.size, o5555.file.as_str()),
-        (v1b.len() as u64, "O5555.nc")
+        (o5555.size, o5555.file.as_str(), o5555.note.as_str()),
+        (v1b.len() as u64, "O5555.nc", "")
     );
 
     // Deleted: the program is removed, its revisions kept.
@@ -305,20 +329,24 @@ async fn programs_posted_into_the_folder_are_revisions_while_the_gateway_runs() 
             .iter()
             .filter(|a| a.key.starts_with("folder:"))
             .collect();
-        from_folder
+        from_folder.iter().any(|a| {
+            // A deletion names no user: the folder does not say who deleted it.
+            a.action == "program.remove"
+                && a.target == "O5556"
+                && a.ok
+                && a.origin
+                    .as_ref()
+                    .is_some_and(|o| o.user.is_empty() && o.via == "folder")
+        }) && from_folder.iter().any(|a| {
+            a.action == "program.store"
+                && a.target == "O5555"
+                && !a.ok
+                && a.code == pb::ErrorCode::Locked as i32
+        }) && from_folder
             .iter()
-            .any(|a| a.action == "program.remove" && a.target == "O5556" && a.ok)
-            && from_folder.iter().any(|a| {
-                a.action == "program.store"
-                    && a.target == "O5555"
-                    && !a.ok
-                    && a.code == pb::ErrorCode::Locked as i32
-            })
-            && from_folder
-                .iter()
-                .filter(|a| a.action == "program.store" && a.ok)
-                .count()
-                >= 5
+            .filter(|a| a.action == "program.store" && a.ok)
+            .count()
+            >= 5
     })
     .await;
     cell.stop().await;

@@ -309,6 +309,41 @@ async fn an_open_console_serves_anyone_but_every_write_needs_the_session_token()
             .any(|e| e["job_id"] == job.as_str()),
         "{m}"
     );
+    // The history as CSV for a spreadsheet: one column per field, by its path; the record
+    // in words; no column holds JSON.
+    let r = b
+        .http
+        .get(format!(
+            "{}/api/v1/cells/demo/audit?_time=[now(-10m)..]&format=csv",
+            gw.url
+        ))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    let csv = r.text().await.unwrap();
+    let mut lines = csv.lines();
+    let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(
+        head[..6],
+        ["unix_ms", "utc", "seq", "machine", "kind", "text"]
+    );
+    for column in ["audit.action", "audit.target", "audit.origin.via"] {
+        assert!(head.contains(&column), "{column} missing: {head:?}");
+    }
+    let store = lines
+        .find(|l| l.split(',').any(|f| f == "program.store"))
+        .unwrap_or_else(|| panic!("no store in:\n{csv}"));
+    let fields: Vec<&str> = store.split(',').collect();
+    assert!(
+        fields.contains(&"O5001") && fields.contains(&"console"),
+        "{store}"
+    );
+    assert!(
+        !csv.lines().any(|l| l.contains("{\"") || l.contains("\"{")),
+        "JSON in a column:\n{csv}"
+    );
+
     // Bad input gets a clear refusal, in the API's shape.
     let (status, e) = b.get("/api/v1/cells/demo/machines/mill-9").await;
     assert_eq!(status, 404, "{e}");

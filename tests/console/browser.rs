@@ -388,6 +388,18 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
         .await
         .unwrap();
     wait_css(&c, "tr[data-job]").await;
+    // The utilisation chart's axis gives times of day, not durations.
+    let hour = wait_js(
+        &c,
+        "an hour label on the utilisation chart",
+        "(document.querySelector('svg.util text.hour')||{}).textContent",
+    )
+    .await;
+    let hour = hour.as_str().unwrap_or_default().to_string();
+    assert!(
+        hour.len() == 5 && hour.ends_with(":00") && hour[..2].parse::<u8>().is_ok_and(|h| h < 24),
+        "{hour:?}"
+    );
     screenshot(&c, "machine").await;
 
     // A tag's trend moves: the simulated sequence program counts parts every second.
@@ -412,6 +424,14 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
         );
         tokio::time::sleep(Duration::from_millis(300)).await;
     }
+    // A trend says what it covers: door-open keeps no history, so only what came since
+    // the page opened.
+    wait_js(
+        &c,
+        "door-open's trend says it covers the time since the page opened",
+        "((document.querySelector('tr[data-tag=\"door-open\"] [data-field=\"trend-span\"]')||{}).textContent||'').includes('since ')",
+    )
+    .await;
     screenshot(&c, "plc").await;
 
     // History: the job, the alarm.

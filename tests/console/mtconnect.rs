@@ -423,6 +423,31 @@ async fn errors_are_mtconnect_error_documents_with_the_standard_codes() {
         v["MTConnectError"]["Errors"]["Error"][0]["errorCode"],
         "NO_DEVICE"
     );
+    // Laid out for reading when asked: the same document, a line an element.
+    let (s, compact) = get(&format!("{u}/probe")).await;
+    assert_eq!(s, 200);
+    let (s, laid) = get(&format!("{u}/probe?pretty=true")).await;
+    assert_eq!(s, 200);
+    assert_eq!(compact.lines().count(), 1, "compact by default");
+    assert!(laid.contains("\n  <Header "), "{laid}");
+    let squeeze = |d: &str| d.lines().map(str::trim).collect::<String>();
+    assert_eq!(
+        squeeze(&laid).replace(|c: char| c.is_ascii_digit(), ""),
+        squeeze(&compact).replace(|c: char| c.is_ascii_digit(), "")
+    );
+    let (s, laid) = get(&format!("{u}/current?format=json&pretty=true")).await;
+    assert_eq!(s, 200);
+    assert!(
+        laid.contains("\n  \"MTConnectStreams\": {") || laid.starts_with("{\n"),
+        "{laid}"
+    );
+    serde_json::from_str::<serde_json::Value>(&laid).unwrap();
+    let (s, body) = get(&format!("{u}/probe?pretty=yes")).await;
+    assert_eq!(s, 400);
+    assert!(
+        body.contains("INVALID_REQUEST") && body.contains("pretty"),
+        "{body}"
+    );
     gw.stop().await;
 }
 

@@ -548,3 +548,53 @@ async fn punch_out_round_trip_with_host_flow_control_notification_on() {
 async fn punch_out_round_trip_with_host_flow_control_notification_off() {
     punch_round_trip(false).await;
 }
+
+/// The block being fed moves through a Protocol B job: a CNC reading as fast as the line
+/// makes its board send no control code until the end of the read (§6.3), so nothing is
+/// acknowledged until then; meanwhile every progress event past the first blocks names the
+/// block the line has carried (MTConnect's `block_fed`, the console's "block").
+#[tokio::test(start_paused = true)]
+async fn the_block_being_fed_moves_through_a_protocol_b_job() {
+    for consume_rate in [chars_per_sec(19_200) * 2, chars_per_sec(19_200) / 4] {
+        let rig = Rig::on_sim_line(false, CodeSystem::Iso, true, 19_200, consume_rate);
+        let mut events = rig.link.subscribe();
+        let program = nc_program(16 * 1024, 7);
+        rig.queue(1, &program).await;
+        let mut named = Vec::new();
+        let mut unnamed = Vec::new();
+        loop {
+            let ev = next_event(&mut events, HOUR, |ev| match ev {
+                LinkEvent::Progress { sent, block, .. } => Some(Some((*sent, block.clone()))),
+                LinkEvent::JobDone { .. } => Some(None),
+                LinkEvent::JobFailed { reason, .. } => panic!("failed: {reason}"),
+                _ => None,
+            })
+            .await;
+            match ev {
+                Some((sent, Some(block))) => named.push((sent, block)),
+                Some((sent, None)) if sent > 2048 => unnamed.push(sent),
+                Some(_) => {}
+                None => break,
+            }
+        }
+        assert!(
+            unnamed.is_empty(),
+            "{consume_rate} c/s: progress without a block at {unnamed:?}"
+        );
+        assert!(named.len() > 10, "{consume_rate} c/s: {named:?}");
+        // Each names a line of the program that went out before it was named, and they
+        // move on.
+        let mut last = 0;
+        for (sent, block) in &named {
+            let line = format!("{block}\n");
+            let end = program
+                .windows(line.len())
+                .position(|w| w == line.as_bytes())
+                .map(|p| p + line.len())
+                .unwrap_or_else(|| panic!("{block:?} is no line of the program"));
+            assert!(end as u64 <= *sent && end >= last, "{block:?} at {sent}");
+            last = end;
+        }
+        rig.stop().await;
+    }
+}

@@ -20,6 +20,9 @@
 //! - [`config`]: the cell file, one file per concern, validated with every error at once;
 //! - [`bounds`]: the size of every request message, checked before it is decoded, and of its
 //!   fields;
+//! - [`mtconnect`]: the cell in MTConnect 2.5: the device model, the mapping from the bus
+//!   contract's messages, the sequence buffer, the documents and SHDR lines;
+//! - [`near`]: the names near a mistyped one, for every "did you mean";
 //! - [`testkit`]: two engines on a simulated line in plain time ([`testkit::Pair`]);
 //! - the bus contract: [`keys`] (every key expression of a cell, built and parsed), [`pb`]
 //!   (its protobuf messages), [`codes`] (how errors become its codes).
@@ -29,7 +32,8 @@
 //! `engine` imports nothing of the crate. `fanuc` and `fuji` import `engine`; `program`
 //! imports `fanuc`; `plc` imports `fuji`; `sim` imports the protocols it simulates;
 //! `config` imports the engines' own settings types and `program`'s rules; `pb` imports
-//! nothing and `codes` only `pb`. `tests/cli/layering.rs` checks these arrows.
+//! nothing and `codes` only `pb`; `near` imports nothing. `tests/cli/layering.rs` checks
+//! these arrows.
 
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]

@@ -6,7 +6,7 @@ use std::fmt::Write as _;
 use clap::Args;
 
 use super::{ClientCommand, ConnectArgs, Io};
-use crate::client::render::{bytes, date_time, table};
+use crate::client::render::{bytes, date_time, origin_text, table};
 use crate::client::{Client, ClientError};
 use cellgate_core::pb;
 
@@ -25,13 +25,7 @@ fn state_name(s: pb::RevisionState) -> &'static str {
 }
 
 fn who(o: Option<&pb::RequestOrigin>) -> String {
-    match o {
-        None => "-".to_string(),
-        Some(o) if o.user.is_empty() && o.via.is_empty() => "-".to_string(),
-        Some(o) if o.via.is_empty() => o.user.clone(),
-        Some(o) if o.user.is_empty() => format!("({})", o.via),
-        Some(o) => format!("{} ({})", o.user, o.via),
-    }
+    o.map_or_else(|| "-".to_string(), origin_text)
 }
 
 /// The revisions of a program as a table, newest first.

@@ -61,12 +61,7 @@ impl ClientCommand for HealthArgs {
         );
         let alarm: Vec<String> = statuses
             .iter()
-            .filter(|s| {
-                s.link_state() == pb::LinkState::Alarm
-                    || s.sat
-                        .as_ref()
-                        .is_some_and(|sat| sat.buffer_status() == pb::BufferStatus::Alarm)
-            })
+            .filter(|s| render::in_alarm(s))
             .map(|s| s.machine.clone())
             .collect();
         let links = statuses.len() + stations.len();

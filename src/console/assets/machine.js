@@ -588,6 +588,9 @@ const UTIL = [
   ['unknown', 'Unknown', (b) => num(b.unknown_ms)],
 ];
 
+// An axis label is a time of day (`14:00`), not a duration (`14h`).
+const hourOfDay = (ms) => `${String(new Date(num(ms)).getHours()).padStart(2, '0')}:00`;
+
 function utilisationView(u, name) {
   const m = (u?.machines || []).find((x) => x.machine === name) || u?.machines?.[0];
   if (!m || !m.buckets?.length) return h('p', { class: 'muted' }, 'No utilisation recorded yet.');
@@ -610,7 +613,7 @@ function utilisationView(u, name) {
         svg('title', null, `${clock(b.start_unix_ms)}: ${label} ${Math.round((100 * ms) / len)}%`)));
     }
     if (b.parts != null) chart.append(svg('text', { x: i * BW + BW / 2, y: TOP - 3, class: 'parts', 'text-anchor': 'middle' }, String(Math.round(b.parts))));
-    if (i % 3 === 0) chart.append(svg('text', { x: i * BW + BW / 2, y: TOP + H + 12, class: 'hour', 'text-anchor': 'middle' }, new Date(num(b.start_unix_ms)).getHours() + 'h'));
+    if (i % 3 === 0) chart.append(svg('text', { x: i * BW + BW / 2, y: TOP + H + 12, class: 'hour', 'text-anchor': 'middle' }, hourOfDay(b.start_unix_ms)));
   });
   const legend = h('ul', { class: 'legend plain' }, UTIL.map(([k, l]) => h('li', null, h('span', { class: `swatch u-${k}`, 'aria-hidden': 'true' }), l)),
     bs.some((b) => b.parts != null) ? h('li', null, 'Numbers above the bars: parts made') : null);

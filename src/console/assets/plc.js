@@ -120,13 +120,18 @@ export async function renderPlc(ctx, cell, plc) {
     if (pts.length) draw.push([now, pts[pts.length - 1][1]]);
     const [lo, hi] = extent(draw.map((p) => p[1]));
     r.line.setAttribute('points', polyPoints(draw, 200, 40, now - TREND_MS, now, lo, hi));
-    const label = pts.length ? `${fmt(lo)} … ${fmt(hi)}` : 'no data';
+    // Say what the line covers: a tag without `history = true` has only what came since the
+    // page opened, and its line must not read as ten minutes of values.
+    const from = pts.length ? pts[0][0] : now;
+    const span = now - from >= TREND_MS - 5000 ? 'the last 10 min' : `since ${clock(from)}`;
+    const label = pts.length ? `${fmt(lo)} … ${fmt(hi)}, ${span}` : 'no data yet';
     setText(r.range, label);
-    r.svg.setAttribute('aria-label', `Trend of ${name} over 10 minutes: ${pts.length} values, ${label}`);
+    r.range.setAttribute('data-field', 'trend-span');
+    r.svg.setAttribute('aria-label', `Trend of ${name}, ${span}: ${pts.length} values, ${label}`);
   };
 
   const tagsTable = h('table', { class: 'tags-table', 'aria-label': 'Tags' },
-    h('thead', null, h('tr', null, ['Tag', 'Value', 'Quality', 'Read at', 'Trend (10 min)', can('plc.tag') ? 'Write' : null].filter(Boolean).map((x) => h('th', { scope: 'col' }, x)))), tagsBody);
+    h('thead', null, h('tr', null, ['Tag', 'Value', 'Quality', 'Read at', 'Trend (up to 10 min)', can('plc.tag') ? 'Write' : null].filter(Boolean).map((x) => h('th', { scope: 'col' }, x)))), tagsBody);
 
   const sec = (title, id, ...kids) => h('section', { class: 'card', 'aria-labelledby': id }, h('h2', { id }, title), ...kids);
   main.append(sec('Link', 'sec-link', summary), sec('Stations', 'sec-stations', stationsBox),

@@ -135,6 +135,13 @@ async fn files_there_at_start_are_taken_at_once_and_an_edit_again() {
         "not waited for"
     );
     std::fs::write(&path, program(6)).unwrap();
+    // Taken before, rewritten: said to be changing, then complete again.
+    assert_eq!(
+        next(&mut rx).await,
+        Seen::Changing {
+            file: "O0003".into()
+        }
+    );
     assert_eq!(
         next(&mut rx).await,
         Seen::Complete {

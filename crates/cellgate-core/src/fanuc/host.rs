@@ -213,4 +213,14 @@ pub trait HostEngine: Engine<Command = EngineCommand, Event = EngineEvent> {
     fn waiting_for(&self) -> Option<&'static str> {
         None
     }
+
+    /// Program bytes the line has had time to carry to the board by `now`, where the
+    /// protocol acknowledges nothing finer until its next control code (Protocol B, §6.3):
+    /// what the block being fed is read from meanwhile. It acknowledges nothing: a job's
+    /// offset is `EngineEvent::Acked`'s. `None` where acknowledgements say it all.
+    #[must_use]
+    fn carried(&self, now: std::time::Instant) -> Option<u64> {
+        let _ = now;
+        None
+    }
 }

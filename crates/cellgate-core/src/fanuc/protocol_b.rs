@@ -73,10 +73,15 @@ use crate::fanuc::host::{
 use crate::fanuc::program::Program;
 use crate::fanuc::{CodeSystem, Protocol};
 
-/// Overrun allowance after DC3 in Protocol B (§6.3: "less than 512 characters").
+/// Characters a Protocol B board takes after its DC3 (§6.3: "less than 512 characters"):
+/// the host's limit, and past it the board's SR0856 (§11).
 pub const OVERRUN_B: usize = 512;
-/// Overrun allowance after DC3 in Expansion Protocol B (§7: 1280 characters; protocol notes 12).
+/// Characters the host may send after an Expansion Protocol B board's DC3 (§7: 1280).
 pub const OVERRUN_EXPANSION_B: usize = 1280;
+/// Characters after its DC3 past which an Expansion Protocol B board raises SR0856: the
+/// §6.3 table and §11 say 2560, §7 says 1280; the host keeps within §7's
+/// [`OVERRUN_EXPANSION_B`], a board alarms only past this (protocol notes 12).
+pub const OVERRUN_EXPANSION_B_ALARM: usize = 2560;
 
 /// Settings of a Protocol B / Expansion Protocol B host link.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -915,6 +920,16 @@ impl Engine for ProtocolBHost {
 }
 
 impl HostEngine for ProtocolBHost {
+    fn carried(&self, now: Instant) -> Option<u64> {
+        let through = self
+            .marks
+            .iter()
+            .take_while(|(at, _)| *at <= now)
+            .last()
+            .map_or(0, |(_, upto)| *upto);
+        Some(through.max(self.acked))
+    }
+
     fn data_wanted(&self) -> usize {
         self.program
             .as_ref()

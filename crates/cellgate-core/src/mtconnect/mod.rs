@@ -11,7 +11,8 @@
 //! - [`assets`]: punched programs kept as File assets;
 //! - [`request`]: query parameters, `path` filters, errors and their codes;
 //! - [`types`]: the data item types and units a PLC tag may be given (the configuration's);
-//! - [`xml`], [`json`]: the documents; [`shdr`]: the adapter's line format.
+//! - [`xml`], [`json`]: the documents, [`pretty`] laid out for reading; [`shdr`]: the
+//!   adapter's line format.
 
 pub mod agent;
 pub mod assets;
@@ -20,6 +21,7 @@ pub mod desc;
 pub mod json;
 pub mod mapping;
 pub mod model;
+pub mod pretty;
 pub mod request;
 pub mod shdr;
 pub use crate::config::mtconnect_types as types;

@@ -108,6 +108,8 @@ pub struct Query {
     pub format: Format,
     /// `type`, `removed` (assets).
     pub asset_type: Option<String>,
+    /// `pretty=true`: the document laid out for reading ([`super::pretty`]).
+    pub pretty: bool,
 }
 
 /// What each request takes.
@@ -217,7 +219,19 @@ impl Query {
                         }
                     }
                 }
-                // Documents are written compact; `pretty` and the rest are taken and ignored.
+                "pretty" => {
+                    q.pretty = match v.to_ascii_lowercase().as_str() {
+                        "true" => true,
+                        "false" => false,
+                        _ => {
+                            return Err(MtError::new(
+                                ErrorCode::InvalidRequest,
+                                format!("pretty must be true or false, not {v:?}"),
+                            ));
+                        }
+                    }
+                }
+                // `device` and `removed` (assets) are taken and ignored.
                 _ => {}
             }
         }

@@ -8,7 +8,11 @@
 //! them, but only the last [`SENT_KEPT`] of them: a board answers for what was sent lately (a
 //! DAT, the packets of a run), and an Expansion A board whose CNC reads as fast as the line
 //! asks nothing until the program's end (§5.3), which would otherwise keep the whole program.
-//! A job's memory does not grow with its program.
+//! Of the bytes let go, the last block of every [`LET_GO_STEP`] is remembered (at most
+//! [`LET_GO_KEPT`] of them, thinned evenly and coarser when more): a Protocol B line acknowledges only
+//! what reached the board before its next control code, so what was sent may run far ahead
+//! of what is acknowledged, and the block being fed must still move as the acknowledgements
+//! come. A job's memory does not grow with its program.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -20,6 +24,12 @@ pub const MAX_BLOCK_TEXT: usize = 128;
 /// earlier than these names the last block of what was let go, if it lies within the answer.
 pub const SENT_KEPT: usize = 16 * 1024;
 
+/// Of the bytes let go, one block is remembered for each this many.
+pub const LET_GO_STEP: usize = 1024;
+
+/// Blocks of the bytes let go remembered at most.
+pub const LET_GO_KEPT: usize = 32;
+
 /// Follows a job's program bytes and its acknowledged offset.
 #[derive(Debug, Default)]
 pub struct FedBlocks {
@@ -29,14 +39,21 @@ pub struct FedBlocks {
     /// The first bytes of the line that runs across `base` (its part before `base`).
     head: Vec<u8>,
     last: Option<Arc<str>>,
-    /// The last block of the bytes let go unasked (see [`SENT_KEPT`]), and where it ends.
-    let_go: Option<(u64, Arc<str>)>,
+    /// Blocks of the bytes let go unasked (see [`SENT_KEPT`]), each with where it ends, in
+    /// order.
+    let_go: VecDeque<(u64, Arc<str>)>,
+    /// The least distance between two of `let_go`: [`LET_GO_STEP`], doubled at each
+    /// thinning, back to it once all were answered for.
+    grain: u64,
 }
 
 impl FedBlocks {
     /// Nothing sent yet.
     pub fn new() -> Self {
-        FedBlocks::default()
+        FedBlocks {
+            grain: LET_GO_STEP as u64,
+            ..FedBlocks::default()
+        }
     }
 
     /// Program bytes sent, in order.
@@ -51,14 +68,37 @@ impl FedBlocks {
         let n = usize::try_from(keep_from.saturating_sub(self.base))
             .unwrap_or(usize::MAX)
             .min(self.window.len());
-        if n == 0 {
-            return;
-        }
-        let start = self.base;
-        let old: Vec<u8> = self.window.drain(..n).collect();
-        self.base += n as u64;
-        if let Some((end, text)) = self.last_block_in(&old) {
-            self.let_go = Some((start + end as u64, text));
+        let mut left = n;
+        while left > 0 {
+            let step = left.min(LET_GO_STEP);
+            left -= step;
+            let start = self.base;
+            let old: Vec<u8> = self.window.drain(..step).collect();
+            self.base += step as u64;
+            if let Some((end, text)) = self.last_block_in(&old) {
+                let end = start + end as u64;
+                // The last one moves on while it is within a grain of the one before it;
+                // once a grain away, it stays and the next is added.
+                let before = (self.let_go.len().checked_sub(2))
+                    .and_then(|i| self.let_go.get(i))
+                    .map(|e| e.0);
+                match (before, self.let_go.back_mut()) {
+                    (Some(before), Some(last)) if last.0 < before + self.grain => {
+                        *last = (end, text)
+                    }
+                    _ => self.let_go.push_back((end, text)),
+                }
+                if self.let_go.len() > LET_GO_KEPT {
+                    // Thinned evenly, and coarser from now on: the blocks still span all
+                    // that was let go.
+                    let mut i = 0;
+                    self.let_go.retain(|_| {
+                        i += 1;
+                        i % 2 == 0
+                    });
+                    self.grain *= 2;
+                }
+            }
         }
     }
 
@@ -70,10 +110,13 @@ impl FedBlocks {
     /// The last block wholly inside the first `acked` bytes: a line ending with LF whose
     /// text is more than a tape mark (`%`) or blanks. `None` until there is one.
     pub fn acked(&mut self, acked: u64) -> Option<Arc<str>> {
-        if let Some((end, _)) = &self.let_go
+        while let Some((end, _)) = self.let_go.front()
             && *end <= acked
         {
-            self.last = self.let_go.take().map(|(_, text)| text);
+            self.last = self.let_go.pop_front().map(|(_, text)| text);
+            if self.let_go.is_empty() {
+                self.grain = LET_GO_STEP as u64;
+            }
         }
         let k = usize::try_from(acked.saturating_sub(self.base))
             .unwrap_or(usize::MAX)

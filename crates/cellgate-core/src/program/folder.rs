@@ -115,6 +115,8 @@ struct Look {
 pub struct Settle {
     settle_ms: u64,
     files: BTreeMap<String, Look>,
+    /// Files taken before that changed since: rewritten in place, not yet complete again.
+    rewritten: std::collections::BTreeSet<String>,
 }
 
 impl Settle {
@@ -123,6 +125,7 @@ impl Settle {
         Settle {
             settle_ms,
             files: BTreeMap::new(),
+            rewritten: std::collections::BTreeSet::new(),
         }
     }
 
@@ -131,6 +134,9 @@ impl Settle {
         match self.files.get_mut(file) {
             Some(look) if look.stat == stat => {}
             Some(look) => {
+                if look.taken {
+                    self.rewritten.insert(file.to_string());
+                }
                 *look = Look {
                     stat,
                     since_ms: now,
@@ -161,6 +167,9 @@ impl Settle {
     /// A writer wrote to `file` (inotify's modify): not complete until it closes it.
     pub fn writing(&mut self, file: &str, now: u64) {
         if let Some(look) = self.files.get_mut(file) {
+            if look.taken {
+                self.rewritten.insert(file.to_string());
+            }
             look.writing = true;
             look.since_ms = now;
             look.taken = false;
@@ -190,11 +199,19 @@ impl Settle {
     /// `file` is gone from the folder.
     pub fn gone(&mut self, file: &str) {
         self.files.remove(file);
+        self.rewritten.remove(file);
+    }
+
+    /// The files taken before that changed since the last call: each is being rewritten in
+    /// place and is not complete until it is due again.
+    pub fn rewritten(&mut self) -> Vec<String> {
+        std::mem::take(&mut self.rewritten).into_iter().collect()
     }
 
     /// Forgets every file not in `present` (after a full listing).
     pub fn retain(&mut self, present: &std::collections::BTreeSet<String>) {
         self.files.retain(|f, _| present.contains(f));
+        self.rewritten.retain(|f| present.contains(f));
     }
 
     /// Whether `file` is being written, as far as the watcher said.

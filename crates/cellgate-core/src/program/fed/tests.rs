@@ -116,3 +116,34 @@ fn a_run_asked_about_only_at_its_end_keeps_only_the_last_bytes_sent() {
     let later = at(&mut fed, let_go as u64 + 200).expect("a block");
     assert_ne!(later, text);
 }
+
+#[test]
+fn acknowledgements_far_behind_what_was_sent_still_move_the_block() {
+    // Protocol B acknowledges only what reached the board before its next control code:
+    // 64 KiB may be sent while the first is answered for. Each answer names a block that
+    // ends within it, not far before it, and none at all is no answer.
+    let program: Vec<u8> = (0..8000)
+        .flat_map(|n| format!("N{n} G01 X{n}\n").into_bytes())
+        .collect();
+    let mut fed = FedBlocks::new();
+    for (i, piece) in program[..64 * 1024].chunks(256).enumerate() {
+        fed.push(piece);
+        fed.sent(((i + 1) * 256) as u64);
+    }
+    let mut last_end = 0;
+    for acked in (4096..=48 * 1024).step_by(4096) {
+        let text = at(&mut fed, acked as u64).expect("a block at every answer");
+        let line = format!("{text}\n");
+        let end = program[..acked]
+            .windows(line.len())
+            .rposition(|w| w == line.as_bytes())
+            .expect("a line of the program")
+            + line.len();
+        assert!(end > last_end, "the block moves on: {text} at {acked}");
+        assert!(
+            acked - end <= 4 * LET_GO_STEP,
+            "{text} ends at {end}, {acked} acknowledged"
+        );
+        last_end = end;
+    }
+}
