@@ -231,7 +231,7 @@ impl Cell {
                 sim_line = Some(control);
                 Box::new(host)
             }
-            other => open_transport(&name, other, TransportConfig::DEFAULT_WINDOW).await?,
+            other => open_transport(&name, other, TransportConfig::DEFAULT_TCP_WINDOW).await?,
         };
         let tags = TagTable::new(&name, &plc.tags);
         let (link, task) =

@@ -178,7 +178,7 @@ impl G05Desk {
             in_flight: match &machine.transport {
                 TransportConfig::Sim { .. } => SimOptions::default().fifo as u64 + 1,
                 TransportConfig::Tcp { .. } => u64::from(machine.tcp_window()),
-                TransportConfig::Serial { .. } => crate::transport::serial::DEFAULT_WINDOW as u64,
+                TransportConfig::Serial { .. } => crate::transport::serial::PACER_WINDOW as u64,
             },
             current: Mutex::new(None),
             next: AtomicU64::new(0),

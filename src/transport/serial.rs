@@ -15,7 +15,7 @@
 //!   [`Transport::take_line_error`] (§4.6 line errors).
 //! - **Write-ahead.** The kernel's output queue holds kilobytes: a writer that fills it could not
 //!   honour a DC3 for seconds. Writes are paced to the line rate through a bounded window
-//!   ([`DEFAULT_WINDOW`]), checked against the kernel's own count of unsent bytes where the port
+//!   ([`PACER_WINDOW`]), checked against the kernel's own count of unsent bytes where the port
 //!   reports it.
 //! - **Flush.** tokio-serial's flush calls `tcdrain`, which blocks the executor thread until the
 //!   queue has gone out; here flush returns at once (the bytes are queued and will leave).
@@ -46,7 +46,7 @@ use super::{
 /// Characters written and not yet sent, at most, by default: at 86400 baud about 16 ms of line
 /// time, enough to ride over scheduling delays, and far inside Protocol B's 512-character
 /// overrun allowance after a DC3 (§6.3).
-pub const DEFAULT_WINDOW: usize = 128;
+pub const PACER_WINDOW: usize = 128;
 
 /// Things logged once per port.
 mod once {
@@ -117,7 +117,7 @@ impl SerialTransport {
             port,
             path,
             line,
-            pacer: Pacer::new(line, DEFAULT_WINDOW),
+            pacer: Pacer::new(line, PACER_WINDOW),
             write_sleep: None,
             marks,
             logged: 0,
@@ -411,7 +411,7 @@ impl ReopeningSerial {
         let opener = PortOpener {
             path: path.into(),
             line,
-            window: DEFAULT_WINDOW,
+            window: PACER_WINDOW,
             modem_out: None,
         };
         let first = SerialTransport::open(&opener.path, line);

@@ -182,18 +182,18 @@ impl MachineConfig {
     /// waits for the board's answer, and an Expansion A data packet is handed out only once
     /// the one before has left the line (§5.3 3; protocol notes 17). So the window only sizes
     /// the writes: twice the largest packet's data, so that a packet goes out in one write
-    /// instead of a write every half of [`TransportConfig::DEFAULT_WINDOW`] (docs/performance.md,
+    /// instead of a write every half of [`TransportConfig::DEFAULT_TCP_WINDOW`] (docs/performance.md,
     /// "What each change bought").
     pub const A_FAMILY_WINDOW: u32 = 2048;
 
     /// The `transport.window` in force for a `tcp` transport: the file's, else the protocol's
-    /// default ([`Self::A_FAMILY_WINDOW`]; [`TransportConfig::DEFAULT_WINDOW`] for Protocol B
+    /// default ([`Self::A_FAMILY_WINDOW`]; [`TransportConfig::DEFAULT_TCP_WINDOW`] for Protocol B
     /// and Expansion B, whose overrun after DC3 bounds it, §6.3, §7).
     pub fn tcp_window(&self) -> u32 {
         self.transport.window_or(if self.protocol.is_a_family() {
             Self::A_FAMILY_WINDOW
         } else {
-            TransportConfig::DEFAULT_WINDOW
+            TransportConfig::DEFAULT_TCP_WINDOW
         })
     }
 

@@ -45,7 +45,7 @@ pub enum TransportConfig {
         #[serde(skip_serializing_if = "Option::is_none")]
         parity_by: Option<ParityBy>,
         /// Bytes handed to the device server and not yet on the line, at most; `None`: the
-        /// link's default ([`TransportConfig::DEFAULT_WINDOW`], or the machine's protocol's,
+        /// link's default ([`TransportConfig::DEFAULT_TCP_WINDOW`], or the machine's protocol's,
         /// see `MachineConfig::tcp_window`).
         #[serde(skip_serializing_if = "Option::is_none")]
         window: Option<u32>,
@@ -280,7 +280,7 @@ impl TryFrom<RawTransport> for TransportConfig {
 impl TransportConfig {
     /// Default of `window`, bytes, where the link's protocol sets no other: well inside the
     /// 512 characters Protocol B may overrun a DC3 by (§6.3).
-    pub const DEFAULT_WINDOW: u32 = 256;
+    pub const DEFAULT_TCP_WINDOW: u32 = 256;
     /// Default of `reconnect_min_ms`, ms.
     pub const DEFAULT_RECONNECT_MIN_MS: u64 = 100;
     /// Default of `reconnect_max_ms`, ms.
@@ -343,7 +343,7 @@ impl TransportConfig {
 
     /// One line for logs and `check-config`: "serial /dev/ttyS0, 19200 8N2".
     pub fn describe(&self) -> String {
-        self.describe_with(Self::DEFAULT_WINDOW)
+        self.describe_with(Self::DEFAULT_TCP_WINDOW)
     }
 
     /// [`describe`](Self::describe), with the window a `tcp` transport has where the file sets

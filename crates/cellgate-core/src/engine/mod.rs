@@ -15,6 +15,7 @@
 //! - [`parity`]: the parity bit made and checked by the gateway, where a device server passes
 //!   whole 8-bit frames of a 7-bit line.
 
+pub mod hex;
 pub mod line;
 pub mod pacer;
 pub mod parity;

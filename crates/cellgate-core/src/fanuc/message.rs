@@ -281,12 +281,7 @@ pub fn sum8(bytes: &[u8]) -> u8 {
     bytes.iter().fold(0u8, |acc, &b| acc.wrapping_add(b))
 }
 
-const HEX: &[u8; 16] = b"0123456789ABCDEF";
-
-/// The two hex digits of `v`, high first.
-pub fn hex2(v: u8) -> [u8; 2] {
-    [HEX[usize::from(v >> 4)], HEX[usize::from(v & 0xF)]]
-}
+pub use crate::engine::hex::hex2;
 
 /// Value of two upper-case hex digits; lower case is not accepted (protocol notes 1).
 pub fn parse_hex2(d: [u8; 2]) -> Option<u8> {

@@ -249,11 +249,9 @@ fn field(data: &[u8], pos: usize, len: usize) -> Result<Option<u16>, StatusDataE
     Ok(Some(v))
 }
 
-const HEX: &[u8; 16] = b"0123456789ABCDEF";
-
 fn put_hex(out: &mut Vec<u8>, v: u16, digits: usize) {
     for i in (0..digits).rev() {
-        out.push(HEX[usize::from((v >> (4 * i)) & 0xF)]);
+        out.push(crate::engine::hex::DIGITS[usize::from((v >> (4 * i)) & 0xF)]);
     }
 }
 

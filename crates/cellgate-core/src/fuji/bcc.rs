@@ -124,12 +124,7 @@ pub fn xor8(bytes: &[u8]) -> u8 {
     bytes.iter().fold(0u8, |acc, &b| acc ^ b)
 }
 
-const HEX: &[u8; 16] = b"0123456789ABCDEF";
-
-/// The two upper-case hex characters of `v`, high digit first.
-pub fn hex2(v: u8) -> [u8; 2] {
-    [HEX[usize::from(v >> 4)], HEX[usize::from(v & 0xF)]]
-}
+pub use crate::engine::hex::hex2;
 
 /// The value of one upper-case hex character (§4-3 item 14: "0 to 9, A to F").
 pub fn hex_value(c: u8) -> Option<u8> {

@@ -3,6 +3,9 @@
 //! reserved character: 1 to 128 characters of `A-Z a-z 0-9 . _ + -`, starting with a letter
 //! or a digit.
 
+/// Longest program number: O and up to 8 digits, in a program's text and in a name made of it.
+pub const O_DIGITS_MAX: usize = 8;
+
 /// Longest program name.
 pub const NAME_MAX: usize = 128;
 

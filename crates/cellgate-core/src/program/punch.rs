@@ -43,6 +43,7 @@
 //! [`PunchError::Unterminated`] and does not hand it out: the CNC sends a program's EOR
 //! last, so a program without it was cut short (STOP, reset, or a lost line).
 
+use super::name::O_DIGITS_MAX;
 use crate::fanuc::code::{CR, EOR, LF, has_even_parity, is_eor, is_significant};
 use crate::program::tape::{self, EIA_EOB, EIA_ER, TapeCode, TapeError};
 
@@ -366,8 +367,6 @@ fn single_lf_eob(text: Vec<u8>) -> Vec<u8> {
     out
 }
 
-/// Longest program number: O and up to 8 digits.
-const O_DIGITS_MAX: usize = 8;
 /// Longest comment kept as a display name.
 const COMMENT_MAX: usize = 64;
 

@@ -16,6 +16,7 @@
 //!   significant character is the tape-start mark, the next one is EOR. A program without EOR
 //!   is refused, or completed with `%` when the request asks for it.
 
+use super::name::O_DIGITS_MAX;
 use crate::fanuc::code::{CR, DC1, DC2, DC3, DC4, EOR, ETX, LF, NAK, SYN, is_significant};
 use crate::fanuc::{EndCode, Protocol};
 /// What a machine's link can carry, from its cell-file settings.
@@ -175,9 +176,6 @@ pub struct Scanner {
     o_number: Option<String>,
     last_byte: Option<u8>,
 }
-
-/// Longest program number kept (O followed by up to 8 digits).
-const O_DIGITS_MAX: usize = 8;
 
 impl Scanner {
     /// A scanner for a machine with these rules, at the program's first byte.

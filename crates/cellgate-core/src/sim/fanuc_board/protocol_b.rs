@@ -62,6 +62,7 @@ use crate::engine::{LineError, ModemIn, ModemOut};
 use crate::fanuc::CodeSystem;
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::code::{DC1, DC2, DC3};
+use crate::fanuc::protocol_b::{OVERRUN_B, OVERRUN_EXPANSION_B_ALARM};
 use crate::fanuc::sat::{AlarmCause, StatusData};
 use crate::sim::cnc::{Cnc, Push};
 
@@ -73,11 +74,6 @@ pub const DC1_FREE: usize = 4096;
 pub const DC3_FREE_B: usize = 512;
 /// The same in Expansion Protocol B (§6.3).
 pub const DC3_FREE_EXPANSION_B: usize = 2560;
-/// Characters the board takes after its DC3 in Protocol B before SR0856 (§6.3, §11).
-pub const OVERRUN_B: usize = 512;
-/// The same in Expansion Protocol B: the §6.3 table and §11 say 2560, §7 says 1280; the host
-/// keeps within 1280 and the board alarms only past 2560 (protocol notes 12).
-pub const OVERRUN_EXPANSION_B: usize = 2560;
 /// Punched bytes handed to the line at once: a host's DC3 or CS off takes effect after at
 /// most this many more (plus the UART FIFO).
 pub const PUNCH_PIECE: usize = 32;
@@ -91,10 +87,11 @@ pub const fn dc3_free(expansion: bool) -> usize {
     }
 }
 
-/// Characters after a DC3 beyond which the board raises SR0856.
+/// Characters after a DC3 beyond which the board raises SR0856 (the manual's sizes are
+/// the host engine's: [`OVERRUN_B`], [`OVERRUN_EXPANSION_B_ALARM`]).
 pub const fn overrun_allowance(expansion: bool) -> usize {
     if expansion {
-        OVERRUN_EXPANSION_B
+        OVERRUN_EXPANSION_B_ALARM
     } else {
         OVERRUN_B
     }
