@@ -4,32 +4,14 @@
 //! - A machine or PLC added, removed or changed: its link starts, stops or restarts; the other
 //!   links are not touched. A PLC whose entry differs in its tags only keeps its link: the
 //!   tags and poll groups are swapped in the running link.
-//! - Settings that apply without touching a link ([`LIVE_KEYS`]): library quotas and
+//! - Settings that apply without touching a link ([`Takes::Live`]): library quotas and
 //!   retention, history retention and shifts, console sessions.
 //! - Everything else is fixed while the gateway runs (the bus session and its access control,
 //!   the TLS identity, telemetry, the journal and the library's place, the console's and the
 //!   MTConnect agent's listeners): a difference there refuses the whole reload, naming each
 //!   key, since nothing of it could be applied without a restart.
 
-use super::{CellConfig, ConsoleConfig, HistoryConfig, ProgramsConfig};
-
-/// The keys a reload applies without touching a link, beside the machines, the PLCs and
-/// their tags.
-pub const LIVE_KEYS: &[&str] = &[
-    "programs.quota_bytes",
-    "programs.quota_files",
-    "programs.keep_revisions",
-    "programs.keep_revision_days",
-    "history.keep_days",
-    "history.keep_audit_days",
-    "history.max_records",
-    "history.max_refusals",
-    "history.tag_values",
-    "history.shifts",
-    "console.session_idle_minutes",
-    "console.session_hours",
-    "console.sessions_per_user",
-];
+use super::{BusConfig, CellConfig, ConsoleConfig, HistoryConfig, ProgramsConfig, SecurityConfig};
 
 /// The differences a reload applies, by what each takes. Names are in the new file's order
 /// (removed ones in the old file's).
@@ -49,7 +31,7 @@ pub struct CellChange {
     pub plcs_changed: Vec<String>,
     /// PLCs whose tags (and so poll groups) alone differ: swapped in the running link.
     pub plc_tags: Vec<String>,
-    /// The keys of [`LIVE_KEYS`] that differ.
+    /// The keys applied without touching a link ([`Takes::Live`]) that differ.
     pub settings: Vec<String>,
 }
 
@@ -99,100 +81,271 @@ impl std::fmt::Display for RestartNeeded {
     }
 }
 
+/// How a reload takes a key of the cell file (the machines and PLCs aside: their entries
+/// start, stop or restart their own links).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Takes {
+    /// Applied at once, without touching a link.
+    Live,
+    /// Fixed while the gateway runs, and why: a difference refuses the whole reload.
+    Restart(&'static str),
+}
+
+/// Every key a reload compares, with how it takes it and whether `old` and `new` differ.
+/// Each section of `new` is taken apart field by field, without `..`: a key added to the
+/// cell file does not compile until it is said here whether a reload applies it at once or
+/// needs a restart for it.
+pub fn keys(old: &CellConfig, new: &CellConfig) -> Vec<(&'static str, Takes, bool)> {
+    use Takes::{Live, Restart};
+    let mut out = Vec::new();
+    let mut key =
+        |name: &'static str, takes: Takes, differs: bool| out.push((name, takes, differs));
+    let CellConfig {
+        cell,
+        bus,
+        telemetry,
+        programs,
+        history,
+        machines: _,
+        plcs: _,
+        security,
+        console,
+        mtconnect,
+    } = new;
+    key(
+        "cell",
+        Restart("every key of the cell starts with it"),
+        *cell != old.cell,
+    );
+
+    let BusConfig {
+        prefix,
+        mode,
+        listen,
+        connect,
+        multicast_scouting,
+        zenoh_config,
+    } = bus;
+    let ob = &old.bus;
+    let session = Restart("the zenoh session is opened with it at start");
+    key(
+        "bus.prefix",
+        Restart("every key of the cell starts with it"),
+        *prefix != ob.prefix,
+    );
+    key("bus.mode", session, *mode != ob.mode);
+    key(
+        "bus.listen",
+        Restart("the bus listen endpoints are bound at start"),
+        *listen != ob.listen,
+    );
+    key("bus.connect", session, *connect != ob.connect);
+    key(
+        "bus.multicast_scouting",
+        session,
+        *multicast_scouting != ob.multicast_scouting,
+    );
+    key(
+        "bus.zenoh_config",
+        session,
+        *zenoh_config != ob.zenoh_config,
+    );
+    key(
+        "telemetry",
+        Restart("logs, traces and metrics are set up once at start"),
+        *telemetry != old.telemetry,
+    );
+
+    let SecurityConfig {
+        tls,
+        users_file,
+        roles,
+    } = security;
+    let os = &old.security;
+    key(
+        "security.tls",
+        Restart("the TLS identity is the zenoh session's, loaded at start"),
+        *tls != os.tls,
+    );
+    key(
+        "security.users_file",
+        Restart("zenoh reads its user-password dictionary at start"),
+        *users_file != os.users_file,
+    );
+    key(
+        "security.roles",
+        Restart("the roles are zenoh's own access control, fixed when the session opens"),
+        *roles != os.roles,
+    );
+
+    let ProgramsConfig {
+        dir,
+        max_size,
+        max_inline,
+        store_punched,
+        requests,
+        journal,
+        keep_jobs,
+        quota_bytes,
+        quota_files,
+        punched_retention_days,
+        damaged_journal,
+        fetch_prefixes,
+        keep_revisions,
+        keep_revision_days,
+        watch,
+        extensions,
+        settle_ms,
+        poll_ms,
+    } = programs;
+    let op = &old.programs;
+    let place = Restart("the library and the journal are opened at start");
+    let machines = Restart(
+        "each machine's job manager takes it when its link starts; restart the gateway to \
+         apply it to every machine alike",
+    );
+    let folder = Restart("the library's folder is followed as it was set at start");
+    key("programs.dir", place, *dir != op.dir);
+    key("programs.journal", place, *journal != op.journal);
+    key(
+        "programs.damaged_journal",
+        place,
+        *damaged_journal != op.damaged_journal,
+    );
+    key("programs.max_size", machines, *max_size != op.max_size);
+    key(
+        "programs.max_inline",
+        machines,
+        *max_inline != op.max_inline,
+    );
+    key("programs.keep_jobs", machines, *keep_jobs != op.keep_jobs);
+    key(
+        "programs.store_punched",
+        machines,
+        *store_punched != op.store_punched,
+    );
+    key("programs.requests", machines, *requests != op.requests);
+    key(
+        "programs.punched_retention_days",
+        machines,
+        *punched_retention_days != op.punched_retention_days,
+    );
+    key(
+        "programs.fetch_prefixes",
+        Restart("the job routes take it at start"),
+        *fetch_prefixes != op.fetch_prefixes,
+    );
+    key("programs.watch", folder, *watch != op.watch);
+    key("programs.extensions", folder, *extensions != op.extensions);
+    key("programs.settle_ms", folder, *settle_ms != op.settle_ms);
+    key("programs.poll_ms", folder, *poll_ms != op.poll_ms);
+    key("programs.quota_bytes", Live, *quota_bytes != op.quota_bytes);
+    key("programs.quota_files", Live, *quota_files != op.quota_files);
+    key(
+        "programs.keep_revisions",
+        Live,
+        *keep_revisions != op.keep_revisions,
+    );
+    key(
+        "programs.keep_revision_days",
+        Live,
+        *keep_revision_days != op.keep_revision_days,
+    );
+
+    let HistoryConfig {
+        enabled,
+        dir,
+        keep_days,
+        keep_audit_days,
+        max_records,
+        max_refusals,
+        tag_values,
+        shifts,
+    } = history;
+    let oh = &old.history;
+    let store = Restart("the store is opened at start");
+    key("history.enabled", store, *enabled != oh.enabled);
+    key("history.dir", store, *dir != oh.dir);
+    key("history.keep_days", Live, *keep_days != oh.keep_days);
+    key(
+        "history.keep_audit_days",
+        Live,
+        *keep_audit_days != oh.keep_audit_days,
+    );
+    key("history.max_records", Live, *max_records != oh.max_records);
+    key(
+        "history.max_refusals",
+        Live,
+        *max_refusals != oh.max_refusals,
+    );
+    key("history.tag_values", Live, *tag_values != oh.tag_values);
+    key("history.shifts", Live, *shifts != oh.shifts);
+
+    match (&old.console, console) {
+        (None, None) => {}
+        (Some(oc), Some(nc)) => {
+            let ConsoleConfig {
+                listen,
+                session_idle_minutes,
+                session_hours,
+                sessions_per_user,
+                allow_remote,
+                host_names,
+            } = nc;
+            let bound = Restart("the console's listener is bound at start");
+            key("console.listen", bound, *listen != oc.listen);
+            key(
+                "console.allow_remote",
+                bound,
+                *allow_remote != oc.allow_remote,
+            );
+            key(
+                "console.host_names",
+                Restart("the console's host names are taken at start"),
+                *host_names != oc.host_names,
+            );
+            key(
+                "console.session_idle_minutes",
+                Live,
+                *session_idle_minutes != oc.session_idle_minutes,
+            );
+            key(
+                "console.session_hours",
+                Live,
+                *session_hours != oc.session_hours,
+            );
+            key(
+                "console.sessions_per_user",
+                Live,
+                *sessions_per_user != oc.sessions_per_user,
+            );
+        }
+        _ => key(
+            "console",
+            Restart("the console is started or not at start"),
+            true,
+        ),
+    }
+    key(
+        "mtconnect",
+        Restart("the MTConnect agent and its listeners are set up at start"),
+        *mtconnect != old.mtconnect,
+    );
+    out
+}
+
 /// What taking `new` in place of the running `old` changes, or every key that needs a
 /// restart.
 pub fn compare(old: &CellConfig, new: &CellConfig) -> Result<CellChange, RestartNeeded> {
     let mut fixed = Vec::new();
-    let mut note = |differs: bool, key: &str, why: &str| {
-        if differs {
-            fixed.push(format!("{key} ({why})"));
+    let mut settings = Vec::new();
+    for (key, takes, differs) in keys(old, new) {
+        match (takes, differs) {
+            (_, false) => {}
+            (Takes::Restart(why), true) => fixed.push(format!("{key} ({why})")),
+            (Takes::Live, true) => settings.push(key.to_string()),
         }
-    };
-    note(
-        old.cell != new.cell,
-        "cell",
-        "every key of the cell starts with it",
-    );
-    let (ob, nb) = (&old.bus, &new.bus);
-    let session = "the zenoh session is opened with it at start";
-    note(
-        ob.prefix != nb.prefix,
-        "bus.prefix",
-        "every key of the cell starts with it",
-    );
-    note(ob.mode != nb.mode, "bus.mode", session);
-    note(
-        ob.listen != nb.listen,
-        "bus.listen",
-        "the bus listen endpoints are bound at start",
-    );
-    note(ob.connect != nb.connect, "bus.connect", session);
-    note(
-        ob.multicast_scouting != nb.multicast_scouting,
-        "bus.multicast_scouting",
-        session,
-    );
-    note(
-        ob.zenoh_config != nb.zenoh_config,
-        "bus.zenoh_config",
-        session,
-    );
-    note(
-        old.telemetry != new.telemetry,
-        "telemetry",
-        "logs, traces and metrics are set up once at start",
-    );
-    let (os, ns) = (&old.security, &new.security);
-    note(
-        os.tls != ns.tls,
-        "security.tls",
-        "the TLS identity is the zenoh session's, loaded at start",
-    );
-    note(
-        os.users_file != ns.users_file,
-        "security.users_file",
-        "zenoh reads its user-password dictionary at start",
-    );
-    note(
-        os.roles != ns.roles,
-        "security.roles",
-        "the roles are zenoh's own access control, fixed when the session opens",
-    );
-    fixed_programs(&old.programs, &new.programs, &mut note);
-    let (oh, nh) = (&old.history, &new.history);
-    note(
-        oh.enabled != nh.enabled,
-        "history.enabled",
-        "the store is opened at start",
-    );
-    note(
-        oh.dir != nh.dir,
-        "history.dir",
-        "the store is opened at start",
-    );
-    match (&old.console, &new.console) {
-        (None, None) => {}
-        (Some(o), Some(n)) => {
-            let why = "the console's listener is bound at start";
-            note(o.listen != n.listen, "console.listen", why);
-            note(
-                o.allow_remote != n.allow_remote,
-                "console.allow_remote",
-                why,
-            );
-            note(
-                o.host_names != n.host_names,
-                "console.host_names",
-                "the console's host names are taken at start",
-            );
-        }
-        _ => note(true, "console", "the console is started or not at start"),
     }
-    note(
-        old.mtconnect != new.mtconnect,
-        "mtconnect",
-        "the MTConnect agent and its listeners are set up at start",
-    );
     if !fixed.is_empty() {
         return Err(RestartNeeded(fixed));
     }
@@ -232,75 +385,8 @@ pub fn compare(old: &CellConfig, new: &CellConfig) -> Result<CellChange, Restart
             change.plcs_removed.push(p.name.clone());
         }
     }
-    change.settings = live_settings(old, new);
+    change.settings = settings;
     Ok(change)
-}
-
-/// The `[programs]` keys fixed while the gateway runs: where the library and the journal
-/// are, and what each machine's job manager and punch desk took at start.
-fn fixed_programs(o: &ProgramsConfig, n: &ProgramsConfig, note: &mut impl FnMut(bool, &str, &str)) {
-    let place = "the library and the journal are opened at start";
-    let machines = "each machine's job manager takes it when its link starts; restart the \
-                    gateway to apply it to every machine alike";
-    note(o.dir != n.dir, "programs.dir", place);
-    note(o.journal != n.journal, "programs.journal", place);
-    note(
-        o.damaged_journal != n.damaged_journal,
-        "programs.damaged_journal",
-        place,
-    );
-    note(o.max_size != n.max_size, "programs.max_size", machines);
-    note(
-        o.max_inline != n.max_inline,
-        "programs.max_inline",
-        machines,
-    );
-    note(o.keep_jobs != n.keep_jobs, "programs.keep_jobs", machines);
-    note(
-        o.store_punched != n.store_punched,
-        "programs.store_punched",
-        machines,
-    );
-    note(o.requests != n.requests, "programs.requests", machines);
-    note(
-        o.punched_retention_days != n.punched_retention_days,
-        "programs.punched_retention_days",
-        machines,
-    );
-    note(
-        o.fetch_prefixes != n.fetch_prefixes,
-        "programs.fetch_prefixes",
-        "the job routes take it at start",
-    );
-}
-
-/// The keys of [`LIVE_KEYS`] whose values differ.
-fn live_settings(old: &CellConfig, new: &CellConfig) -> Vec<String> {
-    let (op, np) = (&old.programs, &new.programs);
-    let (oh, nh): (&HistoryConfig, &HistoryConfig) = (&old.history, &new.history);
-    let console = |c: &Option<ConsoleConfig>| c.clone().unwrap_or_default();
-    let (oc, nc) = (console(&old.console), console(&new.console));
-    let differs = [
-        op.quota_bytes != np.quota_bytes,
-        op.quota_files != np.quota_files,
-        op.keep_revisions != np.keep_revisions,
-        op.keep_revision_days != np.keep_revision_days,
-        oh.keep_days != nh.keep_days,
-        oh.keep_audit_days != nh.keep_audit_days,
-        oh.max_records != nh.max_records,
-        oh.max_refusals != nh.max_refusals,
-        oh.tag_values != nh.tag_values,
-        oh.shifts != nh.shifts,
-        oc.session_idle_minutes != nc.session_idle_minutes,
-        oc.session_hours != nc.session_hours,
-        oc.sessions_per_user != nc.sessions_per_user,
-    ];
-    LIVE_KEYS
-        .iter()
-        .zip(differs)
-        .filter(|(_, d)| *d)
-        .map(|(k, _)| (*k).to_string())
-        .collect()
 }
 
 /// One line for people from a reload's lists, in [`CellChange`]'s order (machines added,

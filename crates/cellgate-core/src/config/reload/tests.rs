@@ -143,3 +143,55 @@ fn roles_are_zenohs_and_need_a_restart() {
     new.console = None;
     assert!(compare(&old, &new).unwrap_err().0[0].starts_with("console ("));
 }
+
+#[test]
+fn the_folders_keys_need_a_restart_where_they_were_once_silently_ignored() {
+    for (key, value) in [
+        ("settle_ms", "2000"),
+        ("poll_ms", "5000"),
+        ("watch", "\"poll\""),
+        ("extensions", "[\"nc\"]"),
+    ] {
+        let e = changed(&format!("{BASE}\n[programs]\n{key} = {value}\n")).unwrap_err();
+        assert!(
+            e.0.iter()
+                .any(|k| k.starts_with(&format!("programs.{key} ("))),
+            "{e}"
+        );
+    }
+}
+
+/// Every key a reload compares is in the table of docs/configuration.md that says how a
+/// reload takes it (by its last part: the table names a section's keys once).
+#[test]
+fn every_key_a_reload_compares_is_in_the_docs_table() {
+    let docs = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/configuration.md"),
+    )
+    .unwrap();
+    let table = docs
+        .split("### Each key on a reload")
+        .nth(1)
+        .and_then(|t| t.split("\n\n").nth(1))
+        .expect("the table");
+    let base = cell(BASE);
+    for (key, takes, differs) in keys(&base, &base) {
+        assert!(!differs, "{key}");
+        let last = key.rsplit('.').next().unwrap();
+        let row = table
+            .lines()
+            .find(|l| {
+                [
+                    format!("`{key}`"),
+                    format!("`{last}`"),
+                    format!("`[{key}]`"),
+                    format!("`[[{key}]]`"),
+                ]
+                .iter()
+                .any(|k| l.contains(k.as_str()))
+            })
+            .unwrap_or_else(|| panic!("{key} is not in the docs' reload table"));
+        let said_live = row.contains("applied at once");
+        assert_eq!(said_live, takes == Takes::Live, "{key}: {row}");
+    }
+}
