@@ -30,7 +30,7 @@
 use serde_json::{Value, json};
 
 use super::keys::{CellKeys, MachineLeaf, admin_selector, gateway_selector};
-use super::routes;
+use super::{published, routes};
 use cellgate_core::config::{Permission, SecurityConfig};
 
 pub use super::error::{AclError, ID_PREFIX};
@@ -100,13 +100,16 @@ fn presence(keys: &CellKeys, prefix: &str) -> Vec<Grant> {
 }
 
 /// Following jobs: their events published, a get for the latest one, cancels seen.
-fn job_events(keys: &CellKeys) -> Vec<Grant> {
+fn job_events(keys: &CellKeys, p: Permission) -> Vec<Grant> {
     let events = vec![keys.any_job_events()];
+    let published = published::read_by(keys, p);
     vec![
         grant(Flow::Ingress, QUERY, events.clone()),
         grant(Flow::Egress, REPLY_AND_QUERYABLE, events.clone()),
-        grant(Flow::Ingress, &["declare_subscriber"], events.clone()),
-        grant(Flow::Egress, &["put", "delete"], events),
+        grant(Flow::Ingress, &["declare_subscriber"], published.clone()),
+        grant(Flow::Egress, &["put"], published),
+        // A cancel (a client's delete) is seen by whoever follows the job.
+        grant(Flow::Egress, &["delete"], events),
     ]
 }
 
@@ -122,20 +125,14 @@ fn writes(keys: Vec<String>) -> Vec<Grant> {
 /// Reading the library: gets (a program, a wildcard listing, revisions, a comparison), and
 /// the gateway's word of each change (`…/program/NAME/changed`).
 fn program_reads(keys: &CellKeys) -> Vec<Grant> {
-    let changed = vec![super::keys::program_changed(keys, "*")];
     let read = routes::granted(keys, Permission::ProgramRead);
+    let published = published::read_by(keys, Permission::ProgramRead);
     vec![
         grant(Flow::Ingress, QUERY, read.clone()),
         grant(Flow::Egress, REPLY_AND_QUERYABLE, read),
-        // The library's events: subscribed to, published by the gateway.
-        grant(
-            Flow::Ingress,
-            &["declare_subscriber"],
-            vec![keys.program_events()],
-        ),
-        grant(Flow::Egress, &["put"], vec![keys.program_events()]),
-        grant(Flow::Ingress, &["declare_subscriber"], changed.clone()),
-        grant(Flow::Egress, &["put"], changed),
+        // The library's changes and events: subscribed to, published by the gateway.
+        grant(Flow::Ingress, &["declare_subscriber"], published.clone()),
+        grant(Flow::Egress, &["put"], published),
     ]
 }
 
@@ -148,9 +145,9 @@ fn reads(keys: Vec<String>) -> Vec<Grant> {
 }
 
 /// The rules of one permission: on the keys of the route table's rows that name it
-/// ([`routes::granted`]), and on the keys listed here for what the table does not say (the
-/// reads that more than one permission makes, the events and publications, the G05 streams,
-/// the reload and admin keys).
+/// ([`routes::granted`]) and of the publications it may read ([`published::read_by`]), and
+/// on the keys listed here for what the tables do not say (the reads that more than one
+/// permission makes, the G05 streams' writes, the reload and admin keys, presence).
 fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
     let leaf = |l: MachineLeaf| keys.any_leaf(l);
     match p {
@@ -170,22 +167,13 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
                 grant(Flow::Egress, REPLY_AND_QUERYABLE, answered),
                 // Any subscription in the cell; the egress rule below picks what reaches it.
                 grant(Flow::Ingress, &["declare_subscriber"], vec![keys.all()]),
-                grant(
-                    Flow::Egress,
-                    &["put"],
-                    vec![
-                        leaf(MachineLeaf::Status),
-                        leaf(MachineLeaf::Di),
-                        leaf(MachineLeaf::Alarm),
-                        leaf(MachineLeaf::Punch),
-                        leaf(MachineLeaf::Do),
-                        super::keys::do_out(keys, "*"),
-                        keys.any_job_events(),
-                        keys.every_g05_key(),
-                        keys.any_plc(),
-                        keys.reloads(),
-                    ],
-                ),
+                grant(Flow::Egress, &["put"], {
+                    // What the gateway publishes, and a client's put on `…/do`, which is
+                    // itself the DO's event (bus.md).
+                    let mut seen = published::read_by(keys, p);
+                    seen.push(leaf(MachineLeaf::Do));
+                    seen
+                }),
                 grant(Flow::Egress, &["delete"], vec![keys.any_job_events()]),
             ]
         }
@@ -195,7 +183,7 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
                 grant(Flow::Ingress, QUERY, queried.clone()),
                 grant(Flow::Egress, REPLY_AND_QUERYABLE, queried),
             ];
-            g.extend(job_events(keys));
+            g.extend(job_events(keys, p));
             g
         }
         Permission::JobCancel => {
@@ -213,7 +201,7 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
                     vec![keys.any_job_cancel()],
                 ),
             ];
-            g.extend(job_events(keys));
+            g.extend(job_events(keys, p));
             g
         }
         Permission::ProgramRead => program_reads(keys),
@@ -240,7 +228,7 @@ fn grants(p: Permission, keys: &CellKeys, prefix: &str) -> Vec<Grant> {
                 &["declare_subscriber"],
                 vec![keys.every_g05_key()],
             ));
-            g.push(grant(Flow::Egress, &["put"], vec![keys.every_g05_key()]));
+            g.push(grant(Flow::Egress, &["put"], published::read_by(keys, p)));
             // The producer's liveliness token, which the gateway watches to end a stream
             // whose producer went away.
             g.push(grant(

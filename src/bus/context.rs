@@ -21,6 +21,7 @@ use super::error::BusError;
 use super::keys::{CellKey, CellKeys, MachineLeaf, intersects};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, error_reply};
+use super::published::{MachinePublication, Published};
 use crate::history::History;
 use crate::jobs::JobError;
 use crate::jobs::library::{LibraryError, ProgramLibrary};
@@ -29,7 +30,6 @@ use cellgate_core::codes::BusCode;
 use cellgate_core::fanuc::Protocol;
 use cellgate_core::pb;
 use zenoh::pubsub::Publisher;
-use zenoh::qos::CongestionControl;
 
 /// Requests whose reply may wait (a job whose program is scanned or fetched, a DI read, a DO
 /// output, a library transfer) that run at once, over every [`Pool`]. The bound keeps a flood
@@ -671,6 +671,7 @@ pub(crate) async fn reply_err(q: &Query, error: &(impl BusCode + std::fmt::Displ
 /// watcher sees who asked. A failure is logged: the request itself was done.
 pub(crate) async fn publish_event<M: BusMessage>(
     ctx: &RouteContext,
+    what: Published,
     key: &str,
     message: &M,
     origin: Option<&pb::RequestOrigin>,
@@ -679,7 +680,8 @@ pub(crate) async fn publish_event<M: BusMessage>(
         .session
         .put(key, message.encode_to_vec())
         .encoding(encoding::<M>())
-        .congestion_control(zenoh::qos::CongestionControl::Block);
+        .congestion_control(what.congestion())
+        .priority(what.priority());
     if let Some(o) = origin {
         put = put.attachment(o.encode_to_vec());
     }
@@ -688,8 +690,8 @@ pub(crate) async fn publish_event<M: BusMessage>(
     }
 }
 
-/// One of a machine's publishers: messages `M` on `P/C/machine/M/<leaf>`, with the QoS its
-/// route chose. Undeclared when dropped.
+/// One of a machine's publishers: messages `M` on `P/C/machine/M/<leaf>`, with the QoS of
+/// its row of [`PUBLICATIONS`](super::published::PUBLICATIONS). Undeclared when dropped.
 pub(crate) struct MachinePublisher<M> {
     publisher: Publisher<'static>,
     message: std::marker::PhantomData<fn(&M)>,
@@ -699,15 +701,16 @@ impl<M: BusMessage> MachinePublisher<M> {
     pub(crate) async fn declare(
         ctx: &RouteContext,
         machine: &str,
-        leaf: MachineLeaf,
-        congestion: CongestionControl,
+        what: MachinePublication,
     ) -> Result<Self, BusError> {
-        let key = ctx.keys.leaf(machine, leaf);
+        let key = ctx.keys.leaf(machine, what.leaf());
+        let what = what.published();
         let publisher = ctx
             .session
             .declare_publisher(key.clone())
             .encoding(encoding::<M>())
-            .congestion_control(congestion)
+            .congestion_control(what.congestion())
+            .priority(what.priority())
             .await
             .map_err(|source| BusError::Declare {
                 what: "publisher",

@@ -13,11 +13,11 @@ use super::context::MachinePublisher;
 use super::context::RouteContext;
 use super::error::BusError;
 use super::machine::{Extra, Machine};
+use super::published::MachinePublication;
 use super::record::Recorder;
 use super::route_job::JobEventPublisher;
 use super::route_punch::{Outcome, PunchDesk, PunchSettings};
 use super::route_status::StatusPublisher;
-use super::{route_alarm, route_io, route_punch};
 use crate::jobs::{JobsHandle, JobsSnapshot};
 use crate::link::driver::{LinkCommand, LinkEvent, LinkHandle};
 use cellgate_core::fanuc::host::LinkState;
@@ -75,9 +75,9 @@ impl MachineTask {
         Ok(MachineTask {
             status: StatusPublisher::declare(ctx, &name).await?,
             job_publisher: JobEventPublisher::default(),
-            di: route_io::declare_di_publisher(ctx, &name).await?,
-            alarm: route_alarm::declare_publisher(ctx, &name).await?,
-            punch: route_punch::declare_publisher(ctx, &name).await?,
+            di: MachinePublisher::declare(ctx, &name, MachinePublication::Di).await?,
+            alarm: MachinePublisher::declare(ctx, &name, MachinePublication::Alarm).await?,
+            punch: MachinePublisher::declare(ctx, &name, MachinePublication::Punch).await?,
             desk: PunchDesk::new(&name, punch).receiving(machine.config.receive_dir.clone()),
             token: None,
             ctx: ctx.clone(),

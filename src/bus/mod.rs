@@ -10,9 +10,11 @@
 //! - `context`: what every route shares, the typed request errors, the reply helpers;
 //! - `routes`: the table of every queryable and subscriber served (key, what arrives there,
 //!   pool, permission, handler), declared and served from there, and undeclared when a
-//!   route stops;
+//!   route stops; `published`: the table of every publication (key, message, QoS, the
+//!   permissions that may subscribe): together the bus contract, which [`acl`] takes its
+//!   keys from and docs/bus.md is checked against;
 //! - one module per kind of route, with its handlers and publishers: `route_status`,
-//!   `route_job`, `route_io` (DI/DO), `route_alarm`, `route_punch`, `route_program` (library),
+//!   `route_job`, `route_io` (DI/DO), `route_punch`, `route_program` (library),
 //!   `route_history`, `route_misdirected`, `route_g05` (G05 streams: batches in order on
 //!   their route's loop, a status publisher per open stream), `route_plc` (PLC memory, transfers, status), `route_tag` (PLC tags),
 //!   `route_sim` (the controls of simulated machines);
@@ -28,10 +30,11 @@
 //! its own task, and requests that may wait run off it within a bound
 //! ([`context::MAX_WAITING_REQUESTS`]), so one slow querier stalls no other request.
 //!
-//! QoS per route: job requests, DO commands and program transfers are queries or puts the
-//! client sends (a query is `Block` by default, and its replies follow it); job events,
-//! alarms and punched programs are published reliable with `Block`; status and DI telemetry
-//! with `Drop`, since the next value supersedes a lost one.
+//! QoS: job requests, DO commands and program transfers are queries or puts the client
+//! sends (a query is `Block` by default, and its replies follow it); what the gateway
+//! publishes goes with the QoS of its row in `published`: job events, alarms and punched
+//! programs reliable with `Block`, status and DI telemetry with `Drop`, since the next value
+//! supersedes a lost one.
 
 pub mod acl;
 pub mod admin;
@@ -42,8 +45,8 @@ pub mod keys;
 mod machine;
 mod machine_task;
 pub mod payload;
+mod published;
 mod record;
-mod route_alarm;
 mod route_folder;
 mod route_g05;
 mod route_history;

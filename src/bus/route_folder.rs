@@ -42,7 +42,14 @@ pub(crate) async fn publish_library_event(ctx: &RouteContext, mut event: pb::Lib
     if event.unix_ms == 0 {
         event.unix_ms = pb::now_ms();
     }
-    super::context::publish_event(ctx, &ctx.keys.program_events(), &event, None).await;
+    super::context::publish_event(
+        ctx,
+        super::published::Published::LibraryEvent,
+        &ctx.keys.program_events(),
+        &event,
+        None,
+    )
+    .await;
 }
 
 /// Who made a file: its owner's user name where the system says, else no user (the origin

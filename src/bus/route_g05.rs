@@ -17,7 +17,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use prost::Message;
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
-use zenoh::qos::{CongestionControl, Priority};
+use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 use zenoh::sample::{Sample, SampleKind};
 
@@ -28,7 +28,7 @@ use super::context::{
 use super::keys::{CellKey, G05Part, MachineLeaf};
 use super::machine::Machine;
 use super::payload::{encoding, g05_status};
-use super::route_alarm;
+use super::published::{MachinePublication, Published};
 use crate::link::g05::{STATUS_INTERVAL, StreamHandle, StreamStatus};
 use cellgate_core::config::Permission;
 use cellgate_core::fanuc::g05::AuxWord;
@@ -217,8 +217,8 @@ async fn follow(
         .session
         .declare_publisher(key.clone())
         .encoding(encoding::<pb::G05Status>())
-        .congestion_control(CongestionControl::Drop)
-        .priority(Priority::InteractiveHigh)
+        .congestion_control(Published::G05Status.congestion())
+        .priority(Published::G05Status.priority())
         .await;
     let publisher = match publisher {
         Ok(p) => p,
@@ -228,7 +228,9 @@ async fn follow(
         }
     };
     // Starvation and an idle end are alarms, not only status fields.
-    let alarms = match route_alarm::declare_publisher(&ctx, machine.name()).await {
+    let alarms = match MachinePublisher::declare(&ctx, machine.name(), MachinePublication::Alarm)
+        .await
+    {
         Ok(p) => Some(p),
         Err(e) => {
             tracing::warn!(stream = %handle.id, error = %e, "cannot publish the G05 stream's alarms");
@@ -280,7 +282,9 @@ async fn follow(
         .session
         .put(key.as_str(), last.encode_to_vec())
         .encoding(encoding::<pb::G05Status>())
+        // The last word goes reliably, whatever the row says of the ones before it.
         .congestion_control(CongestionControl::Block)
+        .priority(Published::G05Status.priority())
         .await;
     if let Err(e) = sent {
         tracing::warn!(%key, error = %e, "the G05 stream's last status was not published");

@@ -11,16 +11,14 @@
 
 use std::time::SystemTime;
 
-use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 use zenoh::sample::{Sample, SampleKind};
 
 use super::audit::{Audit, origin_of};
-use super::context::MachinePublisher;
 use super::context::{RequestError, RouteContext, Target, publish_event, reply, reply_err};
-use super::error::BusError;
-use super::keys::{MachineLeaf, do_out};
+use super::keys::MachineLeaf;
 use super::machine::Machine;
+use super::published::Published;
 use crate::link::driver::{LinkCommand, LinkEvent};
 use cellgate_core::config::Permission;
 use cellgate_core::pb;
@@ -299,16 +297,15 @@ pub(super) async fn do_get(ctx: &RouteContext, q: &Query) {
                 value: u32::from(value),
                 mask: Some(u32::from(mask)),
             };
-            publish_event(ctx, &do_out(&ctx.keys, m.name()), &out, origin.as_ref()).await;
+            publish_event(
+                ctx,
+                Published::DoOut,
+                &ctx.keys.do_out(m.name()),
+                &out,
+                origin.as_ref(),
+            )
+            .await;
         }
         Err(e) => reply_err(q, &e).await,
     }
-}
-
-/// Declares one machine's DI publisher: telemetry, the next image supersedes a lost one.
-pub(crate) async fn declare_di_publisher(
-    ctx: &RouteContext,
-    machine: &str,
-) -> Result<MachinePublisher<pb::DiImage>, BusError> {
-    MachinePublisher::declare(ctx, machine, MachineLeaf::Di, CongestionControl::Drop).await
 }

@@ -17,7 +17,6 @@ use bytes::Bytes;
 use prost::Message;
 use zenoh::bytes::Encoding;
 use zenoh::key_expr::KeyExpr;
-use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 use zenoh::sample::{Sample, SampleKind};
 
@@ -26,6 +25,7 @@ use super::context::{RequestError, RouteContext, Target, reply, reply_err};
 use super::keys::{CellKey, MachineLeaf, intersects, is_plain_chunk};
 use super::machine::Machine;
 use super::payload::{BusMessage, encoding, schema_of};
+use super::published::Published;
 use crate::jobs::JobSubmission;
 use crate::jobs::source::ProgramInput;
 use cellgate_core::config::Permission;
@@ -474,7 +474,8 @@ impl JobEventPublisher {
             .session
             .put(key, event.encode_to_vec())
             .encoding(encoding::<pb::JobEvent>())
-            .congestion_control(CongestionControl::Block)
+            .congestion_control(Published::JobEvent.congestion())
+            .priority(Published::JobEvent.priority())
             .await;
         if let Err(e) = sent {
             tracing::warn!(machine = %machine.name(), job = %event.job_id, error = %e, "publishing a job event failed");

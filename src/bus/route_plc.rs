@@ -26,7 +26,6 @@ use std::time::Duration;
 use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
 use zenoh::liveliness::LivelinessToken;
-use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 use zenoh::sample::{Sample, SampleKind};
 
@@ -34,6 +33,7 @@ use super::audit::{Audit, origin_of};
 use super::context::{RouteContext, Routed, reply, reply_err};
 use super::keys::PlcKey;
 use super::payload::{BusMessage, encoding, schema_of};
+use super::published::Published;
 use crate::plc::{PlcEvent, PlcHandle, PlcLinkError, PlcSnapshot, TagError, TagWriteError};
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::Permission;
@@ -160,19 +160,15 @@ impl PlcContext {
             })
     }
 
-    /// Publishes `message` on `key`.
-    pub(super) async fn publish<M: BusMessage>(
-        &self,
-        key: String,
-        message: &M,
-        cc: CongestionControl,
-    ) {
+    /// Publishes `message` on `key`, with the QoS of `what`'s row.
+    pub(super) async fn publish<M: BusMessage>(&self, what: Published, key: String, message: &M) {
         let sent = self
             .route
             .session
             .put(key.clone(), message.encode_to_vec())
             .encoding(encoding::<M>())
-            .congestion_control(cc)
+            .congestion_control(what.congestion())
+            .priority(what.priority())
             .await;
         if let Err(e) = sent {
             tracing::warn!(%key, error = %e, "publish failed");
@@ -881,7 +877,7 @@ pub(crate) async fn publish_link(ctx: PlcContext, link: PlcLink, stop: Cancellat
     let status = |ctx: PlcContext, link: PlcLink| async move {
         if let Ok(s) = link.link.snapshot().await {
             let k = ctx.route.keys.plc_status(&link.config.name);
-            ctx.publish(k, &status_message(&link, &s), CongestionControl::Drop)
+            ctx.publish(Published::PlcStatus, k, &status_message(&link, &s))
                 .await;
         }
     };
@@ -898,7 +894,7 @@ pub(crate) async fn publish_link(ctx: PlcContext, link: PlcLink, stop: Cancellat
                         from_plc: true,
                         unix_ms: pb::unix_ms(time),
                     };
-                    ctx.publish(keys.plc_transfer(&name, message), &t, CongestionControl::Block).await;
+                    ctx.publish(Published::PlcTransfer, keys.plc_transfer(&name, message), &t).await;
                 }
                 Ok(PlcEvent::Message { data, time }) => {
                     let m = pb::PlcMessage {
@@ -908,7 +904,7 @@ pub(crate) async fn publish_link(ctx: PlcContext, link: PlcLink, stop: Cancellat
                         receive_message: 0,
                         unix_ms: pb::unix_ms(time),
                     };
-                    ctx.publish(keys.plc_message(&name), &m, CongestionControl::Block).await;
+                    ctx.publish(Published::PlcMessage, keys.plc_message(&name), &m).await;
                 }
                 Ok(PlcEvent::Station { station, up }) => {
                     ctx.route.history.event(

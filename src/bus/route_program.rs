@@ -23,7 +23,8 @@ use zenoh::sample::{Sample, SampleKind};
 
 use super::audit::{Audit, origin_of};
 use super::context::{RequestError, RouteContext, publish_event, reply, reply_bytes, reply_err};
-use super::keys::{CellKey, intersects, program_changed};
+use super::keys::{CellKey, intersects};
+use super::published::Published;
 use crate::jobs::library::Store;
 use cellgate_core::config::Permission;
 use cellgate_core::pb;
@@ -352,7 +353,14 @@ pub(super) async fn changed(
     if removed && let Some(latest) = info.latest.as_mut() {
         latest.removed = true;
     }
-    publish_event(ctx, &program_changed(&ctx.keys, &info.name), &info, origin).await;
+    publish_event(
+        ctx,
+        Published::ProgramChanged,
+        &ctx.keys.program_changed(&info.name),
+        &info,
+        origin,
+    )
+    .await;
 }
 
 fn audit_write(

@@ -16,12 +16,6 @@
 //!
 //! [`LinkEvent::Punched`]: crate::link::driver::LinkEvent::Punched
 
-use zenoh::qos::CongestionControl;
-
-use super::context::MachinePublisher;
-use super::context::RouteContext;
-use super::error::BusError;
-use super::keys::MachineLeaf;
 use crate::jobs::library::{LibraryError, Store};
 use crate::jobs::source::ProgramInput;
 use crate::jobs::{JobError, JobSubmission, JobsHandle};
@@ -452,12 +446,4 @@ fn code_system(code: TapeCode) -> pb::CodeSystem {
         TapeCode::Ascii => pb::CodeSystem::Ascii,
         TapeCode::Eia => pb::CodeSystem::Eia,
     }
-}
-
-/// Declares one machine's punched-program publisher: reliable, a program is never dropped.
-pub(crate) async fn declare_publisher(
-    ctx: &RouteContext,
-    machine: &str,
-) -> Result<MachinePublisher<pb::PunchedProgram>, BusError> {
-    MachinePublisher::declare(ctx, machine, MachineLeaf::Punch, CongestionControl::Block).await
 }

@@ -11,7 +11,6 @@ use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 use zenoh::handlers::FifoChannelHandler;
-use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 
 use super::audit::{Audit, Auditor, origin_of};
@@ -19,6 +18,7 @@ use super::context::reply_err;
 use super::error::BusError;
 use super::keys::CellKeys;
 use super::payload::encoding;
+use super::published::Published;
 use crate::history::History;
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::{Permission, SecurityConfig};
@@ -175,7 +175,8 @@ pub async fn publish(session: &Session, keys: &CellKeys, result: &pb::ReloadResu
     let sent = session
         .put(key.as_str(), result.encode_to_vec())
         .encoding(encoding::<pb::ReloadResult>())
-        .congestion_control(CongestionControl::Block)
+        .congestion_control(Published::Reload.congestion())
+        .priority(Published::Reload.priority())
         .await;
     if let Err(e) = sent {
         tracing::warn!(%key, error = %e, "publishing the reload's result failed");

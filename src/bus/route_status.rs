@@ -5,7 +5,6 @@
 //! zenoh-ext's `AdvancedPublisher` would replay a cache to late subscribers, but its API is
 //! unstable in zenoh 1.x; a queryable holding the last value gives the same with the stable API.
 
-use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 
 use super::context::MachinePublisher;
@@ -13,6 +12,7 @@ use super::context::{RouteContext, reply};
 use super::error::BusError;
 use super::keys::MachineLeaf;
 use super::machine::Machine;
+use super::published::MachinePublication;
 use cellgate_core::pb;
 
 /// A get on `status`: the status of each machine it takes in. A status is at hand, so the
@@ -35,10 +35,7 @@ pub(crate) struct StatusPublisher {
 
 impl StatusPublisher {
     pub(super) async fn declare(ctx: &RouteContext, machine: &str) -> Result<Self, BusError> {
-        // Telemetry: the next status supersedes a lost one.
-        let publisher =
-            MachinePublisher::declare(ctx, machine, MachineLeaf::Status, CongestionControl::Drop)
-                .await?;
+        let publisher = MachinePublisher::declare(ctx, machine, MachinePublication::Status).await?;
         Ok(StatusPublisher {
             publisher,
             published: None,

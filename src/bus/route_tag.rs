@@ -13,7 +13,6 @@
 
 use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
-use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 use zenoh::sample::{Sample, SampleKind};
 
@@ -21,6 +20,7 @@ use super::audit::{Audit, origin_of};
 use super::context::{reply, reply_err};
 use super::keys::{PlcKey, intersects};
 use super::payload::tag_message;
+use super::published::Published;
 use super::route_plc::{PlcContext, PlcLink, PlcRequestError};
 use crate::plc::PlcEvent;
 use cellgate_core::config::Permission;
@@ -231,7 +231,7 @@ pub(crate) async fn publish_tags(ctx: PlcContext, link: PlcLink, stop: Cancellat
                             pb::history_record::Record::Tag(message.clone()),
                         );
                     }
-                    ctx.publish(key, &message, CongestionControl::Block).await;
+                    ctx.publish(Published::TagValue, key, &message).await;
                 }
                 Ok(PlcEvent::Stopped { .. }) | Err(RecvError::Closed) => break,
                 Ok(_) => {}

@@ -238,7 +238,7 @@ impl Watch {
                 detail: e.to_string(),
             }));
         }
-        if let Some((program, name)) = crate::bus::keys::parse_event(&self.keys, key) {
+        if let Some((program, name)) = self.keys.parse_event(key) {
             let by = sample
                 .attachment()
                 .and_then(|a| pb::RequestOrigin::decode(a.to_bytes().as_ref()).ok());

@@ -71,9 +71,7 @@ pub(crate) struct Library {
 impl Library {
     pub(crate) async fn follow(cell: &RunningCell) -> Library {
         Library {
-            changed: cell
-                .subscribe(cellgate::bus::keys::program_changed(&cell.keys, "*"))
-                .await,
+            changed: cell.subscribe(cell.keys.program_changed("*")).await,
             events: cell.subscribe(cell.keys.program_events()).await,
         }
     }

@@ -528,6 +528,31 @@ impl CellKeys {
         format!("{}/program/{name}/release", self.root)
     }
 
+    /// `P/C/program/NAME/changed`: the gateway publishes the program's `ProgramInfo` once a
+    /// store, adoption or removal of it is on disk, whoever asked (a get or a put on its
+    /// write key, the console); the requester's `RequestOrigin` is the sample's attachment.
+    pub fn program_changed(&self, name: &str) -> String {
+        format!("{}/program/{name}/changed", self.root)
+    }
+
+    /// `P/C/machine/M/do/out`: the gateway publishes a `DoCommand` once its SDO went out on
+    /// a get (a put on `…/do` is itself the event); the requester's `RequestOrigin` is the
+    /// sample's attachment.
+    pub fn do_out(&self, machine: &str) -> String {
+        format!("{}/out", self.leaf(machine, MachineLeaf::Do))
+    }
+
+    /// Which of the two event keys above `key` is: `(true, NAME)` for a program's, `(false,
+    /// M)` for a machine's DO output.
+    pub fn parse_event<'k>(&self, key: &'k str) -> Option<(bool, &'k str)> {
+        let rest = key.strip_prefix(self.root.as_str())?.strip_prefix('/')?;
+        match rest.split('/').collect::<Vec<_>>().as_slice() {
+            ["program", name, "changed"] => Some((true, name)),
+            ["machine", m, "do", "out"] => Some((false, m)),
+            _ => None,
+        }
+    }
+
     /// `P/C/program/@events`: what happens to the library (`LibraryEvent`). `@` makes the
     /// chunk verbatim: no program name is spelt so, and no `*` or `**` takes it.
     pub fn program_events(&self) -> String {
@@ -658,6 +683,11 @@ impl CellKeys {
     /// `P/C/plc/L/transfer/MSGNO`: the PLC's transfers of one message number.
     pub fn plc_transfer(&self, link: &str, message: u8) -> String {
         format!("{}/{message}", self.plc_area(link, PlcArea::Transfer))
+    }
+
+    /// `P/C/plc/*/transfer/*`: every PLC's transfers, as published.
+    pub fn any_plc_transfer(&self) -> String {
+        format!("{}/*", self.plc_area("*", PlcArea::Transfer))
     }
 
     /// `P/C/plc/L/transfer/MSGNO/send`: where a transfer to the PLC goes.

@@ -215,8 +215,8 @@ fn a_dashboard_reads_and_writes_nothing() {
         );
     }
     // A dashboard sees DO outputs go out; the library's changes are for those who read it.
-    let out = crate::bus::keys::do_out(&k, "m1");
-    let changed = crate::bus::keys::program_changed(&k, "O1");
+    let out = k.do_out("m1");
+    let changed = k.program_changed("O1");
     assert!(allows(&acl, "dash", Flow::Egress, "put", &out));
     assert!(!allows(&acl, "dash", Flow::Egress, "put", &changed));
     assert!(allows(

@@ -86,13 +86,13 @@ fn plain_chunks_are_what_zenoh_takes_as_one_chunk_without_wildcards() {
 #[test]
 fn the_gateway_s_event_keys_read_back_and_no_route_takes_them_for_another() {
     let k = CellKeys::new("cellgate", "c").unwrap();
-    let changed = program_changed(&k, "O1.nc");
-    let out = do_out(&k, "m1");
+    let changed = k.program_changed("O1.nc");
+    let out = k.do_out("m1");
     assert_eq!(changed, "cellgate/c/program/O1.nc/changed");
     assert_eq!(out, "cellgate/c/machine/m1/do/out");
-    assert_eq!(parse_event(&k, &changed), Some((true, "O1.nc")));
-    assert_eq!(parse_event(&k, &out), Some((false, "m1")));
-    assert_eq!(parse_event(&k, &k.program_write("O1.nc")), None);
+    assert_eq!(k.parse_event(&changed), Some((true, "O1.nc")));
+    assert_eq!(k.parse_event(&out), Some((false, "m1")));
+    assert_eq!(k.parse_event(&k.program_write("O1.nc")), None);
     // Neither is a key of the grammar: no route of the gateway serves or takes them (the DO
     // route subscribes to `…/do` only, so the gateway's own event is not a DO command).
     assert_eq!(k.parse(&changed), None);
