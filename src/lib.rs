@@ -51,6 +51,7 @@ pub mod client;
 pub mod console;
 pub mod door;
 pub mod gateway;
+pub mod historian;
 pub mod history;
 pub mod jobs;
 pub mod link;

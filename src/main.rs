@@ -82,6 +82,10 @@ enum Command {
     /// Serve an MTConnect agent for every cell behind an endpoint (a site view) until SIGINT
     /// or SIGTERM; a gateway serves its own cell's with `[mtconnect]` in its cell file.
     Mtconnect(cellgate::mtconnect::SiteArgs),
+    /// Copy every cell's history and audit trail into PostgreSQL (the site's history) until
+    /// SIGINT or SIGTERM; with --status, say where each cell stands and exit.
+    #[command(after_help = examples::HISTORIAN)]
+    Historian(cellgate::historian::HistorianArgs),
     /// The jobs of the cell's machines: the one being sent and the ones waiting (with --all,
     /// the ones that ended too).
     Jobs(client::JobsArgs),
@@ -325,6 +329,7 @@ fn main() -> ExitCode {
         Command::Utilisation(ref args) => client_command(&cli, args),
         Command::Console(ref args) => site_console(args),
         Command::Mtconnect(ref args) => site_mtconnect(args),
+        Command::Historian(ref args) => historian(args),
         Command::Jobs(ref args) => client_command(&cli, args),
         Command::Job(ref args) => client_command(&cli, args),
         Command::G05(ref args) => client_command(&cli, args),
@@ -900,7 +905,18 @@ fn site_mtconnect(args: &cellgate::mtconnect::SiteArgs) -> ExitCode {
     })
 }
 
-/// A site process (console, MTConnect agent): logs to stderr (colours only for a terminal),
+/// `cellgate historian`: the site's history in PostgreSQL until SIGINT or SIGTERM.
+fn historian(args: &cellgate::historian::HistorianArgs) -> ExitCode {
+    run_site(|shutdown| async move {
+        match cellgate::historian::run(args, shutdown).await {
+            Ok(()) => Ok(()),
+            Err(cellgate::historian::HistorianError::Config(e)) => Err((EXIT_CONFIG, e)),
+            Err(e) => Err((EXIT_RUNTIME, e.to_string())),
+        }
+    })
+}
+
+/// A site process (console, MTConnect agent, historian): logs to stderr (colours only for a terminal),
 /// a runtime, `serve` until SIGINT or SIGTERM; an error is printed with its exit code.
 fn run_site<F, Fut>(serve: F) -> ExitCode
 where

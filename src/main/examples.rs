@@ -57,3 +57,8 @@ Examples:
   cellgate g05 mill-2 examples/g05/circle.csv    # stream a file of blocks
   cellgate g05 mill-2 -                          # blocks from standard input (piped in)
   cellgate g05 mill-2 circle.csv --json          # the stream's last status as JSON";
+
+pub const HISTORIAN: &str = "\
+Examples:
+  cellgate historian --database postgresql://cellgate@127.0.0.1/site           # every cell, until Ctrl-C
+  cellgate historian --database postgresql://cellgate@127.0.0.1/site --status  # where each cell stands";

@@ -5,6 +5,7 @@ pub mod bus;
 pub mod cli;
 pub mod device_server;
 pub mod pki;
+pub mod postgres;
 
 use std::time::Duration;
 

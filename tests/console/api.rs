@@ -12,16 +12,16 @@ use common::bus::free_port;
 use serde_json::{Value, json};
 
 /// A gateway of `config` running in this process, stopped when dropped.
-struct Gateway {
+pub(crate) struct Gateway {
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     task: Option<tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>>,
     url: String,
-    endpoint: String,
+    pub(crate) endpoint: String,
     _dir: Option<tempfile::TempDir>,
 }
 
 impl Gateway {
-    async fn start(edit: impl FnOnce(&mut CellConfig, &std::path::Path)) -> Gateway {
+    pub(crate) async fn start(edit: impl FnOnce(&mut CellConfig, &std::path::Path)) -> Gateway {
         let dir = tempfile::tempdir().unwrap();
         let mut g = Gateway::start_in(dir.path(), edit).await;
         g._dir = Some(dir);
@@ -29,7 +29,7 @@ impl Gateway {
     }
 
     /// A gateway whose library, journal and history are in `dir`, kept after it stops.
-    async fn start_in(
+    pub(crate) async fn start_in(
         dir: &std::path::Path,
         edit: impl FnOnce(&mut CellConfig, &std::path::Path),
     ) -> Gateway {
@@ -56,7 +56,7 @@ impl Gateway {
         }
     }
 
-    async fn stop(mut self) {
+    pub(crate) async fn stop(mut self) {
         if let Some(s) = self.stop.take() {
             let _ = s.send(());
         }

@@ -1,4 +1,6 @@
-//! The console: its API as pages and other clients use it, its door, and its pages in a real browser.
+//! The site's clients of the bus contract: the console (its API as pages and other clients use
+//! it, its door, its pages in a real browser), the MTConnect agent, and the historian into a
+//! real PostgreSQL.
 //!
 //! One test binary of a few (each links the gateway and zenoh): its modules are the areas.
 
@@ -7,5 +9,6 @@ mod common;
 
 mod api;
 mod browser;
+mod historian;
 mod listeners;
 mod mtconnect;

@@ -1,0 +1,311 @@
+//! The historian against a real PostgreSQL: two cells on one bus, jobs, alarms and audit
+//! records on both, every record in the tables once; the historian killed and started again,
+//! a gateway restarted, the database stopped and started while jobs run: the sets of
+//! `(cell, seq)` in the tables equal the gateways' own, and the jobs view agrees with them.
+
+use crate::common;
+
+use std::collections::BTreeSet;
+use std::time::{Duration, Instant};
+
+use cellgate::bus;
+use cellgate::client::Client;
+use cellgate_core::pb;
+use common::bus::{connect_args, free_port};
+use common::postgres::Postgres;
+
+use super::api::Gateway;
+
+/// The historian running in this process until stopped (or aborted, as `kill -9` ends it).
+struct Historian {
+    stop: tokio::sync::oneshot::Sender<()>,
+    task: tokio::task::JoinHandle<Result<(), cellgate::historian::HistorianError>>,
+}
+
+impl Historian {
+    fn start(router: u16, database: String) -> Historian {
+        let args = cellgate::historian::HistorianArgs {
+            connect: connect_args(format!("tcp/127.0.0.1:{router}"), None),
+            database,
+            database_password_file: None,
+            status: false,
+        };
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let task = tokio::spawn(async move {
+            cellgate::historian::run(&args, async {
+                let _ = stopped.await;
+            })
+            .await
+        });
+        Historian { stop, task }
+    }
+
+    async fn stop(self) {
+        let _ = self.stop.send(());
+        tokio::time::timeout(Duration::from_secs(30), self.task)
+            .await
+            .expect("the historian stops")
+            .unwrap()
+            .unwrap();
+    }
+}
+
+/// Every `(seq)` of `cell`'s log as its gateway answers it.
+async fn gateway_seqs(client: &Client, audit: bool) -> BTreeSet<i64> {
+    let mut seqs = BTreeSet::new();
+    let mut after = 0;
+    loop {
+        let mut params = vec![
+            ("_time".to_string(), "[..]".to_string()),
+            ("limit".to_string(), "1000".to_string()),
+        ];
+        if after > 0 {
+            params.push(("after".to_string(), after.to_string()));
+        }
+        if !audit {
+            params.push((
+                "kind".to_string(),
+                "job,alarm,link,cnc,station,g05,tag,gateway,punch".to_string(),
+            ));
+        }
+        let page: pb::HistoryPage = client.history(audit, &params).await.unwrap();
+        for r in &page.records {
+            seqs.insert(r.seq as i64);
+        }
+        if !page.more {
+            return seqs;
+        }
+        after = page.next_after;
+    }
+}
+
+/// Every `seq` of `cell` in `table` (none before the historian made the table).
+async fn table_seqs(db: &tokio_postgres::Client, table: &str, cell: &str) -> Vec<i64> {
+    db.query(
+        &format!("SELECT seq FROM cellgate.{table} WHERE cell = $1 ORDER BY seq"),
+        &[&cell],
+    )
+    .await
+    .map(|rows| rows.iter().map(|r| r.get(0)).collect())
+    .unwrap_or_default()
+}
+
+/// Waits until the tables hold exactly what both gateways hold, each record once.
+async fn agree(db_url: &str, cells: &[(&str, Client)]) {
+    let (db, conn) = tokio_postgres::connect(db_url, tokio_postgres::NoTls)
+        .await
+        .unwrap();
+    tokio::spawn(conn);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let mut differs = Vec::new();
+        for (cell, client) in cells {
+            for (table, audit) in [("history", false), ("audit", true)] {
+                let ours = gateway_seqs(client, audit).await;
+                let theirs = table_seqs(&db, table, cell).await;
+                let once: BTreeSet<i64> = theirs.iter().copied().collect();
+                assert_eq!(once.len(), theirs.len(), "{cell} {table}: a record twice");
+                if ours != once {
+                    differs.push(format!(
+                        "{cell} {table}: gateway {} records (to {:?}), table {} (to {:?})",
+                        ours.len(),
+                        ours.last(),
+                        once.len(),
+                        once.last()
+                    ));
+                }
+            }
+        }
+        if differs.is_empty() {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the tables never agreed: {differs:#?}"
+        );
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+}
+
+/// Submits a small inline program to mill-1 of the cell `client` reaches, and waits until
+/// it ended.
+async fn a_job(client: &Client) {
+    let request = pb::JobRequest {
+        program: Some(pb::job_request::Program::Inline(
+            b"%\nO7001\nG00X0Y0\nM30\n%\n".to_vec(),
+        )),
+        name: "O7001".to_string(),
+        ..Default::default()
+    };
+    let (_, mut follower) = client.submit("mill-1", &request).await.unwrap();
+    tokio::time::timeout(Duration::from_secs(60), follower.wait_end())
+        .await
+        .expect("the job ends")
+        .unwrap();
+    follower.close().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_record_of_two_cells_reaches_postgresql_once_through_restarts_and_outages() {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter("cellgate::historian=debug")
+        .with_test_writer()
+        .try_init();
+    let Some(pg) = Postgres::start() else {
+        eprintln!("skipped: no PostgreSQL server here (Debian's postgresql; .ci/run installs it)");
+        return;
+    };
+    pg.create("site");
+    let url = pg.url("site");
+
+    // A router, and the gateways of cells "north" and "south" on it.
+    let router_port = free_port();
+    let _router = bus::open(&bus::BusConfig {
+        mode: bus::BusMode::Router,
+        listen: vec![format!("tcp/127.0.0.1:{router_port}")],
+        ..bus::BusConfig::default()
+    })
+    .await
+    .unwrap();
+    let north_dir = tempfile::tempdir().unwrap();
+    let on_router = |cell: &'static str| {
+        move |c: &mut cellgate_core::config::CellConfig, _: &std::path::Path| {
+            c.cell = cell.to_string();
+            c.bus.connect = vec![format!("tcp/127.0.0.1:{router_port}")];
+        }
+    };
+    let north = Gateway::start_in(north_dir.path(), on_router("north")).await;
+    let south = Gateway::start(on_router("south")).await;
+    let options = |cell: &str| {
+        let mut a = connect_args(format!("tcp/127.0.0.1:{router_port}"), None);
+        a.cell = Some(cell.to_string());
+        a
+    };
+    let clients = [
+        (
+            "north",
+            Client::connect(&options("north").options().unwrap())
+                .await
+                .unwrap(),
+        ),
+        (
+            "south",
+            Client::connect(&options("south").options().unwrap())
+                .await
+                .unwrap(),
+        ),
+    ];
+    for (_, c) in &clients {
+        a_job(c).await;
+    }
+
+    // The historian copies both; each record once.
+    let historian = Historian::start(router_port, url.clone());
+    agree(&url, &clients).await;
+
+    // Killed (no clean stop), jobs meanwhile, started again: it catches up.
+    historian.task.abort();
+    for (_, c) in &clients {
+        a_job(c).await;
+    }
+    let historian = Historian::start(router_port, url.clone());
+    agree(&url, &clients).await;
+
+    // The database away while jobs run: the historian keeps trying and catches up.
+    pg.down();
+    for (_, c) in &clients {
+        a_job(c).await;
+    }
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    pg.up();
+    agree(&url, &clients).await;
+
+    // A gateway restarted: its records go on where they were, none twice.
+    north.stop().await;
+    let north = Gateway::start_in(north_dir.path(), on_router("north")).await;
+    let clients = [
+        (
+            "north",
+            Client::connect(&options("north").options().unwrap())
+                .await
+                .unwrap(),
+        ),
+        clients.into_iter().nth(1).unwrap(),
+    ];
+    a_job(&clients[0].1).await;
+    agree(&url, &clients).await;
+
+    // The jobs view: one row per ended job, as the gateways' history has them.
+    let (db, conn) = tokio_postgres::connect(&url, tokio_postgres::NoTls)
+        .await
+        .unwrap();
+    tokio::spawn(conn);
+    for (cell, n) in [("north", 3i64), ("south", 3)] {
+        let row = db
+            .query_one(
+                "SELECT count(*), count(*) FILTER (WHERE outcome = 'completed'
+                     AND program = 'O7001' AND bytes > 0 AND ended >= started)
+                 FROM cellgate.jobs WHERE cell = $1 AND machine = 'mill-1'",
+                &[&cell],
+            )
+            .await
+            .unwrap();
+        let (all, completed): (i64, i64) = (row.get(0), row.get(1));
+        assert_eq!((all, completed), (n, n), "{cell}");
+    }
+    // The audit table names each action; a record is the protobuf JSON mapping.
+    let row = db
+        .query_one(
+            "SELECT count(*) FROM cellgate.audit
+             WHERE cell = 'south' AND action = 'job.submit' AND record->'audit'->>'action' = 'job.submit'",
+            &[],
+        )
+        .await
+        .unwrap();
+    assert_eq!(row.get::<_, i64>(0), 3);
+    // The schema's steps are recorded once each.
+    let row = db
+        .query_one("SELECT count(*) FROM cellgate.migrations", &[])
+        .await
+        .unwrap();
+    assert_eq!(
+        row.get::<_, i64>(0),
+        cellgate::historian::schema::MIGRATIONS.len() as i64
+    );
+
+    // `--status` says where each cell stands: nothing behind, no gap.
+    let out = common::cli::command([
+        "historian",
+        "-e",
+        &format!("tcp/127.0.0.1:{router_port}"),
+        "--database",
+        &url,
+        "--status",
+    ])
+    .output()
+    .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for cell in ["north", "south"] {
+        for log in ["history", "audit"] {
+            let row: Vec<&str> = text
+                .lines()
+                .find(|l| l.starts_with(cell) && l.split_whitespace().nth(1) == Some(log))
+                .unwrap_or_else(|| panic!("no {cell} {log} in:\n{text}"))
+                .split_whitespace()
+                .collect();
+            // DATABASE and GATEWAY may differ by what was recorded between the two asks.
+            let (held, newest): (u64, u64) = (row[2].parse().unwrap(), row[3].parse().unwrap());
+            assert!(newest >= held && newest - held <= 5, "{text}");
+            assert_eq!(row[5], "0", "no gap: {text}");
+        }
+    }
+
+    historian.stop().await;
+    north.stop().await;
+    south.stop().await;
+}
