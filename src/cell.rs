@@ -1,6 +1,6 @@
 //! The cell's machine links, built from the cell file: for each `[[machines]]` entry a
 //! transport (serial port, TCP device server, or a simulated line with a simulated board on its
-//! far end), a host engine for its protocol, and a link task ([`link::driver`]); likewise for
+//! far end), a host engine for its protocol, and a link task (`link::driver`); likewise for
 //! each `[[plcs]]` entry, with the FFU120B master and a PLC link task ([`crate::plc::link`]).
 
 use std::time::Duration;

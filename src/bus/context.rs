@@ -1,6 +1,6 @@
-//! What every route shares ([`RouteContext`]): the session, the cell's keys, its machines and
+//! What every route shares (`RouteContext`): the session, the cell's keys, its machines and
 //! program library, and the bound on requests that may wait. Also the typed errors a request
-//! is refused with ([`RequestError`], coded in `cellgate_core::codes`) and the reply helpers.
+//! is refused with (`RequestError`, coded in `cellgate_core::codes`) and the reply helpers.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;

@@ -286,7 +286,7 @@ pub enum ConsoleError {
 
 /// The console's routes: each handler's extractors say what it needs of its caller
 /// ([`extract::Caller`]), checked before any body is read; bodies are at most
-/// [`BODY_LIMIT`] but a program upload's, which streams within `programs.max_inline`.
+/// `BODY_LIMIT` but a program upload's, which streams within `programs.max_inline`.
 pub fn router(console: Arc<Console>) -> Router {
     use api::*;
     let cell = "/api/v1/cells/{cell}";
@@ -364,7 +364,7 @@ pub struct Served {
 }
 
 impl Served {
-    /// Waits for the console to stop (its stop token cancelled), at most [`STOP_GRACE`]
+    /// Waits for the console to stop (its stop token cancelled), at most `STOP_GRACE`
     /// for the requests under way; then it is stopped whatever they do.
     pub async fn join(mut self) {
         if tokio::time::timeout(STOP_GRACE, &mut self.task)
@@ -451,8 +451,8 @@ pub struct SiteArgs {
     /// 127.0.0.1:7480).
     #[arg(long, value_name = "ADDR")]
     pub listen: Option<String>,
-    /// A cell file whose [security] (users file, roles, TLS certificate for HTTPS) and
-    /// [console] settings the console takes; without one, it serves loopback only and every
+    /// A cell file whose `[security]` (users file, roles, TLS certificate for HTTPS) and
+    /// `[console]` settings the console takes; without one, it serves loopback only and every
     /// user may do what the console's own bus identity may.
     #[arg(short = 'c', long, value_name = "FILE")]
     pub config: Option<std::path::PathBuf>,

@@ -10,7 +10,7 @@
 //!
 //! No crate offers this shape (rate limiters such as `governor` spend a unit on every
 //! check; here only failures spend, and the wait grows): it is a small table per key.
-//! Both tables are bounded ([`MAX_KEYS`]); beyond, entries that no longer close anything go
+//! Both tables are bounded (`MAX_KEYS`); beyond, entries that no longer close anything go
 //! first, then the oldest.
 
 use std::collections::HashMap;

@@ -27,7 +27,7 @@
 //! (once per hash) and the number of programs.
 //!
 //! **The folder's files.** Only regular files inside the folder are programs: a symbolic
-//! link, a FIFO or a device is never opened or followed ([`disk`]), whatever its name. A
+//! link, a FIFO or a device is never opened or followed (`disk`), whatever its name. A
 //! folder file is copied into `.revisions` in pieces, so memory stays bounded whatever its
 //! size. If the folder is removed and made again, the library notices that its index is gone
 //! and starts a new one there at the next store.
@@ -875,7 +875,7 @@ impl ProgramLibrary {
     }
 
     /// Opens a program's file for streaming; returns the file and its size. Only a regular
-    /// file is opened (see [`disk::open_regular`]).
+    /// file is opened (see `disk::open_regular`).
     pub async fn open(&self, name: &str) -> Result<(tokio::fs::File, u64), LibraryError> {
         let lib = self.clone();
         let name = name.to_string();

@@ -16,10 +16,10 @@
 //!   with the reason and nothing is queued.
 //! - Idempotent submits: a request id seen before (among the jobs kept) answers the first
 //!   `JobAccepted` and queues nothing.
-//! - Blocks ([`blocks`]): a job may start at a block (by line or sequence number) with the
+//! - Blocks (`blocks`): a job may start at a block (by line or sequence number) with the
 //!   program's header first; a failed or cancelled one names the first block the board did
 //!   not acknowledge whole, where a resume (`resume_job`) starts.
-//! - Punched programs ([`punch`]): a punch-out split into programs and decoded, library
+//! - Punched programs (`punch`): a punch-out split into programs and decoded, library
 //!   names for them, and remote requests for a program.
 //! - Job ids: `<machine>-<run>-<n>`, where `<run>` is the time the manager started, in
 //!   seconds since the Unix epoch written in base 36, and `<n>` counts the machine's jobs

@@ -105,7 +105,7 @@ pub struct Served {
 }
 
 impl Served {
-    /// Waits for the agent to stop (its stop token cancelled), at most [`STOP_GRACE`].
+    /// Waits for the agent to stop (its stop token cancelled), at most `STOP_GRACE`.
     pub async fn join(mut self) {
         if tokio::time::timeout(STOP_GRACE, &mut self.task)
             .await

@@ -478,7 +478,7 @@ pub struct UtilisationArgs {
     /// A time range as zenoh writes it (instead of --since/--until).
     #[arg(long, value_name = "RANGE", conflicts_with_all = ["since", "until"])]
     pub time: Option<String>,
-    /// Buckets: hour (UTC) or shift (the cell file's [history] shifts).
+    /// Buckets: hour (UTC) or shift (the cell file's `[history] shifts`).
     #[arg(long, value_name = "BUCKET", default_value = "hour")]
     pub bucket: String,
     /// Print JSON (a Utilisation).

@@ -362,7 +362,7 @@ impl ProgramLibrary {
         .await
     }
 
-    /// Whether `name` may be a program of this library (see [`ProgramLibrary::check_name`]).
+    /// Whether `name` may be a program of this library (see `ProgramLibrary::check_name`).
     pub fn is_program_name(&self, name: &str) -> bool {
         self.check_name(name).is_ok()
     }

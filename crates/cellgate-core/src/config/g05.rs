@@ -99,7 +99,7 @@ pub struct G05Config {
     /// NC text sent after the end block; the program's EOR follows it.
     pub after: String,
     /// Blocks the gateway holds for a stream (its credit window), as time at one block per T;
-    /// raised to [`MIN_WINDOW_BYTES`] of blocks.
+    /// raised to `MIN_WINDOW_BYTES` of blocks.
     pub window_ms: u32,
     /// Blocks buffered before the `G05` block goes out: the CNC takes a block every T from the
     /// moment it reads `G05` (§9.1 (2)).
@@ -132,7 +132,7 @@ impl G05Config {
         (ms / self.format.unit_time_ms.ms()).max(1)
     }
 
-    /// The credit window in blocks: `window_ms` of blocks, at least [`MIN_WINDOW_BYTES`].
+    /// The credit window in blocks: `window_ms` of blocks, at least `MIN_WINDOW_BYTES`.
     pub fn window_blocks(&self) -> u32 {
         let block = self.format().block_len() as u32;
         self.blocks_in(self.window_ms)

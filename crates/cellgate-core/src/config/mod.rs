@@ -14,10 +14,10 @@
 //! Sections are cited as "§4.5" for the FANUC remote-buffer manual (B-63322EN-1) and as
 //! "FFU120B §4-3" for the Fuji MICREX-F general interface module manual (FEH087b).
 //!
-//! One file per concern: [`bus`] (the session and telemetry sections), [`programs`],
-//! [`transport`] (what carries each link), [`fanuc`] (`[[machines]]`), [`plc`] (`[[plcs]]`),
-//! [`security`] (TLS, user names, roles), [`summary`] (what `check-config` prints),
-//! [`reload`] (what a reload changes) and [`error`] (every error, collected at once).
+//! One file per concern: `bus` (the session and telemetry sections), `programs`,
+//! `transport` (what carries each link), `fanuc` (`[[machines]]`), `plc` (`[[plcs]]`),
+//! `security` (TLS, user names, roles), `summary` (what `check-config` prints),
+//! [`reload`] (what a reload changes) and `error` (every error, collected at once).
 
 mod bus;
 mod console;

@@ -8,7 +8,7 @@
 //! The async side (the link pump) runs any engine over any transport.
 //!
 //! - [`Engine`]: the contract itself;
-//! - [`line`]: the plain data it speaks of: character framing, modem lines, line errors;
+//! - `line`: the plain data it speaks of: character framing, modem lines, line errors;
 //! - [`pacer`]: what a line may still take at its rate, for transports whose peer buffers
 //!   (a TCP device server), so a stop code is never overrun by more than a window;
 //! - [`parmrk`]: the kernel's parity marks of a serial port, decoded into line errors;

@@ -1,6 +1,6 @@
 //! The host side's contract: what the gateway asks of a remote-buffer host engine
 //! ([`EngineCommand`]), what the engine reports ([`EngineEvent`]), and [`HostEngine`], the
-//! [`Engine`](crate::engine::Engine) both host engines ([`ProtocolAHost`], [`ProtocolBHost`])
+//! [`Engine`] both host engines ([`ProtocolAHost`], [`ProtocolBHost`])
 //! implement. Plain data and a trait: the async link driver runs any `HostEngine` over any
 //! transport.
 //!

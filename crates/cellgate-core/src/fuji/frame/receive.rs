@@ -184,7 +184,7 @@ pub enum TextForm {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[non_exhaustive]
 pub enum ReceiveError {
-    /// Receive error 1: the buffer ([`RX_BUFFER`]) filled without a whole text.
+    /// Receive error 1: the buffer (`RX_BUFFER`) filled without a whole text.
     #[error("receive buffer full: {dropped} bytes dropped (receive error 1, FFU120B §5-6)")]
     BufferFull {
         /// Bytes dropped.
