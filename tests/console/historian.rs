@@ -309,3 +309,85 @@ async fn every_record_of_two_cells_reaches_postgresql_once_through_restarts_and_
     north.stop().await;
     south.stop().await;
 }
+
+/// Records a gateway trimmed before the historian saw them are a row of `cellgate.gaps`:
+/// said, not papered over; what is kept is copied.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn records_trimmed_before_they_were_copied_are_a_gap_in_the_table() {
+    let Some(pg) = Postgres::start() else {
+        eprintln!("skipped: no PostgreSQL server here (Debian's postgresql; .ci/run installs it)");
+        return;
+    };
+    pg.create("site");
+    let url = pg.url("site");
+    let router_port = free_port();
+    let _router = bus::open(&bus::BusConfig {
+        mode: bus::BusMode::Router,
+        listen: vec![format!("tcp/127.0.0.1:{router_port}")],
+        ..bus::BusConfig::default()
+    })
+    .await
+    .unwrap();
+    // A cell that keeps 20 records of each log: retention runs as the gateway starts.
+    let dir = tempfile::tempdir().unwrap();
+    let small = |c: &mut cellgate_core::config::CellConfig, _: &std::path::Path| {
+        c.cell = "west".to_string();
+        c.history.max_records = 20;
+        c.bus.connect = vec![format!("tcp/127.0.0.1:{router_port}")];
+    };
+    let west = Gateway::start_in(dir.path(), small).await;
+    let mut options = connect_args(format!("tcp/127.0.0.1:{router_port}"), None);
+    options.cell = Some("west".to_string());
+    let client = Client::connect(&options.options().unwrap()).await.unwrap();
+    // More than 20 records (the PLC's parts tag is recorded every second).
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while gateway_seqs(&client, false).await.len() <= 40 {
+        assert!(Instant::now() < deadline, "the history does not grow");
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    client.close().await;
+    west.stop().await;
+    let west = Gateway::start_in(dir.path(), small).await;
+    let client = Client::connect(&options.options().unwrap()).await.unwrap();
+    let kept = gateway_seqs(&client, false).await;
+    let first = *kept.first().unwrap();
+    assert!(first > 1, "retention trimmed the oldest: {kept:?}");
+
+    let historian = Historian::start(router_port, url.clone());
+    let (db, conn) = tokio_postgres::connect(&url, tokio_postgres::NoTls)
+        .await
+        .unwrap();
+    tokio::spawn(conn);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let gaps = db
+            .query(
+                "SELECT first_seq, last_seq FROM cellgate.gaps WHERE cell = 'west' AND log = 'history'",
+                &[],
+            )
+            .await
+            .map(|rows| {
+                rows.iter()
+                    .map(|r| (r.get::<_, i64>(0), r.get::<_, i64>(1)))
+                    .collect::<Vec<_>>()
+            })
+            .unwrap_or_default();
+        let copied = table_seqs(&db, "history", "west").await;
+        if let Some(&(from, to)) = gaps.first()
+            && copied.first() == Some(&(to + 1))
+        {
+            assert_eq!(from, 1, "{gaps:?}");
+            assert!(to + 1 >= first, "{gaps:?}, the first kept was {first}");
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no gap said: {gaps:?}, copied from {:?}",
+            copied.first()
+        );
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    }
+    historian.stop().await;
+    client.close().await;
+    west.stop().await;
+}
