@@ -11,8 +11,8 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use cellgate::jobs::folder::{FolderWatch, Followed, Seen};
-use cellgate::jobs::library::{FolderFile, ProgramLibrary, Taken};
+use cellgate::library::folder::{FolderWatch, Followed, Seen};
+use cellgate::library::{FolderFile, ProgramLibrary, Taken};
 use cellgate_core::config::{ProgramsConfig, Watch};
 use cellgate_core::pb;
 use tokio_util::sync::CancellationToken;

@@ -12,14 +12,17 @@
 //! Bytes flow bottom-up; commands top-down. Lowest layer first:
 //!
 //! - [`telemetry`]: tracing subscriber, the counters links and jobs keep
-//!   ([`telemetry::metrics`]), the optional OTLP export and Prometheus endpoint.
+//!   ([`telemetry::metrics`]), the optional OTLP export and Prometheus endpoint. [`storage`]:
+//!   what the embedded stores share (a database opened without a panic, a full disk told).
 //! - [`transport`]: what carries a link's bytes: serial port, TCP device server, simulated
 //!   line; carriers that come back by themselves share `redial`. [`door`]: what every
 //!   listener shares (its cap on connections, the head's time and size, the write timeout).
 //! - [`link`]: the async side of a link: [`link::pump`] runs any core engine over any
 //!   transport in tokio time; [`link::driver`] is a FANUC link's task (program queue, streamed
 //!   sources, typed commands and events); [`link::g05`] runs G05 streams through it.
-//! - [`jobs`]: per-machine job queues, program sources, the job journal, the program library.
+//!   [`library`]: the program library, its revisions, and the folder it follows
+//!   ([`library::folder`]).
+//! - [`jobs`]: per-machine job queues, program sources, the job journal.
 //! - [`plc`]: the PLC link task running the FFU120B master over a transport, with its tags.
 //! - [`sim`]: the core's simulated devices run over transports, and as TCP device servers.
 //! - [`history`]: the cell's history and audit trail in an embedded store, written in
@@ -30,7 +33,8 @@
 //!   contract, the library side of the command line.
 //! - [`console`]: the web console, a client of the bus like [`client`], served over HTTP(S);
 //!   [`mtconnect`]: the MTConnect agent, a client of the bus as well, over HTTP and SHDR (its
-//!   model and documents are the core's `mtconnect`).
+//!   model and documents are the core's `mtconnect`); [`historian`]: the site's history in
+//!   PostgreSQL, a client of the bus too.
 //! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves it, and stops
 //!   cleanly when the shutdown future completes.
 //!
@@ -38,7 +42,7 @@
 //!
 //! A module imports only the modules of lower layers in the list above (and the core):
 //! `tests/cli/layering.rs` checks it, for this crate and the core. Only the bus side (`bus`,
-//! `client`, `console`, `mtconnect`, `gateway`) speaks zenoh, so links, jobs and transports run without a bus (and
+//! `client`, `console`, `mtconnect`, `historian`, `gateway`) speaks zenoh, so links, jobs and transports run without a bus (and
 //! in paused time).
 
 // What is `pub` is the crate's interface (tests, benches, the binary use it); anything else
@@ -54,9 +58,11 @@ pub mod gateway;
 pub mod historian;
 pub mod history;
 pub mod jobs;
+pub mod library;
 pub mod link;
 pub mod mtconnect;
 pub mod plc;
 pub mod sim;
+pub mod storage;
 pub mod telemetry;
 pub mod transport;

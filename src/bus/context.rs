@@ -24,7 +24,7 @@ use super::payload::{BusMessage, encoding, error_reply};
 use super::published::{MachinePublication, Published};
 use crate::history::History;
 use crate::jobs::JobError;
-use crate::jobs::library::{LibraryError, ProgramLibrary};
+use crate::library::{LibraryError, ProgramLibrary};
 use cellgate_core::bounds::{self, BoundError, Bounded, Limits};
 use cellgate_core::codes::BusCode;
 use cellgate_core::fanuc::Protocol;

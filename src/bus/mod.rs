@@ -84,7 +84,7 @@ use self::keys::CellKeys;
 use self::route_g05::G05Context;
 use crate::history::History;
 use crate::jobs::journal::Journal;
-use crate::jobs::library::ProgramLibrary;
+use crate::library::ProgramLibrary;
 use cellgate_core::config::CellConfig;
 
 /// Serves the cell's machines and program library on `session` until `shutdown` is
@@ -154,11 +154,11 @@ pub async fn serve_live(
 ) -> Result<(), BusError> {
     let keys = Arc::new(CellKeys::new(&config.bus.prefix, &config.cell)?);
     let library = ProgramLibrary::new(&config.programs.dir, config.programs.max_size)
-        .with_quota(crate::jobs::library::Quota {
+        .with_quota(crate::library::Quota {
             bytes: config.programs.quota_bytes,
             files: config.programs.quota_files,
         })
-        .with_retention(crate::jobs::library::Retention {
+        .with_retention(crate::library::Retention {
             revisions: config.programs.keep_revisions,
             days: config.programs.keep_revision_days,
         })

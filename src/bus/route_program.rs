@@ -25,7 +25,7 @@ use super::audit::{Audit, origin_of};
 use super::context::{RequestError, RouteContext, publish_event, reply, reply_bytes, reply_err};
 use super::keys::{CellKey, intersects};
 use super::published::Published;
-use crate::jobs::library::Store;
+use crate::library::Store;
 use cellgate_core::config::Permission;
 use cellgate_core::pb;
 use cellgate_core::program::diff::{self, DiffOptions};

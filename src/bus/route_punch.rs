@@ -16,9 +16,9 @@
 //!
 //! [`LinkEvent::Punched`]: crate::link::driver::LinkEvent::Punched
 
-use crate::jobs::library::{LibraryError, Store};
 use crate::jobs::source::ProgramInput;
 use crate::jobs::{JobError, JobSubmission, JobsHandle};
+use crate::library::{LibraryError, Store};
 use cellgate_core::config::ProgramsConfig;
 use cellgate_core::pb;
 use cellgate_core::program::diff::{self, DiffOptions};
@@ -275,7 +275,7 @@ impl PunchDesk {
                 })
                 .ok_or_else(|| std::io::Error::other("every name for it is taken"))?;
             let path = dir.join(name);
-            crate::jobs::library::write_atomically(&path, &[&text], false)?;
+            crate::library::write_atomically(&path, &[&text], false)?;
             Ok(path)
         })
         .await

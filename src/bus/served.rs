@@ -247,7 +247,7 @@ impl MachineRoutes {
     }
 
     /// The cell's program library, whose quota and retention a reload replaces.
-    pub fn library(&self) -> &crate::jobs::library::ProgramLibrary {
+    pub fn library(&self) -> &crate::library::ProgramLibrary {
         &self.inner.ctx.library
     }
 

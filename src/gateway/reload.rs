@@ -27,7 +27,7 @@ use crate::bus::{MachineRoutes, PlcRoutes};
 use crate::cell::Cell;
 use crate::history::History;
 use crate::jobs::Hold;
-use crate::jobs::library::{Quota, Retention};
+use crate::library::{Quota, Retention};
 use cellgate_core::config::reload::{CellChange, compare};
 use cellgate_core::config::{CellConfig, MachineConfig};
 use cellgate_core::pb;

@@ -130,7 +130,7 @@ impl BusCode for HistoryError {
         match self {
             HistoryError::Disabled => pb::ErrorCode::Unavailable,
             HistoryError::NoSuchRecord(_) => pb::ErrorCode::NotFound,
-            HistoryError::Io { source, .. } if crate::jobs::journal::is_storage_full(source) => {
+            HistoryError::Io { source, .. } if crate::storage::is_storage_full(source) => {
                 pb::ErrorCode::StorageFull
             }
             HistoryError::Io { .. } | HistoryError::Database { .. } => pb::ErrorCode::StorageFailed,
@@ -555,8 +555,8 @@ fn open_store(dir: &Path, path: &Path) -> Result<Database, HistoryError> {
     let cause = if empty {
         "the file is empty".to_string()
     } else {
-        use crate::jobs::journal::OpenError;
-        match crate::jobs::journal::open_db(path) {
+        use crate::storage::OpenError;
+        match crate::storage::open_db(path) {
             Ok(db) => match check_tables(&db) {
                 Ok(()) => return Ok(db),
                 Err(cause) => cause,
@@ -588,7 +588,7 @@ fn open_store(dir: &Path, path: &Path) -> Result<Database, HistoryError> {
         "history store damaged: moved aside; starting a new one (the records it held are \
          in the file moved aside)"
     );
-    match crate::jobs::journal::open_db(path) {
+    match crate::storage::open_db(path) {
         Ok(db) => check_tables(&db)
             .map(|()| db)
             .map_err(|cause| HistoryError::Io {
@@ -623,10 +623,10 @@ fn check_tables(db: &Database) -> Result<(), String> {
         }
         Ok(())
     };
-    match crate::jobs::journal::quietly(run) {
+    match crate::storage::quietly(run) {
         Ok(Ok(())) => Ok(()),
         Ok(Err(e)) => Err(e.to_string()),
-        Err(p) => Err(crate::jobs::journal::panic_text(&p)),
+        Err(p) => Err(crate::storage::panic_text(&p)),
     }
 }
 

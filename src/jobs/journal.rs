@@ -105,13 +105,7 @@ fn blocking<T>(f: impl FnOnce() -> T) -> T {
     }
 }
 
-/// Whether an I/O error says the disk or a quota is full.
-pub fn is_storage_full(e: &std::io::Error) -> bool {
-    e.kind() == std::io::ErrorKind::StorageFull
-        || e.kind() == std::io::ErrorKind::QuotaExceeded
-        || e.raw_os_error() == Some(libc::ENOSPC)
-        || e.raw_os_error() == Some(libc::EDQUOT)
-}
+pub use crate::storage::{OpenError, is_storage_full, open_db, panic_text, quietly};
 
 /// What the gateway does with a journal it finds damaged (`programs.damaged_journal`).
 pub use cellgate_core::config::DamagedJournal;
@@ -296,53 +290,6 @@ impl Inner {
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
-}
-
-/// Opens the database file, never panicking: redb panics on some damaged files.
-pub(crate) fn open_db(path: &Path) -> Result<Database, OpenError> {
-    match quietly(|| Database::create(path)) {
-        Ok(Ok(db)) => Ok(db),
-        Ok(Err(e)) => Err(OpenError::Redb(e)),
-        Err(panic) => Err(OpenError::Panicked(panic_text(&panic))),
-    }
-}
-
-/// Why the database file did not open.
-pub(crate) enum OpenError {
-    Redb(redb::DatabaseError),
-    Panicked(String),
-}
-
-thread_local! {
-    /// Set while this thread runs [`quietly`]: its panics are caught and reported as errors.
-    static QUIET: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
-}
-
-/// Runs `f`, catching a panic of the database library as an `Err` without the panic hook
-/// printing it (a damaged journal is an error the gateway reports, not a crash). Panics of
-/// other threads meanwhile are printed as always.
-pub(crate) fn quietly<T>(f: impl FnOnce() -> T) -> std::thread::Result<T> {
-    static HOOK: std::sync::Once = std::sync::Once::new();
-    HOOK.call_once(|| {
-        let previous = std::panic::take_hook();
-        std::panic::set_hook(Box::new(move |info| {
-            if !QUIET.with(std::cell::Cell::get) {
-                previous(info);
-            }
-        }));
-    });
-    QUIET.with(|q| q.set(true));
-    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
-    QUIET.with(|q| q.set(false));
-    result
-}
-
-pub(crate) fn panic_text(panic: &Box<dyn std::any::Any + Send>) -> String {
-    panic
-        .downcast_ref::<&str>()
-        .map(|s| (*s).to_string())
-        .or_else(|| panic.downcast_ref::<String>().cloned())
-        .unwrap_or_else(|| "the database library panicked".to_string())
 }
 
 /// Runs `f` in one durable write transaction that first writes the pending checkpoints, so

@@ -36,11 +36,9 @@
 //! and the bus routes put them on their keys. It runs in tokio time, so it is tested under
 //! paused time with a stand-in link.
 
-pub mod folder;
 mod hold;
 mod intake;
 pub mod journal;
-pub mod library;
 mod link_events;
 mod progress;
 pub mod queue;
@@ -58,6 +56,7 @@ use tokio::sync::{broadcast, mpsc, oneshot, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
+use crate::library::{self, LibraryError, ProgramLibrary};
 use crate::link::JobId;
 use crate::link::driver::{JobFailure, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use crate::telemetry::metrics::{self, MachineMetrics, Outcome};
@@ -70,7 +69,6 @@ use cellgate_core::pb;
 use cellgate_core::pb::job_event::Kind;
 use cellgate_core::program::blocks::{Block, BlockError, StartAt};
 use journal::{JobOriginRecord, JobRecord, JobState, Journal, JournalError, StartPoint};
-use library::{LibraryError, ProgramLibrary};
 use queue::PriorityQueue;
 use source::{ProgramError, ProgramInput, ProgramRules};
 

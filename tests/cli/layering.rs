@@ -27,19 +27,26 @@ const CORE_LAYERS: &[&[&str]] = &[
 
 /// The gateway's modules, lowest layer first.
 const GATEWAY_LAYERS: &[&[&str]] = &[
-    &["telemetry"],
+    &["telemetry", "storage"],
     &["transport", "door"],
-    &["link"],
+    &["link", "library"],
     &["jobs", "plc", "sim"],
     &["history"],
     &["bus"],
     &["cell", "client"],
-    &["console", "mtconnect"],
+    &["console", "mtconnect", "historian"],
     &["gateway"],
 ];
 
 /// Gateway modules that may use zenoh.
-const ZENOH_MODULES: &[&str] = &["bus", "client", "console", "mtconnect", "gateway"];
+const ZENOH_MODULES: &[&str] = &[
+    "bus",
+    "client",
+    "console",
+    "mtconnect",
+    "historian",
+    "gateway",
+];
 
 fn sources(dir: &Path) -> Vec<PathBuf> {
     let mut out = Vec::new();

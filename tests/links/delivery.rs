@@ -9,9 +9,9 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use cellgate::jobs::journal::Journal;
-use cellgate::jobs::library::ProgramLibrary;
 use cellgate::jobs::source::ProgramInput;
 use cellgate::jobs::{self, JobSubmission, JobsSettings};
+use cellgate::library::ProgramLibrary;
 use cellgate_core::pb;
 use cellgate_core::pb::job_event::Kind;
 use common::{nc_program, sim_cell, start};

@@ -499,9 +499,9 @@ async fn every_protocol_through_a_cnc_reset() {
 async fn a_stuck_job_fails_at_its_deadline_saying_what_the_link_waited_for() {
     use bytes::Bytes;
     use cellgate::jobs::journal::Journal;
-    use cellgate::jobs::library::ProgramLibrary;
     use cellgate::jobs::source::ProgramInput;
     use cellgate::jobs::{self, JobSubmission, JobsSettings};
+    use cellgate::library::ProgramLibrary;
     use cellgate_core::pb;
 
     let config = common::sim_cell("b", None, 19_200, 2_000);

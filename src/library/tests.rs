@@ -730,7 +730,7 @@ async fn names_that_give_no_program_are_listed_with_why_and_hidden_ones_are_not(
         "hidden and temporary files are not listed: {shown:?}"
     );
     assert!(listed.iter().all(|e| e.name.is_empty()));
-    use crate::jobs::folder::Verdict;
+    use crate::library::folder::Verdict;
     assert_eq!(
         lib.verdict(std::ffi::OsStr::new("O5.nc.tmp")),
         Verdict::Pass

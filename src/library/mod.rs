@@ -34,6 +34,7 @@
 
 mod disk;
 mod files;
+pub mod folder;
 mod index;
 mod one_file;
 
@@ -479,7 +480,7 @@ impl ProgramLibrary {
     }
 
     fn write_error(&self, name: &str, path: PathBuf, e: std::io::Error) -> LibraryError {
-        if crate::jobs::journal::is_storage_full(&e) {
+        if crate::storage::is_storage_full(&e) {
             LibraryError::StorageFull {
                 name: name.to_string(),
                 path,
@@ -718,13 +719,11 @@ impl ProgramLibrary {
                     let _ = write_atomically(&path, &[&old], true);
                 }
                 return Err(match e.io() {
-                    Some(io) if crate::jobs::journal::is_storage_full(io) => {
-                        LibraryError::StorageFull {
-                            name,
-                            path,
-                            source: std::io::Error::new(io.kind(), io.to_string()),
-                        }
-                    }
+                    Some(io) if crate::storage::is_storage_full(io) => LibraryError::StorageFull {
+                        name,
+                        path,
+                        source: std::io::Error::new(io.kind(), io.to_string()),
+                    },
                     _ => e.into(),
                 });
             }

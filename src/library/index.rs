@@ -62,10 +62,10 @@ impl Index {
             path: path.to_path_buf(),
             source: Box::new(e),
         };
-        let db = match crate::jobs::journal::open_db(path) {
+        let db = match crate::storage::open_db(path) {
             Ok(db) => db,
-            Err(crate::jobs::journal::OpenError::Redb(e)) => return Err(err(e.into())),
-            Err(crate::jobs::journal::OpenError::Panicked(text)) => {
+            Err(crate::storage::OpenError::Redb(e)) => return Err(err(e.into())),
+            Err(crate::storage::OpenError::Panicked(text)) => {
                 return Err(err(redb::Error::Io(std::io::Error::other(format!(
                     "the index is damaged ({text}); move it aside: the gateway builds a new \
                      one from the programs in the directory, each as revision 1"

@@ -102,7 +102,7 @@ pub(super) enum OpenError {
 pub(super) fn open_regular(path: &Path) -> Result<(File, Metadata), OpenError> {
     let before = std::fs::symlink_metadata(path).map_err(OpenError::Io)?;
     if !before.is_file() {
-        return Err(OpenError::NotRegular(crate::jobs::folder::file_kind(
+        return Err(OpenError::NotRegular(crate::library::folder::file_kind(
             before.file_type(),
         )));
     }
@@ -116,7 +116,7 @@ pub(super) fn open_regular(path: &Path) -> Result<(File, Metadata), OpenError> {
         })?;
     let meta = file.metadata().map_err(OpenError::Io)?;
     if !meta.is_file() {
-        return Err(OpenError::NotRegular(crate::jobs::folder::file_kind(
+        return Err(OpenError::NotRegular(crate::library::folder::file_kind(
             meta.file_type(),
         )));
     }

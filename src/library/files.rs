@@ -1,6 +1,6 @@
 //! The library's folder as a CAM system uses it: a file posted or edited in `programs.dir`
 //! becomes the program's next revision, a file deleted there marks the program removed. The
-//! watcher ([`crate::jobs::folder`]) decides when a file is complete and calls these; here is
+//! watcher ([`crate::library::folder`]) decides when a file is complete and calls these; here is
 //! what the library makes of it, under the same lock, name rules, size bound and quota as a
 //! store from the bus. The file itself is never written: it stays as its writer left it.
 //!
@@ -21,7 +21,7 @@ use super::disk::{CopyError, Incoming, OpenError, escaped, is_regular, open_regu
 use super::{
     Index, LibraryError, ProgramEntry, ProgramLibrary, blocking, is_released, modified_ms,
 };
-use crate::jobs::folder::{Verdict, not_regular};
+use crate::library::folder::{Verdict, not_regular};
 
 /// What became of a file of the folder.
 #[derive(Debug, Clone, PartialEq, Eq)]
