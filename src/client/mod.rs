@@ -491,20 +491,27 @@ pub fn client_config(
     Ok(config)
 }
 
+/// A client session to `options.endpoint` (client mode, no listen endpoint, multicast
+/// scouting off), as every client of the bus contract opens it: the CLI, the site console,
+/// the site MTConnect agent, the historian.
+pub async fn open_session(options: &ConnectOptions) -> Result<Session, ClientError> {
+    let config = client_config(&options.endpoint, &options.security)?;
+    zenoh::open(config)
+        .await
+        .map_err(|source| ClientError::Unreachable {
+            endpoint: options.endpoint.clone(),
+            secured: !options.security.is_empty(),
+            source,
+        })
+}
+
 impl Client {
     /// Connects to `options.endpoint` and finds the cell. Must run on a multi-thread Tokio
     /// runtime (zenoh's requirement); close the client with [`Client::close`].
     pub async fn connect(options: &ConnectOptions) -> Result<Client, ClientError> {
         // Both checked before any connection: a bad prefix or cell is a usage error.
         CellKeys::new(&options.prefix, options.cell.as_deref().unwrap_or("cell"))?;
-        let config = client_config(&options.endpoint, &options.security)?;
-        let session = zenoh::open(config)
-            .await
-            .map_err(|source| ClientError::Unreachable {
-                endpoint: options.endpoint.clone(),
-                secured: !options.security.is_empty(),
-                source,
-            })?;
+        let session = open_session(options).await?;
         match Self::find_cell(&session, options).await {
             Ok((cell, admin)) => match CellKeys::new(&options.prefix, &cell) {
                 Ok(keys) => Ok(Client {

@@ -497,15 +497,7 @@ pub async fn site(
         )));
     }
     let options = args.connect.options()?;
-    let config = crate::client::client_config(&options.endpoint, &options.security)?;
-    let session =
-        zenoh::open(config)
-            .await
-            .map_err(|source| crate::client::ClientError::Unreachable {
-                endpoint: options.endpoint.clone(),
-                secured: !options.security.is_empty(),
-                source,
-            })?;
+    let session = crate::client::open_session(&options).await?;
     let stop = CancellationToken::new();
     let settings = ConsoleSettings {
         console,

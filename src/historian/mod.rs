@@ -89,14 +89,7 @@ pub async fn run(
         args.database_password_file.as_deref(),
     )?);
     let options = args.connect.options()?;
-    let config = crate::client::client_config(&options.endpoint, &options.security)?;
-    let session = zenoh::open(config)
-        .await
-        .map_err(|source| ClientError::Unreachable {
-            endpoint: options.endpoint.clone(),
-            secured: !options.security.is_empty(),
-            source,
-        })?;
+    let session = crate::client::open_session(&options).await?;
     let timeout = Duration::from_secs(args.connect.timeout);
     let prefix = options.prefix.clone();
     if args.status {

@@ -243,14 +243,7 @@ pub async fn site(
         tracing::warn!("{w}");
     }
     let options = args.connect.options()?;
-    let zenoh_config = crate::client::client_config(&options.endpoint, &options.security)?;
-    let session = zenoh::open(zenoh_config).await.map_err(|source| {
-        crate::client::ClientError::Unreachable {
-            endpoint: options.endpoint.clone(),
-            secured: !options.security.is_empty(),
-            source,
-        }
-    })?;
+    let session = crate::client::open_session(&options).await?;
     let stop = CancellationToken::new();
     let settings = MtconnectSettings {
         config,

@@ -50,6 +50,19 @@ impl Historian {
     }
 }
 
+/// A zenoh router on a free loopback port, for the cells' gateways and the historian.
+async fn router() -> (u16, zenoh::Session) {
+    let port = free_port();
+    let router = bus::open(&bus::BusConfig {
+        mode: bus::BusMode::Router,
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        ..bus::BusConfig::default()
+    })
+    .await
+    .unwrap();
+    (port, router)
+}
+
 /// Every `(seq)` of `cell`'s log as its gateway answers it.
 async fn gateway_seqs(client: &Client, audit: bool) -> BTreeSet<i64> {
     let mut seqs = BTreeSet::new();
@@ -159,14 +172,7 @@ async fn every_record_of_two_cells_reaches_postgresql_once_through_restarts_and_
     let url = pg.url("site");
 
     // A router, and the gateways of cells "north" and "south" on it.
-    let router_port = free_port();
-    let _router = bus::open(&bus::BusConfig {
-        mode: bus::BusMode::Router,
-        listen: vec![format!("tcp/127.0.0.1:{router_port}")],
-        ..bus::BusConfig::default()
-    })
-    .await
-    .unwrap();
+    let (router_port, _router) = router().await;
     let north_dir = tempfile::tempdir().unwrap();
     let on_router = |cell: &'static str| {
         move |c: &mut cellgate_core::config::CellConfig, _: &std::path::Path| {
@@ -320,14 +326,7 @@ async fn records_trimmed_before_they_were_copied_are_a_gap_in_the_table() {
     };
     pg.create("site");
     let url = pg.url("site");
-    let router_port = free_port();
-    let _router = bus::open(&bus::BusConfig {
-        mode: bus::BusMode::Router,
-        listen: vec![format!("tcp/127.0.0.1:{router_port}")],
-        ..bus::BusConfig::default()
-    })
-    .await
-    .unwrap();
+    let (router_port, _router) = router().await;
     // A cell that keeps 20 records of each log: retention runs as the gateway starts.
     let dir = tempfile::tempdir().unwrap();
     let small = |c: &mut cellgate_core::config::CellConfig, _: &std::path::Path| {
