@@ -53,6 +53,9 @@ pub struct HistorianArgs {
     /// gaps, then exit.
     #[arg(long)]
     pub status: bool,
+    /// With --status: print a JSON array (cell, log, database, gateway, lag, gaps).
+    #[arg(long, requires = "status")]
+    pub json: bool,
 }
 
 /// Why the historian could not start or stopped.
@@ -93,7 +96,15 @@ pub async fn run(
     let timeout = Duration::from_secs(args.connect.timeout);
     let prefix = options.prefix.clone();
     if args.status {
-        let result = status(&db, &session, &prefix, options.cell.as_deref(), timeout).await;
+        let result = status(
+            &db,
+            &session,
+            &prefix,
+            options.cell.as_deref(),
+            timeout,
+            args.json,
+        )
+        .await;
         let _ = session.close().await;
         return result;
     }
@@ -278,6 +289,7 @@ async fn status(
     prefix: &str,
     only: Option<&str>,
     timeout: Duration,
+    json: bool,
 ) -> Result<(), HistorianError> {
     let mut cells: BTreeMap<String, Option<Client>> =
         db.cells().await?.into_iter().map(|c| (c, None)).collect();
@@ -288,10 +300,13 @@ async fn status(
         let client = Client::attach(session.clone(), prefix, &cell, admin, timeout).ok();
         cells.insert(cell, client);
     }
-    println!(
-        "{:<16} {:<8} {:>12} {:>12} {:>8} {:>6}",
-        "CELL", "LOG", "DATABASE", "GATEWAY", "LAG", "GAPS"
-    );
+    if !json {
+        println!(
+            "{:<16} {:<8} {:>12} {:>12} {:>8} {:>6}",
+            "CELL", "LOG", "DATABASE", "GATEWAY", "LAG", "GAPS"
+        );
+    }
+    let mut all = Vec::new();
     for (cell, client) in cells {
         if only.is_some_and(|o| o != cell) {
             continue;
@@ -312,6 +327,13 @@ async fn status(
                 None => None,
             };
             let gaps = db.gaps(&cell, log).await?;
+            if json {
+                all.push(serde_json::json!({
+                    "cell": cell, "log": log.name(), "database": held, "gateway": newest,
+                    "lag": newest.map(|n| n.saturating_sub(held)), "gaps": gaps,
+                }));
+                continue;
+            }
             println!(
                 "{:<16} {:<8} {:>12} {:>12} {:>8} {:>6}",
                 cell,
@@ -322,6 +344,9 @@ async fn status(
                 gaps
             );
         }
+    }
+    if json {
+        println!("{}", serde_json::Value::Array(all));
     }
     Ok(())
 }

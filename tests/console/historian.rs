@@ -29,6 +29,7 @@ impl Historian {
             database,
             database_password_file: None,
             status: false,
+            json: false,
         };
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
         let task = tokio::spawn(async move {
@@ -48,6 +49,16 @@ impl Historian {
             .unwrap()
             .unwrap();
     }
+}
+
+/// Time the gateway knew something of, over `buckets`.
+fn b_known(buckets: &[pb::UtilisationBucket]) -> u64 {
+    buckets
+        .iter()
+        .map(|b| {
+            b.reading_ms + b.idle_ms + b.alarm_ms + b.reset_ms + b.punching_ms + b.link_down_ms
+        })
+        .sum()
 }
 
 /// A zenoh router on a free loopback port, for the cells' gateways and the historian.
@@ -259,6 +270,53 @@ async fn every_record_of_two_cells_reaches_postgresql_once_through_restarts_and_
         let (all, completed): (i64, i64) = (row.get(0), row.get(1));
         assert_eq!((all, completed), (n, n), "{cell}");
     }
+    // The utilisation view divides each hour as the gateway's own answer does (the two asked
+    // a moment apart: a share may differ by the time between them).
+    let asked: pb::Utilisation = clients[1]
+        .1
+        .utilisation(&[
+            ("_time".to_string(), "[now(-3h)..]".to_string()),
+            ("machine".to_string(), "mill-1".to_string()),
+        ])
+        .await
+        .unwrap();
+    let buckets = &asked.machines[0].buckets;
+    let rows = db
+        .query(
+            "SELECT (extract(epoch FROM hour) * 1000)::bigint, reading_ms, idle_ms, alarm_ms,
+                    reset_ms, punching_ms, link_down_ms, unknown_ms, jobs_completed
+             FROM cellgate.utilisation WHERE cell = 'south' AND machine = 'mill-1'
+             ORDER BY hour",
+            &[],
+        )
+        .await
+        .unwrap();
+    assert!(!rows.is_empty(), "no hour in the utilisation view");
+    for row in &rows {
+        let hour: i64 = row.get(0);
+        let b = buckets
+            .iter()
+            .find(|b| b.start_unix_ms as i64 == hour)
+            .unwrap_or_else(|| panic!("no bucket at {hour}: {buckets:?}"));
+        let ours = [
+            b.reading_ms,
+            b.idle_ms,
+            b.alarm_ms,
+            b.reset_ms,
+            b.punching_ms,
+            b.link_down_ms,
+            b.unknown_ms,
+        ];
+        for (i, gateway) in ours.iter().enumerate() {
+            let view: i64 = row.get(i + 1);
+            assert!(
+                (view - *gateway as i64).abs() <= 5_000,
+                "share {i} of {hour}: view {view} ms, gateway {gateway} ms ({b:?})"
+            );
+        }
+        assert_eq!(row.get::<_, i64>(8), i64::from(b.jobs_completed), "{b:?}");
+    }
+    assert!(b_known(buckets) > 0);
     // The audit table names each action; a record is the protobuf JSON mapping.
     let row = db
         .query_one(
@@ -310,6 +368,21 @@ async fn every_record_of_two_cells_reaches_postgresql_once_through_restarts_and_
             assert_eq!(row[5], "0", "no gap: {text}");
         }
     }
+
+    let out = common::cli::command([
+        "historian",
+        "-e",
+        &format!("tcp/127.0.0.1:{router_port}"),
+        "--database",
+        &url,
+        "--status",
+        "--json",
+    ])
+    .output()
+    .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v.as_array().map(Vec::len), Some(4), "{v}");
+    assert!(v.as_array().unwrap().iter().all(|r| r["gaps"] == 0), "{v}");
 
     historian.stop().await;
     north.stop().await;
