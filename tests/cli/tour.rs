@@ -338,11 +338,10 @@ fn the_readme_tour_works_as_written() {
         jobs[0].contains(job) && jobs.iter().all(|l| l.contains(" mill-1 ")),
         "the last job first: {jobs:?}"
     );
-    let audit = g.ok("cellgate audit --since 1h");
-    assert!(
-        audit.contains("program.release O1234 revision 2"),
-        "{audit}"
-    );
+    // The audit is written with the history's next commit, once a second.
+    g.until("cellgate audit --since 1h", Duration::from_secs(10), |audit| {
+        audit.contains("program.release O1234 revision 2")
+    });
     let (code, utilisation, err) = g.run("cellgate utilisation mill-1 --since 1h");
     assert_eq!(code, 0, "{err}");
     assert!(
