@@ -112,7 +112,7 @@ async fn main() {
         return;
     };
     pg.create("bench");
-    let db = Db::new(config(&pg.url("bench"), None).unwrap());
+    let db = Db::new(config(&pg.url("bench"), None).unwrap(), None);
     let (one, cells, each) = if full {
         (1_000_000, 64, 10_000)
     } else {

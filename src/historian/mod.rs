@@ -49,6 +49,10 @@ pub struct HistorianArgs {
     /// A file holding the database user's password (its first line).
     #[arg(long, value_name = "FILE")]
     pub database_password_file: Option<PathBuf>,
+    /// The CA certificates (PEM) that signed the database server's certificate: TLS to the
+    /// database, its certificate and name checked (the URL's sslmode: prefer or require).
+    #[arg(long, value_name = "FILE")]
+    pub database_ca: Option<PathBuf>,
     /// Print, for each cell, the newest record in the database and on its gateway, and the
     /// gaps, then exit.
     #[arg(long)]
@@ -87,10 +91,9 @@ pub async fn run(
     args: &HistorianArgs,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<(), HistorianError> {
-    let db = Db::new(store::config(
-        &args.database,
-        args.database_password_file.as_deref(),
-    )?);
+    let config = store::config(&args.database, args.database_password_file.as_deref())?;
+    let tls = store::tls(&config, args.database_ca.as_deref())?;
+    let db = Db::new(config, tls);
     let options = args.connect.options()?;
     let session = crate::client::open_session(&options).await?;
     let timeout = Duration::from_secs(args.connect.timeout);

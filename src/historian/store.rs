@@ -5,9 +5,13 @@
 use std::path::Path;
 use std::sync::Arc;
 
+use postgres_rustls::MakeTlsConnector;
 use tokio::sync::Mutex;
 use tokio_postgres::config::SslMode;
 use tokio_postgres::{Client, Config, NoTls};
+use tokio_rustls::rustls;
+use tokio_rustls::rustls::pki_types::CertificateDer;
+use tokio_rustls::rustls::pki_types::pem::PemObject;
 
 use super::{HistorianError, schema};
 use cellgate_core::pb;
@@ -39,13 +43,6 @@ pub fn config(url: &str, password_file: Option<&Path>) -> Result<Config, Histori
     let mut config: Config = url
         .parse()
         .map_err(|e| HistorianError::Config(format!("--database {}: {e}", shown(url))))?;
-    if config.get_ssl_mode() == SslMode::Require {
-        return Err(HistorianError::Config(format!(
-            "--database {}: sslmode=require: this historian speaks to the database without TLS; \
-             reach it on loopback or a local socket, or through a TLS tunnel",
-            shown(url)
-        )));
-    }
     if config.get_password().is_none() {
         if let Some(file) = password_file {
             let bytes =
@@ -68,6 +65,48 @@ pub fn config(url: &str, password_file: Option<&Path>) -> Result<Config, Histori
     Ok(config)
 }
 
+/// TLS to the database as the URL's `sslmode` asks: none for `disable`; with `ca` (the
+/// PEM file of the CAs that signed the database server's certificate) the server's
+/// certificate and name are checked against it (`prefer`, the default, and `require`);
+/// `require` without `ca` is refused, since a certificate nothing vouches for proves nothing.
+pub fn tls(config: &Config, ca: Option<&Path>) -> Result<Option<MakeTlsConnector>, HistorianError> {
+    let mode = config.get_ssl_mode();
+    let Some(ca) = ca.filter(|_| mode != SslMode::Disable) else {
+        if mode == SslMode::Require {
+            return Err(HistorianError::Config(
+                "--database …sslmode=require: give --database-ca FILE, the CA that signed the \
+                 database server's certificate"
+                    .to_string(),
+            ));
+        }
+        return Ok(None);
+    };
+    let bad =
+        |why: String| HistorianError::Config(format!("--database-ca {}: {why}", ca.display()));
+    let pem = cellgate_core::config::file::read_bounded(ca, 1024 * 1024)
+        .map_err(|e| bad(e.to_string()))?;
+    let mut roots = rustls::RootCertStore::empty();
+    for cert in CertificateDer::pem_slice_iter(&pem) {
+        let cert = cert.map_err(|e| bad(format!("not PEM certificates: {e}")))?;
+        roots
+            .add(cert)
+            .map_err(|e| bad(format!("a certificate that cannot be a root: {e}")))?;
+    }
+    if roots.is_empty() {
+        return Err(bad("no certificate in it".to_string()));
+    }
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut client = rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .map_err(|e| bad(e.to_string()))?
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    postgres_rustls::set_postgresql_alpn(&mut client);
+    Ok(Some(MakeTlsConnector::new(
+        tokio_rustls::TlsConnector::from(Arc::new(client)),
+    )))
+}
+
 /// The URL without its password, for logs.
 pub fn shown(url: &str) -> String {
     match (url.find("://"), url.rfind('@')) {
@@ -84,6 +123,7 @@ pub fn shown(url: &str) -> String {
 #[derive(Clone)]
 pub struct Db {
     config: Arc<Config>,
+    tls: Option<MakeTlsConnector>,
     client: Arc<Mutex<Option<Arc<Client>>>>,
 }
 
@@ -100,9 +140,11 @@ FROM UNNEST($2::bigint[], $3::bigint[], $4::text[], $5::text[], $6::text[]) AS t
 ON CONFLICT (cell, seq) DO NOTHING";
 
 impl Db {
-    pub fn new(config: Config) -> Db {
+    /// The database of `config`, reached over `tls` where given (see [`tls`]).
+    pub fn new(config: Config, tls: Option<MakeTlsConnector>) -> Db {
         Db {
             config: Arc::new(config),
+            tls,
             client: Arc::new(Mutex::new(None)),
         }
     }
@@ -116,12 +158,21 @@ impl Db {
             return Ok(Arc::clone(c));
         }
         *held = None;
-        let (mut client, connection) = self.config.connect(NoTls).await?;
-        tokio::spawn(async move {
-            if let Err(e) = connection.await {
-                tracing::warn!(error = %e, "the database connection ended");
+        let ended = |e: tokio_postgres::Error| {
+            tracing::warn!(error = %super::db_text(&e), "the database connection ended");
+        };
+        let mut client = match &self.tls {
+            Some(tls) => {
+                let (client, connection) = self.config.connect(tls.clone()).await?;
+                tokio::spawn(async move { connection.await.map_err(ended) });
+                client
             }
-        });
+            None => {
+                let (client, connection) = self.config.connect(NoTls).await?;
+                tokio::spawn(async move { connection.await.map_err(ended) });
+                client
+            }
+        };
         let applied = schema::migrate(&mut client).await?;
         if !applied.is_empty() {
             tracing::info!(?applied, "database schema migrated");

@@ -339,9 +339,11 @@ fn the_readme_tour_works_as_written() {
         "the last job first: {jobs:?}"
     );
     // The audit is written with the history's next commit, once a second.
-    g.until("cellgate audit --since 1h", Duration::from_secs(10), |audit| {
-        audit.contains("program.release O1234 revision 2")
-    });
+    g.until(
+        "cellgate audit --since 1h",
+        Duration::from_secs(10),
+        |audit| audit.contains("program.release O1234 revision 2"),
+    );
     let (code, utilisation, err) = g.run("cellgate utilisation mill-1 --since 1h");
     assert_eq!(code, 0, "{err}");
     assert!(

@@ -14,6 +14,8 @@ pub struct Postgres {
     dir: tempfile::TempDir,
     pub port: u16,
     as_postgres: bool,
+    /// TLS on, with this certificate and key in the data folder.
+    tls: bool,
 }
 
 /// The newest installed server's programs.
@@ -30,6 +32,16 @@ fn bin() -> Option<PathBuf> {
 
 impl Postgres {
     pub fn start() -> Option<Postgres> {
+        Postgres::start_with(None)
+    }
+
+    /// A server that takes TLS (and plain connections too) with the certificate `cert` and
+    /// its key `key` (PEM files).
+    pub fn start_tls(cert: &Path, key: &Path) -> Option<Postgres> {
+        Postgres::start_with(Some((cert, key)))
+    }
+
+    fn start_with(tls: Option<(&Path, &Path)>) -> Option<Postgres> {
         let bin = bin()?;
         let dir = tempfile::tempdir().unwrap();
         // SAFETY: geteuid(2) has no preconditions.
@@ -44,6 +56,7 @@ impl Postgres {
             dir,
             port: free_port(),
             as_postgres,
+            tls: tls.is_some(),
         };
         let data = pg.data();
         pg.run(
@@ -60,6 +73,20 @@ impl Postgres {
                 "--no-sync",
             ],
         );
+        if let Some((cert, key)) = tls {
+            // The server reads them as its own user, the key readable by it alone.
+            for (from, to) in [(cert, "server.crt"), (key, "server.key")] {
+                let to = data.join(to);
+                std::fs::copy(from, &to).unwrap();
+                use std::os::unix::fs::PermissionsExt as _;
+                std::fs::set_permissions(&to, std::fs::Permissions::from_mode(0o600)).unwrap();
+                if as_postgres {
+                    let user = nix::unistd::User::from_name("postgres").ok()??;
+                    std::os::unix::fs::chown(&to, Some(user.uid.as_raw()), Some(user.gid.as_raw()))
+                        .unwrap();
+                }
+            }
+        }
         pg.up();
         Some(pg)
     }
@@ -97,11 +124,14 @@ impl Postgres {
 
     /// Starts the server (again), waiting until it takes connections.
     pub fn up(&self) {
-        let options = format!(
+        let mut options = format!(
             "-p {} -k {} -c listen_addresses=127.0.0.1 -c fsync=off",
             self.port,
             self.dir.path().display()
         );
+        if self.tls {
+            options.push_str(" -c ssl=on -c ssl_cert_file=server.crt -c ssl_key_file=server.key");
+        }
         let log = self.dir.path().join("log");
         self.run(
             "pg_ctl",

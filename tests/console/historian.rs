@@ -28,6 +28,7 @@ impl Historian {
             connect: connect_args(format!("tcp/127.0.0.1:{router}"), None),
             database,
             database_password_file: None,
+            database_ca: None,
             status: false,
             json: false,
         };
@@ -462,4 +463,49 @@ async fn records_trimmed_before_they_were_copied_are_a_gap_in_the_table() {
     historian.stop().await;
     client.close().await;
     west.stop().await;
+}
+
+/// TLS to the database: with the CA that signed the server's certificate the connection is
+/// encrypted and the server checked; `sslmode=require` without a CA is refused before
+/// anything is sent; a server whose certificate another CA signed is not spoken to.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_database_is_reached_over_tls_and_its_certificate_checked() {
+    let pki = common::pki::Pki::new();
+    let Some(pg) = Postgres::start_tls(&pki.cert("gateway"), &pki.key("gateway")) else {
+        eprintln!("skipped: no PostgreSQL server here (Debian's postgresql; .ci/run installs it)");
+        return;
+    };
+    pg.create("site");
+    let url = format!("{}?sslmode=require", pg.url("site"));
+    let config = cellgate::historian::store::config(&url, None).unwrap();
+
+    let tls = cellgate::historian::store::tls(&config, Some(&pki.ca())).unwrap();
+    let db = cellgate::historian::store::Db::new(config.clone(), tls);
+    let client = db.client().await.unwrap();
+    let row = client
+        .query_one(
+            "SELECT ssl FROM pg_stat_ssl WHERE pid = pg_backend_pid()",
+            &[],
+        )
+        .await
+        .unwrap();
+    assert!(row.get::<_, bool>(0), "the connection is encrypted");
+    assert_eq!(
+        db.newest("north", cellgate::historian::store::Log::History)
+            .await
+            .unwrap(),
+        0
+    );
+
+    match cellgate::historian::store::tls(&config, None) {
+        Err(refused) => assert!(refused.to_string().contains("--database-ca"), "{refused}"),
+        Ok(_) => panic!("sslmode=require without a CA is taken"),
+    }
+
+    let other = common::pki::Pki::new();
+    let tls = cellgate::historian::store::tls(&config, Some(&other.ca())).unwrap();
+    let db = cellgate::historian::store::Db::new(config, tls);
+    let e = db.client().await.unwrap_err();
+    let text = cellgate::historian::db_text(&e);
+    assert!(text.to_lowercase().contains("certificate"), "{text}");
 }
