@@ -57,6 +57,10 @@ pub struct HistorianArgs {
     /// gaps, then exit.
     #[arg(long)]
     pub status: bool,
+    /// Serve Prometheus metrics (records copied, failures, lag per cell) on
+    /// ADDRESS:PORT/metrics; OTLP too where OTEL_EXPORTER_OTLP_ENDPOINT is set.
+    #[arg(long, value_name = "ADDR")]
+    pub prometheus: Option<String>,
     /// With --status: print a JSON array (cell, log, database, gateway, lag, gaps).
     #[arg(long, requires = "status")]
     pub json: bool,
@@ -111,6 +115,17 @@ pub async fn run(
         let _ = session.close().await;
         return result;
     }
+    let telemetry = crate::telemetry::TelemetryConfig {
+        prometheus: args.prometheus.clone(),
+        service_name: "cellgate-historian".to_string(),
+        ..Default::default()
+    };
+    let otlp = std::env::var("OTEL_EXPORTER_OTLP_ENDPOINT").ok();
+    let _metrics = crate::telemetry::install_metrics(
+        &telemetry,
+        crate::telemetry::otlp_endpoint(&telemetry, otlp.as_deref()).as_deref(),
+    )
+    .map_err(|e| HistorianError::Config(e.to_string()))?;
     // Said at once when the database cannot be reached: the historian keeps trying.
     match db.client().await {
         Ok(c) => {
@@ -204,6 +219,11 @@ async fn follow(client: &Client, db: &Db, cell: &str, log: Log, stop: &Cancellat
                 // What the database holds is read again: it may have lost or gained rows.
                 after = None;
                 wait = (wait * 2).clamp(Duration::from_millis(500), RETRY_MAX);
+                crate::telemetry::metrics::event(
+                    "cellgate.historian.failures",
+                    &[("cell", cell), ("log", log.name())],
+                    1,
+                );
                 if !failing {
                     tracing::warn!(%cell, log = log.name(), error = %e, retry_in_s = wait.as_secs_f32(), "copying stopped; trying again");
                     failing = true;
@@ -254,8 +274,36 @@ async fn step(
         records.push(r);
     }
     db.insert(cell, log, &records, &gaps).await?;
-    *after = Some(expected - 1);
+    crate::telemetry::metrics::event(
+        "cellgate.historian.records",
+        &[("cell", cell), ("log", log.name())],
+        records.len() as u64,
+    );
+    let held = expected - 1;
+    *after = Some(held);
+    // Behind: how far, from the gateway's newest record (caught up, nothing).
+    let lag = if page.more {
+        newest_on_gateway(client, log)
+            .await
+            .map_or(0, |n| n.saturating_sub(held))
+    } else {
+        0
+    };
+    crate::telemetry::metrics::historian_lag(cell, log.name(), lag);
     Ok(!page.more)
+}
+
+/// The `seq` of the newest record of `log` the gateway holds.
+async fn newest_on_gateway(client: &Client, log: Log) -> Option<u64> {
+    let mut p = params(log, 0);
+    p.retain(|(k, _)| k != "limit");
+    p.push(("limit".to_string(), "1".to_string()));
+    p.push(("order".to_string(), "newest".to_string()));
+    client
+        .history(log.is_audit(), &p)
+        .await
+        .ok()
+        .and_then(|p| p.records.first().map(|r| r.seq))
 }
 
 /// The selector of a page of `log` after `from`: all of its time, every kind (tag values
@@ -317,16 +365,7 @@ async fn status(
         for log in [Log::History, Log::Audit] {
             let held = db.newest(&cell, log).await?;
             let newest = match &client {
-                Some(c) => {
-                    let mut p = params(log, 0);
-                    p.retain(|(k, _)| k != "limit");
-                    p.push(("limit".to_string(), "1".to_string()));
-                    p.push(("order".to_string(), "newest".to_string()));
-                    c.history(log.is_audit(), &p)
-                        .await
-                        .ok()
-                        .and_then(|p| p.records.first().map(|r| r.seq))
-                }
+                Some(c) => newest_on_gateway(c, log).await,
                 None => None,
             };
             let gaps = db.gaps(&cell, log).await?;

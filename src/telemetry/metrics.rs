@@ -32,6 +32,9 @@
 //! | `cellgate.history.dropped` | counter | `log` (`history`/`audit`), `reason` |
 //! | `cellgate.console.login_failures` | counter | `outcome` (`refused`/`throttled`) |
 //! | `cellgate.listen.refused` | counter | `listener` (`console`/`mtconnect`/`shdr`) |
+//! | `cellgate.historian.records` | counter | `cell`, `log` (`history`/`audit`) |
+//! | `cellgate.historian.failures` | counter | `cell`, `log` |
+//! | `cellgate.historian.lag` | gauge | `cell`, `log`: records the gateway holds and the database not yet |
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -254,6 +257,8 @@ struct Registry {
     plc_timeouts: Mutex<BTreeMap<(String, u8), u64>>,
     /// Rare events ([`EVENTS`]) by name and attributes.
     events: Mutex<BTreeMap<EventKey, u64>>,
+    /// (cell, log) → records the historian has yet to copy.
+    historian_lag: Mutex<BTreeMap<(String, &'static str), u64>>,
     /// The histograms of every installed provider, by install number.
     histograms: Mutex<Vec<(u64, Histograms)>>,
     installs: AtomicU64,
@@ -313,7 +318,7 @@ pub fn plc_station_timeouts(plc: &str, station: u8) -> u64 {
 }
 
 /// The counters of rare events [`event`] counts, with their descriptions.
-pub const EVENTS: [(&str, &str); 4] = [
+pub const EVENTS: [(&str, &str); 6] = [
     (
         "cellgate.bus.misdirected_writes",
         "Puts and deletes on keys that only read: nothing was written",
@@ -330,7 +335,21 @@ pub const EVENTS: [(&str, &str); 4] = [
         "cellgate.listen.refused",
         "Connections closed at once: their listener held as many as it may",
     ),
+    (
+        "cellgate.historian.records",
+        "Records the historian copied into the database",
+    ),
+    (
+        "cellgate.historian.failures",
+        "Copies the historian tried and could not make (the database or a gateway away)",
+    ),
 ];
+
+/// The historian's lag of `cell`'s `log`: records its gateway holds that the database does
+/// not yet.
+pub fn historian_lag(cell: &str, log: &'static str, lag: u64) {
+    lock(&registry().historian_lag).insert((cell.to_string(), log), lag);
+}
 
 /// Counts `n` rare events of counter `name` (one of [`EVENTS`]) with `attrs`: a lock and
 /// a map lookup, for what happens now and then, not per byte.
@@ -397,6 +416,21 @@ pub fn register(provider: &SdkMeterProvider) -> Instruments {
                     &[
                         KeyValue::new("plc", plc.clone()),
                         KeyValue::new("station", i64::from(*station)),
+                    ],
+                );
+            }
+        })
+        .build();
+    let _ = meter
+        .u64_observable_gauge("cellgate.historian.lag")
+        .with_description("Records a cell's gateway holds that the historian has not copied yet")
+        .with_callback(|o| {
+            for ((cell, log), n) in lock(&registry().historian_lag).iter() {
+                o.observe(
+                    *n,
+                    &[
+                        KeyValue::new("cell", cell.clone()),
+                        KeyValue::new("log", *log),
                     ],
                 );
             }
