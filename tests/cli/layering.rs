@@ -400,3 +400,54 @@ fn the_checker_sees_a_bus_cycle() {
     write("b.rs", "use super::c;\n");
     assert_eq!(cycle(&bus_imports(dir.path())), None);
 }
+
+/// The top modules of a crate's `src/`, from its files and folders (`main` aside: the
+/// binary's own modules).
+fn top_modules(src: &Path) -> Vec<String> {
+    let mut out: Vec<String> = std::fs::read_dir(src)
+        .unwrap()
+        .flatten()
+        .filter_map(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let module = name.strip_suffix(".rs").unwrap_or(&name).to_string();
+            let is_module = name.ends_with(".rs")
+                || e.path().join("mod.rs").exists()
+                || src.join(format!("{name}.rs")).exists();
+            (is_module && !["lib", "main", "tests", "testkit"].contains(&module.as_str()))
+                .then_some(module)
+        })
+        .collect();
+    out.sort();
+    out.dedup();
+    out
+}
+
+/// The maps say where everything is: each crate's `lib.rs` names every top module of it,
+/// every one is in a layer of this test, and docs/architecture.md names every room of the
+/// gateway (`src/NAME`) and every module of the core.
+#[test]
+fn the_maps_name_every_module() {
+    let arch = std::fs::read_to_string(root().join("docs/architecture.md")).unwrap();
+    let mut missing = Vec::new();
+    for (src, layers, in_arch) in [
+        (root().join("src"), GATEWAY_LAYERS, "`src/"),
+        (root().join("crates/cellgate-core/src"), CORE_LAYERS, "| `"),
+    ] {
+        let lib = std::fs::read_to_string(src.join("lib.rs")).unwrap();
+        for m in top_modules(&src) {
+            if !lib.contains(&format!("[`{m}`]")) && !lib.contains(&format!("`{m}`")) {
+                missing.push(format!("{}: lib.rs does not name {m}", src.display()));
+            }
+            if !layers.iter().any(|l| l.contains(&m.as_str())) && m != "testkit" {
+                missing.push(format!(
+                    "{}: {m} is in no layer of this test",
+                    src.display()
+                ));
+            }
+            if !arch.contains(&format!("{in_arch}{m}")) {
+                missing.push(format!("docs/architecture.md does not name {in_arch}{m}"));
+            }
+        }
+    }
+    assert!(missing.is_empty(), "{missing:#?}");
+}
