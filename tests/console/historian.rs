@@ -70,6 +70,18 @@ fn b_known(buckets: &[pb::UtilisationBucket]) -> u64 {
         .sum()
 }
 
+/// The database `site` on a server the test started, and its URL; `None`, said, where there
+/// is no PostgreSQL to start.
+fn site_database(pg: Option<Postgres>) -> Option<(Postgres, String)> {
+    let Some(pg) = pg else {
+        eprintln!("skipped: no PostgreSQL server here (Debian's postgresql; .ci/run installs it)");
+        return None;
+    };
+    pg.create("site");
+    let url = pg.url("site");
+    Some((pg, url))
+}
+
 /// A zenoh router on a free loopback port, for the cells' gateways and the historian.
 async fn router() -> (u16, zenoh::Session) {
     let port = free_port();
@@ -184,12 +196,9 @@ async fn every_record_of_two_cells_reaches_postgresql_once_through_restarts_and_
         .with_env_filter("cellgate::historian=debug")
         .with_test_writer()
         .try_init();
-    let Some(pg) = Postgres::start() else {
-        eprintln!("skipped: no PostgreSQL server here (Debian's postgresql; .ci/run installs it)");
+    let Some((pg, url)) = site_database(Postgres::start()) else {
         return;
     };
-    pg.create("site");
-    let url = pg.url("site");
 
     // A router, and the gateways of cells "north" and "south" on it.
     let (router_port, _router) = router().await;
@@ -432,12 +441,9 @@ async fn every_record_of_two_cells_reaches_postgresql_once_through_restarts_and_
 /// said, not papered over; what is kept is copied.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn records_trimmed_before_they_were_copied_are_a_gap_in_the_table() {
-    let Some(pg) = Postgres::start() else {
-        eprintln!("skipped: no PostgreSQL server here (Debian's postgresql; .ci/run installs it)");
+    let Some((_pg, url)) = site_database(Postgres::start()) else {
         return;
     };
-    pg.create("site");
-    let url = pg.url("site");
     let (router_port, _router) = router().await;
     // A cell that keeps 20 records of each log: retention runs as the gateway starts.
     let dir = tempfile::tempdir().unwrap();
@@ -509,12 +515,13 @@ async fn records_trimmed_before_they_were_copied_are_a_gap_in_the_table() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_database_is_reached_over_tls_and_its_certificate_checked() {
     let pki = common::pki::Pki::new();
-    let Some(pg) = Postgres::start_tls(&pki.cert("gateway"), &pki.key("gateway")) else {
-        eprintln!("skipped: no PostgreSQL server here (Debian's postgresql; .ci/run installs it)");
+    let Some((_pg, url)) = site_database(Postgres::start_tls(
+        &pki.cert("gateway"),
+        &pki.key("gateway"),
+    )) else {
         return;
     };
-    pg.create("site");
-    let url = format!("{}?sslmode=require", pg.url("site"));
+    let url = format!("{url}?sslmode=require");
     let config = cellgate::historian::store::config(&url, None).unwrap();
 
     let tls = cellgate::historian::store::tls(&config, Some(&pki.ca())).unwrap();
