@@ -28,7 +28,7 @@ use cellgate_core::pb;
 use tokio_util::sync::CancellationToken;
 
 fn now_us() -> u64 {
-    cellgate::mtconnect::feed::now_us()
+    cellgate::mtconnect::now_us()
 }
 
 fn cpu_seconds() -> f64 {
@@ -51,6 +51,7 @@ fn cell(machines: usize) -> CellDesc {
                 protocol: if i % 2 == 0 { Protocol::A } else { Protocol::B },
                 part_counter: None,
                 g05: false,
+                identification: Default::default(),
             })
             .collect(),
         plcs: vec![PlcDesc {

@@ -35,6 +35,8 @@ pub struct Ready {
     pub console: Option<String>,
     /// The MTConnect agent's URL, when it serves one.
     pub mtconnect: Option<String>,
+    /// The OPC UA server's URL, when it serves one.
+    pub opcua: Option<String>,
 }
 
 /// Why the gateway stopped with an error.
@@ -52,6 +54,9 @@ pub enum GatewayError {
     /// The console (`[console]`) could not be served.
     #[error(transparent)]
     Console(#[from] crate::console::ConsoleError),
+    /// The OPC UA server (`[opcua]`) could not be served.
+    #[error(transparent)]
+    Opcua(#[from] crate::opcua::OpcuaError),
     /// The MTConnect agent (`[mtconnect]`) could not be served.
     #[error(transparent)]
     Mtconnect(#[from] crate::mtconnect::MtconnectError),
@@ -192,6 +197,29 @@ async fn start_mtconnect(
     Ok(Some(served))
 }
 
+/// The cell's own OPC UA server, where `[opcua]` asks for one: a client of the routes that
+/// only reads.
+async fn start_opcua(
+    config: &CellConfig,
+    session: &Session,
+    stop: &CancellationToken,
+) -> Result<Option<crate::opcua::Served>, GatewayError> {
+    let Some(o) = &config.opcua else {
+        return Ok(None);
+    };
+    let settings = crate::opcua::OpcuaSettings {
+        config: o.clone(),
+        prefix: config.bus.prefix.clone(),
+        only: Some(config.cell.clone()),
+        own: Some(cellgate_core::mtconnect::CellDesc::from_config(config)),
+        security: config.security.clone(),
+        default_pki: config.programs.journal_dir().join("pki"),
+    };
+    let served = crate::opcua::serve(session.clone(), settings, stop.clone()).await?;
+    tracing::info!(url = %served.url, "OPC UA server at {}", served.url);
+    Ok(Some(served))
+}
+
 /// The cell's console, where `[console]` asks for one, linking to the agent at `mtconnect`.
 async fn start_console(
     config: &CellConfig,
@@ -275,6 +303,8 @@ async fn serve_with(
     let (mtconnect_stop, console_stop) = (CancellationToken::new(), CancellationToken::new());
     let mut mtconnect = None;
     let mut console: Option<crate::console::Served> = None;
+    let opcua_stop = CancellationToken::new();
+    let mut opcua: Option<crate::opcua::Served> = None;
     let reload_stop = CancellationToken::new();
     let mut reload_task = None;
     let mut routes_result = None;
@@ -311,6 +341,11 @@ async fn serve_with(
             Err(e) => break 'serve Err(e),
         }
 
+        match start_opcua(config, session, &opcua_stop).await {
+            Ok(served) => opcua = served,
+            Err(e) => break 'serve Err(e),
+        }
+
         match ReloadRoute::declare(session, keys, reloads.sender()).await {
             Ok(route) => reload_task = Some(tokio::spawn(route.run(reload_stop.clone()))),
             Err(e) => break 'serve Err(e.into()),
@@ -320,6 +355,7 @@ async fn serve_with(
             let _ = serving.send(Ready {
                 console: console.as_ref().map(|c| c.url.clone()),
                 mtconnect: mtconnect.as_ref().map(|m| m.url.clone()),
+                opcua: opcua.as_ref().map(|o| o.url.clone()),
             });
         }
 
@@ -333,6 +369,7 @@ async fn serve_with(
             plcs: plc_routes,
             history: history.clone(),
             console: console.as_ref().map(|c| Arc::clone(&c.console)),
+            opcua_auth: opcua.as_ref().and_then(|o| o.auth.clone()),
             admin: Arc::clone(&a),
             session: session.clone(),
             keys: keys.clone(),
@@ -381,6 +418,10 @@ async fn serve_with(
         Ok(())
     };
 
+    opcua_stop.cancel();
+    if let Some(o) = opcua {
+        o.join().await;
+    }
     mtconnect_stop.cancel();
     if let Some(m) = mtconnect {
         m.join().await;

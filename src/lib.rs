@@ -33,8 +33,10 @@
 //!   contract, the library side of the command line.
 //! - [`console`]: the web console, a client of the bus like [`client`], served over HTTP(S);
 //!   [`mtconnect`]: the MTConnect agent, a client of the bus as well, over HTTP and SHDR (its
-//!   model and documents are the core's `mtconnect`); [`historian`]: the site's history in
-//!   PostgreSQL, a client of the bus too.
+//!   model and documents are the core's `mtconnect`); [`opcua`]: the OPC UA server (OPC 40501
+//!   Machine Tools), a client of the bus as well (what its nodes show is the core's
+//!   `opcua`); [`historian`]: the site's history in PostgreSQL, a client of the bus too. The
+//!   agent and the server follow the cells through [`client::follow`].
 //! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves it, and stops
 //!   cleanly when the shutdown future completes.
 //!
@@ -42,8 +44,8 @@
 //!
 //! A module imports only the modules of lower layers in the list above (and the core):
 //! `tests/cli/layering.rs` checks it, for this crate and the core. Only the bus side (`bus`,
-//! `client`, `console`, `mtconnect`, `historian`, `gateway`) speaks zenoh, so links, jobs and transports run without a bus (and
-//! in paused time).
+//! `client`, `console`, `mtconnect`, `opcua`, `historian`, `gateway`) speaks zenoh, so links,
+//! jobs and transports run without a bus (and in paused time).
 
 // What is `pub` is the crate's interface (tests, benches, the binary use it); anything else
 // says how far it reaches.
@@ -61,6 +63,7 @@ pub mod jobs;
 pub mod library;
 pub mod link;
 pub mod mtconnect;
+pub mod opcua;
 pub mod plc;
 pub mod sim;
 pub mod storage;

@@ -82,6 +82,9 @@ enum Command {
     /// Serve an MTConnect agent for every cell behind an endpoint (a site view) until SIGINT
     /// or SIGTERM; a gateway serves its own cell's with `[mtconnect]` in its cell file.
     Mtconnect(cellgate::mtconnect::SiteArgs),
+    /// Serve an OPC UA server (OPC 40501 Machine Tools) for every cell behind an endpoint (a
+    /// site view) until SIGINT or SIGTERM; a gateway serves its own cell's with `[opcua]`.
+    Opcua(cellgate::opcua::SiteArgs),
     /// Copy every cell's history and audit trail into PostgreSQL (the site's history) until
     /// SIGINT or SIGTERM; with --status, say where each cell stands and exit.
     #[command(after_help = examples::HISTORIAN)]
@@ -187,6 +190,10 @@ struct RunArgs {
     /// takes a free one), or `off` for no agent.
     #[arg(long, value_name = "ADDR|off")]
     mtconnect: Option<String>,
+    /// Where the OPC UA server listens, ADDRESS:PORT (overrides opcua.listen; port 0 takes a
+    /// free one), or `off` for no server.
+    #[arg(long, value_name = "ADDR|off")]
+    opcua: Option<String>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -329,6 +336,7 @@ fn main() -> ExitCode {
         Command::Utilisation(ref args) => client_command(&cli, args),
         Command::Console(ref args) => site_console(args),
         Command::Mtconnect(ref args) => site_mtconnect(args),
+        Command::Opcua(ref args) => site_opcua(args),
         Command::Historian(ref args) => historian(args),
         Command::Jobs(ref args) => client_command(&cli, args),
         Command::Job(ref args) => client_command(&cli, args),
@@ -703,6 +711,14 @@ fn apply_overrides(
             any = true;
         }
     }
+    match args.opcua.as_deref() {
+        None => {}
+        Some("off") => config.opcua = None,
+        Some(addr) => {
+            config.opcua.get_or_insert_with(Default::default).listen = addr.to_string();
+            any = true;
+        }
+    }
     if let Some(format) = log_format {
         config.telemetry.log_format = format.into();
     }
@@ -790,8 +806,15 @@ async fn run_async(
                 .mtconnect
                 .map(|url| format!("mtconnect: {url}\n"))
                 .unwrap_or_default();
+            let opcua = ready
+                .opcua
+                .map(|url| format!("opcua: {url}\n"))
+                .unwrap_or_default();
             // A closed stdout (a service manager's) is no reason to stop.
-            let _ = write!(std::io::stdout().lock(), "{overview}{console}{mtconnect}");
+            let _ = write!(
+                std::io::stdout().lock(),
+                "{overview}{console}{mtconnect}{opcua}"
+            );
         }
     });
     let (reload, reloads) = cellgate::gateway::Reloads::new();
@@ -900,6 +923,17 @@ fn site_mtconnect(args: &cellgate::mtconnect::SiteArgs) -> ExitCode {
         match cellgate::mtconnect::site(args, shutdown).await {
             Ok(()) => Ok(()),
             Err(cellgate::mtconnect::SiteError::Config(e)) => Err((EXIT_CONFIG, e.to_string())),
+            Err(e) => Err((EXIT_RUNTIME, e.to_string())),
+        }
+    })
+}
+
+/// `cellgate opcua`: the site OPC UA server until SIGINT or SIGTERM.
+fn site_opcua(args: &cellgate::opcua::SiteArgs) -> ExitCode {
+    run_site(|shutdown| async move {
+        match cellgate::opcua::site(args, shutdown).await {
+            Ok(()) => Ok(()),
+            Err(cellgate::opcua::SiteError::Config(e)) => Err((EXIT_CONFIG, e.to_string())),
             Err(e) => Err((EXIT_RUNTIME, e.to_string())),
         }
     })

@@ -174,6 +174,7 @@ fn cell(name: &str, machine: &str, dir: &std::path::Path) -> (CellConfig, u16) {
     // Its console would take a fixed port; this test does not look at it.
     config.console = None;
     config.mtconnect = None;
+    config.opcua = None;
     config.cell = name.to_string();
     config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
     config.bus.connect = Vec::new();

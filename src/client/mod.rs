@@ -13,6 +13,7 @@
 //! programs (JSON).
 
 pub mod cli;
+pub mod follow;
 mod g05;
 mod history;
 mod jobs;

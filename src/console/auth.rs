@@ -282,6 +282,30 @@ impl Auth {
         addr: IpAddr,
         device: Option<&str>,
     ) -> Result<(String, User, String), LoginError> {
+        let (permissions, device) = self.verify(name, password, addr, device)?;
+        let (id, user) = self.open(name, "password", permissions);
+        Ok((id, user, device))
+    }
+
+    /// Checks a name and password as [`Auth::login`] does (throttled the same way), without
+    /// opening a console session: what another door of the cell (the OPC UA server) asks.
+    /// Answers the user's permissions.
+    pub fn check(
+        &self,
+        name: &str,
+        password: &str,
+        addr: IpAddr,
+    ) -> Result<BTreeSet<Permission>, LoginError> {
+        self.verify(name, password, addr, None).map(|(p, _)| p)
+    }
+
+    fn verify(
+        &self,
+        name: &str,
+        password: &str,
+        addr: IpAddr,
+        device: Option<&str>,
+    ) -> Result<(BTreeSet<Permission>, String), LoginError> {
         let cell = self.cell();
         if cell.users.is_empty() {
             return Err(LoginError::NoUsers);
@@ -305,8 +329,7 @@ impl Auth {
         if permissions.is_empty() {
             return Err(LoginError::NoRole(name.to_string()));
         }
-        let (id, user) = self.open(name, "password", permissions);
-        Ok((id, user, device))
+        Ok((permissions, device))
     }
 
     /// A session for a verified client certificate's common name, or for anybody on a cell

@@ -184,6 +184,8 @@ pub(super) struct Running {
     pub plcs: PlcRoutes,
     pub history: History,
     pub console: Option<Arc<crate::console::Console>>,
+    /// The OPC UA server's users, when it has some: a reload reads them again.
+    pub opcua_auth: Option<Arc<crate::console::auth::Auth>>,
     pub admin: Arc<AdminRoute>,
     pub session: Session,
     pub keys: CellKeys,
@@ -659,6 +661,9 @@ impl Reloader {
             },
         );
         self.run.history.set_config(&new.history);
+        if let Some(auth) = &self.run.opcua_auth {
+            auth.set_security(&new.security);
+        }
         if let (Some(console), Some(c)) = (&self.run.console, &new.console) {
             let ended = console.reload(c, &new.security);
             if ended > 0 {

@@ -102,9 +102,10 @@ fn every_client_command_has_json() {
             && c.get_subcommands().next().is_none()
             && path != "router"
             && path != "run"
-            // Servers: they print their URL, and serve JSON over HTTP.
+            // Servers: they print their URL, and serve JSON over HTTP (or OPC UA).
             && path != "console"
-            && path != "mtconnect";
+            && path != "mtconnect"
+            && path != "opcua";
         if client && !c.get_arguments().any(|a| a.get_id() == "json") {
             missing.push(path);
         }

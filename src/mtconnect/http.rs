@@ -26,7 +26,7 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 use super::Hub;
-use super::feed::now_us;
+use super::now_us;
 use cellgate_core::mtconnect::agent::Selection;
 use cellgate_core::mtconnect::{ErrorCode, Format, MtError, Query, Request};
 

@@ -4,14 +4,14 @@
 //! (`[mtconnect]`), on its own session; `cellgate mtconnect` serves every cell behind a
 //! router, on a session of its own: the same code. It only reads.
 //!
-//! - [`feed`]: the subscriptions and the answers that feed the agent;
+//! - the cells are followed by [`crate::client::follow`], the console's and the OPC UA
+//!   server's way too: the [`Hub`] is its [`Follower`];
 //! - [`http`]: `/probe`, `/current`, `/sample` (streamed as multipart), `/assets`, errors;
 //! - [`shdr`]: the adapter's TCP port.
 //!
 //! The model, the mapping, the buffer and the documents are the core's
 //! ([`cellgate_core::mtconnect`]): this room only does I/O.
 
-pub mod feed;
 pub mod http;
 pub mod shdr;
 
@@ -23,9 +23,10 @@ use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
+use crate::client::follow::{self, Follower};
 use crate::door::Door;
 use cellgate_core::config::MtconnectConfig;
-use cellgate_core::mtconnect::{Agent, CellDesc};
+use cellgate_core::mtconnect::{Agent, CellDesc, Update};
 
 /// The agent behind a lock, and a signal that says its buffer moved on.
 pub struct Hub {
@@ -60,6 +61,40 @@ impl Hub {
     pub fn watch(&self) -> watch::Receiver<u64> {
         self.next.subscribe()
     }
+}
+
+impl Follower for Hub {
+    fn known(&self, cell: &str) -> Option<CellDesc> {
+        self.lock().desc(cell).cloned()
+    }
+
+    fn describe(&self, desc: &CellDesc) {
+        self.lock().change_cell(desc, now_us());
+        self.changed();
+    }
+
+    fn take(&self, cell: &str, updates: Vec<Update>) {
+        let now = now_us();
+        let mut agent = self.lock();
+        if !agent.has_cell(cell) {
+            return;
+        }
+        let mut n = 0;
+        for u in updates {
+            n += agent.update(cell, u, now);
+        }
+        drop(agent);
+        if n > 0 {
+            self.changed();
+        }
+    }
+}
+
+/// Now, in microseconds since the Unix epoch.
+pub fn now_us() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_micros() as u64)
 }
 
 /// What the agent serves and how.
@@ -139,7 +174,7 @@ pub async fn serve(
         Some(addr) => Some(bind(addr).await?),
         None => None,
     };
-    let now = feed::now_us();
+    let now = now_us();
     // The instance id changes with every start: a client whose sequence numbers belong to
     // another instance starts over (Part 1, "instanceId").
     let agent = Agent::new(
@@ -149,12 +184,12 @@ pub async fn serve(
         now,
     );
     let hub = Hub::new(agent);
-    feed::start(
+    follow::start(
         session,
         settings.prefix.clone(),
         settings.only.clone(),
         settings.own.clone(),
-        Arc::clone(&hub),
+        Arc::clone(&hub) as Arc<dyn Follower>,
         stop.clone(),
     )
     .await

@@ -264,13 +264,25 @@ pub fn filter(log_filter: &str, rust_log: Option<&str>) -> Result<EnvFilter, Tel
         Some(s) if !s.trim().is_empty() => (s, RUST_LOG),
         _ => (log_filter, "telemetry.log_filter"),
     };
-    EnvFilter::builder()
-        .parse(directives)
-        .map_err(|source| TelemetryError::Filter {
-            filter: directives.to_string(),
-            origin,
-            source,
-        })
+    let filter =
+        EnvFilter::builder()
+            .parse(directives)
+            .map_err(|source| TelemetryError::Filter {
+                filter: directives.to_string(),
+                origin,
+                source,
+            })?;
+    // The OPC 40501 NodeSets carry old binary schemas as base64 with line breaks: the stack
+    // warns of each, at length, on every start; they are of no use to the server.
+    Ok(if directives.contains("opcua_types") {
+        filter
+    } else {
+        filter.add_directive(
+            "opcua_types::xml=error"
+                .parse()
+                .expect("a constant directive parses"),
+        )
+    })
 }
 
 /// The OTLP endpoint to export to, if any: `otlp_endpoint` from the cell file, else

@@ -3,12 +3,15 @@ use super::*;
 #[test]
 fn rust_log_overrides_the_cell_file() {
     let f = filter("info", Some("cellgate=trace")).unwrap();
-    assert_eq!(f.to_string(), "cellgate=trace");
+    assert_eq!(f.to_string(), "opcua_types::xml=error,cellgate=trace");
     let f = filter("warn,cellgate=debug", None).unwrap();
     assert!(f.to_string().contains("cellgate=debug"), "{f}");
     // An empty RUST_LOG is treated as unset.
     let f = filter("warn", Some("  ")).unwrap();
-    assert_eq!(f.to_string(), "warn");
+    assert_eq!(f.to_string(), "opcua_types::xml=error,warn");
+    // The NodeSets' old schemas are quiet, unless the filter names the stack's types.
+    let f = filter("info", Some("opcua_types=debug")).unwrap();
+    assert_eq!(f.to_string(), "opcua_types=debug");
 }
 
 #[test]

@@ -239,6 +239,7 @@ async fn start_cell(pace: Duration) -> Cell {
     let mut config = CellConfig::embedded_default();
     // Its MTConnect agent would take a fixed port; this test does not look at it.
     config.mtconnect = None;
+    config.opcua = None;
     config.cell = "test".to_string();
     config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
     config.bus.connect = Vec::new();

@@ -71,6 +71,7 @@ async fn start_gateway_with(links: impl FnOnce(&mut Vec<bus::MachineLink>)) -> G
     let mut config = CellConfig::embedded_default();
     // Its MTConnect agent would take a fixed port; this test does not look at it.
     config.mtconnect = None;
+    config.opcua = None;
     config.cell = CELL.to_string();
     config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
     config.bus.connect = Vec::new();
@@ -836,6 +837,8 @@ impl RunProcess {
                 "off",
                 "--mtconnect",
                 "off",
+                "--opcua",
+                "off",
             ])
             .current_dir(dir.path())
             .env(
@@ -1327,6 +1330,8 @@ async fn a_gateway_serves_again_after_its_router_restarts() {
             "--console",
             "off",
             "--mtconnect",
+            "off",
+            "--opcua",
             "off",
         ],
         dir.path(),

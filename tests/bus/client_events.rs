@@ -34,6 +34,8 @@ impl Run {
                 "off",
                 "--mtconnect",
                 "off",
+                "--opcua",
+                "off",
             ])
             .args(extra)
             .current_dir(dir.path())

@@ -34,6 +34,7 @@ async fn announces_the_cell_answers_admin_and_stops_on_shutdown() {
     // Its console would take a fixed port; this test does not look at it.
     config.console = None;
     config.mtconnect = None;
+    config.opcua = None;
     config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
     config.bus.connect = Vec::new();
     let dir = tempfile::tempdir().unwrap();

@@ -27,6 +27,7 @@ fn default_cell(port: u16, dir: &Path) -> CellConfig {
     let mut c = CellConfig::embedded_default();
     // Its MTConnect agent would take a fixed port; this test does not look at it.
     c.mtconnect = None;
+    c.opcua = None;
     c.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
     c.bus.connect = Vec::new();
     c.programs.dir = dir.join("programs");

@@ -40,6 +40,8 @@ fn run_then_signal(signal: &str) {
             "127.0.0.1:0",
             "--mtconnect",
             "127.0.0.1:0",
+            "--opcua",
+            "127.0.0.1:0",
         ])
         .env("RUST_LOG", "info")
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
@@ -237,6 +239,8 @@ fn run_on_an_endpoint_in_use_exits_1() {
             "off",
             "--mtconnect",
             "off",
+            "--opcua",
+            "off",
         ])
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
         .env_remove("CELLGATE_CONFIG")
@@ -314,7 +318,15 @@ fn run_on_an_address_in_use_says_so_in_one_line_and_creates_nothing() {
         .unwrap();
         let out = common::cli::bin()
             .current_dir(dir.path())
-            .args(["run", "--config", "cell.toml", "--mtconnect", "off"])
+            .args([
+                "run",
+                "--config",
+                "cell.toml",
+                "--mtconnect",
+                "off",
+                "--opcua",
+                "off",
+            ])
             .env("RUST_LOG", "info")
             .output()
             .unwrap();

@@ -23,6 +23,7 @@ const CORE_LAYERS: &[&[&str]] = &[
     &["config"],
     &["plc", "sim"],
     &["mtconnect"],
+    &["opcua"],
 ];
 
 /// The gateway's modules, lowest layer first.
@@ -34,7 +35,8 @@ const GATEWAY_LAYERS: &[&[&str]] = &[
     &["history"],
     &["bus"],
     &["cell", "client"],
-    &["console", "mtconnect", "historian"],
+    &["console"],
+    &["mtconnect", "opcua", "historian"],
     &["gateway"],
 ];
 
@@ -44,6 +46,7 @@ const ZENOH_MODULES: &[&str] = &[
     "client",
     "console",
     "mtconnect",
+    "opcua",
     "historian",
     "gateway",
 ];

@@ -36,6 +36,8 @@ fn plc_and_tag_commands_work_against_the_default_cell() {
             "127.0.0.1:0",
             "--mtconnect",
             "off",
+            "--opcua",
+            "off",
         ])
         .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
         .env_remove("CELLGATE_CONFIG")

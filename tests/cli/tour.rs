@@ -45,6 +45,8 @@ impl Gateway {
             "127.0.0.1:0",
             "--mtconnect",
             "127.0.0.1:0",
+            "--opcua",
+            "127.0.0.1:0",
         ])
         .current_dir(dir.path())
         .stdout(Stdio::piped())
@@ -588,7 +590,15 @@ fn every_command_of_the_docs_runs_against_a_gateway() {
         work.path().join("O1234.nc"),
     )
     .unwrap();
-    let serving = ["run", "router", "console", "mtconnect", "historian", "acl"];
+    let serving = [
+        "run",
+        "router",
+        "console",
+        "mtconnect",
+        "opcua",
+        "historian",
+        "acl",
+    ];
     let (mut ran, mut ok) = (0, 0);
     let mut failed = Vec::new();
     for path in doc_pages() {

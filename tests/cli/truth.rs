@@ -31,6 +31,8 @@ impl Gateway {
             "off",
             "--mtconnect",
             "off",
+            "--opcua",
+            "off",
         ])
         .current_dir(dir.path())
         .stdout(Stdio::null())

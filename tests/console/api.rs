@@ -35,6 +35,7 @@ impl Gateway {
     ) -> Gateway {
         let mut config = CellConfig::embedded_default();
         config.mtconnect = None;
+        config.opcua = None;
         let port = free_port();
         let console = free_port();
         config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];

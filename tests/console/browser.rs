@@ -108,6 +108,7 @@ impl Gateway {
         let dir = tempfile::tempdir().unwrap();
         let mut config = CellConfig::embedded_default();
         config.mtconnect = None;
+        config.opcua = None;
         let (port, console) = (free_port(), free_port());
         config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
         config.programs.dir = dir.path().join("programs");

@@ -34,6 +34,7 @@ impl Cell {
         let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
         let dir = tempfile::tempdir().unwrap();
         let mut config = CellConfig::embedded_default();
+        config.opcua = None;
         let (bus, console, mtconnect, shdr) = (free_port(), free_port(), free_port(), free_port());
         config.bus.listen = vec![format!("tcp/127.0.0.1:{bus}")];
         config.programs.dir = dir.path().join("programs");
@@ -389,6 +390,7 @@ async fn a_gateway_with_few_open_files_outlives_a_flood_of_connections() {
     );
     let dir = tempfile::tempdir().unwrap();
     let mut config = CellConfig::embedded_default();
+    config.opcua = None;
     let (bus, console, mtconnect) = (free_port(), free_port(), free_port());
     config.bus.listen = vec![format!("tcp/127.0.0.1:{bus}")];
     config.programs.dir = dir.path().join("programs");

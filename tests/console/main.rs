@@ -12,3 +12,4 @@ mod browser;
 mod historian;
 mod listeners;
 mod mtconnect;
+mod opcua;

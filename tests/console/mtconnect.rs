@@ -39,6 +39,7 @@ impl Gateway {
         provider();
         let dir = tempfile::tempdir().unwrap();
         let mut config = CellConfig::embedded_default();
+        config.opcua = None;
         let (port, http) = (free_port(), free_port());
         config.console = None;
         config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];

@@ -22,6 +22,8 @@
 //!   fields;
 //! - [`mtconnect`]: the cell in MTConnect 2.5: the device model, the mapping from the bus
 //!   contract's messages, the sequence buffer, the documents and SHDR lines;
+//! - [`opcua`]: the cell in OPC UA (OPC 40501 Machine Tools): what each node of a machine
+//!   tool and of a PLC shows, and the alerts, from the bus contract's messages;
 //! - [`near`]: the names near a mistyped one, for every "did you mean";
 //! - [`testkit`]: two engines on a simulated line in plain time ([`testkit::Pair`]);
 //! - the bus contract: [`keys`] (every key expression of a cell, built and parsed), [`pb`]
@@ -32,7 +34,7 @@
 //! `engine` imports nothing of the crate. `fanuc` and `fuji` import `engine`; `program`
 //! imports `fanuc`; `plc` imports `fuji`; `sim` imports the protocols it simulates;
 //! `config` imports the engines' own settings types and `program`'s rules; `pb` imports
-//! nothing and `codes` only `pb`; `near` imports nothing. `tests/cli/layering.rs` checks
+//! nothing and `codes` only `pb`; `near` imports nothing; `opcua` imports `mtconnect`. `tests/cli/layering.rs` checks
 //! these arrows.
 
 #![forbid(unsafe_code)]
@@ -48,6 +50,7 @@ pub mod history;
 pub mod keys;
 pub mod mtconnect;
 pub mod near;
+pub mod opcua;
 pub mod pb;
 pub mod plc;
 pub mod program;

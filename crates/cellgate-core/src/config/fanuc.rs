@@ -155,6 +155,26 @@ pub struct MachineConfig {
     /// library's copy. `None` (the default): none.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub receive_dir: Option<PathBuf>,
+    /// What the machine is, as OPC 40501's Identification shows it (docs/opcua.md); `None`:
+    /// defaults that say they are defaults.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub identification: Option<Identification>,
+}
+
+/// `identification` of a `[[machines]]` entry: the nameplate OPC 40501 asks for
+/// (`MachineToolIdentificationType`), which no remote-buffer message carries.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Identification {
+    /// The machine's maker, e.g. "DMG MORI" (the CNC's maker is FANUC; the machine's may not be).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub manufacturer: Option<String>,
+    /// The machine's serial number on its nameplate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub serial_number: Option<String>,
+    /// A URI unique to this machine worldwide (OPC 10000-100 ProductInstanceUri).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub product_instance_uri: Option<String>,
 }
 
 /// Which library revisions a machine takes (`accept` of a `[[machines]]` entry).
@@ -355,7 +375,31 @@ pub(super) struct RawMachine {
     pub(super) part_counter: Option<String>,
     pub(super) drop_dir: Option<PathBuf>,
     pub(super) receive_dir: Option<PathBuf>,
+    identification: Option<Identification>,
 }
+
+/// An identification's texts: shown as they are by OPC UA clients, so short and printable.
+fn check_identification(c: &mut Checker, label: &str, id: &Identification) {
+    for (key, value) in [
+        ("manufacturer", &id.manufacturer),
+        ("serial_number", &id.serial_number),
+        ("product_instance_uri", &id.product_instance_uri),
+    ] {
+        if let Some(v) = value
+            && (v.is_empty() || v.len() > IDENTIFICATION_MAX || v.chars().any(char::is_control))
+        {
+            c.invalid(
+                format!("{label}.identification.{key}"),
+                format!("{v:?}"),
+                format!("must be 1 to {IDENTIFICATION_MAX} bytes without control characters"),
+                "OPC 40501-1 §8.2",
+            );
+        }
+    }
+}
+
+/// The longest text of a machine's `identification`.
+pub const IDENTIFICATION_MAX: usize = 256;
 
 /// Baud rates of parameters 5073 (RS-422, settings 1–15) and 5083 (RS-232-C, 1–12) (§10.2).
 pub const FANUC_BAUD_RATES: [u32; 15] = [
@@ -378,6 +422,9 @@ fn check_fanuc_rate(c: &mut Checker, tpath: &str, baud: u32) {
 }
 
 pub(super) fn check_machine(c: &mut Checker, label: &str, m: &RawMachine) {
+    if let Some(id) = &m.identification {
+        check_identification(c, label, id);
+    }
     let Some(protocol) = m.protocol else {
         c.missing(
             format!("{label}.protocol"),
@@ -725,6 +772,7 @@ impl From<&MachineConfig> for RawMachine {
             part_counter: c.part_counter.clone(),
             drop_dir: c.drop_dir.clone(),
             receive_dir: c.receive_dir.clone(),
+            identification: c.identification.clone(),
         }
     }
 }
@@ -762,6 +810,7 @@ impl RawMachine {
             part_counter: self.part_counter,
             drop_dir: self.drop_dir,
             receive_dir: self.receive_dir,
+            identification: self.identification,
         })
     }
 }

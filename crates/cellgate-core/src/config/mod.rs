@@ -28,6 +28,7 @@ mod g05;
 mod history;
 mod mtconnect;
 pub mod mtconnect_types;
+mod opcua;
 pub mod owned;
 mod plc;
 mod programs;
@@ -48,13 +49,17 @@ pub use self::console::ConsoleConfig;
 use self::console::check_console;
 use self::error::{Checker, q};
 pub use self::error::{ConfigError, ConfigErrors};
-pub use self::fanuc::{Accept, BoardSimConfig, FANUC_BAUD_RATES, Interface, MachineConfig};
+pub use self::fanuc::{
+    Accept, BoardSimConfig, FANUC_BAUD_RATES, Identification, Interface, MachineConfig,
+};
 use self::fanuc::{RawMachine, check_machine};
 pub use self::g05::{G05Config, Refill};
 pub use self::history::HistoryConfig;
 use self::history::check_history;
 pub use self::mtconnect::MtconnectConfig;
 use self::mtconnect::check_mtconnect;
+pub use self::opcua::OpcuaConfig;
+use self::opcua::check_opcua;
 pub use self::plc::{
     FUJI_BAUD_RATES, FUJI_MAX_STATIONS, PlcConfig, PlcSimConfig, Real, SimTick, TagConfig,
     TagMtconnect, TagType,
@@ -94,6 +99,9 @@ pub struct CellConfig {
     /// `[mtconnect]`: the MTConnect agent; none without the section.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub mtconnect: Option<MtconnectConfig>,
+    /// `[opcua]`: the OPC UA server; none without the section.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opcua: Option<OpcuaConfig>,
 }
 
 const DEFAULT_CELL: &str = include_str!("default_cell.toml");
@@ -226,6 +234,9 @@ impl CellConfig {
         if let Some(m) = &self.mtconnect {
             out.extend(m.warnings());
         }
+        if let Some(o) = &self.opcua {
+            out.extend(o.warnings(self.security.users_file.is_some()));
+        }
         if !secured {
             for ep in &self.bus.listen {
                 if !bus::is_loopback_endpoint(ep) {
@@ -287,6 +298,7 @@ struct RawCell {
     security: RawSecurity,
     console: Option<ConsoleConfig>,
     mtconnect: Option<MtconnectConfig>,
+    opcua: Option<OpcuaConfig>,
 }
 
 impl From<CellConfig> for RawCell {
@@ -306,6 +318,7 @@ impl From<CellConfig> for RawCell {
             security: RawSecurity::from(&c.security),
             console: c.console,
             mtconnect: c.mtconnect,
+            opcua: c.opcua,
         }
     }
 }
@@ -341,6 +354,7 @@ impl RawCell {
             security,
             console: self.console,
             mtconnect: self.mtconnect,
+            opcua: self.opcua,
         })
     }
 }
@@ -535,6 +549,9 @@ fn check_with(raw: &RawCell, files: bool) -> Vec<ConfigError> {
     }
     if let Some(m) = &raw.mtconnect {
         check_mtconnect(&mut c, m);
+    }
+    if let Some(o) = &raw.opcua {
+        check_opcua(&mut c, o);
     }
 
     // Names are unique over machines and PLCs together: both are links of the cell.

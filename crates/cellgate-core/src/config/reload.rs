@@ -111,6 +111,7 @@ pub fn keys(old: &CellConfig, new: &CellConfig) -> Vec<(&'static str, Takes, boo
         security,
         console,
         mtconnect,
+        opcua,
     } = new;
     key(
         "cell",
@@ -330,6 +331,11 @@ pub fn keys(old: &CellConfig, new: &CellConfig) -> Vec<(&'static str, Takes, boo
         "mtconnect",
         Restart("the MTConnect agent and its listeners are set up at start"),
         *mtconnect != old.mtconnect,
+    );
+    key(
+        "opcua",
+        Restart("the OPC UA server, its endpoints and certificates are set up at start"),
+        *opcua != old.opcua,
     );
     out
 }

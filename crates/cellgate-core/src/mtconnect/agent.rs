@@ -446,7 +446,7 @@ impl Agent {
         for m in machines {
             let k = (cell.to_string(), m);
             if let Some((_, view)) = self.machines.get_mut(&k) {
-                view.part_count(t);
+                view.count_parts(t);
                 n += self.refresh_machine(&k, now_us);
             }
         }

@@ -31,6 +31,8 @@ pub struct MachineDesc {
     pub part_counter: Option<(String, String)>,
     /// Whether the machine takes G05 streams (`[machines.g05]`, §9).
     pub g05: bool,
+    /// Its nameplate (`identification`), as far as the cell file gives it.
+    pub identification: crate::config::Identification,
 }
 
 /// A Fuji MICREX-F PLC behind FFU120B modules.
@@ -127,6 +129,8 @@ struct AdminMachine {
     part_counter: Option<String>,
     #[serde(default)]
     g05: Option<serde_json::Value>,
+    #[serde(default)]
+    identification: Option<crate::config::Identification>,
 }
 
 #[derive(Deserialize)]
@@ -176,6 +180,7 @@ impl CellDesc {
                     protocol: m.protocol,
                     part_counter: part_counter(m.part_counter.as_deref()),
                     g05: m.g05.is_some(),
+                    identification: m.identification.clone().unwrap_or_default(),
                 })
                 .collect(),
             plcs: config
@@ -222,6 +227,7 @@ impl CellDesc {
                 .map(|m| MachineDesc {
                     part_counter: part_counter(m.part_counter.as_deref()),
                     g05: m.g05.is_some_and(|g| !g.is_null()),
+                    identification: m.identification.unwrap_or_default(),
                     name: m.name,
                     protocol: m.protocol,
                 })
@@ -305,6 +311,7 @@ impl CellDesc {
                     protocol: protocol_of(m.protocol()),
                     part_counter: None,
                     g05: m.g05.is_some(),
+                    identification: Default::default(),
                 })
                 .collect(),
             plcs: plcs

@@ -139,7 +139,7 @@ impl MachineView {
     }
 
     /// Takes the value of the PLC tag that counts the machine's parts.
-    pub fn part_count(&mut self, t: &pb::TagValue) {
+    pub fn count_parts(&mut self, t: &pb::TagValue) {
         self.part_count = match (t.quality(), t.value) {
             (pb::TagQuality::Good, Some(v)) => Some(v.round() as i64),
             _ => None,
@@ -155,13 +155,35 @@ impl MachineView {
         );
     }
 
-    fn up(&self) -> Option<&pb::MachineStatus> {
+    pub(crate) fn up(&self) -> Option<&pb::MachineStatus> {
         let s = self.status.as_ref()?;
         let down = matches!(
             s.link_state(),
             pb::LinkState::Unspecified | pb::LinkState::Down | pb::LinkState::Connecting
         );
         (self.gateway_up && !down).then_some(s)
+    }
+
+    /// The program of the job running or of the last one (its library name, else the
+    /// inline job's name).
+    pub(crate) fn program(&self) -> Option<&str> {
+        self.program.as_deref()
+    }
+
+    /// Whether a job is being sent.
+    pub(crate) fn job_running(&self) -> bool {
+        self.job.is_some()
+    }
+
+    /// How the last job ended while nothing newer started: `Some(true)` completed,
+    /// `Some(false)` failed or cancelled.
+    pub(crate) fn job_completed(&self) -> Option<bool> {
+        self.job_end.as_ref().map(|(_, e)| *e == JobEnd::Completed)
+    }
+
+    /// The machine's part count, from its counter tag.
+    pub(crate) fn part_count(&self) -> Option<i64> {
+        self.part_count
     }
 
     /// EXECUTION (Part 2 "EXECUTION"), as far as a host that feeds the program can know it.
@@ -199,7 +221,7 @@ impl MachineView {
     }
 
     /// The SYSTEM condition: the CNC's alarms (§11), by number where the link gives one.
-    fn cnc_alarm(&self) -> Option<Vec<Cond>> {
+    pub(crate) fn cnc_alarm(&self) -> Option<Vec<Cond>> {
         let s = self.up()?;
         let last = s.last_alarm.as_ref();
         if s.link_state() == pb::LinkState::Alarm
@@ -246,7 +268,7 @@ impl MachineView {
     }
 
     /// The COMMUNICATIONS condition: the link's own faults.
-    fn link_fault(&self) -> Option<Vec<Cond>> {
+    pub(crate) fn link_fault(&self) -> Option<Vec<Cond>> {
         if !self.gateway_up {
             return None;
         }
@@ -279,7 +301,7 @@ impl MachineView {
 
     /// The MOTION_PROGRAM condition of a G05 stream: a Warning while the open stream has
     /// starved the CNC (unit times without a block, §9.2: the gateway's G05 alarm).
-    fn g05_starved(&self) -> Option<Vec<Cond>> {
+    pub(crate) fn g05_starved(&self) -> Option<Vec<Cond>> {
         let s = self.up()?;
         let alarm = s
             .last_alarm

@@ -15,12 +15,14 @@ fn cell() -> CellDesc {
                 protocol: Protocol::A,
                 part_counter: Some(("plc-1".into(), "parts".into())),
                 g05: false,
+                identification: Default::default(),
             },
             MachineDesc {
                 name: "lathe-1".into(),
                 protocol: Protocol::B,
                 part_counter: None,
                 g05: false,
+                identification: Default::default(),
             },
         ],
         plcs: vec![PlcDesc {
@@ -632,6 +634,7 @@ fn a_reloaded_cell_adds_removes_and_changes_devices() {
         protocol: Protocol::ExpansionA,
         part_counter: None,
         g05: false,
+        identification: Default::default(),
     });
     assert!(a.change_cell(&next, 4_000_000) > 0);
     assert_eq!(

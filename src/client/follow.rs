@@ -1,11 +1,13 @@
-//! What feeds the agent: the cells' publications, subscribed once, and what each gateway
-//! answers when it comes (its statuses and queues), all read with `status.read` (and
-//! `admin.read` where the role has it, for tag addresses and part counters).
+//! Following cells as the MTConnect agent and the OPC UA server do: the cells' publications,
+//! subscribed once, and what each gateway answers when it comes (its statuses and queues),
+//! all read with `status.read` (and `admin.read` where the role has it, for tag addresses
+//! and part counters), handed to a [`Follower`] as [`Update`]s.
 //!
 //! A gateway's liveliness token (`P/C/gateway`) says when it comes and goes: when it goes,
-//! every data item of its devices becomes UNAVAILABLE; when it comes (or comes back), the
-//! agent asks it for the state it missed. A reload it took (`P/C/reload`) is asked about the
-//! same way: the cell's devices follow what the cell file now holds.
+//! the follower is told (every value of its devices becomes unknown); when it comes (or
+//! comes back), the gateway is asked for the state it missed. A reload it took
+//! (`P/C/reload`) is asked about the same way: the cell's devices follow what the cell file
+//! now holds.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -16,12 +18,21 @@ use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 use zenoh::sample::{Sample, SampleKind};
 
-use super::Hub;
 use crate::client::Client;
 use cellgate_core::mtconnect::{CellDesc, Update};
 use cellgate_core::pb;
 
-/// How long the agent waits for a gateway's answers.
+/// What follows cells: the MTConnect agent, the OPC UA server.
+pub trait Follower: Send + Sync + 'static {
+    /// How `cell` was last described, if it is followed.
+    fn known(&self, cell: &str) -> Option<CellDesc>;
+    /// Takes a cell's description: a cell new to it, or one whose machines or PLCs changed.
+    fn describe(&self, desc: &CellDesc);
+    /// Takes what `cell`'s gateway said, in order; nothing for a cell not followed.
+    fn take(&self, cell: &str, updates: Vec<Update>);
+}
+
+/// How long the follower waits for a gateway's answers.
 const ASK_TIMEOUT: Duration = Duration::from_secs(10);
 /// Publications waiting to be taken, at most; beyond, they are dropped (the next status of
 /// the same machine says it again).
@@ -58,7 +69,7 @@ enum Kind {
 }
 
 /// What a sample of `cell` says, decoded; `None` for what does not decode (nothing from the
-/// bus can stop the agent).
+/// bus can stop the follower).
 fn decode(prefix: &str, cell: &str, kind: Kind, s: &Sample) -> Option<Update> {
     let bytes = s.payload().to_bytes();
     Some(match kind {
@@ -141,14 +152,15 @@ async fn ask(session: &Session, prefix: &str, cell: &str) -> Option<(Described, 
     Some((desc, updates))
 }
 
-/// Subscribes on `session` to the cells under `prefix` (or the one `only`), and feeds `hub`
-/// until `stop`. `own`: the description of the gateway's own cell, which needs no asking.
+/// Subscribes on `session` to the cells under `prefix` (or the one `only`), and feeds
+/// `follower` until `stop`. `own`: the description of the gateway's own cell, which needs no
+/// asking.
 pub async fn start(
     session: Session,
     prefix: String,
     only: Option<String>,
     own: Option<CellDesc>,
-    hub: Arc<Hub>,
+    follower: Arc<dyn Follower>,
     stop: CancellationToken,
 ) -> zenoh::Result<()> {
     let c = only.clone().unwrap_or_else(|| "*".to_string());
@@ -176,14 +188,9 @@ pub async fn start(
     };
     let own_cell = own.as_ref().map(|d| d.cell.clone());
     if let Some(desc) = own {
-        let cell = desc.cell.clone();
-        let now = now_us();
-        let mut agent = hub.lock();
-        agent.add_cell(&desc, now);
-        // The gateway's own cell: it is there while the agent runs.
-        agent.update(&cell, Update::Gateway(true), now);
-        drop(agent);
-        hub.changed();
+        follower.describe(&desc);
+        // The gateway's own cell: it is there while the follower runs.
+        follower.take(&desc.cell, vec![Update::Gateway(true)]);
     }
     let (asked_tx, mut asked) = mpsc::channel::<(String, Option<(Described, Vec<Update>)>)>(64);
     if let Some(cell) = own_cell {
@@ -200,22 +207,17 @@ pub async fn start(
             tokio::select! {
                 () = stop.cancelled() => break,
                 Some((cell, answer)) = asked.recv() => {
-                    let now = now_us();
-                    let mut agent = hub.lock();
                     if let Some((desc, updates)) = answer {
-                        let desc = match (desc, agent.desc(&cell)) {
+                        let desc = match (desc, follower.known(&cell)) {
                             (Described::Whole(d), _) | (Described::FromStatus(d), None) => d,
                             // What statuses cannot show stays as it was known.
                             (Described::FromStatus(d), Some(known)) => known.with_names_of(&d),
                         };
-                        agent.change_cell(&desc, now);
-                        agent.update(&cell, Update::Gateway(true), now);
-                        for u in updates {
-                            agent.update(&cell, u, now);
-                        }
+                        follower.describe(&desc);
+                        let mut all = vec![Update::Gateway(true)];
+                        all.extend(updates);
+                        follower.take(&cell, all);
                     }
-                    drop(agent);
-                    hub.changed();
                 }
                 s = rx.recv() => {
                     let Some(s) = s else { break };
@@ -232,28 +234,12 @@ pub async fn start(
                         });
                         continue;
                     }
-                    let now = now_us();
-                    let mut agent = hub.lock();
-                    if !agent.has_cell(&cell) {
-                        continue;
-                    }
-                    let n = agent.update(&cell, update, now);
-                    drop(agent);
-                    if n > 0 {
-                        hub.changed();
-                    }
+                    follower.take(&cell, vec![update]);
                 }
             }
         }
     });
     Ok(())
-}
-
-/// Now, in microseconds since the Unix epoch.
-pub fn now_us() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_micros() as u64)
 }
 
 #[cfg(test)]

