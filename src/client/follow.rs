@@ -109,15 +109,17 @@ enum Described {
 
 /// What a cell's gateway tells a newcomer: the cell's description, then its state.
 async fn ask(session: &Session, prefix: &str, cell: &str) -> Option<(Described, Vec<Update>)> {
+    // A gateway that does not answer tells nothing: what was known of its cell stays (an
+    // empty answer would take every machine away).
     let admin = Client::discover(session, prefix, ASK_TIMEOUT)
         .await
         .ok()?
         .into_iter()
         .find(|(c, _)| c == cell)
-        .map_or(serde_json::Value::Null, |(_, a)| a);
+        .map(|(_, a)| a)?;
     let client = Client::attach(session.clone(), prefix, cell, admin.clone(), ASK_TIMEOUT).ok()?;
     let (machines, plcs) = tokio::join!(client.status(None), client.plc_status(None));
-    let machines = machines.unwrap_or_default();
+    let machines = machines.ok()?;
     // A cell without PLCs answers nothing there: that is no error.
     let plcs = plcs.unwrap_or_default();
     let desc = match CellDesc::from_admin(cell, &admin) {

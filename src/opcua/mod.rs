@@ -279,6 +279,24 @@ impl Shown {
         }
         if changed {
             tracing::info!(cell = %desc.cell, "opcua: the cell's nodes follow its machines and PLCs");
+            // Part 3 §9.32: BaseModelChangeEventType says nodes came or went; a client
+            // browses again.
+            let mut id = [0u8; 16];
+            let _ = getrandom::fill(&mut id);
+            let server: NodeId = opcua::types::ObjectId::Server.into();
+            let event = BaseEventType::new_now(
+                opcua::types::ObjectTypeId::BaseModelChangeEventType,
+                ByteString::from(id.to_vec()),
+                LocalizedText::new(
+                    "en",
+                    &format!("the machines and PLCs of cell {} changed", desc.cell),
+                ),
+            )
+            .set_source_node(server.clone())
+            .set_source_name(UAString::from("Server"))
+            .set_severity(100);
+            self.subscriptions
+                .notify_events([(&event as &dyn opcua::nodes::Event, &server)].into_iter());
         }
     }
 

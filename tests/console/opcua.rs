@@ -31,6 +31,8 @@ struct Gateway {
     task: Option<tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>>,
     url: String,
     endpoint: String,
+    /// The server's PKI folder.
+    pki: std::path::PathBuf,
     _dir: tempfile::TempDir,
 }
 
@@ -49,17 +51,33 @@ impl Gateway {
             ..OpcuaConfig::default()
         });
         edit(&mut config, dir.path());
+        let serves_opcua = config.opcua.is_some();
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
         let task = tokio::spawn(cellgate::gateway::run(config, async {
             let _ = stopped.await;
         }));
-        // Listening once the port takes a connection (at most a minute: a guard, not a time
-        // the test asserts).
+        // Serving once the OPC UA port takes a connection, or (without one) once the cell
+        // answers on the bus: at most a minute, a guard, not a time the test asserts.
         for _ in 0..600 {
-            if tokio::net::TcpStream::connect(("127.0.0.1", ua))
+            let up = if serves_opcua {
+                tokio::net::TcpStream::connect(("127.0.0.1", ua))
+                    .await
+                    .is_ok()
+            } else {
+                match Client::connect(&ConnectOptions {
+                    endpoint: format!("tcp/127.0.0.1:{port}"),
+                    ..ConnectOptions::default()
+                })
                 .await
-                .is_ok()
-            {
+                {
+                    Ok(c) => {
+                        c.close().await;
+                        true
+                    }
+                    Err(_) => false,
+                }
+            };
+            if up {
                 break;
             }
             tokio::time::sleep(Duration::from_millis(100)).await;
@@ -69,6 +87,7 @@ impl Gateway {
             task: Some(task),
             url: format!("opc.tcp://127.0.0.1:{ua}/"),
             endpoint: format!("tcp/127.0.0.1:{port}"),
+            pki: dir.path().join("pki"),
             _dir: dir,
         }
     }
@@ -299,5 +318,117 @@ async fn a_cell_with_users_takes_only_a_user_with_the_right_password_and_status_
         "refused BadUserAccessDenied"
     );
     assert_eq!(run(&["login", &gw.url, "olga", "tulips"]).await, "ok");
+
+    // SignAndEncrypt with a client certificate the operator has not trusted: refused, and
+    // the certificate waits in rejected/ until the operator moves it to trusted/ (no
+    // restart); never trusted on first use.
+    let certs = tempfile::tempdir().unwrap();
+    let dir = certs.path().to_str().unwrap();
+    assert_eq!(
+        run(&["secure", &gw.url, "olga", "tulips", dir]).await,
+        "refused BadCertificateUntrusted"
+    );
+    let rejected: Vec<_> = std::fs::read_dir(gw.pki.join("rejected"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(rejected.len(), 1, "{rejected:?}");
+    let name = rejected[0].file_name().unwrap();
+    std::fs::rename(&rejected[0], gw.pki.join("trusted").join(name)).unwrap();
+    assert_eq!(run(&["secure", &gw.url, "olga", "tulips", dir]).await, "ok");
+    assert_eq!(
+        run(&["secure", &gw.url, "olga", "roses", dir]).await,
+        "refused BadIdentityTokenRejected"
+    );
+    // The key the server made is its user's alone.
+    use std::os::unix::fs::PermissionsExt as _;
+    let mode = std::fs::metadata(gw.pki.join("private/private.pem"))
+        .unwrap()
+        .permissions()
+        .mode();
+    assert_eq!(mode & 0o077, 0, "{mode:o}");
     gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_site_server_follows_the_cells_of_two_gateways() {
+    if !asyncua() {
+        return;
+    }
+    let router_port = free_port();
+    let router = cellgate::bus::open(&cellgate::bus::BusConfig {
+        mode: cellgate::bus::BusMode::Router,
+        listen: vec![format!("tcp/127.0.0.1:{router_port}")],
+        ..cellgate::bus::BusConfig::default()
+    })
+    .await
+    .unwrap();
+    let mut gateways = Vec::new();
+    for cell in ["north", "south"] {
+        let gw = Gateway::start(|c, _| {
+            c.cell = cell.to_string();
+            c.bus.connect = vec![format!("tcp/127.0.0.1:{router_port}")];
+            c.opcua = None;
+        })
+        .await;
+        gateways.push(gw);
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let args = cellgate::opcua::SiteArgs {
+        connect: common::bus::connect_args(format!("tcp/127.0.0.1:{router_port}"), None),
+        listen: format!("127.0.0.1:{port}"),
+        config: None,
+        pki_dir: Some(dir.path().join("pki")),
+    };
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let site = tokio::spawn(async move {
+        cellgate::opcua::site(&args, async {
+            let _ = stopped.await;
+        })
+        .await
+    });
+    let url = format!("opc.tcp://127.0.0.1:{port}/");
+    // Both cells' machines and PLCs, named CELL.NAME, once their gateways answered (asked
+    // again until then: a guard of a minute, not a time the test asserts).
+    let want: Vec<String> = ["north", "south"]
+        .iter()
+        .flat_map(|c| ["lathe-1", "mill-1", "mill-2", "plc-1"].map(|n| format!("{c}.{n}")))
+        .collect();
+    let mut names = String::new();
+    for _ in 0..60 {
+        names = run(&["names", &url]).await;
+        if names.lines().collect::<Vec<_>>() == want {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    assert_eq!(names.lines().collect::<Vec<_>>(), want, "{names}");
+    let mut status = String::new();
+    for _ in 0..60 {
+        status = run(&["status", &url, "south.mill-1"]).await;
+        if status == "Good" {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    assert_eq!(status, "Good");
+    // A gateway gone: its machines stay, their values without communication.
+    let south = gateways.pop().unwrap();
+    south.stop().await;
+    for _ in 0..60 {
+        status = run(&["status", &url, "south.mill-1"]).await;
+        if status == "BadNoCommunication" {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    assert_eq!(status, "BadNoCommunication");
+    assert_eq!(run(&["status", &url, "north.mill-1"]).await, "Good");
+    let _ = stop.send(());
+    site.await.unwrap().unwrap();
+    for gw in gateways {
+        gw.stop().await;
+    }
+    router.close().await.unwrap();
 }

@@ -9,6 +9,15 @@
   opcua_client.py write URL MACHINE      tries to write ActiveProgram.Name; prints the status
   opcua_client.py login URL [USER PASS]  opens a session (anonymous without USER); prints
                                          "ok" or "refused STATUS"
+  opcua_client.py secure URL USER PASS DIR
+                                         opens a Basic256Sha256 SignAndEncrypt session with a
+                                         client certificate made in DIR (kept for a second
+                                         try); prints "ok" or "refused STATUS"
+  opcua_client.py monitor URL            subscribes to every machine tool's ActiveProgram Name
+                                         and State (1 s publishing), prints "ready", runs
+                                         until killed
+  opcua_client.py names URL              the BrowseNames under Machines, sorted, one a line
+  opcua_client.py status URL MACHINE     the status of the machine's ChannelState value
 """
 
 import asyncio
@@ -183,6 +192,95 @@ async def login(url, user=None, password=None):
         print(f"refused {type(e).__name__} {e}")
 
 
+async def secure(url, user, password, folder):
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+
+    uri = "urn:cellgate:tests:client"
+    from pathlib import Path
+
+    cert, key = Path(folder) / "client.der", Path(folder) / "client.pem"
+    await setup_self_signed_certificate(
+        key_file=key,
+        cert_file=cert,
+        app_uri=uri,
+        host_name="localhost",
+        cert_use=[ExtendedKeyUsageOID.CLIENT_AUTH],
+        subject_attrs={"commonName": "cellgate tests"},
+    )
+    client = Client(url=url)
+    client.application_uri = uri
+    client.set_user(user)
+    client.set_password(password)
+    await client.set_security_string(f"Basic256Sha256,SignAndEncrypt,{cert},{key}")
+    try:
+        await client.connect()
+        await client.get_namespace_array()
+        await client.disconnect()
+        print("ok")
+    except ua.UaStatusCodeError as e:
+        print(f"refused {ua.StatusCode(e.code).name}")
+    except Exception as e:
+        print(f"refused {type(e).__name__}")
+
+
+async def machines(client):
+    ns = await client.get_namespace_array()
+    folder_node = client.get_node(f"ns={ns.index('http://opcfoundation.org/UA/Machinery/')};i=1001")
+    return ns, await folder_node.get_children()
+
+
+class Quiet:
+    def datachange_notification(self, node, val, data):
+        pass
+
+
+async def monitor(url):
+    async with Client(url=url, timeout=60) as client:
+        ns, found = await machines(client)
+        mt = ns.index("http://opcfoundation.org/UA/MachineTool/")
+        items = []
+        for m in found:
+            try:
+                program = await m.get_child([f"{mt}:Production", f"{mt}:ActiveProgram"])
+            except Exception:
+                continue  # a PLC
+            items.append(await program.get_child([f"{mt}:Name"]))
+            items.append(await program.get_child([f"{mt}:State", "0:CurrentState"]))
+        sub = await client.create_subscription(1000, Quiet())
+        await sub.subscribe_data_change(items)
+        print("ready", len(items), flush=True)
+        while True:
+            await asyncio.sleep(1)
+
+
+async def names(url):
+    async with Client(url=url) as client:
+        _, found = await machines(client)
+        print("\n".join(sorted([(await m.read_browse_name()).Name for m in found])))
+
+
+async def status(url, machine):
+    async with Client(url=url) as client:
+        ns, found = await machines(client)
+        mt = ns.index("http://opcfoundation.org/UA/MachineTool/")
+        for m in found:
+            if (await m.read_browse_name()).Name == machine:
+                cells = ns.index("urn:cellgate:cells")
+                state = await m.get_child([f"{mt}:Monitoring", f"{cells}:Channel1", f"{mt}:ChannelState"])
+                value = await state.read_data_value(raise_on_bad_status=False)
+                print(value.StatusCode.name)
+
+
 if __name__ == "__main__":
     cmd, args = sys.argv[1], sys.argv[2:]
-    asyncio.run({"check": check, "follow": follow, "write": write, "login": login}[cmd](*args))
+    asyncio.run({
+        "check": check,
+        "follow": follow,
+        "write": write,
+        "login": login,
+        "names": names,
+        "monitor": monitor,
+        "secure": secure,
+        "status": status,
+    }[cmd](*args))

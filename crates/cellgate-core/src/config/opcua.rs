@@ -84,3 +84,70 @@ pub(super) fn check_opcua(c: &mut Checker, o: &OpcuaConfig) {
         );
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use crate::config::{CellConfig, OpcuaConfig};
+
+    const CELL: &str = "cell = \"c\"\n[[machines]]\nname = \"m1\"\nprotocol = \"a\"\n\
+                        transport = { kind = \"sim\", line = { baud = 9600 } }\n";
+
+    fn errors_of(text: &str) -> Vec<String> {
+        match CellConfig::from_toml_str(text, "t") {
+            Ok(_) => Vec::new(),
+            Err(e) => e.to_string().lines().map(str::to_string).collect(),
+        }
+    }
+
+    #[test]
+    fn opcua_takes_an_address_and_both_halves_of_a_certificate() {
+        let with = |section: &str| format!("{CELL}[opcua]\n{section}\n");
+        let cfg = CellConfig::from_toml_str(&with(""), "t").unwrap();
+        assert_eq!(cfg.opcua, Some(OpcuaConfig::default()));
+        assert!(cfg.warnings().is_empty(), "{:?}", cfg.warnings());
+        let e = errors_of(&with("listen = \"localhost\"\ncertificate = \"c.der\""));
+        assert!(e.iter().any(|m| m.contains("opcua.listen")), "{e:?}");
+        assert!(e.iter().any(|m| m.contains("opcua.certificate")), "{e:?}");
+        // Beyond loopback without users: allowed (it only reads), and warned of.
+        let cfg = CellConfig::from_toml_str(&with("listen = \"0.0.0.0:4840\""), "t").unwrap();
+        assert!(
+            cfg.warnings().iter().any(|w| w.contains("opcua.listen")),
+            "{:?}",
+            cfg.warnings()
+        );
+        let back = CellConfig::from_toml_str(&cfg.to_toml_string().unwrap(), "t").unwrap();
+        assert_eq!(back.opcua, cfg.opcua);
+    }
+
+    #[test]
+    fn a_machines_identification_is_short_and_printable() {
+        let with = |id: &str| {
+            CELL.replace(
+                "protocol = \"a\"\n",
+                &format!("protocol = \"a\"\nidentification = {id}\n"),
+            )
+        };
+        let cfg = CellConfig::from_toml_str(
+            &with("{ manufacturer = \"Okuma\", serial_number = \"MB-1\" }"),
+            "t",
+        )
+        .unwrap();
+        let id = cfg.machines[0].identification.clone().unwrap();
+        assert_eq!(id.manufacturer.as_deref(), Some("Okuma"));
+        assert_eq!(id.product_instance_uri, None);
+        let long = "x".repeat(300);
+        let e = errors_of(&with(&format!(
+            "{{ manufacturer = \"{long}\", serial_number = \"a\\nb\" }}"
+        )));
+        assert!(
+            e.iter().any(|m| m.contains("identification.manufacturer")),
+            "{e:?}"
+        );
+        assert!(
+            e.iter().any(|m| m.contains("identification.serial_number")),
+            "{e:?}"
+        );
+        let e = errors_of(&with("{ maker = \"x\" }"));
+        assert!(e.iter().any(|m| m.contains("maker")), "{e:?}");
+    }
+}
