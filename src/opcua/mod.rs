@@ -182,6 +182,8 @@ pub struct Shown {
     qualify: bool,
     model: Mutex<Model>,
     shapes: Mutex<HashMap<(String, String), Shape>>,
+    /// Each type's instance, planned once.
+    templates: Mutex<HashMap<NodeId, space::Template>>,
 }
 
 impl Shown {
@@ -253,17 +255,33 @@ impl Shown {
                 } else {
                     space::base_object_type()
                 };
-                let mut planned = space::plan_instance(
-                    &spaces,
-                    self.ns.cells,
-                    &self.id(&desc.cell, &name),
-                    &self.shown_name(&desc.cell, &name),
-                    &type_id,
-                    &self.ns.machines_folder(),
-                    ReferenceTypeId::Organizes.into(),
-                );
+                let mut templates = self.templates.lock().unwrap_or_else(|e| e.into_inner());
+                let mut planned = templates
+                    .entry(type_id.clone())
+                    .or_insert_with(|| space::Template::of(&spaces, self.ns.cells, &type_id))
+                    .stamp(
+                        &self.id(&desc.cell, &name),
+                        &self.shown_name(&desc.cell, &name),
+                        &self.ns.machines_folder(),
+                        ReferenceTypeId::Organizes.into(),
+                    );
                 if machine {
-                    planned.extend(self.channel(&spaces, &desc.cell, &name));
+                    // The remote buffer feeds one NC channel: a `ChannelMonitoringType`
+                    // object under Monitoring.
+                    let channel = NodeId::new(self.ns.machine_tool, 16);
+                    planned.extend(
+                        templates
+                            .entry(channel.clone())
+                            .or_insert_with(|| {
+                                space::Template::of(&spaces, self.ns.cells, &channel)
+                            })
+                            .stamp(
+                                &format!("{}/Monitoring/Channel1", self.id(&desc.cell, &name)),
+                                "Channel1",
+                                &self.node(&desc.cell, &name, "Monitoring"),
+                                ReferenceTypeId::HasComponent.into(),
+                            ),
+                    );
                 } else if let Some(p) = desc.plcs.iter().find(|p| p.name == name) {
                     planned.extend(self.tags(&desc.cell, p));
                 }
@@ -298,20 +316,6 @@ impl Shown {
             self.subscriptions
                 .notify_events([(&event as &dyn opcua::nodes::Event, &server)].into_iter());
         }
-    }
-
-    /// A machine's channel (the remote buffer feeds one NC channel): a
-    /// `ChannelMonitoringType` object under Monitoring.
-    fn channel(&self, spaces: &space::Spaces<'_>, cell: &str, name: &str) -> Vec<space::Planned> {
-        space::plan_instance(
-            spaces,
-            self.ns.cells,
-            &format!("{}/Monitoring/Channel1", self.id(cell, name)),
-            "Channel1",
-            &NodeId::new(self.ns.machine_tool, 16),
-            &self.node(cell, name, "Monitoring"),
-            ReferenceTypeId::HasComponent.into(),
-        )
     }
 
     /// A PLC's tags, as variables of the PLC's object.
@@ -675,6 +679,7 @@ pub async fn serve(
         qualify: settings.only.is_none(),
         model: Mutex::new(Model::new()),
         shapes: Mutex::new(HashMap::new()),
+        templates: Mutex::new(HashMap::new()),
     });
     follow::start(
         session,
@@ -762,6 +767,11 @@ fn build_server(
             .add_endpoint("none", ServerEndpoint::new_none("/", &ids))
             .default_endpoint("none");
     }
+    // A client watching every machine of a large cell in one subscription (two items a
+    // machine tool) is not refused at a thousand.
+    let limits = builder.limits_mut();
+    limits.subscriptions.max_monitored_items_per_sub = 16_384;
+    limits.operational.max_monitored_items_per_call = 16_384;
     let built = builder.build().map_err(OpcuaError::Setup)?;
     // The stack writes the key it made readable by all: only the gateway's user reads it.
     let private = pki.join("private");
