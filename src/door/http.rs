@@ -4,8 +4,16 @@
 //!
 //! The head timeout also closes a kept-alive connection that sends no next request: hyper
 //! arms it again whenever the connection goes idle (`proto/h1/conn.rs`, `poll_read_head`).
+//!
+//! A request's body has its own bounds ([`TimedBody`]): hyper gives it none, so a client that
+//! sent a head and then trickles its body, or stops, held its connection and the handler
+//! reading it for good.
 
 use std::error::Error as StdError;
+use std::future::Future as _;
+use std::pin::Pin;
+use std::task::{Context, Poll};
+use std::time::Duration;
 
 use axum::Router;
 use axum::extract::ConnectInfo;
@@ -17,6 +25,76 @@ use hyper_util::service::TowerToHyperService;
 use tokio_util::sync::CancellationToken;
 
 use super::{HEAD_TIMEOUT, MAX_HEAD};
+
+/// How long a request body may pause between two of its pieces.
+pub const BODY_IDLE: Duration = HEAD_TIMEOUT;
+/// How long a whole request body may take, however steadily it comes: a program of the
+/// largest size a cell takes (16 MiB) at 1 Mbit/s.
+pub const BODY_TIMEOUT: Duration = Duration::from_secs(180);
+
+/// A request body that fails (and so ends its request with an error, and its connection)
+/// when it pauses longer than [`BODY_IDLE`] or takes longer than [`BODY_TIMEOUT`].
+pub struct TimedBody {
+    inner: Incoming,
+    idle: Pin<Box<tokio::time::Sleep>>,
+    whole: Pin<Box<tokio::time::Sleep>>,
+}
+
+impl TimedBody {
+    /// `inner`, timed from now.
+    pub fn new(inner: Incoming) -> TimedBody {
+        TimedBody {
+            inner,
+            idle: Box::pin(tokio::time::sleep(BODY_IDLE)),
+            whole: Box::pin(tokio::time::sleep(BODY_TIMEOUT)),
+        }
+    }
+}
+
+/// Why a request body was cut short.
+#[derive(Debug, thiserror::Error)]
+pub enum BodyError {
+    #[error("the request body paused longer than {} s", BODY_IDLE.as_secs())]
+    Idle,
+    #[error("the request body took longer than {} s", BODY_TIMEOUT.as_secs())]
+    Slow,
+    #[error(transparent)]
+    Hyper(#[from] hyper::Error),
+}
+
+impl hyper::body::Body for TimedBody {
+    type Data = bytes::Bytes;
+    type Error = BodyError;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<hyper::body::Frame<Self::Data>, Self::Error>>> {
+        let this = &mut *self;
+        if this.whole.as_mut().poll(cx).is_ready() {
+            return Poll::Ready(Some(Err(BodyError::Slow)));
+        }
+        match Pin::new(&mut this.inner).poll_frame(cx) {
+            Poll::Ready(frame) => {
+                let next = tokio::time::Instant::now() + BODY_IDLE;
+                this.idle.as_mut().reset(next);
+                Poll::Ready(frame.map(|f| f.map_err(BodyError::from)))
+            }
+            Poll::Pending if this.idle.as_mut().poll(cx).is_ready() => {
+                Poll::Ready(Some(Err(BodyError::Idle)))
+            }
+            Poll::Pending => Poll::Pending,
+        }
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> hyper::body::SizeHint {
+        self.inner.size_hint()
+    }
+}
 
 /// What a connection buffers at most, both ways (hyper's floor is 8 KiB).
 const MAX_BUF: usize = 64 * 1024;
@@ -47,11 +125,11 @@ where
             accepted = listener.accept() => accepted,
         };
         let peer = addr.clone();
-        let service =
-            tower::ServiceExt::map_request(app.clone(), move |mut r: Request<Incoming>| {
-                r.extensions_mut().insert(ConnectInfo(peer.clone()));
-                r
-            });
+        let service = tower::ServiceExt::map_request(app.clone(), move |r: Request<Incoming>| {
+            let mut r = r.map(TimedBody::new);
+            r.extensions_mut().insert(ConnectInfo(peer.clone()));
+            r
+        });
         let conn = builder.serve_connection(TokioIo::new(io), TowerToHyperService::new(service));
         let conn = graceful.watch(conn);
         tokio::spawn(async move {

@@ -770,6 +770,9 @@ fn build_server(
     // A client watching every machine of a large cell in one subscription (two items a
     // machine tool) is not refused at a thousand.
     let limits = builder.limits_mut();
+    // …nor one that asks for them in one request (an array of 2 048 items; a message stays
+    // bounded by its size).
+    limits.max_array_length = 16_384;
     limits.subscriptions.max_monitored_items_per_sub = 16_384;
     limits.operational.max_monitored_items_per_call = 16_384;
     let built = builder.build().map_err(OpcuaError::Setup)?;

@@ -8,6 +8,7 @@ use crate::common;
 
 use std::time::{Duration, Instant};
 
+use cellgate::door::http::BODY_IDLE;
 use cellgate::door::{HEAD_TIMEOUT, WRITE_TIMEOUT};
 use cellgate::mtconnect::shdr::{IDLE, MAX_LINE};
 use cellgate_core::config::CellConfig;
@@ -129,6 +130,34 @@ async fn a_request_head_never_finished_is_cut_off_on_the_console_and_the_agent()
         assert!(closed, "{addr}: a half head kept its connection {after:?}");
         eprintln!("{addr}: half a head closed after {after:?}");
     }
+    cell.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_request_body_that_stops_is_cut_off() {
+    let cell = Cell::start().await;
+    let addr = cell.console.clone();
+    let mut s = TcpStream::connect(&addr).await.unwrap();
+    // A whole head that promises 100 bytes, then 9 of them and nothing more.
+    s.write_all(
+        format!(
+            "POST /api/v1/login HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+             Content-Length: 100\r\n\r\n{{\"user\":"
+        )
+        .as_bytes(),
+    )
+    .await
+    .unwrap();
+    let started = Instant::now();
+    let (got, closed) = read_to_close(&mut s, BODY_IDLE + SLACK).await;
+    let after = started.elapsed();
+    let answer = String::from_utf8_lossy(&got);
+    assert!(
+        closed,
+        "a body that stopped kept its connection {after:?}: {answer}"
+    );
+    assert!(after >= BODY_IDLE, "cut off before its time: {after:?}");
+    eprintln!("a stopped body: closed after {after:?}, answered {answer:?}");
     cell.stop().await;
 }
 
