@@ -248,7 +248,15 @@ impl JobsHandle {
         path: &Path,
         read_error: impl Fn(std::io::Error) -> JobError,
     ) -> Result<(u64, source::ScanReport), JobError> {
-        let size = std::fs::metadata(path).map_err(&read_error)?.len();
+        // Looked at without following a link: what is linked in a file's place is not read.
+        let meta = std::fs::symlink_metadata(path).map_err(&read_error)?;
+        if !meta.is_file() {
+            return Err(read_error(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "not a regular file (a link or a special file is never read)",
+            )));
+        }
+        let size = meta.len();
         if size > self.rules.max_size {
             return Err(self.program_error(ProgramError::TooLarge {
                 size,

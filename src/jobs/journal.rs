@@ -575,12 +575,37 @@ impl Journal {
             source,
         };
         let _ = std::fs::remove_file(&dest);
-        if std::fs::hard_link(from, &dest).is_err() {
+        // A link put in the file's place after it was looked at (a drop folder is anyone's
+        // who may write it) is never followed: link(2) links the link itself, which is
+        // refused here, and the copy opens with O_NOFOLLOW and checks what it opened.
+        let not_regular = || {
+            io(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("{} is not a regular file", from.display()),
+            ))
+        };
+        if std::fs::hard_link(from, &dest).is_ok() {
+            if !std::fs::symlink_metadata(&dest).is_ok_and(|m| m.is_file()) {
+                let _ = std::fs::remove_file(&dest);
+                return Err(not_regular());
+            }
+        } else {
+            use std::os::unix::fs::OpenOptionsExt as _;
+            let mut source = std::fs::OpenOptions::new()
+                .read(true)
+                .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK | libc::O_NOCTTY)
+                .open(from)
+                .map_err(|e| match e.raw_os_error() {
+                    Some(libc::ELOOP) => not_regular(),
+                    _ => io(e),
+                })?;
+            if !source.metadata().map_err(io)?.is_file() {
+                return Err(not_regular());
+            }
             let tmp = self.store.join(format!(".tmp-{name}"));
-            std::fs::copy(from, &tmp).map_err(io)?;
-            std::fs::File::open(&tmp)
-                .and_then(|f| f.sync_all())
-                .map_err(io)?;
+            let mut out = std::fs::File::create(&tmp).map_err(io)?;
+            std::io::copy(&mut source, &mut out).map_err(io)?;
+            out.sync_all().map_err(io)?;
             std::fs::rename(&tmp, &dest).map_err(io)?;
         }
         self.sync_store()?;

@@ -153,6 +153,20 @@ fn a_linked_program_keeps_its_version_when_the_library_replaces_it() {
 }
 
 #[test]
+fn a_link_put_in_a_programs_place_is_never_followed_into_the_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let j = Journal::open(&dir.path().join("journal")).unwrap();
+    let secret = dir.path().join("secret.key");
+    std::fs::write(&secret, b"-----BEGIN PRIVATE KEY-----").unwrap();
+    // The drop folder's entry was a program when looked at; a link is there when it is taken.
+    let entry = dir.path().join("O1.nc");
+    std::os::unix::fs::symlink(&secret, &entry).unwrap();
+    let e = j.store_file("6", &entry).unwrap_err();
+    assert!(e.to_string().contains("not a regular file"), "{e}");
+    assert!(std::fs::symlink_metadata(j.file_path("6")).is_err());
+}
+
+#[test]
 fn a_second_gateway_cannot_open_the_same_journal() {
     let dir = tempfile::tempdir().unwrap();
     let _j = Journal::open(dir.path()).unwrap();
