@@ -1,5 +1,5 @@
 //! The doors every listener of the process shares: the console's, the MTConnect agent's HTTP
-//! interface and SHDR port, and whatever listens next (docs/security.md, "Listeners").
+//! interface and SHDR port, the OPC UA server's (docs/security.md, "Listeners").
 //!
 //! Whoever reaches a port can open connections and then do nothing with them. A door bounds
 //! what that costs:
@@ -38,7 +38,7 @@ pub const MAX_HEAD: usize = 32 * 1024;
 /// history, the library and its watch, serial ports, logs.
 pub const RESERVE: u64 = 256;
 /// The listeners the budget is split between: the console, the MTConnect agent's HTTP
-/// interface, its SHDR port, and one to come.
+/// interface, its SHDR port, and the OPC UA server.
 pub const SHARES: u64 = 4;
 /// A listener's connections at most, however high the limit on open files.
 pub const MAX_CONNECTIONS: usize = 1024;

@@ -636,9 +636,24 @@ pub async fn serve(
         .node_managers()
         .get_of_type::<InMemoryNodeManager<CellNodes>>()
         .ok_or_else(|| OpcuaError::Setup("the cells' node manager is missing".into()))?;
+    // The stack takes any number of connections and gives each 5 s for its Hello: clients
+    // come in through a door (the listeners' cap on connections, a write timeout) and are
+    // relayed to the stack's own listener on loopback.
+    let inner = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .map_err(|source| OpcuaError::Bind {
+            addr: "127.0.0.1:0".into(),
+            source,
+        })?;
+    let inner_addr = inner.local_addr().map_err(|source| OpcuaError::Bind {
+        addr: "127.0.0.1:0".into(),
+        source,
+    })?;
+    let door = crate::door::Door::new("opcua", tcp, crate::door::connection_cap(), b"");
+    tokio::spawn(relay(door, inner_addr, stop.clone()));
     let task_handle = handle.clone();
     let task = tokio::spawn(async move {
-        if let Err(e) = server.run_with(tcp).await {
+        if let Err(e) = server.run_with(inner).await {
             tracing::error!(error = %e, "opcua: the server stopped");
         }
         drop(task_handle);
@@ -698,6 +713,32 @@ pub async fn serve(
         task,
         handle,
     })
+}
+
+/// Relays each connection `door` admits to the stack's listener at `inner`, until `stop`.
+async fn relay(door: crate::door::Door, inner: std::net::SocketAddr, stop: CancellationToken) {
+    loop {
+        let (mut outside, peer) = tokio::select! {
+            () = stop.cancelled() => break,
+            accepted = door.accept() => accepted,
+        };
+        let stop = stop.clone();
+        tokio::spawn(async move {
+            let Ok(mut stack) = tokio::net::TcpStream::connect(inner).await else {
+                tracing::warn!(%peer, "opcua: the server's own listener does not answer");
+                return;
+            };
+            let _ = stack.set_nodelay(true);
+            tokio::select! {
+                () = stop.cancelled() => {}
+                r = tokio::io::copy_bidirectional(&mut outside, &mut stack) => {
+                    if let Err(e) = r {
+                        tracing::debug!(%peer, error = %e, "opcua: connection ended");
+                    }
+                }
+            }
+        });
+    }
 }
 
 /// The server, built in one go: the stack's builder holds what cannot cross an await.
