@@ -152,9 +152,14 @@ struct Follower {
 
 impl Follower {
     fn start(url: &str, machine: &str) -> Follower {
+        Follower::run(&["follow", url, machine])
+    }
+
+    /// `opcua_client.py ARGS`, its lines followed.
+    fn run(args: &[&str]) -> Follower {
         let mut child = Command::new("python3")
             .arg(script())
-            .args(["follow", url, machine])
+            .args(args)
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()
@@ -363,16 +368,6 @@ async fn a_site_server_follows_the_cells_of_two_gateways() {
     })
     .await
     .unwrap();
-    let mut gateways = Vec::new();
-    for cell in ["north", "south"] {
-        let gw = Gateway::start(|c, _| {
-            c.cell = cell.to_string();
-            c.bus.connect = vec![format!("tcp/127.0.0.1:{router_port}")];
-            c.opcua = None;
-        })
-        .await;
-        gateways.push(gw);
-    }
     let dir = tempfile::tempdir().unwrap();
     let port = free_port();
     let args = cellgate::opcua::SiteArgs {
@@ -389,6 +384,28 @@ async fn a_site_server_follows_the_cells_of_two_gateways() {
         .await
     });
     let url = format!("opc.tcp://127.0.0.1:{port}/");
+    // A client watching the Server object's events before any cell is there: each cell that
+    // comes is a model change.
+    let mut watcher = None;
+    for _ in 0..100 {
+        if tokio::net::TcpStream::connect(("127.0.0.1", port)).await.is_ok() {
+            watcher = Some(Follower::run(&["events", &url]));
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let mut watcher = watcher.expect("the site server listens");
+    watcher.wait(|l| l == "ready").await;
+    let mut gateways = Vec::new();
+    for cell in ["north", "south"] {
+        let gw = Gateway::start(|c, _| {
+            c.cell = cell.to_string();
+            c.bus.connect = vec![format!("tcp/127.0.0.1:{router_port}")];
+            c.opcua = None;
+        })
+        .await;
+        gateways.push(gw);
+    }
     // Both cells' machines and PLCs, named CELL.NAME, once their gateways answered (asked
     // again until then: a guard of a minute, not a time the test asserts).
     let want: Vec<String> = ["north", "south"]
@@ -413,6 +430,10 @@ async fn a_site_server_follows_the_cells_of_two_gateways() {
         tokio::time::sleep(Duration::from_millis(500)).await;
     }
     assert_eq!(status, "Good");
+    watcher
+        .wait(|l| l == "event BaseModelChangeEventType")
+        .await;
+    drop(watcher);
     // A gateway gone: its machines stay, their values without communication.
     let south = gateways.pop().unwrap();
     south.stop().await;

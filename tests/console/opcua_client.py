@@ -16,6 +16,8 @@
   opcua_client.py monitor URL            subscribes to every machine tool's ActiveProgram Name
                                          and State (1 s publishing), prints "ready", runs
                                          until killed
+  opcua_client.py events URL             prints "ready", then "event TYPE" for each event of
+                                         the Server object (its EventType's BrowseName)
   opcua_client.py names URL              the BrowseNames under Machines, sorted, one a line
   opcua_client.py status URL MACHINE     the status of the machine's ChannelState value
 """
@@ -254,6 +256,29 @@ async def monitor(url):
             await asyncio.sleep(1)
 
 
+class Types:
+    def __init__(self, names):
+        self.names = names
+
+    def event_notification(self, event):
+        print(f"event {self.names.get(event.EventType.to_string(), event.EventType)}", flush=True)
+
+
+async def events(url):
+    async with Client(url=url) as client:
+        ns = await client.get_namespace_array()
+        mt = ns.index("http://opcfoundation.org/UA/MachineTool/")
+        names = {
+            ua.NodeId(ua.ObjectIds.BaseModelChangeEventType).to_string(): "BaseModelChangeEventType",
+            ua.NodeId(35, mt).to_string(): "NotificationEventType",
+        }
+        sub = await client.create_subscription(100, Types(names))
+        await sub.subscribe_events(client.nodes.server)
+        print("ready", flush=True)
+        while True:
+            await asyncio.sleep(1)
+
+
 async def names(url):
     async with Client(url=url) as client:
         _, found = await machines(client)
@@ -280,6 +305,7 @@ if __name__ == "__main__":
         "write": write,
         "login": login,
         "names": names,
+        "events": events,
         "monitor": monitor,
         "secure": secure,
         "status": status,
