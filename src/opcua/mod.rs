@@ -321,43 +321,70 @@ impl Shown {
     /// A PLC's tags, as variables of the PLC's object.
     fn tags(&self, cell: &str, p: &cellgate_core::mtconnect::desc::PlcDesc) -> Vec<space::Planned> {
         use opcua::nodes::{Base, NodeBase as _, Variable};
-        use opcua::types::{DataTypeId, NodeClass, QualifiedName};
+        use opcua::types::{DataTypeId, NodeClass, QualifiedName, VariableTypeId};
+        let read = opcua::server::address_space::AccessLevel::CURRENT_READ.bits();
+        let variable = |id: &NodeId, name: QualifiedName, data_type: DataTypeId, value| {
+            let display = name.name.to_string();
+            Variable::new_full(
+                Base::new(NodeClass::Variable, id, name, display.as_str()),
+                data_type.into(),
+                false,
+                -1,
+                value,
+                read,
+                read,
+                None,
+                None,
+            )
+        };
         let parent = NodeId::new(self.ns.cells, self.id(cell, &p.name));
-        p.tags
-            .iter()
-            .map(|t| {
-                let id = self.node(cell, &p.name, &t.name);
-                let mut v = Variable::new_full(
-                    Base::new(
-                        NodeClass::Variable,
-                        &id,
-                        QualifiedName::new(self.ns.cells, t.name.as_str()),
-                        t.name.as_str(),
-                    ),
-                    DataTypeId::Double.into(),
-                    false,
-                    -1,
-                    DataValue::null(),
-                    opcua::server::address_space::AccessLevel::CURRENT_READ.bits(),
-                    opcua::server::address_space::AccessLevel::CURRENT_READ.bits(),
-                    None,
-                    None,
-                );
-                if let Some(u) = t.units {
-                    v.set_description(LocalizedText::new("", &format!("{} ({u})", t.native)));
+        let mut out = Vec::new();
+        for t in &p.tags {
+            let id = self.node(cell, &p.name, &t.name);
+            let mut v = variable(
+                &id,
+                QualifiedName::new(self.ns.cells, t.name.as_str()),
+                DataTypeId::Double,
+                DataValue::null(),
+            );
+            v.set_description(LocalizedText::new("", t.native.as_str()));
+            // A measured value with units: BaseAnalogType with its EngineeringUnits (Part 8
+            // §5.3.2), the units the tag's `mtconnect` type reports in.
+            let unit = t.units.and_then(cellgate_core::opcua::engineering_unit);
+            out.push(space::Planned {
+                parent: parent.clone(),
+                reference: ReferenceTypeId::HasComponent.into(),
+                node: v.into(),
+                type_definition: Some(if unit.is_some() {
+                    VariableTypeId::BaseAnalogType.into()
                 } else {
-                    v.set_description(LocalizedText::new("", t.native.as_str()));
-                }
-                space::Planned {
-                    parent: parent.clone(),
-                    reference: ReferenceTypeId::HasComponent.into(),
-                    node: v.into(),
-                    type_definition: Some(
-                        opcua::types::VariableTypeId::BaseDataVariableType.into(),
-                    ),
-                }
-            })
-            .collect()
+                    VariableTypeId::BaseDataVariableType.into()
+                }),
+            });
+            if let Some((unit_id, symbol, name)) = unit {
+                let eu = opcua::types::EUInformation {
+                    namespace_uri: UAString::from(cellgate_core::opcua::UNECE_UNITS_NS),
+                    unit_id,
+                    display_name: LocalizedText::new("", symbol),
+                    description: LocalizedText::new("en", name),
+                };
+                let value =
+                    DataValue::new_now(Variant::from(opcua::types::ExtensionObject::new(eu)));
+                let property = variable(
+                    &self.node(cell, &p.name, &format!("{}/EngineeringUnits", t.name)),
+                    QualifiedName::new(0, "EngineeringUnits"),
+                    DataTypeId::EUInformation,
+                    value,
+                );
+                out.push(space::Planned {
+                    parent: id.clone(),
+                    reference: ReferenceTypeId::HasProperty.into(),
+                    node: property.into(),
+                    type_definition: Some(VariableTypeId::PropertyType.into()),
+                });
+            }
+        }
+        out
     }
 
     /// Identification: the cell file's `identification`, else defaults that say so.

@@ -277,6 +277,16 @@ async fn machine_tools_have_their_mandatory_nodes_and_follow_a_job_and_an_alarm(
         run(&["write", &gw.url, "mill-1"]).await,
         "refused BadNotWritable"
     );
+    // The PLC beside the machine tools: a tag with units is an analog value in degrees
+    // Celsius (UNECE "CEL"), a count has none.
+    assert_eq!(
+        run(&["units", &gw.url, "plc-1", "spindle-temp"]).await,
+        "BaseAnalogType 4408652 °C"
+    );
+    assert_eq!(
+        run(&["units", &gw.url, "plc-1", "parts"]).await,
+        "BaseDataVariableType none"
+    );
     drop(f);
     client.close().await;
     gw.stop().await;
@@ -388,7 +398,10 @@ async fn a_site_server_follows_the_cells_of_two_gateways() {
     // comes is a model change.
     let mut watcher = None;
     for _ in 0..100 {
-        if tokio::net::TcpStream::connect(("127.0.0.1", port)).await.is_ok() {
+        if tokio::net::TcpStream::connect(("127.0.0.1", port))
+            .await
+            .is_ok()
+        {
             watcher = Some(Follower::run(&["events", &url]));
             break;
         }

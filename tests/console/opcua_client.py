@@ -18,6 +18,8 @@
                                          until killed
   opcua_client.py events URL             prints "ready", then "event TYPE" for each event of
                                          the Server object (its EventType's BrowseName)
+  opcua_client.py units URL PLC TAG      prints the tag's value type and its EngineeringUnits:
+                                         "TYPE UNIT_ID SYMBOL", or "TYPE none"
   opcua_client.py names URL              the BrowseNames under Machines, sorted, one a line
   opcua_client.py status URL MACHINE     the status of the machine's ChannelState value
 """
@@ -279,6 +281,21 @@ async def events(url):
             await asyncio.sleep(1)
 
 
+async def units(url, plc, tag):
+    async with Client(url=url) as client:
+        ns, found = await machines(client)
+        cells = ns.index("urn:cellgate:cells")
+        for m in found:
+            if (await m.read_browse_name()).Name == plc:
+                node = await m.get_child([f"{cells}:{tag}"])
+                kind = (await (client.get_node(await node.read_type_definition())).read_browse_name()).Name
+                try:
+                    eu = await (await node.get_child(["0:EngineeringUnits"])).read_value()
+                    print(kind, eu.UnitId, eu.DisplayName.Text)
+                except ua.UaStatusCodeError:
+                    print(kind, "none")
+
+
 async def names(url):
     async with Client(url=url) as client:
         _, found = await machines(client)
@@ -305,6 +322,7 @@ if __name__ == "__main__":
         "write": write,
         "login": login,
         "names": names,
+        "units": units,
         "events": events,
         "monitor": monitor,
         "secure": secure,

@@ -21,6 +21,46 @@ pub const DI_NS: &str = "http://opcfoundation.org/UA/DI/";
 /// The namespace of OPC 10000-200 (Industrial Automation).
 pub const IA_NS: &str = "http://opcfoundation.org/UA/IA/";
 
+/// The UNECE Recommendation 20 unit of an MTConnect unit (a PLC tag's `mtconnect` units), as
+/// OPC UA's `EUInformation` names it (Part 8 §5.6.3): its common code packed in an `Int32`,
+/// its symbol and its name. `None` for a unit without one here (the tag then has none).
+pub fn engineering_unit(mtconnect: &str) -> Option<(i32, &'static str, &'static str)> {
+    let (code, symbol, name) = match mtconnect {
+        "AMPERE" => ("AMP", "A", "ampere"),
+        "CELSIUS" => ("CEL", "°C", "degree Celsius"),
+        "DECIBEL" => ("2N", "dB", "decibel"),
+        "DEGREE" => ("DD", "°", "degree"),
+        "HERTZ" => ("HTZ", "Hz", "hertz"),
+        "JOULE" => ("JOU", "J", "joule"),
+        "KILOGRAM" => ("KGM", "kg", "kilogram"),
+        "LITER" => ("LTR", "l", "litre"),
+        "LITER/SECOND" => ("G51", "l/s", "litre per second"),
+        "MILLIGRAM" => ("MGM", "mg", "milligram"),
+        "MILLILITER" => ("MLT", "ml", "millilitre"),
+        "MILLIMETER" => ("MMT", "mm", "millimetre"),
+        "MILLIMETER/SECOND" => ("C16", "mm/s", "millimetre per second"),
+        "NEWTON" => ("NEW", "N", "newton"),
+        "NEWTON_METER" => ("NU", "N·m", "newton metre"),
+        "OHM" => ("OHM", "Ω", "ohm"),
+        "PASCAL" => ("PAL", "Pa", "pascal"),
+        "PASCAL_SECOND" => ("C65", "Pa·s", "pascal second"),
+        "PERCENT" => ("P1", "%", "percent"),
+        "REVOLUTION/MINUTE" => ("RPM", "r/min", "revolutions per minute"),
+        "SECOND" => ("SEC", "s", "second"),
+        "VOLT" => ("VLT", "V", "volt"),
+        "VOLT_AMPERE" => ("D46", "V·A", "volt - ampere"),
+        "WATT" => ("WTT", "W", "watt"),
+        "WATT_SECOND" => ("J55", "W·s", "watt second"),
+        _ => return None,
+    };
+    // Part 8 §5.6.3: each character of the code in a byte, the first the highest.
+    let id = code.bytes().fold(0i32, |id, b| (id << 8) | i32::from(b));
+    Some((id, symbol, name))
+}
+
+/// The namespace of the UNECE units in `EUInformation`.
+pub const UNECE_UNITS_NS: &str = "http://www.opcfoundation.org/UA/units/un/cefact";
+
 /// `ProductionStateMachineType`'s states (OPC 40501-1 §8.4.8): what the program being sent
 /// is doing.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

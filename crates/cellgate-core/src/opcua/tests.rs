@@ -211,3 +211,20 @@ fn a_cell_described_again_keeps_its_machines_and_drops_those_gone() {
     assert!(m.shows("demo", "mill-1").is_none());
     assert!(m.update("demo-2", Update::Gateway(true)).is_empty());
 }
+
+#[test]
+fn units_are_the_unece_codes_packed_as_part_8_says() {
+    // Part 8's own example: degree Celsius, "CEL", 4408652.
+    assert_eq!(
+        engineering_unit("CELSIUS"),
+        Some((4_408_652, "°C", "degree Celsius"))
+    );
+    assert_eq!(engineering_unit("PERCENT").unwrap().0, 0x5031);
+    assert_eq!(engineering_unit("COUNT"), None);
+    // Every unit a tag type reports in by default has one.
+    for t in crate::config::mtconnect_types::TAG_TYPES {
+        if let Some(u) = t.units {
+            assert!(engineering_unit(u).is_some(), "{u}");
+        }
+    }
+}
