@@ -564,14 +564,9 @@ impl Shown {
             identifier: UAString::from(alert.code.as_str()),
         };
         tracing::info!(cell, machine, code = %alert.code, "opcua: alert");
-        let server: NodeId = opcua::types::ObjectId::Server.into();
-        self.subscriptions.notify_events(
-            [
-                (&event as &dyn opcua::nodes::Event, &source),
-                (&event as &dyn opcua::nodes::Event, &server),
-            ]
-            .into_iter(),
-        );
+        // The stack hands an event of any node to the Server object's subscribers as well.
+        self.subscriptions
+            .notify_events([(&event as &dyn opcua::nodes::Event, &source)].into_iter());
     }
 }
 

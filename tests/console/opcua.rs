@@ -181,6 +181,13 @@ impl Follower {
         }
     }
 
+    /// Takes the lines that came so far.
+    fn drain(&mut self) {
+        while let Ok(l) = self.lines.try_recv() {
+            self.seen.push(l);
+        }
+    }
+
     /// Waits for a line that `done` holds of, among those seen so far too (values that change
     /// together come in one publish, in no set order); at most a minute: a guard against a
     /// hang.
@@ -272,6 +279,11 @@ async fn machine_tools_have_their_mandatory_nodes_and_follow_a_job_and_an_alarm(
         .unwrap();
     // Protocol A's ALM carries no alarm number: cellgate's own code, severity MediumHigh.
     f.wait(|l| l == "event CG-ALM 800 mill-1").await;
+    // Once, though the client subscribes to the Server object and the alarm lasts.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    f.drain();
+    let events: Vec<_> = f.seen.iter().filter(|l| l.starts_with("event ")).collect();
+    assert_eq!(events.len(), 1, "{:?}", f.seen);
 
     assert_eq!(
         run(&["write", &gw.url, "mill-1"]).await,
