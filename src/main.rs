@@ -906,37 +906,28 @@ fn serving_text(config: &CellConfig) -> String {
     t
 }
 
+/// A site server's end as an exit code: a bad option or cell file is a configuration error.
+fn site_ended(r: Result<(), cellgate::client::site::SiteError>) -> Result<(), (u8, String)> {
+    match r {
+        Ok(()) => Ok(()),
+        Err(cellgate::client::site::SiteError::Config(e)) => Err((EXIT_CONFIG, e)),
+        Err(e) => Err((EXIT_RUNTIME, e.to_string())),
+    }
+}
+
 /// `cellgate console`: the site view until SIGINT or SIGTERM.
 fn site_console(args: &cellgate::console::SiteArgs) -> ExitCode {
-    run_site(|shutdown| async move {
-        match cellgate::console::site(args, shutdown).await {
-            Ok(()) => Ok(()),
-            Err(cellgate::console::SiteError::Config(e)) => Err((EXIT_CONFIG, e.to_string())),
-            Err(e) => Err((EXIT_RUNTIME, e.to_string())),
-        }
-    })
+    run_site(|shutdown| async move { site_ended(cellgate::console::site(args, shutdown).await) })
 }
 
 /// `cellgate mtconnect`: the site agent until SIGINT or SIGTERM.
 fn site_mtconnect(args: &cellgate::mtconnect::SiteArgs) -> ExitCode {
-    run_site(|shutdown| async move {
-        match cellgate::mtconnect::site(args, shutdown).await {
-            Ok(()) => Ok(()),
-            Err(cellgate::mtconnect::SiteError::Config(e)) => Err((EXIT_CONFIG, e.to_string())),
-            Err(e) => Err((EXIT_RUNTIME, e.to_string())),
-        }
-    })
+    run_site(|shutdown| async move { site_ended(cellgate::mtconnect::site(args, shutdown).await) })
 }
 
 /// `cellgate opcua`: the site OPC UA server until SIGINT or SIGTERM.
 fn site_opcua(args: &cellgate::opcua::SiteArgs) -> ExitCode {
-    run_site(|shutdown| async move {
-        match cellgate::opcua::site(args, shutdown).await {
-            Ok(()) => Ok(()),
-            Err(cellgate::opcua::SiteError::Config(e)) => Err((EXIT_CONFIG, e.to_string())),
-            Err(e) => Err((EXIT_RUNTIME, e.to_string())),
-        }
-    })
+    run_site(|shutdown| async move { site_ended(cellgate::opcua::site(args, shutdown).await) })
 }
 
 /// `cellgate historian`: the site's history in PostgreSQL until SIGINT or SIGTERM.
@@ -957,11 +948,11 @@ where
     F: FnOnce(std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>) -> Fut,
     Fut: std::future::Future<Output = Result<(), (u8, String)>>,
 {
+    let rust_log = std::env::var("RUST_LOG").ok();
+    let filter = cellgate::telemetry::filter("info", rust_log.as_deref())
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
     let _ = tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
+        .with_env_filter(filter)
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();

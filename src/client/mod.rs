@@ -20,6 +20,7 @@ mod jobs;
 mod machines;
 mod programs;
 mod reload;
+pub mod site;
 mod watch;
 
 pub use self::jobs::{JobFollower, JobOutcome, is_end, machine_of_job, new_request_id};

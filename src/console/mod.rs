@@ -39,6 +39,7 @@ use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 
 use crate::client::Client;
+pub use crate::client::site::SiteError;
 use crate::door::Door;
 use crate::telemetry::prometheus::Exposition;
 use cellgate_core::config::{ConsoleConfig, Permission, SecurityConfig};
@@ -377,6 +378,16 @@ impl Served {
     }
 }
 
+impl crate::client::site::SiteServer for Served {
+    fn url(&self) -> &str {
+        &self.url
+    }
+
+    fn join(self) -> impl std::future::Future<Output = ()> + Send {
+        Served::join(self)
+    }
+}
+
 /// Serves the console on `session` until `stop`. Binds at once (so a port taken is an error
 /// now), then serves in a task.
 pub async fn serve(
@@ -458,18 +469,6 @@ pub struct SiteArgs {
     pub config: Option<std::path::PathBuf>,
 }
 
-/// Why the site console could not start.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum SiteError {
-    #[error("{0}")]
-    Config(String),
-    #[error(transparent)]
-    Client(#[from] crate::client::ClientError),
-    #[error(transparent)]
-    Console(#[from] ConsoleError),
-}
-
 /// Runs the site console until `shutdown`: a session of its own to the endpoint, every cell
 /// under the prefix.
 pub async fn site(
@@ -496,31 +495,15 @@ pub async fn site(
             console.listen
         )));
     }
-    let options = args.connect.options()?;
-    let session = crate::client::open_session(&options).await?;
-    let stop = CancellationToken::new();
-    let settings = ConsoleSettings {
-        console,
-        prefix: options.prefix.clone(),
-        cell: options.cell.clone(),
-        security,
-        mtconnect: None,
+    let start = |session, options: crate::client::ConnectOptions, stop| {
+        let settings = ConsoleSettings {
+            console,
+            prefix: options.prefix.clone(),
+            cell: options.cell.clone(),
+            security,
+            mtconnect: None,
+        };
+        serve(session, settings, None, stop)
     };
-    let served = match serve(session.clone(), settings, None, stop.clone()).await {
-        Ok(s) => s,
-        Err(e) => {
-            let _ = session.close().await;
-            return Err(e.into());
-        }
-    };
-    tracing::info!(url = %served.url, endpoint = %options.endpoint, "site console at {}", served.url);
-    eprintln!(
-        "cellgate console at {} (cells behind {})",
-        served.url, options.endpoint
-    );
-    shutdown.await;
-    stop.cancel();
-    served.join().await;
-    let _ = session.close().await;
-    Ok(())
+    crate::client::site::serve(&args.connect, "console", start, shutdown).await
 }

@@ -237,16 +237,16 @@ pub struct SiteArgs {
     pub buffer_size: u32,
 }
 
-/// Why the site agent could not start.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum SiteError {
-    #[error("{0}")]
-    Config(String),
-    #[error(transparent)]
-    Client(#[from] crate::client::ClientError),
-    #[error(transparent)]
-    Agent(#[from] MtconnectError),
+pub use crate::client::site::SiteError;
+
+impl crate::client::site::SiteServer for Served {
+    fn url(&self) -> &str {
+        &self.url
+    }
+
+    fn join(self) -> impl std::future::Future<Output = ()> + Send {
+        Served::join(self)
+    }
 }
 
 /// Runs the site agent until `shutdown`: a session of its own to the endpoint, every cell
@@ -277,35 +277,20 @@ pub async fn site(
     for w in config.warnings() {
         tracing::warn!("{w}");
     }
-    let options = args.connect.options()?;
-    let session = crate::client::open_session(&options).await?;
-    let stop = CancellationToken::new();
-    let settings = MtconnectSettings {
-        config,
-        prefix: options.prefix.clone(),
-        // A site agent asks each gateway what its cell has; with --cell, only that cell.
-        only: options.cell.clone(),
-        own: None,
-        sender: format!("cellgate site agent ({})", options.endpoint),
-    };
-    let served = match serve(session.clone(), settings, stop.clone()).await {
-        Ok(s) => s,
-        Err(e) => {
-            let _ = session.close().await;
-            return Err(e.into());
+    let start = |session, options: crate::client::ConnectOptions, stop| async move {
+        let settings = MtconnectSettings {
+            config,
+            prefix: options.prefix.clone(),
+            // A site agent asks each gateway what its cell has; with --cell, only that cell.
+            only: options.cell.clone(),
+            own: None,
+            sender: format!("cellgate site agent ({})", options.endpoint),
+        };
+        let served = serve(session, settings, stop).await?;
+        if let Some(a) = served.shdr {
+            eprintln!("SHDR adapter at {a}");
         }
+        Ok::<_, MtconnectError>(served)
     };
-    tracing::info!(url = %served.url, endpoint = %options.endpoint, "site MTConnect agent at {}", served.url);
-    eprintln!(
-        "cellgate mtconnect at {} (cells behind {})",
-        served.url, options.endpoint
-    );
-    if let Some(a) = served.shdr {
-        eprintln!("SHDR adapter at {a}");
-    }
-    shutdown.await;
-    stop.cancel();
-    served.join().await;
-    let _ = session.close().await;
-    Ok(())
+    crate::client::site::serve(&args.connect, "mtconnect", start, shutdown).await
 }

@@ -872,16 +872,16 @@ pub struct SiteArgs {
     pub pki_dir: Option<PathBuf>,
 }
 
-/// Why the site server could not start.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum SiteError {
-    #[error("{0}")]
-    Config(String),
-    #[error(transparent)]
-    Client(#[from] crate::client::ClientError),
-    #[error(transparent)]
-    Opcua(#[from] OpcuaError),
+pub use crate::client::site::SiteError;
+
+impl crate::client::site::SiteServer for Served {
+    fn url(&self) -> &str {
+        &self.url
+    }
+
+    fn join(self) -> impl std::future::Future<Output = ()> + Send {
+        Served::join(self)
+    }
 }
 
 /// Runs the site server until `shutdown`: a session of its own to the endpoint, every cell
@@ -910,32 +910,16 @@ pub async fn site(
             config.listen
         )));
     }
-    let options = args.connect.options()?;
-    let session = crate::client::open_session(&options).await?;
-    let stop = CancellationToken::new();
-    let settings = OpcuaSettings {
-        config,
-        prefix: options.prefix.clone(),
-        only: options.cell.clone(),
-        own: None,
-        security,
-        default_pki: PathBuf::from("pki"),
+    let start = |session, options: crate::client::ConnectOptions, stop| {
+        let settings = OpcuaSettings {
+            config,
+            prefix: options.prefix.clone(),
+            only: options.cell.clone(),
+            own: None,
+            security,
+            default_pki: PathBuf::from("pki"),
+        };
+        serve(session, settings, stop)
     };
-    let served = match serve(session.clone(), settings, stop.clone()).await {
-        Ok(s) => s,
-        Err(e) => {
-            let _ = session.close().await;
-            return Err(e.into());
-        }
-    };
-    tracing::info!(url = %served.url, endpoint = %options.endpoint, "site OPC UA server at {}", served.url);
-    eprintln!(
-        "cellgate opcua at {} (cells behind {})",
-        served.url, options.endpoint
-    );
-    shutdown.await;
-    stop.cancel();
-    served.join().await;
-    let _ = session.close().await;
-    Ok(())
+    crate::client::site::serve(&args.connect, "opcua", start, shutdown).await
 }
