@@ -105,7 +105,35 @@ impl AuthManager for Gate {
     }
 }
 
+/// Whether sessions need a user: on any cell with `[security]`. A cell secured with TLS and
+/// certificate roles alone has no users for the server to check, so it takes nobody rather
+/// than anybody.
+pub fn secured(security: &cellgate_core::config::SecurityConfig) -> bool {
+    security.tls.is_some() || security.users_file.is_some()
+}
+
 /// The user token ids endpoints list (the gate decides; the list only must not be empty).
 pub fn token_ids() -> Vec<String> {
     vec![ANONYMOUS_USER_TOKEN_ID.to_string()]
+}
+
+#[cfg(test)]
+mod tests {
+    use cellgate_core::config::{SecurityConfig, TlsConfig};
+
+    #[test]
+    fn a_cell_with_tls_and_no_users_takes_nobody_anonymously() {
+        assert!(!super::secured(&SecurityConfig::default()));
+        let tls_only = SecurityConfig {
+            tls: Some(TlsConfig {
+                ca: "ca.pem".into(),
+                certificate: "c.pem".into(),
+                private_key: "k.pem".into(),
+                require_client_certificates: true,
+                verify_name_on_connect: true,
+            }),
+            ..SecurityConfig::default()
+        };
+        assert!(super::secured(&tls_only));
+    }
 }

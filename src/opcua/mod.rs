@@ -644,7 +644,13 @@ pub async fn serve(
         addr: addr.clone(),
         source,
     })?;
-    let secured = settings.security.users_file.is_some();
+    let secured = auth::secured(&settings.security);
+    if secured && settings.security.users_file.is_none() {
+        tracing::warn!(
+            "opcua: the cell has [security] but no users file: the OPC UA server takes user \
+             names and passwords only, so nobody can open a session"
+        );
+    }
     let auth = secured.then(|| {
         Arc::new(crate::console::auth::Auth::new(
             &settings.security,
