@@ -119,12 +119,17 @@ async fn ask(session: &Session, prefix: &str, cell: &str) -> Option<(Described, 
         .map(|(_, a)| a)?;
     let client = Client::attach(session.clone(), prefix, cell, admin.clone(), ASK_TIMEOUT).ok()?;
     let (machines, plcs) = tokio::join!(client.status(None), client.plc_status(None));
-    let machines = machines.ok()?;
     // A cell without PLCs answers nothing there: that is no error.
     let plcs = plcs.unwrap_or_default();
-    let desc = match CellDesc::from_admin(cell, &admin) {
-        Some(d) => Described::Whole(d),
-        None => Described::FromStatus(CellDesc::from_status(cell, &machines, &plcs)),
+    // Its description from its configuration where the role reads it; else from its
+    // statuses, which must then have come (none would describe a cell without machines).
+    let (desc, machines) = match CellDesc::from_admin(cell, &admin) {
+        Some(d) => (Described::Whole(d), machines.unwrap_or_default()),
+        None => {
+            let machines = machines.ok()?;
+            let d = CellDesc::from_status(cell, &machines, &plcs);
+            (Described::FromStatus(d), machines)
+        }
     };
     let mut updates = Vec::new();
     // How each machine's last job ended (one that failed when the gateway restarted under it
@@ -194,32 +199,36 @@ pub async fn start(
         // The gateway's own cell: it is there while the follower runs.
         follower.take(&desc.cell, vec![Update::Gateway(true)]);
     }
-    let (asked_tx, mut asked) = mpsc::channel::<(String, Option<(Described, Vec<Update>)>)>(64);
+    let (asked_tx, mut asked) = mpsc::channel::<Asked>(64);
+    // The cells whose gateway is there (its token): one that does not answer yet is asked
+    // again while it is.
+    let mut alive: std::collections::HashSet<String> = Default::default();
     if let Some(cell) = own_cell {
         // Its state now, whether or not the session shows its own token to itself.
-        let (session, prefix, tx) = (session.clone(), prefix.clone(), asked_tx.clone());
-        tokio::spawn(async move {
-            let answer = ask(&session, &prefix, &cell).await;
-            let _ = tx.send((cell, answer)).await;
-        });
+        alive.insert(cell.clone());
+        ask_later(&session, &prefix, &asked_tx, cell, 0);
     }
     tokio::spawn(async move {
         let _keep = (subscribers, tokens);
         loop {
             tokio::select! {
                 () = stop.cancelled() => break,
-                Some((cell, answer)) = asked.recv() => {
-                    if let Some((desc, updates)) = answer {
-                        let desc = match (desc, follower.known(&cell)) {
-                            (Described::Whole(d), _) | (Described::FromStatus(d), None) => d,
-                            // What statuses cannot show stays as it was known.
-                            (Described::FromStatus(d), Some(known)) => known.with_names_of(&d),
-                        };
-                        follower.describe(&desc);
-                        let mut all = vec![Update::Gateway(true)];
-                        all.extend(updates);
-                        follower.take(&cell, all);
-                    }
+                Some((cell, answer, tries)) = asked.recv() => {
+                    let Some((desc, updates)) = answer else {
+                        if alive.contains(&cell) {
+                            ask_later(&session, &prefix, &asked_tx, cell, tries + 1);
+                        }
+                        continue;
+                    };
+                    let desc = match (desc, follower.known(&cell)) {
+                        (Described::Whole(d), _) | (Described::FromStatus(d), None) => d,
+                        // What statuses cannot show stays as it was known.
+                        (Described::FromStatus(d), Some(known)) => known.with_names_of(&d),
+                    };
+                    follower.describe(&desc);
+                    let mut all = vec![Update::Gateway(true)];
+                    all.extend(updates);
+                    follower.take(&cell, all);
                 }
                 s = rx.recv() => {
                     let Some(s) = s else { break };
@@ -227,21 +236,43 @@ pub async fn start(
                         continue;
                     };
                     let Some(update) = decode(&prefix, &cell, kind, &s) else { continue };
-                    if let Update::Gateway(true) = update {
+                    match update {
                         // Ask what it has (again, if it came back) before marking it up.
-                        let (session, prefix, tx) = (session.clone(), prefix.clone(), asked_tx.clone());
-                        tokio::spawn(async move {
-                            let answer = ask(&session, &prefix, &cell).await;
-                            let _ = tx.send((cell, answer)).await;
-                        });
-                        continue;
+                        Update::Gateway(true) => {
+                            alive.insert(cell.clone());
+                            ask_later(&session, &prefix, &asked_tx, cell, 0);
+                        }
+                        Update::Gateway(false) => {
+                            if kind == Kind::Gateway {
+                                alive.remove(&cell);
+                            }
+                            follower.take(&cell, vec![update]);
+                        }
+                        update => follower.take(&cell, vec![update]),
                     }
-                    follower.take(&cell, vec![update]);
                 }
             }
         }
     });
     Ok(())
+}
+
+/// A gateway's answer: its cell, what it said (`None`: it did not answer), how many times
+/// it was asked before.
+type Asked = (String, Option<(Described, Vec<Update>)>, u32);
+
+/// Asks `cell`'s gateway what it has, after a wait that grows with `tries` (none the first
+/// time; 1, 2, 4 … s, at most 30 s), and sends the answer to `tx`.
+fn ask_later(session: &Session, prefix: &str, tx: &mpsc::Sender<Asked>, cell: String, tries: u32) {
+    let (session, prefix, tx) = (session.clone(), prefix.to_string(), tx.clone());
+    tokio::spawn(async move {
+        if tries > 0 {
+            let wait = Duration::from_secs(1 << (tries - 1).min(5)).min(Duration::from_secs(30));
+            tokio::time::sleep(wait).await;
+        }
+        let answer = ask(&session, &prefix, &cell).await;
+        let _ = tx.send((cell, answer, tries)).await;
+    });
 }
 
 #[cfg(test)]
