@@ -180,11 +180,8 @@ async def write(url, machine):
             print(f"refused {ua.StatusCode(e.code).name}")
 
 
-async def login(url, user=None, password=None):
-    client = Client(url=url)
-    if user is not None:
-        client.set_user(user)
-        client.set_password(password)
+async def attempt(client):
+    """Opens a session with `client` and reads one value; prints "ok" or "refused STATUS"."""
     try:
         await client.connect()
         await client.get_namespace_array()
@@ -194,6 +191,14 @@ async def login(url, user=None, password=None):
         print(f"refused {ua.StatusCode(e.code).name}")
     except Exception as e:
         print(f"refused {type(e).__name__} {e}")
+
+
+async def login(url, user=None, password=None):
+    client = Client(url=url)
+    if user is not None:
+        client.set_user(user)
+        client.set_password(password)
+    await attempt(client)
 
 
 async def secure(url, user, password, folder):
@@ -217,15 +222,7 @@ async def secure(url, user, password, folder):
     client.set_user(user)
     client.set_password(password)
     await client.set_security_string(f"Basic256Sha256,SignAndEncrypt,{cert},{key}")
-    try:
-        await client.connect()
-        await client.get_namespace_array()
-        await client.disconnect()
-        print("ok")
-    except ua.UaStatusCodeError as e:
-        print(f"refused {ua.StatusCode(e.code).name}")
-    except Exception as e:
-        print(f"refused {type(e).__name__}")
+    await attempt(client)
 
 
 async def machines(client):
