@@ -11,6 +11,8 @@ pub fn nearest<'k>(name: &str, known: &[&'k str], max: usize) -> Vec<&'k str> {
     let wanted = name.to_ascii_lowercase();
     let mut near: Vec<(usize, &'k str)> = known
         .iter()
+        // The name itself is no slip: it appeared after the lookup that missed it.
+        .filter(|&&k| k != name)
         .filter_map(|&k| {
             let lower = k.to_ascii_lowercase();
             let d = if lower == wanted || unpadded(&lower) == unpadded(&wanted) {
@@ -105,6 +107,8 @@ mod tests {
         assert!(nearest("P777777", &known, 3).is_empty());
         // One letter is near every other letter: not a slip.
         assert!(nearest("Q", &["D", "M"], 3).is_empty());
+        // Not itself: a name that appeared after the lookup is no "did you mean".
+        assert!(nearest("O1234", &["O1234"], 3).is_empty());
     }
 
     #[test]
