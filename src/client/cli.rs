@@ -11,17 +11,10 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
-use clap::{Args, Subcommand};
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use prost::Message;
+use clap::Args;
 
-use super::render::{self, WatchPrinter};
-use super::{
-    Client, ClientError, ClientSecurity, ConnectOptions, Credentials, DEFAULT_ENDPOINT, JobOutcome,
-    WatchEvent, parse_byte,
-};
+use super::{Client, ClientError, ClientSecurity, ConnectOptions, Credentials, DEFAULT_ENDPOINT};
 use cellgate_core::pb;
-use cellgate_core::pb::job_event::Kind;
 
 mod g05;
 mod io;

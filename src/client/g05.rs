@@ -1,6 +1,12 @@
 //! G05 streams: open, feed, status, cancel.
 
-use super::*;
+use prost::Message as _;
+use zenoh::sample::Sample;
+
+use super::{Client, ClientError};
+use crate::bus::keys::{G05Part, MachineLeaf};
+use crate::bus::payload::encoding;
+use cellgate_core::pb;
 
 impl Client {
     /// Opens a G05 stream on `machine` (`stream_id` empty: the gateway names it). With

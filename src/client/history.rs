@@ -1,6 +1,7 @@
 //! The cell's history, audit trail and utilisation.
 
-use super::*;
+use super::{Client, ClientError, with_params};
+use cellgate_core::pb;
 
 impl Client {
     /// One page of the history (`audit`: of the audit trail) with these selector parameters

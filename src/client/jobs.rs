@@ -1,6 +1,21 @@
 //! Jobs: submit, follow, the queue, cancel.
 
-use super::*;
+use std::time::Duration;
+
+use prost::Message as _;
+use zenoh::Session;
+use zenoh::bytes::ZBytes;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::{Sample, SampleKind};
+
+use super::{
+    Client, ClientError, IO_TIMEOUT, SILENCE, SUBMIT_TIMEOUT, decode, decode_all, get_raw, render,
+};
+use crate::bus::keys::{CellKey, CellKeys, MachineLeaf, is_plain_chunk};
+use crate::bus::payload::encoding;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
 
 /// A new request id for a `JobRequest`: unique per process and moment.
 pub fn new_request_id() -> String {

@@ -1,6 +1,12 @@
 //! The machines: status, DI and DO.
 
-use super::*;
+use prost::Message as _;
+use zenoh::bytes::ZBytes;
+
+use super::{Client, ClientError, IO_TIMEOUT, no_reply};
+use crate::bus::keys::MachineLeaf;
+use crate::bus::payload::encoding;
+use cellgate_core::pb;
 
 impl Client {
     /// The status of one machine, or of every machine (`None`), sorted by name.

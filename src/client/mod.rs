@@ -31,7 +31,6 @@ pub mod plc;
 pub mod render;
 pub mod sim;
 
-use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
@@ -42,17 +41,16 @@ use zenoh::bytes::{Encoding, ZBytes};
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
 use zenoh::query::{ConsolidationMode, Reply};
-use zenoh::sample::{Sample, SampleKind};
+use zenoh::sample::Sample;
 
 use crate::bus::keys::{
-    CellKey, CellKeys, G05Part, KeyError, MachineLeaf, admin_selector, cell_of_admin_key,
-    cell_of_gateway_key, gateway_selector, is_plain_chunk,
+    CellKeys, KeyError, admin_selector, cell_of_admin_key, cell_of_gateway_key, gateway_selector,
+    is_plain_chunk,
 };
 use crate::bus::payload::{BusMessage, encoding, schema_of};
 use crate::bus::{BusConfig, BusError, BusMode};
 use cellgate_core::pb;
-use cellgate_core::pb::job_event::Kind;
-use cellgate_core::program::name::{NameError, check_name};
+use cellgate_core::program::name::NameError;
 
 /// The endpoint a client connects to unless told otherwise: where `cellgate run` listens
 /// by default.

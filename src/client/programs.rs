@@ -1,6 +1,11 @@
 //! The program library: list, read, store, check, adopt, revisions, compare, release, remove.
 
-use super::*;
+use prost::Message as _;
+
+use super::{Client, ClientError, chunk_arg, no_reply, refusal, with_params};
+use crate::bus::payload::encoding;
+use cellgate_core::pb;
+use cellgate_core::program::name::check_name;
 
 impl Client {
     pub(crate) fn program_arg(name: &str) -> Result<(), ClientError> {

@@ -1,6 +1,12 @@
 //! Reloading the gateway's cell file (`P/C/@admin/reload`, permission `cell.reload`).
 
-use super::*;
+use std::time::Duration;
+
+use prost::Message as _;
+
+use super::{Client, ClientError};
+use crate::bus::payload::encoding;
+use cellgate_core::pb;
 
 /// How long a reload may wait for its answer: the gateway starts the links of added machines
 /// before it answers (up to 120 s there).

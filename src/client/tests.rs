@@ -1,4 +1,5 @@
 use super::*;
+use cellgate_core::pb::job_event::Kind;
 
 #[test]
 fn bytes_parse_in_three_notations_and_are_range_checked() {

@@ -1,6 +1,17 @@
 //! Everything the cell publishes, and its liveliness, as one stream of events.
 
-use super::*;
+use std::collections::VecDeque;
+
+use prost::Message as _;
+use zenoh::Session;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::{Sample, SampleKind};
+
+use super::{Client, ClientError, decode};
+use crate::bus::keys::{CellKey, CellKeys, MachineLeaf};
+use crate::bus::payload::{BusMessage as _, schema_of};
+use cellgate_core::pb;
 
 impl Client {
     /// Subscribes to everything the cell publishes (`P/C/**`) and to its liveliness tokens.

@@ -1,7 +1,11 @@
 //! Reading the store: a page of a query, oldest or newest first, through the subject index
 //! where the query names machines, kinds or tags; and the marks utilisation is computed from.
 
-use super::*;
+use prost::Message as _;
+
+use super::{HISTORY, HistoryError, Inner, Log, MachineMarks, db_error, tag_subject};
+use cellgate_core::history::{HistoryQuery, Mark, Order};
+use cellgate_core::pb::{self, HistoryKind};
 
 /// One page of `query`, oldest or newest first as it asks.
 pub(super) fn read_page(

@@ -4,7 +4,14 @@
 //! the restarted link finds them. A machine leaving the cell also has its waiting jobs
 //! cancelled and new ones refused; a forced reload fails the job being sent at once.
 
-use super::*;
+use std::time::Duration;
+
+use tokio::sync::oneshot;
+
+use super::{End, JobError, JobsHandle, Manager, Request, published_bytes};
+use crate::link::driver::LinkCommand;
+use cellgate_core::codes::BusCode;
+use cellgate_core::pb;
 
 /// What a reload does to a machine's jobs before its link stops or restarts.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]

@@ -4,7 +4,17 @@
 
 use std::path::Path;
 
-use super::*;
+use prost::Message as _;
+use tokio::sync::oneshot;
+
+use super::journal::{JobOriginRecord, JobRecord, JobState, StartPoint};
+use super::source::{self, ProgramError, ProgramInput};
+use super::{JobError, JobSubmission, JobsHandle, REQUEST_ID_MAX, Request};
+use crate::library::{self, LibraryError};
+use cellgate_core::config::Accept;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
+use cellgate_core::program::blocks::{Block, BlockError, StartAt};
 
 /// A program staged in the journal's store: the name it suggests for the job, the length of
 /// its stored file, and the EOR appended when it is sent (empty when stored with it).

@@ -1,7 +1,20 @@
 //! What the link reports about the job on it, one method per event: the job's clock and
 //! `started`, its progress (and the journal's checkpoint), and how it ended.
 
-use super::*;
+use std::sync::Arc;
+use std::time::Duration;
+
+use prost::Message as _;
+use tokio::time::Instant;
+
+use super::progress::ProgressShaper;
+use super::{End, Manager, published_bytes};
+use crate::link::JobId;
+use crate::link::driver::{JobFailure, LinkEvent};
+use cellgate_core::codes::BusCode as _;
+use cellgate_core::fanuc::host::Confirmation;
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
 
 impl Manager {
     pub(super) async fn on_link_event(&mut self, event: LinkEvent) {

@@ -56,19 +56,18 @@ use tokio::sync::{broadcast, mpsc, oneshot, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
-use crate::library::{self, LibraryError, ProgramLibrary};
+use crate::library::{LibraryError, ProgramLibrary};
 use crate::link::JobId;
-use crate::link::driver::{JobFailure, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
+use crate::link::driver::{JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use crate::telemetry::metrics::{self, MachineMetrics, Outcome};
 use crate::telemetry::span_count;
-use cellgate_core::codes::BusCode;
 use cellgate_core::config::Accept;
 use cellgate_core::fanuc::alarm::CncAlarm;
 use cellgate_core::fanuc::host::Confirmation;
 use cellgate_core::pb;
 use cellgate_core::pb::job_event::Kind;
 use cellgate_core::program::blocks::{Block, BlockError, StartAt};
-use journal::{JobOriginRecord, JobRecord, JobState, Journal, JournalError, StartPoint};
+use journal::{JobRecord, JobState, Journal, JournalError, StartPoint};
 use queue::PriorityQueue;
 use source::{ProgramError, ProgramInput, ProgramRules};
 

@@ -1,7 +1,9 @@
 //! The published progress of a job: the link's reports shaped into events a client can
 //! follow (see the module documentation of [`crate::jobs`]).
 
-use super::*;
+use tokio::time::Instant;
+
+use super::PROGRESS_MIN_INTERVAL;
 
 /// Shapes the link's progress reports into the published stream (see the module
 /// documentation).

@@ -9,6 +9,8 @@ use tokio::sync::Semaphore;
 
 use super::*;
 use crate::jobs::journal::Journal;
+use crate::link::driver::JobFailure;
+use cellgate_core::codes::BusCode as _;
 use cellgate_core::config::CellConfig;
 use cellgate_core::fanuc::Protocol;
 use cellgate_core::fanuc::error::{AbortReason, LinkAlarm};

@@ -1,8 +1,15 @@
 //! `cellgate g05`: a G05 stream fed from a file or standard input.
 
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::Args;
+use prost::Message as _;
 use tokio::io::{AsyncBufReadExt as _, AsyncRead};
 
-use super::*;
+use super::{ClientCommand, ConnectArgs, EXIT_INTERRUPTED, Io};
+use crate::client::{Client, ClientError, render};
+use cellgate_core::pb;
 
 /// `cellgate g05`.
 #[derive(Debug, Clone, Args)]

@@ -1,6 +1,11 @@
 //! `cellgate do` and `cellgate di`.
 
-use super::*;
+use std::time::Duration;
+
+use clap::Args;
+
+use super::{ClientCommand, ConnectArgs, Io};
+use crate::client::{Client, ClientError, parse_byte, render};
 
 fn byte_arg(text: &str) -> Result<u8, String> {
     parse_byte(text)

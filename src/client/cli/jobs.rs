@@ -1,6 +1,11 @@
 //! `cellgate jobs`, `cellgate job` and `cellgate cancel`.
 
-use super::*;
+use clap::Args;
+
+use super::{ClientCommand, ConnectArgs, EXIT_INTERRUPTED, Io};
+use crate::client::{Client, ClientError, JobOutcome, render};
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
 
 /// `cellgate jobs`.
 #[derive(Debug, Clone, Args)]

@@ -1,6 +1,12 @@
 //! `cellgate program`: the library from the command line.
 
-use super::*;
+use std::path::PathBuf;
+
+use clap::Subcommand;
+
+use super::{ClientCommand, ConnectArgs, Io, records};
+use crate::client::{Client, ClientError, render};
+use cellgate_core::pb;
 
 /// `cellgate program`.
 #[derive(Debug, Clone, Subcommand)]

@@ -1,6 +1,9 @@
 //! `cellgate reload`.
 
-use super::*;
+use clap::Args;
+
+use super::{ClientCommand, ConnectArgs, Io};
+use crate::client::{Client, ClientError, render};
 
 /// `cellgate reload`: the gateway reads its cell file again and applies what changed.
 #[derive(Debug, Clone, Args)]

@@ -1,6 +1,10 @@
 //! `cellgate status` and `cellgate health`.
 
-use super::*;
+use clap::Args;
+
+use super::{ClientCommand, ConnectArgs, Io};
+use crate::client::{Client, ClientError, render};
+use cellgate_core::pb;
 
 /// `cellgate health`: the probe of containers and service managers.
 #[derive(Debug, Clone, Args)]

@@ -1,6 +1,15 @@
 //! `cellgate submit`: a job, its progress, and how it ended.
 
-use super::*;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::Args;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+use super::{ClientCommand, ConnectArgs, EXIT_INTERRUPTED, INLINE_HINT, Io};
+use crate::client::{Client, ClientError, JobOutcome, render};
+use cellgate_core::pb;
+use cellgate_core::pb::job_event::Kind;
 
 /// `cellgate submit`.
 #[derive(Debug, Clone, Args)]

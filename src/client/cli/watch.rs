@@ -1,6 +1,11 @@
 //! `cellgate watch`: everything the cell publishes, as lines.
 
-use super::*;
+use clap::Args;
+
+use super::{ClientCommand, ConnectArgs, Io};
+use crate::client::render::{self, WatchPrinter};
+use crate::client::{Client, ClientError, WatchEvent};
+use cellgate_core::pb;
 
 /// `cellgate watch`.
 #[derive(Debug, Clone, Args)]

@@ -1,7 +1,18 @@
 //! What the host answers: the board's exchange after DATs, the answer to SAT and GTD (SET,
 //! DAT, EOD, SDO, WAT), and the line supervision that follows each message (§4.4, §4.5).
 
-use super::*;
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+
+use super::expansion::PacketRun;
+use super::{CLEAN_DATS_TO_GROW, EodFor, Phase, ProtocolAHost, Request, SAT_PROBES};
+use crate::fanuc::error::{AbortReason, LinkAlarm};
+use crate::fanuc::host::{Confirmation, EngineEvent};
+use crate::fanuc::message::{Command, MAX_DAT_DATA, Message};
+use crate::fanuc::packet::data_len;
+use crate::fanuc::program::ProgramSendError;
+use crate::fanuc::sat::{StatusData, effective_packet_n};
 
 impl ProtocolAHost {
     /// The board's exchange after DATs (SAT, GTD, SDI: not RTY, RST, ALM or SYN) shows that

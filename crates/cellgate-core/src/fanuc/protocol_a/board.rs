@@ -1,7 +1,17 @@
 //! What the board's messages mean to the host: SAT's status (§4.4.1, §4.5), RTY (§4.6),
 //! the Expansion A monitor packet (§5.2), and a program's bytes acknowledged.
 
-use super::*;
+use std::time::Instant;
+
+use bytes::Bytes;
+
+use super::expansion::{PacketRun, RunOutcome};
+use super::{EodFor, MIN_NOISY_DAT, ProtocolAHost, Request};
+use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
+use crate::fanuc::host::{Confirmation, EngineEvent};
+use crate::fanuc::message::Message;
+use crate::fanuc::packet::{MONITOR_LEN, Monitor};
+use crate::fanuc::sat::{AlarmCause, BufferStatus, StatusData, effective_packet_n};
 
 impl ProtocolAHost {
     /// The read an owed EOD was for is over (CNC reset or alarm).

@@ -1,6 +1,9 @@
 //! The host link's settings (§4.5, §10.2) and the problems `validate` finds in them.
 
-use super::*;
+use std::time::Duration;
+
+use crate::fanuc::message::{Framing, MAX_DAT_DATA};
+use crate::fanuc::sat::{ParamRangeError, Params, effective_packet_n};
 
 /// Settings of a Protocol A / Expansion Protocol A host link.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -101,15 +101,13 @@ use bytes::Bytes;
 use crate::engine::{Engine, FrameCounts, LineError, ModemIn};
 use crate::fanuc::alarm::CncAlarm;
 use crate::fanuc::error::{AbortReason, LinkAlarm, ProtocolError};
-use crate::fanuc::host::{Confirmation, EngineCommand, EngineEvent, HostEngine, LinkState};
+use crate::fanuc::host::{EngineCommand, EngineEvent, HostEngine, LinkState};
 use crate::fanuc::message::{
-    Command, Decoder, FrameError, Framing, MAX_DAT_DATA, Message, RTY_CHECKSUM, hex2,
+    Command, Decoder, FrameError, MAX_DAT_DATA, Message, RTY_CHECKSUM, hex2,
 };
-use crate::fanuc::packet::{MONITOR_LEN, Monitor, data_len};
-use crate::fanuc::program::{Program, ProgramSendError};
-use crate::fanuc::sat::{
-    AlarmCause, BufferStatus, ParamRangeError, Params, StatusData, effective_packet_n,
-};
+use crate::fanuc::packet::{MONITOR_LEN, Monitor};
+use crate::fanuc::program::Program;
+use crate::fanuc::sat::{Params, StatusData, effective_packet_n};
 
 use expansion::{PacketRun, RunOutcome};
 

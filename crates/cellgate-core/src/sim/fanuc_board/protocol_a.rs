@@ -45,15 +45,14 @@
 use std::time::{Duration, Instant};
 
 use crate::engine::{LineError, ModemIn};
+use crate::fanuc::Protocol;
 use crate::fanuc::alarm::CncAlarm;
-use crate::fanuc::code::with_even_parity;
 use crate::fanuc::message::{
     Command, FrameError, Framing, MAX_FRAME, MAX_OTHER_DATA, Message, RTY_CHECKSUM, hex2,
 };
 use crate::fanuc::packet::{self, Monitor};
-use crate::fanuc::sat::{AlarmCause, Params, StatusData, StatusDataError, effective_packet_n};
-use crate::fanuc::{CodeSystem, Protocol};
-use crate::sim::cnc::{Cnc, Push};
+use crate::fanuc::sat::{AlarmCause, Params, StatusData};
+use crate::sim::cnc::Cnc;
 
 mod errors;
 mod host_data;

@@ -1,7 +1,14 @@
 //! The simulated board's errors (§4.6): an alarm raised, an unexpected or undefined command,
 //! a reception error, a line error, each as the board reports it and what it does next.
 
-use super::*;
+use std::time::Instant;
+
+use super::{Phase, ProtocolA};
+use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::message::Command;
+use crate::fanuc::sat::AlarmCause;
+use crate::sim::cnc::Cnc;
+use crate::sim::fanuc_board::{BoardEvent, BoardLinkState, Outbox};
 
 impl ProtocolA {
     pub(super) fn raise(

@@ -2,7 +2,16 @@
 //! parameters checked against their ranges (§4.5), and DAT's program bytes converted and
 //! stored in the CNC's buffer (§4.4.1).
 
-use super::*;
+use std::time::Instant;
+
+use super::{ProtocolA, checked, parse_image};
+use crate::fanuc::CodeSystem;
+use crate::fanuc::alarm::CncAlarm;
+use crate::fanuc::code::with_even_parity;
+use crate::fanuc::message::Message;
+use crate::fanuc::sat::{AlarmCause, Params, StatusData, StatusDataError, effective_packet_n};
+use crate::sim::cnc::{Cnc, Push};
+use crate::sim::fanuc_board::{BoardEvent, Outbox};
 
 impl ProtocolA {
     pub(super) fn apply_sdo(

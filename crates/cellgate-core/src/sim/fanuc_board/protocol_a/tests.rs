@@ -1,4 +1,6 @@
 use super::*;
+use crate::fanuc::CodeSystem;
+use crate::fanuc::code::with_even_parity;
 use crate::fanuc::packet::encode_data_packet;
 
 fn parts(config: BoardConfig) -> (ProtocolA, Cnc, Outbox) {
