@@ -178,6 +178,26 @@ impl<T> Live<T> {
     }
 }
 
+impl<T: Clone> Live<BTreeMap<String, T>> {
+    /// Serves `value` as `name` (a machine or PLC added, or its link replaced).
+    pub(crate) fn insert(&self, name: &str, value: T) {
+        self.update(|m| {
+            let mut m = m.clone();
+            m.insert(name.to_string(), value);
+            m
+        });
+    }
+
+    /// No longer serves `name`: the routes refuse it from the next request on.
+    pub(crate) fn remove(&self, name: &str) {
+        self.update(|m| {
+            let mut m = m.clone();
+            m.remove(name);
+            m
+        });
+    }
+}
+
 /// The cell's machines by name.
 pub(crate) type Machines = BTreeMap<String, Arc<Machine>>;
 
@@ -278,6 +298,9 @@ pub(crate) enum RequestError {
     /// A request sent to a key that does not take it (a write on a read key).
     #[error("{0}")]
     WrongKey(String),
+    /// A put whose encoding names another message than the key takes.
+    #[error(transparent)]
+    Encoding(#[from] super::payload::WrongEncoding),
     /// A question about records that names a machine or PLC the cell lacks.
     #[error("{0}")]
     UnknownLink(String),
@@ -382,6 +405,7 @@ impl BusCode for RequestError {
             | RequestError::Payload { .. }
             | RequestError::Invalid { .. }
             | RequestError::WrongKey(_)
+            | RequestError::Encoding(_)
             | RequestError::BadKey { .. }
             | RequestError::ProgramWritePayload { .. }
             | RequestError::ProgramWriteEmpty { .. } => pb::ErrorCode::InvalidRequest,

@@ -10,7 +10,9 @@
 //! - `context`: what every route shares, the typed request errors, the reply helpers;
 //! - `routes`: the table of every queryable and subscriber served (key, what arrives there,
 //!   pool, permission, handler), declared and served from there, and undeclared when a
-//!   route stops; `published`: the table of every publication (key, message, QoS, the
+//!   route stops (a write's row declares its get and its put at once, and `write` gives both
+//!   one path: the put's encoding checked, the audit recorded once, the get answered or the
+//!   put's refusal logged); `published`: the table of every publication (key, message, QoS, the
 //!   permissions that may subscribe): together the bus contract, which [`acl`] takes its
 //!   keys from and docs/bus.md is checked against;
 //! - one module per kind of route, with its handlers and publishers: `route_status`,
@@ -63,6 +65,7 @@ mod route_tag;
 mod routes;
 mod served;
 pub mod session;
+mod write;
 
 pub use error::BusError;
 pub use route_job::{FETCH_TIMEOUT, RECENT_JOBS};

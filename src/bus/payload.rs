@@ -211,5 +211,19 @@ pub(crate) fn tag_message(plc: &str, v: &TagValue) -> pb::TagValue {
     }
 }
 
+/// A put whose encoding names another message than the key takes: refused with a word, never
+/// read as the key's message or passed over in silence. A put that names none is read as the
+/// key's message (as the bindings send one by default).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "{key}: a put here carries a {expected} (encoding application/protobuf;{expected}, or \
+     none said), not {found}: it was not read"
+)]
+pub(crate) struct WrongEncoding {
+    pub(crate) key: String,
+    pub(crate) found: String,
+    pub(crate) expected: &'static str,
+}
+
 #[cfg(test)]
 mod tests;

@@ -29,6 +29,7 @@ use super::keys::{CellKey, G05Part, MachineLeaf};
 use super::machine::Machine;
 use super::payload::{encoding, g05_status};
 use super::published::{MachinePublication, Published};
+use super::write::{Done, Write};
 use crate::link::g05::{STATUS_INTERVAL, StreamHandle, StreamStatus};
 use cellgate_core::config::Permission;
 use cellgate_core::fanuc::g05::AuxWord;
@@ -80,30 +81,22 @@ pub(super) async fn status_get(ctx: &G05Context, q: &Query) {
     status(&ctx.route, q).await;
 }
 
-/// A put on `P/C/machine/M/g05/S/blocks`: a batch, served in order on the route's loop
-/// (its row has no pool): batches are numbered and must not overtake one another.
-pub(super) async fn blocks_put(ctx: &G05Context, s: &Sample) {
-    if let Err(e) = batch(&ctx.route, s.key_expr().as_str(), &s.payload().to_bytes()).await {
-        tracing::warn!(key = %s.key_expr(), error = %e, "G05 batch refused");
-    }
-}
-
-/// A get on `P/C/machine/M/g05/S/blocks`: with a payload a batch, answered with the status;
-/// without one the status alone (never an empty batch 0, which would make the producer's
-/// real batch 0 a repeat). Browsing with wildcards sends no batch anywhere.
-pub(super) async fn blocks_get(ctx: &G05Context, q: &Query) {
-    if q.key_expr().is_wild() {
-        return;
-    }
-    let answer = match q.payload() {
-        None => {
-            stream_of(&ctx.route, q.key_expr().as_str()).map(|h| g05_status(&h.status().borrow()))
-        }
-        Some(p) => batch(&ctx.route, q.key_expr().as_str(), &p.to_bytes()).await,
+/// `P/C/machine/M/g05/S/blocks` (its write row, without a pool: batches are served in order
+/// on the route's loop, since they are numbered and must not overtake one another): a put
+/// or a get with a payload is a batch, the get answered with the status; a get without one
+/// the status alone (never an empty batch 0, which would make the producer's real batch 0 a
+/// repeat). A batch is not audited: the stream's opening was.
+pub(super) async fn blocks_write(ctx: &G05Context, w: Write) -> Done<pb::G05Status, RequestError> {
+    let outcome = match w.bytes() {
+        None => stream_of(&ctx.route, w.key()).map(|h| g05_status(&h.status().borrow())),
+        Some(p) => match w.checked() {
+            Ok(()) => batch(&ctx.route, w.key(), &p).await,
+            Err(e) => Err(e.into()),
+        },
     };
-    match answer {
-        Ok(status) => reply(q, q.key_expr().to_string(), &status).await,
-        Err(e) => reply_err(q, &e).await,
+    Done {
+        audit: None,
+        outcome: outcome.map(Some),
     }
 }
 

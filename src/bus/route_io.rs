@@ -9,18 +9,14 @@
 //! The board speaks at its next SAT or GTD, so a read or an output waits up to
 //! [`Machine::exchange_timeout`]; it runs off the route's loop.
 
-use std::time::SystemTime;
-
 use zenoh::query::Query;
-use zenoh::sample::{Sample, SampleKind};
 
-use super::audit::{Audit, origin_of};
 use super::context::{RequestError, RouteContext, Target, publish_event, reply, reply_err};
 use super::keys::MachineLeaf;
 use super::machine::Machine;
 use super::published::Published;
+use super::write::{Audited, Done, Write};
 use crate::link::driver::{LinkCommand, LinkEvent};
-use cellgate_core::config::Permission;
 use cellgate_core::pb;
 
 /// Why `m` cannot do DI/DO now, if it cannot.
@@ -150,123 +146,73 @@ fn do_command(ctx: &RouteContext, m: &Machine, payload: &[u8]) -> Result<(u8, u8
     Ok((value, mask))
 }
 
-/// A put on `do`: outputs the DO image (SDO). A put has no reply: refusals are logged.
-pub(super) async fn do_put(ctx: &RouteContext, sample: &Sample) {
-    if sample.kind() != SampleKind::Put {
-        return;
-    }
-    let key = sample.key_expr();
-    let m = match ctx.target(key) {
-        Target::One(m) => m.clone(),
-        Target::Unknown(name) => {
-            return tracing::warn!(%key, "DO refused: {}", ctx.unknown_machine(&name));
-        }
-        Target::Wild => return tracing::warn!(%key, "DO refused: name one machine"),
-    };
-    if !m.config.protocol.is_a_family() {
-        return tracing::warn!(%key, "DO refused: Protocol B has no SDO (§4.4.1)");
-    }
-    let origin = origin_of(sample.attachment());
-    match do_command(ctx, &m, sample.payload().to_bytes().as_ref()) {
-        Ok((value, mask)) => {
-            // Without waiting: a flood of puts is refused past the link's command queue
-            // rather than stalling this route.
-            // The client's timestamp, when it set one, so that the delay counts the bus too.
-            let asked = sample
-                .timestamp()
-                .map_or_else(SystemTime::now, |t| t.get_time().to_system_time());
-            let sent = m
-                .link
-                .try_send(LinkCommand::SetDo { value, mask, asked })
-                .map_err(RequestError::from);
-            audit_do(
-                ctx,
-                key.as_str(),
-                &m,
-                Some((value, mask)),
-                origin,
-                sent.as_ref(),
-            );
-            if let Err(e) = sent {
-                tracing::warn!(%key, "DO refused: {e}");
-            }
-        }
-        Err(e) => {
-            audit_do(ctx, key.as_str(), &m, None, origin, Err(&e));
-            tracing::warn!(%key, "DO refused: {e}");
-        }
-    }
-}
-
-/// Records a DO output in the audit: a put's outcome is that the link took it (the SDO goes
-/// out with its next exchange), a get's that the SDO went out.
-fn audit_do(
+/// A `DoCommand` on `do` (its write row): a get outputs the DO image (SDO) and answers the
+/// `MachineStatus` once the SDO went out; a put gives it to the link without waiting (a flood
+/// of puts is refused past the link's command queue rather than stalling the route), and the
+/// SDO goes out with the link's next exchange.
+pub(super) async fn do_write(
     ctx: &RouteContext,
-    key: &str,
-    m: &Machine,
-    command: Option<(u8, u8)>,
-    origin: Option<pb::RequestOrigin>,
-    outcome: Result<&(), &RequestError>,
-) {
-    ctx.audit(
-        Audit {
-            action: "io.do",
-            permission: Permission::IoDo,
-            key,
-            machine: m.name(),
-            target: m.name().to_string(),
-            detail: command
-                .map(|(v, mask)| format!("DO {v:#04x} mask {mask:#04x}"))
-                .unwrap_or_default(),
-            origin,
-        },
-        outcome.map(|_| ()),
-    );
-}
-
-/// A get with a `DoCommand` on `do`: outputs the DO image and answers the status once the
-/// SDO went out.
-pub(super) async fn do_get(ctx: &RouteContext, q: &Query) {
-    let m = match ctx.target(q.key_expr()) {
+    w: Write,
+) -> Done<pb::MachineStatus, RequestError> {
+    let m = match ctx.target(&w.key) {
         Target::One(m) => m.clone(),
-        Target::Unknown(_) => return ctx.unmatched(q).await,
-        // A wildcard get without payload (e.g. on `P/C/**`) browses; `do` has nothing to show.
-        Target::Wild if q.payload().is_none() => return,
+        Target::Unknown(name) => return Done::refused(ctx.unknown_machine(&name)),
         Target::Wild => {
-            let e = RequestError::OneMachine {
+            return Done::refused(RequestError::OneMachine {
                 what: "DoCommand",
                 expected: ctx.keys.leaf("<machine>", MachineLeaf::Do),
                 got: None,
-            };
-            return reply_err(q, &e).await;
+            });
         }
     };
-    let Some(payload) = q.payload() else {
-        let e = RequestError::Invalid {
+    if !w.answered() && !m.config.protocol.is_a_family() {
+        // Protocol B has no SDO (§4.4.1); a get hears it below, with the link's state.
+        return Done::refused(RequestError::NoIo {
+            machine: m.name().to_string(),
+            protocol: m.config.protocol,
+        });
+    }
+    let Some(payload) = w.bytes() else {
+        return Done::refused(RequestError::Invalid {
             machine: m.name().to_string(),
             what: "a get on do carries a DoCommand".to_string(),
-        };
-        return reply_err(q, &e).await;
+        });
     };
-    let origin = origin_of(q.attachment());
-    let key = q.key_expr().as_str();
-    let (value, mask) = match do_command(ctx, &m, payload.to_bytes().as_ref()) {
+    let audited = |command: Option<(u8, u8)>| Audited {
+        action: "io.do",
+        machine: m.name().to_string(),
+        target: m.name().to_string(),
+        detail: command
+            .map(|(v, mask)| format!("DO {v:#04x} mask {mask:#04x}"))
+            .unwrap_or_default(),
+    };
+    let command = match w.checked() {
+        Ok(()) => do_command(ctx, &m, &payload),
+        Err(e) => Err(e.into()),
+    };
+    let (value, mask) = match command {
         Ok(c) => c,
-        Err(e) => {
-            audit_do(ctx, key, &m, None, origin, Err(&e));
-            return reply_err(q, &e).await;
-        }
+        Err(e) => return Done::audited(audited(None), Err(e)),
     };
+    let audited = audited(Some((value, mask)));
+    if !w.answered() {
+        // A put's outcome is that the link took it: the SDO goes out with its next exchange.
+        let asked = w.asked;
+        let taken = m
+            .link
+            .try_send(LinkCommand::SetDo { value, mask, asked })
+            .map_err(RequestError::from);
+        return Done::taken(audited, taken);
+    }
     if let Some(e) = io_refusal(&m) {
-        audit_do(ctx, key, &m, Some((value, mask)), origin, Err(&e));
-        return reply_err(q, &e).await;
+        return Done::audited(audited, Err(e));
     }
     let sent = exchange(
         &m,
         LinkCommand::SetDo {
             value,
             mask,
-            asked: SystemTime::now(),
+            asked: w.asked,
         },
         "SDO went out",
         |e| match e {
@@ -275,37 +221,27 @@ pub(super) async fn do_get(ctx: &RouteContext, q: &Query) {
         },
     )
     .await;
-    audit_do(
-        ctx,
-        key,
-        &m,
-        Some((value, mask)),
-        origin.clone(),
-        sent.as_ref(),
-    );
-    match sent {
-        Ok(()) => {
-            // The machine's task folds the same event into the view; make sure the reply
-            // shows it even if that task has not run yet.
-            let mut status = m.status();
-            let old = status.do_image.unwrap_or(0);
-            let image = (u8::try_from(old).unwrap_or(0) & !mask) | (value & mask);
-            status.do_image = Some(u32::from(image));
-            reply(q, q.key_expr().to_string(), &status).await;
-            // A get is seen by no subscriber of `…/do`: say that the SDO went out.
-            let out = pb::DoCommand {
-                value: u32::from(value),
-                mask: Some(u32::from(mask)),
-            };
-            publish_event(
-                ctx,
-                Published::DoOut,
-                &ctx.keys.do_out(m.name()),
-                &out,
-                origin.as_ref(),
-            )
-            .await;
-        }
-        Err(e) => reply_err(q, &e).await,
+    if let Err(e) = sent {
+        return Done::audited(audited, Err(e));
     }
+    // A get is seen by no subscriber of `…/do`: say that the SDO went out.
+    let out = pb::DoCommand {
+        value: u32::from(value),
+        mask: Some(u32::from(mask)),
+    };
+    publish_event(
+        ctx,
+        Published::DoOut,
+        &ctx.keys.do_out(m.name()),
+        &out,
+        w.origin.as_ref(),
+    )
+    .await;
+    // The machine's task folds the same event into the view; make sure the answer shows it
+    // even if that task has not run yet.
+    let mut status = m.status();
+    let old = status.do_image.unwrap_or(0);
+    let image = (u8::try_from(old).unwrap_or(0) & !mask) | (value & mask);
+    status.do_image = Some(u32::from(image));
+    Done::audited(audited, Ok(status))
 }

@@ -27,16 +27,14 @@ use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::query::Query;
-use zenoh::sample::{Sample, SampleKind};
 
-use super::audit::{Audit, origin_of};
 use super::context::{RouteContext, Routed, reply, reply_err};
 use super::keys::PlcKey;
-use super::payload::{BusMessage, encoding, schema_of};
+use super::payload::{BusMessage, WrongEncoding, encoding};
 use super::published::Published;
+use super::write::{Audited, Done, Write};
 use crate::plc::{PlcEvent, PlcHandle, PlcLinkError, PlcSnapshot, TagError, TagWriteError};
 use cellgate_core::codes::BusCode;
-use cellgate_core::config::Permission;
 use cellgate_core::config::PlcConfig;
 use cellgate_core::fuji::command::{CommandError, Module, Reply, Request};
 use cellgate_core::fuji::master::MasterError;
@@ -82,15 +80,8 @@ pub(crate) enum PlcRequestError {
         what: String,
         expected: &'static str,
     },
-    #[error(
-        "{key}: a put here carries a {expected} (encoding application/protobuf;{expected}, or \
-         none said), not {found}: it was not read"
-    )]
-    Encoding {
-        key: String,
-        found: String,
-        expected: &'static str,
-    },
+    #[error(transparent)]
+    Encoding(#[from] WrongEncoding),
     #[error("PLC {plc}: {error}")]
     Payload {
         plc: String,
@@ -125,7 +116,7 @@ impl BusCode for PlcRequestError {
         match self {
             PlcRequestError::UnknownPlc { .. } => pb::ErrorCode::UnknownMachine,
             PlcRequestError::BadKey { .. }
-            | PlcRequestError::Encoding { .. }
+            | PlcRequestError::Encoding(_)
             | PlcRequestError::Payload { .. }
             | PlcRequestError::Request { .. } => pb::ErrorCode::InvalidRequest,
             PlcRequestError::Plc { error, .. } => error.code(),
@@ -270,83 +261,89 @@ async fn exchange(
         })
 }
 
-/// A read, or (with a `PlcWrite` payload) a write or clear.
-async fn mem_request(
+/// A read of `count` words.
+async fn read_words(
     ctx: &PlcContext,
     key: &str,
     count: usize,
-    payload: Option<&[u8]>,
-) -> Result<Answer, PlcRequestError> {
+) -> Result<pb::PlcWords, PlcRequestError> {
     let t = mem_target(ctx, key)?;
-    let req_err = |error| PlcRequestError::Request {
-        plc: t.plc.clone(),
-        error,
-    };
     let wrong_key = |what: &str| PlcRequestError::BadKey {
         key: key.to_string(),
         what: what.to_string(),
         expected: MEM_KEY,
     };
-    match payload {
-        None if t.write => Err(wrong_key(
+    if t.write {
+        return Err(wrong_key(
             "a get on a …/write key writes and needs a PlcWrite; words are read without /write",
-        )),
-        Some(_) if !t.write => Err(wrong_key(
-            "a get here reads and takes no payload: a PlcWrite goes to the key with /write",
-        )),
-        None => {
-            let address = t.address.ok_or_else(|| PlcRequestError::BadKey {
-                key: key.to_string(),
-                what: "a read names an address".to_string(),
-                expected: MEM_KEY,
-            })?;
-            let request = Request::read_words(t.module, address, count).map_err(req_err)?;
-            let reply = exchange(ctx, &t.plc, t.station, request).await?;
-            let words = match reply {
-                Reply::Read { words, .. } => words,
-                _ => Vec::new(),
-            };
-            Ok(Answer::Words(pb::PlcWords {
-                plc: t.plc.clone(),
-                station: u32::from(t.station),
-                module: t.module.to_string(),
-                address: u32::from(address),
-                words,
-                attribute: u32::from(t.module.attribute().code()),
-                unix_ms: pb::now_ms(),
-            }))
-        }
-        Some(bytes) => {
-            let w: pb::PlcWrite = decode_payload(&t.plc, bytes)?;
-            let (request, words) = if w.clear {
-                (Request::Clear { module: t.module }, 0)
-            } else {
-                let address = t.address.ok_or_else(|| PlcRequestError::BadKey {
-                    key: key.to_string(),
-                    what: "a write names an address (a clear does not)".to_string(),
-                    expected: MEM_KEY,
-                })?;
-                (
-                    Request::write_words(t.module, address, &w.words).map_err(req_err)?,
-                    w.words.len() as u32,
-                )
-            };
-            exchange(ctx, &t.plc, t.station, request).await?;
-            Ok(Answer::Written(pb::PlcWritten {
-                plc: t.plc.clone(),
-                station: u32::from(t.station),
-                module: t.module.to_string(),
-                address: u32::from(t.address.unwrap_or(0)),
-                words,
-                cleared: w.clear,
-            }))
-        }
+        ));
     }
+    let address = t
+        .address
+        .ok_or_else(|| wrong_key("a read names an address"))?;
+    let request = Request::read_words(t.module, address, count).map_err(|error| {
+        PlcRequestError::Request {
+            plc: t.plc.clone(),
+            error,
+        }
+    })?;
+    let reply = exchange(ctx, &t.plc, t.station, request).await?;
+    let words = match reply {
+        Reply::Read { words, .. } => words,
+        _ => Vec::new(),
+    };
+    Ok(pb::PlcWords {
+        plc: t.plc.clone(),
+        station: u32::from(t.station),
+        module: t.module.to_string(),
+        address: u32::from(address),
+        words,
+        attribute: u32::from(t.module.attribute().code()),
+        unix_ms: pb::now_ms(),
+    })
 }
 
-enum Answer {
-    Words(pb::PlcWords),
-    Written(pb::PlcWritten),
+/// A write or clear (a `PlcWrite` in `bytes`).
+async fn write_words(
+    ctx: &PlcContext,
+    key: &str,
+    bytes: &[u8],
+) -> Result<pb::PlcWritten, PlcRequestError> {
+    let t = mem_target(ctx, key)?;
+    let wrong_key = |what: &str| PlcRequestError::BadKey {
+        key: key.to_string(),
+        what: what.to_string(),
+        expected: MEM_KEY,
+    };
+    if !t.write {
+        return Err(wrong_key(
+            "a get here reads and takes no payload: a PlcWrite goes to the key with /write",
+        ));
+    }
+    let w: pb::PlcWrite = decode_payload(&t.plc, bytes)?;
+    let (request, words) = if w.clear {
+        (Request::Clear { module: t.module }, 0)
+    } else {
+        let address = t
+            .address
+            .ok_or_else(|| wrong_key("a write names an address (a clear does not)"))?;
+        let request = Request::write_words(t.module, address, &w.words).map_err(|error| {
+            PlcRequestError::Request {
+                plc: t.plc.clone(),
+                error,
+            }
+        })?;
+        (request, w.words.len() as u32)
+    };
+    exchange(ctx, &t.plc, t.station, request).await?;
+    Ok(pb::PlcWritten {
+        plc: t.plc.clone(),
+        station: u32::from(t.station),
+        module: t.module.to_string(),
+        address: u32::from(t.address.unwrap_or(0)),
+        words,
+        cleared: w.clear,
+    })
 }
 
 fn count_of(q: &Query) -> Result<usize, PlcRequestError> {
@@ -360,45 +357,54 @@ fn count_of(q: &Query) -> Result<usize, PlcRequestError> {
     }
 }
 
+/// A get on a memory key reads words. The writes' own keys (`…/write`) are the write row's:
+/// a get there is answered by it, not here.
 pub(super) async fn mem_query(ctx: &PlcContext, q: &Query) {
     let key = q.key_expr().to_string();
-    let payload = q.payload().map(|p| p.to_bytes().to_vec());
-    let result = match count_of(q) {
-        Ok(count) => mem_request(ctx, &key, count, payload.as_deref()).await,
-        Err(e) => Err(e),
+    if let Some(PlcKey::Mem { write: true, .. }) = ctx.route.keys.parse_plc(&key) {
+        return;
+    }
+    let read = match (count_of(q), q.payload()) {
+        (Err(e), _) => Err(e),
+        (Ok(_), Some(_)) => Err(PlcRequestError::BadKey {
+            key: key.clone(),
+            what: "a get here reads and takes no payload: a PlcWrite goes to the key with /write"
+                .to_string(),
+            expected: MEM_KEY,
+        }),
+        (Ok(count), None) => read_words(ctx, &key, count).await,
     };
-    audit_mem(
-        ctx,
-        &key,
-        payload.as_deref(),
-        origin_of(q.attachment()),
-        result.as_ref().map(|_| ()),
-    );
-    match result {
-        Ok(Answer::Words(w)) => reply(q, key, &w).await,
-        Ok(Answer::Written(w)) => reply(q, key, &w).await,
+    match read {
+        Ok(w) => reply(q, key, &w).await,
         Err(e) => reply_err(q, &e).await,
     }
 }
 
-/// A put on a PLC's write key is read as `M` when its encoding says so or says nothing (as a
-/// DO put is); another encoding is refused with a word (logged by the put's route), never
-/// passed over in silence.
-pub(super) fn put_encoding<M: BusMessage>(s: &Sample) -> Result<(), PlcRequestError> {
-    let e = s.encoding();
-    if *e == zenoh::bytes::Encoding::default() || schema_of(e).as_deref() == Some(M::SCHEMA) {
-        return Ok(());
+/// A `PlcWrite` on a memory key's `write` (its write row): writes the words, or clears the
+/// module (01/05), and answers `PlcWritten` once the module confirmed.
+pub(super) async fn mem_write(ctx: &PlcContext, w: Write) -> Done<pb::PlcWritten, PlcRequestError> {
+    let Some(bytes) = w.bytes() else {
+        return Done::refused(PlcRequestError::BadKey {
+            key: w.key().to_string(),
+            what: "a get on a …/write key writes and needs a PlcWrite; words are read without \
+                   /write"
+                .to_string(),
+            expected: MEM_KEY,
+        });
+    };
+    let written = match w.checked() {
+        Ok(()) => write_words(ctx, w.key(), &bytes).await,
+        Err(e) => Err(e.into()),
+    };
+    Done {
+        audit: mem_audited(ctx, w.key(), &bytes),
+        outcome: written.map(Some),
     }
-    Err(PlcRequestError::Encoding {
-        key: s.key_expr().to_string(),
-        found: e.to_string(),
-        expected: M::SCHEMA,
-    })
 }
 
 /// The words a memory write asked for, as the audit trail says them (the first 16).
-fn mem_detail(payload: Option<&[u8]>) -> String {
-    let Some(w) = payload.and_then(|p| <pb::PlcWrite as prost::Message>::decode(p).ok()) else {
+fn mem_detail(payload: &[u8]) -> String {
+    let Ok(w) = <pb::PlcWrite as prost::Message>::decode(payload) else {
         return String::new();
     };
     if w.clear {
@@ -423,42 +429,8 @@ fn mem_detail(payload: Option<&[u8]>) -> String {
     )
 }
 
-/// A put with a `PlcWrite` on a memory key's `write`; a put has no answer, so a refusal is logged.
-pub(super) async fn mem_put(ctx: &PlcContext, s: &Sample) {
-    if let Err(e) = put_mem(ctx, s).await {
-        tracing::warn!(key = %s.key_expr(), error = %e, "PLC memory put refused");
-    }
-}
-
-async fn put_mem(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
-    if s.kind() != SampleKind::Put {
-        return Ok(());
-    }
-    let bytes = s.payload().to_bytes();
-    let done = match put_encoding::<pb::PlcWrite>(s) {
-        Ok(()) => mem_request(ctx, s.key_expr().as_str(), 1, Some(&bytes))
-            .await
-            .map(|_| ()),
-        Err(e) => Err(e),
-    };
-    audit_mem(
-        ctx,
-        s.key_expr().as_str(),
-        Some(&bytes),
-        origin_of(s.attachment()),
-        done.as_ref().map(|_| ()),
-    );
-    done
-}
-
-/// Records a memory write or clear in the audit (reads are not writes).
-fn audit_mem(
-    ctx: &PlcContext,
-    key: &str,
-    payload: Option<&[u8]>,
-    origin: Option<pb::RequestOrigin>,
-    outcome: Result<(), &PlcRequestError>,
-) {
+/// What the audit says of a memory write or clear, when the key names one.
+fn mem_audited(ctx: &PlcContext, key: &str, payload: &[u8]) -> Option<Audited> {
     let Some(PlcKey::Mem {
         plc,
         station,
@@ -467,7 +439,7 @@ fn audit_mem(
         write: true,
     }) = ctx.route.keys.parse_plc(key)
     else {
-        return;
+        return None;
     };
     let (action, target) = match address {
         Some(a) => (
@@ -476,48 +448,12 @@ fn audit_mem(
         ),
         None => ("plc.mem.clear", format!("{plc} station {station} {module}")),
     };
-    ctx.route.audit(
-        Audit {
-            action,
-            permission: Permission::PlcMem,
-            key,
-            machine: plc,
-            target,
-            detail: mem_detail(payload),
-            origin,
-        },
-        outcome,
-    );
-}
-
-/// Records a transfer sent to the PLC in the audit.
-fn audit_transfer(
-    ctx: &PlcContext,
-    key: &str,
-    origin: Option<pb::RequestOrigin>,
-    outcome: Result<&pb::PlcTransferred, &PlcRequestError>,
-) {
-    let (plc, target) = match ctx.route.keys.parse_plc(key) {
-        Some(PlcKey::Transfer { plc, message, .. }) => {
-            (plc.to_string(), format!("{plc} message {message}"))
-        }
-        _ => (String::new(), key.to_string()),
-    };
-    ctx.route.audit(
-        Audit {
-            action: "plc.transfer",
-            permission: Permission::PlcTransfer,
-            key,
-            machine: &plc,
-            target,
-            detail: match outcome {
-                Ok(t) => format!("{} bytes", t.bytes),
-                Err(_) => String::new(),
-            },
-            origin,
-        },
-        outcome.map(|_| ()),
-    );
+    Some(Audited {
+        action,
+        machine: plc.to_string(),
+        target,
+        detail: mem_detail(payload),
+    })
 }
 
 fn transfer_target(ctx: &PlcContext, key: &str) -> Result<(String, u8), PlcRequestError> {
@@ -568,47 +504,39 @@ async fn send_transfer(
     })
 }
 
-pub(super) async fn transfer_query(ctx: &PlcContext, q: &Query) {
-    let key = q.key_expr().to_string();
-    let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) else {
-        let e = PlcRequestError::BadKey {
-            key,
+/// A `PlcTransfer` on a transfer's `send` (its write row): sends it to the PLC and answers
+/// `PlcTransferred`.
+pub(super) async fn transfer_write(
+    ctx: &PlcContext,
+    w: Write,
+) -> Done<pb::PlcTransferred, PlcRequestError> {
+    let Some(bytes) = w.bytes() else {
+        return Done::refused(PlcRequestError::BadKey {
+            key: w.key().to_string(),
             what: "a get here sends a transfer and needs a PlcTransfer payload".to_string(),
             expected: "subscribe to P/C/plc/L/transfer/** for the PLC's transfers",
-        };
-        reply_err(q, &e).await;
-        return;
+        });
     };
-    let sent = send_transfer(ctx, &key, &payload).await;
-    audit_transfer(ctx, &key, origin_of(q.attachment()), sent.as_ref());
-    match sent {
-        Ok(t) => reply(q, key, &t).await,
-        Err(e) => reply_err(q, &e).await,
-    }
-}
-
-/// A put with a `PlcTransfer` on a transfer's `send`; a put has no answer, so a refusal is logged.
-pub(super) async fn transfer_put(ctx: &PlcContext, s: &Sample) {
-    if let Err(e) = put_transfer(ctx, s).await {
-        tracing::warn!(key = %s.key_expr(), error = %e, "PLC transfer put refused");
-    }
-}
-
-async fn put_transfer(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
-    if s.kind() != SampleKind::Put {
-        return Ok(());
-    }
-    let sent = match put_encoding::<pb::PlcTransfer>(s) {
-        Ok(()) => send_transfer(ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await,
-        Err(e) => Err(e),
+    let sent = match w.checked() {
+        Ok(()) => send_transfer(ctx, w.key(), &bytes).await,
+        Err(e) => Err(e.into()),
     };
-    audit_transfer(
-        ctx,
-        s.key_expr().as_str(),
-        origin_of(s.attachment()),
-        sent.as_ref(),
-    );
-    sent.map(|_| ())
+    let (plc, target) = match ctx.route.keys.parse_plc(w.key()) {
+        Some(PlcKey::Transfer { plc, message, .. }) => {
+            (plc.to_string(), format!("{plc} message {message}"))
+        }
+        _ => (String::new(), w.key().to_string()),
+    };
+    let audited = Audited {
+        action: "plc.transfer",
+        machine: plc,
+        target,
+        detail: match &sent {
+            Ok(t) => format!("{} bytes", t.bytes),
+            Err(_) => String::new(),
+        },
+    };
+    Done::audited(audited, sent)
 }
 
 /// A moment of the link's clock as Unix milliseconds.
@@ -752,75 +680,37 @@ async fn send_message(
     })
 }
 
-pub(super) async fn message_query(ctx: &PlcContext, q: &Query) {
-    let key = q.key_expr().to_string();
-    let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) else {
-        let e = PlcRequestError::BadKey {
-            key,
+/// A `PlcMessage` on `message/send` (its write row): sends it to the PLC (modes 4–5) and
+/// answers `PlcMessageSent` once it is on its way.
+pub(super) async fn message_write(
+    ctx: &PlcContext,
+    w: Write,
+) -> Done<pb::PlcMessageSent, PlcRequestError> {
+    let Some(bytes) = w.bytes() else {
+        return Done::refused(PlcRequestError::BadKey {
+            key: w.key().to_string(),
             what: "a get here sends a message and needs a PlcMessage payload".to_string(),
             expected: "subscribe to P/C/plc/L/message for the PLC's messages",
-        };
-        reply_err(q, &e).await;
-        return;
+        });
     };
-    let sent = send_message(ctx, &key, &payload).await;
-    audit_message(ctx, &key, origin_of(q.attachment()), sent.as_ref());
-    match sent {
-        Ok(m) => reply(q, key, &m).await,
-        Err(e) => reply_err(q, &e).await,
-    }
-}
-
-/// Records a message sent to the PLC (modes 4–5) in the audit.
-fn audit_message(
-    ctx: &PlcContext,
-    key: &str,
-    origin: Option<pb::RequestOrigin>,
-    outcome: Result<&pb::PlcMessageSent, &PlcRequestError>,
-) {
-    let plc = match ctx.route.keys.parse_plc(key) {
+    let sent = match w.checked() {
+        Ok(()) => send_message(ctx, w.key(), &bytes).await,
+        Err(e) => Err(e.into()),
+    };
+    let plc = match ctx.route.keys.parse_plc(w.key()) {
         Some(PlcKey::Message { plc, .. }) => plc.to_string(),
         _ => String::new(),
     };
-    ctx.route.audit(
-        Audit {
-            action: "plc.message",
-            permission: Permission::PlcTransfer,
-            key,
-            machine: &plc,
-            target: plc.clone(),
-            detail: match outcome {
-                Ok(m) => format!("{} bytes", m.bytes),
-                Err(_) => String::new(),
-            },
-            origin,
+    let audited = Audited {
+        action: "plc.message",
+        machine: plc.clone(),
+        target: plc,
+        detail: match &sent {
+            Ok(m) => format!("{} bytes", m.bytes),
+            Err(_) => String::new(),
         },
-        outcome.map(|_| ()),
-    );
-}
-
-/// A put with a `PlcMessage` on `message/send`; a put has no answer, so a refusal is logged.
-pub(super) async fn message_put(ctx: &PlcContext, s: &Sample) {
-    if let Err(e) = put_message(ctx, s).await {
-        tracing::warn!(key = %s.key_expr(), error = %e, "PLC message put refused");
-    }
-}
-
-async fn put_message(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
-    if s.kind() != SampleKind::Put {
-        return Ok(());
-    }
-    let sent = match put_encoding::<pb::PlcMessage>(s) {
-        Ok(()) => send_message(ctx, s.key_expr().as_str(), &s.payload().to_bytes()).await,
-        Err(e) => Err(e),
     };
-    audit_message(
-        ctx,
-        s.key_expr().as_str(),
-        origin_of(s.attachment()),
-        sent.as_ref(),
-    );
-    sent.map(|_| ())
+    Done::audited(audited, sent)
 }
 
 pub(super) async fn status_query(ctx: &PlcContext, q: &Query) {

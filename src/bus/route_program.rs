@@ -19,14 +19,12 @@
 
 use zenoh::bytes::Encoding;
 use zenoh::query::Query;
-use zenoh::sample::{Sample, SampleKind};
 
-use super::audit::{Audit, origin_of};
 use super::context::{RequestError, RouteContext, publish_event, reply, reply_bytes, reply_err};
 use super::keys::{CellKey, intersects};
 use super::published::Published;
+use super::write::{Audited, Done, Via, Write};
 use crate::library::Store;
-use cellgate_core::config::Permission;
 use cellgate_core::pb;
 use cellgate_core::program::diff::{self, DiffOptions};
 
@@ -203,141 +201,157 @@ async fn diff_of(
     })
 }
 
-/// A get with a `ProgramWrite` on `P/C/program/NAME/write`.
-pub(super) async fn program_write(ctx: &RouteContext, q: &Query) {
-    let Some(CellKey::ProgramWrite { name }) = ctx.keys.parse(q.key_expr().as_str()) else {
-        return;
-    };
-    if q.key_expr().is_wild() {
-        if q.payload().is_none() {
-            // A wildcard get without payload (`P/C/**`) browses.
-            return;
-        }
-        let e = RequestError::WrongKey("a ProgramWrite names one program".to_string());
-        return reply_err(q, &e).await;
-    }
-    let Some(payload) = q.payload() else {
-        let e = RequestError::WrongKey(format!(
-            "a get on {} writes and needs a ProgramWrite; the program is read on {}",
-            q.key_expr(),
-            ctx.keys.program(name)
+/// `P/C/program/NAME/write` (its write row): a get with a `ProgramWrite` stores, removes or
+/// adopts the program (or checks a store) and answers its `ProgramInfo`; a put stores the
+/// put's bytes as the program, a delete removes it.
+pub(super) async fn program_write(
+    ctx: &RouteContext,
+    w: Write,
+) -> Done<pb::ProgramInfo, RequestError> {
+    if w.key.is_wild() {
+        return Done::refused(RequestError::WrongKey(
+            "a ProgramWrite names one program, without wildcards".to_string(),
         ));
-        return reply_err(q, &e).await;
-    };
-    let origin = origin_of(q.attachment());
-    let write = match cellgate_core::bounds::decode::<pb::ProgramWrite>(
-        payload.to_bytes().as_ref(),
-        &ctx.limits(),
-    ) {
-        Ok(w) => w,
-        Err(error) => {
-            let e = RequestError::ProgramWritePayload {
-                name: name.to_string(),
-                error,
-            };
-            audit_write(
-                ctx,
-                q.key_expr().as_str(),
-                "program.store",
-                name,
-                String::new(),
-                origin,
-                Err(&e),
-            );
-            return reply_err(q, &e).await;
-        }
-    };
-    if let Some(pb::program_write::Op::Check(c)) = &write.op {
-        return match ctx.library.check_store(name, c.size).await {
-            Ok(Some(entry)) => reply(q, q.key_expr().to_string(), &entry.info()).await,
-            Ok(None) => {
-                let info = pb::ProgramInfo {
-                    name: name.to_string(),
-                    ..Default::default()
-                };
-                reply(q, q.key_expr().to_string(), &info).await;
-            }
-            Err(e) => reply_err(q, &RequestError::from(e)).await,
-        };
     }
-    let by = origin.clone().unwrap_or_default();
-    let (action, detail, done) = match write.op {
-        Some(pb::program_write::Op::Store(bytes)) => (
-            "program.store",
-            format!("{} bytes", bytes.len()),
-            ctx.library
-                .store_as(
-                    name,
-                    Store {
-                        // The request's own bytes, not a copy: a program may be large.
-                        bytes: bytes.into(),
-                        by,
-                        comment: write.comment,
-                        adopted: None,
-                    },
-                )
-                .await,
-        ),
-        Some(pb::program_write::Op::Remove(_)) => (
+    let Some(CellKey::ProgramWrite { name }) = ctx.keys.parse(w.key()) else {
+        return Done::nothing();
+    };
+    let by = w.origin.clone().unwrap_or_default();
+    let audited = |action, detail| Audited {
+        action,
+        machine: String::new(),
+        target: name.to_string(),
+        detail,
+    };
+    let (action, detail, done) = match (w.via, w.bytes()) {
+        (Via::Delete, _) => (
             "program.remove",
             String::new(),
             ctx.library.remove_by(name).await,
         ),
-        Some(pb::program_write::Op::Adopt(a)) => (
-            "program.adopt",
-            format!(
-                "from {} revision {}",
-                a.from,
-                if a.revision.is_empty() {
-                    "latest"
-                } else {
-                    &a.revision
-                }
-            ),
-            ctx.library
-                .adopt(name, &a.from, &a.revision, by, write.comment)
-                .await,
-        ),
-        Some(pb::program_write::Op::Check(_)) | None => {
-            let e = RequestError::ProgramWriteEmpty {
-                name: name.to_string(),
-            };
-            return reply_err(q, &e).await;
+        (Via::Put, bytes) => {
+            let bytes = bytes.unwrap_or_default();
+            (
+                "program.store",
+                format!("{} bytes", bytes.len()),
+                ctx.library
+                    .store_as(
+                        name,
+                        Store {
+                            bytes: bytes.as_ref().into(),
+                            by,
+                            ..Store::default()
+                        },
+                    )
+                    .await,
+            )
         }
-    };
-    let done = done.map_err(RequestError::from);
-    let detail = match &done {
-        Ok(entry) => match &entry.latest {
-            Some(r) if action != "program.remove" => format!(
-                "{detail}; revision {} ({})",
-                r.number,
-                r.sha256.chars().take(12).collect::<String>()
-            ),
-            _ => detail,
-        },
-        Err(_) => detail,
-    };
-    audit_write(
-        ctx,
-        q.key_expr().as_str(),
-        action,
-        name,
-        detail,
-        origin.clone(),
-        done.as_ref().map(|_| ()),
-    );
-    match done {
-        Ok(entry) => {
-            tracing::info!(program = %entry.name, size = entry.size, action, "program library changed");
-            let revised = entry.revised || action == "program.remove";
-            let info = entry.info();
-            reply(q, q.key_expr().to_string(), &info).await;
-            if revised {
-                changed(ctx, info, action == "program.remove", origin.as_ref()).await;
+        (Via::Get, None) => {
+            return Done::refused(RequestError::WrongKey(format!(
+                "a get on {} writes and needs a ProgramWrite; the program is read on {}",
+                w.key,
+                ctx.keys.program(name)
+            )));
+        }
+        (Via::Get, Some(payload)) => {
+            let write = match cellgate_core::bounds::decode::<pb::ProgramWrite>(
+                payload.as_ref(),
+                &ctx.limits(),
+            ) {
+                Ok(write) => write,
+                Err(error) => {
+                    let e = RequestError::ProgramWritePayload {
+                        name: name.to_string(),
+                        error,
+                    };
+                    return Done::audited(audited("program.store", String::new()), Err(e));
+                }
+            };
+            match write.op {
+                Some(pb::program_write::Op::Check(c)) => {
+                    // A question, not a write: nothing to audit.
+                    let info = match ctx.library.check_store(name, c.size).await {
+                        Ok(Some(entry)) => Ok(entry.info()),
+                        Ok(None) => Ok(pb::ProgramInfo {
+                            name: name.to_string(),
+                            ..Default::default()
+                        }),
+                        Err(e) => Err(RequestError::from(e)),
+                    };
+                    return Done {
+                        audit: None,
+                        outcome: info.map(Some),
+                    };
+                }
+                Some(pb::program_write::Op::Store(bytes)) => (
+                    "program.store",
+                    format!("{} bytes", bytes.len()),
+                    ctx.library
+                        .store_as(
+                            name,
+                            Store {
+                                // The request's own bytes, not a copy: a program may be large.
+                                bytes: bytes.into(),
+                                by,
+                                comment: write.comment,
+                                adopted: None,
+                            },
+                        )
+                        .await,
+                ),
+                Some(pb::program_write::Op::Remove(_)) => (
+                    "program.remove",
+                    String::new(),
+                    ctx.library.remove_by(name).await,
+                ),
+                Some(pb::program_write::Op::Adopt(a)) => (
+                    "program.adopt",
+                    format!(
+                        "from {} revision {}",
+                        a.from,
+                        if a.revision.is_empty() {
+                            "latest"
+                        } else {
+                            &a.revision
+                        }
+                    ),
+                    ctx.library
+                        .adopt(name, &a.from, &a.revision, by, write.comment)
+                        .await,
+                ),
+                None => {
+                    return Done::refused(RequestError::ProgramWriteEmpty {
+                        name: name.to_string(),
+                    });
+                }
             }
         }
-        Err(e) => reply_err(q, &ctx.naming_programs(e, ctx.open_cell()).await).await,
+    };
+    let removed = action == "program.remove";
+    let entry = match done {
+        Ok(entry) => entry,
+        Err(e) => {
+            // A refusal names the programs near the one asked for, for whoever may list them.
+            let e = ctx.naming_programs(e.into(), ctx.open_cell()).await;
+            return Done::audited(audited(action, detail), Err(e));
+        }
+    };
+    let detail = match &entry.latest {
+        Some(r) if !removed => format!(
+            "{detail}; revision {} ({})",
+            r.number,
+            r.sha256.chars().take(12).collect::<String>()
+        ),
+        _ => detail,
+    };
+    tracing::info!(program = %entry.name, size = entry.size, action, "program library changed");
+    let revised = entry.revised;
+    let info = entry.info();
+    // A store of the same bytes again changed nothing: no word.
+    if revised || removed {
+        changed(ctx, info.clone(), removed, w.origin.as_ref()).await;
     }
+    Done::audited(audited(action, detail), Ok(info))
 }
 
 /// Tells the cell that a program changed: its `ProgramInfo` on `…/program/NAME/changed`
@@ -363,130 +377,43 @@ pub(super) async fn changed(
     .await;
 }
 
-fn audit_write(
+/// A get with a `ProgramRelease` on `P/C/program/NAME/release` (its write row): sets a
+/// revision's state and answers the revision.
+pub(super) async fn program_release(
     ctx: &RouteContext,
-    key: &str,
-    action: &'static str,
-    name: &str,
-    detail: String,
-    origin: Option<pb::RequestOrigin>,
-    outcome: Result<(), &RequestError>,
-) {
-    let permission = if action == "program.release" {
-        Permission::ProgramRelease
-    } else {
-        Permission::ProgramWrite
+    w: Write,
+) -> Done<pb::ProgramRevision, RequestError> {
+    let Some(CellKey::ProgramRelease { name }) = ctx.keys.parse(w.key()) else {
+        return Done::nothing();
     };
-    ctx.audit(
-        Audit {
-            action,
-            permission,
-            key,
-            machine: "",
-            target: name.to_string(),
-            detail,
-            origin,
-        },
-        outcome,
-    );
-}
-
-/// A put on `P/C/program/NAME/write` stores the program; a delete removes it.
-pub(super) async fn program_sample(ctx: &RouteContext, sample: &Sample) {
-    let key = sample.key_expr();
-    if key.is_wild() {
-        return tracing::warn!(%key, "program library: name one program, without wildcards");
+    if w.key.is_wild() {
+        return Done::refused(RequestError::WrongKey(
+            "a ProgramRelease names one program".to_string(),
+        ));
     }
-    let Some(CellKey::ProgramWrite { name }) = ctx.keys.parse(key.as_str()) else {
-        return;
-    };
-    let origin = origin_of(sample.attachment());
-    let by = origin.clone().unwrap_or_default();
-    let (action, result) = match sample.kind() {
-        SampleKind::Put => {
-            let program = sample.payload().to_bytes();
-            let stored = ctx
-                .library
-                .store_as(
-                    name,
-                    Store {
-                        bytes: program.as_ref().into(),
-                        by,
-                        ..Store::default()
-                    },
-                )
-                .await;
-            ("program.store", stored)
-        }
-        SampleKind::Delete => ("program.remove", ctx.library.remove_by(name).await),
-    };
-    let result = result.map_err(RequestError::from);
-    let detail = match &result {
-        Ok(e) => e
-            .latest
-            .as_ref()
-            .map(|r| format!("revision {}", r.number))
-            .unwrap_or_default(),
-        Err(_) => String::new(),
-    };
-    audit_write(
-        ctx,
-        key.as_str(),
-        action,
-        name,
-        detail,
-        origin.clone(),
-        result.as_ref().map(|_| ()),
-    );
-    match result {
-        Ok(e) => {
-            tracing::info!(program = %e.name, size = e.size, action, "program library changed");
-            if e.revised || action == "program.remove" {
-                changed(ctx, e.info(), action == "program.remove", origin.as_ref()).await;
-            }
-        }
-        Err(e) => tracing::warn!(%key, error = %e, "program library request refused"),
-    }
-}
-
-/// A get with a `ProgramRelease` on `P/C/program/NAME/release`.
-pub(super) async fn program_release(ctx: &RouteContext, q: &Query) {
-    let Some(CellKey::ProgramRelease { name }) = ctx.keys.parse(q.key_expr().as_str()) else {
-        return;
-    };
-    if q.key_expr().is_wild() {
-        if q.payload().is_some() {
-            let e = RequestError::WrongKey("a ProgramRelease names one program".to_string());
-            reply_err(q, &e).await;
-        }
-        return;
-    }
-    let Some(payload) = q.payload() else {
-        let e = RequestError::WrongKey(format!(
+    let Some(payload) = w.bytes() else {
+        return Done::refused(RequestError::WrongKey(format!(
             "a get on {} changes a revision's state and needs a ProgramRelease; the revisions \
              are read on {}",
-            q.key_expr(),
+            w.key,
             ctx.keys.program_revisions(name)
-        ));
-        return reply_err(q, &e).await;
+        )));
     };
-    let origin = origin_of(q.attachment());
     let done = match cellgate_core::bounds::decode::<pb::ProgramRelease>(
-        payload.to_bytes().as_ref(),
+        payload.as_ref(),
         &ctx.limits(),
     ) {
         Ok(r) => {
             let state = r.state();
-            ctx.library
-                .set_state(
-                    name,
-                    &r.revision,
-                    state,
-                    origin.clone().unwrap_or_default(),
-                    r.comment,
-                )
+            let by = w.origin.clone().unwrap_or_default();
+            match ctx
+                .library
+                .set_state(name, &r.revision, state, by, r.comment)
                 .await
-                .map_err(RequestError::from)
+            {
+                Ok(r) => Ok(r),
+                Err(e) => Err(ctx.naming_programs(e.into(), ctx.open_cell()).await),
+            }
         }
         Err(error) => Err(RequestError::ProgramWritePayload {
             name: name.to_string(),
@@ -504,17 +431,11 @@ pub(super) async fn program_release(ctx: &RouteContext, q: &Query) {
         ),
         Err(_) => String::new(),
     };
-    audit_write(
-        ctx,
-        q.key_expr().as_str(),
-        "program.release",
-        name,
+    let audited = Audited {
+        action: "program.release",
+        machine: String::new(),
+        target: name.to_string(),
         detail,
-        origin,
-        done.as_ref().map(|_| ()),
-    );
-    match done {
-        Ok(r) => reply(q, q.key_expr().to_string(), &r).await,
-        Err(e) => reply_err(q, &ctx.naming_programs(e, ctx.open_cell()).await).await,
-    }
+    };
+    Done::audited(audited, done)
 }

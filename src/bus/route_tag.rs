@@ -14,16 +14,14 @@
 use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
 use zenoh::query::Query;
-use zenoh::sample::{Sample, SampleKind};
 
-use super::audit::{Audit, origin_of};
 use super::context::{reply, reply_err};
 use super::keys::{PlcKey, intersects};
 use super::payload::tag_message;
 use super::published::Published;
 use super::route_plc::{PlcContext, PlcLink, PlcRequestError};
+use super::write::{Audited, Done, Write};
 use crate::plc::PlcEvent;
-use cellgate_core::config::Permission;
 use cellgate_core::pb;
 use prost::Message as _;
 
@@ -76,64 +74,37 @@ async fn write_tag(
     })
 }
 
-/// A get with a `TagWrite` on `P/C/plc/L/tag/NAME/set`.
-pub(super) async fn tag_set(ctx: &PlcContext, q: &Query) {
-    let key = q.key_expr().to_string();
-    let Some(payload) = q.payload().map(|p| p.to_bytes().to_vec()) else {
-        if !q.key_expr().is_wild() {
-            let e = PlcRequestError::BadKey {
-                key,
-                what: "a get here writes the tag and needs a TagWrite".to_string(),
-                expected: "P/C/plc/L/tag/NAME to read the tag",
-            };
-            reply_err(q, &e).await;
-        }
-        return;
+/// A `TagWrite` on `P/C/plc/L/tag/NAME/set` (its write row): writes the tag and answers
+/// `TagWritten`, the value the tag now reads as, once the module confirmed.
+pub(super) async fn tag_write(ctx: &PlcContext, w: Write) -> Done<pb::TagWritten, PlcRequestError> {
+    let Some(bytes) = w.bytes() else {
+        return Done::refused(PlcRequestError::BadKey {
+            key: w.key().to_string(),
+            what: "a get here writes the tag and needs a TagWrite".to_string(),
+            expected: "P/C/plc/L/tag/NAME to read the tag",
+        });
     };
-    let written = write_tag(ctx, &key, &payload).await;
-    audit_tag(
-        ctx,
-        &key,
-        &payload,
-        origin_of(q.attachment()),
-        written.as_ref(),
-    );
-    match written {
-        Ok(w) => reply(q, key, &w).await,
-        Err(e) => reply_err(q, &e).await,
-    }
-}
-
-/// Records a tag write in the audit.
-fn audit_tag(
-    ctx: &PlcContext,
-    key: &str,
-    payload: &[u8],
-    origin: Option<pb::RequestOrigin>,
-    outcome: Result<&pb::TagWritten, &PlcRequestError>,
-) {
-    let (plc, name) = match tag_target(ctx, key) {
+    let written = match w.checked() {
+        Ok(()) => write_tag(ctx, w.key(), &bytes).await,
+        Err(e) => Err(e.into()),
+    };
+    let (plc, name) = match tag_target(ctx, w.key()) {
         Ok((p, n, _)) => (p.to_string(), n.to_string()),
-        Err(_) => (String::new(), key.to_string()),
+        Err(_) => (String::new(), w.key().to_string()),
     };
-    let detail = match outcome {
-        Ok(w) => format!("value {}", w.value),
-        Err(_) => pb::TagWrite::decode(payload)
-            .map(|w| format!("value {}", w.value))
+    let detail = match &written {
+        Ok(t) => format!("value {}", t.value),
+        Err(_) => pb::TagWrite::decode(bytes.as_ref())
+            .map(|t| format!("value {}", t.value))
             .unwrap_or_default(),
     };
-    ctx.route.audit(
-        Audit {
-            action: "plc.tag",
-            permission: Permission::PlcTag,
-            key,
-            machine: &plc,
-            target: format!("{plc}/{name}"),
-            detail,
-            origin,
-        },
-        outcome.map(|_| ()),
-    );
+    let audited = Audited {
+        action: "plc.tag",
+        target: format!("{plc}/{name}"),
+        machine: plc,
+        detail,
+    };
+    Done::audited(audited, written)
 }
 
 /// A get on `P/C/plc/L/tag/NAME`: the tag's latest value.
@@ -177,32 +148,6 @@ pub(super) async fn tag_query(ctx: &PlcContext, q: &Query) {
             }
         }
     }
-}
-
-/// A put on a tag's `set` key; a put has no answer, so a refusal is logged.
-pub(super) async fn tag_put(ctx: &PlcContext, s: &Sample) {
-    if let Err(e) = put_tag(ctx, s).await {
-        tracing::warn!(key = %s.key_expr(), error = %e, "tag write refused");
-    }
-}
-
-async fn put_tag(ctx: &PlcContext, s: &Sample) -> Result<(), PlcRequestError> {
-    if s.kind() != SampleKind::Put {
-        return Ok(());
-    }
-    let payload = s.payload().to_bytes();
-    let written = match super::route_plc::put_encoding::<pb::TagWrite>(s) {
-        Ok(()) => write_tag(ctx, s.key_expr().as_str(), &payload).await,
-        Err(e) => Err(e),
-    };
-    audit_tag(
-        ctx,
-        s.key_expr().as_str(),
-        &payload,
-        origin_of(s.attachment()),
-        written.as_ref(),
-    );
-    written.map(|_| ())
 }
 
 /// Publishes a PLC link's tag changes until `stop`.

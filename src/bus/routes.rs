@@ -26,13 +26,17 @@ use zenoh::sample::{Locality, Sample};
 use super::context::{Pool, RequestError, RouteContext, Routed, reply_err};
 use super::error::BusError;
 use super::keys::{CellKeys, G05Part, MachineLeaf, PlcArea};
+use super::payload::BusMessage;
 use super::route_g05::G05Context;
 use super::route_plc::PlcContext;
+use super::write::{Done, Write, WriteRow};
 use super::{
     route_g05, route_history, route_io, route_job, route_misdirected, route_plc, route_program,
     route_sim, route_status, route_tag,
 };
+use cellgate_core::codes::BusCode;
 use cellgate_core::config::Permission;
+use cellgate_core::pb;
 
 /// What arrives on a row's key.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -41,6 +45,10 @@ pub(crate) enum Arrives {
     Queries,
     /// Puts and deletes from sessions of this locality: a subscriber.
     Samples(Locality),
+    /// A write's own key: gets with its payload (a queryable) and, where the write takes them,
+    /// puts from sessions of this locality (a subscriber), served alike
+    /// ([`write`](super::write)).
+    Writes(Option<Locality>),
 }
 
 /// One queryable or subscriber and what serves it.
@@ -49,6 +57,9 @@ pub(crate) struct Row<C> {
     pub(crate) arrives: Arrives,
     /// `None`: answered on the route's loop itself; else run in a slot of the pool.
     pub(crate) pool: Option<Pool>,
+    /// A write row's puts: `None` answered on the route's loop itself, else in the pool's
+    /// slots (its gets run in `pool`).
+    put_pool: Option<Pool>,
     /// The permission whose rules let a client send what arrives here; `None` for keys no
     /// role is meant to send it to (the misdirected writes).
     pub(crate) permission: Option<Permission>,
@@ -85,6 +96,7 @@ impl<C: Send + Sync + 'static> Row<C> {
             key,
             arrives: Arrives::Queries,
             pool,
+            put_pool: None,
             permission,
             handle: Arc::new(move |c, i| {
                 let f = Arc::clone(&f);
@@ -114,12 +126,69 @@ impl<C: Send + Sync + 'static> Row<C> {
             key,
             arrives: Arrives::Samples(origin),
             pool,
+            put_pool: None,
             permission,
             handle: Arc::new(move |c, i| {
                 let f = Arc::clone(&f);
                 async move {
                     if let Incoming::Sample(s) = i {
                         f.serve(&c, &s).await;
+                    }
+                }
+                .boxed()
+            }),
+        }
+    }
+}
+
+/// A write handler as the route modules write it: an async fn of the borrowed context and
+/// the [`Write`], telling what it did ([`Done`]).
+pub(crate) trait Writes<'a, C: 'a, M, E>: Send + Sync + 'static {
+    type Fut: Future<Output = Done<M, E>> + Send + 'a;
+    fn write(&self, ctx: &'a C, w: Write) -> Self::Fut;
+}
+
+impl<'a, C: 'a, M, E, F, Fut> Writes<'a, C, M, E> for F
+where
+    F: Fn(&'a C, Write) -> Fut + Send + Sync + 'static,
+    Fut: Future<Output = Done<M, E>> + Send + 'a,
+{
+    type Fut = Fut;
+    fn write(&self, ctx: &'a C, w: Write) -> Fut {
+        self(ctx, w)
+    }
+}
+
+impl<C: Routed> Row<C> {
+    /// A write's own `key`: gets (in `pool`) and puts from `origin` (in `put_pool`; `None`:
+    /// gets only) alike served by `f`, which answers with `M` or refuses with `E`; `row` says
+    /// the write's permission, the message a put carries and whether a delete is a write.
+    fn write<M, E, F>(
+        key: String,
+        origin: Option<Locality>,
+        (pool, put_pool): (Option<Pool>, Option<Pool>),
+        row: WriteRow,
+        f: F,
+    ) -> Self
+    where
+        F: for<'a> Writes<'a, C, M, E>,
+        M: BusMessage + Send + 'static,
+        E: BusCode + std::fmt::Display + Send + Sync + 'static,
+    {
+        let f = Arc::new(f);
+        Row {
+            key,
+            arrives: Arrives::Writes(origin),
+            pool,
+            put_pool,
+            permission: Some(row.permission),
+            handle: Arc::new(move |c: C, i| {
+                let f = Arc::clone(&f);
+                async move {
+                    match i {
+                        Incoming::Query(q) => row.query(c.route(), &q, |w| f.write(&c, w)).await,
+                        Incoming::Sample(s) => row.sample(c.route(), &s, |w| f.write(&c, w)).await,
+                        Incoming::Ended => {}
                     }
                 }
                 .boxed()
@@ -201,14 +270,13 @@ pub(crate) fn cell(keys: &CellKeys) -> Vec<Route<RouteContext>> {
         // route stays cached (docs/performance.md).
         Route::new(vec![
             Row::query(leaf(L::Di), read, Some(P::StatusRead), route_io::di_get),
-            Row::query(leaf(L::Do), Some(Pool::Io), Some(P::IoDo), route_io::do_get),
-            // Without waiting: a flood of puts is refused past the link's command queue.
-            Row::samples(
+            // A put without waiting: a flood of puts is refused past the link's command queue.
+            Row::write(
                 leaf(L::Do),
-                Locality::Any,
-                None,
-                Some(P::IoDo),
-                route_io::do_put,
+                Some(Locality::Any),
+                (Some(Pool::Io), None),
+                WriteRow::of(P::IoDo).expecting::<pb::DoCommand>(),
+                route_io::do_write,
             ),
         ])
         .holding(L::Do),
@@ -238,24 +306,20 @@ pub(crate) fn cell(keys: &CellKeys) -> Vec<Route<RouteContext>> {
                 Some(P::ProgramRead),
                 route_program::program_diff,
             ),
-            Row::query(
+            // A get's payload is a `ProgramWrite`, a put's the program itself.
+            Row::write(
                 keys.any_program_write(),
-                Some(Pool::ProgramWrite),
-                Some(P::ProgramWrite),
+                Some(Locality::Any),
+                (Some(Pool::ProgramWrite), Some(Pool::ProgramWrite)),
+                WriteRow::of(P::ProgramWrite).deleting(),
                 route_program::program_write,
             ),
-            Row::query(
+            Row::write(
                 keys.program_release("*"),
-                Some(Pool::ProgramWrite),
-                Some(P::ProgramRelease),
+                None,
+                (Some(Pool::ProgramWrite), None),
+                WriteRow::of(P::ProgramRelease),
                 route_program::program_release,
-            ),
-            Row::samples(
-                keys.any_program_write(),
-                Locality::Any,
-                Some(Pool::ProgramWrite),
-                Some(P::ProgramWrite),
-                route_program::program_sample,
             ),
         ]),
         // The cell's records: history, audit trail, notes, utilisation.
@@ -322,14 +386,13 @@ pub(crate) fn g05(keys: &CellKeys) -> Route<G05Context> {
             route_g05::open_get,
         ),
         Row::query(status.clone(), None, p, route_g05::status_get),
-        Row::samples(
-            blocks.clone(),
-            Locality::Any,
-            None,
-            p,
-            route_g05::blocks_put,
+        Row::write(
+            blocks,
+            Some(Locality::Any),
+            (None, None),
+            WriteRow::of(Permission::G05Stream).expecting::<pb::G05Batch>(),
+            route_g05::blocks_write,
         ),
-        Row::query(blocks, None, p, route_g05::blocks_get),
         // Only another session cancels a stream; this one publishes its status there.
         Row::samples(
             status,
@@ -348,7 +411,7 @@ pub(crate) fn plc(keys: &CellKeys) -> Vec<Route<PlcContext>> {
     vec![
         // PLC memory, transfers, messages, status.
         Route::new(vec![
-            // Reads and the writes' own keys (`…/write`): the handler tells them apart.
+            // Reads; a get on a write's own key (`…/write`) is the write row's.
             Row::query(
                 keys.any_plc_area(PlcArea::Mem),
                 plc,
@@ -356,43 +419,31 @@ pub(crate) fn plc(keys: &CellKeys) -> Vec<Route<PlcContext>> {
                 route_plc::mem_query,
             ),
             Row::query(
-                keys.any_plc_transfer_send(),
-                plc,
-                Some(P::PlcTransfer),
-                route_plc::transfer_query,
-            ),
-            Row::query(
-                keys.any_plc_message_send(),
-                plc,
-                Some(P::PlcTransfer),
-                route_plc::message_query,
-            ),
-            Row::query(
                 keys.any_plc_status(),
                 Some(Pool::Read),
                 Some(P::StatusRead),
                 route_plc::status_query,
             ),
-            Row::samples(
+            Row::write(
                 keys.any_plc_mem_write(),
-                Locality::Remote,
-                plc,
-                Some(P::PlcMem),
-                route_plc::mem_put,
+                Some(Locality::Remote),
+                (plc, plc),
+                WriteRow::of(P::PlcMem).expecting::<pb::PlcWrite>(),
+                route_plc::mem_write,
             ),
-            Row::samples(
+            Row::write(
                 keys.any_plc_transfer_send(),
-                Locality::Remote,
-                plc,
-                Some(P::PlcTransfer),
-                route_plc::transfer_put,
+                Some(Locality::Remote),
+                (plc, plc),
+                WriteRow::of(P::PlcTransfer).expecting::<pb::PlcTransfer>(),
+                route_plc::transfer_write,
             ),
-            Row::samples(
+            Row::write(
                 keys.any_plc_message_send(),
-                Locality::Remote,
-                plc,
-                Some(P::PlcTransfer),
-                route_plc::message_put,
+                Some(Locality::Remote),
+                (plc, plc),
+                WriteRow::of(P::PlcTransfer).expecting::<pb::PlcMessage>(),
+                route_plc::message_write,
             ),
         ]),
         // PLC tags: reads and writes.
@@ -403,18 +454,12 @@ pub(crate) fn plc(keys: &CellKeys) -> Vec<Route<PlcContext>> {
                 Some(P::StatusRead),
                 route_tag::tag_query,
             ),
-            Row::query(
+            Row::write(
                 keys.any_plc_tag_set(),
-                plc,
-                Some(P::PlcTag),
-                route_tag::tag_set,
-            ),
-            Row::samples(
-                keys.any_plc_tag_set(),
-                Locality::Remote,
-                plc,
-                Some(P::PlcTag),
-                route_tag::tag_put,
+                Some(Locality::Remote),
+                (plc, plc),
+                WriteRow::of(P::PlcTag).expecting::<pb::TagWrite>(),
+                route_tag::tag_write,
             ),
         ]),
     ]
@@ -506,6 +551,17 @@ impl<C: Routed> Route<C> {
             let incoming = match row.arrives {
                 Arrives::Queries => queries(route.queryable(row.key).await?),
                 Arrives::Samples(origin) => samples(route.subscriber(row.key, origin).await?),
+                Arrives::Writes(origin) => {
+                    if let Some(origin) = origin {
+                        let puts = samples(route.subscriber(row.key.clone(), origin).await?);
+                        endpoints.push(Endpoint {
+                            incoming: puts,
+                            pool: row.put_pool,
+                            handle: Arc::clone(&row.handle),
+                        });
+                    }
+                    queries(route.queryable(row.key).await?)
+                }
             };
             endpoints.push(Endpoint {
                 incoming,

@@ -161,11 +161,7 @@ impl MachineRoutes {
             };
         served.machine_task = Some(tokio::spawn(task.run(served.machine_stop.clone())));
         let name = machine.name().to_string();
-        ctx.machines.update(|m| {
-            let mut m = m.clone();
-            m.insert(name.clone(), Arc::clone(&machine));
-            m
-        });
+        ctx.machines.insert(&name, Arc::clone(&machine));
         if let Some(old) = self.served().insert(name.clone(), served) {
             // Never two tasks for one machine: the gateway stops the old one first.
             tracing::error!(machine = %name, "machine served twice; the older one is stopped");
@@ -316,11 +312,7 @@ impl MachineRoutes {
     pub async fn stop(&self, name: &str, forget: bool) {
         let served = self.served().remove(name);
         if forget {
-            self.inner.ctx.machines.update(|m| {
-                let mut m = m.clone();
-                m.remove(name);
-                m
-            });
+            self.inner.ctx.machines.remove(name);
         }
         let Some(s) = served else { return };
         s.jobs_stop.cancel();
@@ -415,11 +407,7 @@ impl PlcRoutes {
             link_stop.clone(),
         ));
         let tags_task = self.tags_task(link.clone(), tags_stop.clone());
-        self.ctx.plcs.update(|p| {
-            let mut p = p.clone();
-            p.insert(name.clone(), link);
-            p
-        });
+        self.ctx.plcs.insert(&name, link);
         let served = PlcServed {
             link_stop,
             tags_stop,
@@ -434,11 +422,7 @@ impl PlcRoutes {
 
     /// Stops serving PLC `name` (its station tokens withdrawn); the routes no longer know it.
     pub async fn remove(&self, name: &str) {
-        self.ctx.plcs.update(|p| {
-            let mut p = p.clone();
-            p.remove(name);
-            p
-        });
+        self.ctx.plcs.remove(name);
         let Some(s) = self.served().remove(name) else {
             return;
         };
@@ -452,11 +436,7 @@ impl PlcRoutes {
     /// history may have changed); its link and stations are not touched.
     pub async fn retag(&self, link: PlcLink) {
         let name = link.config.name.clone();
-        self.ctx.plcs.update(|p| {
-            let mut p = p.clone();
-            p.insert(name.clone(), link.clone());
-            p
-        });
+        self.ctx.plcs.insert(&name, link.clone());
         let old = {
             let mut served = self.served();
             let Some(s) = served.get_mut(&name) else {

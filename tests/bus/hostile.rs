@@ -454,7 +454,7 @@ async fn a_read_key_never_writes_whatever_the_payload() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_plc_put_of_another_encoding_is_refused_with_a_word_and_one_without_is_taken() {
+async fn a_put_of_another_encoding_is_refused_with_a_word_and_one_without_is_taken() {
     let cell = RunningCell::start(default_cell, false).await;
     let tag = cell.keys.plc_tag("plc-1", "recipe");
     let set = cell.keys.plc_tag_set("plc-1", "recipe");
@@ -500,6 +500,42 @@ async fn a_plc_put_of_another_encoding_is_refused_with_a_word_and_one_without_is
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     assert_eq!(value, Some(21.0), "a put without an encoding was not taken");
+    // The same on a machine's write key: a DO put of another encoding outputs nothing.
+    let board = cell.board(MILL);
+    let before = board.do_image();
+    let command = pb::DoCommand {
+        value: u32::from(!before),
+        mask: None,
+    };
+    cell.client
+        .put(
+            cell.keys.leaf(MILL, MachineLeaf::Do),
+            command.encode_to_vec(),
+        )
+        .encoding(zenoh::bytes::Encoding::TEXT_PLAIN)
+        .await
+        .unwrap();
+    let mut refused = None;
+    for _ in 0..100 {
+        let page: pb::HistoryPage = get_one(&cell.client, &cell.keys.audit(), None).await;
+        refused = page.records.into_iter().find_map(|r| match r.record {
+            Some(pb::history_record::Record::Audit(a)) if a.action == "io.do" => Some(a),
+            _ => None,
+        });
+        if refused.is_some() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let refused = refused.expect("the refused DO put is nowhere in the audit");
+    assert!(!refused.ok, "{refused:?}");
+    assert!(
+        refused.error.contains("text/plain") && refused.error.contains("cellgate.v1.DoCommand"),
+        "{}",
+        refused.error
+    );
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(board.do_image(), before, "the refused DO put was output");
     cell.stop().await;
 }
 

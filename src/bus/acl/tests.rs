@@ -497,21 +497,26 @@ fn every_route_is_granted_by_its_permission() {
                     })
             })
         };
-        let (sent, served): (&[&str], &[&str]) = match arrives {
-            Arrives::Queries => (&["query"], &["declare_queryable", "reply"]),
-            Arrives::Samples(_) => (&["put", "delete"], &["declare_subscriber"]),
+        const QUERIES: (&[&str], &[&str]) = (&["query"], &["declare_queryable", "reply"]);
+        const SAMPLES: (&[&str], &[&str]) = (&["put", "delete"], &["declare_subscriber"]);
+        let ways: &[(&[&str], &[&str])] = match arrives {
+            Arrives::Queries | Arrives::Writes(None) => &[QUERIES],
+            Arrives::Samples(_) => &[SAMPLES],
+            Arrives::Writes(Some(_)) => &[QUERIES, SAMPLES],
         };
-        assert!(
-            sent.iter().any(|m| allows(Flow::Ingress, m)),
-            "{key}: {} lets no client send {sent:?} there",
-            p.name()
-        );
-        for m in served {
+        for (sent, served) in ways {
             assert!(
-                allows(Flow::Egress, m),
-                "{key}: {} does not let the gateway send {m} there",
+                sent.iter().any(|m| allows(Flow::Ingress, m)),
+                "{key}: {} lets no client send {sent:?} there",
                 p.name()
             );
+            for m in *served {
+                assert!(
+                    allows(Flow::Egress, m),
+                    "{key}: {} does not let the gateway send {m} there",
+                    p.name()
+                );
+            }
         }
     }
 }

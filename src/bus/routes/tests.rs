@@ -32,8 +32,14 @@ fn no_key_is_served_twice_the_same_way() {
             zenoh::key_expr::keyexpr::new(key.as_str()).is_ok(),
             "{key} is not a key expression"
         );
-        let queries = matches!(arrives, Arrives::Queries);
-        assert!(seen.insert((key.clone(), queries)), "{key} twice");
+        let ways: &[bool] = match arrives {
+            Arrives::Queries | Arrives::Writes(None) => &[true],
+            Arrives::Samples(_) => &[false],
+            Arrives::Writes(Some(_)) => &[true, false],
+        };
+        for queries in ways {
+            assert!(seen.insert((key.clone(), *queries)), "{key} twice");
+        }
     }
 }
 
