@@ -5,6 +5,7 @@
 
 use std::time::Duration;
 
+use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::link::driver::{self, LinkHandle};
@@ -33,9 +34,7 @@ pub struct MachineRuntime {
     pub board: Option<sim::BoardHandle>,
     /// The simulated line of a `sim` transport: fault injection and counters.
     pub line: Option<SimLine>,
-    /// Stops this link alone (a reload that removes or changes the machine).
-    stop: CancellationToken,
-    task: Option<tokio::task::JoinHandle<()>>,
+    running: Running,
 }
 
 impl MachineRuntime {
@@ -57,9 +56,105 @@ pub struct PlcRuntime {
     pub sim: Option<MicrexHandle>,
     /// The simulated line of a `sim` transport: fault injection and counters.
     pub line: Option<SimLine>,
-    /// Stops this link alone (a reload that removes or changes the PLC).
+    running: Running,
+}
+
+/// A link's own task, and the token that stops it alone (a reload that removes or changes
+/// its entry): machines and PLCs alike.
+struct Running {
     stop: CancellationToken,
-    task: Option<tokio::task::JoinHandle<()>>,
+    task: Option<JoinHandle<()>>,
+}
+
+impl Running {
+    /// Runs the link task `task` of `what` (`machine`, `PLC`) `name`, saying how it ended.
+    fn spawn<E: std::fmt::Display + Send + 'static>(
+        what: &'static str,
+        name: String,
+        stop: CancellationToken,
+        task: JoinHandle<Result<(), E>>,
+    ) -> Self {
+        let task = tokio::spawn(async move {
+            match task.await {
+                Ok(Ok(())) => tracing::info!(%name, "{what} link stopped"),
+                Ok(Err(e)) => tracing::error!(%name, error = %e, "{what} link ended"),
+                Err(e) => tracing::error!(%name, error = %e, "{what} link task failed"),
+            }
+        });
+        Running {
+            stop,
+            task: Some(task),
+        }
+    }
+
+    /// Stops the link and waits for its task to end.
+    async fn stop(&mut self) {
+        self.stop.cancel();
+        if let Some(task) = self.task.take() {
+            let _ = task.await;
+        }
+    }
+}
+
+/// A machine's or a PLC's link, as the cell starts, stops and finds them by name.
+trait Device {
+    fn name(&self) -> &str;
+    fn running(&mut self) -> &mut Running;
+    /// Stops the simulated device on the far end of a `sim` transport, if there is one.
+    async fn stop_sim(self);
+}
+
+impl Device for MachineRuntime {
+    fn name(&self) -> &str {
+        &self.config.name
+    }
+    fn running(&mut self) -> &mut Running {
+        &mut self.running
+    }
+    async fn stop_sim(self) {
+        if let Some(board) = self.board
+            && let Err(e) = board.shutdown().await
+        {
+            tracing::debug!(machine = %self.config.name, error = %e, "simulated board stopped");
+        }
+    }
+}
+
+impl Device for PlcRuntime {
+    fn name(&self) -> &str {
+        &self.config.name
+    }
+    fn running(&mut self) -> &mut Running {
+        &mut self.running
+    }
+    async fn stop_sim(self) {
+        if let Some(sim) = self.sim {
+            sim.shutdown().await;
+        }
+    }
+}
+
+/// Stops the link of `name` in `devices` (and its simulated device), waits for it to end,
+/// and hands back its entry's runtime.
+async fn remove<D: Device>(devices: &mut Vec<D>, name: &str) -> Option<D> {
+    let i = devices.iter().position(|d| d.name() == name)?;
+    let mut d = devices.remove(i);
+    d.running().stop().await;
+    Some(d)
+}
+
+/// Waits for every link task of `devices` to end (after the shutdown token was cancelled),
+/// then stops their simulated devices.
+async fn join<D: Device>(devices: Vec<D>) {
+    let mut devices = devices;
+    for d in &mut devices {
+        if let Some(task) = d.running().task.take() {
+            let _ = task.await;
+        }
+    }
+    for d in devices {
+        d.stop_sim().await;
+    }
 }
 
 /// Why a machine's link could not be started.
@@ -147,18 +242,10 @@ impl Cell {
     /// Stops the link of machine `name` (and its simulated board) and waits for it to end;
     /// its configuration, if it ran.
     pub async fn remove_machine(&mut self, name: &str) -> Option<MachineConfig> {
-        let i = self.machines.iter().position(|m| m.config.name == name)?;
-        let mut m = self.machines.remove(i);
-        m.stop.cancel();
-        if let Some(task) = m.task.take() {
-            let _ = task.await;
-        }
-        if let Some(board) = m.board
-            && let Err(e) = board.shutdown().await
-        {
-            tracing::debug!(machine = %name, error = %e, "simulated board stopped");
-        }
-        Some(m.config)
+        let m = remove(&mut self.machines, name).await?;
+        let config = m.config.clone();
+        m.stop_sim().await;
+        Some(config)
     }
 
     /// Starts the link of `plc` and answers it as the bus routes take it.
@@ -174,16 +261,10 @@ impl Cell {
 
     /// Stops the link of PLC `name` (and its simulated MICREX-F) and waits for it to end.
     pub async fn remove_plc(&mut self, name: &str) -> Option<PlcConfig> {
-        let i = self.plcs.iter().position(|p| p.config.name == name)?;
-        let mut p = self.plcs.remove(i);
-        p.stop.cancel();
-        if let Some(task) = p.task.take() {
-            let _ = task.await;
-        }
-        if let Some(sim) = p.sim {
-            sim.shutdown().await;
-        }
-        Some(p.config)
+        let p = remove(&mut self.plcs, name).await?;
+        let config = p.config.clone();
+        p.stop_sim().await;
+        Some(config)
     }
 
     /// Gives PLC `name` the tags (and so poll groups) of `plc`, in its running link.
@@ -236,20 +317,12 @@ impl Cell {
         let tags = TagTable::new(&name, &plc.tags);
         let (link, task) =
             crate::plc::link::spawn(name.clone(), master, tags, transport, stop.clone());
-        let task = tokio::spawn(async move {
-            match task.await {
-                Ok(Ok(())) => tracing::info!(plc = %name, "PLC link stopped"),
-                Ok(Err(e)) => tracing::error!(plc = %name, error = %e, "PLC link ended"),
-                Err(e) => tracing::error!(plc = %name, error = %e, "PLC link task failed"),
-            }
-        });
         Ok(PlcRuntime {
             config: plc.clone(),
             link,
             sim: micrex,
             line: sim_line,
-            stop,
-            task: Some(task),
+            running: Running::spawn("PLC", name, stop, task),
         })
     }
 
@@ -306,20 +379,12 @@ impl Cell {
             })?;
             driver::spawn(name.clone(), engine, transport, stop.clone())
         };
-        let task = tokio::spawn(async move {
-            match task.await {
-                Ok(Ok(())) => tracing::info!(machine = %name, "link stopped"),
-                Ok(Err(e)) => tracing::error!(machine = %name, error = %e, "link ended"),
-                Err(e) => tracing::error!(machine = %name, error = %e, "link task failed"),
-            }
-        });
         Ok(MachineRuntime {
             config: machine.clone(),
             link,
             board,
             line: sim_line,
-            stop,
-            task: Some(task),
+            running: Running::spawn("machine", name, stop, task),
         })
     }
 
@@ -334,24 +399,9 @@ impl Cell {
 
     /// Waits for every link task to end (after the shutdown token was cancelled), then stops
     /// the simulated boards.
-    pub async fn join(mut self) {
-        let machines = self.machines.iter_mut().filter_map(|m| m.task.take());
-        let plcs = self.plcs.iter_mut().filter_map(|p| p.task.take());
-        for task in machines.chain(plcs).collect::<Vec<_>>() {
-            let _ = task.await;
-        }
-        for machine in self.machines {
-            if let Some(board) = machine.board {
-                if let Err(e) = board.shutdown().await {
-                    tracing::debug!(machine = %machine.config.name, error = %e, "simulated board stopped");
-                }
-            }
-        }
-        for plc in self.plcs {
-            if let Some(sim) = plc.sim {
-                sim.shutdown().await;
-            }
-        }
+    pub async fn join(self) {
+        join(self.machines).await;
+        join(self.plcs).await;
     }
 }
 

@@ -356,43 +356,57 @@ pub fn compare(old: &CellConfig, new: &CellConfig) -> Result<CellChange, Restart
         return Err(RestartNeeded(fixed));
     }
 
-    let mut change = CellChange::default();
-    for m in &new.machines {
-        match old.machine(&m.name) {
-            None => change.machines_added.push(m.name.clone()),
-            Some(o) if o != m => change.machines_changed.push(m.name.clone()),
+    // Machines and PLCs alike: an entry added, removed, or changed; a PLC whose tags alone
+    // differ keeps its link and takes them there.
+    let (machines_added, machines_removed, machines_changed) =
+        entries(&old.machines, &new.machines, |m| &m.name);
+    let (plcs_added, plcs_removed, differing) = entries(&old.plcs, &new.plcs, |p| &p.name);
+    let (plc_tags, plcs_changed) =
+        differing
+            .into_iter()
+            .partition(|name| match (old.plc(name), new.plc(name)) {
+                (Some(o), Some(p)) => {
+                    super::PlcConfig {
+                        tags: p.tags.clone(),
+                        ..o.clone()
+                    } == *p
+                }
+                _ => false,
+            });
+    Ok(CellChange {
+        machines_added,
+        machines_removed,
+        machines_changed,
+        plcs_added,
+        plcs_removed,
+        plcs_changed,
+        plc_tags,
+        settings,
+    })
+}
+
+/// The entries of a list of the cell file (`[[machines]]`, `[[plcs]]`) that `new` adds, that
+/// it no longer has, and that differ, by name: added and changed in `new`'s order, removed
+/// in `old`'s.
+fn entries<T: PartialEq>(
+    old: &[T],
+    new: &[T],
+    name: impl Fn(&T) -> &String,
+) -> (Vec<String>, Vec<String>, Vec<String>) {
+    let (mut added, mut changed) = (Vec::new(), Vec::new());
+    for e in new {
+        match old.iter().find(|o| name(o) == name(e)) {
+            None => added.push(name(e).clone()),
+            Some(o) if o != e => changed.push(name(e).clone()),
             Some(_) => {}
         }
     }
-    for m in &old.machines {
-        if new.machine(&m.name).is_none() {
-            change.machines_removed.push(m.name.clone());
-        }
-    }
-    for p in &new.plcs {
-        match old.plc(&p.name) {
-            None => change.plcs_added.push(p.name.clone()),
-            Some(o) if o == p => {}
-            Some(o) => {
-                let same_but_tags = super::PlcConfig {
-                    tags: p.tags.clone(),
-                    ..o.clone()
-                } == *p;
-                if same_but_tags {
-                    change.plc_tags.push(p.name.clone());
-                } else {
-                    change.plcs_changed.push(p.name.clone());
-                }
-            }
-        }
-    }
-    for p in &old.plcs {
-        if new.plc(&p.name).is_none() {
-            change.plcs_removed.push(p.name.clone());
-        }
-    }
-    change.settings = settings;
-    Ok(change)
+    let removed = old
+        .iter()
+        .filter(|o| !new.iter().any(|e| name(e) == name(o)))
+        .map(|o| name(o).clone())
+        .collect();
+    (added, removed, changed)
 }
 
 /// One line for people from a reload's lists, in [`CellChange`]'s order (machines added,
