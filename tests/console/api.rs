@@ -11,65 +11,7 @@ use cellgate_core::config::CellConfig;
 use common::bus::free_port;
 use serde_json::{Value, json};
 
-/// A gateway of `config` running in this process, stopped when dropped.
-pub(crate) struct Gateway {
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: Option<tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>>,
-    url: String,
-    pub(crate) endpoint: String,
-    _dir: Option<tempfile::TempDir>,
-}
-
-impl Gateway {
-    pub(crate) async fn start(edit: impl FnOnce(&mut CellConfig, &std::path::Path)) -> Gateway {
-        let dir = tempfile::tempdir().unwrap();
-        let mut g = Gateway::start_in(dir.path(), edit).await;
-        g._dir = Some(dir);
-        g
-    }
-
-    /// A gateway whose library, journal and history are in `dir`, kept after it stops.
-    pub(crate) async fn start_in(
-        dir: &std::path::Path,
-        edit: impl FnOnce(&mut CellConfig, &std::path::Path),
-    ) -> Gateway {
-        let mut config = CellConfig::embedded_default();
-        config.mtconnect = None;
-        config.opcua = None;
-        let port = free_port();
-        let console = free_port();
-        config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
-        config.programs.dir = dir.join("programs");
-        config.console.as_mut().unwrap().listen = format!("127.0.0.1:{console}");
-        edit(&mut config, dir);
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(cellgate::gateway::run(config, async {
-            let _ = stopped.await;
-        }));
-        let url = format!("http://127.0.0.1:{console}");
-        wait_http(&format!("{url}/health")).await;
-        Gateway {
-            stop: Some(stop),
-            task: Some(task),
-            url,
-            endpoint: format!("tcp/127.0.0.1:{port}"),
-            _dir: None,
-        }
-    }
-
-    pub(crate) async fn stop(mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        if let Some(t) = self.task.take() {
-            tokio::time::timeout(Duration::from_secs(20), t)
-                .await
-                .expect("the gateway stops")
-                .unwrap()
-                .unwrap();
-        }
-    }
-}
+pub(crate) use super::gateway::Gateway;
 
 /// The ring provider for rustls, as the gateway uses it (reqwest is built without one).
 fn provider() {

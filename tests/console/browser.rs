@@ -22,6 +22,8 @@ use common::bus::free_port;
 use fantoccini::{Client, ClientBuilder, Locator};
 use serde_json::{Value, json};
 
+use super::gateway::Gateway;
+
 /// chromium-driver running for one test; killed when dropped.
 struct Driver {
     child: Child,
@@ -91,57 +93,6 @@ async fn browser() -> Option<(Driver, Client)> {
             }
             Err(e) => panic!("no WebDriver session: {e}"),
         }
-    }
-}
-
-/// A gateway of the default cell with its console on a port of its own.
-struct Gateway {
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>,
-    url: String,
-    bus: String,
-    _dir: tempfile::TempDir,
-}
-
-impl Gateway {
-    async fn start(edit: impl FnOnce(&mut CellConfig, &std::path::Path)) -> Gateway {
-        let dir = tempfile::tempdir().unwrap();
-        let mut config = CellConfig::embedded_default();
-        config.mtconnect = None;
-        config.opcua = None;
-        let (port, console) = (free_port(), free_port());
-        config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
-        config.programs.dir = dir.path().join("programs");
-        config.console.as_mut().unwrap().listen = format!("127.0.0.1:{console}");
-        edit(&mut config, dir.path());
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(cellgate::gateway::run(config, async {
-            let _ = stopped.await;
-        }));
-        let url = format!("http://127.0.0.1:{console}");
-        let http = reqwest::Client::new();
-        for _ in 0..300 {
-            if let Ok(r) = http.get(format!("{url}/health")).send().await
-                && r.status() == 200
-            {
-                break;
-            }
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-        Gateway {
-            stop: Some(stop),
-            task,
-            url,
-            bus: format!("tcp/127.0.0.1:{port}"),
-            _dir: dir,
-        }
-    }
-
-    async fn stop(mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        let _ = tokio::time::timeout(Duration::from_secs(20), self.task).await;
     }
 }
 
@@ -252,7 +203,7 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
     screenshot(&c, "overview").await;
 
     // Upload a program from the page.
-    let file = gw._dir.path().join("O7001.nc");
+    let file = gw.dir.join("O7001.nc");
     std::fs::write(&file, PROGRAM).unwrap();
     c.goto(&format!("{}/#/cell/demo/programs", gw.url))
         .await
@@ -345,7 +296,7 @@ async fn a_program_goes_from_upload_to_the_cnc_and_the_cell_shows_it_live() {
 
     // An alarm raised at the simulated CNC shows on the tile without a reload.
     let session = cellgate::bus::open(&common::bus::client_config(
-        gw.bus.rsplit(':').next().unwrap().parse().unwrap(),
+        gw.endpoint.rsplit(':').next().unwrap().parse().unwrap(),
     ))
     .await
     .unwrap();
@@ -766,7 +717,7 @@ async fn the_overview_tells_links_from_alarms_and_a_job_s_end_shows_at_once() {
     };
     let gw = Gateway::start(|_, _| {}).await;
     let bus = BusClient::connect(&ConnectOptions {
-        endpoint: gw.bus.clone(),
+        endpoint: gw.endpoint.clone(),
         ..ConnectOptions::default()
     })
     .await

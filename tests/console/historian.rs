@@ -14,7 +14,7 @@ use cellgate_core::pb;
 use common::bus::{connect_args, free_port};
 use common::postgres::Postgres;
 
-use super::api::Gateway;
+use super::gateway::Gateway;
 
 /// The historian running in this process until stopped (or aborted, as `kill -9` ends it).
 struct Historian {

@@ -16,61 +16,39 @@ use common::bus::free_port;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
+use super::gateway::Gateway;
+
 /// A guard against a hang, well past the time the gateway is given: not a time asserted.
 const SLACK: Duration = Duration::from_secs(20);
 
 /// The embedded default cell in this process: its console, its MTConnect agent and an SHDR
 /// port, each on a free port.
 struct Cell {
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: Option<tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>>,
+    gateway: Gateway,
     console: String,
     mtconnect: String,
     shdr: String,
-    _dir: tempfile::TempDir,
 }
 
 impl Cell {
     async fn start() -> Cell {
-        let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
-        let dir = tempfile::tempdir().unwrap();
-        let mut config = CellConfig::embedded_default();
-        config.opcua = None;
-        let (bus, console, mtconnect, shdr) = (free_port(), free_port(), free_port(), free_port());
-        config.bus.listen = vec![format!("tcp/127.0.0.1:{bus}")];
-        config.programs.dir = dir.path().join("programs");
-        config.console.as_mut().unwrap().listen = format!("127.0.0.1:{console}");
-        let m = config.mtconnect.as_mut().unwrap();
-        m.listen = format!("127.0.0.1:{mtconnect}");
-        m.shdr_listen = Some(format!("127.0.0.1:{shdr}"));
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(cellgate::gateway::run(config, async {
-            let _ = stopped.await;
-        }));
-        let cell = Cell {
-            stop: Some(stop),
-            task: Some(task),
-            console: format!("127.0.0.1:{console}"),
+        let (mtconnect, shdr) = (free_port(), free_port());
+        let gateway = Gateway::start(|c, _| {
+            let m = c.mtconnect.get_or_insert_with(Default::default);
+            m.listen = format!("127.0.0.1:{mtconnect}");
+            m.shdr_listen = Some(format!("127.0.0.1:{shdr}"));
+        })
+        .await;
+        Cell {
+            console: gateway.url.trim_start_matches("http://").to_string(),
+            gateway,
             mtconnect: format!("127.0.0.1:{mtconnect}"),
             shdr: format!("127.0.0.1:{shdr}"),
-            _dir: dir,
-        };
-        wait_200(&format!("http://{}/health", cell.console)).await;
-        wait_200(&format!("http://{}/probe", cell.mtconnect)).await;
-        cell
+        }
     }
 
-    async fn stop(mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        if let Some(t) = self.task.take() {
-            tokio::time::timeout(Duration::from_secs(20), t)
-                .await
-                .expect("the gateway stops")
-                .unwrap()
-                .unwrap();
-        }
+    async fn stop(self) {
+        self.gateway.stop().await;
     }
 }
 

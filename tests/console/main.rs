@@ -9,6 +9,7 @@ mod common;
 
 mod api;
 mod browser;
+mod gateway;
 mod historian;
 mod listeners;
 mod mtconnect;

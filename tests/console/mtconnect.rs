@@ -19,72 +19,15 @@ use std::time::Duration;
 
 use cellgate::bus;
 use cellgate::bus::keys::SimLeaf;
-use cellgate::client::{Client, ConnectOptions};
 use cellgate_core::config::CellConfig;
 use cellgate_core::pb;
 use common::bus::free_port;
 
+use super::gateway::{Gateway, Surface};
+
 /// A gateway of the embedded default cell in this process, with its agent on a free port.
-struct Gateway {
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: Option<tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>>,
-    url: String,
-    endpoint: String,
-    shdr: Option<String>,
-    _dir: tempfile::TempDir,
-}
-
-impl Gateway {
-    async fn start(edit: impl FnOnce(&mut CellConfig)) -> Gateway {
-        provider();
-        let dir = tempfile::tempdir().unwrap();
-        let mut config = CellConfig::embedded_default();
-        config.opcua = None;
-        let (port, http) = (free_port(), free_port());
-        config.console = None;
-        config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
-        config.programs.dir = dir.path().join("programs");
-        let m = config.mtconnect.as_mut().unwrap();
-        m.listen = format!("127.0.0.1:{http}");
-        edit(&mut config);
-        let shdr = config.mtconnect.as_ref().unwrap().shdr_listen.clone();
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(cellgate::gateway::run(config, async {
-            let _ = stopped.await;
-        }));
-        let url = format!("http://127.0.0.1:{http}");
-        wait_for(&url, "/probe", |_| true).await;
-        Gateway {
-            stop: Some(stop),
-            task: Some(task),
-            url,
-            endpoint: format!("tcp/127.0.0.1:{port}"),
-            shdr,
-            _dir: dir,
-        }
-    }
-
-    async fn client(&self) -> Client {
-        Client::connect(&ConnectOptions {
-            endpoint: self.endpoint.clone(),
-            ..ConnectOptions::default()
-        })
-        .await
-        .unwrap()
-    }
-
-    async fn stop(mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        if let Some(t) = self.task.take() {
-            tokio::time::timeout(Duration::from_secs(20), t)
-                .await
-                .expect("the gateway stops")
-                .unwrap()
-                .unwrap();
-        }
-    }
+async fn start(edit: impl FnOnce(&mut CellConfig)) -> Gateway {
+    Gateway::serving(Surface::Agent, None, |c, _| edit(c)).await
 }
 
 /// The ring provider for rustls, as the gateway uses it (reqwest is built without one).
@@ -164,7 +107,7 @@ fn value_of(doc: &str, id: &str) -> Option<(String, String, String)> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_shows_program_and_execution_and_sequences_have_no_gaps() {
-    let gw = Gateway::start(|_| {}).await;
+    let gw = start(|_| {}).await;
     let url = gw.url.clone();
     // The link is up and idle: READY.
     wait_for(&url, "/current", |d| {
@@ -254,7 +197,7 @@ async fn a_job_shows_program_and_execution_and_sequences_have_no_gaps() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_alarm_is_a_fault_with_its_native_code_and_a_reset_clears_it() {
-    let gw = Gateway::start(|_| {}).await;
+    let gw = start(|_| {}).await;
     let url = gw.url.clone();
     wait_for(&url, "/current", |d| {
         value_of(d, "mill-1_system").is_some_and(|v| v.0 == "Normal")
@@ -330,7 +273,7 @@ fn parts(body: &str, boundary: &str) -> Vec<String> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sample_streams_parts_and_heartbeats() {
-    let gw = Gateway::start(|_| {}).await;
+    let gw = start(|_| {}).await;
     // PROGRAM does not change on an idle cell: after the first part, only heartbeats.
     let path = "//DataItem[@type=\"PROGRAM\"]";
     let url = format!(
@@ -371,7 +314,7 @@ async fn sample_streams_parts_and_heartbeats() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn errors_are_mtconnect_error_documents_with_the_standard_codes() {
-    let gw = Gateway::start(|_| {}).await;
+    let gw = start(|_| {}).await;
     let u = &gw.url;
     let cases = [
         ("/nosuch/probe", 404, "NO_DEVICE"),
@@ -497,7 +440,7 @@ async fn every_kind_of_document_is_valid_against_the_2_5_schemas() {
         );
         return;
     };
-    let gw = Gateway::start(|_| {}).await;
+    let gw = start(|_| {}).await;
     let u = gw.url.clone();
     // A fault in the documents too.
     let client = gw.client().await;
@@ -587,7 +530,7 @@ async fn every_kind_of_document_is_valid_against_the_2_5_schemas() {
 async fn the_shdr_adapter_sends_the_state_and_answers_ping() {
     use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
     let port = free_port();
-    let gw = Gateway::start(|c| {
+    let gw = start(|c| {
         c.mtconnect.as_mut().unwrap().shdr_listen = Some(format!("127.0.0.1:{port}"));
     })
     .await;
@@ -659,7 +602,7 @@ async fn a_site_agent_serves_the_cells_of_two_gateways() {
     .unwrap();
     let mut gateways = Vec::new();
     for cell in ["north", "south"] {
-        let gw = Gateway::start(|c| {
+        let gw = start(|c| {
             c.cell = cell.to_string();
             c.bus.connect = vec![format!("tcp/127.0.0.1:{router_port}")];
         })
@@ -716,7 +659,7 @@ async fn a_site_agent_serves_the_cells_of_two_gateways() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_python_follower_and_json_read_the_agent() {
-    let gw = Gateway::start(|_| {}).await;
+    let gw = start(|_| {}).await;
     wait_for(&gw.url, "/current", |d| {
         value_of(d, "mill-1_execution").is_some_and(|v| v.2 == "READY")
     })
@@ -763,7 +706,7 @@ async fn the_python_follower_and_json_read_the_agent() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_punched_program_is_a_file_asset_of_its_machine() {
-    let gw = Gateway::start(|_| {}).await;
+    let gw = start(|_| {}).await;
     let u = gw.url.clone();
     wait_for(&u, "/current", |d| {
         value_of(d, "lathe-1_execution").is_some_and(|v| v.2 == "READY")
@@ -829,7 +772,7 @@ async fn a_job_failed_by_a_restart_shows_interrupted_after_it() {
     let dir = tempfile::tempdir().unwrap();
     let programs = dir.path().join("programs");
     let p = programs.clone();
-    let gw = Gateway::start(move |c| c.programs.dir = p).await;
+    let gw = start(move |c| c.programs.dir = p).await;
     let client = gw.client().await;
     // A program that takes seconds at 19200 baud: the gateway stops while it is sent.
     let mut text = b"%\nO1\n".to_vec();
@@ -856,7 +799,7 @@ async fn a_job_failed_by_a_restart_shows_interrupted_after_it() {
     client.close().await;
     gw.stop().await;
     let p = programs.clone();
-    let gw = Gateway::start(move |c| c.programs.dir = p).await;
+    let gw = start(move |c| c.programs.dir = p).await;
     let current = wait_for(&gw.url, "/current", |d| {
         value_of(d, "mill-1_execution").is_some_and(|v| v.2 != "UNAVAILABLE")
     })

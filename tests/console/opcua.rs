@@ -19,100 +19,15 @@ use std::sync::mpsc;
 use std::time::Duration;
 
 use cellgate::bus::keys::SimLeaf;
-use cellgate::client::{Client, ConnectOptions};
-use cellgate_core::config::{CellConfig, OpcuaConfig};
+use cellgate_core::config::CellConfig;
 use cellgate_core::pb;
 use common::bus::free_port;
 
-/// A gateway of the embedded default cell in this process, with its OPC UA server on a free
-/// port.
-struct Gateway {
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: Option<tokio::task::JoinHandle<Result<(), cellgate::gateway::GatewayError>>>,
-    url: String,
-    endpoint: String,
-    /// The server's PKI folder.
-    pki: std::path::PathBuf,
-    _dir: tempfile::TempDir,
-}
+use super::gateway::{Gateway, Surface};
 
-impl Gateway {
-    async fn start(edit: impl FnOnce(&mut CellConfig, &Path)) -> Gateway {
-        let dir = tempfile::tempdir().unwrap();
-        let mut config = CellConfig::embedded_default();
-        let (port, ua) = (free_port(), free_port());
-        config.console = None;
-        config.mtconnect = None;
-        config.bus.listen = vec![format!("tcp/127.0.0.1:{port}")];
-        config.programs.dir = dir.path().join("programs");
-        config.opcua = Some(OpcuaConfig {
-            listen: format!("127.0.0.1:{ua}"),
-            pki_dir: Some(dir.path().join("pki")),
-            ..OpcuaConfig::default()
-        });
-        edit(&mut config, dir.path());
-        let serves_opcua = config.opcua.is_some();
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(cellgate::gateway::run(config, async {
-            let _ = stopped.await;
-        }));
-        // Serving once the OPC UA port takes a connection, or (without one) once the cell
-        // answers on the bus: at most a minute, a guard, not a time the test asserts.
-        for _ in 0..600 {
-            let up = if serves_opcua {
-                tokio::net::TcpStream::connect(("127.0.0.1", ua))
-                    .await
-                    .is_ok()
-            } else {
-                match Client::connect(&ConnectOptions {
-                    endpoint: format!("tcp/127.0.0.1:{port}"),
-                    ..ConnectOptions::default()
-                })
-                .await
-                {
-                    Ok(c) => {
-                        c.close().await;
-                        true
-                    }
-                    Err(_) => false,
-                }
-            };
-            if up {
-                break;
-            }
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-        Gateway {
-            stop: Some(stop),
-            task: Some(task),
-            url: format!("opc.tcp://127.0.0.1:{ua}/"),
-            endpoint: format!("tcp/127.0.0.1:{port}"),
-            pki: dir.path().join("pki"),
-            _dir: dir,
-        }
-    }
-
-    async fn client(&self) -> Client {
-        Client::connect(&ConnectOptions {
-            endpoint: self.endpoint.clone(),
-            ..ConnectOptions::default()
-        })
-        .await
-        .unwrap()
-    }
-
-    async fn stop(mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        if let Some(t) = self.task.take() {
-            tokio::time::timeout(Duration::from_secs(20), t)
-                .await
-                .expect("the gateway stops")
-                .unwrap()
-                .unwrap();
-        }
-    }
+/// A gateway of the embedded default cell in this process, its OPC UA server on a free port.
+async fn start(edit: impl FnOnce(&mut CellConfig, &Path)) -> Gateway {
+    Gateway::serving(Surface::Opcua, None, edit).await
 }
 
 /// Whether asyncua can be imported; says so when not.
@@ -220,7 +135,7 @@ async fn machine_tools_have_their_mandatory_nodes_and_follow_a_job_and_an_alarm(
     if !asyncua() {
         return;
     }
-    let gw = Gateway::start(|_, _| {}).await;
+    let gw = start(|_, _| {}).await;
     let nodesets = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/opcua/nodesets");
     // The default cell's three CNCs, 17 mandatory nodes each by the NodeSet. The port takes
     // connections a moment before the machines are built: asked again until all three are
@@ -329,7 +244,7 @@ async fn a_cell_with_users_takes_only_a_user_with_the_right_password_and_status_
     if !asyncua() {
         return;
     }
-    let gw = Gateway::start(secured).await;
+    let gw = start(secured).await;
     // No anonymous token policy is offered: the stack calls the token invalid.
     let anonymous = run(&["login", &gw.url]).await;
     assert!(
@@ -355,13 +270,13 @@ async fn a_cell_with_users_takes_only_a_user_with_the_right_password_and_status_
         run(&["secure", &gw.url, "olga", "tulips", dir]).await,
         "refused BadCertificateUntrusted"
     );
-    let rejected: Vec<_> = std::fs::read_dir(gw.pki.join("rejected"))
+    let rejected: Vec<_> = std::fs::read_dir(gw.pki().join("rejected"))
         .unwrap()
         .map(|e| e.unwrap().path())
         .collect();
     assert_eq!(rejected.len(), 1, "{rejected:?}");
     let name = rejected[0].file_name().unwrap();
-    std::fs::rename(&rejected[0], gw.pki.join("trusted").join(name)).unwrap();
+    std::fs::rename(&rejected[0], gw.pki().join("trusted").join(name)).unwrap();
     assert_eq!(run(&["secure", &gw.url, "olga", "tulips", dir]).await, "ok");
     assert_eq!(
         run(&["secure", &gw.url, "olga", "roses", dir]).await,
@@ -369,7 +284,7 @@ async fn a_cell_with_users_takes_only_a_user_with_the_right_password_and_status_
     );
     // The key the server made is its user's alone.
     use std::os::unix::fs::PermissionsExt as _;
-    let mode = std::fs::metadata(gw.pki.join("private/private.pem"))
+    let mode = std::fs::metadata(gw.pki().join("private/private.pem"))
         .unwrap()
         .permissions()
         .mode();
@@ -423,7 +338,7 @@ async fn a_site_server_follows_the_cells_of_two_gateways() {
     watcher.wait(|l| l == "ready").await;
     let mut gateways = Vec::new();
     for cell in ["north", "south"] {
-        let gw = Gateway::start(|c, _| {
+        let gw = start(|c, _| {
             c.cell = cell.to_string();
             c.bus.connect = vec![format!("tcp/127.0.0.1:{router_port}")];
             c.opcua = None;
