@@ -24,7 +24,8 @@ pub struct ProtocolAConfig {
     /// Expansion A: while data is late, an invalid (dummy) packet goes out this long after the
     /// last packet (§5.2 2 c). Must be well below To.
     pub dummy_interval: Duration,
-    /// Most program bytes held at once; [`HostEngine::data_wanted`] is the free space.
+    /// Most program bytes held at once;
+    /// [`HostEngine::data_wanted`](crate::fanuc::host::HostEngine::data_wanted) is the free space.
     pub max_buffer: usize,
     /// Line time of one character (the transport's `LineSettings::char_time`), so that time-out
     /// supervision starts after a long DAT has left the line. Zero when unknown.
