@@ -9,7 +9,7 @@ use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use common::bus::free_port;
-use common::cli::{Reaper, bin, cellgate, collect_stderr, wait_with_deadline};
+use common::cli::{Reaper, bin, cellgate, collect_stderr, run_on, wait_with_deadline};
 
 const PROGRAM: &str = "%\nO7001(BRACKET)\nN10G00X0Y0\nN20G01X25.F150\nN30Y40.\nN40M30\n%\n";
 
@@ -25,20 +25,8 @@ impl Run {
     async fn start(extra: &[&str]) -> Run {
         let endpoint = format!("tcp/127.0.0.1:{}", free_port());
         let dir = tempfile::tempdir().unwrap();
-        let child = bin()
-            .args([
-                "run",
-                "-l",
-                &endpoint,
-                "--console",
-                "off",
-                "--mtconnect",
-                "off",
-                "--opcua",
-                "off",
-            ])
+        let child = run_on(&endpoint, dir.path())
             .args(extra)
-            .current_dir(dir.path())
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
             .stderr(std::fs::File::create(dir.path().join("gateway.log")).unwrap())

@@ -229,22 +229,7 @@ fn run_on_an_endpoint_in_use_exits_1() {
     let port = taken.local_addr().unwrap().port();
     // Its programs directory and journal go in a directory of its own.
     let dir = tempfile::tempdir().unwrap();
-    let mut child = common::cli::bin()
-        .current_dir(dir.path())
-        .args([
-            "run",
-            "--listen",
-            &format!("tcp/127.0.0.1:{port}"),
-            "--console",
-            "off",
-            "--mtconnect",
-            "off",
-            "--opcua",
-            "off",
-        ])
-        .env_remove("OTEL_EXPORTER_OTLP_ENDPOINT")
-        .env_remove("CELLGATE_CONFIG")
-        .stdin(Stdio::null())
+    let mut child = common::cli::run_on(&format!("tcp/127.0.0.1:{port}"), dir.path())
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()

@@ -34,7 +34,7 @@ fn reload_and_sighup_apply_the_file_and_a_bad_one_is_refused_with_every_error() 
     );
     std::fs::write(&path, format!("{head}{}", machine("m1"))).unwrap();
     let mut child = common::cli::command(["run", "--config", path.to_str().unwrap()])
-        .args(["--console", "off", "--mtconnect", "off", "--opcua", "off"])
+        .args(common::cli::ONLY_THE_BUS)
         .current_dir(dir.path())
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -137,7 +137,7 @@ fn a_fifo_or_a_device_in_the_cell_files_place_is_refused_and_sigterm_still_stops
     );
     std::fs::write(&path, format!("{head}{}", machine("m1"))).unwrap();
     let mut child = common::cli::command(["run", "--config", path.to_str().unwrap()])
-        .args(["--console", "off", "--mtconnect", "off", "--opcua", "off"])
+        .args(common::cli::ONLY_THE_BUS)
         .current_dir(dir.path())
         .stdout(Stdio::null())
         .stderr(Stdio::piped())

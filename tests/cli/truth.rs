@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use crate::common;
 
 use common::bus::free_port;
-use common::cli::command;
+use common::cli::{command, run_on};
 
 /// `cellgate run` on the embedded cell, in a directory of its own; killed when dropped.
 pub struct Gateway {
@@ -23,22 +23,11 @@ impl Gateway {
     pub fn start() -> Gateway {
         let endpoint = format!("tcp/127.0.0.1:{}", free_port());
         let dir = tempfile::tempdir().unwrap();
-        let child = command([
-            "run",
-            "--listen",
-            &endpoint,
-            "--console",
-            "off",
-            "--mtconnect",
-            "off",
-            "--opcua",
-            "off",
-        ])
-        .current_dir(dir.path())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+        let child = run_on(&endpoint, dir.path())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
         let g = Gateway {
             child,
             endpoint,

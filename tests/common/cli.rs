@@ -27,6 +27,17 @@ const ENV: &[&str] = &[
     "OTEL_EXPORTER_OTLP_ENDPOINT",
 ];
 
+/// The listeners of `cellgate run` other than the bus, off: a test that needs one turns it on.
+pub const ONLY_THE_BUS: [&str; 6] = ["--console", "off", "--mtconnect", "off", "--opcua", "off"];
+
+/// `cellgate run` on the embedded default cell, its bus on `endpoint` and no other listener
+/// ([`ONLY_THE_BUS`]), working in `dir` (its program library goes there).
+pub fn run_on(endpoint: &str, dir: &std::path::Path) -> Command {
+    let mut c = command(["run", "--listen", endpoint]);
+    c.args(ONLY_THE_BUS).current_dir(dir);
+    c
+}
+
 /// The binary with `args`, its environment cleared of the variables it reads and its stdin
 /// closed.
 pub fn command<I, S>(args: I) -> Command

@@ -20,19 +20,7 @@ impl RunProcess {
         let port = free_port();
         let endpoint = format!("tcp/127.0.0.1:{port}");
         let dir = tempfile::tempdir().unwrap();
-        let child = common::cli::bin()
-            .args([
-                "run",
-                "-l",
-                &endpoint,
-                "--console",
-                "off",
-                "--mtconnect",
-                "off",
-                "--opcua",
-                "off",
-            ])
-            .current_dir(dir.path())
+        let child = common::cli::run_on(&endpoint, dir.path())
             .env(
                 "RUST_LOG",
                 std::env::var("CELLGATE_TEST_RUST_LOG").unwrap_or("warn".into()),
