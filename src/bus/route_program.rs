@@ -24,7 +24,7 @@ use super::context::{RequestError, RouteContext, publish_event, reply, reply_byt
 use super::keys::{CellKey, intersects};
 use super::published::Published;
 use super::write::{Audited, Done, Via, Write};
-use crate::library::Store;
+use crate::library::{LibraryError, ProgramEntry, Store};
 use cellgate_core::pb;
 use cellgate_core::program::diff::{self, DiffOptions};
 
@@ -230,21 +230,12 @@ pub(super) async fn program_write(
             ctx.library.remove_by(name).await,
         ),
         (Via::Put, bytes) => {
-            let bytes = bytes.unwrap_or_default();
-            (
-                "program.store",
-                format!("{} bytes", bytes.len()),
-                ctx.library
-                    .store_as(
-                        name,
-                        Store {
-                            bytes: bytes.as_ref().into(),
-                            by,
-                            ..Store::default()
-                        },
-                    )
-                    .await,
-            )
+            let store = Store {
+                bytes: bytes.unwrap_or_default(),
+                by,
+                ..Store::default()
+            };
+            stored(ctx, name, store).await
         }
         (Via::Get, None) => {
             return Done::refused(RequestError::WrongKey(format!(
@@ -283,22 +274,16 @@ pub(super) async fn program_write(
                         outcome: info.map(Some),
                     };
                 }
-                Some(pb::program_write::Op::Store(bytes)) => (
-                    "program.store",
-                    format!("{} bytes", bytes.len()),
-                    ctx.library
-                        .store_as(
-                            name,
-                            Store {
-                                // The request's own bytes, not a copy: a program may be large.
-                                bytes: bytes.into(),
-                                by,
-                                comment: write.comment,
-                                adopted: None,
-                            },
-                        )
-                        .await,
-                ),
+                Some(pb::program_write::Op::Store(bytes)) => {
+                    let store = Store {
+                        // The request's own bytes, not a copy: a program may be large.
+                        bytes: bytes.into(),
+                        by,
+                        comment: write.comment,
+                        adopted: None,
+                    };
+                    stored(ctx, name, store).await
+                }
                 Some(pb::program_write::Op::Remove(_)) => (
                     "program.remove",
                     String::new(),
@@ -352,6 +337,20 @@ pub(super) async fn program_write(
         changed(ctx, info.clone(), removed, w.origin.as_ref()).await;
     }
     Done::audited(audited(action, detail), Ok(info))
+}
+
+/// `store` kept as program `name`: the audit's action and detail, and the library's answer.
+async fn stored(
+    ctx: &RouteContext,
+    name: &str,
+    store: Store<'_>,
+) -> (&'static str, String, Result<ProgramEntry, LibraryError>) {
+    let detail = format!("{} bytes", store.bytes.len());
+    (
+        "program.store",
+        detail,
+        ctx.library.store_as(name, store).await,
+    )
 }
 
 /// Tells the cell that a program changed: its `ProgramInfo` on `…/program/NAME/changed`
