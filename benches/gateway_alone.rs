@@ -23,7 +23,9 @@
 //! `--no-history` turns the cell's history off; `--console-pages N` serves the console and
 //! opens N pages (each its first load, then its event stream) while the jobs run; `--window N`
 //! sets the machines' `transport.window`.
-//! `CELLGATE_GATEWAY_BIN=path` measures another gateway binary against the same boards. Under
+//! `CELLGATE_GATEWAY_BIN=path` measures another gateway binary against the same boards;
+//! `--compare path` measures that binary and this build's, one after the other on each case,
+//! and prints their rows side by side (build "before" and "after"). Under
 //! `cargo test` a smoke pass (4 machines, short jobs) checks that the benchmark still works.
 
 #[path = "../tests/common/mod.rs"]
@@ -47,8 +49,9 @@ use zenoh::Session;
 
 const BIN: &str = env!("CARGO_BIN_EXE_cellgate");
 
-/// The gateway binary measured: this build's, or another one named by `CELLGATE_GATEWAY_BIN`
-/// (an older build, to compare on the same machine; the boards stay this build's).
+/// The gateway binary measured by default: this build's, or another one named by
+/// `CELLGATE_GATEWAY_BIN` (an older build, to compare on the same machine; the boards stay
+/// this build's).
 fn gateway_bin() -> String {
     std::env::var("CELLGATE_GATEWAY_BIN").unwrap_or_else(|_| BIN.to_string())
 }
@@ -125,6 +128,8 @@ struct Case {
     console_pages: usize,
     /// The machines' `transport.window`; `None`: the cell file leaves it out.
     window: Option<u32>,
+    /// The gateway binary, and what its row calls it.
+    gateway: (String, &'static str),
 }
 
 /// What the boards' process said, with when this program read it.
@@ -390,7 +395,7 @@ async fn run(case: &Case) {
     }
     let gateway_log = std::fs::File::create(dir.path().join("gateway.log")).unwrap();
     let gateway = Reaped(
-        Command::new(gateway_bin())
+        Command::new(&case.gateway.0)
             .args(["run", "--config"])
             .arg(&cell)
             .current_dir(dir.path())
@@ -622,8 +627,9 @@ async fn run(case: &Case) {
     let kib = |k: u64| k as f64 / n as f64;
     let ms = |s: f64| s * 1000.0;
     println!(
-        "| {n} | {} | {} | {:.1} % | {:.1} % | {:.0} KiB | {:.0} KiB | {:.1} % / {:.1} % | {} | {} | {:.0} % | {:.1} s |",
+        "| {n} | {} | {} | {} | {:.1} % | {:.1} % | {:.0} KiB | {:.0} KiB | {:.1} % / {:.1} % | {} | {} | {:.0} % | {:.1} s |",
         case.baud,
+        case.gateway.1,
         case.proto.label(),
         100.0 * idle_cpu,
         100.0 * busy_cpu,
@@ -705,35 +711,53 @@ fn main() {
         .build()
         .expect("tokio runtime");
     println!(
-        "| links | baud | protocol | CPU idle | CPU busy | RSS/link idle | RSS/link busy | \
+        "| links | baud | protocol | build | CPU idle | CPU busy | RSS/link idle | RSS/link busy | \
          jobs: min / median of bound | DO delay p50 / p99 | DO to board p50 / p99 | boards' CPU | links up in |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    // `--compare OTHER`: OTHER ("before") then this build ("after") on every case.
+    let builds: Vec<(String, &'static str)> = match args
+        .iter()
+        .position(|a| a == "--compare")
+        .and_then(|i| args.get(i + 1))
+    {
+        Some(other) => {
+            let other = std::fs::canonicalize(other)
+                .unwrap_or_else(|e| panic!("--compare {other}: {e}"))
+                .to_string_lossy()
+                .into_owned();
+            vec![(other, "before"), (BIN.to_string(), "after")]
+        }
+        None => vec![(gateway_bin(), "this")],
+    };
     for &n in &machines {
         for &baud in &bauds {
             for &proto in &protos {
                 if proto == Proto::B && baud > 19_200 {
                     continue;
                 }
-                let case = Case {
-                    machines: n,
-                    baud,
-                    proto,
-                    job_seconds,
-                    idle_seconds,
-                    dos: !args.iter().any(|a| a == "--no-do"),
-                    undeclared_do: args.iter().any(|a| a == "--undeclared-do"),
-                    history: !args.iter().any(|a| a == "--no-history"),
-                    console_pages: list(&args, "--console-pages", "0", |s| {
-                        s.parse::<usize>().unwrap()
-                    })[0],
-                    window: args
-                        .iter()
-                        .position(|a| a == "--window")
-                        .and_then(|i| args.get(i + 1))
-                        .map(|s| s.parse().expect("--window takes a number of bytes")),
-                };
-                rt.block_on(run(&case));
+                for gateway in &builds {
+                    let case = Case {
+                        machines: n,
+                        baud,
+                        proto,
+                        job_seconds,
+                        idle_seconds,
+                        dos: !args.iter().any(|a| a == "--no-do"),
+                        undeclared_do: args.iter().any(|a| a == "--undeclared-do"),
+                        history: !args.iter().any(|a| a == "--no-history"),
+                        console_pages: list(&args, "--console-pages", "0", |s| {
+                            s.parse::<usize>().unwrap()
+                        })[0],
+                        window: args
+                            .iter()
+                            .position(|a| a == "--window")
+                            .and_then(|i| args.get(i + 1))
+                            .map(|s| s.parse().expect("--window takes a number of bytes")),
+                        gateway: gateway.clone(),
+                    };
+                    rt.block_on(run(&case));
+                }
             }
         }
     }

@@ -5,7 +5,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use tokio::sync::{broadcast, watch};
+use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use zenoh::liveliness::LivelinessToken;
 
@@ -20,6 +20,7 @@ use super::route_punch::{Outcome, PunchDesk, PunchSettings};
 use super::route_status::StatusPublisher;
 use crate::jobs::{JobsHandle, JobsSnapshot};
 use crate::link::driver::{LinkCommand, LinkEvent, LinkHandle};
+use crate::link::fanout;
 use cellgate_core::fanuc::host::LinkState;
 use cellgate_core::pb;
 
@@ -34,8 +35,8 @@ pub(crate) struct MachineTask {
     punch: MachinePublisher<pb::PunchedProgram>,
     desk: PunchDesk,
     token: Option<LivelinessToken>,
-    link_events: broadcast::Receiver<LinkEvent>,
-    job_events: broadcast::Receiver<Arc<pb::JobEvent>>,
+    link_events: fanout::Receiver<LinkEvent>,
+    job_events: fanout::Receiver<Arc<pb::JobEvent>>,
     snapshot: watch::Receiver<JobsSnapshot>,
     recorder: Recorder,
 }
@@ -43,8 +44,8 @@ pub(crate) struct MachineTask {
 /// What a machine's task listens to, subscribed before the gateway first awaits so that no
 /// event of a running link is missed.
 pub(crate) struct MachineFeeds {
-    pub link_events: broadcast::Receiver<LinkEvent>,
-    pub job_events: broadcast::Receiver<Arc<pb::JobEvent>>,
+    pub link_events: fanout::Receiver<LinkEvent>,
+    pub job_events: fanout::Receiver<Arc<pb::JobEvent>>,
     pub snapshot: watch::Receiver<JobsSnapshot>,
 }
 
@@ -53,7 +54,7 @@ impl MachineFeeds {
     pub(super) fn subscribe(
         link: &LinkHandle,
         jobs: &JobsHandle,
-        job_events: broadcast::Receiver<Arc<pb::JobEvent>>,
+        job_events: fanout::Receiver<Arc<pb::JobEvent>>,
     ) -> Self {
         MachineFeeds {
             link_events: link.subscribe(),
@@ -117,23 +118,23 @@ impl MachineTask {
                 () = stop.cancelled() => break,
                 event = self.link_events.recv() => match event {
                     Ok(event) => self.on_link_event(event).await,
-                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                    Err(fanout::RecvError::Lagged(n)) => {
                         tracing::warn!(machine = %machine.name(), missed = n, "the bus fell behind this link's events");
                         let outcome = self.desk.lost(n);
                         self.publish_punch_outcome(outcome).await;
                     }
                     // Cannot happen while the machine holds its link handle.
-                    Err(broadcast::error::RecvError::Closed) => break,
+                    Err(fanout::RecvError::Closed) => break,
                 },
                 event = self.job_events.recv() => match event {
                     Ok(event) => {
                         self.recorder.job(&self.ctx.history, machine.name(), &event);
                         self.job_publisher.publish(&self.ctx, &machine, &event).await;
                     }
-                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                    Err(fanout::RecvError::Lagged(n)) => {
                         tracing::warn!(machine = %machine.name(), missed = n, "the bus fell behind this machine's job events");
                     }
-                    Err(broadcast::error::RecvError::Closed) => break,
+                    Err(fanout::RecvError::Closed) => break,
                 },
                 changed = self.snapshot.changed(), if jobs_running => {
                     if changed.is_ok() {
@@ -172,7 +173,7 @@ impl MachineTask {
     async fn publish_status(&mut self) {
         if let Some(status) = self.status.publish(&self.machine).await {
             self.recorder
-                .status(&self.ctx.history, self.machine.name(), status);
+                .status(&self.ctx.history, self.machine.name(), &status);
         }
     }
 

@@ -52,13 +52,13 @@ use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use prost::Message;
-use tokio::sync::{broadcast, mpsc, oneshot, watch};
+use tokio::sync::{mpsc, oneshot, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 use crate::library::{LibraryError, ProgramLibrary};
-use crate::link::JobId;
 use crate::link::driver::{JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
+use crate::link::{JobId, fanout};
 use crate::telemetry::metrics::{self, MachineMetrics, Outcome};
 use crate::telemetry::span_count;
 use cellgate_core::config::Accept;
@@ -75,9 +75,8 @@ use source::{ProgramError, ProgramInput, ProgramRules};
 pub const MAX_WAITING: usize = 256;
 
 /// Job events kept for a subscriber that fell behind (the machine's bus task, followers):
-/// room for a full queue's `queued` events at once, and more. Every slot is allocated up
-/// front in each of a thousand machines, so events travel as `Arc`s (a slot of 40 bytes, not
-/// 192).
+/// room for a full queue's `queued` events at once, and more. Paid for only while they wait
+/// ([`fanout`]); events travel as `Arc`s, so a waiting one is a pointer.
 pub const JOB_EVENTS: usize = 1024;
 
 /// Progress events of one job are at least this far apart.
@@ -208,7 +207,7 @@ pub struct JobsHandle {
     library: ProgramLibrary,
     journal: Journal,
     requests: mpsc::Sender<Request>,
-    events: broadcast::Sender<Arc<pb::JobEvent>>,
+    events: fanout::Sender<Arc<pb::JobEvent>>,
     snapshot: watch::Receiver<JobsSnapshot>,
     /// The latest event of each job kept when the manager started, oldest first.
     restored: Arc<Vec<pb::JobEvent>>,
@@ -314,7 +313,7 @@ impl JobsHandle {
     }
 
     /// Job events from now on.
-    pub fn subscribe(&self) -> broadcast::Receiver<Arc<pb::JobEvent>> {
+    pub fn subscribe(&self) -> fanout::Receiver<Arc<pb::JobEvent>> {
         self.events.subscribe()
     }
 
@@ -352,10 +351,10 @@ pub fn spawn(
 ) -> (
     JobsHandle,
     tokio::task::JoinHandle<()>,
-    broadcast::Receiver<Arc<pb::JobEvent>>,
+    fanout::Receiver<Arc<pb::JobEvent>>,
 ) {
     let (req_tx, req_rx) = mpsc::channel(64);
-    let (ev_tx, first_rx) = broadcast::channel(JOB_EVENTS);
+    let (ev_tx, first_rx) = fanout::channel(JOB_EVENTS);
     let (snap_tx, snap_rx) = watch::channel(JobsSnapshot::default());
     let name: Arc<str> = Arc::from(machine);
     let restored_events = settings
@@ -451,7 +450,7 @@ struct Manager {
     request_ids: HashMap<String, String>,
     journal: Journal,
     keep: usize,
-    events: broadcast::Sender<Arc<pb::JobEvent>>,
+    events: fanout::Sender<Arc<pb::JobEvent>>,
     snapshot: watch::Sender<JobsSnapshot>,
     totals: JobsSnapshot,
     /// What the link waits for from the board, and since when (Unix ms).
@@ -495,7 +494,7 @@ impl Manager {
         mut self,
         restored: Vec<JobRecord>,
         mut requests: mpsc::Receiver<Request>,
-        mut link_events: broadcast::Receiver<LinkEvent>,
+        mut link_events: fanout::Receiver<LinkEvent>,
         shutdown: CancellationToken,
     ) {
         self.restore(restored).await;
@@ -517,13 +516,13 @@ impl Manager {
                 },
                 event = link_events.recv() => match event {
                     Ok(e) => self.on_link_event(e).await,
-                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                    Err(fanout::RecvError::Lagged(n)) => {
                         // Only a stalled manager lags; a job's end may have been lost.
                         tracing::error!(missed = n, "job manager fell behind the link's events; asking the link where its jobs stand");
                         self.resync().await;
                     }
                     // Cannot happen while this manager holds the link handle.
-                    Err(broadcast::error::RecvError::Closed) => break,
+                    Err(fanout::RecvError::Closed) => break,
                 },
             }
         }
@@ -816,18 +815,32 @@ impl Manager {
 
     fn publish_snapshot(&mut self) {
         self.metrics.set_queue_depth(self.waiting.len());
-        let snapshot = JobsSnapshot {
-            active: self.active.as_ref().map(|a| a.record.id.clone()),
-            waiting: self.waiting.len(),
-            ..self.totals.clone()
-        };
+        let active = self.active.as_ref().map(|a| a.record.id.as_str());
+        let waiting = self.waiting.len();
+        let totals = &self.totals;
+        // Compared before anything is built: the manager asks after every event it takes.
         self.snapshot.send_if_modified(|old| {
-            if *old == snapshot {
-                false
-            } else {
-                *old = snapshot;
-                true
+            // Every field named, so that a new one cannot be left out of the comparison.
+            let JobsSnapshot {
+                active: old_active,
+                waiting: old_waiting,
+                nc_bytes_sent,
+                jobs_completed,
+                jobs_failed,
+            } = &*old;
+            let same = old_active.as_deref() == active
+                && *old_waiting == waiting
+                && *nc_bytes_sent == totals.nc_bytes_sent
+                && *jobs_completed == totals.jobs_completed
+                && *jobs_failed == totals.jobs_failed;
+            if !same {
+                *old = JobsSnapshot {
+                    active: active.map(str::to_owned),
+                    waiting,
+                    ..totals.clone()
+                };
             }
+            !same
         });
     }
 

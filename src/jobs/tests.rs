@@ -22,7 +22,7 @@ type Log = Arc<Mutex<Vec<String>>>;
 /// `pace`, reporting progress per chunk; `Cancel` is honoured between chunks.
 struct StandIn {
     commands: mpsc::Receiver<LinkCommand>,
-    events: broadcast::Sender<LinkEvent>,
+    events: fanout::Sender<LinkEvent>,
     log: Log,
     release: Arc<Semaphore>,
     chunk: usize,
@@ -32,9 +32,9 @@ struct StandIn {
     /// The job being sent, and the end events sent, as a link reports them (`Jobs`).
     active: Option<JobId>,
     ends: Vec<LinkEvent>,
-    /// After a job's end, floods the event channel past its capacity: the manager misses the
-    /// end and must ask.
-    flood_after_end: Arc<std::sync::atomic::AtomicBool>,
+    /// Before a job's end, floods the event channel past its capacity: the end finds no
+    /// room, the manager misses it and must ask.
+    flood_before_end: Arc<std::sync::atomic::AtomicBool>,
     /// Answers `Jobs` as a link that has forgotten its ends.
     forget_ends: Arc<std::sync::atomic::AtomicBool>,
 }
@@ -49,10 +49,9 @@ impl StandIn {
             self.ends.push(e.clone());
             self.active = None;
         }
-        let _ = self.events.send(e);
         if end
             && self
-                .flood_after_end
+                .flood_before_end
                 .load(std::sync::atomic::Ordering::SeqCst)
         {
             for _ in 0..2000 {
@@ -65,6 +64,7 @@ impl StandIn {
                 });
             }
         }
+        let _ = self.events.send(e);
     }
 
     fn other(&mut self, cmd: LinkCommand) {
@@ -179,8 +179,8 @@ impl StandIn {
 
 struct Rig {
     jobs: JobsHandle,
-    events: broadcast::Receiver<Arc<pb::JobEvent>>,
-    link_events: broadcast::Sender<LinkEvent>,
+    events: fanout::Receiver<Arc<pb::JobEvent>>,
+    link_events: fanout::Sender<LinkEvent>,
     log: Log,
     release: Arc<Semaphore>,
     library: ProgramLibrary,
@@ -190,7 +190,7 @@ struct Rig {
     protocol: Protocol,
     chunk: usize,
     pace: Duration,
-    flood_after_end: Arc<std::sync::atomic::AtomicBool>,
+    flood_before_end: Arc<std::sync::atomic::AtomicBool>,
     forget_ends: Arc<std::sync::atomic::AtomicBool>,
 }
 
@@ -211,10 +211,10 @@ fn rig_in(dir: Arc<tempfile::TempDir>, protocol: Protocol, chunk: usize, pace: D
     machine.protocol = protocol;
     machine.packet_n = None;
     let (cmd_tx, cmd_rx) = mpsc::channel(64);
-    let (ev_tx, _) = broadcast::channel(1024);
+    let (ev_tx, _) = fanout::channel(1024);
     let log = Log::default();
     let release = Arc::new(Semaphore::new(0));
-    let flood_after_end = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flood_before_end = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let forget_ends = Arc::new(std::sync::atomic::AtomicBool::new(false));
     tokio::spawn(
         StandIn {
@@ -227,7 +227,7 @@ fn rig_in(dir: Arc<tempfile::TempDir>, protocol: Protocol, chunk: usize, pace: D
             pending: Default::default(),
             active: None,
             ends: Vec::new(),
-            flood_after_end: flood_after_end.clone(),
+            flood_before_end: flood_before_end.clone(),
             forget_ends: forget_ends.clone(),
         }
         .run(),
@@ -259,7 +259,7 @@ fn rig_in(dir: Arc<tempfile::TempDir>, protocol: Protocol, chunk: usize, pace: D
         protocol,
         chunk,
         pace,
-        flood_after_end,
+        flood_before_end,
         forget_ends,
     }
 }
@@ -296,7 +296,7 @@ fn inline(program: &'static [u8], priority: i32) -> JobSubmission {
 }
 
 /// The next event, within a (virtual) minute.
-async fn next(rx: &mut broadcast::Receiver<Arc<pb::JobEvent>>) -> pb::JobEvent {
+async fn next(rx: &mut fanout::Receiver<Arc<pb::JobEvent>>) -> pb::JobEvent {
     let e = tokio::time::timeout(Duration::from_secs(60), rx.recv())
         .await
         .expect("no job event")
@@ -305,7 +305,7 @@ async fn next(rx: &mut broadcast::Receiver<Arc<pb::JobEvent>>) -> pb::JobEvent {
 }
 
 /// Events until the job `id` ends, inclusive.
-async fn until_end(rx: &mut broadcast::Receiver<Arc<pb::JobEvent>>, id: &str) -> Vec<pb::JobEvent> {
+async fn until_end(rx: &mut fanout::Receiver<Arc<pb::JobEvent>>, id: &str) -> Vec<pb::JobEvent> {
     let mut seen = Vec::new();
     loop {
         let e = next(rx).await;
@@ -916,7 +916,7 @@ async fn waiting_jobs_hold_no_file_open() {
 async fn a_job_end_lost_in_a_lag_is_asked_for_and_never_left_active() {
     for forget in [false, true] {
         let mut r = rig(Protocol::A, 8, Duration::from_millis(10));
-        r.flood_after_end
+        r.flood_before_end
             .store(true, std::sync::atomic::Ordering::SeqCst);
         r.forget_ends
             .store(forget, std::sync::atomic::Ordering::SeqCst);
@@ -947,7 +947,7 @@ async fn a_job_end_lost_in_a_lag_is_asked_for_and_never_left_active() {
 }
 
 /// Waits until job `id` has started.
-async fn until_started(rx: &mut broadcast::Receiver<Arc<pb::JobEvent>>, id: &str) {
+async fn until_started(rx: &mut fanout::Receiver<Arc<pb::JobEvent>>, id: &str) {
     loop {
         let e = next(rx).await;
         if e.job_id == id && kind_name(&e) == "started" {

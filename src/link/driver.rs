@@ -10,10 +10,11 @@ use std::sync::Arc;
 
 use bytes::Bytes;
 use tokio::io::{AsyncRead, AsyncReadExt};
-use tokio::sync::{broadcast, mpsc, watch};
+use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
 use super::JobId;
+use super::fanout;
 use super::pump::{Pump, PumpError, now};
 use crate::telemetry::metrics::{self, LinkMetrics};
 use crate::telemetry::span_count;
@@ -236,10 +237,10 @@ pub const COMMAND_QUEUE: usize = 64;
 /// otherwise (for programs of unknown size).
 pub const PROGRESS_INTERVAL: Duration = Duration::from_millis(250);
 
-/// Link events kept for a subscriber that fell behind. Every slot is allocated up front, a
-/// thousand links each hold them: 256 is a minute of a busy link's events (progress comes at
-/// most every 250 ms, status at each SAT), while the subscribers (the machine's bus task,
-/// its job manager) take them within milliseconds.
+/// Link events kept for a subscriber that fell behind ([`fanout`]: paid for only while they
+/// wait): 256 is a minute of a busy link's events (progress comes at most every 250 ms,
+/// status at each SAT), while the subscribers (the machine's bus task, its job manager) take
+/// them within milliseconds.
 pub const LINK_EVENTS: usize = 256;
 
 /// The largest piece read from a program source at once. A file source holds a buffer of
@@ -251,7 +252,7 @@ const SOURCE_CHUNK: usize = 8 * 1024;
 pub struct LinkHandle {
     machine: String,
     commands: mpsc::Sender<LinkCommand>,
-    events: broadcast::Sender<LinkEvent>,
+    events: fanout::Sender<LinkEvent>,
     /// The link's state now, for whoever starts watching after the link started.
     state: watch::Receiver<Option<LinkState>>,
     /// The line counters the link task keeps; none for a link served by something else.
@@ -265,7 +266,7 @@ impl LinkHandle {
     pub fn from_channels(
         machine: impl Into<String>,
         commands: mpsc::Sender<LinkCommand>,
-        events: broadcast::Sender<LinkEvent>,
+        events: fanout::Sender<LinkEvent>,
     ) -> Self {
         // A link built from bare channels reports its state by events only.
         let (_, state) = watch::channel(None);
@@ -313,7 +314,7 @@ impl LinkHandle {
 
     /// Events from now on. A receiver that falls more than the channel's capacity behind
     /// loses the oldest events (and is told so by `RecvError::Lagged`).
-    pub fn subscribe(&self) -> broadcast::Receiver<LinkEvent> {
+    pub fn subscribe(&self) -> fanout::Receiver<LinkEvent> {
         self.events.subscribe()
     }
 
@@ -341,7 +342,7 @@ where
 {
     let machine = machine.into();
     let (cmd_tx, cmd_rx) = mpsc::channel(COMMAND_QUEUE);
-    let (ev_tx, _) = broadcast::channel(LINK_EVENTS);
+    let (ev_tx, _) = fanout::channel(LINK_EVENTS);
     let (state_tx, state_rx) = watch::channel(None);
     let link_metrics = metrics::link(&machine);
     let handle = LinkHandle {
@@ -415,7 +416,7 @@ struct Driver<E, T> {
     session: Option<Session>,
     pump: Pump<E, T>,
     commands: mpsc::Receiver<LinkCommand>,
-    events: broadcast::Sender<LinkEvent>,
+    events: fanout::Sender<LinkEvent>,
     state: watch::Sender<Option<LinkState>>,
     queue: VecDeque<ProgramJob>,
     active: Option<ActiveJob>,

@@ -14,12 +14,12 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use bytes::Bytes;
-use tokio::sync::{broadcast, mpsc, oneshot, watch};
+use tokio::sync::{mpsc, oneshot, watch};
 use tokio_util::sync::CancellationToken;
 
-use crate::link::JobId;
 use crate::link::driver::{Chunk, JobSource, LinkCommand, LinkEvent, LinkHandle, ProgramJob};
 use crate::link::pump::now;
+use crate::link::{JobId, fanout};
 use crate::transport::sim::SimOptions;
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::{G05Config, MachineConfig, Refill, TransportConfig};
@@ -339,7 +339,7 @@ impl StreamTask {
     async fn run(
         mut self,
         mut inputs: mpsc::Receiver<Input>,
-        mut events: broadcast::Receiver<LinkEvent>,
+        mut events: fanout::Receiver<LinkEvent>,
         shutdown: CancellationToken,
     ) {
         let mut tick = tokio::time::interval(STATUS_INTERVAL);
@@ -379,10 +379,10 @@ impl StreamTask {
                             break;
                         }
                     }
-                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                    Err(fanout::RecvError::Lagged(n)) => {
                         tracing::warn!(stream = %self.id(), missed = n, "G05 stream fell behind its link's events");
                     }
-                    Err(broadcast::error::RecvError::Closed) => {
+                    Err(fanout::RecvError::Closed) => {
                         self.stream.ended(false, Some("the link stopped".to_string()));
                         break;
                     }

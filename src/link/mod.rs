@@ -10,6 +10,7 @@
 //! and the one tests drive in virtual time.
 
 pub mod driver;
+pub mod fanout;
 pub mod g05;
 pub mod pump;
 

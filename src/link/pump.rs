@@ -26,7 +26,10 @@ use cellgate_core::engine::{ModemIn, ModemOut};
 /// but transports cannot signal changes, so they are polled.
 pub const MODEM_POLL: Duration = Duration::from_millis(50);
 
-const READ_CHUNK: usize = 4096;
+/// The most read at once. A board sends little to the host (answers, SAT, punched programs at
+/// 19200 baud at most), and a thousand links each hold this buffer: four reads a step
+/// (`poll_read`) take 4 KiB.
+const READ_CHUNK: usize = 1024;
 
 /// Why a pump stopped.
 #[derive(Debug, thiserror::Error)]

@@ -20,7 +20,7 @@ use cellgate_core::pb;
 use cellgate_core::pb::job_event::Kind;
 use prost::Message;
 use tokio::io::AsyncReadExt;
-use tokio::sync::{Semaphore, broadcast, mpsc};
+use tokio::sync::{Semaphore, mpsc};
 use tokio_util::sync::CancellationToken;
 use zenoh::Session;
 use zenoh::sample::Locality;
@@ -37,7 +37,7 @@ type Delivered = Arc<Mutex<Vec<(String, Vec<u8>)>>>;
 
 struct FakeLink {
     commands: mpsc::Receiver<LinkCommand>,
-    events: broadcast::Sender<LinkEvent>,
+    events: cellgate::link::fanout::Sender<LinkEvent>,
     log: Log,
     delivered: Delivered,
     release: Arc<Semaphore>,
@@ -52,7 +52,7 @@ struct FakeLink {
 /// What the test holds of a stand-in link.
 #[derive(Clone)]
 struct FakeCtl {
-    events: broadcast::Sender<LinkEvent>,
+    events: cellgate::link::fanout::Sender<LinkEvent>,
     log: Log,
     delivered: Delivered,
     release: Arc<Semaphore>,
@@ -70,7 +70,7 @@ impl FakeCtl {
 
 fn fake_link(machine: &str, chunk: usize, pace: Duration) -> (LinkHandle, FakeCtl) {
     let (cmd_tx, cmd_rx) = mpsc::channel(64);
-    let (ev_tx, _) = broadcast::channel(1024);
+    let (ev_tx, _) = cellgate::link::fanout::channel(1024);
     let ctl = FakeCtl {
         events: ev_tx.clone(),
         log: Log::default(),

@@ -70,7 +70,7 @@ pub async fn start(config: &CellConfig) -> (Cell, CancellationToken) {
 
 /// Waits (in virtual time when paused) for the first event `pick` accepts.
 pub async fn next_event<T>(
-    events: &mut broadcast::Receiver<LinkEvent>,
+    events: &mut cellgate::link::fanout::Receiver<LinkEvent>,
     within: Duration,
     mut pick: impl FnMut(&LinkEvent) -> Option<T>,
 ) -> T {

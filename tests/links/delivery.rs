@@ -16,11 +16,13 @@ use cellgate_core::pb;
 use cellgate_core::pb::job_event::Kind;
 use common::{nc_program, sim_cell, start};
 use sha2::{Digest, Sha256};
-use tokio::sync::broadcast;
 
 const HOUR: Duration = Duration::from_secs(3600);
 
-async fn until_end(events: &mut broadcast::Receiver<Arc<pb::JobEvent>>, id: &str) -> pb::JobEvent {
+async fn until_end(
+    events: &mut cellgate::link::fanout::Receiver<Arc<pb::JobEvent>>,
+    id: &str,
+) -> pb::JobEvent {
     tokio::time::timeout(HOUR, async {
         loop {
             let e = events.recv().await.unwrap();

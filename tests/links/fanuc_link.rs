@@ -83,7 +83,7 @@ async fn one_mib_expansion_a_n4_86400() {
     one_mib("expansion-a", Some(4), 86_400).await;
 }
 
-async fn wait_ready(events: &mut tokio::sync::broadcast::Receiver<LinkEvent>) {
+async fn wait_ready(events: &mut cellgate::link::fanout::Receiver<LinkEvent>) {
     next_event(events, HOUR, |ev| {
         matches!(
             ev,

@@ -111,7 +111,7 @@ impl Rig {
     /// Sends `program` as job `id` and waits until the CNC has read all of it.
     async fn deliver(
         &self,
-        events: &mut tokio::sync::broadcast::Receiver<LinkEvent>,
+        events: &mut cellgate::link::fanout::Receiver<LinkEvent>,
         id: u64,
         program: &[u8],
         programs_before: usize,

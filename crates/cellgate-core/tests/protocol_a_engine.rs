@@ -441,7 +441,7 @@ fn a_10_kib_program_in_dats_then_eod() {
     b.command(EngineCommand::StartProgram {
         total: Some(program.len() as u64),
     });
-    assert_eq!(b.host.data_wanted(), 32 * 1024);
+    assert_eq!(b.host.data_wanted(), 16 * 1024);
     b.data(&program);
     b.command(EngineCommand::ProgramEnd);
     let mut received = Vec::new();

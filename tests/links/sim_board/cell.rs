@@ -12,7 +12,7 @@ struct Cell {
     board: BoardHandle,
     link: LinkHandle,
     line: SimLine,
-    events: broadcast::Receiver<LinkEvent>,
+    events: cellgate::link::fanout::Receiver<LinkEvent>,
     shutdown: CancellationToken,
     task: tokio::task::JoinHandle<Result<(), std::sync::Arc<cellgate::link::pump::PumpError>>>,
 }

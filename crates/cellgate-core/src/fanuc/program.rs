@@ -94,6 +94,9 @@ impl Program {
                     .position(|&x| is_eor(x) || forbidden == Some(x))
                     .unwrap_or(data.len());
                 if run > 0 {
+                    // Grown no further than it is filled: the engine's limit bounds it, and
+                    // a thousand busy links each hold one.
+                    self.buf.reserve_exact(run);
                     self.buf.extend(&data[..run]);
                     self.accepted += run as u64;
                     data = &data[run..];
@@ -192,7 +195,14 @@ impl Program {
     /// Takes up to `len` bytes for transmission.
     pub fn take(&mut self, len: usize) -> Vec<u8> {
         let n = len.min(self.buf.len());
-        let out: Vec<u8> = self.buf.drain(..n).collect();
+        // Copied a slice at a time: collecting the drained bytes one by one was 7 % of the
+        // gateway's CPU at 1024 busy links (docs/performance.md).
+        let (front, back) = self.buf.as_slices();
+        let from_front = n.min(front.len());
+        let mut out = Vec::with_capacity(n);
+        out.extend_from_slice(&front[..from_front]);
+        out.extend_from_slice(&back[..n - from_front]);
+        self.buf.drain(..n);
         self.sent += n as u64;
         out
     }

@@ -22,7 +22,9 @@ pub const MAX_BLOCK_TEXT: usize = 128;
 
 /// Bytes already sent that are kept for the next question. An answer acknowledging bytes sent
 /// earlier than these names the last block of what was let go, if it lies within the answer.
-pub const SENT_KEPT: usize = 16 * 1024;
+/// 8 KiB: two DATs at their largest (4096 bytes), eight Expansion A packets of n = 4, a second
+/// of an 86400-baud line.
+pub const SENT_KEPT: usize = 8 * 1024;
 
 /// Of the bytes let go, one block is remembered for each this many.
 pub const LET_GO_STEP: usize = 1024;
@@ -58,6 +60,8 @@ impl FedBlocks {
 
     /// Program bytes sent, in order.
     pub fn push(&mut self, bytes: &[u8]) {
+        // Grown no further than it is filled ([`SENT_KEPT`] and a piece).
+        self.window.reserve_exact(bytes.len());
         self.window.extend(bytes);
     }
 
@@ -73,9 +77,9 @@ impl FedBlocks {
             let step = left.min(LET_GO_STEP);
             left -= step;
             let start = self.base;
-            let old: Vec<u8> = self.window.drain(..step).collect();
+            let found = self.last_block_in_front(step);
             self.base += step as u64;
-            if let Some((end, text)) = self.last_block_in(&old) {
+            if let Some((end, text)) = found {
                 let end = start + end as u64;
                 // The last one moves on while it is within a grain of the one before it;
                 // once a grain away, it stays and the next is added.
@@ -124,12 +128,26 @@ impl FedBlocks {
         if k == 0 {
             return self.last.clone();
         }
-        let taken: Vec<u8> = self.window.drain(..k).collect();
+        let found = self.last_block_in_front(k);
         self.base += k as u64;
-        if let Some((_, text)) = self.last_block_in(&taken) {
+        if let Some((_, text)) = found {
             self.last = Some(text);
         }
         self.last.clone()
+    }
+
+    /// [`FedBlocks::last_block_in`] the first `n` bytes of the window, which are let go.
+    fn last_block_in_front(&mut self, n: usize) -> Option<(usize, Arc<str>)> {
+        let n = n.min(self.window.len());
+        // Copied out a slice at a time (a byte at a time, or the ring made contiguous, cost
+        // more at a thousand busy links).
+        let (front, back) = self.window.as_slices();
+        let from_front = n.min(front.len());
+        let mut taken = Vec::with_capacity(n);
+        taken.extend_from_slice(&front[..from_front]);
+        taken.extend_from_slice(&back[..n - from_front]);
+        self.window.drain(..n);
+        self.last_block_in(&taken)
     }
 
     /// The last block of the lines that end within `taken` (the bytes after the ones taken

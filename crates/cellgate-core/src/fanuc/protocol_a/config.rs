@@ -26,6 +26,8 @@ pub struct ProtocolAConfig {
     pub dummy_interval: Duration,
     /// Most program bytes held at once;
     /// [`HostEngine::data_wanted`](crate::fanuc::host::HostEngine::data_wanted) is the free space.
+    /// 16 KiB by default: two seconds of an 86400-baud line, asked for again at half, and at
+    /// least four full DATs; a thousand busy links each hold it.
     pub max_buffer: usize,
     /// Line time of one character (the transport's `LineSettings::char_time`), so that time-out
     /// supervision starts after a long DAT has left the line. Zero when unknown.
@@ -47,7 +49,7 @@ impl Default for ProtocolAConfig {
             conversion: None,
             wat_grace: Duration::from_secs(1),
             dummy_interval: Duration::from_secs(5),
-            max_buffer: 32 * 1024,
+            max_buffer: 16 * 1024,
             char_time: Duration::ZERO,
             cs_visible: true,
         }
