@@ -629,8 +629,8 @@ async fn run(case: &Case) {
     println!(
         "| {n} | {} | {} | {} | {:.1} % | {:.1} % | {:.0} KiB | {:.0} KiB | {:.1} % / {:.1} % | {} | {} | {:.0} % | {:.1} s |",
         case.baud,
-        case.gateway.1,
         case.proto.label(),
+        case.gateway.1,
         100.0 * idle_cpu,
         100.0 * busy_cpu,
         kib(idle_rss),
