@@ -5,7 +5,8 @@
 //! - **CPU**: the gateway's user + system time from `/proc/PID/stat`, idle (links up, no job)
 //!   and busy (every machine running one job from the library, one DO put per machine a
 //!   second), as a share of one core; the boards' process beside it, to show it kept up;
-//! - **memory**: the gateway's resident set (`VmRSS`, and `VmHWM` for the busy peak) per link;
+//! - **memory**: the gateway's resident set (`VmRSS`, and `VmHWM` for the busy peak) per link,
+//!   idle, busy, and five seconds after the last job ended ("after": what the jobs gave back);
 //! - **throughput**: each job's bytes from its first `progress` event to `completed` over the
 //!   time between them (the gateway's timestamps), against the line's characters a second, as
 //!   a share of the protocol's efficiency bound (see [`Proto::bound`]); the wait for the
@@ -22,7 +23,8 @@
 //! the DO puts out, and `--undeclared-do` puts them on keys the client did not declare;
 //! `--no-history` turns the cell's history off; `--console-pages N` serves the console and
 //! opens N pages (each its first load, then its event stream) while the jobs run; `--window N`
-//! sets the machines' `transport.window`.
+//! sets the machines' `transport.window`; `--zenoh-config FILE` gives the gateway's session
+//! that zenoh configuration file.
 //! `CELLGATE_GATEWAY_BIN=path` measures another gateway binary against the same boards;
 //! `--compare path` measures that binary and this build's, one after the other on each case,
 //! and prints their rows side by side (build "before" and "after"). Under
@@ -130,6 +132,8 @@ struct Case {
     window: Option<u32>,
     /// The gateway binary, and what its row calls it.
     gateway: (String, &'static str),
+    /// A zenoh configuration file for the gateway's session (`bus.zenoh_config`).
+    zenoh_config: Option<String>,
 }
 
 /// What the boards' process said, with when this program read it.
@@ -223,9 +227,13 @@ fn cell_file(
     dir: &Path,
 ) -> String {
     let mut text = format!(
-        "cell = \"scale\"\n[bus]\nlisten = [\"tcp/127.0.0.1:{bus_port}\"]\n\
+        "cell = \"scale\"\n[bus]\nlisten = [\"tcp/127.0.0.1:{bus_port}\"]\n{}\
          [telemetry]\nprometheus = \"127.0.0.1:{prom_port}\"\n\
          [programs]\ndir = {:?}\n",
+        case.zenoh_config
+            .as_ref()
+            .map(|z| format!("zenoh_config = {z:?}\n"))
+            .unwrap_or_default(),
         dir.join("programs")
     );
     if !case.history {
@@ -605,6 +613,9 @@ async fn run(case: &Case) {
     if let Some(t) = do_task {
         t.abort();
     }
+    // What the jobs took and gave back: resident a few seconds after the last one ended.
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    let (after_rss, _) = memory_of(gpid);
     for p in pages {
         p.abort();
     }
@@ -627,7 +638,7 @@ async fn run(case: &Case) {
     let kib = |k: u64| k as f64 / n as f64;
     let ms = |s: f64| s * 1000.0;
     println!(
-        "| {n} | {} | {} | {} | {:.1} % | {:.1} % | {:.0} KiB | {:.0} KiB | {:.1} % / {:.1} % | {} | {} | {:.0} % | {:.1} s |",
+        "| {n} | {} | {} | {} | {:.1} % | {:.1} % | {:.0} KiB | {:.0} KiB | {:.0} KiB | {:.1} % / {:.1} % | {} | {} | {:.0} % | {:.1} s |",
         case.baud,
         case.proto.label(),
         case.gateway.1,
@@ -635,6 +646,7 @@ async fn run(case: &Case) {
         100.0 * busy_cpu,
         kib(idle_rss),
         kib(hwm.max(peak_rss)),
+        kib(after_rss),
         100.0 * percentile(&efficiency, 0.0),
         100.0 * percentile(&efficiency, 0.5),
         match delay {
@@ -711,10 +723,10 @@ fn main() {
         .build()
         .expect("tokio runtime");
     println!(
-        "| links | baud | protocol | build | CPU idle | CPU busy | RSS/link idle | RSS/link busy | \
+        "| links | baud | protocol | build | CPU idle | CPU busy | RSS/link idle | RSS/link busy | RSS/link after | \
          jobs: min / median of bound | DO delay p50 / p99 | DO to board p50 / p99 | boards' CPU | links up in |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     // `--compare OTHER`: OTHER ("before") then this build ("after") on every case.
     let builds: Vec<(String, &'static str)> = match args
         .iter()
@@ -755,6 +767,16 @@ fn main() {
                             .and_then(|i| args.get(i + 1))
                             .map(|s| s.parse().expect("--window takes a number of bytes")),
                         gateway: gateway.clone(),
+                        zenoh_config: args
+                            .iter()
+                            .position(|a| a == "--zenoh-config")
+                            .and_then(|i| args.get(i + 1))
+                            .map(|p| {
+                                std::fs::canonicalize(p)
+                                    .unwrap_or_else(|e| panic!("--zenoh-config {p}: {e}"))
+                                    .to_string_lossy()
+                                    .into_owned()
+                            }),
                     };
                     rt.block_on(run(&case));
                 }
