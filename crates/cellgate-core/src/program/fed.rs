@@ -17,6 +17,8 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 
+use crate::fanuc::program::take_front;
+
 /// Characters of a block kept: enough for any block a person reads on a screen.
 pub const MAX_BLOCK_TEXT: usize = 128;
 
@@ -138,15 +140,7 @@ impl FedBlocks {
 
     /// [`FedBlocks::last_block_in`] the first `n` bytes of the window, which are let go.
     fn last_block_in_front(&mut self, n: usize) -> Option<(usize, Arc<str>)> {
-        let n = n.min(self.window.len());
-        // Copied out a slice at a time (a byte at a time, or the ring made contiguous, cost
-        // more at a thousand busy links).
-        let (front, back) = self.window.as_slices();
-        let from_front = n.min(front.len());
-        let mut taken = Vec::with_capacity(n);
-        taken.extend_from_slice(&front[..from_front]);
-        taken.extend_from_slice(&back[..n - from_front]);
-        self.window.drain(..n);
+        let taken = take_front(&mut self.window, n);
         self.last_block_in(&taken)
     }
 

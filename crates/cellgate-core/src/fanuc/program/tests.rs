@@ -152,3 +152,16 @@ fn split_input_is_buffered_whole() {
     assert!(p.can_fill(100));
     assert_eq!(p.find_in_next(10, b'%'), Some(6));
 }
+
+#[test]
+fn take_front_copies_across_the_rings_wrap_and_stops_at_what_is_held() {
+    let mut buf: VecDeque<u8> = VecDeque::with_capacity(8);
+    buf.extend(b"abcdef");
+    assert_eq!(take_front(&mut buf, 4), b"abcd");
+    // Written past the end of the ring: the bytes now lie in two slices.
+    buf.extend(b"ghijk");
+    assert!(!buf.as_slices().1.is_empty(), "{:?}", buf.as_slices());
+    assert_eq!(take_front(&mut buf, 5), b"efghi");
+    assert_eq!(take_front(&mut buf, 10), b"jk");
+    assert_eq!(take_front(&mut buf, 1), b"");
+}
