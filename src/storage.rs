@@ -15,6 +15,13 @@ pub fn is_storage_full(e: &std::io::Error) -> bool {
         || e.raw_os_error() == Some(libc::EDQUOT)
 }
 
+/// Whether a database that returned `e` must be closed and opened again before it takes
+/// another transaction: after an I/O error (a full disk) redb refuses every later one with
+/// `PreviousIo` until the handle is dropped.
+pub fn needs_reopen(e: &redb::Error) -> bool {
+    matches!(e, redb::Error::Io(_) | redb::Error::PreviousIo)
+}
+
 /// Opens the database file, never panicking: redb panics on some damaged files.
 pub fn open_db(path: &Path) -> Result<Database, OpenError> {
     match quietly(|| Database::create(path)) {

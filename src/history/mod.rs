@@ -154,7 +154,9 @@ struct Clock {
 
 struct Inner {
     path: PathBuf,
-    db: Arc<Database>,
+    /// The store; `None` once a write failed on I/O, opened again at its next use (redb
+    /// refuses every transaction after an I/O error until the handle is dropped).
+    db: Mutex<Option<Arc<Database>>>,
     tx: mpsc::Sender<Waiting>,
     clocks: Mutex<[Clock; 2]>,
     /// Retention and shifts: replaced by a reload ([`History::set_config`]).
@@ -237,7 +239,7 @@ impl History {
         let (tx, rx) = mpsc::channel(16_384);
         let inner = Arc::new(Inner {
             path,
-            db,
+            db: Mutex::new(Some(db)),
             tx,
             clocks: Mutex::new(clocks),
             config: Mutex::new((config.clone(), config.shift_minutes())),
@@ -748,6 +750,7 @@ async fn commit(inner: &Arc<Inner>, waiting: Vec<Waiting>) -> Vec<Waiting> {
         while !waiting.is_empty() {
             let rest = waiting.split_off(waiting.len().min(BATCH));
             if let Err(e) = write_batch(&i, &waiting) {
+                i.after_error(&e);
                 waiting.extend(rest);
                 return (waiting, Some(e));
             }
@@ -792,6 +795,39 @@ async fn commit(inner: &Arc<Inner>, waiting: Vec<Waiting>) -> Vec<Waiting> {
 }
 
 impl Inner {
+    /// The store, opened again if a failed write closed it. Blocking.
+    fn db(&self) -> Result<Arc<Database>, HistoryError> {
+        let mut slot = self.db.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(db) = slot.as_ref() {
+            return Ok(Arc::clone(db));
+        }
+        let db = match crate::storage::open_db(&self.path) {
+            Ok(db) => Arc::new(db),
+            Err(crate::storage::OpenError::Redb(e)) => return Err(db_error(&self.path, e)),
+            Err(crate::storage::OpenError::Panicked(text)) => {
+                return Err(HistoryError::Io {
+                    path: self.path.clone(),
+                    source: std::io::Error::other(text),
+                });
+            }
+        };
+        *slot = Some(Arc::clone(&db));
+        Ok(db)
+    }
+
+    /// Closes the store after `e` if it must be opened again (the handle is dropped once the
+    /// reads that hold it end).
+    fn after_error(&self, e: &HistoryError) {
+        let reopen = match e {
+            HistoryError::Io { .. } => true,
+            HistoryError::Database { source, .. } => crate::storage::needs_reopen(source),
+            _ => false,
+        };
+        if reopen {
+            *self.db.lock().unwrap_or_else(|p| p.into_inner()) = None;
+        }
+    }
+
     fn config(&self) -> (HistoryConfig, Vec<u16>) {
         self.config
             .lock()
@@ -804,7 +840,7 @@ fn write_batch(inner: &Inner, batch: &[Waiting]) -> Result<(), HistoryError> {
     let (config, _) = inner.config();
     let path = &inner.path;
     let e = |x: redb::Error| db_error(path, x);
-    let tx = inner.db.begin_write().map_err(|x| e(x.into()))?;
+    let tx = inner.db()?.begin_write().map_err(|x| e(x.into()))?;
     // Subjects past their bound: (log, subject, bound).
     let mut over: BTreeSet<(usize, String, u64)> = BTreeSet::new();
     {
@@ -948,10 +984,17 @@ fn prune_logs(inner: &Inner) {
         (Log::Audit, config.keep_audit_days),
     ] {
         let cutoff = now.saturating_sub(u64::from(days) * day);
+        let db = match inner.db() {
+            Ok(db) => db,
+            Err(e) => {
+                tracing::warn!(error = %e, log = ?log, "history: retention failed");
+                continue;
+            }
+        };
         // Records removed in all, and those of them still within their days (`max_records`).
         let run = || -> Result<(u64, u64), redb::Error> {
             let t = log.tables();
-            let tx = inner.db.begin_write()?;
+            let tx = db.begin_write()?;
             let mut removed = 0u64;
             let mut by_cap = 0u64;
             loop {
@@ -1003,7 +1046,12 @@ fn prune_logs(inner: &Inner) {
                     );
                 }
             }
-            Err(e) => tracing::warn!(error = %e, log = ?log, "history: retention failed"),
+            Err(e) => {
+                if crate::storage::needs_reopen(&e) {
+                    *inner.db.lock().unwrap_or_else(|p| p.into_inner()) = None;
+                }
+                tracing::warn!(error = %e, log = ?log, "history: retention failed");
+            }
         }
     }
 }

@@ -16,7 +16,7 @@ pub(super) fn read_page(
     let path = &inner.path;
     let e = |x: redb::Error| db_error(path, x);
     let t = log.tables();
-    let tx = inner.db.begin_read().map_err(|x| e(x.into()))?;
+    let tx = inner.db()?.begin_read().map_err(|x| e(x.into()))?;
     let records = tx.open_table(t.records).map_err(|x| e(x.into()))?;
     let newest = q.order == Order::Newest;
     // Paging: go on past the record numbered `after`, found by its number: after it oldest
@@ -192,7 +192,7 @@ fn read_subject(
 ) -> Result<Vec<(u64, u64)>, HistoryError> {
     let path = &inner.path;
     let e = |x: redb::Error| db_error(path, x);
-    let tx = inner.db.begin_read().map_err(|x| e(x.into()))?;
+    let tx = inner.db()?.begin_read().map_err(|x| e(x.into()))?;
     let subj = tx.open_table(HISTORY.subjects).map_err(|x| e(x.into()))?;
     let mut out = Vec::new();
     let before = subj

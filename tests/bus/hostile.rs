@@ -368,6 +368,59 @@ async fn the_journal_refuses_submits_on_a_full_disk_and_writes_again_once_space_
     cell.stop().await;
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_history_holds_its_records_through_a_full_disk_and_writes_them_once_space_is_back() {
+    let Some(disk) = SmallDisk::mount(4) else {
+        return;
+    };
+    let root = disk.path().to_path_buf();
+    let cell = RunningCell::start(
+        |port, dir| {
+            let mut c = default_cell(port, dir);
+            c.history.dir = Some(root.join("history"));
+            c
+        },
+        false,
+    )
+    .await;
+    let filler = disk.fill(0);
+    // Writes the audit trail records while the store cannot take them.
+    let key = cell.keys.leaf(MILL, MachineLeaf::Do);
+    for value in 1..=5u32 {
+        let cmd = pb::DoCommand { value, mask: None };
+        cell.client
+            .put(key.as_str(), cmd.encode_to_vec())
+            .await
+            .unwrap();
+    }
+    // Commits fail at least twice (one a second), so that the store met the full disk.
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    std::fs::remove_file(filler).unwrap();
+    // Without a restart: the store is opened again, the records held in memory are written
+    // and read back (redb refuses every transaction after an I/O error until reopened).
+    let outputs = |page: &pb::HistoryPage| {
+        page.records
+            .iter()
+            .filter(|r| {
+                matches!(&r.record, Some(pb::history_record::Record::Audit(a))
+                    if a.action == "io.do" && a.ok)
+            })
+            .count()
+    };
+    let mut last = Vec::new();
+    for _ in 0..50 {
+        last = get(&cell.client, &cell.keys.audit(), None).await;
+        if let Some(Ok((_, bytes, _))) = last.first()
+            && outputs(&pb::HistoryPage::decode(bytes.as_slice()).unwrap()) == 5
+        {
+            cell.stop().await;
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    panic!("the five DO outputs are not in the audit trail 10 s after the disk had room: {last:?}");
+}
+
 // ---- no borrowed authority -----------------------------------------------------------------
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
