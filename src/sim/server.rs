@@ -26,6 +26,18 @@
 //! carries no modem lines, so the ER off that replaces the notices then never reaches the
 //! host: it sees only the DC3.
 //!
+//! `--commands-stdin`: operator commands as JSON lines on stdin, each given to the session
+//! of the board behind the live connection, as an operator at the CNC would act; one
+//! `command` event answers each line (blank lines aside), `applied: false` with a `reason`
+//! when the board has no connection or the line is invalid. EOF stops only the commands:
+//!
+//! ```text
+//! {"board":0,"command":"alarm"}          (also "reset", "hold", "start"; "board" defaults to 0)
+//! {"board":0,"command":"di","value":165}
+//! {"event":"command","command":"alarm","applied":true}
+//! {"event":"command","command":"reset","applied":false,"reason":"no connection"}
+//! ```
+//!
 //! G05 binary input operation (§9): `--g05-axes N` gives the CNC binary input operation with N
 //! axes a block (parameter 7635); `--g05-unit-ms` (7618), `--g05-general` (7609#2 RDS = 1),
 //! `--g05-aux` (7609#3 RAX and 2034) and `--g05-aux-low-first` (protocol notes 14) set the
@@ -44,7 +56,7 @@ use std::task::{Context, Poll, ready};
 use std::time::Duration;
 
 use serde_json::{Value, json};
-use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::io::{AsyncBufRead, AsyncBufReadExt, AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio::time::{Instant, Sleep};
@@ -183,6 +195,13 @@ pub struct SimFanucArgs {
     /// The G05 auxiliary word's low 16 bits travel first (protocol notes 14).
     #[arg(long, requires = "g05_axes")]
     pub g05_aux_low_first: bool,
+    /// Read operator commands as JSON lines on stdin and give each to the board's live
+    /// session: `{"board": 0, "command": "alarm"}`; commands `alarm`, `reset`, `hold` (feed
+    /// hold), `start` (cycle start) and `di` with `"value": 0-255`; `board` defaults to 0.
+    /// Each line is answered by a `command` event (`applied`, and `reason` when not applied:
+    /// no connection, invalid line). Lines of up to 4096 bytes; EOF stops only the commands.
+    #[arg(long)]
+    pub commands_stdin: bool,
 }
 
 /// `--g05-aux`: parameters 7609#3 RAX and 2034 (§9.1 (6), (7)).
@@ -380,15 +399,32 @@ pub async fn serve_fanuc(
             .map_err(|source| SimError::Bind { addr, source })?;
         listeners.push(listener);
     }
+    let slots: Vec<SessionSlot> = (0..args.boards).map(|_| SessionSlot::default()).collect();
+    // Aborted when the boards stop.
+    let _commands = args.commands_stdin.then(|| {
+        let (slots, sink) = (slots.clone(), stdout.clone());
+        tokio_util::task::AbortOnDropHandle::new(tokio::spawn(async move {
+            route_commands(stdin_reader(), &slots, &sink).await;
+        }))
+    });
     if args.boards == 1
-        && let Some(listener) = listeners.pop()
+        && let (Some(listener), Some(slot)) = (listeners.pop(), slots.first())
     {
         let settings = args.line_settings();
-        return serve_fanuc_with(listener, config, settings, punch, stdout, shutdown).await;
+        return serve_fanuc_board(
+            listener,
+            config,
+            settings,
+            punch,
+            stdout,
+            slot.clone(),
+            shutdown,
+        )
+        .await;
     }
     let stop = tokio_util::sync::CancellationToken::new();
     let mut boards = tokio::task::JoinSet::new();
-    for (i, listener) in listeners.into_iter().enumerate() {
+    for (i, (listener, slot)) in listeners.into_iter().zip(slots).enumerate() {
         let out = stdout.clone();
         let sink: EventSink = Arc::new(move |v: &Value| {
             let mut v = v.clone();
@@ -398,12 +434,13 @@ pub async fn serve_fanuc(
         let (config, settings, punch) = (config.clone(), args.line_settings(), punch.clone());
         let stop = stop.clone();
         boards.spawn(async move {
-            serve_fanuc_with(
+            serve_fanuc_board(
                 listener,
                 config,
                 settings,
                 punch,
                 sink,
+                slot,
                 stop.cancelled_owned(),
             )
             .await
@@ -447,6 +484,21 @@ pub async fn serve_fanuc_with(
     sink: EventSink,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), SimError> {
+    let slot = SessionSlot::default();
+    serve_fanuc_board(listener, config, settings, punch, sink, slot, shutdown).await
+}
+
+/// [`serve_fanuc_with`], each connection's session reachable through `slot` for operator
+/// commands ([`route_commands`]).
+pub async fn serve_fanuc_board(
+    listener: TcpListener,
+    config: BoardConfig,
+    settings: LineSettings,
+    punch: Option<PunchPlan>,
+    sink: EventSink,
+    slot: SessionSlot,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), SimError> {
     config.validate()?;
     let punch = punch.map(Arc::new);
     let addr = listener.local_addr().map_err(SimError::Output)?;
@@ -466,6 +518,10 @@ pub async fn serve_fanuc_with(
         &sink,
         "simulated board",
         |stream, peer| {
+            // In the slot before `connected` is reported, so that a command sent on seeing
+            // it reaches this session.
+            let (commands, commands_rx) = mpsc::unbounded_channel();
+            slot.replace(&commands);
             let session = run_session(
                 stream,
                 peer,
@@ -473,6 +529,7 @@ pub async fn serve_fanuc_with(
                 settings,
                 punch.clone(),
                 sink.clone(),
+                (commands, commands_rx),
             );
             async move {
                 match session.await {
@@ -515,8 +572,11 @@ pub(crate) async fn serve_one_at_a_time<F, S>(
                             "reason": "replaced by a new connection",
                         }));
                     }
+                    // Started first: what `start` sets up (a command slot) is in place by
+                    // the time `connected` shows.
+                    let started = Box::pin(start(stream, peer));
                     sink(&json!({"event": "connected", "peer": peer.to_string()}));
-                    session = Some((peer, Box::pin(start(stream, peer))));
+                    session = Some((peer, started));
                 }
                 Err(e) => {
                     tracing::warn!(error = %e, "{what}: accept failed");
@@ -543,14 +603,17 @@ async fn run_session(
     settings: LineSettings,
     punch: Option<Arc<PunchPlan>>,
     sink: EventSink,
+    (commands, commands_rx): (
+        mpsc::UnboundedSender<BoardCommand>,
+        mpsc::UnboundedReceiver<BoardCommand>,
+    ),
 ) -> Result<(), SimError> {
     // Small messages must not wait for Nagle.
     let _ = stream.set_nodelay(true);
     let board = FanucBoard::new(config, Instant::now().into_std())?;
     let line = PacedLine::new(stream, settings, format!("tcp {peer} paced at {settings}"));
-    // The only operator command over TCP is the planned punch-out; the sender lives as long
-    // as the session (the board stops when it closes).
-    let (commands, commands_rx) = mpsc::unbounded_channel();
+    // Operator commands come from the planned punch-out and the slot (weak there); this
+    // sender lives as long as the session (the board stops when the channel closes).
     let punch_task = punch.map(|plan| {
         let commands = commands.clone();
         tokio::spawn(async move {
@@ -577,6 +640,210 @@ async fn run_session(
     }
     drop(commands);
     result
+}
+
+/// Where operator commands reach a board's live session: its sender, replaced at each
+/// connection. Weak, so that the sender dies with its session and a command then finds no
+/// connection.
+#[derive(Debug, Clone, Default)]
+pub struct SessionSlot(Arc<std::sync::Mutex<Option<mpsc::WeakUnboundedSender<BoardCommand>>>>);
+
+impl SessionSlot {
+    fn replace(&self, commands: &mpsc::UnboundedSender<BoardCommand>) {
+        *self.0.lock().unwrap_or_else(|e| e.into_inner()) = Some(commands.downgrade());
+    }
+
+    /// Gives `command` to the live session; false when there is none.
+    pub fn send(&self, command: BoardCommand) -> bool {
+        let sender = self
+            .0
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .as_ref()
+            .and_then(mpsc::WeakUnboundedSender::upgrade);
+        sender.is_some_and(|s| s.send(command).is_ok())
+    }
+}
+
+/// The longest command line taken, without its LF.
+pub const MAX_COMMAND_LINE: usize = 4096;
+
+/// Reads operator commands, one JSON object a line, from `input` until EOF, gives each to the
+/// session in `slots[board]` and answers each on `sink` with a `command` event (carrying
+/// `"board"` when there are several boards). A bad line is answered and skipped.
+pub async fn route_commands<R: AsyncBufRead + Unpin>(
+    mut input: R,
+    slots: &[SessionSlot],
+    sink: &EventSink,
+) {
+    let mut line = Vec::new();
+    loop {
+        let too_long = match read_bounded_line(&mut input, &mut line).await {
+            Ok(Some(too_long)) => too_long,
+            Ok(None) => break,
+            Err(e) => {
+                tracing::warn!(error = %e, "operator commands: read failed");
+                break;
+            }
+        };
+        let (mut event, parsed) = if too_long {
+            (
+                json!({"event": "command", "command": null}),
+                Err(format!("line longer than {MAX_COMMAND_LINE} bytes")),
+            )
+        } else if line.iter().all(u8::is_ascii_whitespace) {
+            continue;
+        } else {
+            parse_command(&line, slots.len())
+        };
+        let outcome = parsed.and_then(|(board, command)| match slots.get(board) {
+            Some(slot) if slot.send(command) => Ok(()),
+            _ => Err("no connection".to_string()),
+        });
+        match outcome {
+            Ok(()) => event["applied"] = json!(true),
+            Err(reason) => {
+                event["applied"] = json!(false);
+                event["reason"] = json!(reason);
+            }
+        }
+        sink(&event);
+    }
+}
+
+/// The next line of `input` into `line`, without its LF: `Some(true)` when it was longer
+/// than [`MAX_COMMAND_LINE`] (then skipped to its end, never held whole), `None` at EOF.
+async fn read_bounded_line<R: AsyncBufRead + Unpin>(
+    input: &mut R,
+    line: &mut Vec<u8>,
+) -> std::io::Result<Option<bool>> {
+    line.clear();
+    let (mut any, mut too_long) = (false, false);
+    loop {
+        let available = input.fill_buf().await?;
+        if available.is_empty() {
+            return Ok(any.then_some(too_long));
+        }
+        any = true;
+        let (piece, used, ended) = match available.iter().position(|&b| b == b'\n') {
+            Some(i) => (&available[..i], i + 1, true),
+            None => (available, available.len(), false),
+        };
+        if !too_long {
+            if line.len() + piece.len() > MAX_COMMAND_LINE {
+                too_long = true;
+                line.clear();
+            } else {
+                line.extend_from_slice(piece);
+            }
+        }
+        input.consume(used);
+        if ended {
+            return Ok(Some(too_long));
+        }
+    }
+}
+
+/// A command line: the skeleton of its `command` event (the command and, with several
+/// boards, the board, as far as the line says them) and the board and command, or why not.
+fn parse_command(line: &[u8], boards: usize) -> (Value, Result<(usize, BoardCommand), String>) {
+    let mut event = json!({"event": "command", "command": null});
+    let value: Value = match serde_json::from_slice(line) {
+        Ok(v) => v,
+        Err(e) => return (event, Err(format!("not JSON: {e}"))),
+    };
+    let Some(fields) = value.as_object() else {
+        return (event, Err("not a JSON object".to_string()));
+    };
+    let command = fields.get("command").and_then(Value::as_str);
+    if let Some(c) = command {
+        event["command"] = json!(c);
+    }
+    let board = match fields.get("board") {
+        None => Some(0),
+        Some(b) => b.as_u64(),
+    };
+    if boards > 1
+        && let Some(b) = board
+    {
+        event["board"] = json!(b);
+    }
+    let parsed = board_command(fields, board, command, boards);
+    if let (Ok((_, BoardCommand::SetDi(v))), Some(map)) = (&parsed, event.as_object_mut()) {
+        map.insert("value".into(), json!(v));
+    }
+    (event, parsed)
+}
+
+/// The board and command a command line's `fields` name, or why not.
+fn board_command(
+    fields: &serde_json::Map<String, Value>,
+    board: Option<u64>,
+    command: Option<&str>,
+    boards: usize,
+) -> Result<(usize, BoardCommand), String> {
+    let Some(board) = board else {
+        return Err("\"board\" is not a whole number".to_string());
+    };
+    let board = usize::try_from(board)
+        .ok()
+        .filter(|&b| b < boards)
+        .ok_or_else(|| format!("board {board} out of range: {boards} board(s) from 0"))?;
+    let command = match command {
+        Some("alarm") => BoardCommand::RaiseAlarm,
+        Some("reset") => BoardCommand::Reset,
+        Some("hold") => BoardCommand::StopReading,
+        Some("start") => BoardCommand::StartReading,
+        Some("di") => {
+            let di = fields.get("value");
+            let di = di
+                .and_then(Value::as_u64)
+                .and_then(|v| u8::try_from(v).ok());
+            BoardCommand::SetDi(di.ok_or("di needs a \"value\" from 0 to 255")?)
+        }
+        Some(other) => {
+            return Err(format!(
+                "unknown command {other:?}: alarm, reset, hold, start or di"
+            ));
+        }
+        None => return Err("no \"command\" string".to_string()),
+    };
+    Ok((board, command))
+}
+
+/// Standard input as an async reader, read by a thread of its own: tokio's stdin reads on a
+/// blocking-pool thread that runtime shutdown waits for, so an idle open stdin would hang
+/// SIGTERM. The thread ends with stdin (or the process).
+fn stdin_reader() -> tokio::io::BufReader<tokio::io::DuplexStream> {
+    let (mut tx, rx) = tokio::io::duplex(2 * MAX_COMMAND_LINE);
+    let runtime = tokio::runtime::Handle::current();
+    let spawned = std::thread::Builder::new()
+        .name("commands-stdin".into())
+        .spawn(move || {
+            use std::io::Read;
+            use tokio::io::AsyncWriteExt;
+            let mut stdin = std::io::stdin().lock();
+            let mut buf = [0u8; 4096];
+            loop {
+                let n = match stdin.read(&mut buf) {
+                    Ok(0) => break,
+                    Ok(n) => n,
+                    Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                    Err(e) => {
+                        tracing::warn!(error = %e, "operator commands: stdin failed");
+                        break;
+                    }
+                };
+                if runtime.block_on(tx.write_all(&buf[..n])).is_err() {
+                    break;
+                }
+            }
+        });
+    // Without the thread the reader sees EOF at once: no commands, the boards serve on.
+    if let Err(e) = spawned {
+        tracing::warn!(error = %e, "operator commands: no thread to read stdin");
+    }
+    tokio::io::BufReader::new(rx)
 }
 
 /// The JSON line for a board event, for those worth printing.

@@ -389,3 +389,190 @@ fn parses_and_validates_protocol_a() {
     let err = cli.args.board_config().unwrap_err();
     assert!(err.to_string().contains("tw = 9"), "{err}");
 }
+
+/// The test's stand-in for stdout: every JSON event, the boards' and the commands', in order.
+fn event_channel() -> (EventSink, mpsc::UnboundedReceiver<Value>) {
+    let (tx, rx) = mpsc::unbounded_channel();
+    let sink: EventSink = Arc::new(move |v| {
+        let _ = tx.send(v.clone());
+    });
+    (sink, rx)
+}
+
+/// The next event `pick` takes, skipping the others.
+async fn next_event(
+    json: &mut mpsc::UnboundedReceiver<Value>,
+    pick: impl Fn(&Value) -> bool,
+) -> Value {
+    loop {
+        let v = tokio::time::timeout(Duration::from_secs(10), json.recv())
+            .await
+            .unwrap()
+            .unwrap();
+        if pick(&v) {
+            return v;
+        }
+    }
+}
+
+#[test]
+fn parses_commands_stdin() {
+    assert!(!Cli::try_parse_from(["sim"]).unwrap().args.commands_stdin);
+    let cli = Cli::try_parse_from(["sim", "--boards", "4", "--commands-stdin"]).unwrap();
+    assert!(cli.args.commands_stdin);
+}
+
+/// `--commands-stdin`: an alarm line reaches the board behind the live connection, which
+/// raises the CNC alarm (status `alarm`), and a reset line clears it.
+#[tokio::test]
+async fn stdin_alarm_reaches_the_connected_board() {
+    use tokio::io::AsyncWriteExt;
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let config = BoardConfig {
+        first_request_delay: Duration::from_millis(10),
+        ..BoardConfig::default()
+    };
+    let (sink, mut json) = event_channel();
+    let slot = SessionSlot::default();
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let server = tokio::spawn(serve_fanuc_board(
+        listener,
+        config,
+        LineSettings::with_baud(115_200),
+        None,
+        sink.clone(),
+        slot.clone(),
+        async {
+            let _ = stopped.await;
+        },
+    ));
+    let (mut stdin, input) = tokio::io::duplex(1024);
+    let router = tokio::spawn(async move {
+        route_commands(tokio::io::BufReader::new(input), &[slot], &sink).await;
+    });
+    let _host = TcpStream::connect(addr).await.unwrap();
+    next_event(&mut json, |v| v["event"] == "connected").await;
+    stdin
+        .write_all(b"{\"board\": 0, \"command\": \"alarm\"}\n")
+        .await
+        .unwrap();
+    let answer = next_event(&mut json, |v| v["event"] == "command").await;
+    assert_eq!(
+        answer,
+        json!({"event": "command", "command": "alarm", "applied": true})
+    );
+    next_event(&mut json, |v| v["event"] == "cnc-alarm").await;
+    next_event(&mut json, |v| {
+        v["event"] == "status" && v["status"] == "alarm"
+    })
+    .await;
+    stdin.write_all(b"{\"command\":\"reset\"}\n").await.unwrap();
+    let answer = next_event(&mut json, |v| v["event"] == "command").await;
+    assert_eq!(answer["applied"], true, "{answer}");
+    next_event(&mut json, |v| v["event"] == "cnc-reset").await;
+    next_event(&mut json, |v| {
+        v["event"] == "status" && v["status"] != "alarm"
+    })
+    .await;
+    // EOF ends the commands only: the board keeps serving.
+    drop(stdin);
+    router.await.unwrap();
+    assert!(!server.is_finished());
+    stop.send(()).unwrap();
+    server.await.unwrap().unwrap();
+}
+
+/// A board without a connection, before its first and after its last, takes no command;
+/// with several boards the answer names the board.
+#[tokio::test]
+async fn stdin_command_to_a_board_without_connection_is_not_applied() {
+    let (sink, mut json) = event_channel();
+    let slots = [SessionSlot::default(), SessionSlot::default()];
+    route_commands(&b"{\"board\":1,\"command\":\"reset\"}\n"[..], &slots, &sink).await;
+    assert_eq!(
+        json.recv().await.unwrap(),
+        json!({
+            "event": "command",
+            "command": "reset",
+            "board": 1,
+            "applied": false,
+            "reason": "no connection",
+        })
+    );
+    // A session that has ended leaves its slot dead.
+    let (tx, rx) = mpsc::unbounded_channel();
+    slots[0].replace(&tx);
+    drop((tx, rx));
+    route_commands(&b"{\"command\":\"hold\"}"[..], &slots, &sink).await;
+    let answer = json.recv().await.unwrap();
+    assert_eq!(answer["board"], 0);
+    assert_eq!(answer["applied"], false, "{answer}");
+    assert_eq!(answer["reason"], "no connection");
+}
+
+/// Bad lines are answered with the reason and skipped; the line after each still works.
+#[tokio::test]
+async fn stdin_invalid_lines_say_why_and_the_next_still_works() {
+    let (sink, mut json) = event_channel();
+    let slot = SessionSlot::default();
+    let (tx, mut rx) = mpsc::unbounded_channel();
+    slot.replace(&tx);
+    let mut input = Vec::new();
+    input.extend_from_slice(b"{\"command\": \"alarm\"\n");
+    input.extend_from_slice(b"[1, 2]\n");
+    input.extend_from_slice(b"{\"command\": \"estop\"}\n");
+    input.extend_from_slice(b"{\"board\": 1, \"command\": \"alarm\"}\n");
+    input.extend_from_slice(b"{\"board\": -1, \"command\": \"alarm\"}\n");
+    input.extend_from_slice(b"{\"command\": \"di\", \"value\": 256}\n");
+    input.extend_from_slice(b"{\"board\": 0}\n");
+    input.extend_from_slice(b"{\"command\": \"");
+    input.extend(std::iter::repeat_n(b'a', MAX_COMMAND_LINE));
+    input.extend_from_slice(b"\"}\n");
+    input.extend_from_slice(b"\n  \r\n");
+    input.extend_from_slice(b"{\"command\": \"di\", \"value\": 165}\r\n");
+    input.extend_from_slice(b"{\"command\": \"start\"}");
+    route_commands(&input[..], std::slice::from_ref(&slot), &sink).await;
+    let mut answers = Vec::new();
+    while let Ok(v) = json.try_recv() {
+        answers.push(v);
+    }
+    let reasons: Vec<&str> = answers
+        .iter()
+        .filter_map(|v| v["reason"].as_str())
+        .collect();
+    assert_eq!(reasons.len(), 8, "{answers:#?}");
+    for (reason, expected) in reasons.iter().zip([
+        "not JSON",
+        "not a JSON object",
+        "unknown command \"estop\"",
+        "board 1 out of range",
+        "\"board\" is not a whole number",
+        "di needs a \"value\" from 0 to 255",
+        "no \"command\"",
+        "line longer than 4096 bytes",
+    ]) {
+        assert!(
+            reason.starts_with(expected),
+            "{reason:?} is not {expected:?}"
+        );
+    }
+    // One board: no "board" in the answers, as in the boards' own events.
+    assert!(
+        answers.iter().all(|v| v.get("board").is_none()),
+        "{answers:#?}"
+    );
+    assert_eq!(answers[2]["command"], "estop");
+    assert_eq!(
+        answers[8],
+        json!({"event": "command", "command": "di", "value": 165, "applied": true})
+    );
+    assert_eq!(
+        answers[9],
+        json!({"event": "command", "command": "start", "applied": true})
+    );
+    assert_eq!(answers.len(), 10, "{answers:#?}");
+    assert_eq!(rx.try_recv(), Ok(BoardCommand::SetDi(165)));
+    assert_eq!(rx.try_recv(), Ok(BoardCommand::StartReading));
+    assert!(rx.try_recv().is_err());
+}
