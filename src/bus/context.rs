@@ -39,6 +39,9 @@ pub const MAX_WAITING_REQUESTS: usize = 256;
 /// Programs fetched from keys at once (`JobRequest.key`): each may hold `programs.max_inline`.
 pub const MAX_FETCHES: usize = 2;
 
+/// How long a write's answer waits for its audit record to be committed.
+pub(crate) const ANSWER_AUDIT_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// The share of the request slots a kind of request runs in, so that a flood of one kind (a
 /// dashboard's DI reads) never takes the slots of another (the MES's submits): with its pool
 /// full, a request is answered `ERROR_CODE_BUSY` at once while the other pools serve on.
@@ -494,6 +497,22 @@ impl RouteContext {
         outcome: Result<(), &E>,
     ) {
         self.auditor.record(&self.history, a, outcome);
+    }
+
+    /// [`Self::audit`] for a write whose asker waits for the answer: a write taken is on disk
+    /// in the audit trail before the answer says so (at most [`ANSWER_AUDIT_WAIT`] later: a
+    /// store that cannot write keeps the record in memory), so that a `kill -9` never loses
+    /// the record of a write a client was told was done.
+    pub(crate) async fn audit_answered<E: BusCode + std::fmt::Display>(
+        &self,
+        a: Audit<'_>,
+        outcome: Result<(), &E>,
+    ) {
+        let taken = outcome.is_ok();
+        self.audit(a, outcome);
+        if taken {
+            self.history.committed(ANSWER_AUDIT_WAIT).await;
+        }
     }
 
     /// Records a console's note, which stands for `count` refusals ([`Auditor::record_note`]).

@@ -151,7 +151,7 @@ async fn open(
         Some(CellKey::Leaf { machine, .. }) => machine.to_string(),
         _ => String::new(),
     };
-    ctx.audit(
+    ctx.audit_answered(
         Audit {
             action: "g05.open",
             permission: Permission::G05Stream,
@@ -165,7 +165,8 @@ async fn open(
             origin: origin_of(q.attachment()),
         },
         result.as_ref().map(|_| ()),
-    );
+    )
+    .await;
     match result {
         Ok((m, handle, opened, token)) => {
             reply(q, q.key_expr().to_string(), &opened).await;

@@ -85,7 +85,7 @@ pub(super) async fn job_submit(ctx: &RouteContext, q: &Query) {
         Ok(a) => describe_program(a.program.as_ref()),
         Err(_) => String::new(),
     };
-    ctx.audit(
+    ctx.audit_answered(
         Audit {
             action: "job.submit",
             permission: Permission::JobSubmit,
@@ -99,7 +99,8 @@ pub(super) async fn job_submit(ctx: &RouteContext, q: &Query) {
             origin,
         },
         submitted.as_ref().map(|_| ()),
-    );
+    )
+    .await;
     match submitted {
         Ok(accepted) => reply(q, q.key_expr().to_string(), &accepted).await,
         Err(e) => reply_err(q, &ctx.naming_programs(e, ctx.open_cell()).await).await,
@@ -339,7 +340,7 @@ pub(super) async fn job_cancel(ctx: &RouteContext, q: &Query) {
     }
     let mut events = m.jobs.subscribe();
     let cancelled = m.jobs.cancel(job).await;
-    ctx.audit(
+    ctx.audit_answered(
         Audit {
             action: "job.cancel",
             permission: Permission::JobCancel,
@@ -350,7 +351,8 @@ pub(super) async fn job_cancel(ctx: &RouteContext, q: &Query) {
             origin: origin_of(q.attachment()),
         },
         cancelled.as_ref().map(|_| ()),
-    );
+    )
+    .await;
     if let Err(e) = cancelled {
         return reply_err(q, &RequestError::from(e)).await;
     }

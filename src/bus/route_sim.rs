@@ -115,7 +115,7 @@ pub(super) async fn sim_query(ctx: &RouteContext, q: &Query) {
     // Reading the state changes nothing; every control is a write.
     if leaf != SimLeaf::State {
         let action = format!("sim.{}", leaf.chunk());
-        ctx.audit(
+        ctx.audit_answered(
             crate::bus::audit::Audit {
                 action: &action,
                 permission: cellgate_core::config::Permission::SimControl,
@@ -126,7 +126,8 @@ pub(super) async fn sim_query(ctx: &RouteContext, q: &Query) {
                 origin: crate::bus::audit::origin_of(q.attachment()),
             },
             result.as_ref().map(|_| ()),
-        );
+        )
+        .await;
     }
     match result {
         Ok(s) => reply(q, key.to_string(), &state(&m, &s)).await,

@@ -267,20 +267,24 @@ impl WriteRow {
     {
         let key = w.key.clone();
         let origin = w.origin.clone();
+        let answered = w.via == Via::Get;
         let done = serve(w).await;
         if let Some(a) = done.audit {
-            ctx.audit(
-                Audit {
-                    action: a.action,
-                    permission: self.permission,
-                    key: key.as_str(),
-                    machine: &a.machine,
-                    target: a.target,
-                    detail: a.detail,
-                    origin,
-                },
-                done.outcome.as_ref().map(|_| ()),
-            );
+            let a = Audit {
+                action: a.action,
+                permission: self.permission,
+                key: key.as_str(),
+                machine: &a.machine,
+                target: a.target,
+                detail: a.detail,
+                origin,
+            };
+            let outcome = done.outcome.as_ref().map(|_| ());
+            if answered {
+                ctx.audit_answered(a, outcome).await;
+            } else {
+                ctx.audit(a, outcome);
+            }
         }
         done.outcome
     }

@@ -32,7 +32,7 @@ use std::time::Duration;
 
 use prost::Message;
 use redb::{Database, ReadableTable, ReadableTableMetadata, TableDefinition};
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 
 use cellgate_core::codes::BusCode;
@@ -158,6 +158,8 @@ struct Inner {
     /// refuses every transaction after an I/O error until the handle is dropped).
     db: Mutex<Option<Arc<Database>>>,
     tx: mpsc::Sender<Waiting>,
+    /// Asks the writer to commit what it holds now; answered once it tried.
+    flush: mpsc::Sender<oneshot::Sender<()>>,
     clocks: Mutex<[Clock; 2]>,
     /// Retention and shifts: replaced by a reload ([`History::set_config`]).
     config: Mutex<(HistoryConfig, Vec<u16>)>,
@@ -237,10 +239,12 @@ impl History {
             })??
         };
         let (tx, rx) = mpsc::channel(16_384);
+        let (flush, flushes) = mpsc::channel(1024);
         let inner = Arc::new(Inner {
             path,
             db: Mutex::new(Some(db)),
             tx,
+            flush,
             clocks: Mutex::new(clocks),
             config: Mutex::new((config.clone(), config.shift_minutes())),
             dropped: AtomicU64::new(0),
@@ -253,7 +257,7 @@ impl History {
             inner: Some(Arc::clone(&inner)),
         };
         history.gateway(pb::gateway_record::Event::Started);
-        let writer = tokio::spawn(write_loop(inner, rx, stop));
+        let writer = tokio::spawn(write_loop(inner, rx, flushes, stop));
         Ok((history, writer))
     }
 
@@ -393,6 +397,18 @@ impl History {
             .unwrap_or_default();
         for (m, r) in out {
             self.audit_now(&m, r);
+        }
+    }
+
+    /// Waits (at most `within`) until the writer committed every record recorded before
+    /// this call, or tried to: what a write's answer waits for, so that a client told "done"
+    /// finds the write in the audit trail after a `kill -9`. A store that cannot write (a
+    /// full disk) keeps the records in memory, as ever; the answer does not wait for it.
+    pub async fn committed(&self, within: Duration) {
+        let Some(inner) = &self.inner else { return };
+        let (done, wait) = oneshot::channel();
+        if inner.flush.try_send(done).is_ok() {
+            let _ = tokio::time::timeout(within, wait).await;
         }
     }
 
@@ -690,7 +706,12 @@ fn tag_subject(plc: &str, name: &str) -> String {
     format!("{plc}/{name}")
 }
 
-async fn write_loop(inner: Arc<Inner>, mut rx: mpsc::Receiver<Waiting>, stop: CancellationToken) {
+async fn write_loop(
+    inner: Arc<Inner>,
+    mut rx: mpsc::Receiver<Waiting>,
+    mut flushes: mpsc::Receiver<oneshot::Sender<()>>,
+    stop: CancellationToken,
+) {
     let mut waiting: Vec<Waiting> = Vec::new();
     let mut tick = tokio::time::interval(COMMIT_EVERY);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -711,6 +732,24 @@ async fn write_loop(inner: Arc<Inner>, mut rx: mpsc::Receiver<Waiting>, stop: Ca
                 }
                 None => break,
             },
+            Some(asked) = flushes.recv() => {
+                // Every record recorded before the ask is in the channel by now; those asking
+                // meanwhile share the commit.
+                while let Ok(w) = rx.try_recv() {
+                    waiting.push(w);
+                }
+                let mut asking = vec![asked];
+                while let Ok(a) = flushes.try_recv() {
+                    asking.push(a);
+                }
+                while let Ok(w) = rx.try_recv() {
+                    waiting.push(w);
+                }
+                waiting = commit(&inner, waiting).await;
+                for a in asking {
+                    let _ = a.send(());
+                }
+            }
             _ = tick.tick() => {
                 History { inner: Some(Arc::clone(&inner)) }.flush_refusals();
                 if !waiting.is_empty() {

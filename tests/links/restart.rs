@@ -190,3 +190,59 @@ async fn sigterm_then_restart_keeps_the_queue() {
 async fn kill_9_then_restart_keeps_the_queue() {
     restart_keeps_the_queue(libc::SIGKILL).await;
 }
+
+/// A write the gateway answered is in the audit trail after a `kill -9` straight after the
+/// answer: the answer waits for its record to be committed (the rest of the history may lose
+/// its last second).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kill_9_straight_after_the_answers_keeps_their_audit_records() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let config = cell_file(dir.path(), port);
+    let mut gateway = start(&config);
+    let client = connect(port).await;
+    let mut accepted = Vec::new();
+    for i in 1..=5 {
+        let (a, follower) = client
+            .submit(MILL, &request(nc_program(300, i), &format!("audited-{i}")))
+            .await
+            .unwrap();
+        follower.close().await;
+        accepted.push(a.job_id);
+    }
+    let stored = client
+        .program_put("O77", b"%\nO77\nG00X0\nM30\n%")
+        .await
+        .unwrap();
+    client.close().await;
+    stop(&mut gateway, libc::SIGKILL);
+
+    let mut gateway = start(&config);
+    let client = connect(port).await;
+    let page = client.history(true, &[]).await.unwrap();
+    let audited: Vec<(String, String)> = page
+        .records
+        .iter()
+        .filter_map(|r| match &r.record {
+            Some(pb::history_record::Record::Audit(a)) if a.ok => {
+                Some((a.action.clone(), a.target.clone()))
+            }
+            _ => None,
+        })
+        .collect();
+    for id in &accepted {
+        assert!(
+            audited.contains(&("job.submit".to_string(), id.clone())),
+            "the submit of {id} is not in the audit trail: {audited:?}"
+        );
+    }
+    assert!(
+        audited
+            .iter()
+            .any(|(action, target)| action == "program.store" && *target == stored.name),
+        "the store of {} is not in the audit trail: {audited:?}",
+        stored.name
+    );
+    client.close().await;
+    stop(&mut gateway, libc::SIGTERM);
+}
