@@ -80,7 +80,10 @@ pub struct BoardConfig {
     /// protocol notes 5) and the CNC is neither reading nor in alarm, it starts reading; a CNC
     /// in alarm resets itself after the next SAT exchange has shown the alarm to the host.
     /// Protocol B: the CNC reads from power-on and again after every program; a CNC in alarm
-    /// resets itself `first_request_delay` after the alarm (with the reset's notice).
+    /// resets itself `first_request_delay` after the alarm (with the reset's notice), and
+    /// after a reset it starts reading again `first_request_delay` later, as an operator
+    /// would: what the host still sent when the reset came reaches a CNC that is not reading
+    /// and is ignored (§8.2), not taken as the start of the next program.
     pub autostart: bool,
     /// Bytes of each received program kept in [`ReceivedProgram::data`].
     pub keep_program_bytes: usize,

@@ -161,6 +161,10 @@ pub(super) struct ProtocolB {
     punch_tail: bool,
     /// Since when the CNC has been in alarm with the line up (autostart resets it later).
     alarm_since: Option<Instant>,
+    /// Autostart after a reset: when the operator presses cycle start again. Until then the
+    /// CNC does not read, so what the host still had on the line when the reset came is
+    /// ignored (§8.2) instead of starting the next program.
+    cycle_start_at: Option<Instant>,
     counters: FlowCounters,
 }
 
@@ -185,6 +189,7 @@ impl ProtocolB {
             punch_queue: VecDeque::new(),
             punch_tail: false,
             alarm_since: None,
+            cycle_start_at: None,
             counters: FlowCounters::default(),
         }
     }
@@ -458,6 +463,7 @@ impl ProtocolB {
             out.event(BoardEvent::ReadingStopped);
         }
         self.alarm_since = None;
+        self.cycle_start_at = Some(now + self.reset_delay);
         if self.dr {
             self.notice(true, out);
         }
@@ -576,8 +582,10 @@ impl ProtocolB {
             && self.line_usable()
             && !cnc.reading()
             && cnc.alarm().is_none()
+            && self.cycle_start_at.is_none_or(|t| now >= t)
             && cnc.start_reading(now)
         {
+            self.cycle_start_at = None;
             out.event(BoardEvent::ReadingStarted);
         }
         self.check_flow(cnc);
@@ -733,6 +741,12 @@ impl ProtocolB {
             && let Some(t) = self.alarm_since
         {
             at(t + self.reset_delay);
+        }
+        if self.autostart
+            && !cnc.reading()
+            && let Some(t) = self.cycle_start_at
+        {
+            at(t);
         }
         // The CNC's reading makes room: DC1 once 4096 bytes are free.
         if self.line_usable()

@@ -521,7 +521,42 @@ fn autostart_resets_an_alarm_after_the_delay() {
     r.advance(Duration::from_millis(1999));
     assert_eq!(r.take(), b"");
     r.advance(Duration::from_millis(1));
-    assert_eq!(r.take(), [SYN, DC1]);
+    assert_eq!(r.take(), [SYN]);
+    // Cycle start again, as late after the reset.
+    r.advance(Duration::from_millis(1999));
+    assert_eq!(r.take(), b"");
+    r.advance(Duration::from_millis(1));
+    assert_eq!(r.take(), [DC1]);
+}
+
+#[test]
+fn what_the_host_still_sends_after_a_reset_is_not_the_next_program() {
+    let mut r = Rig::new(BoardConfig {
+        autostart: true,
+        consume_rate: 0,
+        first_request_delay: Duration::from_secs(1),
+        ..config(false, CodeSystem::Ascii, true)
+    });
+    assert_eq!(r.take(), [DC1]);
+    r.input(b"%\nO1\nN1 G00 X1\n");
+    r.command(BoardCommand::Reset);
+    assert_eq!(r.take(), [DC3, SYN]);
+    // The rest of the program was on the line already: the CNC is in reset, not reading.
+    r.advance(Duration::from_millis(100));
+    r.input(b"N2 G00 X2\nN3 M30\n");
+    r.advance(Duration::from_millis(900));
+    assert_eq!(r.take(), [DC1]);
+    // The next program is read whole, from its own tape start.
+    r.input(b"%\nO2\nN1 G00 X5\n%");
+    let programs: Vec<_> = r
+        .events
+        .iter()
+        .filter_map(|e| match e {
+            BoardEvent::ProgramReceived(p) => Some(p.data.to_vec()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(programs, [b"%\nO2\nN1 G00 X5\n%".to_vec()]);
 }
 
 #[test]
