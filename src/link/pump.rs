@@ -190,13 +190,35 @@ impl<E: Engine, T: Transport> Pump<E, T> {
         if !tick && self.modem_in.is_some() {
             return false;
         }
-        let lines = match self.transport.modem() {
+        let lines = self.read_modem();
+        self.apply_modem(now, lines)
+    }
+
+    fn read_modem(&mut self) -> ModemIn {
+        match self.transport.modem() {
             Ok(m) => m,
             Err(e) => {
                 tracing::debug!(error = %e, "cannot read modem lines; treating them as on");
                 ModemIn::ALL_ON
             }
-        };
+        }
+    }
+
+    /// Bytes read while the engine holds the line down (or before it heard of the lines at
+    /// all): if the line is up now, they came on
+    /// it (a device server that reconnected and handed over at once what its serial side
+    /// held, a board's DC1), so the engine hears that the line is up before them, not after
+    /// them, when it would drop them as noise on a dead line.
+    fn line_up_before_input(&mut self, now: Instant) {
+        if self.modem_in.is_none_or(|m| !(m.dr && m.cd)) {
+            let lines = self.read_modem();
+            if lines.dr && lines.cd {
+                self.apply_modem(now, lines);
+            }
+        }
+    }
+
+    fn apply_modem(&mut self, now: Instant, lines: ModemIn) -> bool {
         if self.modem_in != Some(lines) {
             self.modem_in = Some(lines);
             if !(lines.dr && lines.cd) && self.tx_pos < self.tx.len() {
@@ -234,6 +256,7 @@ impl<E: Engine, T: Transport> Pump<E, T> {
                     while let Some(err) = self.transport.take_line_error() {
                         self.engine.handle_line_error(now, err);
                     }
+                    self.line_up_before_input(now);
                     self.engine.handle_input(now, &self.rx[..n]);
                     moved = true;
                 }

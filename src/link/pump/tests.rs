@@ -278,3 +278,119 @@ async fn a_line_error_reaches_the_engine_between_the_bytes_around_it() {
     let seen = pump.engine().0.concat();
     assert_eq!(seen, format!("ab<{}>cd", LineError::Parity));
 }
+
+/// A carrier that is down until it is read, and then hands over what arrived at once, as a
+/// device server does when it reconnects with a character its serial side held.
+struct Reconnecting {
+    lines: ModemIn,
+    waiting: Option<&'static [u8]>,
+    /// Reads answered Pending before the carrier comes back.
+    down_for: u32,
+}
+
+impl AsyncRead for Reconnecting {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        if self.down_for > 0 {
+            self.down_for -= 1;
+            cx.waker().wake_by_ref();
+            return Poll::Pending;
+        }
+        match self.waiting.take() {
+            Some(bytes) => {
+                self.lines = ModemIn::ALL_ON;
+                buf.put_slice(bytes);
+                Poll::Ready(Ok(()))
+            }
+            None => Poll::Pending,
+        }
+    }
+}
+impl AsyncWrite for Reconnecting {
+    fn poll_write(self: Pin<&mut Self>, _: &mut Context<'_>, b: &[u8]) -> Poll<io::Result<usize>> {
+        Poll::Ready(Ok(b.len()))
+    }
+    fn poll_flush(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Poll::Ready(Ok(()))
+    }
+    fn poll_shutdown(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Poll::Ready(Ok(()))
+    }
+}
+impl Transport for Reconnecting {
+    fn set_modem(&mut self, _: ModemOut) -> io::Result<()> {
+        Ok(())
+    }
+    fn modem(&mut self) -> io::Result<ModemIn> {
+        Ok(self.lines)
+    }
+    fn describe(&self) -> String {
+        "reconnecting".into()
+    }
+    fn modem_wakes_reader(&self) -> bool {
+        true
+    }
+}
+
+/// Records the line's state and the input, in order; drops input while the line is down,
+/// as a Protocol B host does.
+#[derive(Default)]
+struct LineOrder {
+    up: bool,
+    seen: Vec<String>,
+}
+
+impl Engine for LineOrder {
+    type Command = ();
+    type Event = ();
+    fn handle_input(&mut self, _: Instant, bytes: &[u8]) {
+        if self.up {
+            self.seen.push(String::from_utf8_lossy(bytes).into_owned());
+        }
+    }
+    fn handle_line_error(&mut self, _: Instant, _: LineError) {}
+    fn handle_modem(&mut self, _: Instant, m: ModemIn) {
+        self.up = m.dr && m.cd;
+        self.seen
+            .push(if self.up { "up" } else { "down" }.to_string());
+    }
+    fn handle_command(&mut self, _: Instant, _: ()) {}
+    fn handle_timeout(&mut self, _: Instant) {}
+    fn poll_transmit(&mut self, _: Instant) -> Option<Vec<u8>> {
+        None
+    }
+    fn poll_event(&mut self) -> Option<()> {
+        None
+    }
+    fn poll_timeout(&self) -> Option<Instant> {
+        None
+    }
+}
+
+/// The first bytes of a connection that came back reach the engine after it heard that the
+/// line is up: a Protocol B board's DC1 sent as the device server reconnected was dropped as
+/// noise on a dead line, and the job waited for good for a DC1 that had come.
+#[tokio::test(start_paused = true)]
+async fn the_first_bytes_on_a_line_that_came_back_follow_its_coming_up() {
+    let down = ModemIn {
+        dr: false,
+        cs: false,
+        cd: false,
+    };
+    let transport = |down_for| Reconnecting {
+        lines: down,
+        waiting: Some(b"\x11"),
+        down_for,
+    };
+    // The line seen down first, then back with a byte; and a byte in the very first read.
+    for (down_for, expected) in [(1, &["down", "up", "\u{11}"][..]), (0, &["up", "\u{11}"])] {
+        let mut pump = Pump::new(LineOrder::default(), transport(down_for));
+        for _ in 0..3 {
+            let _ = tokio::time::timeout(Duration::from_millis(100), pump.step()).await;
+        }
+        assert_eq!(pump.engine().seen, expected);
+    }
+}
