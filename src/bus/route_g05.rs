@@ -124,6 +124,7 @@ async fn open(
     q: &Query,
 ) -> Option<(std::sync::Arc<Machine>, StreamHandle, bool)> {
     let result = async {
+        ctx.history.audit_writable()?;
         let m = ctx.one_machine(q, MachineLeaf::G05, "G05Open")?;
         let payload = q
             .payload()

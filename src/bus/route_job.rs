@@ -74,6 +74,9 @@ pub(super) async fn job_submit(ctx: &RouteContext, q: &Query) {
         ));
         return reply_err(q, &e).await;
     };
+    if let Err(e) = ctx.history.audit_writable() {
+        return reply_err(q, &RequestError::from(e)).await;
+    }
     let payload = payload.to_bytes();
     let origin = origin_of(q.attachment());
     let machine = match ctx.keys.parse(q.key_expr().as_str()) {
@@ -338,6 +341,9 @@ pub(super) async fn job_cancel(ctx: &RouteContext, q: &Query) {
         ));
         return reply_err(q, &e).await;
     }
+    if let Err(e) = ctx.history.audit_writable() {
+        return reply_err(q, &RequestError::from(e)).await;
+    }
     let mut events = m.jobs.subscribe();
     let cancelled = m.jobs.cancel(job).await;
     ctx.audit_answered(
@@ -418,6 +424,10 @@ pub(super) async fn job_delete(ctx: &RouteContext, sample: &Sample) {
     };
     if !is_plain_chunk(job) {
         tracing::warn!(%key, "cancel refused: name one job, without wildcards");
+        return;
+    }
+    if let Err(e) = ctx.history.audit_writable() {
+        tracing::warn!(%key, error = %e, "cancel refused");
         return;
     }
     let cancelled = m.jobs.cancel(job).await;

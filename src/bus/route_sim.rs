@@ -92,6 +92,11 @@ pub(super) async fn sim_query(ctx: &RouteContext, q: &Query) {
         };
         return reply_err(q, &e).await;
     };
+    if leaf != SimLeaf::State
+        && let Err(e) = ctx.history.audit_writable()
+    {
+        return reply_err(q, &RequestError::from(e)).await;
+    }
     let payload = q.payload().map(|p| p.to_bytes().to_vec());
     let command = command(ctx, &m, sim, leaf, payload.as_deref());
     // What the control asked for, with its value, for the audit trail.

@@ -15,7 +15,7 @@ use zenoh::query::Query;
 use zenoh::sample::{Sample, SampleKind};
 
 use super::audit::{Audit, origin_of};
-use super::context::{RouteContext, reply, reply_err};
+use super::context::{RequestError, RouteContext, reply, reply_err};
 use super::payload::{BusMessage, WrongEncoding, schema_of};
 use cellgate_core::codes::BusCode;
 use cellgate_core::config::Permission;
@@ -222,6 +222,9 @@ impl WriteRow {
         let Some(w) = self.arrived(q) else {
             return;
         };
+        if let Err(e) = ctx.history.audit_writable() {
+            return reply_err(q, &RequestError::from(e)).await;
+        }
         let key = w.key.clone();
         let done = self.audit(ctx, w, serve).await;
         match done {
@@ -243,6 +246,10 @@ impl WriteRow {
         let Some(w) = self.arrived(s) else {
             return;
         };
+        if let Err(e) = ctx.history.audit_writable() {
+            tracing::warn!(key = %s.key_expr(), error = %e, "write refused");
+            return;
+        }
         let done = self.audit(ctx, w, serve).await;
         if let Err(e) = done {
             tracing::warn!(

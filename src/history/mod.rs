@@ -26,7 +26,7 @@
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -123,6 +123,12 @@ pub enum HistoryError {
     /// The query reads a record number the store does not have.
     #[error("no record {0} in the store (it may have been dropped by retention)")]
     NoSuchRecord(u64),
+    /// The audit trail cannot be written now: a write would go unaudited, so none is taken.
+    #[error(
+        "not taken: the audit trail cannot be written ({reason}); writes are refused until it \
+         can, so that none goes unaudited"
+    )]
+    AuditUnwritable { reason: String, full: bool },
 }
 
 impl BusCode for HistoryError {
@@ -133,7 +139,10 @@ impl BusCode for HistoryError {
             HistoryError::Io { source, .. } if crate::storage::is_storage_full(source) => {
                 pb::ErrorCode::StorageFull
             }
-            HistoryError::Io { .. } | HistoryError::Database { .. } => pb::ErrorCode::StorageFailed,
+            HistoryError::AuditUnwritable { full: true, .. } => pb::ErrorCode::StorageFull,
+            HistoryError::Io { .. }
+            | HistoryError::Database { .. }
+            | HistoryError::AuditUnwritable { .. } => pb::ErrorCode::StorageFailed,
         }
     }
 }
@@ -170,6 +179,8 @@ struct Inner {
     written: AtomicU64,
     /// Why the last commit failed, while commits fail.
     fault: Mutex<Option<String>>,
+    /// Whether that fault is a full disk.
+    fault_full: AtomicBool,
     /// Refused requests of the current minute, gathered.
     refusals: Mutex<Refusals>,
 }
@@ -251,6 +262,7 @@ impl History {
             handed: AtomicU64::new(0),
             written: AtomicU64::new(0),
             fault: Mutex::new(None),
+            fault_full: AtomicBool::new(false),
             refusals: Mutex::new(Refusals::default()),
         });
         let history = History {
@@ -397,6 +409,21 @@ impl History {
             .unwrap_or_default();
         for (m, r) in out {
             self.audit_now(&m, r);
+        }
+    }
+
+    /// Whether a write may be taken: not while the store refuses its commits, since the
+    /// write's audit record would wait in memory, and a `kill -9` meanwhile would lose it.
+    pub fn audit_writable(&self) -> Result<(), HistoryError> {
+        let Some(inner) = &self.inner else {
+            return Ok(());
+        };
+        match inner.fault.lock().ok().and_then(|f| f.clone()) {
+            None => Ok(()),
+            Some(reason) => Err(HistoryError::AuditUnwritable {
+                reason,
+                full: inner.fault_full.load(Ordering::Relaxed),
+            }),
         }
     }
 
@@ -806,6 +833,8 @@ async fn commit(inner: &Arc<Inner>, waiting: Vec<Waiting>) -> Vec<Waiting> {
             return Vec::new();
         }
     };
+    let full = matches!(&error, Some(HistoryError::Io { source, .. }) if crate::storage::is_storage_full(source));
+    inner.fault_full.store(full, Ordering::Relaxed);
     let was = inner.fault.lock().ok().and_then(|mut f| match &error {
         Some(e) => f.replace(e.to_string()),
         None => f.take(),

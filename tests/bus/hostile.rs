@@ -395,6 +395,19 @@ async fn the_history_holds_its_records_through_a_full_disk_and_writes_them_once_
     }
     // Commits fail at least twice (one a second), so that the store met the full disk.
     tokio::time::sleep(Duration::from_millis(2500)).await;
+    // Now that the audit trail is known not to take records, no write is taken: it would go
+    // unaudited if the gateway were killed before the disk had room.
+    let cmd = pb::DoCommand {
+        value: 9,
+        mask: None,
+    };
+    let e = get_err(&cell.client, &key, Some(cmd.encode_to_vec())).await;
+    assert_eq!(e.code(), pb::ErrorCode::StorageFull, "{}", e.message);
+    assert!(
+        e.message.contains("audit trail cannot be written"),
+        "{}",
+        e.message
+    );
     std::fs::remove_file(filler).unwrap();
     // Without a restart: the store is opened again, the records held in memory are written
     // and read back (redb refuses every transaction after an I/O error until reopened).
