@@ -66,6 +66,7 @@ pub mod mtconnect;
 pub mod opcua;
 pub mod plc;
 pub mod sim;
+pub mod soak;
 pub mod storage;
 pub mod telemetry;
 pub mod transport;

@@ -37,7 +37,7 @@ const GATEWAY_LAYERS: &[&[&str]] = &[
     &["cell", "client"],
     &["console"],
     &["mtconnect", "opcua", "historian"],
-    &["gateway"],
+    &["gateway", "soak"],
 ];
 
 /// Gateway modules that may use zenoh.
@@ -49,6 +49,7 @@ const ZENOH_MODULES: &[&str] = &[
     "opcua",
     "historian",
     "gateway",
+    "soak",
 ];
 
 fn sources(dir: &Path) -> Vec<PathBuf> {
