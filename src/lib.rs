@@ -38,14 +38,16 @@
 //!   `opcua`); [`historian`]: the site's history in PostgreSQL, a client of the bus too. The
 //!   agent and the server follow the cells through [`client::follow`].
 //! - [`gateway`]: the running gateway: opens the bus, announces the cell, serves it, and stops
-//!   cleanly when the shutdown future completes.
+//!   cleanly when the shutdown future completes. [`soak`]: `cellgate sim soak`, a whole
+//!   simulated cell run as processes of its own under load and faults, checked as a client of
+//!   the bus sees it.
 //!
 //! # Who imports whom
 //!
 //! A module imports only the modules of lower layers in the list above (and the core):
 //! `tests/cli/layering.rs` checks it, for this crate and the core. Only the bus side (`bus`,
-//! `client`, `console`, `mtconnect`, `opcua`, `historian`, `gateway`) speaks zenoh, so links,
-//! jobs and transports run without a bus (and in paused time).
+//! `client`, `console`, `mtconnect`, `opcua`, `historian`, `gateway`, `soak`) speaks zenoh, so
+//! links, jobs and transports run without a bus (and in paused time).
 
 // What is `pub` is the crate's interface (tests, benches, the binary use it); anything else
 // says how far it reaches.
