@@ -1,11 +1,11 @@
 //! `cellgate sim soak`: a simulated cell run through a seeded schedule of faults while clients
 //! load it, with its invariants checked against the boards' own record (docs/reliability.md).
 //!
-//! - [`rig`]: the processes (boards, PLC modules, router, gateway) and the cell file;
-//!   [`proxy`]: the line in front of each board, which cuts, corrupts and drops.
-//! - [`schedule`]: the faults, drawn from a seed; [`faults`]: what each one does.
-//! - [`load`]: the clients and the ledger of the jobs they got accepted.
-//! - [`check`]: the invariants; [`figures`]: the samples, slopes and the picture.
+//! - `rig`: the processes (boards, PLC modules, router, gateway) and the cell file;
+//!   `proxy`: the line in front of each board, which cuts, corrupts and drops.
+//! - [`schedule`]: the faults, drawn from a seed; `faults`: what each one does.
+//! - `load`: the clients and the ledger of the jobs they got accepted.
+//! - `check`: the invariants; [`figures`]: the samples, slopes and the picture.
 
 mod check;
 mod faults;
