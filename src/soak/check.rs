@@ -55,25 +55,19 @@ pub(crate) fn jobs(ledger: &Ledger, boards: &BoardRecord) -> (JobFigures, Vec<St
                 f.completed += 1;
                 entry.0 += 1;
             }
-            Some(Kind::Failed(x)) => {
-                f.failed_with_offset += 1;
+            Some(Kind::Failed(pb::job_event::Failed { byte_offset, .. }))
+            | Some(Kind::Cancelled(pb::job_event::Cancelled { byte_offset, .. })) => {
+                let (count, how) = match j.last.as_ref().and_then(|e| e.kind.as_ref()) {
+                    Some(Kind::Cancelled(_)) => (&mut f.cancelled, "cancelled"),
+                    _ => (&mut f.failed_with_offset, "failed"),
+                };
+                *count += 1;
                 entry.1 += 1;
-                if x.byte_offset > len {
+                if *byte_offset > len {
                     f.offsets_beyond_program += 1;
                     broken.push(format!(
-                        "job {id} on {} failed at {} of a {len}-byte program",
-                        j.machine, x.byte_offset
-                    ));
-                }
-            }
-            Some(Kind::Cancelled(x)) => {
-                f.cancelled += 1;
-                entry.1 += 1;
-                if x.byte_offset > len {
-                    f.offsets_beyond_program += 1;
-                    broken.push(format!(
-                        "job {id} on {} cancelled at {} of a {len}-byte program",
-                        j.machine, x.byte_offset
+                        "job {id} on {} {how} at {byte_offset} of a {len}-byte program",
+                        j.machine
                     ));
                 }
             }

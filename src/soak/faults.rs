@@ -18,6 +18,8 @@ pub(crate) struct Injector {
     reloads: u32,
     client: Option<Client>,
     background: JoinSet<()>,
+    /// When a full disk has room again, while one is full.
+    disk_full_until: Option<tokio::time::Instant>,
 }
 
 impl Injector {
@@ -28,6 +30,7 @@ impl Injector {
             reloads: 0,
             client: None,
             background: JoinSet::new(),
+            disk_full_until: None,
         }
     }
 
@@ -87,6 +90,12 @@ impl Injector {
                 }
             }
             FaultKind::GatewayKill => {
+                // Not while the disk is full: the history holds its records in memory then,
+                // and a kill -9 loses them (docs/history.md, "Durability"); the soak checks
+                // what the gateway promises, so the kill waits until the disk has room.
+                if let Some(until) = self.disk_full_until.take() {
+                    tokio::time::sleep_until(until + Duration::from_secs(3)).await;
+                }
                 rig.kill_gateway().await;
                 tokio::time::sleep(Duration::from_secs(2)).await;
                 rig.start_gateway().map_err(|e| e.to_string())?;
@@ -119,6 +128,7 @@ impl Injector {
                 })
                 .await
                 .map_err(|e| e.to_string())?;
+                self.disk_full_until = Some(tokio::time::Instant::now() + Duration::from_secs(15));
                 self.background.spawn(async move {
                     tokio::time::sleep(Duration::from_secs(15)).await;
                     let _ = tokio::fs::remove_file(&fill).await;

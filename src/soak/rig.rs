@@ -322,20 +322,25 @@ impl Rig {
         Ok(Stdio::from(f))
     }
 
-    fn start_group(&mut self, g: usize) -> Result<(), SoakError> {
-        let group = &self.groups[g];
-        let (family, first, count) = (group.family, group.first_port, group.count);
-        let mut c = self.command(&[
+    /// `cellgate sim fanuc` as every board of the soak runs: its CNC reads at once, and its
+    /// operator presses cycle start a second after a reset (§8.2).
+    fn board_command(&self) -> Command {
+        self.command(&[
             "sim",
             "fanuc",
             "--autostart",
             "--consume-rate",
             "0",
-            // An operator's second before cycle start after a reset (§8.2).
             "--first-request-delay-ms",
             "1000",
-            "--commands-stdin",
-        ]);
+        ])
+    }
+
+    fn start_group(&mut self, g: usize) -> Result<(), SoakError> {
+        let group = &self.groups[g];
+        let (family, first, count) = (group.family, group.first_port, group.count);
+        let mut c = self.board_command();
+        c.arg("--commands-stdin");
         c.args(["--protocol", family.sim()])
             .args(["--baud", &family.baud().to_string()])
             .args(["--boards", &count.to_string()])
@@ -378,20 +383,8 @@ impl Rig {
 
     fn start_spare(&mut self) -> Result<(), SoakError> {
         let listen = format!("127.0.0.1:{}", self.spare_port);
-        let mut c = self.command(&[
-            "sim",
-            "fanuc",
-            "--autostart",
-            "--consume-rate",
-            "0",
-            // An operator's second before cycle start after a reset (§8.2).
-            "--first-request-delay-ms",
-            "1000",
-            "--baud",
-            "38400",
-            "--listen",
-            &listen,
-        ]);
+        let mut c = self.board_command();
+        c.args(["--baud", "38400", "--listen", &listen]);
         c.stderr(self.log("boards.log")?);
         self.spare_board = Some(c.spawn().map_err(|e| SoakError::Spawn("sim fanuc", e))?);
         Ok(())
