@@ -54,16 +54,6 @@ pub fn slope_per_hour(points: &[(f64, f64)]) -> Option<f64> {
     (sxx > 0.0 && slope.is_finite()).then_some(slope)
 }
 
-/// The warm part of a run: samples from `warm_s` seconds on, only those with gateway_up
-/// (and a finite time).
-pub fn warm(samples: &[Sample], warm_s: f64) -> Vec<Sample> {
-    samples
-        .iter()
-        .filter(|s| s.gateway_up && s.t_s.is_finite() && s.t_s >= warm_s)
-        .copied()
-        .collect()
-}
-
 const W: f64 = 1000.0;
 const H: f64 = 700.0;
 const LEFT: f64 = 70.0;
@@ -455,19 +445,6 @@ mod tests {
             None
         );
         assert!(slope_per_hour(&[(0.0, 0.0), (f64::NAN, 5.0), (1.0, 1.0)]).is_some());
-    }
-
-    #[test]
-    fn warm_drops_early_and_down_samples() {
-        let s = [
-            sample(10.0, 1, true, 0, 0),
-            sample(70.0, 2, false, 0, 0),
-            sample(80.0, 3, true, 0, 0),
-            sample(f64::NAN, 4, true, 0, 0),
-            sample(90.0, 5, true, 0, 0),
-        ];
-        let w: Vec<u64> = warm(&s, 60.0).iter().map(|s| s.rss_kib).collect();
-        assert_eq!(w, [3, 5]);
     }
 
     #[test]
